@@ -1,0 +1,195 @@
+"""Kinematic file (``format: swpc-kinematics/1``): load with validation, save atomically.
+
+Schema (CONVENTIONS.md)::
+
+    format: swpc-kinematics/1
+    robot: <robot id>
+    frame: <frame name>
+    created: <ISO 8601 UTC>
+    modules:
+      - {id, x_s, y_s, beta, b, r, stddev: {x_s, y_s, beta, b, r}}   # stddev optional
+
+Unknown keys are ignored on load (and preserved in ``extra`` of :class:`KinematicFile`);
+missing required keys, non-finite values, ``b <= 0``, ``r <= 0``, duplicate ids and
+N < 2 raise :class:`~swpc_hw.errors.KinematicFileError` naming the key.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from swpc_hw.errors import KinematicFileError
+from swpc_hw.model import ModuleParams, ModuleStddev, RobotParams
+
+FORMAT = "swpc-kinematics/1"
+PARAM_KEYS = ("x_s", "y_s", "beta", "b", "r")
+
+
+@dataclass
+class KinematicFile:
+    """A loaded kinematic file: the robot parameters plus header and extra keys."""
+
+    params: RobotParams
+    created: str
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+def _number(value: Any, key: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise KinematicFileError(f"{where}: {key}: must be a number (got {value!r})")
+    x = float(value)
+    if not math.isfinite(x):
+        raise KinematicFileError(f"{where}: {key}: must be finite (got {value!r})")
+    return x
+
+
+def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
+    """Validate a parsed YAML document; ``where`` names the source in error messages."""
+    if not isinstance(doc, dict):
+        raise KinematicFileError(f"{where}: top level must be a mapping")
+    for key in ("format", "robot", "frame", "modules"):
+        if key not in doc:
+            raise KinematicFileError(f"{where}: missing key '{key}'")
+    if doc["format"] != FORMAT:
+        raise KinematicFileError(f"{where}: format: expected '{FORMAT}' (got {doc['format']!r})")
+    mods = doc["modules"]
+    if not isinstance(mods, list):
+        raise KinematicFileError(f"{where}: modules: must be a list")
+    if len(mods) < 2:
+        raise KinematicFileError(f"{where}: modules: an SWPC robot needs N >= 2 (got {len(mods)})")
+    modules: list[ModuleParams] = []
+    seen: set[int] = set()
+    for i, m in enumerate(mods):
+        loc = f"modules[{i}]"
+        if not isinstance(m, dict):
+            raise KinematicFileError(f"{where}: {loc}: must be a mapping")
+        if "id" not in m:
+            raise KinematicFileError(f"{where}: missing key '{loc}.id'")
+        mid = m["id"]
+        if isinstance(mid, bool) or not isinstance(mid, int) or mid < 0:
+            raise KinematicFileError(f"{where}: {loc}.id: must be a non-negative integer")
+        if mid in seen:
+            raise KinematicFileError(f"{where}: {loc}.id: duplicate module id {mid}")
+        seen.add(mid)
+        vals: dict[str, float] = {}
+        for key in PARAM_KEYS:
+            if key not in m:
+                raise KinematicFileError(f"{where}: missing key '{loc}.{key}'")
+            vals[key] = _number(m[key], f"{loc}.{key}", where)
+        for key in ("b", "r"):
+            if vals[key] <= 0.0:
+                raise KinematicFileError(f"{where}: {loc}.{key}: must be > 0 (got {vals[key]!r})")
+        std = None
+        if m.get("stddev") is not None:
+            sd = m["stddev"]
+            if not isinstance(sd, dict):
+                raise KinematicFileError(f"{where}: {loc}.stddev: must be a mapping")
+            sdv: dict[str, float] = {}
+            for key in PARAM_KEYS:
+                if key not in sd:
+                    raise KinematicFileError(f"{where}: missing key '{loc}.stddev.{key}'")
+                sdv[key] = _number(sd[key], f"{loc}.stddev.{key}", where)
+                if sdv[key] < 0:
+                    raise KinematicFileError(f"{where}: {loc}.stddev.{key}: must be >= 0")
+            std = ModuleStddev(**sdv)
+        modules.append(ModuleParams(id=mid, stddev=std, **vals))
+    known = {"format", "robot", "frame", "created", "modules"}
+    extra = {k: v for k, v in doc.items() if k not in known}
+    params = RobotParams(robot=str(doc["robot"]), frame=str(doc["frame"]), modules=modules)
+    return KinematicFile(params=params, created=str(doc.get("created", "")), extra=extra)
+
+
+def load_kinematics(path: str | os.PathLike[str]) -> KinematicFile:
+    """Load and validate a kinematic file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise KinematicFileError(f"{p}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise KinematicFileError(f"{p}: not valid YAML: {exc}".splitlines()[0]) from exc
+    return parse_kinematics(doc, str(p))
+
+
+def load_robot(path: str | os.PathLike[str]) -> RobotParams:
+    """Load just the parameters of a kinematic file (e.g. a dataset's ``robot.yaml``)."""
+    return load_kinematics(path).params
+
+
+def kinematics_document(
+    params: RobotParams, *, created: str | None = None, extra: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The YAML document for ``params`` (plain Python types only)."""
+    modules = []
+    for m in params.modules:
+        d: dict[str, Any] = {"id": m.id}
+        d.update({k: float(getattr(m, k)) for k in PARAM_KEYS})
+        if m.stddev is not None:
+            d["stddev"] = {k: float(getattr(m.stddev, k)) for k in PARAM_KEYS}
+        modules.append(d)
+    doc: dict[str, Any] = {
+        "format": FORMAT,
+        "robot": params.robot,
+        "frame": params.frame,
+        "created": created or _now_iso(),
+        "modules": modules,
+    }
+    for k, v in (extra or {}).items():
+        if k not in doc:
+            doc[k] = v
+    return doc
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
+    """Write ``text`` to ``path`` atomically: temp file in the same directory, fsync, rename.
+
+    On any failure the temp file is removed and ``path`` is untouched.
+    """
+    p = Path(path)
+    directory = p.parent if str(p.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # persist the rename itself
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+def save_kinematics(
+    path: str | os.PathLike[str],
+    params: RobotParams,
+    *,
+    created: str | None = None,
+    extra: dict[str, Any] | None = None,
+) -> None:
+    """Save ``params`` as a kinematic file, atomically."""
+    doc = kinematics_document(params, created=created, extra=extra)
+    text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)
+    parse_kinematics(yaml.safe_load(text), str(path))  # never write what we cannot load
+    atomic_write_text(path, text)
