@@ -14,9 +14,7 @@ from collections.abc import Sequence
 
 from swpc_hw.errors import SwpcError
 
-SUBCOMMANDS: tuple[str, ...] = (
-    "swpc_hw.commands.solve",
-)
+SUBCOMMANDS: tuple[str, ...] = ("swpc_hw.commands.solve",)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -154,5 +154,6 @@ def save_dataset(directory: str | os.PathLike[str], ds: Dataset) -> None:
     )
     seg_rows = np.array([[s.static_module, s.start, s.end] for s in ds.segments], dtype=float)
     atomic_write_text(
-        d / "segments.csv", _csv_text(SEGMENTS_COLUMNS, seg_rows.reshape(-1, 3), ["%d", "%.6f", "%.6f"])
+        d / "segments.csv",
+        _csv_text(SEGMENTS_COLUMNS, seg_rows.reshape(-1, 3), ["%d", "%.6f", "%.6f"]),
     )

@@ -150,13 +150,21 @@ class RobotParams(BaseModel):
             std = None
             if sd is not None:
                 std = ModuleStddev(
-                    x_s=float(sd[i, 0]), y_s=float(sd[i, 1]), beta=float(sd[i, 2]),
-                    b=float(sd[i, 3]), r=float(sd[i, 4]),
+                    x_s=float(sd[i, 0]),
+                    y_s=float(sd[i, 1]),
+                    beta=float(sd[i, 2]),
+                    b=float(sd[i, 3]),
+                    r=float(sd[i, 4]),
                 )
             modules.append(
                 ModuleParams(
-                    id=int(mid), x_s=float(P[i, 0]), y_s=float(P[i, 1]), beta=float(be[i]),
-                    b=float(bb[i]), r=float(rr[i]), stddev=std,
+                    id=int(mid),
+                    x_s=float(P[i, 0]),
+                    y_s=float(P[i, 1]),
+                    beta=float(be[i]),
+                    b=float(bb[i]),
+                    r=float(rr[i]),
+                    stddev=std,
                 )
             )
         return cls(robot=robot, frame=frame, modules=modules)
@@ -191,9 +199,9 @@ def true_steering_angle(theta_hat: ArrayLike, beta: ArrayLike) -> FloatArray:
 
 def contact_point(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike) -> FloatArray:
     """``P_w = P_s + b u(theta)`` (true steering angle ``theta``)."""
-    return np.asarray(P_s, dtype=float) + np.asarray(b, dtype=float)[..., None] * steering_direction(
-        theta
-    )
+    return np.asarray(P_s, dtype=float) + np.asarray(b, dtype=float)[
+        ..., None
+    ] * steering_direction(theta)
 
 
 def cross_z(omega: ArrayLike, p: ArrayLike) -> FloatArray:

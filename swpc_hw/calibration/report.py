@@ -1,0 +1,77 @@
+"""Human-facing tables of calibration results (millimetres and degrees)."""
+
+from __future__ import annotations
+
+import math
+
+from swpc_hw.calibration.solver import CalibrationResult
+from swpc_hw.model import ModuleParams, RobotParams
+
+#: name, attribute, factor to display unit, unit
+COLUMNS = (
+    ("x_s", "x_s", 1e3, "mm"),
+    ("y_s", "y_s", 1e3, "mm"),
+    ("beta", "beta", 180.0 / math.pi, "deg"),
+    ("b", "b", 1e3, "mm"),
+    ("r", "r", 1e3, "mm"),
+)
+
+
+def _fmt(value: float, unit: str) -> str:
+    return f"{value:.4f}" if unit == "deg" else f"{value:.3f}"
+
+
+def result_rows(result: CalibrationResult, truth: RobotParams | None = None) -> list[list[str]]:
+    """Rows: module, parameter, unit, nominal, estimate, std dev[, truth, error]."""
+    rows: list[list[str]] = []
+    for m in result.params.modules:
+        nominal: ModuleParams | None = (
+            result.nominal.module(m.id) if m.id in result.nominal.ids else None
+        )
+        for name, attr, f, unit in COLUMNS:
+            est = getattr(m, attr) * f
+            std = getattr(m.stddev, attr) * f if m.stddev is not None else math.nan
+            row = [
+                str(m.id),
+                name,
+                unit,
+                _fmt(getattr(nominal, attr) * f, unit) if nominal else "-",
+                _fmt(est, unit),
+                _fmt(std, unit) if math.isfinite(std) else "-",
+            ]
+            if truth is not None:
+                t = getattr(truth.module(m.id), attr) * f
+                row += [_fmt(t, unit), f"{est - t:+.4f}"]
+            rows.append(row)
+    return rows
+
+
+def format_table(result: CalibrationResult, truth: RobotParams | None = None) -> str:
+    """Plain-text table: nominal, estimate and std dev (and truth/error when given)."""
+    header = ["module", "param", "unit", "nominal", "estimate", "std dev"]
+    if truth is not None:
+        header += ["truth", "error"]
+    rows = [header, *result_rows(result, truth)]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    lines = []
+    for k, r in enumerate(rows):
+        lines.append("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)))
+        if k == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    q = result
+    lines.append("")
+    lines.append(
+        f"poses used {q.poses_used} (rejected {q.poses_rejected}); wheel increments used "
+        f"{q.increments_used} (rejected {q.increments_rejected}); time offset "
+        f"{q.time_offset * 1e3:.2f} ms ({q.time_offset_mode}"
+        + (f", std {q.time_offset_std * 1e3:.2f} ms" if q.time_offset_std else "")
+        + f"); reduced chi2 {q.reduced_chi2:.3g}"
+    )
+    for s in q.segments:
+        lines.append(
+            f"  segment {s.row + 1}: module {s.static_module} at {math.degrees(s.angle):7.2f} deg: "
+            f"fixed-point RMS {s.fixed_point_rms * 1e3:.4f} mm, rolling RMS "
+            f"{s.rolling_rms * 1e3:.4f} mm, settled RMS {s.settled_rms * 1e3:.4f} mm, "
+            f"poses {s.poses_used}/{s.poses_used + s.poses_rejected}"
+        )
+    return "\n".join(lines)
