@@ -1,0 +1,439 @@
+"""Simulated calibration experiment (CONVENTIONS.md, "The calibration experiment").
+
+:func:`generate_experiment` plays the whole seed method on a hidden *truth* robot and
+returns a :class:`~swpc_hw.dataset.Dataset` (whose ``robot`` is the *nominal* robot, never
+the truth) plus ground-truth extras for tests.
+
+Timeline (time starts at 0, one continuous clock; the body starts at pose (0, 0, 0); every
+module starts at ``theta_hat = 0``, ``psi = 0``).  For each module k in id order and each
+angle ``a_m`` of ``options.angles``:
+
+1. ``m > 0`` only: **re-steer** k from ``a_{m-1}`` to ``a_m`` (``resteer_time``): its wheel
+   is pinned in the fixing tool and its fork keeps its world orientation, so the body
+   rotates about ``P_s,k`` by ``-(a_m - a_{m-1})`` (raised-cosine profile) while the free
+   casters trail (exact integration, :func:`simulators.physics.trailing_about_pivot`).
+2. **align** (``align_time``, body still, wheels do not turn, steering scrubs): k steers to
+   ``theta_hat = a_m``; every other module steers to the common true direction
+   ``u_c = -sign(omega) z x (G - C) / |G - C|`` (``G`` centroid of the steering axes,
+   ``C = P_s,k + b_k u(a_m + beta_k)``): the trailing direction of the point ``G``.
+3. **spin** about ``C``: yaw rate ramps (raised cosine, ``ramp_time``) to ``yaw_rate``,
+   holds, ramps down.  The steady part lasts ``settle + spin_duration`` where ``settle``
+   is at least ``settle_time`` and long enough that every free caster is within
+   ``settle_tol`` of its settled angle (computed from the exact solution); the segment
+   window is ``[start, start + spin_duration]`` after the settle (pose clock).
+
+Outputs: poses (t, x, y, yaw) at ``pose_rate`` with **yaw wrapped to (-pi, pi]**;
+encoders at ``encoder_rate`` for every module with reported steering
+``theta_hat = theta - beta`` **wrapped to (-pi, pi]** (the static module reports its held
+angle) and cumulative wheel angle ``psi`` (not wrapped).  Trailing wheels turn backwards
+(``psi`` decreasing) in the sign convention of CONVENTIONS.md.
+
+Clock offset convention (dataset): ``time_offset = encoder clock - pose clock``; an
+encoder row stamped ``t_e`` was sampled at pose-clock time ``t_e - clock_offset``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from simulators.physics import (
+    FloatArray,
+    pose_about_pivot,
+    settled_trailing,
+    smooth_step,
+    spin_angle,
+    trailing_about_pivot,
+)
+from swpc_hw.dataset import Dataset, Segment, save_dataset
+from swpc_hw.kinematic_file import save_kinematics
+from swpc_hw.model import RobotParams, rot, steering_direction, wrap_angle
+from swpc_hw.reference import PAPER_NOMINAL
+
+_DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True)
+class ExperimentOptions:
+    """Settings of a simulated experiment (SI units; everything random is seeded by ``seed``)."""
+
+    angles: tuple[float, ...] = (45.0 * _DEG, 165.0 * _DEG)
+    yaw_rate: float = 0.5  # rad/s, > 0 counter-clockwise
+    spin_duration: float = 12.0  # s of steady spin recorded per segment
+    settle_time: float = 2.0  # s, minimum steady spin before the window
+    settle_tol: float = 1e-10  # rad, max caster error at window start (noiseless physics)
+    max_settle: float = 120.0  # s, give up (ValueError) if casters settle slower
+    ramp_time: float = 1.0  # s, yaw-rate ramp up / down
+    align_time: float = 1.0  # s, steering alignment before each spin
+    resteer_time: float = 2.0  # s, re-steering the locked module
+    pose_rate: float = 100.0  # Hz
+    encoder_rate: float = 200.0  # Hz
+    counts_per_rev: int | None = 2**17  # encoder quantization (both axes); None = off
+    pose_sigma_xy: float = 0.0  # m
+    pose_sigma_yaw: float = 0.0  # rad
+    dropout_fraction: float = 0.0  # fraction of pose rows removed
+    outlier_fraction: float = 0.0  # fraction of (kept) pose rows made outliers
+    outlier_magnitude: float = 0.05  # m jump (random direction); yaw jumps magnitude/0.25 rad
+    slip_burst_rate: float = 0.0  # bursts per second per dynamic wheel
+    slip_duration: tuple[float, float] = (0.2, 0.5)  # s, uniform
+    slip_factor: tuple[float, float] = (0.3, 1.0)  # extra wheel rotation / rolling rotation
+    clock_offset: float = 0.0  # s, encoder clock - pose clock
+    integration_dt: float = 1e-3  # s, time grid of the settle search
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SegmentTruth:
+    """Ground truth of one spin: the window, its fixed point and the settled casters."""
+
+    static_module: int
+    angle_index: int
+    theta_hat: float  # held reported angle of the static module
+    start: float
+    end: float
+    fixed_point: FloatArray  # (2,) C in R
+    fixed_point_world: FloatArray  # (2,) C in W
+    settled_theta: FloatArray  # (N,) true steering of every module in the window
+    settled_theta_hat: FloatArray  # (N,) reported (wrapped), static = held angle
+    D: FloatArray  # (N,) |P_w,j - C| (0 for the static module)
+    yaw_rate: float
+
+
+@dataclass(frozen=True)
+class SlipBurst:
+    """Encoder over-rotation of one wheel: extra ``factor`` x rolling rotation in [start, end]."""
+
+    module: int
+    start: float
+    end: float
+    factor: float
+
+
+@dataclass
+class Experiment:
+    """A simulated run: the dataset (nominal robot) and the hidden truth."""
+
+    dataset: Dataset
+    truth: RobotParams
+    true_poses: FloatArray  # (P, 4) t, x, y, yaw (wrapped), noiseless, every pose time
+    encoder_stamps: FloatArray  # (E,) encoder clock
+    true_theta: FloatArray  # (E, N) true steering (wrapped) at the encoder sample times
+    true_psi: FloatArray  # (E, N) rolling wheel angle without slip or quantization
+    segments: list[SegmentTruth]
+    slip_bursts: list[SlipBurst] = field(default_factory=list)
+    dropped_times: FloatArray = field(default_factory=lambda: np.zeros(0))
+    outlier_times: FloatArray = field(default_factory=lambda: np.zeros(0))
+    duration: float = 0.0
+    generation_seconds: float = 0.0
+
+    def save(self, directory: str | os.PathLike[str]) -> None:
+        """Write the dataset directory plus ``truth.yaml`` (kinematic file of the truth)."""
+        d = Path(directory)
+        save_dataset(d, self.dataset)
+        save_kinematics(d / "truth.yaml", self.truth, extra={"note": "simulation ground truth"})
+
+
+# --------------------------------------------------------------------------- phases
+
+
+@dataclass
+class _Phase:
+    """A piece of the timeline: rotation about a fixed body point, or steering alignment."""
+
+    t0: float
+    t1: float
+    pose0: FloatArray
+    theta0: FloatArray
+    psi0: FloatArray
+    kind: str  # "rotate" | "align"
+    pivot: FloatArray = field(default_factory=lambda: np.zeros(2))
+    free: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    fork: int = -1  # index of a module whose fork keeps its world orientation
+    profile: tuple[str, float, float, float] = ("spin", 0.0, 0.0, 0.0)
+    theta1: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+    def phi(self, tau: FloatArray) -> FloatArray:
+        kind, a, b_, c = self.profile
+        if kind == "spin":
+            return spin_angle(tau, a, b_, c)
+        return a * smooth_step(tau / b_)  # "resteer": total angle a over b_ seconds
+
+    def evaluate(
+        self, t: FloatArray, P_s: FloatArray, b: FloatArray, r: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Poses (K, 3) (yaw not wrapped), true theta (K, N), psi (K, N) at times ``t``."""
+        tau = np.asarray(t, dtype=float) - self.t0
+        K, n = tau.shape[0], self.theta0.shape[0]
+        theta = np.broadcast_to(self.theta0, (K, n)).copy()
+        psi = np.broadcast_to(self.psi0, (K, n)).copy()
+        if self.kind == "align":
+            s = smooth_step(tau / (self.t1 - self.t0))[:, None]
+            theta = self.theta0 + (self.theta1 - self.theta0) * s
+            pose = np.broadcast_to(self.pose0, (K, 3)).copy()
+            return pose, theta, psi
+        ph = self.phi(tau)
+        pose = pose_about_pivot(self.pose0, self.pivot, ph)
+        idx = np.flatnonzero(self.free)
+        if idx.size:
+            th, dpsi = trailing_about_pivot(
+                P_s[idx], b[idx], r[idx], self.pivot, self.theta0[idx], ph[:, None]
+            )
+            theta[:, idx] = th
+            psi[:, idx] = self.psi0[idx] + dpsi
+        if self.fork >= 0:
+            theta[:, self.fork] = self.theta0[self.fork] - ph
+        return pose, theta, psi
+
+
+def _evaluate(
+    phases: list[_Phase], t: FloatArray, P_s: FloatArray, b: FloatArray, r: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    n = P_s.shape[0]
+    K = t.shape[0]
+    pose = np.zeros((K, 3))
+    theta = np.zeros((K, n))
+    psi = np.zeros((K, n))
+    starts = np.array([p.t0 for p in phases])
+    which = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(phases) - 1)
+    for i, ph in enumerate(phases):
+        sel = np.flatnonzero(which == i)
+        if sel.size:
+            tt = np.minimum(t[sel], ph.t1)
+            pose[sel], theta[sel], psi[sel] = ph.evaluate(tt, P_s, b, r)
+    return pose, theta, psi
+
+
+# --------------------------------------------------------------------------- generator
+
+
+def default_nominal(truth: RobotParams) -> RobotParams:
+    """The nominal robot of a run: PAPER_NOMINAL for the paper's ids, else the truth rounded.
+
+    Rounded: ``beta = 0``, ``x_s, y_s`` to 5 mm, ``b, r`` to 1 mm.
+    """
+    if truth.ids == PAPER_NOMINAL.ids:
+        return PAPER_NOMINAL
+    a = truth.arrays()
+    return RobotParams.from_arrays(
+        a.ids,
+        np.round(a.P_s / 0.005) * 0.005,
+        np.zeros(a.n),
+        np.maximum(np.round(a.b, 3), 0.001),
+        np.maximum(np.round(a.r, 3), 0.001),
+        robot=truth.robot,
+        frame=truth.frame,
+    )
+
+
+def _quantize(x: FloatArray, counts: int | None) -> FloatArray:
+    if counts is None:
+        return x
+    q = 2.0 * np.pi / counts
+    return np.asarray(np.round(x / q) * q, dtype=float)
+
+
+def _settle_time(
+    theta0: FloatArray,
+    P_s: FloatArray,
+    b: FloatArray,
+    r: FloatArray,
+    C: FloatArray,
+    opt: ExperimentOptions,
+    free: NDArray[np.bool_],
+) -> float:
+    """Steady time after the ramp until every free caster is within ``settle_tol``."""
+    idx = np.flatnonzero(free)
+    w = opt.yaw_rate
+    target, _ = settled_trailing(P_s[idx], b[idx], C, np.sign(w))
+    dt = opt.integration_dt
+    chunk = 4096
+    start = 0
+    n_max = math.ceil(opt.max_settle / dt)
+    while start <= n_max:
+        i = np.arange(start, min(start + chunk, n_max + 1))
+        phi = w * (0.5 * opt.ramp_time + i * dt)
+        th, _ = trailing_about_pivot(P_s[idx], b[idx], r[idx], C, theta0[idx], phi[:, None])
+        err = np.abs(wrap_angle(th - target)).max(axis=1)
+        ok = err < opt.settle_tol
+        # convergence is monotonic: first index from which all later ones are ok
+        bad = np.flatnonzero(~ok)
+        first_ok = 0 if bad.size == 0 else int(bad[-1]) + 1
+        if first_ok < i.size:
+            t_conv = float(i[first_ok]) * dt
+            return max(opt.settle_time, t_conv)
+        start += chunk
+    raise ValueError(
+        f"casters did not settle to {opt.settle_tol:g} rad within {opt.max_settle:g} s of spin"
+    )
+
+
+def generate_experiment(
+    truth: RobotParams, options: ExperimentOptions | None = None, nominal: RobotParams | None = None
+) -> Experiment:
+    """Simulate the calibration experiment on ``truth``; see the module docstring."""
+    t_start = time.perf_counter()
+    opt = options or ExperimentOptions()
+    if len(opt.angles) < 2:
+        raise ValueError("the experiment needs at least two steering angles per module")
+    if opt.yaw_rate == 0.0:
+        raise ValueError("yaw_rate must be non-zero")
+    nom = nominal if nominal is not None else default_nominal(truth)
+    if nom.ids != truth.ids:
+        raise ValueError(f"nominal ids {nom.ids} differ from truth ids {truth.ids}")
+    A = truth.arrays()
+    n = A.n
+    P_s, beta, b, r = A.P_s, A.beta, A.b, A.r
+    G = P_s.mean(axis=0)
+    w = opt.yaw_rate
+
+    t = 0.0
+    pose = np.zeros(3)
+    theta = beta.copy()  # theta_hat = 0 everywhere
+    psi = np.zeros(n)
+    phases: list[_Phase] = []
+    seg_info: list[tuple[int, int, float, float, float, FloatArray, FloatArray]] = []
+
+    def close(ph: _Phase) -> None:
+        nonlocal t, pose, theta, psi
+        phases.append(ph)
+        pe, te, se = ph.evaluate(np.array([ph.t1]), P_s, b, r)
+        t, pose, theta, psi = ph.t1, pe[0], te[0], se[0]
+
+    for k in range(n):
+        dyn = np.ones(n, dtype=bool)
+        dyn[k] = False
+        for m, a in enumerate(opt.angles):
+            if m > 0:
+                d = a - opt.angles[m - 1]
+                close(
+                    _Phase(
+                        t, round(t + opt.resteer_time, 9), pose, theta, psi, "rotate",
+                        pivot=P_s[k].copy(), free=dyn, fork=k,
+                        profile=("resteer", -d, opt.resteer_time, 0.0),
+                    )
+                )
+            C = P_s[k] + b[k] * steering_direction(a + beta[k])
+            gc = G - C
+            uc = -np.sign(w) * np.array([-gc[1], gc[0]])
+            target = np.full(n, math.atan2(uc[1], uc[0]))
+            target[k] = a + beta[k]
+            theta1 = theta + wrap_angle(target - theta)
+            close(_Phase(t, round(t + opt.align_time, 9), pose, theta, psi, "align", theta1=theta1))
+            settle = _settle_time(theta, P_s, b, r, C, opt, dyn)
+            settle = math.ceil(settle / opt.integration_dt - 1e-9) * opt.integration_dt
+            steady = settle + opt.spin_duration
+            t0 = t
+            pose0 = pose.copy()
+            close(
+                _Phase(
+                    t, round(t + 2.0 * opt.ramp_time + steady, 9), pose, theta, psi, "rotate",
+                    pivot=C, free=dyn, profile=("spin", w, opt.ramp_time, steady),
+                )
+            )
+            w0 = t0 + opt.ramp_time + settle
+            C_W = pose0[:2] + rot(pose0[2]) @ C
+            seg_info.append((k, m, float(a), w0, w0 + opt.spin_duration, C, C_W))
+    t_end = t
+
+    # ---------------------------------------------------------------- sampling
+    rng = np.random.default_rng(opt.seed)
+    n_p = math.floor(t_end * opt.pose_rate + 1e-9) + 1
+    t_pose = np.arange(n_p) / opt.pose_rate
+    i0 = math.ceil(opt.clock_offset * opt.encoder_rate - 1e-9)
+    i1 = math.floor((t_end + opt.clock_offset) * opt.encoder_rate + 1e-9)
+    stamps = np.arange(i0, i1 + 1) / opt.encoder_rate
+    t_enc = np.clip(stamps - opt.clock_offset, 0.0, t_end)
+
+    poses_true, _, _ = _evaluate(phases, t_pose, P_s, b, r)
+    _, theta_e, psi_e = _evaluate(phases, t_enc, P_s, b, r)
+    theta_e = np.asarray(wrap_angle(theta_e), dtype=float)
+
+    # slip bursts on rolling wheels: extra rotation factor x rolling rotation
+    bursts: list[SlipBurst] = []
+    psi_meas = psi_e.copy()
+    if opt.slip_burst_rate > 0.0:
+        for j in range(n):
+            n_b = rng.poisson(opt.slip_burst_rate * t_end)
+            starts = np.sort(rng.uniform(0.0, t_end, n_b))
+            durs = rng.uniform(*opt.slip_duration, n_b)
+            facs = rng.uniform(*opt.slip_factor, n_b)
+            for ts, du, f in zip(starts, durs, facs, strict=True):
+                te = min(ts + du, t_end)
+                _, _, ps = _evaluate(phases, np.array([ts, te]), P_s, b, r)
+                if abs(ps[1, j] - ps[0, j]) < 1e-12:
+                    continue  # wheel not rolling (static or still): nothing to slip
+                inside = (t_enc > ts) & (t_enc < te)
+                after = t_enc >= te
+                psi_meas[inside, j] += f * (psi_e[inside, j] - ps[0, j])
+                psi_meas[after, j] += f * (ps[1, j] - ps[0, j])
+                bursts.append(SlipBurst(int(A.ids[j]), float(ts), float(te), float(f)))
+
+    # encoders: reported steering (held angle for the static module) and wheel
+    steer = np.asarray(wrap_angle(theta_e - beta), dtype=float)
+    steer = _quantize(steer, opt.counts_per_rev)
+    wheel = _quantize(psi_meas, opt.counts_per_rev)
+    encoders = {
+        int(mid): np.column_stack([stamps, steer[:, j], wheel[:, j]])
+        for j, mid in enumerate(A.ids)
+    }
+
+    # poses: noise, dropout, outliers
+    meas = poses_true.copy()
+    if opt.pose_sigma_xy > 0:
+        meas[:, :2] += rng.normal(0.0, opt.pose_sigma_xy, (n_p, 2))
+    if opt.pose_sigma_yaw > 0:
+        meas[:, 2] += rng.normal(0.0, opt.pose_sigma_yaw, n_p)
+    keep = np.ones(n_p, dtype=bool)
+    if opt.dropout_fraction > 0:
+        drop = rng.choice(n_p, round(opt.dropout_fraction * n_p), replace=False)
+        keep[drop] = False
+    kept = np.flatnonzero(keep)
+    out_idx = np.zeros(0, dtype=int)
+    if opt.outlier_fraction > 0:
+        n_out = round(opt.outlier_fraction * kept.size)
+        out_idx = np.sort(rng.choice(kept, n_out, replace=False))
+        ang = rng.uniform(-np.pi, np.pi, n_out)
+        meas[out_idx, 0] += opt.outlier_magnitude * np.cos(ang)
+        meas[out_idx, 1] += opt.outlier_magnitude * np.sin(ang)
+        meas[out_idx, 2] += rng.choice([-1.0, 1.0], n_out) * opt.outlier_magnitude / 0.25
+    meas[:, 2] = wrap_angle(meas[:, 2])
+    poses_out = np.column_stack([t_pose, meas])[keep]
+    true_rows = np.column_stack([t_pose, poses_true[:, :2], wrap_angle(poses_true[:, 2])])
+
+    # segments and their truth
+    segments: list[Segment] = []
+    seg_truth: list[SegmentTruth] = []
+    for k, m, a, s0, s1, C, C_W in seg_info:
+        _, th_s, _ = _evaluate(phases, np.array([0.5 * (s0 + s1)]), P_s, b, r)
+        th_set = np.asarray(wrap_angle(th_s[0]), dtype=float)
+        _, D = settled_trailing(P_s, b, C, np.sign(w))
+        D[k] = 0.0
+        th_hat = np.asarray(wrap_angle(th_set - beta), dtype=float)
+        th_hat[k] = a
+        mid = int(A.ids[k])
+        segments.append(Segment(mid, round(s0, 6), round(s1, 6)))
+        seg_truth.append(
+            SegmentTruth(mid, m, a, s0, s1, C.copy(), np.asarray(C_W), th_set, th_hat, D, w)
+        )
+
+    ds = Dataset(robot=nom, poses=poses_out, encoders=encoders, segments=segments)
+    return Experiment(
+        dataset=ds,
+        truth=truth,
+        true_poses=true_rows,
+        encoder_stamps=stamps,
+        true_theta=theta_e,
+        true_psi=psi_e,
+        segments=seg_truth,
+        slip_bursts=bursts,
+        dropped_times=t_pose[~keep],
+        outlier_times=t_pose[out_idx],
+        duration=t_end,
+        generation_seconds=time.perf_counter() - t_start,
+    )
