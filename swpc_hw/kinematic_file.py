@@ -192,4 +192,7 @@ def save_kinematics(
     doc = kinematics_document(params, created=created, extra=extra)
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)
     parse_kinematics(yaml.safe_load(text), str(path))  # never write what we cannot load
-    atomic_write_text(path, text)
+    try:
+        atomic_write_text(path, text)
+    except OSError as exc:
+        raise KinematicFileError(f"{path}: cannot write: {exc.strerror or exc}") from exc

@@ -76,12 +76,16 @@ def prepare_segments(
     out: list[SegmentData] = []
     t_all = ds.poses[:, 0]
     for row, seg in enumerate(ds.segments):
-        where = f"{seg_file}: segment {row + 1} (module {seg.static_module}, {seg.start:g}-{seg.end:g} s)"
+        where = (
+            f"{seg_file}: segment {row + 1} "
+            f"(module {seg.static_module}, {seg.start:g}-{seg.end:g} s)"
+        )
         sel = (t_all >= seg.start) & (t_all <= seg.end)
         poses = ds.poses[sel].copy()
         if poses.shape[0] < MIN_POSES:
             raise DatasetError(
-                f"{where}: too few pose samples ({poses.shape[0]} in poses.csv, need >= {MIN_POSES})"
+                f"{where}: too few pose samples "
+                f"({poses.shape[0]} in poses.csv, need >= {MIN_POSES})"
             )
         poses[:, 3] = np.unwrap(poses[:, 3])
         rotation = abs(poses[-1, 3] - poses[0, 3])
