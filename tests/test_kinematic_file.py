@@ -1,0 +1,109 @@
+"""Kinematic file: round trip, every validation error, atomic save."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from swpc_hw.errors import KinematicFileError
+from swpc_hw.kinematic_file import (
+    kinematics_document,
+    load_kinematics,
+    parse_kinematics,
+    save_kinematics,
+)
+from swpc_hw.model import RobotParams
+from swpc_hw.reference import PAPER_CALIBRATED
+
+
+def doc() -> dict[str, Any]:
+    return kinematics_document(PAPER_CALIBRATED, created="2026-01-01T00:00:00Z")
+
+
+def test_round_trip_is_exact(tmp_path: Path) -> None:
+    stds = [[1e-5, 2e-5, 3e-4, 4e-6, 5e-6]] * 4
+    a = PAPER_CALIBRATED.arrays()
+    params = RobotParams.from_arrays(
+        a.ids, a.P_s, a.beta, a.b, a.r, robot="lab-7", frame="R", stddev=stds
+    )
+    path = tmp_path / "k.yaml"
+    save_kinematics(path, params, extra={"quality": {"rms": 1.5e-4}})
+    loaded = load_kinematics(path)
+    assert loaded.params == params
+    assert loaded.extra["quality"]["rms"] == 1.5e-4
+    text = path.read_text()
+    assert text.startswith("format: swpc-kinematics/1\n")
+
+
+def test_unknown_keys_are_ignored() -> None:
+    d = doc()
+    d["modules"][0]["colour"] = "red"
+    d["operator"] = "kim"
+    assert parse_kinematics(d).params == PAPER_CALIBRATED
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda d: d.pop("modules"), "missing key 'modules'"),
+        (lambda d: d.pop("format"), "missing key 'format'"),
+        (lambda d: d.update(format="other/2"), "format: expected"),
+        (lambda d: d["modules"][1].pop("r"), r"missing key 'modules\[1\].r'"),
+        (lambda d: d["modules"][2].pop("id"), r"missing key 'modules\[2\].id'"),
+        (lambda d: d["modules"][0].update(x_s=float("nan")), r"modules\[0\].x_s: must be finite"),
+        (lambda d: d["modules"][0].update(beta=float("inf")), r"modules\[0\].beta: must be finite"),
+        (lambda d: d["modules"][3].update(b=0.0), r"modules\[3\].b: must be > 0"),
+        (lambda d: d["modules"][3].update(r=-0.05), r"modules\[3\].r: must be > 0"),
+        (lambda d: d["modules"][1].update(id=1), r"modules\[1\].id: duplicate module id 1"),
+        (lambda d: d.update(modules=d["modules"][:1]), "N >= 2"),
+        (lambda d: d["modules"][0].update(y_s="abc"), r"modules\[0\].y_s: must be a number"),
+        (
+            lambda d: d["modules"][0].update(stddev={"x_s": 1.0}),
+            r"missing key 'modules\[0\].stddev.y_s'",
+        ),
+    ],
+)
+def test_validation_errors_name_the_key(mutate: Any, message: str, tmp_path: Path) -> None:
+    d = doc()
+    mutate(d)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(d))
+    with pytest.raises(KinematicFileError, match=message) as info:
+        load_kinematics(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
+    with pytest.raises(KinematicFileError, match="cannot read"):
+        load_kinematics(tmp_path / "nope.yaml")
+    p = tmp_path / "broken.yaml"
+    p.write_text("format: [unclosed\n")
+    with pytest.raises(KinematicFileError, match="not valid YAML"):
+        load_kinematics(p)
+
+
+def test_save_is_atomic_and_never_leaves_a_partial_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "k.yaml"
+    save_kinematics(path, PAPER_CALIBRATED)
+    before = path.read_bytes()
+
+    def failing_fsync(fd: int) -> None:
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(os, "fsync", failing_fsync)
+    other = PAPER_CALIBRATED.model_copy(update={"robot": "changed"})
+    with pytest.raises(KinematicFileError, match="cannot write"):
+        save_kinematics(path, other)
+    assert path.read_bytes() == before  # previous file intact
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["k.yaml"]  # no temp file left
+
+
+def test_save_into_missing_directory_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(KinematicFileError, match="cannot write"):
+        save_kinematics(tmp_path / "no" / "k.yaml", PAPER_CALIBRATED)
