@@ -194,28 +194,27 @@ def steering_normal(theta: ArrayLike) -> FloatArray:
 
 def true_steering_angle(theta_hat: ArrayLike, beta: ArrayLike) -> FloatArray:
     """``theta = theta_hat + beta``."""
-    return np.asarray(theta_hat, dtype=float) + np.asarray(beta, dtype=float)
+    return np.asarray(np.asarray(theta_hat, dtype=float) + np.asarray(beta), dtype=float)
 
 
 def contact_point(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike) -> FloatArray:
     """``P_w = P_s + b u(theta)`` (true steering angle ``theta``)."""
-    return np.asarray(P_s, dtype=float) + np.asarray(b, dtype=float)[
-        ..., None
-    ] * steering_direction(theta)
+    b_col = np.asarray(b, dtype=float)[..., None]
+    return np.asarray(np.asarray(P_s, dtype=float) + b_col * steering_direction(theta))
 
 
 def cross_z(omega: ArrayLike, p: ArrayLike) -> FloatArray:
     """``omega x p = omega (-p_y, p_x)`` for planar vectors ``p`` (..., 2)."""
     P = np.asarray(p, dtype=float)
     w = np.asarray(omega, dtype=float)[..., None]
-    return w * np.stack([-P[..., 1], P[..., 0]], axis=-1)
+    return np.asarray(w * np.stack([-P[..., 1], P[..., 0]], axis=-1), dtype=float)
 
 
 def cross2(a: ArrayLike, b: ArrayLike) -> FloatArray:
     """Scalar 2-D cross product ``a_x b_y - a_y b_x``."""
     A = np.asarray(a, dtype=float)
     B = np.asarray(b, dtype=float)
-    return A[..., 0] * B[..., 1] - A[..., 1] * B[..., 0]
+    return np.asarray(A[..., 0] * B[..., 1] - A[..., 1] * B[..., 0], dtype=float)
 
 
 # --------------------------------------------------------------------------- kinematics
@@ -266,9 +265,9 @@ def wheel_velocities(
 ) -> FloatArray:
     """Right-hand side of the constraint per module: ``r psi_dot u + b theta_dot n``, (N, 2)."""
     th = np.asarray(theta, dtype=float)
-    return (arrays.r * np.asarray(psi_dot, dtype=float))[:, None] * steering_direction(th) + (
-        arrays.b * np.asarray(theta_dot, dtype=float)
-    )[:, None] * steering_normal(th)
+    roll = (arrays.r * np.asarray(psi_dot, dtype=float))[:, None] * steering_direction(th)
+    steer = (arrays.b * np.asarray(theta_dot, dtype=float))[:, None] * steering_normal(th)
+    return np.asarray(roll + steer, dtype=float)
 
 
 def forward_kinematics(
@@ -295,7 +294,7 @@ def forward_kinematics(
         sw = np.sqrt(np.repeat(np.asarray(weights, dtype=float), 2))
         twist, *_ = np.linalg.lstsq(J * sw[:, None], rhs * sw, rcond=None)
     residuals = (J @ twist - rhs).reshape(-1, 2)
-    return twist, residuals
+    return np.asarray(twist, dtype=float), np.asarray(residuals, dtype=float)
 
 
 def trailing_steering_angle(arrays: RobotArrays, v: ArrayLike, omega: float) -> FloatArray:

@@ -10,6 +10,8 @@ the median of its 2(N-1) values (the paper's "robust average").
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from swpc_hw.calibration import geometry as geo
@@ -81,7 +83,9 @@ def solve_paper(
             poses_used=s.poses.shape[0],
             poses_rejected=0,
             fixed_point_rms=float("nan"),
-            fixed_point=tuple(C_of.get(s.row, np.full(2, np.nan)).tolist()),  # type: ignore[arg-type]
+            fixed_point=(float(C_of[s.row][0]), float(C_of[s.row][1]))
+            if s.row in C_of
+            else (math.nan, math.nan),
             fixed_point_std=float("nan"),
         )
         for s in segs

@@ -34,6 +34,7 @@ covariance is ``s^2 (J^T W J)^-1`` at the solution.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -633,15 +634,15 @@ def solve(
     )
 
 
-def _jacobian(fun: object, x: FloatArray) -> FloatArray:
-    f = fun  # type: ignore[assignment]
+def _jacobian(f: Callable[[FloatArray], FloatArray], x: FloatArray) -> FloatArray:
+    """Central-difference Jacobian of ``f`` at ``x``."""
     cols = []
     for i in range(x.size):
         h = 1e-7 * max(1.0, abs(float(x[i])))
         xp, xm = x.copy(), x.copy()
         xp[i] += h
         xm[i] -= h
-        cols.append((f(xp) - f(xm)) / (2 * h))  # type: ignore[operator]
+        cols.append((f(xp) - f(xm)) / (2 * h))
     return np.column_stack(cols)
 
 
