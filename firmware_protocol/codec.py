@@ -1,0 +1,634 @@
+"""Python codec of the SWPC controller protocol: pure ``make_*`` builders and ``parse``.
+
+Every frame is encoded and decoded by cantools from ``swpc.dbc`` (the single source of
+truth); this module only adds typed values, SI units at the boundary and error messages
+that name the node, the message and the signal.
+
+Frame ids: ``id = node << 5 | command`` (11-bit, ODrive "CAN Simple" layout).  Node 0 is the
+broadcast address (``Sync``); controllers are nodes 1..``MAX_NODE``.
+
+Positions are fixed point in the frames (steer int20 at 2*pi/2**14 rad per count, wheel
+int36 at 2*pi/2**16 rad per count): the quantisation step is the same after hours of
+rotation as at power-up, which a float32 would not give (its step at 5e5 rad is 0.03 rad).
+The counters wrap; :func:`unwrap` restores a continuous angle on the host.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cantools
+from cantools.database.can import Database, Message
+
+from swpc_hw.errors import SwpcError
+
+DBC_PATH = Path(__file__).with_name("swpc.dbc")
+NODE_SHIFT = 5
+COMMAND_MASK = (1 << NODE_SHIFT) - 1
+BROADCAST_NODE = 0
+MAX_NODE = 8
+SYNC_ID = 0x000
+
+
+class ProtocolError(SwpcError, ValueError):
+    """A frame cannot be encoded or decoded; the message names node, message and signal."""
+
+
+class UnknownFrameError(ProtocolError):
+    """The frame id is not in the DBC (or its node is not a controller node)."""
+
+
+class FrameLengthError(ProtocolError):
+    """The frame's DLC differs from the DBC length of its message."""
+
+
+class SignalRangeError(ProtocolError):
+    """A signal value lies outside the DBC range [minimum, maximum]."""
+
+    def __init__(self, message: str, signal: str) -> None:
+        super().__init__(message)
+        self.signal = signal
+
+
+class Command(enum.IntEnum):
+    """Low 5 bits of the frame id.  ``SYNC`` is only used with node 0."""
+
+    SYNC = 0x00
+    SET_AXIS_STATE = 0x01
+    SET_CONTROL = 0x02
+    FAULT_REPORT = 0x03
+    FEEDBACK_POSITION = 0x04
+    FEEDBACK_VELOCITY_TORQUE = 0x05
+    HEARTBEAT = 0x06
+    CLEAR_ERRORS = 0x07
+    SET_LIMITS = 0x08
+    SET_WATCHDOG = 0x09
+    SET_FEEDBACK = 0x0A
+    START_HOMING = 0x0B
+    HOMING_STATUS = 0x0C
+
+
+#: DBC message name (without the ``N<k>_`` prefix) of each command.
+COMMAND_NAMES: dict[Command, str] = {
+    Command.SYNC: "Sync",
+    Command.SET_AXIS_STATE: "SetAxisState",
+    Command.SET_CONTROL: "SetControl",
+    Command.FAULT_REPORT: "FaultReport",
+    Command.FEEDBACK_POSITION: "FeedbackPosition",
+    Command.FEEDBACK_VELOCITY_TORQUE: "FeedbackVelocityTorque",
+    Command.HEARTBEAT: "Heartbeat",
+    Command.CLEAR_ERRORS: "ClearErrors",
+    Command.SET_LIMITS: "SetLimits",
+    Command.SET_WATCHDOG: "SetWatchdog",
+    Command.SET_FEEDBACK: "SetFeedback",
+    Command.START_HOMING: "StartHoming",
+    Command.HOMING_STATUS: "HomingStatus",
+}
+
+#: Commands the host sends to a controller (each refreshes the controller's watchdog).
+HOST_COMMANDS = frozenset(
+    {
+        Command.SET_AXIS_STATE,
+        Command.SET_CONTROL,
+        Command.CLEAR_ERRORS,
+        Command.SET_LIMITS,
+        Command.SET_WATCHDOG,
+        Command.SET_FEEDBACK,
+        Command.START_HOMING,
+    }
+)
+#: Frames a controller sends to the host.
+CONTROLLER_FRAMES = frozenset(
+    {
+        Command.FAULT_REPORT,
+        Command.FEEDBACK_POSITION,
+        Command.FEEDBACK_VELOCITY_TORQUE,
+        Command.HEARTBEAT,
+        Command.HOMING_STATUS,
+    }
+)
+
+
+class Axis(enum.IntEnum):
+    STEER = 0
+    WHEEL = 1
+
+
+class AxisState(enum.IntEnum):
+    DISABLED = 0
+    ENABLED = 1
+    HOMING = 2
+    FAULT = 3
+
+
+class ControlMode(enum.IntEnum):
+    FREE = 0
+    HOLD = 1
+    POSITION = 2
+    VELOCITY = 3
+    TORQUE = 4
+
+
+class HomingState(enum.IntEnum):
+    NOT_HOMED = 0
+    IN_PROGRESS = 1
+    DONE = 2
+    FAILED = 3
+
+
+class ErrorFlag(enum.IntFlag):
+    """Latched per-axis error bits (Heartbeat ``SteerErrors``/``WheelErrors``)."""
+
+    NONE = 0
+    WATCHDOG_TIMEOUT = 1 << 0
+    OVER_SPEED = 1 << 1
+    OVER_TORQUE = 1 << 2
+    HOMING_FAILED = 1 << 3
+    NOT_HOMED = 1 << 4
+    INVALID_COMMAND = 1 << 5
+    ENCODER = 1 << 6
+    OVER_TEMPERATURE = 1 << 7
+    UNDER_VOLTAGE = 1 << 8
+    MOTOR = 1 << 9
+
+
+def error_names(bits: int) -> str:
+    """``"WATCHDOG_TIMEOUT|OVER_SPEED"`` for an error word, ``"-"`` for 0."""
+    names = [f.name for f in ErrorFlag if f and bits & f and f.name]
+    unknown = bits & ~sum(int(f) for f in ErrorFlag)
+    if unknown:
+        names.append(f"0x{unknown:04x}")
+    return "|".join(names) if names else "-"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One classic CAN data frame (11-bit id)."""
+
+    arbitration_id: int
+    data: bytes
+
+
+def frame_id(node: int, command: Command) -> int:
+    """``node << 5 | command``; node 0 only for ``Sync``."""
+    if command == Command.SYNC:
+        if node != BROADCAST_NODE:
+            raise ProtocolError(f"Sync is a broadcast (node 0) frame, not node {node}")
+    elif not 1 <= node <= MAX_NODE:
+        raise ProtocolError(f"node id {node} outside 1..{MAX_NODE}")
+    return (node << NODE_SHIFT) | int(command)
+
+
+def split_id(arbitration_id: int) -> tuple[int, int]:
+    """``(node, command)`` of an 11-bit id."""
+    return arbitration_id >> NODE_SHIFT, arbitration_id & COMMAND_MASK
+
+
+@functools.cache
+def database() -> Database:
+    """The protocol database loaded from ``swpc.dbc`` (strict)."""
+    db = cantools.database.load_file(str(DBC_PATH), strict=True)
+    assert isinstance(db, Database)
+    return db
+
+
+@functools.cache
+def _messages_by_id() -> dict[int, Message]:
+    return {m.frame_id: m for m in database().messages}
+
+
+def message_for(node: int, command: Command) -> Message:
+    """The DBC message of ``command`` for ``node``."""
+    try:
+        return _messages_by_id()[frame_id(node, command)]
+    except KeyError:
+        raise UnknownFrameError(
+            f"no DBC message for node {node} command {command.name}"
+        ) from None
+
+
+def signal_span(name: str, command: Command = Command.FEEDBACK_POSITION) -> float:
+    """Physical span ``2**length * scale`` of a signal (the period of its wrap-around)."""
+    sig = message_for(1, command).get_signal_by_name(name)
+    return float(2**sig.length * sig.scale)
+
+
+def wrap(value: float, name: str, command: Command = Command.FEEDBACK_POSITION) -> float:
+    """Wrap a physical value into a signed signal's range, as a two's-complement counter does.
+
+    ``raw = round(value / scale)``; ``raw`` is reduced modulo ``2**length`` into
+    ``[-2**(length-1), 2**(length-1))``; returns ``raw * scale``.
+    """
+    sig = message_for(1, command).get_signal_by_name(name)
+    raw = round(value / sig.scale)
+    half = 1 << (sig.length - 1)
+    raw = (raw + half) % (1 << sig.length) - half
+    return float(raw * sig.scale)
+
+
+def unwrap(previous: float, current: float, span: float) -> float:
+    """Continuous angle from a wrapped reading.
+
+    ``current + k * span`` with the integer ``k`` that puts it within ``span / 2`` of
+    ``previous`` (the last unwrapped value): ``k = round((previous - current) / span)``.
+    """
+    return current + span * round((previous - current) / span)
+
+
+def _encode(node: int, command: Command, values: dict[str, Any]) -> Frame:
+    msg = message_for(node, command)
+    try:
+        data = msg.encode(values, scaling=True, padding=False, strict=True)
+    except cantools.database.EncodeError as exc:
+        signal = _signal_in(str(exc), msg)
+        raise SignalRangeError(f"node {node} {msg.name}: {exc}", signal) from exc
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ProtocolError(f"node {node} {msg.name}: cannot encode {values}: {exc}") from exc
+    return Frame(msg.frame_id, bytes(data))
+
+
+def _signal_in(text: str, msg: Message) -> str:
+    for sig in msg.signals:
+        if f'"{sig.name}"' in text:
+            return str(sig.name)
+    return ""
+
+
+# ---------------------------------------------------------------- builders (host -> node)
+
+
+def make_sync(counter: int) -> Frame:
+    """Broadcast SYNC (id 0x000): every controller in sync mode samples now."""
+    return _encode(0, Command.SYNC, {"SyncCounter": counter})
+
+
+def make_set_axis_state(node: int, axis: Axis, enabled: bool) -> Frame:
+    return _encode(
+        node,
+        Command.SET_AXIS_STATE,
+        {"Axis": int(axis), "RequestedState": int(AxisState.ENABLED if enabled else 0)},
+    )
+
+
+def make_set_control(node: int, axis: Axis, mode: ControlMode, setpoint: float = 0.0) -> Frame:
+    """Mode and setpoint (rad, rad/s or N.m by mode; ignored for FREE and HOLD)."""
+    values: dict[str, Any] = {"Axis": int(axis), "Mode": int(mode)}
+    if mode == ControlMode.POSITION:
+        values["PositionSetpoint"] = setpoint
+    elif mode == ControlMode.VELOCITY:
+        values["VelocitySetpoint"] = setpoint
+    elif mode == ControlMode.TORQUE:
+        values["TorqueSetpoint"] = setpoint
+    return _encode(node, Command.SET_CONTROL, values)
+
+
+def make_clear_errors(node: int, axis_mask: int = 0b11) -> Frame:
+    """Clear the latched errors of the axes in ``axis_mask`` (bit 0 steer, bit 1 wheel)."""
+    return _encode(node, Command.CLEAR_ERRORS, {"AxisMask": axis_mask})
+
+
+def make_set_limits(node: int, axis: Axis, max_torque: float, max_velocity: float) -> Frame:
+    return _encode(
+        node,
+        Command.SET_LIMITS,
+        {"Axis": int(axis), "MaxTorque": max_torque, "MaxVelocity": max_velocity},
+    )
+
+
+def make_set_watchdog(node: int, timeout_ms: int) -> Frame:
+    """Command watchdog timeout in ms (0 disables it)."""
+    return _encode(node, Command.SET_WATCHDOG, {"TimeoutMs": timeout_ms})
+
+
+def make_set_feedback(node: int, rate_hz: int, sync_mode: bool = False) -> Frame:
+    """Feedback stream rate (0 = off, up to 500 Hz) or one sample per SYNC."""
+    return _encode(node, Command.SET_FEEDBACK, {"RateHz": rate_hz, "SyncMode": int(sync_mode)})
+
+
+def make_start_homing(node: int, axis: Axis = Axis.STEER) -> Frame:
+    return _encode(node, Command.START_HOMING, {"Axis": int(axis)})
+
+
+# ---------------------------------------------------------------- builders (node -> host)
+
+
+def make_heartbeat(
+    node: int,
+    states: tuple[AxisState, AxisState],
+    modes: tuple[ControlMode, ControlMode],
+    errors: tuple[int, int],
+    homed: bool,
+    sync_mode: bool,
+    counter: int,
+) -> Frame:
+    return _encode(
+        node,
+        Command.HEARTBEAT,
+        {
+            "SteerState": int(states[0]),
+            "SteerMode": int(modes[0]),
+            "WheelState": int(states[1]),
+            "WheelMode": int(modes[1]),
+            "SteerErrors": int(errors[0]),
+            "WheelErrors": int(errors[1]),
+            "Homed": int(homed),
+            "SyncMode": int(sync_mode),
+            "Counter": counter,
+        },
+    )
+
+
+def make_feedback_position(node: int, steer: float, wheel: float, counter: int) -> Frame:
+    """Positions in rad; both wrap like the controller's fixed-point counters."""
+    return _encode(
+        node,
+        Command.FEEDBACK_POSITION,
+        {
+            "SteerPosition": wrap(steer, "SteerPosition"),
+            "WheelPosition": wrap(wheel, "WheelPosition"),
+            "Counter": counter,
+        },
+    )
+
+
+def make_feedback_velocity_torque(
+    node: int,
+    steer_velocity: float,
+    wheel_velocity: float,
+    steer_torque: float,
+    wheel_torque: float,
+    counter: int,
+) -> Frame:
+    return _encode(
+        node,
+        Command.FEEDBACK_VELOCITY_TORQUE,
+        {
+            "SteerVelocity": steer_velocity,
+            "WheelVelocity": wheel_velocity,
+            "SteerTorque": steer_torque,
+            "WheelTorque": wheel_torque,
+            "Counter": counter,
+        },
+    )
+
+
+def make_fault_report(
+    node: int, axis: Axis, new_errors: int, active_errors: int, state: AxisState
+) -> Frame:
+    return _encode(
+        node,
+        Command.FAULT_REPORT,
+        {
+            "Axis": int(axis),
+            "NewErrors": int(new_errors),
+            "ActiveErrors": int(active_errors),
+            "AxisState": int(state),
+        },
+    )
+
+
+def make_homing_status(
+    node: int, axis: Axis, status: HomingState, sensor_position: float = 0.0
+) -> Frame:
+    return _encode(
+        node,
+        Command.HOMING_STATUS,
+        {"Axis": int(axis), "Status": int(status), "SensorPosition": sensor_position},
+    )
+
+
+# ---------------------------------------------------------------- decoded frames
+
+
+@dataclass(frozen=True)
+class Sync:
+    node: int
+    counter: int
+
+
+@dataclass(frozen=True)
+class SetAxisState:
+    node: int
+    axis: Axis
+    enabled: bool
+
+
+@dataclass(frozen=True)
+class SetControl:
+    node: int
+    axis: Axis
+    mode: ControlMode
+    setpoint: float
+
+
+@dataclass(frozen=True)
+class ClearErrors:
+    node: int
+    axis_mask: int
+
+
+@dataclass(frozen=True)
+class SetLimits:
+    node: int
+    axis: Axis
+    max_torque: float
+    max_velocity: float
+
+
+@dataclass(frozen=True)
+class SetWatchdog:
+    node: int
+    timeout_ms: int
+
+
+@dataclass(frozen=True)
+class SetFeedback:
+    node: int
+    rate_hz: int
+    sync_mode: bool
+
+
+@dataclass(frozen=True)
+class StartHoming:
+    node: int
+    axis: Axis
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    node: int
+    states: tuple[AxisState, AxisState]
+    modes: tuple[ControlMode, ControlMode]
+    errors: tuple[int, int]
+    homed: bool
+    sync_mode: bool
+    counter: int
+
+
+@dataclass(frozen=True)
+class FeedbackPosition:
+    node: int
+    steer: float
+    wheel: float
+    counter: int
+
+
+@dataclass(frozen=True)
+class FeedbackVelocityTorque:
+    node: int
+    steer_velocity: float
+    wheel_velocity: float
+    steer_torque: float
+    wheel_torque: float
+    counter: int
+
+
+@dataclass(frozen=True)
+class FaultReport:
+    node: int
+    axis: Axis
+    new_errors: int
+    active_errors: int
+    state: AxisState
+
+
+@dataclass(frozen=True)
+class HomingStatus:
+    node: int
+    axis: Axis
+    status: HomingState
+    sensor_position: float
+
+
+Decoded = (
+    Sync
+    | SetAxisState
+    | SetControl
+    | ClearErrors
+    | SetLimits
+    | SetWatchdog
+    | SetFeedback
+    | StartHoming
+    | Heartbeat
+    | FeedbackPosition
+    | FeedbackVelocityTorque
+    | FaultReport
+    | HomingStatus
+)
+
+
+def _decode_values(msg: Message, node: int, data: bytes) -> dict[str, Any]:
+    if len(data) != msg.length:
+        raise FrameLengthError(
+            f"node {node} {msg.name}: DLC {len(data)}, the DBC says {msg.length}"
+        )
+    try:
+        values = msg.decode(data, decode_choices=False, scaling=True)
+    except cantools.database.DecodeError as exc:
+        raise ProtocolError(f"node {node} {msg.name}: {exc}") from exc
+    assert isinstance(values, dict)
+    for name, value in values.items():
+        sig = msg.get_signal_by_name(name)
+        lo, hi = sig.minimum, sig.maximum
+        v = float(value)
+        if (lo is not None and v < lo - 1e-9 * abs(lo)) or (
+            hi is not None and v > hi + 1e-9 * abs(hi)
+        ):
+            raise SignalRangeError(
+                f'node {node} {msg.name}: signal "{name}" = {value} outside [{lo}, {hi}]', name
+            )
+    return values
+
+
+def parse(arbitration_id: int, data: bytes) -> Decoded:
+    """Decode one frame into its typed record.
+
+    Raises :class:`UnknownFrameError` (id not in the DBC), :class:`FrameLengthError`
+    (DLC differs from the DBC), :class:`SignalRangeError` (a value outside the DBC range,
+    naming the signal) or :class:`ProtocolError`.
+    """
+    msg = _messages_by_id().get(arbitration_id)
+    node, cmd = split_id(arbitration_id)
+    if msg is None:
+        raise UnknownFrameError(f"unknown frame id 0x{arbitration_id:03x} (node {node})")
+    v = _decode_values(msg, node, data)
+    command = Command(cmd)
+    try:
+        return _build(command, node, v)
+    except ValueError as exc:  # an enum value the DBC range allows but the enum lacks
+        raise ProtocolError(f"node {node} {msg.name}: {exc}") from exc
+
+
+def _build(command: Command, node: int, v: dict[str, Any]) -> Decoded:
+    if command == Command.FEEDBACK_POSITION:
+        return FeedbackPosition(
+            node, float(v["SteerPosition"]), float(v["WheelPosition"]), int(v["Counter"])
+        )
+    if command == Command.FEEDBACK_VELOCITY_TORQUE:
+        return FeedbackVelocityTorque(
+            node,
+            float(v["SteerVelocity"]),
+            float(v["WheelVelocity"]),
+            float(v["SteerTorque"]),
+            float(v["WheelTorque"]),
+            int(v["Counter"]),
+        )
+    if command == Command.HEARTBEAT:
+        return Heartbeat(
+            node,
+            (AxisState(int(v["SteerState"])), AxisState(int(v["WheelState"]))),
+            (ControlMode(int(v["SteerMode"])), ControlMode(int(v["WheelMode"]))),
+            (int(v["SteerErrors"]), int(v["WheelErrors"])),
+            bool(v["Homed"]),
+            bool(v["SyncMode"]),
+            int(v["Counter"]),
+        )
+    if command == Command.SYNC:
+        return Sync(node, int(v["SyncCounter"]))
+    if command == Command.SET_AXIS_STATE:
+        return SetAxisState(node, Axis(int(v["Axis"])), int(v["RequestedState"]) == 1)
+    if command == Command.SET_CONTROL:
+        mode = ControlMode(int(v["Mode"]))
+        setpoint = float(
+            v.get("PositionSetpoint", v.get("VelocitySetpoint", v.get("TorqueSetpoint", 0.0)))
+        )
+        return SetControl(node, Axis(int(v["Axis"])), mode, setpoint)
+    if command == Command.CLEAR_ERRORS:
+        return ClearErrors(node, int(v["AxisMask"]))
+    if command == Command.SET_LIMITS:
+        return SetLimits(
+            node, Axis(int(v["Axis"])), float(v["MaxTorque"]), float(v["MaxVelocity"])
+        )
+    if command == Command.SET_WATCHDOG:
+        return SetWatchdog(node, int(v["TimeoutMs"]))
+    if command == Command.SET_FEEDBACK:
+        return SetFeedback(node, int(v["RateHz"]), bool(v["SyncMode"]))
+    if command == Command.START_HOMING:
+        return StartHoming(node, Axis(int(v["Axis"])))
+    if command == Command.FAULT_REPORT:
+        return FaultReport(
+            node,
+            Axis(int(v["Axis"])),
+            int(v["NewErrors"]),
+            int(v["ActiveErrors"]),
+            AxisState(int(v["AxisState"])),
+        )
+    if command == Command.HOMING_STATUS:
+        return HomingStatus(
+            node,
+            Axis(int(v["Axis"])),
+            HomingState(int(v["Status"])),
+            float(v["SensorPosition"]),
+        )
+    raise UnknownFrameError(f"node {node}: no decoder for {command.name}")  # pragma: no cover
+
+
+STEER_SPAN = 2.0 * math.pi * 2**20 / 2**14
+"""Wrap period of the steering position signal (64 turns), rad."""
+WHEEL_SPAN = 2.0 * math.pi * 2**36 / 2**16
+"""Wrap period of the wheel position signal (2**20 turns), rad."""
