@@ -58,6 +58,9 @@ def test_rotation_about_locked_contact_point(clean: Experiment) -> None:
         th = s.theta_hat + m.beta
         expect = np.array([m.x_s + m.b * math.cos(th), m.y_s + m.b * math.sin(th)])
         assert np.allclose(s.fixed_point, expect, atol=1e-15)
+        # re-steering about P_s,k keeps the pinned wheel on the same floor point
+        first = next(g for g in clean.segments if g.static_module == s.static_module)
+        assert np.allclose(s.fixed_point_world, first.fixed_point_world, atol=1e-12)
         # counter-clockwise at 0.5 rad/s
         dyaw = np.unwrap(yaw)
         assert (dyaw[-1] - dyaw[0]) == pytest.approx(0.5 * (P[sel, 0][-1] - P[sel, 0][0]))
