@@ -14,7 +14,10 @@ from collections.abc import Sequence
 
 from swpc_hw.errors import SwpcError
 
-SUBCOMMANDS: tuple[str, ...] = ("swpc_hw.commands.solve",)
+SUBCOMMANDS: tuple[str, ...] = (
+    "swpc_hw.commands.solve",
+    "simulators.commands_gen",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
