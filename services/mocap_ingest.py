@@ -1,0 +1,211 @@
+"""Motion-capture ingest: a zenoh subscriber on the robot's pose key.
+
+Every payload is decoded (native or ROS 2 CDR ``PoseStamped``, configured or detected)
+and checked; accepted samples are kept with their source timestamp and the host's
+monotonic receive time.  Dropped and counted: undecodable payloads, NaN/inf values,
+non-unit quaternions (``| |q| - 1 | > quaternion_tol``), duplicates (same source time)
+and out-of-order samples (source time older than the last accepted one).
+
+Clock mapping: the mocap clock and the host clock differ by an unknown offset plus a
+positive transport delay; the service maps source time to host time with the lower
+envelope ``offset = min(t_recv - t_source)`` over the samples seen so far (the
+classic one-way clock estimate), so recorded poses keep the mocap's exact spacing on
+the host clock.
+
+A stream whose newest accepted sample is older than ``stale_after`` seconds (host
+time) is *stale*; during motion the state machine treats that as a fault.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose
+
+FloatArray = NDArray[np.float64]
+
+#: columns of :meth:`MocapIngest.samples`
+COLUMNS = ("t_source", "t_recv", "t_host", "x", "y", "yaw")
+
+
+@dataclass
+class IngestCounters:
+    received: int = 0
+    accepted: int = 0
+    decode_errors: int = 0
+    non_finite: int = 0
+    non_unit_quaternion: int = 0
+    duplicates: int = 0
+    out_of_order: int = 0
+
+    @property
+    def dropped(self) -> int:
+        return self.received - self.accepted
+
+
+class MocapIngest:
+    """Thread-safe pose store fed by zenoh (or directly through :meth:`feed`)."""
+
+    def __init__(
+        self,
+        *,
+        encoding: PoseEncoding | str = PoseEncoding.AUTO,
+        stale_after: float = 0.25,
+        quaternion_tol: float = 1e-3,
+        capacity: int = 2_000_000,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.encoding = PoseEncoding(encoding)
+        self.stale_after = float(stale_after)
+        self.quaternion_tol = float(quaternion_tol)
+        self.clock = clock
+        self.counters = IngestCounters()
+        self.detected_encoding: PoseEncoding | None = None
+        self._lock = threading.Lock()
+        self._buf = np.zeros((min(capacity, 1 << 16), len(COLUMNS)))
+        self._n = 0
+        self._capacity = int(capacity)
+        self._last_source = -math.inf
+        self._offset = math.inf  # min(t_recv - t_source)
+        self._recent = deque[float](maxlen=4096)  # receive times for the rate
+        self._latency = deque[float](maxlen=4096)
+        self._subscriber: Any = None
+
+    # ------------------------------------------------------------------ zenoh
+    def subscribe(self, session: Any, key: str) -> None:
+        """Declare the zenoh subscriber (callback runs on zenoh's threads)."""
+
+        def on_sample(sample: Any) -> None:
+            self.feed(sample.payload.to_bytes())
+
+        self._subscriber = session.declare_subscriber(key, on_sample)
+
+    def close(self) -> None:
+        """Undeclare the subscriber (idempotent)."""
+        sub, self._subscriber = self._subscriber, None
+        if sub is not None:
+            with contextlib.suppress(Exception):  # session already closed
+                sub.undeclare()
+
+    # ------------------------------------------------------------------ input
+    def feed(self, payload: bytes, t_recv: float | None = None) -> bool:
+        """Decode, check and store one payload; returns whether it was accepted."""
+        now = self.clock() if t_recv is None else t_recv
+        with self._lock:
+            c = self.counters
+            c.received += 1
+            try:
+                enc = self.encoding
+                p = decode_pose(payload, enc)
+                if enc is PoseEncoding.AUTO and self.detected_encoding is None:
+                    from swpc_hw.mocap import detect_encoding
+
+                    self.detected_encoding = detect_encoding(payload)
+            except PoseDecodeError:
+                c.decode_errors += 1
+                return False
+            if not self._finite(p):
+                c.non_finite += 1
+                return False
+            if abs(p.quaternion_norm - 1.0) > self.quaternion_tol:
+                c.non_unit_quaternion += 1
+                return False
+            if p.t == self._last_source:
+                c.duplicates += 1
+                return False
+            if p.t < self._last_source:
+                c.out_of_order += 1
+                return False
+            self._last_source = p.t
+            self._offset = min(self._offset, now - p.t)
+            self._append((p.t, now, math.nan, p.x, p.y, p.yaw))
+            self._recent.append(now)
+            self._latency.append(now - p.t)
+            c.accepted += 1
+            return True
+
+    @staticmethod
+    def _finite(p: PoseSample) -> bool:
+        return all(math.isfinite(v) for v in (p.t, p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw))
+
+    def _append(self, row: tuple[float, ...]) -> None:
+        if self._n == self._buf.shape[0]:
+            if self._n >= self._capacity:  # keep the newest half
+                half = self._n // 2
+                self._buf[:half] = self._buf[self._n - half : self._n]
+                self._n = half
+            else:
+                grown = np.zeros((min(2 * self._buf.shape[0], self._capacity), len(COLUMNS)))
+                grown[: self._n] = self._buf[: self._n]
+                self._buf = grown
+        self._buf[self._n] = row
+        self._n += 1
+
+    # ----------------------------------------------------------------- output
+    def samples(self, since_host: float = -math.inf) -> FloatArray:
+        """Accepted samples (rows as :data:`COLUMNS`) with host time >= ``since_host``.
+
+        ``t_host = t_source + offset`` uses the current (best) clock offset for every row.
+        """
+        with self._lock:
+            data = self._buf[: self._n].copy()
+            offset = self._offset
+        data[:, 2] = data[:, 0] + offset
+        i = int(np.searchsorted(data[:, 2], since_host))
+        return data[i:]
+
+    def latest(self) -> tuple[float, float, float, float] | None:
+        """``(t_host, x, y, yaw)`` of the newest accepted sample."""
+        with self._lock:
+            if self._n == 0:
+                return None
+            r = self._buf[self._n - 1]
+            return float(r[0] + self._offset), float(r[3]), float(r[4]), float(r[5])
+
+    def age(self, now: float | None = None) -> float:
+        """Host seconds since the newest accepted sample was received (inf if none)."""
+        now = self.clock() if now is None else now
+        with self._lock:
+            return now - float(self._buf[self._n - 1, 1]) if self._n else math.inf
+
+    def is_stale(self, now: float | None = None) -> bool:
+        return self.age(now) > self.stale_after
+
+    @property
+    def clock_offset(self) -> float:
+        """Host minus mocap clock (lower envelope of the receive delays)."""
+        return self._offset
+
+    def stats(self, window: float = 1.0) -> dict[str, float]:
+        """Rate (Hz over the last ``window`` s), latency percentiles (s), counters."""
+        now = self.clock()
+        with self._lock:
+            recent = [t for t in self._recent if t >= now - window]
+            lat = np.array(self._latency) - (self._offset if math.isfinite(self._offset) else 0)
+            c = self.counters
+            out = {
+                "rate_hz": len(recent) / window,
+                "received": float(c.received),
+                "accepted": float(c.accepted),
+                "dropped": float(c.dropped),
+                "decode_errors": float(c.decode_errors),
+                "non_finite": float(c.non_finite),
+                "non_unit_quaternion": float(c.non_unit_quaternion),
+                "duplicates": float(c.duplicates),
+                "out_of_order": float(c.out_of_order),
+            }
+        out["age_s"] = self.age(now)
+        if lat.size:
+            out["latency_p50_s"] = float(np.percentile(lat, 50))
+            out["latency_p99_s"] = float(np.percentile(lat, 99))
+        return out

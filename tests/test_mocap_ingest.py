@@ -1,0 +1,105 @@
+"""Mocap ingest: validation counters, staleness, clock mapping, and real zenoh delivery."""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+
+import pytest
+
+from services.mocap_ingest import MocapIngest
+from swpc_hw.mocap import PoseEncoding, PoseSample, encode_cdr, encode_native, encode_pose
+from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+
+
+def native(t: float, x: float = 0.0, yaw: float = 0.0) -> bytes:
+    return encode_native(PoseSample.planar(t, x, 0.0, yaw))
+
+
+def test_bad_samples_are_dropped_and_counted() -> None:
+    ing = MocapIngest()
+    assert ing.feed(native(1.0), t_recv=101.0)
+    assert not ing.feed(native(1.0), t_recv=101.01)  # duplicate
+    assert not ing.feed(native(0.5), t_recv=101.02)  # out of order
+    assert not ing.feed(native(float("nan")), t_recv=101.03)
+    bad_q = PoseSample(2.0, 0, 0, 0, 0, 0, 0.3, 0.3)  # |q| = 0.42
+    assert not ing.feed(encode_native(bad_q), t_recv=101.04)
+    assert not ing.feed(b"garbage!", t_recv=101.05)
+    assert ing.feed(encode_cdr(PoseSample.planar(2.0, 1.0, 2.0, 0.5)), t_recv=102.0)
+    c = ing.counters
+    assert (c.received, c.accepted, c.dropped) == (7, 2, 5)
+    assert (c.duplicates, c.out_of_order, c.non_finite) == (1, 1, 1)
+    assert (c.non_unit_quaternion, c.decode_errors) == (1, 1)
+    s = ing.samples()
+    assert s.shape == (2, 6)
+    assert s[1, 3:].tolist() == pytest.approx([1.0, 2.0, 0.5])
+
+
+def test_configured_encoding_rejects_the_other() -> None:
+    ing = MocapIngest(encoding=PoseEncoding.CDR)
+    assert not ing.feed(native(1.0), t_recv=0.0)
+    assert ing.counters.decode_errors == 1
+
+
+def test_staleness_and_clock_mapping() -> None:
+    now = [1000.0]
+    ing = MocapIngest(stale_after=0.1, clock=lambda: now[0])
+    assert ing.is_stale()
+    for i, delay in enumerate([0.004, 0.002, 0.009, 0.003]):
+        ing.feed(native(10.0 + 0.01 * i), t_recv=990.0 + 0.01 * i + delay)
+    assert ing.clock_offset == pytest.approx(980.002)
+    host = ing.samples()[:, 2]
+    assert host.tolist() == pytest.approx([990.002 + 0.01 * i for i in range(4)])
+    now[0] = 990.03 + 0.003 + 0.05
+    assert not ing.is_stale()
+    now[0] += 0.2
+    assert ing.is_stale()
+
+
+def test_growth_keeps_every_sample() -> None:
+    ing = MocapIngest()
+    n = 70_000  # beyond the initial buffer
+    for i in range(n):
+        ing.feed(native(i * 1e-3, x=i * 1e-6), t_recv=i * 1e-3)
+    s = ing.samples()
+    assert s.shape[0] == n
+    assert s[-1, 3] == pytest.approx((n - 1) * 1e-6)
+    assert ing.samples(since_host=69.0).shape[0] == 1000
+
+
+@pytest.mark.parametrize("encoding", [PoseEncoding.NATIVE, PoseEncoding.CDR])
+def test_ingest_over_zenoh_detects_the_encoding(encoding: PoseEncoding) -> None:
+    ep = free_tcp_endpoint()
+    pub_s = open_session(listen=[ep])
+    sub_s = open_session(connect=[ep])
+    ing = MocapIngest()
+    try:
+        ing.subscribe(sub_s, "mocap/r1/pose")
+        pub = pub_s.declare_publisher("mocap/r1/pose")
+        deadline = time.monotonic() + 5
+        t = 0.0
+        while ing.counters.accepted == 0 and time.monotonic() < deadline:
+            t += 0.001
+            pub.put(encode_pose(PoseSample.planar(t, 0, 0, 0), encoding))
+            time.sleep(0.01)
+        base = ing.counters.accepted
+        for i in range(500):
+            pub.put(encode_pose(PoseSample.planar(1.0 + i * 0.001, 0.1, 0.2, 0.3), encoding))
+        deadline = time.monotonic() + 5
+        while ing.counters.accepted < base + 500 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert ing.counters.accepted == base + 500
+        assert ing.counters.dropped == 0
+        assert ing.detected_encoding is encoding
+        st = ing.stats()
+        assert st["rate_hz"] > 0 and math.isfinite(st["latency_p99_s"])
+    finally:
+        ing.close()
+        ing.close()  # idempotent
+        pub_s.close()
+        sub_s.close()
+
+
+def test_native_layout_is_documented_size() -> None:
+    assert struct.calcsize("<4sId3d4d") == 72
