@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,13 +39,15 @@ def _readings(kind: str) -> tuple[list[float], list[list[float]], list[list[floa
     return t.tolist(), th.tolist(), ps.tolist()
 
 
-def _best(run: Callable[[], None], repeat: int = 3) -> float:
-    best = math.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - t0)
-    return best
+def _run(opts: OdometryOptions, t: list[float], th: list[list[float]] | FloatArray,
+         ps: list[list[float]] | FloatArray) -> int:
+    """Feed all readings through one Odometry; returns the last update's solve count."""
+    odo = Odometry(PAPER_CALIBRATED, options=opts)
+    upd = odo.update
+    for k in range(len(t)):
+        upd(t[k], th[k], ps[k])
+    last = odo.last
+    return last.iterations if last is not None else 0
 
 
 def main() -> None:
@@ -61,30 +62,20 @@ def main() -> None:
           f"{'solves':>7} {'core % @500 Hz':>15}")
     for kind in ("arc", "steering", "slip"):
         t, th, ps = _readings(kind)
-        th_np = np.array(th)
-        ps_np = np.array(ps)
+        inputs: dict[str, tuple[list[list[float]] | FloatArray, list[list[float]] | FloatArray]]
+        inputs = {"list": (th, ps), "numpy": (np.array(th), np.array(ps))}
         for robust in ("geman", "none"):
-            for inp in ("list", "numpy"):
-                opts = OdometryOptions(robust=robust)  # type: ignore[arg-type]
-                solves = [0]
-
-                def run(opts: OdometryOptions = opts, inp: str = inp,
-                        solves: list[int] = solves) -> None:
-                    odo = Odometry(PAPER_CALIBRATED, options=opts)
-                    upd = odo.update
-                    if inp == "list":
-                        for k in range(N_UPDATES):
-                            upd(t[k], th[k], ps[k])
-                    else:
-                        for k in range(N_UPDATES):
-                            upd(t[k], th_np[k], ps_np[k])
-                    last = odo.last
-                    solves[0] = last.iterations if last is not None else 0
-
-                dt = _best(run)
-                per = dt / N_UPDATES
+            opts = OdometryOptions(robust="geman" if robust == "geman" else "none")
+            for inp, (th_in, ps_in) in inputs.items():
+                best = math.inf
+                solves = 0
+                for _ in range(3):
+                    t0 = time.perf_counter()
+                    solves = _run(opts, t, th_in, ps_in)
+                    best = min(best, time.perf_counter() - t0)
+                per = best / N_UPDATES
                 print(f"{kind:<10} {robust:<7} {inp:<6} {1e-3 / per:9.1f} {per * 1e6:10.1f} "
-                      f"{solves[0]:7d} {100 * per * RATE:14.2f}%")
+                      f"{solves:7d} {100 * per * RATE:14.2f}%")
 
 
 if __name__ == "__main__":
