@@ -335,8 +335,10 @@ def test_update_api_and_validation() -> None:
     odo.reset(clear_readings=True)
     odo.update(1.0, th, np.zeros(4))
     psi_dot = settled_wheel_rates(a, (-0.1, 0.0, 0.0))
-    pose = odo.update(2.0, th, psi_dot)
+    pose = odo.update_by_id(2.0, {mid: (th[i], psi_dot[i]) for i, mid in enumerate(odo.ids)})
     assert pose == pytest.approx((-0.1, 0.0, 0.0), abs=1e-12)
+    with pytest.raises(OdometryError, match="no reading for module 4"):
+        odo.update_by_id(3.0, {1: (0.0, 0.0), 2: (0.0, 0.0), 3: (0.0, 0.0)})
     last = odo.last
     assert last is not None and last.dt == 1.0 and last.iterations >= 1
     assert last.twist == pytest.approx((-0.1, 0.0, 0.0), abs=1e-12)
