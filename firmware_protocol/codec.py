@@ -207,9 +207,7 @@ def message_for(node: int, command: Command) -> Message:
     try:
         return _messages_by_id()[frame_id(node, command)]
     except KeyError:
-        raise UnknownFrameError(
-            f"no DBC message for node {node} command {command.name}"
-        ) from None
+        raise UnknownFrameError(f"no DBC message for node {node} command {command.name}") from None
 
 
 def signal_span(name: str, command: Command = Command.FEEDBACK_POSITION) -> float:
@@ -535,7 +533,7 @@ def _decode_values(msg: Message, node: int, data: bytes) -> dict[str, Any]:
     for name, value in values.items():
         sig = msg.get_signal_by_name(name)
         lo, hi = sig.minimum, sig.maximum
-        v = float(value)
+        v = float(value)  # type: ignore[arg-type]
         if (lo is not None and v < lo - 1e-9 * abs(lo)) or (
             hi is not None and v > hi + 1e-9 * abs(hi)
         ):
@@ -601,9 +599,7 @@ def _build(command: Command, node: int, v: dict[str, Any]) -> Decoded:
     if command == Command.CLEAR_ERRORS:
         return ClearErrors(node, int(v["AxisMask"]))
     if command == Command.SET_LIMITS:
-        return SetLimits(
-            node, Axis(int(v["Axis"])), float(v["MaxTorque"]), float(v["MaxVelocity"])
-        )
+        return SetLimits(node, Axis(int(v["Axis"])), float(v["MaxTorque"]), float(v["MaxVelocity"]))
     if command == Command.SET_WATCHDOG:
         return SetWatchdog(node, int(v["TimeoutMs"]))
     if command == Command.SET_FEEDBACK:

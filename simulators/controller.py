@@ -1,0 +1,419 @@
+"""Virtual SWPC motor controller: the firmware's state machine, reusable by every simulator.
+
+:class:`VirtualController` is transport-free: feed it host frames with :meth:`handle` and
+advance time with :meth:`step`; both return the frames the controller would send.
+:class:`ControllerEmulator` runs several of them on a python-can bus in one thread (the
+back-to-back tests and ``make bench`` use it; a full simulator can drive ``VirtualController``
+itself and overwrite ``axes[i].position``/``velocity`` from its physics).
+
+Per-axis state machine (see firmware_protocol/README.md)::
+
+    DISABLED --SetAxisState(ENABLED), no errors--> ENABLED (mode FREE)
+    ENABLED  --SetControl--> ENABLED (mode FREE|HOLD|POSITION|VELOCITY|TORQUE)
+    ENABLED  --StartHoming (steer)--> HOMING --found--> ENABLED (HOLD at 0) | FAULT
+    ENABLED|HOMING --SetAxisState(DISABLED)--> DISABLED
+    ENABLED|HOMING --error (watchdog, over-speed, not homed, ...)--> FAULT (free) + FaultReport
+    FAULT    --ClearErrors--> DISABLED
+
+Axis dynamics are deliberately simple (rigid inertia ``J`` with viscous friction ``c``):
+``J * dv/dt = tau - c * v``; VELOCITY and POSITION modes are ideal first-order loops.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+
+from firmware_protocol import codec
+from firmware_protocol.codec import (
+    Axis,
+    AxisState,
+    ControlMode,
+    ErrorFlag,
+    Frame,
+    HomingState,
+)
+
+DEFAULT_RATE_HZ = 200
+DEFAULT_WATCHDOG_MS = 100
+HEARTBEAT_PERIOD_S = 0.1
+OVER_SPEED_FACTOR = 1.2
+
+
+@dataclass
+class AxisModel:
+    """State of one axis of a virtual controller (SI units)."""
+
+    state: AxisState = AxisState.DISABLED
+    mode: ControlMode = ControlMode.FREE
+    setpoint: float = 0.0
+    errors: int = 0
+    position: float = 0.0
+    velocity: float = 0.0
+    torque: float = 0.0
+    max_torque: float = 5.0
+    max_velocity: float = 40.0
+    inertia: float = 0.01
+    friction: float = 0.02
+    hold_target: float = 0.0
+
+
+@dataclass
+class VirtualController:
+    """One dual-axis controller (axis 0 steering, axis 1 wheel) at CAN node ``node``."""
+
+    node: int
+    rate_hz: int = DEFAULT_RATE_HZ
+    watchdog_ms: int = DEFAULT_WATCHDOG_MS
+    heartbeat_period: float = HEARTBEAT_PERIOD_S
+    homing_duration: float = 0.2
+    sensor_position: float = 0.3
+    """Steering position (power-up coordinate) at which the homing sensor triggers, rad."""
+    sync_mode: bool = False
+    axes: tuple[AxisModel, AxisModel] = field(default_factory=lambda: (AxisModel(), AxisModel()))
+    homed: bool = False
+    muted: bool = False
+    """A muted controller sends nothing (an unplugged or dead node)."""
+    invalid_frames: int = 0
+    commands: int = 0
+    _t: float | None = None
+    _last_command: float = 0.0
+    _next_feedback: float = 0.0
+    _next_heartbeat: float = 0.0
+    _homing_end: float = 0.0
+    _sample_counter: int = 0
+    _hb_counter: int = 0
+
+    # ------------------------------------------------------------------ host frames
+    def handle(self, frame: Frame, now: float) -> list[Frame]:
+        """Process one frame seen on the bus; return the frames sent in reply."""
+        node, cmd = codec.split_id(frame.arbitration_id)
+        if frame.arbitration_id == codec.SYNC_ID:
+            try:
+                msg = codec.parse(frame.arbitration_id, frame.data)
+            except codec.ProtocolError:
+                self.invalid_frames += 1
+                return []
+            assert isinstance(msg, codec.Sync)
+            if self.sync_mode:
+                self._advance(now)
+                return self._feedback(msg.counter)
+            return []
+        if node != self.node or cmd not in codec.HOST_COMMANDS:
+            return []
+        try:
+            msg2 = codec.parse(frame.arbitration_id, frame.data)
+        except codec.ProtocolError:
+            self.invalid_frames += 1
+            return []
+        self._advance(now)
+        self._last_command = now
+        self.commands += 1
+        return self._apply(msg2, now)
+
+    def _apply(self, msg: codec.Decoded, now: float) -> list[Frame]:
+        out: list[Frame] = []
+        if isinstance(msg, codec.SetAxisState):
+            ax = self.axes[msg.axis]
+            if msg.enabled and ax.state == AxisState.DISABLED and ax.errors == 0:
+                ax.state, ax.mode, ax.setpoint = AxisState.ENABLED, ControlMode.FREE, 0.0
+            elif not msg.enabled and ax.state in (AxisState.ENABLED, AxisState.HOMING):
+                ax.state, ax.mode, ax.setpoint = AxisState.DISABLED, ControlMode.FREE, 0.0
+        elif isinstance(msg, codec.SetControl):
+            ax = self.axes[msg.axis]
+            if ax.state != AxisState.ENABLED:
+                return out
+            if msg.mode == ControlMode.POSITION and msg.axis == Axis.STEER and not self.homed:
+                return self._fault(msg.axis, ErrorFlag.NOT_HOMED)
+            prev_mode, ax.mode = ax.mode, msg.mode
+            if msg.mode == ControlMode.VELOCITY:
+                ax.setpoint = _clamp(msg.setpoint, ax.max_velocity)
+            elif msg.mode == ControlMode.TORQUE:
+                ax.setpoint = _clamp(msg.setpoint, ax.max_torque)
+            elif msg.mode == ControlMode.POSITION:
+                ax.setpoint = msg.setpoint
+            elif msg.mode == ControlMode.HOLD:
+                if prev_mode != ControlMode.HOLD:
+                    ax.hold_target = ax.position
+                ax.setpoint = 0.0
+            else:
+                ax.setpoint = 0.0
+        elif isinstance(msg, codec.ClearErrors):
+            for axis in Axis:
+                if msg.axis_mask & (1 << axis):
+                    ax = self.axes[axis]
+                    ax.errors = 0
+                    if ax.state == AxisState.FAULT:
+                        ax.state = AxisState.DISABLED
+        elif isinstance(msg, codec.SetLimits):
+            ax = self.axes[msg.axis]
+            ax.max_torque, ax.max_velocity = msg.max_torque, msg.max_velocity
+        elif isinstance(msg, codec.SetWatchdog):
+            self.watchdog_ms = msg.timeout_ms
+        elif isinstance(msg, codec.SetFeedback):
+            self.rate_hz, self.sync_mode = msg.rate_hz, msg.sync_mode
+            self._next_feedback = now
+        elif isinstance(msg, codec.StartHoming):
+            ax = self.axes[msg.axis]
+            if msg.axis != Axis.STEER or ax.state != AxisState.ENABLED:
+                out.append(codec.make_homing_status(self.node, msg.axis, HomingState.FAILED))
+            else:
+                ax.state, ax.mode = AxisState.HOMING, ControlMode.FREE
+                self._homing_end = now + self.homing_duration
+                out.append(codec.make_homing_status(self.node, msg.axis, HomingState.IN_PROGRESS))
+        return self._send(out)
+
+    # ------------------------------------------------------------------ time
+    def step(self, now: float) -> list[Frame]:
+        """Advance to ``now``: dynamics, watchdog, homing, heartbeat and feedback due."""
+        out = self._advance(now)
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = max(self._next_heartbeat + self.heartbeat_period, now)
+            out += self.heartbeat()
+        if self.rate_hz > 0 and not self.sync_mode and now >= self._next_feedback:
+            period = 1.0 / self.rate_hz
+            # catch up without bursting if the caller was late by more than 2 periods
+            self._next_feedback = max(self._next_feedback + period, now - 2 * period)
+            out += self._feedback(self._sample_counter)
+            self._sample_counter = (self._sample_counter + 1) & 0xFF
+        return out
+
+    def next_due(self) -> float:
+        """Host time of the next frame this controller will send by itself."""
+        due = self._next_heartbeat
+        if self.rate_hz > 0 and not self.sync_mode:
+            due = min(due, self._next_feedback)
+        if any(ax.state == AxisState.HOMING for ax in self.axes):
+            due = min(due, self._homing_end)
+        if self.watchdog_ms > 0 and any(
+            ax.state in (AxisState.ENABLED, AxisState.HOMING) for ax in self.axes
+        ):
+            due = min(due, self._last_command + self.watchdog_ms / 1000.0)
+        return due
+
+    def _advance(self, now: float) -> list[Frame]:
+        if self._t is None:
+            self._t = now
+            self._last_command = now
+            self._next_feedback = now
+            self._next_heartbeat = now
+        dt = max(0.0, now - self._t)
+        self._t = now
+        out: list[Frame] = []
+        for axis, ax in zip(Axis, self.axes, strict=True):
+            _integrate(ax, dt)
+            if (
+                ax.state == AxisState.ENABLED
+                and abs(ax.velocity) > OVER_SPEED_FACTOR * ax.max_velocity
+            ):
+                out += self._fault(axis, ErrorFlag.OVER_SPEED)
+        steer = self.axes[Axis.STEER]
+        if steer.state == AxisState.HOMING and now >= self._homing_end:
+            steer.position -= self.sensor_position
+            self.homed = True
+            steer.state, steer.mode = AxisState.ENABLED, ControlMode.HOLD
+            steer.hold_target, steer.setpoint = steer.position, 0.0
+            out += self._send(
+                [
+                    codec.make_homing_status(
+                        self.node, Axis.STEER, HomingState.DONE, self.sensor_position
+                    )
+                ]
+            )
+        if self.watchdog_ms > 0 and now - self._last_command > self.watchdog_ms / 1000.0:
+            for axis, ax in zip(Axis, self.axes, strict=True):
+                if ax.state in (AxisState.ENABLED, AxisState.HOMING):
+                    out += self._fault(axis, ErrorFlag.WATCHDOG_TIMEOUT)
+        return out
+
+    # ------------------------------------------------------------------ outputs
+    def heartbeat(self) -> list[Frame]:
+        s, w = self.axes
+        frame = codec.make_heartbeat(
+            self.node,
+            (s.state, w.state),
+            (s.mode, w.mode),
+            (s.errors, w.errors),
+            self.homed,
+            self.sync_mode,
+            self._hb_counter,
+        )
+        self._hb_counter = (self._hb_counter + 1) & 0xFF
+        return self._send([frame])
+
+    def _feedback(self, counter: int) -> list[Frame]:
+        s, w = self.axes
+        return self._send(
+            [
+                codec.make_feedback_position(self.node, s.position, w.position, counter),
+                codec.make_feedback_velocity_torque(
+                    self.node,
+                    _clamp(s.velocity, 32.767),
+                    _clamp(w.velocity, 65.534),
+                    _clamp(s.torque, 20.47),
+                    _clamp(w.torque, 20.47),
+                    counter,
+                ),
+            ]
+        )
+
+    def inject_error(self, axis: Axis, error: ErrorFlag) -> list[Frame]:
+        """Raise a hardware error (e.g. OVER_TEMPERATURE) on ``axis``."""
+        return self._fault(axis, error)
+
+    def _fault(self, axis: Axis, error: ErrorFlag) -> list[Frame]:
+        ax = self.axes[axis]
+        new = int(error) & ~ax.errors
+        ax.errors |= int(error)
+        ax.state, ax.mode, ax.setpoint, ax.torque = AxisState.FAULT, ControlMode.FREE, 0.0, 0.0
+        return self._send(
+            [codec.make_fault_report(self.node, axis, new, ax.errors, AxisState.FAULT)]
+        )
+
+    def _send(self, frames: list[Frame]) -> list[Frame]:
+        return [] if self.muted else frames
+
+
+def _clamp(x: float, limit: float) -> float:
+    return max(-limit, min(limit, x))
+
+
+def _integrate(ax: AxisModel, dt: float) -> None:
+    """Advance one axis by ``dt``: ``J dv/dt = tau - c v`` or an ideal loop per mode."""
+    if dt <= 0.0:
+        return
+    powered = ax.state in (AxisState.ENABLED, AxisState.HOMING)
+    mode = ax.mode if ax.state == AxisState.ENABLED else ControlMode.FREE
+    if ax.state == AxisState.HOMING:
+        v = 0.5  # homing search speed, rad/s
+        ax.torque = ax.friction * v
+    elif not powered or mode == ControlMode.FREE:
+        v = ax.velocity * math.exp(-dt * ax.friction / ax.inertia)
+        ax.torque = 0.0
+    elif mode == ControlMode.HOLD:
+        v = 0.0
+        ax.position = ax.hold_target
+        ax.torque = 0.0
+    elif mode == ControlMode.VELOCITY:
+        v = ax.setpoint
+        ax.torque = _clamp(ax.friction * v, ax.max_torque)
+    elif mode == ControlMode.POSITION:
+        v = _clamp((ax.setpoint - ax.position) / max(dt, 0.02), ax.max_velocity)
+        ax.torque = _clamp(ax.friction * v, ax.max_torque)
+    else:  # TORQUE
+        tau = _clamp(ax.setpoint, ax.max_torque)
+        decay = math.exp(-dt * ax.friction / ax.inertia)
+        v_inf = tau / ax.friction
+        v = v_inf + (ax.velocity - v_inf) * decay
+        ax.torque = tau
+    ax.position += 0.5 * (ax.velocity + v) * dt
+    ax.velocity = v
+
+
+class ControllerEmulator:
+    """Run virtual controllers on a python-can bus in one thread (no busy loop).
+
+    The thread sleeps in ``bus.recv(timeout)`` until the next frame is due, so a
+    command is answered within the OS wake-up latency.
+    """
+
+    def __init__(
+        self,
+        controllers: Sequence[VirtualController],
+        *,
+        interface: str = "virtual",
+        channel: str = "swpc",
+        bus: can.BusABC | None = None,
+        **bus_kwargs: Any,
+    ) -> None:
+        self.controllers = {c.node: c for c in controllers}
+        self._own_bus = bus is None
+        self.bus = (
+            bus if bus is not None else can.Bus(interface=interface, channel=channel, **bus_kwargs)
+        )
+        self.lock = threading.Lock()
+        self.sent: Counter[int] = Counter()
+        self.received: list[tuple[float, Frame]] = []
+        self.record_received = True
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+
+    # context manager ---------------------------------------------------
+    def __enter__(self) -> ControllerEmulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="swpc-emulator", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        if self._own_bus:
+            self.bus.shutdown()
+
+    @property
+    def thread(self) -> threading.Thread | None:
+        return self._thread
+
+    def send_raw(self, msg: can.Message) -> None:
+        """Put an arbitrary frame on the bus (error frames, unknown ids, bad DLC)."""
+        with self.lock:
+            self.bus.send(msg)
+
+    def mute(self, node: int, muted: bool = True) -> None:
+        with self.lock:
+            self.controllers[node].muted = muted
+
+    def _transmit(self, frames: Iterable[Frame]) -> None:
+        for f in frames:
+            self.bus.send(
+                can.Message(
+                    arbitration_id=f.arbitration_id,
+                    data=f.data,
+                    is_extended_id=False,
+                )
+            )
+            self.sent[f.arbitration_id] += 1
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                with self.lock:
+                    for c in self.controllers.values():
+                        self._transmit(c.step(now))
+                    due = min(c.next_due() for c in self.controllers.values())
+                timeout = min(max(due - time.monotonic(), 0.0), 0.05)
+                msg = self.bus.recv(timeout=timeout) if timeout > 0 else self.bus.recv(0)
+                while msg is not None:
+                    self._on_frame(msg)
+                    msg = self.bus.recv(0)
+        except BaseException as exc:  # surfaced to the test through .error
+            self.error = exc
+            raise
+
+    def _on_frame(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        frame = Frame(msg.arbitration_id, bytes(msg.data))
+        now = time.monotonic()
+        with self.lock:
+            if self.record_received:
+                self.received.append((now, frame))
+            for c in self.controllers.values():
+                self._transmit(c.handle(frame, now))

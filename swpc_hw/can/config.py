@@ -1,0 +1,80 @@
+"""Configuration of the CAN driver (bus, node ids, rates, watchdog, recording)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from firmware_protocol import codec
+from swpc_hw.can.errors import CanConfigError
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """Everything the driver needs to open a bus and talk to the module controllers.
+
+    ``modules`` maps the module id of the kinematic file (1..N) to its controller's CAN
+    node id (1..8).  Times are seconds unless the name says otherwise.
+    """
+
+    interface: str = "virtual"
+    channel: str = "swpc"
+    bitrate: int = 1_000_000
+    modules: Mapping[int, int] = field(default_factory=lambda: {1: 1, 2: 2, 3: 3, 4: 4})
+    feedback_rate_hz: int = 200
+    sync_mode: bool = False
+    watchdog_timeout_ms: int = 100
+    refresh_period_s: float = 0.02
+    heartbeat_period_s: float = 0.1
+    heartbeat_loss_periods: int = 3
+    history_len: int = 200_000
+    log_path: str | None = None
+    max_torque: tuple[float, float] | None = None
+    """(steer, wheel) torque limits in N.m sent at activation; None keeps the controllers'."""
+    max_velocity: tuple[float, float] | None = None
+    """(steer, wheel) velocity limits in rad/s sent at activation."""
+    activate_timeout_s: float = 1.0
+    bus_kwargs: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.modules:
+            raise CanConfigError("modules: at least one module -> node mapping is needed")
+        nodes = list(self.modules.values())
+        for module, node in self.modules.items():
+            if not 1 <= int(node) <= codec.MAX_NODE:
+                raise CanConfigError(
+                    f"modules[{module}]: node id {node} outside 1..{codec.MAX_NODE}"
+                )
+        if len(set(nodes)) != len(nodes):
+            raise CanConfigError(f"modules: node ids must be distinct, got {nodes}")
+        if not 0 <= self.feedback_rate_hz <= 500:
+            raise CanConfigError(f"feedback_rate_hz: {self.feedback_rate_hz} outside 0..500")
+        if not 0 <= self.watchdog_timeout_ms <= 60000:
+            raise CanConfigError(
+                f"watchdog_timeout_ms: {self.watchdog_timeout_ms} outside 0..60000"
+            )
+        if self.watchdog_timeout_ms and self.refresh_period_s * 1000 >= self.watchdog_timeout_ms:
+            raise CanConfigError(
+                f"refresh_period_s: {self.refresh_period_s} s must be shorter than the "
+                f"watchdog timeout {self.watchdog_timeout_ms} ms"
+            )
+        if self.refresh_period_s <= 0 or self.heartbeat_period_s <= 0:
+            raise CanConfigError("refresh_period_s and heartbeat_period_s must be > 0")
+        if self.heartbeat_loss_periods < 1:
+            raise CanConfigError("heartbeat_loss_periods must be >= 1")
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any]) -> CanConfig:
+        """Build from a plain mapping (e.g. a YAML ``can:`` section); unknown keys are errors."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise CanConfigError(f"unknown CAN configuration key(s): {', '.join(unknown)}")
+        kwargs = dict(data)
+        if "modules" in kwargs:
+            kwargs["modules"] = {int(k): int(v) for k, v in dict(kwargs["modules"]).items()}
+        for key in ("max_torque", "max_velocity"):
+            if kwargs.get(key) is not None:
+                kwargs[key] = tuple(float(x) for x in kwargs[key])
+        return cls(**kwargs)
