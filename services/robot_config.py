@@ -1,0 +1,165 @@
+"""Robot configuration: what the service needs to calibrate one robot.
+
+YAML (every key documented in ``deploy/robot.example.yaml``)::
+
+    robot: swpc                      # robot id (pose key mocap/<robot>/pose)
+    nominal: {modules: [...]}        # or a path: nominal kinematics (kinematic-file schema)
+    nodes: {1: 1, 2: 2, 3: 3, 4: 4}  # module id -> CAN node id
+    limits: {...}                    # motion limits (SI)
+    protocol: {...}                  # calibration protocol (angles in degrees for humans)
+    tolerances: {...}                # max std devs for a result to be installed
+
+Overrides in ``POST /calibrations`` are validated against the same model (422 on error).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from swpc_hw.errors import SwpcError
+from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
+from swpc_hw.model import RobotParams
+from swpc_hw.reference import PAPER_NOMINAL
+
+
+class RobotConfigError(SwpcError, ValueError):
+    """The robot configuration is invalid."""
+
+
+class MotionLimits(BaseModel):
+    """Everything that bounds motion during calibration (SI units)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    spin_torque: float = Field(0.6, gt=0, description="wheel torque of the dynamic modules, N.m")
+    max_wheel_torque: float = Field(2.0, gt=0, description="controller torque limit, N.m")
+    max_wheel_velocity: float = Field(20.0, gt=0, description="controller wheel speed limit, rad/s")
+    max_steer_velocity: float = Field(3.0, gt=0, description="controller steering speed limit")
+    max_yaw_rate: float = Field(1.2, gt=0, description="spin aborted above this yaw rate, rad/s")
+    step_timeout: float = Field(60.0, gt=0, description="any single step longer than this fails, s")
+    watchdog_ms: int = Field(200, ge=20, le=60000, description="controller command timeout, ms")
+
+    @model_validator(mode="after")
+    def _torque_within_limit(self) -> MotionLimits:
+        if self.spin_torque > self.max_wheel_torque:
+            raise ValueError("spin_torque must not exceed max_wheel_torque")
+        return self
+
+
+class ProtocolConfig(BaseModel):
+    """The calibration protocol (angles in degrees, times in seconds)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    angles_deg: list[float] = Field(default_factory=lambda: [45.0, 165.0], min_length=2)
+    sweep_deg: float = Field(360.0, gt=10, le=3600, description="mocap-measured sweep per spin")
+    settle_time: float = Field(3.0, ge=0, description="spin time before the window opens, s")
+    stop_time: float = Field(1.5, ge=0, description="time allowed to spin down, s")
+    align_time: float = Field(1.0, ge=0, description="time to align the dynamic modules, s")
+    resteer_time: float = Field(2.5, gt=0, description="time to re-steer the locked module, s")
+    modules: list[int] | None = Field(None, description="modules to lock (default all)")
+
+    @field_validator("angles_deg")
+    @classmethod
+    def _distinct(cls, v: list[float]) -> list[float]:
+        if any(not math.isfinite(a) for a in v):
+            raise ValueError("angles must be finite")
+        s = sorted(v)
+        if any(b - a < 10.0 for a, b in itertools.pairwise(s)):
+            raise ValueError("steering angles must differ by at least 10 deg")
+        return v
+
+
+class Tolerances(BaseModel):
+    """A result whose std devs exceed these is reported but not installed (SI)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    position: float = Field(0.5e-3, gt=0, description="x_s, y_s, b std dev, m")
+    beta: float = Field(math.radians(0.2), gt=0, description="beta std dev, rad")
+    radius: float = Field(0.2e-3, gt=0, description="r std dev, m")
+
+
+class RobotConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    robot: str = "swpc"
+    nominal: RobotParams = PAPER_NOMINAL
+    nodes: dict[int, int] | None = Field(None, description="module id -> CAN node id")
+    limits: MotionLimits = MotionLimits()
+    protocol: ProtocolConfig = ProtocolConfig()
+    tolerances: Tolerances = Tolerances()
+
+    @field_validator("nominal", mode="before")
+    @classmethod
+    def _nominal(cls, v: Any) -> Any:
+        if isinstance(v, str | Path):
+            return load_robot(v)
+        if isinstance(v, dict) and "modules" in v and "format" not in v:
+            doc = dict(v)
+            doc.setdefault("format", "swpc-kinematics/1")
+            doc.setdefault("robot", "swpc")
+            doc.setdefault("frame", "R")
+            return parse_kinematics(doc, "nominal").params
+        return v
+
+    @model_validator(mode="after")
+    def _check_nodes(self) -> RobotConfig:
+        ids = self.nominal.ids
+        if self.nodes is None:
+            self.nodes = {mid: i + 1 for i, mid in enumerate(ids)}
+        if sorted(self.nodes) != sorted(ids):
+            raise ValueError(f"nodes must map exactly the module ids {ids}")
+        vals = list(self.nodes.values())
+        if len(set(vals)) != len(vals) or any(not 1 <= v <= 63 for v in vals):
+            raise ValueError("node ids must be unique and within 1..63")
+        if self.protocol.modules is not None and not set(self.protocol.modules) <= set(ids):
+            raise ValueError("protocol.modules must be module ids of the robot")
+        return self
+
+    @property
+    def pose_key(self) -> str:
+        return f"mocap/{self.robot}/pose"
+
+    def to_document(self) -> dict[str, Any]:
+        doc = self.model_dump(mode="json", exclude={"nominal"})
+        doc["nominal"] = {"modules": kinematics_document(self.nominal)["modules"]}
+        return doc
+
+    def with_overrides(self, overrides: dict[str, Any]) -> RobotConfig:
+        """A new config with ``overrides`` deep-merged (validated like the file)."""
+        return RobotConfig.model_validate(_deep_merge(self.to_document(), overrides))
+
+
+def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_robot_config(path: str | Path | None) -> RobotConfig:
+    """Load a robot config YAML (``None``: the embedded default, the paper's robot)."""
+    if path is None:
+        return RobotConfig()
+    p = Path(path)
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise RobotConfigError(f"{p}: cannot read robot config: {exc}") from exc
+    if isinstance(doc.get("nominal"), str):
+        doc["nominal"] = str((p.parent / doc["nominal"]).resolve())
+    try:
+        return RobotConfig.model_validate(doc)
+    except ValueError as exc:
+        first = str(exc).splitlines()
+        raise RobotConfigError(f"{p}: {' '.join(first[:3])}") from exc

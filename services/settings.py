@@ -1,0 +1,55 @@
+"""Service settings (pydantic-settings): environment variables ``SWPC_*`` and an env file.
+
+With no CAN interface configured the service runs on the *embedded default*: the
+simulator in-process on a python-can ``virtual`` bus and zenoh on loopback.
+"""
+
+from __future__ import annotations
+
+import secrets
+from pathlib import Path
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class ServiceSettings(BaseSettings):
+    model_config = SettingsConfigDict(
+        env_prefix="SWPC_", env_file=None, extra="ignore", env_nested_delimiter="__"
+    )
+
+    host: str = Field("127.0.0.1", description="bind address (loopback by default)")
+    port: int = Field(8080, ge=0, le=65535)
+    token: SecretStr | None = Field(None, description="bearer token for motion/write endpoints")
+
+    can_interface: str | None = Field(None, description="python-can interface; unset: embedded")
+    can_channel: str = "vcan0"
+    can_bitrate: int = 1_000_000
+
+    zenoh_mode: str = "peer"
+    zenoh_listen: list[str] = Field(default_factory=list)
+    zenoh_connect: list[str] = Field(default_factory=list)
+    zenoh_config_file: str | None = None
+    pose_encoding: str = Field("auto", description="native | ros2-cdr | auto")
+    mocap_stale_after: float = Field(0.25, gt=0, description="s without poses = stale")
+
+    robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")
+    data_dir: Path = Path("swpc-data")
+    kinematics_path: Path | None = Field(None, description="default: <data_dir>/kinematics.yaml")
+
+    time_scale: float = Field(1.0, gt=0, description="simulated-time speed-up (simulator only)")
+    sim_seed: int = 1
+
+    @property
+    def embedded(self) -> bool:
+        return self.can_interface is None
+
+    @property
+    def kinematics_file(self) -> Path:
+        return self.kinematics_path or self.data_dir / "kinematics.yaml"
+
+    def ensure_token(self) -> str:
+        """The configured token, or a freshly generated one (embedded demo)."""
+        if self.token is None:
+            self.token = SecretStr(secrets.token_urlsafe(24))
+        return self.token.get_secret_value()
