@@ -8,9 +8,10 @@ and out-of-order samples (source time older than the last accepted one).
 
 Clock mapping: the mocap clock and the host clock differ by an unknown offset plus a
 positive transport delay; the service maps source time to host time with the lower
-envelope ``offset = min(t_recv - t_source)`` over the samples seen so far (the
-classic one-way clock estimate), so recorded poses keep the mocap's exact spacing on
-the host clock.
+envelope ``offset = min(t_recv - t_source / s)`` over the samples seen so far (the
+classic one-way clock estimate; ``s`` is the time scale of a simulator running faster
+than real time, 1 for a real mocap), so recorded poses keep the mocap's exact spacing
+on the host clock.
 
 A stream whose newest accepted sample is older than ``stale_after`` seconds (host
 time) is *stale*; during motion the state machine treats that as a fault.
@@ -64,11 +65,14 @@ class MocapIngest:
         quaternion_tol: float = 1e-3,
         capacity: int = 2_000_000,
         clock: Callable[[], float] = time.monotonic,
+        time_scale: float = 1.0,
     ) -> None:
         self.encoding = PoseEncoding(encoding)
         self.stale_after = float(stale_after)
         self.quaternion_tol = float(quaternion_tol)
         self.clock = clock
+        self.time_scale = float(time_scale)
+        """Source seconds per host second (a simulator running faster than real time)."""
         self.counters = IngestCounters()
         self.detected_encoding: PoseEncoding | None = None
         self._lock = threading.Lock()
@@ -127,10 +131,10 @@ class MocapIngest:
                 c.out_of_order += 1
                 return False
             self._last_source = p.t
-            self._offset = min(self._offset, now - p.t)
+            self._offset = min(self._offset, now - p.t / self.time_scale)
             self._append((p.t, now, math.nan, p.x, p.y, p.yaw))
             self._recent.append(now)
-            self._latency.append(now - p.t)
+            self._latency.append(now - p.t / self.time_scale)
             c.accepted += 1
             return True
 
@@ -160,7 +164,7 @@ class MocapIngest:
         with self._lock:
             data = self._buf[: self._n].copy()
             offset = self._offset
-        data[:, 2] = data[:, 0] + offset
+        data[:, 2] = data[:, 0] / self.time_scale + offset
         i = int(np.searchsorted(data[:, 2], since_host))
         return data[i:]
 
@@ -170,7 +174,8 @@ class MocapIngest:
             if self._n == 0:
                 return None
             r = self._buf[self._n - 1]
-            return float(r[0] + self._offset), float(r[3]), float(r[4]), float(r[5])
+            t_host = r[0] / self.time_scale + self._offset
+            return float(t_host), float(r[3]), float(r[4]), float(r[5])
 
     def age(self, now: float | None = None) -> float:
         """Host seconds since the newest accepted sample was received (inf if none)."""

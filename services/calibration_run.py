@@ -1,0 +1,503 @@
+"""The calibration protocol as an explicit state machine.
+
+One place to read it — :data:`TRANSITIONS`::
+
+    PENDING -> CONNECT -> PRECHECK -> LOCK -> ALIGN -> FREE -> SPIN -> STOP
+    STOP    -> RESTEER (next angle of the same module) | RELEASE
+    RESTEER -> SPIN
+    RELEASE -> LOCK (next module) | SOLVE
+    SOLVE   -> WRITE -> DONE
+    any non-terminal state -> FAILED | ABORTED
+
+* CONNECT: the robot's controllers are activated (commands flow, watchdog refreshed).
+* PRECHECK: every node alive, no active errors, steering homed, mocap stream live.
+* LOCK k: steering of k position-held at the first angle, wheel braked.
+* ALIGN: the other (dynamic) modules steer to their nominal trailing angle for a spin
+  about k's contact point (so their transients are short), wheels free.
+* FREE: the dynamic modules' steering is released (zero torque).
+* SPIN: constant wheel torque on the dynamic wheels; after ``settle_time`` the segment
+  window opens and stays open until mocap has measured ``sweep_deg`` of yaw.
+* STOP: torque off, wheels held, the robot spins down.
+* RESTEER: k steers to its next angle (dynamic steering and wheels free so the body can
+  follow), then SPIN again.
+* RELEASE: k released; next module.
+* SOLVE: the recorded poses, encoder feedback and segment windows are written as an
+  offline dataset (CONVENTIONS.md) and solved by :func:`swpc_hw.calibration.solve` —
+  exactly what ``swpc solve`` does offline.
+* WRITE: the kinematic file is installed atomically (previous one kept as a timestamped
+  backup) unless the std devs exceed the configured tolerances (then reported only,
+  unless the request said ``install: always``).
+
+Any fault (driver fault event, stale mocap stream during motion, yaw rate above the
+limit, a step longer than ``step_timeout``) or an abort: ``stop_all()`` first, then
+FAILED or ABORTED with the reason.  Durations are robot time; with a simulator running
+``time_scale`` times faster than real time the waits shrink accordingly.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import shutil
+import threading
+import time
+import traceback
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.mocap_ingest import MocapIngest
+from services.robot_config import RobotConfig
+from services.robot_io import RobotIO
+from swpc_hw.calibration.report import result_rows
+from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
+from swpc_hw.dataset import Dataset, Segment, save_dataset
+from swpc_hw.kinematic_file import save_kinematics
+from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
+
+
+class State(StrEnum):
+    PENDING = "PENDING"
+    CONNECT = "CONNECT"
+    PRECHECK = "PRECHECK"
+    LOCK = "LOCK"
+    ALIGN = "ALIGN"
+    FREE = "FREE"
+    SPIN = "SPIN"
+    STOP = "STOP"
+    RESTEER = "RESTEER"
+    RELEASE = "RELEASE"
+    SOLVE = "SOLVE"
+    WRITE = "WRITE"
+    DONE = "DONE"
+    FAILED = "FAILED"
+    ABORTED = "ABORTED"
+
+
+TERMINAL = frozenset({State.DONE, State.FAILED, State.ABORTED})
+MOTION = frozenset({State.ALIGN, State.FREE, State.SPIN, State.STOP, State.RESTEER})
+
+TRANSITIONS: dict[State, frozenset[State]] = {
+    State.PENDING: frozenset({State.CONNECT}),
+    State.CONNECT: frozenset({State.PRECHECK}),
+    State.PRECHECK: frozenset({State.LOCK}),
+    State.LOCK: frozenset({State.ALIGN}),
+    State.ALIGN: frozenset({State.FREE}),
+    State.FREE: frozenset({State.SPIN}),
+    State.SPIN: frozenset({State.STOP}),
+    State.STOP: frozenset({State.RESTEER, State.RELEASE}),
+    State.RESTEER: frozenset({State.SPIN}),
+    State.RELEASE: frozenset({State.LOCK, State.SOLVE}),
+    State.SOLVE: frozenset({State.WRITE}),
+    State.WRITE: frozenset({State.DONE}),
+}
+
+
+class RunFailedError(Exception):
+    """A fault: the run ends FAILED with this reason."""
+
+
+class RunAbortedError(Exception):
+    """The operator aborted: the run ends ABORTED."""
+
+
+@dataclass
+class RunStatus:
+    id: str
+    created: str
+    state: State = State.PENDING
+    step: str = "waiting to start"
+    module: int | None = None
+    module_index: int = 0
+    modules_total: int = 0
+    progress: float = 0.0
+    sweep_deg: float = 0.0
+    poses: int = 0
+    encoder_samples: int = 0
+    segments: int = 0
+    errors: list[str] = field(default_factory=list)
+    reason: str | None = None
+    started: str | None = None
+    finished: str | None = None
+    installed: bool | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d["state"] = str(self.state)
+        d["errors"] = list(self.errors)
+        return d
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class CalibrationRun:
+    """One calibration: runs the protocol on its own thread (see the module docstring)."""
+
+    def __init__(
+        self,
+        robot: RobotIO,
+        mocap: MocapIngest,
+        config: RobotConfig,
+        *,
+        data_dir: Path,
+        kinematics_path: Path,
+        time_scale: float = 1.0,
+        install: str = "if-within-tolerance",
+        on_change: Callable[[CalibrationRun], None] | None = None,
+        poll: float = 0.002,
+    ) -> None:
+        self.robot = robot
+        self.mocap = mocap
+        self.config = config
+        self.time_scale = float(time_scale)
+        self.install = install
+        self.status = RunStatus(id=uuid.uuid4().hex[:12], created=_now_iso())
+        self.run_dir = Path(data_dir) / "runs" / self.status.id
+        self.kinematics_path = Path(kinematics_path)
+        self.result: CalibrationResult | None = None
+        self.result_doc: dict[str, Any] | None = None
+        self.segments: list[Segment] = []
+        self._on_change = on_change
+        self._poll = poll
+        self._abort = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._t0 = 0.0
+        self.abort_latency: float | None = None
+        modules = config.protocol.modules or config.nominal.ids
+        self.modules = [m for m in config.nominal.ids if m in modules]
+        self.status.modules_total = len(self.modules)
+
+    # ------------------------------------------------------------------ control
+    @property
+    def id(self) -> str:
+        return self.status.id
+
+    @property
+    def finished(self) -> bool:
+        return self.status.state in TERMINAL
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._main, name=f"calib-{self.id}", daemon=True)
+        self._thread.start()
+
+    def abort(self) -> None:
+        """Stop motion at once (``stop_all()`` from the caller's thread) and end ABORTED."""
+        if self.finished:
+            return
+        self._abort.set()
+        self.robot.stop_all()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ---------------------------------------------------------------- internals
+    def _enter(self, state: State, step: str) -> None:
+        cur = self.status.state
+        if state not in TERMINAL and state not in TRANSITIONS.get(cur, frozenset()):
+            raise RuntimeError(f"illegal transition {cur} -> {state}")
+        with self._lock:
+            self.status.state = state
+            self.status.step = step
+        self._changed()
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change(self)
+
+    def _robot_seconds(self, seconds: float) -> float:
+        return seconds / self.time_scale
+
+    def _check(self, motion: bool, deadline: float | None) -> None:
+        if self._abort.is_set():
+            raise RunAbortedError("aborted by the operator")
+        faults = self.robot.take_faults()
+        if faults:
+            raise RunFailedError(f"robot fault: {faults[0]}")
+        if motion and self.mocap.is_stale():
+            raise RunFailedError(
+                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
+                f"(limit {self.mocap.stale_after:.3f} s)"
+            )
+        if deadline is not None and time.monotonic() > deadline:
+            raise RunFailedError(
+                f"step timeout: {self.status.step} took longer than "
+                f"{self.config.limits.step_timeout:g} s"
+            )
+
+    def _deadline(self) -> float:
+        return time.monotonic() + self._robot_seconds(self.config.limits.step_timeout)
+
+    def _wait(self, seconds: float, motion: bool = True) -> None:
+        """Wait ``seconds`` of robot time, checking for faults and abort."""
+        end = time.monotonic() + self._robot_seconds(seconds)
+        deadline = self._deadline()
+        while True:
+            self._check(motion, deadline)
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(self._poll, left))
+
+    def _wait_until(self, cond: Callable[[], bool], motion: bool, what: str) -> None:
+        deadline = self._deadline()
+        while not cond():
+            self._check(motion, deadline)
+            time.sleep(self._poll)
+        del what
+
+    def _main(self) -> None:
+        self.status.started = _now_iso()
+        self._t0 = time.monotonic()
+        try:
+            self._protocol()
+        except RunAbortedError as exc:
+            self._end(State.ABORTED, str(exc))
+        except RunFailedError as exc:
+            self._end(State.FAILED, str(exc))
+        except Exception as exc:  # a bug or an I/O error: still stop the robot first
+            self._end(State.FAILED, f"{type(exc).__name__}: {exc}", traceback.format_exc())
+
+    def _end(self, state: State, reason: str, detail: str | None = None) -> None:
+        t = time.monotonic()
+        try:
+            self.robot.stop_all()
+        except Exception as exc:
+            self.status.errors.append(f"stop_all failed: {exc}")
+        if state is State.ABORTED and self.abort_latency is None:
+            self.abort_latency = time.monotonic() - t
+        try:
+            self.robot.release()
+        except Exception as exc:
+            self.status.errors.append(f"release failed: {exc}")
+        with self._lock:
+            self.status.reason = reason
+            self.status.errors.append(reason)
+            if detail:
+                self.status.errors.append(detail.strip().splitlines()[-1])
+            self.status.finished = _now_iso()
+            self.status.state = state
+            self.status.step = "stopped"
+        self._changed()
+
+    # ------------------------------------------------------------------ protocol
+    def _protocol(self) -> None:
+        cfg = self.config
+        angles = [math.radians(a) for a in cfg.protocol.angles_deg]
+        self._enter(State.CONNECT, "activating the controllers")
+        self.robot.activate()
+        self._enter(State.PRECHECK, "checking nodes, errors, homing and mocap")
+        self._precheck()
+        nominal = cfg.nominal.arrays()
+        ids = cfg.nominal.ids
+        spins_total = len(self.modules) * len(angles)
+        spins_done = 0
+        torque = cfg.limits.spin_torque
+        for mi, k in enumerate(self.modules):
+            ki = ids.index(k)
+            dyn = [m for m in ids if m != k]
+            self.status.module, self.status.module_index = k, mi + 1
+            self._enter(State.LOCK, f"locking module {k} at {cfg.protocol.angles_deg[0]:g} deg")
+            for m in dyn:
+                self.robot.wheel_hold(m)
+            self.robot.lock(k, angles[0])
+            self._settle_steering(k, angles[0])
+            for ai, a in enumerate(angles):
+                if ai > 0:
+                    self._enter(
+                        State.RESTEER,
+                        f"re-steering module {k} to {cfg.protocol.angles_deg[ai]:g} deg",
+                    )
+                    for m in dyn:
+                        self.robot.free_steer(m)
+                        self.robot.wheel_free(m)
+                    self.robot.steer_to(k, a)
+                    self._settle_steering(k, a)
+                    self._wait(cfg.protocol.resteer_time * 0.2)
+                else:
+                    # dynamic modules to their nominal trailing angle for a CCW spin about C
+                    self._enter(State.ALIGN, "aligning the dynamic modules")
+                    C = contact_point(
+                        nominal.P_s[ki], np.array(nominal.b[ki]), a + nominal.beta[ki]
+                    )
+                    v = -np.array([-C[1], C[0]])  # v = -omega x C with omega = 1
+                    targets = trailing_steering_angle(nominal, v, 1.0)
+                    for m in dyn:
+                        self.robot.wheel_free(m)
+                        self.robot.steer_to(m, float(targets[ids.index(m)]))
+                    self._wait(cfg.protocol.align_time)
+                    self._enter(State.FREE, "releasing the dynamic steering")
+                    for m in dyn:
+                        self.robot.free_steer(m)
+                self._enter(State.SPIN, f"spinning about module {k} ({ai + 1}/{len(angles)})")
+                for m in dyn:
+                    # trailing wheels roll backwards for a CCW spin (r dpsi = -D dyaw)
+                    self.robot.wheel_torque(m, -torque)
+                self._spin(k, spins_done, spins_total)
+                spins_done += 1
+                self._enter(State.STOP, "spinning down")
+                for m in dyn:
+                    self.robot.wheel_hold(m)
+                self._wait(cfg.protocol.stop_time)
+            self._enter(State.RELEASE, f"releasing module {k}")
+            self.robot.free_steer(k)
+            self.robot.wheel_hold(k)
+        self.robot.stop_all()
+        self.robot.release()
+        self._enter(State.SOLVE, "solving")
+        self._solve()
+        self._enter(State.WRITE, "writing the kinematic file")
+        self._write()
+        with self._lock:
+            self.status.progress = 1.0
+            self.status.finished = _now_iso()
+        self._enter(State.DONE, "done")
+
+    def _precheck(self) -> None:
+        deadline = time.monotonic() + self._robot_seconds(min(5.0, self.config.limits.step_timeout))
+        while True:
+            problems = self.robot.problems()
+            if self.mocap.is_stale():
+                problems.append(f"motion capture not live (last pose {self.mocap.age():.2f} s ago)")
+            if not problems:
+                return
+            if time.monotonic() > deadline:
+                raise RunFailedError("precheck failed: " + "; ".join(problems))
+            self._check(False, None)
+            time.sleep(0.01)
+
+    def _settle_steering(self, module: int, angle: float, tol: float = math.radians(0.5)) -> None:
+        self._wait_until(
+            lambda: bool(abs(wrap_angle(self.robot.steering(module) - angle)) < tol),
+            motion=True,
+            what=f"steering of module {module}",
+        )
+
+    def _spin(self, k: int, done: int, total: int) -> None:
+        proto, limits = self.config.protocol, self.config.limits
+        sweep_target = math.radians(proto.sweep_deg)
+        latest = self.mocap.latest()
+        assert latest is not None
+        t_spin = time.monotonic()
+        deadline = self._deadline()
+        window_start: float | None = None
+        yaw_prev = latest[3]
+        yaw_acc = 0.0
+        acc_at_start = 0.0
+        last_rate_t, last_rate_acc = latest[0], 0.0
+        while True:
+            self._check(True, deadline)
+            p = self.mocap.latest()
+            assert p is not None
+            d = float(wrap_angle(p[3] - yaw_prev))
+            yaw_prev = p[3]
+            yaw_acc += d
+            if p[0] - last_rate_t >= 0.1 / self.time_scale:
+                rate = (yaw_acc - last_rate_acc) / ((p[0] - last_rate_t) * self.time_scale)
+                if abs(rate) > limits.max_yaw_rate:
+                    raise RunFailedError(
+                        f"yaw rate {rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
+                    )
+                last_rate_t, last_rate_acc = p[0], yaw_acc
+            now = time.monotonic()
+            if window_start is None and now - t_spin >= self._robot_seconds(proto.settle_time):
+                window_start, acc_at_start = p[0], yaw_acc
+            if window_start is not None:
+                sweep = abs(yaw_acc - acc_at_start)
+                with self._lock:
+                    self.status.sweep_deg = math.degrees(sweep)
+                    self.status.progress = min((done + min(sweep / sweep_target, 1.0)) / total, 1.0)
+                    self.status.poses = self.mocap.counters.accepted
+                if sweep >= sweep_target:
+                    self.segments.append(Segment(k, window_start, p[0]))
+                    self.status.segments = len(self.segments)
+                    return
+            time.sleep(self._poll)
+
+    def dataset(self) -> Dataset:
+        """The run's recorded data in the offline dataset form (host monotonic clock)."""
+        poses = self.mocap.samples(since_host=self._t0 - 1.0)
+        enc = {m: self.robot.encoders(m, self._t0 - 1.0) for m in self.config.nominal.ids}
+        return Dataset(
+            robot=self.config.nominal,
+            poses=np.column_stack([poses[:, 2], poses[:, 3], poses[:, 4], poses[:, 5]]),
+            encoders=enc,
+            segments=list(self.segments),
+        )
+
+    def _solve(self) -> None:
+        ds = self.dataset()
+        self.status.encoder_samples = int(sum(v.shape[0] for v in ds.encoders.values()))
+        self.status.poses = int(ds.poses.shape[0])
+        save_dataset(self.run_dir / "dataset", ds)
+        self.result = solve(
+            ds, SolverOptions(time_offset=0.0), source=str(self.run_dir / "dataset")
+        )
+
+    def within_tolerance(self) -> bool:
+        assert self.result is not None
+        tol = self.config.tolerances
+        sd = self.result.stddev_array()
+        return bool(
+            np.all(sd[:, [0, 1, 3]] <= tol.position)
+            and np.all(sd[:, 2] <= tol.beta)
+            and np.all(sd[:, 4] <= tol.radius)
+        )
+
+    def _write(self) -> None:
+        assert self.result is not None
+        res = self.result
+        ok = self.within_tolerance()
+        install = self.install == "always" or (self.install == "if-within-tolerance" and ok)
+        extra = {
+            "provenance": {"tool": "swpc service", "run": self.id, "method": res.method},
+            "quality": res.quality_document(),
+        }
+        save_kinematics(self.run_dir / "kinematics.yaml", res.params, extra=extra)
+        if install:
+            if self.kinematics_path.exists():
+                stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
+                backup = self.kinematics_path.with_name(
+                    f"{self.kinematics_path.stem}.{stamp}{self.kinematics_path.suffix}"
+                )
+                shutil.copy2(self.kinematics_path, backup)
+            self.kinematics_path.parent.mkdir(parents=True, exist_ok=True)
+            save_kinematics(self.kinematics_path, res.params, extra=extra)
+        self.status.installed = install
+        self.result_doc = self._result_document(ok, install)
+
+    def _result_document(self, within: bool, installed: bool) -> dict[str, Any]:
+        assert self.result is not None
+        res = self.result
+        modules = []
+        for m in res.params.modules:
+            nom = self.config.nominal.module(m.id)
+            std = m.stddev
+            modules.append(
+                {
+                    "id": m.id,
+                    **{k: getattr(m, k) for k in ("x_s", "y_s", "beta", "b", "r")},
+                    "stddev": None if std is None else std.model_dump(),
+                    "nominal": {k: getattr(nom, k) for k in ("x_s", "y_s", "beta", "b", "r")},
+                }
+            )
+        header = ["module", "param", "unit", "nominal", "estimate", "std dev"]
+        return {
+            "run": self.id,
+            "modules": modules,
+            "quality": res.quality_document(),
+            "table": [dict(zip(header, row, strict=True)) for row in result_rows(res)],
+            "within_tolerance": within,
+            "installed": installed,
+            "kinematics_path": str(self.kinematics_path) if installed else None,
+            "run_kinematics_path": str(self.run_dir / "kinematics.yaml"),
+            "dataset_dir": str(self.run_dir / "dataset"),
+        }

@@ -1,0 +1,155 @@
+"""The small interface through which the calibration state machine sees the robot.
+
+:class:`RobotIO` is all the state machine uses; :class:`DriverRobotIO` implements it on
+the CAN driver (:class:`swpc_hw.can.driver.CanDriver`), so the simulator (which speaks the
+same CAN frames) and the real robot are interchangeable.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from firmware_protocol.codec import Axis
+from swpc_hw.can.driver import CanDriver, DriverEvent, Lifecycle, Severity
+
+FloatArray = NDArray[np.float64]
+
+
+class RobotIO(Protocol):
+    """What calibration needs from a robot (all angles in rad, torques in N.m)."""
+
+    @property
+    def module_ids(self) -> list[int]: ...
+
+    def problems(self) -> list[str]:
+        """Why the robot is not ready (nodes dead, errors, not homed); empty when ready."""
+        ...
+
+    def activate(self) -> None:
+        """Clear errors and let commands flow (controllers enabled, watchdog refreshed)."""
+        ...
+
+    def lock(self, module: int, steer: float) -> None:
+        """Steering position-hold at ``steer`` (reported angle), wheel braked."""
+        ...
+
+    def steer_to(self, module: int, steer: float) -> None: ...
+
+    def free_steer(self, module: int) -> None: ...
+
+    def wheel_torque(self, module: int, torque: float) -> None: ...
+
+    def wheel_hold(self, module: int) -> None: ...
+
+    def wheel_free(self, module: int) -> None: ...
+
+    def steering(self, module: int) -> float:
+        """Latest reported steering angle."""
+        ...
+
+    def stop_all(self) -> None:
+        """Zero torque and disable on every axis (the fault path)."""
+        ...
+
+    def release(self) -> None:
+        """Back to observing only (no commands)."""
+        ...
+
+    def encoders(self, module: int, since: float) -> FloatArray:
+        """Feedback rows ``(t_host, theta_hat, psi)`` received at host time >= ``since``."""
+        ...
+
+    def take_faults(self) -> list[str]:
+        """Fault messages observed since the last call."""
+        ...
+
+
+class DriverRobotIO:
+    """:class:`RobotIO` on a :class:`CanDriver` (which owns the bus and its lifecycle)."""
+
+    def __init__(self, driver: CanDriver) -> None:
+        self.driver = driver
+        self._faults: list[str] = []
+        self._lock = threading.Lock()
+        driver.add_event_callback(self._on_event)
+
+    def _on_event(self, ev: DriverEvent) -> None:
+        if ev.severity is Severity.FAULT:
+            with self._lock:
+                self._faults.append(ev.message)
+
+    @property
+    def module_ids(self) -> list[int]:
+        return self.driver.modules()
+
+    def problems(self) -> list[str]:
+        out = []
+        for m in self.module_ids:
+            st = self.driver.module_state(m)
+            if not st.alive:
+                out.append(f"module {m} (node {st.node}): no heartbeat")
+                continue
+            if any(st.errors):
+                out.append(f"module {m} (node {st.node}): active errors {st.errors}")
+            if not st.homed:
+                out.append(f"module {m} (node {st.node}): steering not homed")
+            if st.feedback is None:
+                out.append(f"module {m} (node {st.node}): no feedback")
+        return out
+
+    def activate(self) -> None:
+        d = self.driver
+        if d.state is not Lifecycle.ACTIVE:
+            d.activate()
+        for m in self.module_ids:
+            d.clear_errors(m)
+            d.enable(m, Axis.STEER)
+            d.enable(m, Axis.WHEEL)
+
+    def lock(self, module: int, steer: float) -> None:
+        self.driver.set_position(module, Axis.STEER, steer)
+        self.driver.hold(module, Axis.WHEEL)
+
+    def steer_to(self, module: int, steer: float) -> None:
+        self.driver.set_position(module, Axis.STEER, steer)
+
+    def free_steer(self, module: int) -> None:
+        self.driver.free(module, Axis.STEER)
+
+    def wheel_torque(self, module: int, torque: float) -> None:
+        self.driver.set_torque(module, Axis.WHEEL, torque)
+
+    def wheel_hold(self, module: int) -> None:
+        self.driver.hold(module, Axis.WHEEL)
+
+    def wheel_free(self, module: int) -> None:
+        self.driver.free(module, Axis.WHEEL)
+
+    def steering(self, module: int) -> float:
+        return self.driver.module_state(module).theta_hat
+
+    def stop_all(self) -> None:
+        self.driver.stop_all()
+
+    def release(self) -> None:
+        if self.driver.state is Lifecycle.ACTIVE:
+            self.driver.deactivate()
+
+    def encoders(self, module: int, since: float) -> FloatArray:
+        h = self.driver.history_arrays(module)
+        sel = h["t"] >= since
+        return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
+
+    def take_faults(self) -> list[str]:
+        with self._lock:
+            out, self._faults = self._faults, []
+        return out
+
+
+def monotonic() -> float:
+    return time.monotonic()
