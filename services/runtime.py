@@ -1,0 +1,183 @@
+"""What the service holds while it runs: bus, driver, zenoh session, mocap ingest, runs.
+
+Opened in the FastAPI lifespan (or by tests) and injected into the app, so tests run
+the real app against the in-process simulator.  With no CAN interface configured
+(``SWPC_CAN_INTERFACE`` unset) it runs on the *embedded default*: the simulator
+in-process on a python-can ``virtual`` bus and zenoh on a loopback endpoint.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Protocol
+
+from services.calibration_run import TERMINAL, CalibrationRun, State
+from services.mocap_ingest import MocapIngest
+from services.robot_config import RobotConfig, load_robot_config
+from services.robot_io import DriverRobotIO
+from services.settings import ServiceSettings
+from services.store import RunStore
+from swpc_hw.can.config import CanConfig
+from swpc_hw.can.driver import CanDriver
+from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+
+
+class Simulator(Protocol):
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+
+class RunConflictError(RuntimeError):
+    """A calibration is already running."""
+
+
+class Runtime:
+    """Owns every long-lived resource of the service; :meth:`close` is idempotent."""
+
+    def __init__(self, settings: ServiceSettings, config: RobotConfig | None = None) -> None:
+        self.settings = settings
+        self.config = config or load_robot_config(settings.robot_config)
+        self.data_dir = Path(settings.data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.store = RunStore(self.data_dir / "runs.sqlite")
+        self.interrupted = self.store.mark_interrupted()
+        self.runs: dict[str, CalibrationRun] = {}
+        self.current: CalibrationRun | None = None
+        self._lock = threading.Lock()
+        self.simulator: Simulator | None = None
+        self.session: Any = None
+        self.driver: CanDriver | None = None
+        self.mocap = MocapIngest(
+            encoding=settings.pose_encoding,
+            stale_after=settings.mocap_stale_after,
+            time_scale=settings.time_scale,
+        )
+        self.started = time.time()
+        self._closed = False
+
+    # ---------------------------------------------------------------- lifecycle
+    def open(self) -> Runtime:
+        s = self.settings
+        listen, connect = list(s.zenoh_listen), list(s.zenoh_connect)
+        channel = s.can_channel
+        interface = s.can_interface or "virtual"
+        if s.embedded:
+            channel = f"swpc-embedded-{uuid.uuid4().hex[:8]}"
+            if not listen and not connect:
+                ep = free_tcp_endpoint()
+                listen = [ep]
+            self.simulator = self._embedded_simulator(channel, listen or connect)
+        self.session = open_session(
+            mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
+        )
+        self.mocap.subscribe(self.session, self.config.pose_key)
+        lim = self.config.limits
+        self.driver = CanDriver(
+            CanConfig(
+                interface=interface,
+                channel=channel,
+                bitrate=s.can_bitrate,
+                modules=dict(self.config.nodes or {}),
+                watchdog_timeout_ms=lim.watchdog_ms,
+                refresh_period_s=min(0.02, lim.watchdog_ms / 5000.0),
+                max_torque=(lim.max_wheel_torque, lim.max_wheel_torque),
+                max_velocity=(lim.max_steer_velocity, lim.max_wheel_velocity),
+                log_path=str(self.data_dir / f"can-{time.strftime('%Y%m%dT%H%M%S')}.log"),
+            )
+        )
+        self.driver.configure()
+        if self.simulator is not None:
+            self.simulator.start()
+        return self
+
+    def _embedded_simulator(self, channel: str, endpoints: list[str]) -> Simulator:
+        from simulators.embedded import embedded_simulator
+
+        return embedded_simulator(
+            config=self.config,
+            channel=channel,
+            zenoh_endpoints=endpoints,
+            time_scale=self.settings.time_scale,
+            seed=self.settings.sim_seed,
+        )
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        run = self.current
+        if run is not None and not run.finished:
+            run.abort()
+            run.join(5.0)
+        if self.driver is not None:
+            with contextlib.suppress(Exception):
+                self.driver.stop_all()
+            self.driver.shutdown()
+        self.mocap.close()
+        if self.simulator is not None:
+            self.simulator.stop()
+        if self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
+        self.store.close()
+
+    # --------------------------------------------------------------------- runs
+    def start_run(self, config: RobotConfig, install: str) -> CalibrationRun:
+        assert self.driver is not None
+        with self._lock:
+            if self.current is not None and not self.current.finished:
+                raise RunConflictError(f"calibration {self.current.id} is still running")
+            run = CalibrationRun(
+                DriverRobotIO(self.driver),
+                self.mocap,
+                config,
+                data_dir=self.data_dir,
+                kinematics_path=self.settings.kinematics_file,
+                time_scale=self.settings.time_scale,
+                install=install,
+                on_change=self._persist,
+            )
+            self.runs[run.id] = run
+            self.current = run
+        self._persist(run)
+        run.start()
+        return run
+
+    def _persist(self, run: CalibrationRun) -> None:
+        self.store.upsert(run.id, run.status.created, run.status.to_dict())
+        if run.status.state is State.DONE and run.result_doc is not None:
+            self.store.set_result(run.id, run.result_doc)
+
+    def status(self, run_id: str) -> dict[str, Any] | None:
+        run = self.runs.get(run_id)
+        if run is not None:
+            return run.status.to_dict()
+        got = self.store.get(run_id)
+        return None if got is None else got[0]
+
+    def result(self, run_id: str) -> tuple[str, dict[str, Any] | None] | None:
+        """``(state, result document or None)``; None if the run is unknown."""
+        run = self.runs.get(run_id)
+        if run is not None:
+            return str(run.status.state), run.result_doc
+        got = self.store.get(run_id)
+        if got is None:
+            return None
+        return str(got[0]["state"]), got[1]
+
+    def list_runs(self) -> list[dict[str, Any]]:
+        return list(self.store.list())
+
+    def run_states(self) -> dict[str, int]:
+        counts: dict[str, int] = {str(s): 0 for s in State}
+        for st in self.store.list():
+            counts[str(st["state"])] = counts.get(str(st["state"]), 0) + 1
+        return counts
+
+    def running(self) -> bool:
+        return self.current is not None and self.current.status.state not in TERMINAL
