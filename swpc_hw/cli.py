@@ -17,6 +17,7 @@ from swpc_hw.errors import SwpcError
 SUBCOMMANDS: tuple[str, ...] = (
     "swpc_hw.commands.solve",
     "simulators.commands_gen",
+    "services.commands_serve",
 )
 
 
