@@ -710,11 +710,13 @@ class CanDriver:
                     )
             else:
                 fault = self._on_data_frame(msg, t, callbacks, events)
+            was_active = self._begin_fault() if fault else False
+            recorded = [self._record(*e) for e in events]
             self._changed.notify_all()
-        for kind, sev, text, nd, axis in events:
-            self._emit(kind, sev, text, nd, axis)
+        for ev in recorded:
+            self._notify(ev)
         if fault:
-            self._fault_stop()
+            self._fault_stop(was_active)
         for module, sample in callbacks:
             for fn in self._feedback_callbacks:
                 fn(module, sample)  # exceptions go to Notifier -> on_error
@@ -903,12 +905,14 @@ class CanDriver:
         with self._lock:
             self._stats.listener_errors += 1
             self.last_exception = exc
-        self._emit(
-            EventKind.LISTENER_ERROR,
-            Severity.FAULT,
-            f"exception in the receive thread: {type(exc).__name__}: {exc}",
-        )
-        self._fault_stop()
+            was_active = self._begin_fault()
+            ev = self._record(
+                EventKind.LISTENER_ERROR,
+                Severity.FAULT,
+                f"exception in the receive thread: {type(exc).__name__}: {exc}",
+            )
+        self._notify(ev)
+        self._fault_stop(was_active)
 
     # ================================================================ supervision
     def _supervise(self) -> None:
@@ -919,6 +923,7 @@ class CanDriver:
             lost: list[_Node] = []
             refresh: list[codec.Frame] = []
             deadlines = [now + 0.1]
+            was_active = False
             with self._lock:
                 for nd in self._nodes.values():
                     ref = nd.t_heartbeat if nd.t_heartbeat is not None else self._configured_at
@@ -940,15 +945,22 @@ class CanDriver:
                             deadlines.append(now + cfg.refresh_period_s)
                         else:
                             deadlines.append(nd.last_tx + cfg.refresh_period_s)
-            for nd in lost:
-                self._emit(
-                    EventKind.HEARTBEAT_LOST,
-                    Severity.FAULT,
-                    f"{_where(nd.module, nd.node)}: no heartbeat for {loss_after:.3f} s",
-                    nd,
-                )
+                if lost:
+                    was_active = self._begin_fault()
+                    refresh = []
+                recorded = [
+                    self._record(
+                        EventKind.HEARTBEAT_LOST,
+                        Severity.FAULT,
+                        f"{_where(nd.module, nd.node)}: no heartbeat for {loss_after:.3f} s",
+                        nd,
+                    )
+                    for nd in lost
+                ]
+            for ev in recorded:
+                self._notify(ev)
             if lost:
-                self._fault_stop()
+                self._fault_stop(was_active)
             if refresh and self._state == Lifecycle.ACTIVE:
                 with contextlib.suppress(CanError):
                     self._send_frames(refresh, best_effort=True)
@@ -957,12 +969,17 @@ class CanDriver:
                 self._wake.wait(wait)
                 self._wake.clear()
 
-    def _fault_stop(self) -> None:
-        """Every fault path: stop_all() and drop from ACTIVE to INACTIVE."""
+    def _begin_fault(self) -> bool:
+        """Drop from ACTIVE to INACTIVE (no more commands); True if the driver was active."""
         with self._lock:
             active = self._state == Lifecycle.ACTIVE
             if active:
                 self._state = Lifecycle.INACTIVE
+            return active
+
+    def _fault_stop(self, was_active: bool | None = None) -> None:
+        """Every fault path: stop_all() and drop from ACTIVE to INACTIVE."""
+        active = self._begin_fault() if was_active is None else was_active
         if active:
             try:
                 self.stop_all()
@@ -984,6 +1001,17 @@ class CanDriver:
         nd: _Node | None = None,
         axis: Axis | None = None,
     ) -> None:
+        self._notify(self._record(kind, severity, message, nd, axis))
+
+    def _record(
+        self,
+        kind: EventKind,
+        severity: Severity,
+        message: str,
+        nd: _Node | None = None,
+        axis: Axis | None = None,
+    ) -> DriverEvent:
+        """Create, log and queue an event (cheap; may be called under the lock)."""
         ev = DriverEvent(
             time.monotonic(),
             kind,
@@ -999,6 +1027,10 @@ class CanDriver:
                 log.warning("%s%s", message, " (further ones counted only)" if n == 5 else "")
         with contextlib.suppress(queue.Full):
             self._events.put_nowait(ev)
+        return ev
+
+    def _notify(self, ev: DriverEvent) -> None:
+        """Call the event callbacks (outside the driver's lock)."""
         for fn in self._event_callbacks:
             try:
                 fn(ev)
