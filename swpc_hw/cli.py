@@ -18,6 +18,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "swpc_hw.commands.solve",
     "simulators.commands_gen",
     "services.commands_serve",
+    "swpc_hw.commands.can",
 )
 
 

@@ -517,3 +517,22 @@ def test_recording_decodes_with_cantools(tmp_path: Path) -> None:
     assert "N4_Heartbeat(" in out and "N1_FeedbackPosition(" in out
     assert "N3_FeedbackVelocityTorque(" in out and "N1_SetWatchdog(" in out
     assert "Unknown frame" not in out
+
+
+# ---------------------------------------------------------------------------- CLI
+def test_can_monitor_prints_nodes(capsys: pytest.CaptureFixture[str]) -> None:
+    from swpc_hw.cli import main
+
+    channel = new_channel()
+    rc = main(
+        ["can", "monitor", "--interface", INTERFACE, "--channel", channel, "--emulate",
+         "--duration", "0.7", "--interval", "0.3", "--plain"]
+    )  # fmt: skip
+    assert rc == 0
+    out = capsys.readouterr().out
+    rows = [line.split("  ") for line in out.splitlines() if line[:1].isdigit()]
+    assert {r[0] for r in rows} == {"1", "2", "3", "4"}
+    assert all(r[2] == "yes" and r[3] == "DISABLED/FREE" for r in rows)
+    last = rows[-4:]
+    assert all(100.0 < float(r[8]) < 260.0 for r in last)  # feedback ~200 Hz
+    assert "error frames 0" in out and "unknown ids 0" in out
