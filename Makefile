@@ -37,3 +37,9 @@ demo: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info
+
+# Real SocketCAN on a real kernel: boots a Debian kernel under QEMU (TCG) with virtme-ng and
+# runs deploy/vm/in-vm.sh inside (set-up cached in .cache/vm/). See deploy/README.md.
+.PHONY: test-vcan
+test-vcan: $(STAMP)
+	bash deploy/vm/run-in-vm.sh

@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# `make test-vcan`: the real SocketCAN path on a real Linux CAN stack.
+#
+#   deploy/vm/run-in-vm.sh [IN-VM COMMAND...]     (default: deploy/vm/in-vm.sh OUT)
+#
+# 1. deploy/vm/setup.sh (idempotent, cached in .cache/vm/): Debian packages, the Debian
+#    kernel unpacked and trimmed, pinned virtme-ng in .venv.
+# 2. Boots that kernel ONCE with virtme-ng under QEMU software emulation (TCG; KVM is not
+#    used) over a read-only 9p view of this machine's filesystem, no network device, with
+#    .cache/vm/run/ as the only writable host folder, and two emulated SJA1000 CAN
+#    controllers (kvaser_pci) on one QEMU CAN bus (can0, can1 in the guest).
+# 3. Runs deploy/vm/in-vm.sh inside; its exit status is this script's.
+# Prints the set-up, boot and test times.  Results: .cache/vm/run/ (summary.txt,
+# vcan0.log = candump, vcan0.decoded.txt = cantools decode, driver-tests.xml).
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+CACHE="${SWPC_VM_CACHE:-$ROOT/.cache/vm}"
+OUT="$CACHE/run"
+TIMEOUT="${SWPC_VM_TIMEOUT:-900}"
+cd "$ROOT"
+
+t_setup0=$EPOCHREALTIME
+envfile="$(bash deploy/vm/setup.sh | tail -n1)"
+# shellcheck disable=SC1090
+source "$envfile"
+t_setup1=$EPOCHREALTIME
+
+rm -rf "$OUT" && mkdir -p "$OUT"
+if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
+cmd="SWPC_VM_MPLCONFIGDIR=$SWPC_VM_MPLCONFIGDIR $cmd"
+
+export PATH="$ROOT/.venv/bin:$PATH"
+# The venv and its base Python are also exported as separate read-only 9p shares, which
+# in-vm.sh remounts with cache=loose (the root share is uncached: every Python import
+# would otherwise go to the host again).
+pybase="$("$ROOT/.venv/bin/python" -c 'import sys; print(sys.base_prefix)')"
+vng_args=(
+    -r "$SWPC_VM_KIMG" --disable-kvm --force-9p --cpus 1 --memory 1G
+    --rwdir="$OUT" --rodir="$ROOT/.venv"
+    --qemu-opts="-object can-bus,id=canbus0 -device kvaser_pci,canbus=canbus0 -device kvaser_pci,canbus=canbus0"
+    --exec "$cmd"
+)
+case "$pybase" in /|/usr|/usr/local) ;; *) vng_args+=(--rodir="$pybase") ;; esac
+echo "[test-vcan] vng ${vng_args[*]}"
+ready_file="$OUT/.host-ready-time"
+t_boot0=$EPOCHREALTIME
+set +e
+# stdin must be /dev/null and stdout a pipe: virtme-ng then runs non-interactively and
+# returns the command's exit status.
+timeout --kill-after=10 "$TIMEOUT" vng "${vng_args[@]}" </dev/null 2>&1 \
+    | while IFS= read -r line; do
+        [[ "$line" == @@SWPC_VM_READY* && ! -e "$ready_file" ]] && echo "$EPOCHREALTIME" > "$ready_file"
+        printf '%s\n' "$line"
+    done
+status=${PIPESTATUS[0]}
+set -e
+t_end=$EPOCHREALTIME
+
+t_ready=$t_end
+[[ -s "$ready_file" ]] && t_ready="$(cat "$ready_file")"
+fmt() { awk -v a="$1" -v b="$2" 'BEGIN {printf "%.1f", b - a}'; }
+{
+    echo "set-up (deploy/vm/setup.sh): $(fmt "$t_setup0" "$t_setup1") s"
+    echo "VM boot (vng start -> in-VM script running): $(fmt "$t_boot0" "$t_ready") s"
+    echo "tests in VM + shutdown: $(fmt "$t_ready" "$t_end") s"
+    echo "total: $(fmt "$t_setup0" "$t_end") s"
+    echo "exit status: $status"
+} | sed 's/^/[test-vcan] /' | tee "$OUT/timing.txt"
+[[ $status -eq 124 ]] && echo "[test-vcan] error: timed out after $TIMEOUT s" >&2
+exit "$status"
