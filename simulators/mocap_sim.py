@@ -1,0 +1,290 @@
+"""Simulated motion capture over zenoh, and the simulator's ground-truth channel.
+
+Mocap (what the service uses): poses of R in W on ``mocap/<robot>/pose`` at ``rate``
+(100 Hz default, up to 2 kHz) in one of the two encodings of :mod:`swpc_hw.mocap`:
+
+* ``native`` (``application/x-swpc-pose``, 72 bytes, layout in :mod:`swpc_hw.mocap`);
+* ``ros2-cdr`` (``application/cdr``): a CDR ``geometry_msgs/msg/PoseStamped`` serialised by
+  rosbags, byte for byte what zenoh-bridge-ros2dds forwards from a ROS 2 mocap driver.
+
+Samples are taken at simulated times ``k / rate`` and stamped with the *mocap clock*
+``t_mocap = t_sim + clock_offset``.  Options model a real system (the generator's noise
+options, :class:`simulators.datagen.ExperimentOptions`, are the template): Gaussian noise
+on x, y and yaw, dropouts (a sample is not sent), outliers (a jump of ``outlier_magnitude``
+in a random direction and ``outlier_magnitude / 0.25`` rad of yaw), and a transport
+latency (a sample is published ``latency`` simulated seconds after its timestamp).
+
+Ground truth (tests and validation only; the service never subscribes to it), kept
+apart under ``sim/<robot>/truth/``:
+
+* ``sim/<robot>/truth/pose``: JSON ``{"t", "pose": [x, y, yaw], "twist": [vx, vy, omega],
+  "theta": [...], "theta_hat": [...], "psi": [...], "psi_encoder": [...],
+  "contact_points": [[x, y], ...], "homed": [...]}`` (SI, true values, no noise; ``t`` on the
+  simulated clock, i.e. without the mocap clock offset), at ``truth_rate``;
+* ``sim/<robot>/truth/params``: JSON kinematic-file document of the true robot plus
+  ``nodes`` (module id -> CAN node) and the simulator settings; published at start and
+  every 5 s, and answered by a queryable on the same key (``session.get``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from simulators.physics import FloatArray
+from swpc_hw.mocap import PoseEncoding, PoseSample, encode_pose, zenoh_encoding_name
+
+MAX_RATE_HZ = 2000.0
+
+
+def pose_key(robot: str) -> str:
+    return f"mocap/{robot}/pose"
+
+
+def truth_pose_key(robot: str) -> str:
+    return f"sim/{robot}/truth/pose"
+
+
+def truth_params_key(robot: str) -> str:
+    return f"sim/{robot}/truth/params"
+
+
+@dataclass(frozen=True)
+class MocapOptions:
+    """Simulated mocap stream (SI units; random draws seeded by ``seed``)."""
+
+    rate: float = 100.0  # Hz, <= 2000
+    encoding: str = "native"  # "native" | "ros2-cdr"
+    frame_id: str = "world"  # header.frame_id of ros2-cdr samples
+    sigma_xy: float = 0.0  # m
+    sigma_yaw: float = 0.0  # rad
+    dropout: float = 0.0  # probability that a sample is not sent
+    outliers: float = 0.0  # probability that a sent sample is an outlier
+    outlier_magnitude: float = 0.05  # m (yaw jump outlier_magnitude / 0.25 rad)
+    latency: float = 0.0  # s of simulated time between a sample's timestamp and its publication
+    clock_offset: float = 0.0  # s, mocap clock - simulated clock
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.rate <= MAX_RATE_HZ:
+            raise ValueError(f"mocap rate {self.rate} Hz outside (0, {MAX_RATE_HZ:g}]")
+        PoseEncoding(self.encoding)
+        if self.encoding == PoseEncoding.AUTO:
+            raise ValueError("mocap encoding must be native or ros2-cdr")
+        for name in ("dropout", "outliers"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"mocap {name} {v} outside [0, 1]")
+        if self.latency < 0.0 or self.sigma_xy < 0.0 or self.sigma_yaw < 0.0:
+            raise ValueError("mocap latency and noise must be >= 0")
+
+
+def corrupt_pose(
+    rng: np.random.Generator, pose: FloatArray, opt: MocapOptions
+) -> tuple[FloatArray | None, bool]:
+    """Measured pose from the true ``(x, y, yaw)``: ``(None, False)`` if dropped.
+
+    ``x += N(0, sigma_xy)``, ``y += N(0, sigma_xy)``, ``yaw += N(0, sigma_yaw)``; with
+    probability ``outliers`` the position jumps by ``outlier_magnitude`` in a uniformly
+    random direction and yaw by ``+-outlier_magnitude / 0.25`` rad.  Returns
+    ``(pose, is_outlier)``.
+    """
+    if opt.dropout > 0.0 and rng.random() < opt.dropout:
+        return None, False
+    p = np.array(pose, dtype=float)
+    if opt.sigma_xy > 0.0:
+        p[:2] += rng.normal(0.0, opt.sigma_xy, 2)
+    if opt.sigma_yaw > 0.0:
+        p[2] += rng.normal(0.0, opt.sigma_yaw)
+    outlier = opt.outliers > 0.0 and rng.random() < opt.outliers
+    if outlier:
+        a = rng.uniform(-math.pi, math.pi)
+        p[0] += opt.outlier_magnitude * math.cos(a)
+        p[1] += opt.outlier_magnitude * math.sin(a)
+        p[2] += (1.0 if rng.random() < 0.5 else -1.0) * opt.outlier_magnitude / 0.25
+    return p, outlier
+
+
+@dataclass
+class MocapCounters:
+    sampled: int = 0
+    published: int = 0
+    dropped: int = 0
+    outliers: int = 0
+    put_errors: int = 0
+
+
+@dataclass
+class MocapSim:
+    """The mocap system: sample the true pose, corrupt it, delay it, publish it on zenoh.
+
+    ``session`` is a zenoh session (None: samples are only kept in :attr:`sent`, for
+    tests without zenoh).  Time is the simulated clock (s).
+    """
+
+    robot: str
+    options: MocapOptions = field(default_factory=MocapOptions)
+    session: Any = None
+    keep_sent: int = 0
+    """Keep the last ``keep_sent`` published samples in :attr:`sent` (0: none)."""
+
+    def __post_init__(self) -> None:
+        self.key = pose_key(self.robot)
+        self.counters = MocapCounters()
+        self._rng = np.random.default_rng(self.options.seed)
+        self._queue: deque[tuple[float, PoseSample]] = deque()
+        self._seq = 0
+        self._k_next: int | None = None
+        self.sent: deque[PoseSample] = deque(maxlen=max(self.keep_sent, 1))
+        self._pub: Any = None
+        self._encoding = PoseEncoding(self.options.encoding)
+        if self.session is not None:
+            self._pub = self.session.declare_publisher(
+                self.key, encoding=zenoh_encoding_name(self._encoding)
+            )
+
+    def due_times(self, t0: float, t1: float) -> list[float]:
+        """Sample times ``k / rate`` in ``(t0, t1]`` (the first call also includes ``t0``)."""
+        rate = self.options.rate
+        if self._k_next is None:
+            self._k_next = math.ceil(t0 * rate - 1e-9)
+        out = []
+        while self._k_next / rate <= t1 + 1e-12:
+            out.append(self._k_next / rate)
+            self._k_next += 1
+        return out
+
+    def sample(self, t: float, pose: FloatArray) -> None:
+        """Take the sample of simulated time ``t`` from the true pose ``(x, y, yaw)``."""
+        self.counters.sampled += 1
+        meas, outlier = corrupt_pose(self._rng, pose, self.options)
+        if meas is None:
+            self.counters.dropped += 1
+            return
+        self.counters.outliers += int(outlier)
+        ps = PoseSample.planar(
+            t + self.options.clock_offset,
+            float(meas[0]),
+            float(meas[1]),
+            float(meas[2]),
+            seq=self._seq,
+        )
+        self._seq += 1
+        self._queue.append((t + self.options.latency, ps))
+
+    def flush(self, now: float) -> int:
+        """Publish the queued samples whose publication time is ``<= now``; return how many."""
+        n = 0
+        q = self._queue
+        while q and q[0][0] <= now + 1e-12:
+            _, ps = q.popleft()
+            self._publish(ps)
+            n += 1
+        return n
+
+    def _publish(self, ps: PoseSample) -> None:
+        if self.keep_sent:
+            self.sent.append(ps)
+        if self._pub is not None:
+            if self._encoding is PoseEncoding.CDR:
+                ps = PoseSample(
+                    ps.t,
+                    ps.x,
+                    ps.y,
+                    ps.z,
+                    ps.qx,
+                    ps.qy,
+                    ps.qz,
+                    ps.qw,
+                    ps.seq,
+                    self.options.frame_id,
+                )
+            try:
+                self._pub.put(encode_pose(ps, self._encoding))
+            except Exception:  # a closed session while stopping: count, do not kill the sim
+                self.counters.put_errors += 1
+                return
+        self.counters.published += 1
+
+    def close(self) -> None:
+        pub, self._pub = self._pub, None
+        if pub is not None:
+            with contextlib.suppress(Exception):  # already closed with its session
+                pub.undeclare()
+
+
+@dataclass
+class TruthPublisher:
+    """Ground truth on ``sim/<robot>/truth/{pose,params}`` (see the module docstring)."""
+
+    robot: str
+    params_doc: dict[str, Any]
+    session: Any = None
+    rate: float = 50.0
+    params_period: float = 5.0
+
+    def __post_init__(self) -> None:
+        self.pose_key = truth_pose_key(self.robot)
+        self.params_key = truth_params_key(self.robot)
+        self.published = 0
+        self._params_payload = json.dumps(self.params_doc).encode()
+        self._next_pose: float | None = None
+        self._next_params: float | None = None
+        self._pub: Any = None
+        self._pub_params: Any = None
+        self._queryable: Any = None
+        if self.session is not None:
+            self._pub = self.session.declare_publisher(self.pose_key, encoding="application/json")
+            self._pub_params = self.session.declare_publisher(
+                self.params_key, encoding="application/json"
+            )
+            self._queryable = self.session.declare_queryable(self.params_key, self._on_query)
+
+    def _on_query(self, query: Any) -> None:
+        query.reply(self.params_key, self._params_payload, encoding="application/json")
+
+    def due(self, now: float) -> bool:
+        """True when a truth pose is due at simulated time ``now`` (and schedules the next)."""
+        if self.rate <= 0.0:
+            return False
+        if self._next_pose is None or now >= self._next_pose - 1e-12:
+            base = now if self._next_pose is None else self._next_pose
+            self._next_pose = max(base + 1.0 / self.rate, now)
+            return True
+        return False
+
+    def publish_pose(self, doc: dict[str, Any]) -> None:
+        if self._pub is not None:
+            try:
+                self._pub.put(json.dumps(doc).encode())
+            except Exception:  # session closed while stopping
+                return
+        self.published += 1
+
+    def maybe_publish_params(self, now: float) -> None:
+        if self._next_params is None or now >= self._next_params:
+            self._next_params = now + self.params_period
+            if self._pub_params is not None:
+                try:
+                    self._pub_params.put(self._params_payload)
+                except Exception:  # session closed while stopping
+                    return
+
+    def close(self) -> None:
+        for name in ("_pub", "_pub_params", "_queryable"):
+            obj = getattr(self, name)
+            setattr(self, name, None)
+            if obj is not None:
+                with contextlib.suppress(Exception):  # already closed with its session
+                    obj.undeclare()
+
+
+def options_doc(opt: MocapOptions) -> dict[str, Any]:
+    """The mocap options as a JSON-able dict (for the truth/params document)."""
+    return asdict(opt)

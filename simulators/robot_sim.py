@@ -1,0 +1,377 @@
+"""Physics of the whole virtual robot under its controllers' commands (model of CONVENTIONS.md).
+
+:class:`RobotSim` holds the hidden *true* robot (``RobotParams``, default the paper's Table 4
+calibrated values), the pose of R in W, and per module the true steering angle ``theta``
+(relative to the body), the rolling wheel angle ``psi`` and the wheel angle its encoder
+reads (``psi`` plus slip).  :meth:`RobotSim.step` advances it by ``dt`` under one
+:class:`ModuleDrive` per module (what each axis' controller does, see ``simulators.sim``).
+
+Constraint rows
+---------------
+With the body twist ``xi = (v_x, v_y, omega)`` in R, the no-slip constraint of module i
+projected on ``u_i = u(theta_i)`` and ``n_i = n(theta_i)`` is linear in ``xi``::
+
+    U_i . xi = r_i psi_dot_i,     U_i = (u_x, u_y, P_w,i x u_i)          (rolling)
+    N_i . xi = b_i theta_dot_i,   N_i = (n_x, n_y, P_w,i x n_i)          (lateral)
+
+(``a x b = a_x b_y - a_y b_x``).  Each axis is driven one of a few ways:
+
+* wheel BRAKE (controller HOLD): ``U_i xi = 0`` is a **hard** row, and so is the module's
+  lateral row if its steering is driven: a braked, steer-locked module pins its contact
+  point to the floor (the seed's fixing tool) and the body can only pivot about it;
+* wheel RATE (VELOCITY/POSITION): ``U_i xi = r psi_dot_cmd`` is a **soft** row, and so is
+  the module's lateral row if its steering is driven: with every module driven, ``xi`` is
+  the least-squares twist of the true model (:func:`swpc_hw.model.forward_kinematics`);
+  commands computed with wrong parameters leave residuals, i.e. slip and drift;
+* wheel TORQUE or PASSIVE (FREE, disabled, fault): the wheel rolls without slip
+  (``psi_dot = U_i xi / r_i``) and enters the body **dynamics** below;
+* steering RATE (HOLD, POSITION, VELOCITY, homing): ``theta_dot`` is imposed; on a module
+  whose wheel is not braked/driven, a mismatch ``N_i xi - b theta_dot`` scrubs the tyre
+  sideways against a viscous lateral force;
+* steering PASSIVE (FREE, disabled, fault): a free caster trails,
+  ``b theta_dot = N_i xi`` (:func:`simulators.physics.caster_rates`).
+
+Twist solution (:func:`prioritized_twist`): the hard rows are solved in least squares,
+the soft rows in least squares within the null space of the hard ones, and the
+directions still free (null space ``Z`` of both) follow a first-order dynamic with
+inertia and viscous damping, integrated by implicit Euler (unconditionally stable)::
+
+    M = M_body + sum_j J_w h_j h_j^T                      (h_j = U_j / r_j, rolling wheels)
+    D(xi) = 1/2 sum_k c_k (g_k . xi - s_k)^2               (viscous rows)
+    Z^T (M + dt C) Z z = Z^T M (xi_0 - xi_p) + dt Z^T (F - C xi_p + sum_k c_k s_k g_k)
+    xi = xi_p + Z z,   C = sum_k c_k g_k g_k^T,   F = sum_j tau_j h_j
+
+with ``xi_0`` the previous twist and ``xi_p`` the hard/soft solution.  Viscous rows: each
+rolling wheel (``g = U/r``, ``s = 0``, wheel damping), each steered but not held module's
+tyre (``g = N``, ``s = b theta_dot``, lateral damping), each steered module's fork rotation
+on the floor (``g = e_omega``, ``s = -theta_dot``, scrub damping) and the body (rolling
+resistance).  A constant wheel torque therefore gives a steady spin, and the rolling
+wheels' encoder increments stay exactly those of rolling without slip:
+``r dpsi = -D d(yaw)`` for a settled caster at distance ``D`` from the pivot.
+
+Within a step the twist is constant: the pose advances by the exact SE(2) exponential
+(:func:`simulators.physics.se2_step`) and the steering / wheel angles by classical RK4.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from simulators.physics import FloatArray, se2_step
+from swpc_hw.model import (
+    RobotArrays,
+    RobotParams,
+    contact_point,
+    cross2,
+    steering_direction,
+    steering_normal,
+)
+from swpc_hw.reference import PAPER_CALIBRATED
+
+
+class WheelDrive(enum.Enum):
+    PASSIVE = "passive"  # free / disabled / fault: rolls with the floor, wheel damping only
+    BRAKE = "brake"  # HOLD: the wheel does not turn
+    RATE = "rate"  # VELOCITY / POSITION: the motor imposes psi_dot
+    TORQUE = "torque"  # TORQUE: the motor applies a torque, the wheel rolls
+
+
+class SteerDrive(enum.Enum):
+    PASSIVE = "passive"  # free / disabled / fault: the caster trails
+    RATE = "rate"  # HOLD / POSITION / VELOCITY / homing: theta_dot imposed
+
+
+@dataclass(frozen=True)
+class ModuleDrive:
+    """What one module's controller does during a step (SI units)."""
+
+    steer: SteerDrive = SteerDrive.PASSIVE
+    steer_rate: float = 0.0  # rad/s, for SteerDrive.RATE
+    wheel: WheelDrive = WheelDrive.PASSIVE
+    wheel_value: float = 0.0  # rad/s for RATE, N.m for TORQUE
+
+
+FREE_MODULE = ModuleDrive()
+
+
+@dataclass(frozen=True)
+class PhysicsOptions:
+    """Physical constants of the virtual robot (SI units) and slip-burst injection.
+
+    Defaults: with the paper's robot locked on one module, ``-0.6 N.m`` on the three other
+    wheels spins it at about 0.5 rad/s and reaches steady state within about a second.
+    """
+
+    body_mass: float = 30.0  # kg
+    body_inertia: float = 1.5  # kg m^2 about z at the origin of R
+    body_damping: float = 2.0  # N s/m, floor resistance to translation
+    body_rot_damping: float = 0.2  # N m s/rad, to rotation
+    wheel_inertia: float = 0.002  # kg m^2, wheel + reflected rotor, about the axle
+    wheel_damping: float = 0.1  # N m s/rad, rolling resistance + drivetrain
+    lateral_damping: float = 300.0  # N s/m, tyre scrubbed sideways by a steered module
+    scrub_damping: float = 5.0  # N m s/rad, wheel of a steered module pivoting on the floor
+    slip_burst_rate: float = 0.0  # bursts per second per rolling wheel
+    slip_duration: tuple[float, float] = (0.2, 0.5)  # s, uniform
+    slip_factor: tuple[float, float] = (0.3, 1.0)  # extra encoder rotation / rolling rotation
+    seed: int = 0
+
+
+# --------------------------------------------------------------------------- pure maths
+
+
+def constraint_rows(arrays: RobotArrays, theta: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Rolling and lateral constraint rows ``U`` and ``N`` (N, 3) at true steering ``theta``.
+
+    ``U_i = (u_x, u_y, P_w,i x u_i)``, ``N_i = (n_x, n_y, P_w,i x n_i)`` so that
+    ``U_i . xi = (v + omega x P_w,i) . u_i`` and likewise for ``n``.
+    """
+    th = np.asarray(theta, dtype=float)
+    P_w = contact_point(arrays.P_s, arrays.b, th)
+    u = steering_direction(th)
+    nn = steering_normal(th)
+    U = np.column_stack([u, cross2(P_w, u)])
+    N = np.column_stack([nn, cross2(P_w, nn)])
+    return U, N
+
+
+def _null_space(A: FloatArray, basis: FloatArray, tol: float = 1e-10) -> FloatArray:
+    """Orthonormal basis (columns) of ``{basis @ y : A @ basis @ y = 0}``."""
+    if A.shape[0] == 0 or basis.shape[1] == 0:
+        return basis
+    B = A @ basis
+    _, s, Vt = np.linalg.svd(B)
+    smax = float(s[0]) if s.size else 0.0
+    rank = int(np.sum(s > tol * max(smax, 1.0)))
+    return np.asarray(basis @ Vt[rank:].T, dtype=float)
+
+
+def prioritized_twist(
+    hard: tuple[FloatArray, FloatArray],
+    soft: tuple[FloatArray, FloatArray],
+    damping: tuple[FloatArray, FloatArray],
+    mass: FloatArray,
+    force: FloatArray,
+    twist0: FloatArray,
+    dt: float,
+) -> FloatArray:
+    """Body twist after one step: hard rows, then soft rows, then the damped dynamics.
+
+    ``hard = (A_h, t_h)`` and ``soft = (A_s, t_s)`` are rows ``A xi = t``;
+    ``damping = (C, d)`` with ``C = sum_k c_k g_k g_k^T`` and ``d = sum_k c_k s_k g_k`` (the
+    viscous rows); ``mass`` (3, 3), ``force`` (3,), ``twist0`` the previous twist.
+    Implicit Euler in the remaining null space ``Z`` (see the module docstring)::
+
+        Z^T (M + dt C) Z z = Z^T M (xi_0 - xi_p) + dt Z^T (F - C xi_p + d)
+    """
+    A_h, t_h = hard
+    A_s, t_s = soft
+    C, d = damping
+    basis = np.eye(3)
+    xi: FloatArray = np.zeros(3)
+    if A_h.shape[0]:
+        xi = np.asarray(np.linalg.lstsq(A_h, t_h, rcond=None)[0], dtype=float)
+        basis = _null_space(A_h, basis)
+    if A_s.shape[0] and basis.shape[1]:
+        y = np.linalg.lstsq(A_s @ basis, t_s - A_s @ xi, rcond=None)[0]
+        xi = xi + basis @ y
+        basis = _null_space(A_s, basis)
+    if basis.shape[1] == 0:
+        return np.asarray(xi, dtype=float)
+    Z = basis
+    lhs = Z.T @ (mass + dt * C) @ Z
+    rhs = Z.T @ (mass @ (twist0 - xi)) + dt * (Z.T @ (force - C @ xi + d))
+    z = np.linalg.solve(lhs, rhs)
+    return np.asarray(xi + Z @ z, dtype=float)
+
+
+@dataclass(frozen=True)
+class DriveArrays:
+    """Per-module drives as arrays (what the vectorised rates need)."""
+
+    steer_driven: NDArray[np.bool_]
+    steer_rate: FloatArray  # 0 where not driven
+    brake: NDArray[np.bool_]
+    rate: NDArray[np.bool_]
+    torque: FloatArray  # N.m, 0 where not TORQUE
+    wheel_rate: FloatArray  # rad/s, 0 where not RATE
+
+    @property
+    def wheel_driven(self) -> NDArray[np.bool_]:
+        return self.brake | self.rate
+
+    @classmethod
+    def of(cls, drives: Sequence[ModuleDrive]) -> DriveArrays:
+        sd = np.array([d.steer is SteerDrive.RATE for d in drives])
+        sr = np.array([d.steer_rate if d.steer is SteerDrive.RATE else 0.0 for d in drives])
+        brake = np.array([d.wheel is WheelDrive.BRAKE for d in drives])
+        rate = np.array([d.wheel is WheelDrive.RATE for d in drives])
+        tq = np.array([d.wheel_value if d.wheel is WheelDrive.TORQUE else 0.0 for d in drives])
+        wr = np.array([d.wheel_value if d.wheel is WheelDrive.RATE else 0.0 for d in drives])
+        return cls(sd, sr, brake, rate, tq, wr)
+
+
+def module_rates(
+    arrays: RobotArrays, theta: FloatArray, twist: FloatArray, drives: DriveArrays
+) -> tuple[FloatArray, FloatArray]:
+    """``(theta_dot, psi_dot)`` of every module under the body twist ``twist``.
+
+    Passive steering trails and passive / torque wheels roll, exactly as
+    :func:`simulators.physics.caster_rates` (written out here without its array stacking,
+    this runs four times per step; the tests check both agree)::
+
+        b theta_dot = (v + omega x P_w) . n(theta),   r psi_dot = (v + omega x P_w) . u(theta)
+
+    Driven axes follow their command (a braked wheel has ``psi_dot = 0``).
+    """
+    c = np.cos(theta)
+    s = np.sin(theta)
+    px = arrays.P_s[:, 0] + arrays.b * c
+    py = arrays.P_s[:, 1] + arrays.b * s
+    vx = twist[0] - twist[2] * py
+    vy = twist[1] + twist[2] * px
+    theta_dot = np.where(drives.steer_driven, drives.steer_rate, (vx * s - vy * c) / arrays.b)
+    psi_dot = np.where(drives.wheel_driven, drives.wheel_rate, (vx * c + vy * s) / arrays.r)
+    return theta_dot, psi_dot
+
+
+# --------------------------------------------------------------------------- state
+
+
+@dataclass
+class _SlipBurst:
+    end: float
+    factor: float
+
+
+@dataclass
+class RobotSim:
+    """The true robot's state and its physics step (see the module docstring)."""
+
+    truth: RobotParams = PAPER_CALIBRATED
+    options: PhysicsOptions = field(default_factory=PhysicsOptions)
+    pose0: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    theta0: Sequence[float] | None = None
+    """Initial true steering angles (default 0 for every module)."""
+
+    def __post_init__(self) -> None:
+        self.arrays = self.truth.arrays()
+        n = self.arrays.n
+        self.t = 0.0
+        self.pose = np.array(self.pose0, dtype=float)
+        self.theta = np.zeros(n) if self.theta0 is None else np.array(self.theta0, dtype=float)
+        if self.theta.shape != (n,):
+            raise ValueError(f"theta0 needs {n} values")
+        self.psi = np.zeros(n)
+        self.psi_encoder = np.zeros(n)
+        self.twist = np.zeros(3)
+        self.theta_dot = np.zeros(n)
+        self.psi_dot = np.zeros(n)
+        self.steps = 0
+        self.slip_bursts: list[tuple[int, float, float, float]] = []
+        """(module index, start, end, factor) of every slip burst so far."""
+        self._rng = np.random.default_rng(self.options.seed)
+        self._slip: list[_SlipBurst | None] = [None] * n
+        o = self.options
+        self._mass = np.diag([o.body_mass, o.body_mass, o.body_inertia])
+
+    @property
+    def n(self) -> int:
+        return self.arrays.n
+
+    def contact_points(self) -> FloatArray:
+        """True contact points ``P_w = P_s + b u(theta)`` in R, (N, 2)."""
+        return contact_point(self.arrays.P_s, self.arrays.b, self.theta)
+
+    def contact_points_world(self) -> FloatArray:
+        """True contact points in W, (N, 2)."""
+        c, s = math.cos(self.pose[2]), math.sin(self.pose[2])
+        P = self.contact_points()
+        return np.column_stack(
+            [self.pose[0] + c * P[:, 0] - s * P[:, 1], self.pose[1] + s * P[:, 0] + c * P[:, 1]]
+        )
+
+    # ------------------------------------------------------------------ twist
+    def solve_twist(self, drives: DriveArrays, dt: float) -> FloatArray:
+        """The body twist for the coming step (rows and dynamics of the module docstring)."""
+        A = self.arrays
+        o = self.options
+        U, N = constraint_rows(A, self.theta)
+        st = drives.steer_driven
+        lat = A.b * drives.steer_rate
+        hard = (
+            np.vstack([U[drives.brake], N[drives.brake & st]]),
+            np.concatenate([np.zeros(int(drives.brake.sum())), lat[drives.brake & st]]),
+        )
+        soft = (
+            np.vstack([U[drives.rate], N[drives.rate & st]]),
+            np.concatenate(
+                [A.r[drives.rate] * drives.wheel_rate[drives.rate], lat[drives.rate & st]]
+            ),
+        )
+        dyn = ~(drives.brake | drives.rate)
+        H = U[dyn] / A.r[dyn, None]
+        Lr = N[dyn & st]
+        C = np.diag([o.body_damping, o.body_damping, o.body_rot_damping])
+        C += o.wheel_damping * (H.T @ H) + o.lateral_damping * (Lr.T @ Lr)
+        C[2, 2] += o.scrub_damping * int(st.sum())
+        d = o.lateral_damping * (Lr.T @ lat[dyn & st])
+        d[2] -= o.scrub_damping * float(drives.steer_rate[st].sum())
+        mass = self._mass + o.wheel_inertia * (H.T @ H)
+        force = H.T @ drives.torque[dyn]
+        return prioritized_twist(hard, soft, (C, d), mass, force, self.twist, dt)
+
+    # ------------------------------------------------------------------ step
+    def step(self, dt: float, drives: Sequence[ModuleDrive]) -> None:
+        """Advance by ``dt`` (s) with every module's drive held constant."""
+        if dt <= 0.0:
+            return
+        if len(drives) != self.n:
+            raise ValueError(f"{len(drives)} drives for {self.n} modules")
+        da = DriveArrays.of(drives)
+        xi = self.solve_twist(da, dt)
+        A = self.arrays
+
+        def f(th: FloatArray) -> tuple[FloatArray, FloatArray]:
+            return module_rates(A, th, xi, da)
+
+        k1t, k1p = f(self.theta)
+        k2t, k2p = f(self.theta + 0.5 * dt * k1t)
+        k3t, k3p = f(self.theta + 0.5 * dt * k2t)
+        k4t, k4p = f(self.theta + dt * k3t)
+        dtheta = dt / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
+        dpsi = dt / 6.0 * (k1p + 2 * k2p + 2 * k3p + k4p)
+        self.pose = se2_step(self.pose, xi[:2], float(xi[2]), dt)
+        self.theta = self.theta + dtheta
+        self.psi = self.psi + dpsi
+        self.psi_encoder = self.psi_encoder + dpsi + self._slip_extra(dpsi, dt)
+        self.twist = xi
+        self.theta_dot = dtheta / dt
+        self.psi_dot = dpsi / dt
+        self.t += dt
+        self.steps += 1
+
+    def _slip_extra(self, dpsi: FloatArray, dt: float) -> FloatArray:
+        """Encoder over-rotation of wheels inside a slip burst: ``factor * dpsi``."""
+        o = self.options
+        extra = np.zeros(self.n)
+        if o.slip_burst_rate <= 0.0:
+            return extra
+        for j in range(self.n):
+            burst = self._slip[j]
+            if burst is not None and self.t >= burst.end:
+                burst = self._slip[j] = None
+            rolling = abs(dpsi[j]) > 1e-12
+            if burst is None and rolling and self._rng.random() < o.slip_burst_rate * dt:
+                dur = float(self._rng.uniform(*o.slip_duration))
+                fac = float(self._rng.uniform(*o.slip_factor))
+                burst = self._slip[j] = _SlipBurst(self.t + dur, fac)
+                self.slip_bursts.append((j, self.t, self.t + dur, fac))
+            if burst is not None:
+                extra[j] = burst.factor * dpsi[j]
+        return extra

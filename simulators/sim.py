@@ -1,0 +1,574 @@
+"""The virtual SWPC robot: controllers on CAN + physics + motion capture, on a simulated clock.
+
+:class:`Simulator` stands in for the robot's motor controllers (one
+:class:`simulators.controller.VirtualController` per module, speaking the DBC's frames on
+any python-can bus) and for the motion-capture system (poses over zenoh, see
+:mod:`simulators.mocap_sim`); :class:`simulators.robot_sim.RobotSim` moves the hidden true
+robot under what the controllers do.  It runs in one thread started by :meth:`start` and
+ended by :meth:`stop` (idempotent), on a bus and a zenoh session that the caller gives (the
+embedded case: python-can ``virtual``) or that it opens itself (:meth:`Simulator.open`,
+used by ``swpc sim``).
+
+Every tick (``physics_dt`` of simulated time, 2 ms by default):
+
+1. each module's axes are turned into drives from their controller's state and mode
+   (:func:`axis_drive`): FREE/disabled/fault -> passive, HOLD -> locked (a held wheel
+   is braked), POSITION -> a first-order loop on the true position
+   (time constant ``position_tau``, clamped to MaxVelocity), VELOCITY -> the setpoint,
+   TORQUE -> a wheel torque (a steering torque drives the steering through ``J dv/dt =
+   tau - c v`` of the controller's axis), homing -> the steering turns at 0.5 rad/s;
+2. the physics advances by ``physics_dt``;
+3. the encoders are written into the controllers: steering ``theta_hat = theta - beta``
+   after homing (``+ sensor_position`` before: the power-up coordinate), wheel ``psi``
+   plus slip, both quantised to ``steer_counts`` / ``wheel_counts`` per turn (the
+   feedback frame then carries them at the DBC's resolution: 2**14 counts/turn for the
+   steering, 2**16 for the wheel);
+4. mocap samples due in the tick are taken (exact SE(2) interpolation inside the tick)
+   and published when their latency has elapsed; the truth pose when due;
+5. the controllers run their firmware logic at the new time (watchdog, homing,
+   heartbeat, feedback) and their frames go on the bus.
+
+Frames received between ticks are handled at the current simulated time.
+
+Time scale
+----------
+With ``time_scale = s`` the simulated clock runs ``s`` times faster than wall time:
+``t_sim = start_time + s (t_wall - t_wall_at_start)``.  Everything is in simulated time:
+feedback rate, heartbeat period, watchdog timeout, homing duration, mocap rate, latency
+and the poses' source timestamps.  A client matches it by dividing its own periods by
+``s`` (e.g. the driver's command refresh period must be shorter than ``watchdog_ms / s``
+of wall time, or the watchdog raised with ``SetWatchdog``) and by reading pose times as
+``t_source / s`` on its own clock (:class:`services.mocap_ingest.MocapIngest` takes
+``time_scale``).  If the machine cannot keep up, the simulated clock slows down rather
+than bursting (counted in ``overruns``; :meth:`Simulator.stats` gives the achieved scale).
+
+Fault injection: :meth:`Simulator.mute` (heartbeat loss: the node sends nothing),
+:meth:`Simulator.inject_fault` (a latched hardware error and its FaultReport),
+``bus_error_rate`` (error frames, or on buses that cannot send them, frames with an
+unknown id), slip bursts (:class:`simulators.robot_sim.PhysicsOptions`) and the mocap
+options (noise, dropouts, outliers, latency, clock offset).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import can
+import numpy as np
+
+from firmware_protocol import codec
+from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Frame
+from simulators.controller import AxisModel, VirtualController
+from simulators.mocap_sim import MocapOptions, MocapSim, TruthPublisher
+from simulators.physics import FloatArray, se2_step
+from simulators.robot_sim import (
+    ModuleDrive,
+    PhysicsOptions,
+    RobotSim,
+    SteerDrive,
+    WheelDrive,
+)
+from swpc_hw.kinematic_file import kinematics_document
+from swpc_hw.model import RobotParams, wrap_angle
+from swpc_hw.reference import PAPER_CALIBRATED
+
+HOMING_SPEED = 0.5
+"""Steering speed while homing (rad/s), as the virtual controller's own axis model."""
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Settings of the virtual robot (SI units; simulated time)."""
+
+    robot: str = "swpc"
+    nodes: Mapping[int, int] | None = None
+    """Module id -> CAN node id (default: 1..N in module order)."""
+    time_scale: float = 1.0
+    physics_dt: float = 0.002
+    start_time: float | None = None
+    """Simulated clock at start (default: the wall clock, ``time.time()``)."""
+    steer_counts: int = 2**17
+    wheel_counts: int = 2**17
+    """Encoder counts per turn (0: no quantisation before the frame's own)."""
+    position_tau: float = 0.02
+    feedback_rate_hz: int = 200
+    watchdog_ms: int = 100
+    homing_duration: float = 0.2
+    sensor_positions: Sequence[float] | None = None
+    """Power-up steering coordinate of each homing sensor (default: seeded random)."""
+    pose0: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    theta0: Sequence[float] | None = None
+    """Initial true steering angles (default: seeded random)."""
+    physics: PhysicsOptions = field(default_factory=PhysicsOptions)
+    mocap: MocapOptions = field(default_factory=MocapOptions)
+    truth_rate: float = 50.0
+    bus_error_rate: float = 0.0
+    max_lag: float = 0.05
+    """Wall seconds the simulation may fall behind before its clock is slowed down."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.time_scale > 0.0:
+            raise ValueError("time_scale must be > 0")
+        if not 0.0 < self.physics_dt <= 0.01:
+            raise ValueError("physics_dt must be in (0, 0.01] s")
+
+
+# --------------------------------------------------------------------------- drives
+
+
+def _clamp(x: float, limit: float) -> float:
+    return max(-limit, min(limit, x))
+
+
+def axis_drive(
+    ax: AxisModel, axis: Axis, position: float, dt: float, position_tau: float
+) -> tuple[str, float]:
+    """What one controller axis does to the physics during the next ``dt``.
+
+    Returns ``(kind, value)`` with kind ``"passive"``, ``"rate"`` (rad/s), ``"brake"``
+    or ``"torque"`` (N.m, wheel only).  POSITION is the first-order loop
+    ``rate = clamp((setpoint - position) / max(position_tau, dt), max_velocity)``.  A
+    steering torque becomes a rate through ``J dv/dt = tau - c v`` (exact over ``dt``).
+    """
+    if ax.state == AxisState.HOMING:
+        return "rate", HOMING_SPEED
+    if ax.state != AxisState.ENABLED or ax.mode == ControlMode.FREE:
+        return "passive", 0.0
+    if ax.mode == ControlMode.HOLD:
+        return ("brake", 0.0) if axis == Axis.WHEEL else ("rate", 0.0)
+    if ax.mode == ControlMode.POSITION:
+        rate = (ax.setpoint - position) / max(position_tau, dt)
+        return "rate", _clamp(rate, ax.max_velocity)
+    if ax.mode == ControlMode.VELOCITY:
+        return "rate", _clamp(ax.setpoint, ax.max_velocity)
+    tau = _clamp(ax.setpoint, ax.max_torque)  # TORQUE
+    if axis == Axis.WHEEL:
+        return "torque", tau
+    v_inf = tau / ax.friction
+    return "rate", v_inf + (ax.velocity - v_inf) * math.exp(-dt * ax.friction / ax.inertia)
+
+
+def module_drive(steer: tuple[str, float], wheel: tuple[str, float]) -> ModuleDrive:
+    """Combine the two axes' :func:`axis_drive` into the physics' :class:`ModuleDrive`."""
+    sk, sv = steer
+    wk, wv = wheel
+    s = SteerDrive.RATE if sk == "rate" else SteerDrive.PASSIVE
+    w = {
+        "passive": WheelDrive.PASSIVE,
+        "brake": WheelDrive.BRAKE,
+        "rate": WheelDrive.RATE,
+        "torque": WheelDrive.TORQUE,
+    }[wk]
+    return ModuleDrive(s, sv if s is SteerDrive.RATE else 0.0, w, wv)
+
+
+def quantize(x: float, counts: int) -> float:
+    """``round(x / q) * q`` with ``q = 2 pi / counts`` (``counts = 0``: unchanged)."""
+    if counts <= 0:
+        return x
+    q = 2.0 * math.pi / counts
+    return round(x / q) * q
+
+
+# --------------------------------------------------------------------------- simulator
+
+
+@dataclass
+class SimStats:
+    """Counters since :meth:`Simulator.start` (times in s)."""
+
+    sim_time: float = 0.0
+    wall_time: float = 0.0
+    cpu_time: float = 0.0
+    ticks: int = 0
+    overruns: int = 0
+    frames_tx: int = 0
+    frames_rx: int = 0
+    tx_errors: int = 0
+    bus_errors_injected: int = 0
+    feedback_frames: dict[int, int] = field(default_factory=dict)
+    heartbeats: dict[int, int] = field(default_factory=dict)
+    poses_published: int = 0
+    truth_published: int = 0
+
+    @property
+    def achieved_time_scale(self) -> float:
+        return self.sim_time / self.wall_time if self.wall_time > 0 else 0.0
+
+    @property
+    def cpu_share(self) -> float:
+        """CPU seconds of the simulator thread per wall second (1.0 = one full core)."""
+        return self.cpu_time / self.wall_time if self.wall_time > 0 else 0.0
+
+    def rates(self) -> dict[str, float]:
+        """Per-node feedback samples/s and heartbeats/s, poses/s, in *simulated* time."""
+        t = self.sim_time if self.sim_time > 0 else math.inf
+        out: dict[str, float] = {"poses_hz": self.poses_published / t}
+        for node, n in sorted(self.feedback_frames.items()):
+            out[f"node{node}_feedback_hz"] = n / t
+        for node, n in sorted(self.heartbeats.items()):
+            out[f"node{node}_heartbeat_hz"] = n / t
+        return out
+
+
+class Simulator:
+    """The virtual robot on a python-can bus and a zenoh session (module docstring)."""
+
+    def __init__(
+        self,
+        truth: RobotParams = PAPER_CALIBRATED,
+        *,
+        bus: can.BusABC,
+        session: Any = None,
+        options: SimOptions | None = None,
+        own_bus: bool = False,
+        own_session: bool = False,
+    ) -> None:
+        self.truth = truth
+        self.options = opt = options or SimOptions()
+        self.bus = bus
+        self.session = session
+        self._own_bus = own_bus
+        self._own_session = own_session
+        n = len(truth.modules)
+        rng = np.random.default_rng(opt.seed)
+        nodes = dict(opt.nodes) if opt.nodes else {m: i + 1 for i, m in enumerate(truth.ids)}
+        if sorted(nodes) != sorted(truth.ids):
+            raise ValueError(f"nodes must map exactly the module ids {truth.ids}")
+        self.nodes: dict[int, int] = nodes
+        theta0 = opt.theta0 if opt.theta0 is not None else rng.uniform(-math.pi, math.pi, n)
+        sensors = (
+            list(opt.sensor_positions)
+            if opt.sensor_positions is not None
+            else list(rng.uniform(-math.pi, math.pi, n))
+        )
+        self.robot = RobotSim(truth, opt.physics, opt.pose0, list(theta0))
+        self.controllers: list[VirtualController] = [
+            VirtualController(
+                node=nodes[m],
+                rate_hz=opt.feedback_rate_hz,
+                watchdog_ms=opt.watchdog_ms,
+                homing_duration=opt.homing_duration,
+                sensor_position=float(sensors[i]),
+            )
+            for i, m in enumerate(truth.ids)
+        ]
+        self._by_node = {c.node: c for c in self.controllers}
+        self.mocap = MocapSim(opt.robot, opt.mocap, session)
+        self.truth_pub = TruthPublisher(opt.robot, self._params_doc(), session, rate=opt.truth_rate)
+        self.start_time = 0.0
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._started = False
+        self._stopped = False
+        self._stats = SimStats()
+        self._sent: Counter[int] = Counter()
+        self._wall0 = 0.0
+        self._cpu = 0.0
+        self._next_bus_error = 0.0
+        self._rng = rng
+        self.error: BaseException | None = None
+        self._last_pose = self.robot.pose.copy()
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def open(
+        cls,
+        truth: RobotParams = PAPER_CALIBRATED,
+        *,
+        interface: str = "virtual",
+        channel: str = "swpc",
+        bitrate: int | None = None,
+        zenoh_listen: Sequence[str] = (),
+        zenoh_connect: Sequence[str] = (),
+        zenoh_config: str | None = None,
+        options: SimOptions | None = None,
+    ) -> Simulator:
+        """Open its own bus and zenoh session (both closed by :meth:`stop`)."""
+        from swpc_hw.zenoh_session import open_session
+
+        kwargs: dict[str, Any] = {}
+        if bitrate is not None:
+            kwargs["bitrate"] = bitrate
+        bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        try:
+            session = open_session(
+                listen=zenoh_listen, connect=zenoh_connect, config_file=zenoh_config
+            )
+        except BaseException:
+            bus.shutdown()
+            raise
+        return cls(truth, bus=bus, session=session, options=options, own_bus=True, own_session=True)
+
+    def _params_doc(self) -> dict[str, Any]:
+        doc = kinematics_document(
+            self.truth, extra={"note": "simulator ground truth (tests and validation only)"}
+        )
+        doc["nodes"] = {str(m): n for m, n in self.nodes.items()}
+        opt = self.options
+        doc["simulator"] = {
+            "time_scale": opt.time_scale,
+            "physics_dt": opt.physics_dt,
+            "steer_counts": opt.steer_counts,
+            "wheel_counts": opt.wheel_counts,
+            "frame_steer_counts": round(2 * math.pi / _signal_scale("SteerPosition")),
+            "frame_wheel_counts": round(2 * math.pi / _signal_scale("WheelPosition")),
+            "sensor_positions": [c.sensor_position for c in self.controllers],
+            "physics": asdict(opt.physics),
+            "mocap": asdict(opt.mocap),
+        }
+        return doc
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> Simulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        """Start the simulation thread (once)."""
+        with self._lock:
+            if self._started:
+                raise RuntimeError("the simulator was already started")
+            self._started = True
+            opt = self.options
+            self.start_time = time.time() if opt.start_time is None else opt.start_time
+            self._wall0 = time.monotonic()
+            self._write_encoders()
+            for c in self.controllers:
+                self._transmit(c.step(self.now))  # first call initialises its clocks
+            self.truth_pub.maybe_publish_params(self.now)
+            self._sample_mocap(self.now, self.now, self.robot.pose, np.zeros(3))
+            self._thread = threading.Thread(target=self._run, name="swpc-sim", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the thread and close what the simulator opened itself (idempotent)."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self.mocap.close()
+        self.truth_pub.close()
+        if self._own_bus:
+            with contextlib.suppress(Exception):
+                self.bus.shutdown()
+        if self._own_session and self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def now(self) -> float:
+        """Current simulated time (s, on the simulated clock)."""
+        return self.start_time + self.robot.t
+
+    # ------------------------------------------------------------------ injection
+    def mute(self, module: int, muted: bool = True) -> None:
+        """Heartbeat loss: the module's controller sends nothing while muted."""
+        with self._lock:
+            self.controllers[self.truth.index(module)].muted = muted
+
+    def inject_fault(self, module: int, axis: Axis, error: ErrorFlag) -> None:
+        """Latch a hardware error on an axis (it goes to FAULT and reports it)."""
+        with self._lock:
+            c = self.controllers[self.truth.index(module)]
+            self._transmit(c.inject_error(axis, error))
+
+    def set_bus_error_rate(self, rate_hz: float) -> None:
+        with self._lock:
+            self.options = replace(self.options, bus_error_rate=float(rate_hz))
+            self._next_bus_error = self.robot.t
+
+    # ------------------------------------------------------------------ observation
+    def stats(self) -> SimStats:
+        with self._lock:
+            st = self._stats
+            st.sim_time = self.robot.t
+            st.wall_time = (time.monotonic() - self._wall0) if self._started else 0.0
+            st.cpu_time = self._cpu
+            st.poses_published = self.mocap.counters.published
+            st.truth_published = self.truth_pub.published
+            fb = codec.Command.FEEDBACK_POSITION
+            hb = codec.Command.HEARTBEAT
+            st.feedback_frames = {
+                c.node: self._sent[codec.frame_id(c.node, fb)] for c in self.controllers
+            }
+            st.heartbeats = {
+                c.node: self._sent[codec.frame_id(c.node, hb)] for c in self.controllers
+            }
+            return replace(st)
+
+    def truth_snapshot(self) -> dict[str, Any]:
+        """The true state now (the same document as the truth pose key)."""
+        with self._lock:
+            return self._truth_doc()
+
+    def _truth_doc(self) -> dict[str, Any]:
+        r = self.robot
+        A = r.arrays
+        return {
+            "t": self.now,
+            "pose": r.pose.tolist(),
+            "twist": r.twist.tolist(),
+            "theta": r.theta.tolist(),
+            "theta_hat": wrap_angle(r.theta - A.beta).tolist(),
+            "psi": r.psi.tolist(),
+            "psi_encoder": r.psi_encoder.tolist(),
+            "contact_points": r.contact_points().tolist(),
+            "homed": [c.homed for c in self.controllers],
+        }
+
+    # ------------------------------------------------------------------ the loop
+    def _run(self) -> None:
+        cpu0 = time.thread_time()
+        dt = self.options.physics_dt
+        try:
+            while not self._stop.is_set():
+                scale = self.options.time_scale
+                target = scale * (time.monotonic() - self._wall0)  # robot time due now
+                with self._lock:
+                    n = 0
+                    while self.robot.t + dt <= target + 1e-12 and not self._stop.is_set():
+                        self._tick(dt)
+                        n += 1
+                        if n >= 64:
+                            break
+                    lag = target - self.robot.t
+                    if lag > self.options.max_lag * scale:
+                        # cannot keep up: slow the simulated clock down instead of bursting
+                        self._wall0 += (lag - dt) / scale
+                        self._stats.overruns += 1
+                    self._cpu = time.thread_time() - cpu0
+                next_wall = self._wall0 + (self.robot.t + dt) / scale
+                timeout = next_wall - time.monotonic()
+                msg = self.bus.recv(timeout=max(timeout, 0.0)) if timeout > 0 else self.bus.recv(0)
+                while msg is not None:
+                    self._on_message(msg)
+                    msg = self.bus.recv(0)
+        except BaseException as exc:  # surfaced through .error; the thread ends
+            self.error = exc
+            if not self._stop.is_set():
+                raise
+        finally:
+            self._cpu = time.thread_time() - cpu0
+
+    def _on_message(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        frame = Frame(msg.arbitration_id, bytes(msg.data))
+        node, _ = codec.split_id(frame.arbitration_id)
+        with self._lock:
+            self._stats.frames_rx += 1
+            now = self.now
+            if frame.arbitration_id == codec.SYNC_ID:
+                targets = self.controllers
+            else:
+                c = self._by_node.get(node)
+                targets = [] if c is None else [c]
+            for c in targets:
+                c._t = now  # the physics owns the axes: the firmware logic only, no dt
+                self._transmit(c.handle(frame, now))
+
+    def _tick(self, dt: float) -> None:
+        opt = self.options
+        r = self.robot
+        drives = []
+        for i, c in enumerate(self.controllers):
+            steer_pos = self._steer_reported(i)
+            s = axis_drive(c.axes[Axis.STEER], Axis.STEER, steer_pos, dt, opt.position_tau)
+            w = axis_drive(
+                c.axes[Axis.WHEEL], Axis.WHEEL, float(r.psi_encoder[i]), dt, opt.position_tau
+            )
+            drives.append(module_drive(s, w))
+        t0 = self.now
+        pose0 = r.pose.copy()
+        r.step(dt, drives)
+        now = self.now
+        self._write_encoders(drives)
+        self._sample_mocap(t0, now, pose0, r.twist)
+        if self.truth_pub.due(now):
+            self.truth_pub.publish_pose(self._truth_doc())
+        self.truth_pub.maybe_publish_params(now)
+        for c in self.controllers:
+            was_homed = c.homed
+            c._t = now  # the physics owns the axes: the firmware logic only, no dt
+            self._transmit(c.step(now))
+            if c.homed and not was_homed:
+                self._write_encoders(drives)
+        if opt.bus_error_rate > 0.0 and r.t >= self._next_bus_error:
+            self._next_bus_error = r.t + float(self._rng.exponential(1.0 / opt.bus_error_rate))
+            self._inject_bus_error()
+        self._stats.ticks += 1
+
+    def _steer_reported(self, i: int) -> float:
+        c = self.controllers[i]
+        off = 0.0 if c.homed else c.sensor_position
+        return float(self.robot.theta[i] - self.robot.arrays.beta[i] + off)
+
+    def _write_encoders(self, drives: Sequence[ModuleDrive] | None = None) -> None:
+        opt = self.options
+        r = self.robot
+        for i, c in enumerate(self.controllers):
+            s, w = c.axes
+            s.position = quantize(self._steer_reported(i), opt.steer_counts)
+            w.position = quantize(float(r.psi_encoder[i]), opt.wheel_counts)
+            s.velocity = float(r.theta_dot[i])
+            w.velocity = float(r.psi_dot[i])
+            if drives is None:
+                continue
+            d = drives[i]
+            w.torque = d.wheel_value if d.wheel is WheelDrive.TORQUE else w.friction * w.velocity
+            if d.wheel in (WheelDrive.PASSIVE, WheelDrive.BRAKE):
+                w.torque = 0.0
+            s.torque = s.friction * s.velocity if d.steer is SteerDrive.RATE else 0.0
+
+    def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
+        for tp in self.mocap.due_times(t0, t1):
+            pose = se2_step(pose0, twist[:2], float(twist[2]), tp - t0) if tp > t0 else pose0
+            self.mocap.sample(tp, pose)
+        self.mocap.flush(t1)
+
+    def _transmit(self, frames: Iterable[Frame]) -> None:
+        for f in frames:
+            try:
+                self.bus.send(
+                    can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False)
+                )
+            except (can.CanError, OSError):
+                self._stats.tx_errors += 1
+                continue
+            self._sent[f.arbitration_id] += 1
+            self._stats.frames_tx += 1
+
+    def _inject_bus_error(self) -> None:
+        self._stats.bus_errors_injected += 1
+        try:
+            self.bus.send(can.Message(is_error_frame=True, arbitration_id=0x4, dlc=8))
+            return
+        except (can.CanError, OSError, ValueError):
+            pass
+        with contextlib.suppress(can.CanError, OSError):  # unknown id instead
+            self.bus.send(can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False))
+
+
+def _signal_scale(name: str) -> float:
+    msg = codec.message_for(1, codec.Command.FEEDBACK_POSITION)
+    return float(msg.get_signal_by_name(name).scale)
