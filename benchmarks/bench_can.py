@@ -94,7 +94,7 @@ def stream(seconds: float) -> None:
     threads = drv.threads()
     sent0 = sum(emu.sent[i] for i in fb_ids)
     recv0 = sum(drv.module_state(m).feedback_frames for m in nodes)
-    drv._latency.clear()
+    drv.clear_latencies()
     c0, w0 = _cpu(threads), time.monotonic()
     time.sleep(seconds)
     c1, w1 = _cpu(threads), time.monotonic()

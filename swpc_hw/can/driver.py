@@ -572,6 +572,10 @@ class CanDriver:
         with self._lock:
             return np.array(self._latency, dtype=float)
 
+    def clear_latencies(self) -> None:
+        with self._lock:
+            self._latency.clear()
+
     def events(self) -> list[DriverEvent]:
         """Drain the event queue."""
         out: list[DriverEvent] = []
