@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from firmware_protocol.codec import MAX_NODE
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
 from swpc_hw.model import RobotParams
@@ -117,8 +118,8 @@ class RobotConfig(BaseModel):
         if sorted(self.nodes) != sorted(ids):
             raise ValueError(f"nodes must map exactly the module ids {ids}")
         vals = list(self.nodes.values())
-        if len(set(vals)) != len(vals) or any(not 1 <= v <= 63 for v in vals):
-            raise ValueError("node ids must be unique and within 1..63")
+        if len(set(vals)) != len(vals) or any(not 1 <= v <= MAX_NODE for v in vals):
+            raise ValueError(f"node ids must be unique and within 1..{MAX_NODE}")
         if self.protocol.modules is not None and not set(self.protocol.modules) <= set(ids):
             raise ValueError("protocol.modules must be module ids of the robot")
         return self
