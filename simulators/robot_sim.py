@@ -49,8 +49,9 @@ resistance).  A constant wheel torque therefore gives a steady spin, and the rol
 wheels' encoder increments stay exactly those of rolling without slip:
 ``r dpsi = -D d(yaw)`` for a settled caster at distance ``D`` from the pivot.
 
-Within a step the twist is constant: the pose advances by the exact SE(2) exponential
-(:func:`simulators.physics.se2_step`) and the steering / wheel angles by classical RK4.
+Within a step the twist is constant (its rows are taken at the mid-step steering angle):
+the pose advances by the exact SE(2) exponential (:func:`simulators.physics.se2_step`) and
+the steering / wheel angles by classical RK4.
 """
 
 from __future__ import annotations
@@ -301,8 +302,10 @@ class RobotSim:
         """The body twist for the coming step (rows and dynamics of the module docstring)."""
         A = self.arrays
         o = self.options
-        U, N = constraint_rows(A, self.theta)
         st = drives.steer_driven
+        # rows at the mid-step steering angle (second order in dt for a re-steered pin)
+        theta_mid = self.theta + 0.5 * dt * np.where(st, drives.steer_rate, self.theta_dot)
+        U, N = constraint_rows(A, theta_mid)
         lat = A.b * drives.steer_rate
         hard = (
             np.vstack([U[drives.brake], N[drives.brake & st]]),

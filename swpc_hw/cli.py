@@ -19,6 +19,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "simulators.commands_gen",
     "services.commands_serve",
     "swpc_hw.commands.can",
+    "simulators.commands_sim",
 )
 
 

@@ -1,0 +1,199 @@
+"""``swpc sim``: run the virtual robot as a process (CAN controllers + physics + mocap).
+
+Example (a separate process on a virtual CAN interface, mocap on loopback)::
+
+    swpc sim --interface socketcan --channel vcan0 --zenoh-listen tcp/127.0.0.1:7447
+
+The service then opens the same CAN channel and connects its zenoh session to the
+listen endpoint.  Human-facing options are in mm, degrees and ms; everything published
+is SI.  ``--time-scale S`` runs the simulated clock S times faster than wall time (see
+:mod:`simulators.sim` for how a client matches it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import threading
+import time
+from typing import Any
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "sim",
+        help="run the virtual robot: controllers on CAN, physics, mocap poses over zenoh",
+        description=(
+            "Simulate the robot's four (N) motor controllers on a CAN bus with the DBC's "
+            "frames, the robot's motion (hidden true parameters) and the motion-capture "
+            "system (poses over zenoh on mocap/<robot>/pose; ground truth on "
+            "sim/<robot>/truth/{pose,params})."
+        ),
+    )
+    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
+    p.add_argument("--channel", default="vcan0", help="CAN channel (vcan0)")
+    p.add_argument("--bitrate", type=int, default=None, help="bit/s, if the interface needs it")
+    p.add_argument(
+        "--zenoh-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"zenoh endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT})",
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to (repeatable)",
+    )
+    p.add_argument("--zenoh-config", help="zenoh JSON5 config file (endpoints still explicit)")
+    p.add_argument("--robot", default="swpc", help="robot id in the zenoh keys (swpc)")
+    p.add_argument("--truth", help="kinematic file of the hidden truth (default: paper Table 4)")
+    p.add_argument(
+        "--nodes", help="module:node pairs, e.g. 1:1,2:2,3:3,4:4 (default 1..N in order)"
+    )
+    p.add_argument("--time-scale", type=float, default=1.0, help="simulated s per wall s (1)")
+    p.add_argument("--physics-dt", type=float, default=2.0, help="physics step, ms (2)")
+    p.add_argument("--feedback-rate", type=int, default=200, help="initial feedback Hz (200)")
+    p.add_argument("--watchdog-ms", type=int, default=100, help="initial watchdog, ms (100)")
+    p.add_argument("--steer-counts", type=int, default=2**17, help="steering counts/turn")
+    p.add_argument("--wheel-counts", type=int, default=2**17, help="wheel counts/turn")
+    p.add_argument("--pose-rate", type=float, default=100.0, help="mocap Hz, <= 2000 (100)")
+    p.add_argument(
+        "--pose-encoding",
+        choices=["native", "ros2-cdr"],
+        default="native",
+        help="mocap payload (native)",
+    )
+    p.add_argument("--pose-sigma-xy", type=float, default=0.0, help="mocap noise, mm (0)")
+    p.add_argument("--pose-sigma-yaw", type=float, default=0.0, help="mocap yaw noise, deg (0)")
+    p.add_argument("--dropout", type=float, default=0.0, help="fraction of poses dropped")
+    p.add_argument("--outliers", type=float, default=0.0, help="fraction of outlier poses")
+    p.add_argument("--outlier-magnitude", type=float, default=50.0, help="outlier jump, mm")
+    p.add_argument("--latency", type=float, default=0.0, help="mocap latency, ms")
+    p.add_argument("--clock-offset", type=float, default=0.0, help="mocap clock - sim clock, s")
+    p.add_argument("--slip-rate", type=float, default=0.0, help="slip bursts /s per wheel")
+    p.add_argument("--bus-error-rate", type=float, default=0.0, help="injected bus errors /s")
+    p.add_argument(
+        "--mute",
+        type=int,
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="start with this module's controller silent (heartbeat loss; repeatable)",
+    )
+    p.add_argument("--truth-rate", type=float, default=50.0, help="truth pose Hz (50)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--duration", type=float, default=0.0, help="wall s to run (0: until ^C)")
+    p.add_argument("--stats-every", type=float, default=0.0, help="print stats every s (0: off)")
+    p.set_defaults(func=run)
+
+
+def parse_nodes(text: str | None) -> dict[int, int] | None:
+    """``"1:1,2:2"`` -> ``{1: 1, 2: 2}``."""
+    if not text:
+        return None
+    out: dict[int, int] = {}
+    for part in text.split(","):
+        m, _, n = part.partition(":")
+        out[int(m)] = int(n)
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from simulators.mocap_sim import MocapOptions
+    from simulators.robot_sim import PhysicsOptions
+    from simulators.sim import SimOptions, Simulator
+    from swpc_hw.kinematic_file import load_robot
+    from swpc_hw.reference import PAPER_CALIBRATED
+
+    truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
+    opt = SimOptions(
+        robot=args.robot,
+        nodes=parse_nodes(args.nodes),
+        time_scale=args.time_scale,
+        physics_dt=args.physics_dt * 1e-3,
+        feedback_rate_hz=args.feedback_rate,
+        watchdog_ms=args.watchdog_ms,
+        steer_counts=args.steer_counts,
+        wheel_counts=args.wheel_counts,
+        physics=PhysicsOptions(slip_burst_rate=args.slip_rate, seed=args.seed),
+        mocap=MocapOptions(
+            rate=args.pose_rate,
+            encoding=args.pose_encoding,
+            sigma_xy=args.pose_sigma_xy * 1e-3,
+            sigma_yaw=math.radians(args.pose_sigma_yaw),
+            dropout=args.dropout,
+            outliers=args.outliers,
+            outlier_magnitude=args.outlier_magnitude * 1e-3,
+            latency=args.latency * 1e-3,
+            clock_offset=args.clock_offset,
+            seed=args.seed,
+        ),
+        truth_rate=args.truth_rate,
+        bus_error_rate=args.bus_error_rate,
+        seed=args.seed,
+    )
+    listen = args.zenoh_listen or ([] if args.zenoh_connect else [DEFAULT_ENDPOINT])
+    sim = Simulator.open(
+        truth,
+        interface=args.interface,
+        channel=args.channel,
+        bitrate=args.bitrate,
+        zenoh_listen=listen,
+        zenoh_connect=args.zenoh_connect,
+        zenoh_config=args.zenoh_config,
+        options=opt,
+    )
+    done = threading.Event()
+
+    def _stop(signum: int, frame: Any) -> None:
+        done.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _stop)
+        signal.signal(signal.SIGINT, _stop)
+    for m in args.mute:
+        sim.mute(m)
+    sim.start()
+    print(
+        f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
+        f"{args.interface}:{args.channel} (nodes {sim.nodes}), mocap {args.pose_rate:g} Hz "
+        f"{args.pose_encoding} on mocap/{args.robot}/pose via {listen or args.zenoh_connect}, "
+        f"time scale {args.time_scale:g}",
+        flush=True,
+    )
+    t_end = time.monotonic() + args.duration if args.duration > 0 else math.inf
+    next_stats = time.monotonic() + args.stats_every if args.stats_every > 0 else math.inf
+    try:
+        while not done.is_set() and sim.running:
+            now = time.monotonic()
+            if now >= t_end:
+                break
+            if now >= next_stats:
+                next_stats += args.stats_every
+                print(format_stats(sim), flush=True)
+            done.wait(min(t_end, next_stats, now + 0.5) - now)
+    finally:
+        sim.stop()
+    print(format_stats(sim), flush=True)
+    if sim.error is not None:
+        print(f"swpc sim: simulation thread failed: {sim.error!r}")
+        return 1
+    return 0
+
+
+def format_stats(sim: Any) -> str:
+    st = sim.stats()
+    r = st.rates()
+    fb = [v for k, v in r.items() if k.endswith("_feedback_hz")]
+    return (
+        f"sim {st.sim_time:8.2f} s  wall {st.wall_time:8.2f} s  scale {st.achieved_time_scale:5.2f}"
+        f"  cpu {100 * st.cpu_share:5.1f} %  feedback {min(fb, default=0):6.1f} Hz/node  "
+        f"poses {r['poses_hz']:7.1f} Hz  rx {st.frames_rx}  tx {st.frames_tx}  "
+        f"overruns {st.overruns}"
+    )

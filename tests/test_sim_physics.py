@@ -1,0 +1,225 @@
+"""Virtual robot physics (simulators.robot_sim) and mocap corruption (simulators.mocap_sim)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from firmware_protocol.codec import Axis, AxisState, ControlMode
+from simulators.controller import AxisModel
+from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
+from simulators.physics import caster_rates, settled_trailing
+from simulators.robot_sim import (
+    DriveArrays,
+    ModuleDrive,
+    PhysicsOptions,
+    RobotSim,
+    SteerDrive,
+    WheelDrive,
+    module_rates,
+    prioritized_twist,
+)
+from simulators.sim import axis_drive, quantize
+from swpc_hw.mocap import decode_pose, encode_cdr
+from swpc_hw.model import forward_kinematics, inverse_kinematics, wrap_angle
+from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+
+TRUTH = PAPER_CALIBRATED
+A = TRUTH.arrays()
+FREE = ModuleDrive()
+
+
+def locked(rate: float = 0.0) -> ModuleDrive:
+    return ModuleDrive(SteerDrive.RATE, rate, WheelDrive.BRAKE)
+
+
+def torque(tau: float) -> ModuleDrive:
+    return ModuleDrive(SteerDrive.PASSIVE, 0.0, WheelDrive.TORQUE, tau)
+
+
+def spin(sim: RobotSim, k: int, seconds: float, tau: float = -0.6, dt: float = 0.002) -> None:
+    drives = [locked() if i == k else torque(tau) for i in range(sim.n)]
+    for _ in range(round(seconds / dt)):
+        sim.step(dt, drives)
+
+
+def test_module_rates_match_the_physics_core() -> None:
+    rng = np.random.default_rng(3)
+    theta = rng.uniform(-math.pi, math.pi, 4)
+    xi = np.array([0.2, -0.1, 0.7])
+    drives = DriveArrays.of([FREE] * 4)
+    th_dot, psi_dot = module_rates(A, theta, xi, drives)
+    ref_th, ref_psi = caster_rates(A, theta, xi[:2], float(xi[2]))
+    assert th_dot == pytest.approx(ref_th, abs=1e-12)
+    assert psi_dot == pytest.approx(ref_psi, abs=1e-12)
+    driven = DriveArrays.of([locked(0.3), ModuleDrive(wheel=WheelDrive.RATE, wheel_value=2.0)] * 2)
+    th_dot, psi_dot = module_rates(A, theta, xi, driven)
+    assert th_dot[[0, 2]].tolist() == [0.3, 0.3] and psi_dot[[0, 2]].tolist() == [0.0, 0.0]
+    assert psi_dot[[1, 3]].tolist() == [2.0, 2.0]
+    assert th_dot[1] == pytest.approx(ref_th[1])
+
+
+@pytest.mark.parametrize("k", [0, 2])
+def test_locked_module_pins_its_contact_point_and_torque_gives_a_steady_spin(k: int) -> None:
+    sim = RobotSim(TRUTH, theta0=np.random.default_rng(k).uniform(-3, 3, 4))
+    sim.theta[k] = math.radians(45) + A.beta[k]
+    C_W = sim.contact_points_world()[k].copy()
+    C_R = sim.contact_points()[k].copy()
+    spin(sim, k, 4.0)
+    w1 = sim.twist[2]
+    spin(sim, k, 1.0)
+    assert sim.twist[2] == pytest.approx(w1, rel=1e-7)  # steady
+    assert 0.3 < abs(w1) < 1.0  # -0.6 N.m on three wheels: about 0.5 rad/s
+    assert np.abs(sim.contact_points_world()[k] - C_W).max() < 1e-12
+    assert np.abs(sim.contact_points()[k] - C_R).max() == 0.0
+    # the twist is a pure rotation about the contact point: v = -omega x C
+    w = sim.twist[2]
+    assert sim.twist[:2] == pytest.approx([w * C_R[1], -w * C_R[0]], abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_free_casters_trail_from_any_start_and_wheels_roll_d_dyaw_over_r(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    k = int(rng.integers(4))
+    theta0 = rng.uniform(-math.pi, math.pi, 4)
+    sim = RobotSim(TRUTH, theta0=theta0)
+    spin(sim, k, 6.0)
+    C = sim.contact_points()[k]
+    target, D = settled_trailing(A.P_s, A.b, C, np.sign(sim.twist[2]))
+    dyn = [i for i in range(4) if i != k]
+    err = wrap_angle(sim.theta - target)[dyn]
+    assert np.abs(err).max() < 1e-9
+    # settled: the rolling direction is perpendicular to the radius from the pivot
+    P_w = sim.contact_points()
+    u = np.column_stack([np.cos(sim.theta), np.sin(sim.theta)])
+    assert np.abs(np.einsum("ij,ij->i", P_w - C, u)[dyn]).max() < 1e-10
+    yaw0, psi0 = sim.pose[2], sim.psi_encoder.copy()
+    spin(sim, k, 2.0)
+    dyaw = sim.pose[2] - yaw0
+    dpsi = sim.psi_encoder - psi0
+    assert abs(dyaw) > 0.5
+    assert dpsi[dyn] == pytest.approx((-D * abs(dyaw) / A.r)[dyn], rel=1e-9)
+    assert dpsi[k] == 0.0
+
+
+def test_resteering_a_locked_module_moves_the_body_around_the_pinned_point() -> None:
+    sim = RobotSim(TRUTH, theta0=[math.radians(45) + A.beta[0], 0.0, 1.0, 2.0])
+    C_W = sim.contact_points_world()[0].copy()
+    yaw0 = sim.pose[2]
+    rate = math.radians(120) / 2.0
+    for _ in range(1000):  # 2 s at 60 deg/s, every other module free
+        sim.step(0.002, [locked(rate), FREE, FREE, FREE])
+    assert sim.theta[0] - A.beta[0] == pytest.approx(math.radians(165), abs=1e-9)
+    assert np.abs(sim.contact_points_world()[0] - C_W).max() < 1e-7
+    assert abs(sim.pose[2] - yaw0) > math.radians(20)  # the body turned about the pin
+
+
+def test_all_modules_driven_move_as_the_least_squares_twist_of_the_true_model() -> None:
+    v, w = np.array([0.3, 0.1]), 0.2
+    for model, slips in ((TRUTH, False), (PAPER_NOMINAL, True)):
+        M = model.arrays()
+        sim = RobotSim(TRUTH)
+        for _ in range(300):
+            th_dot, psi_dot = inverse_kinematics(M, sim.theta - M.beta, v, w)
+            drives = [
+                ModuleDrive(SteerDrive.RATE, th_dot[i], WheelDrive.RATE, psi_dot[i])
+                for i in range(4)
+            ]
+            sim.step(0.002, drives)
+        th_dot, psi_dot = inverse_kinematics(M, sim.theta - M.beta, v, w)
+        drives = [
+            ModuleDrive(SteerDrive.RATE, th_dot[i], WheelDrive.RATE, psi_dot[i]) for i in range(4)
+        ]
+        theta_mid = sim.theta + 0.001 * th_dot
+        sim.step(0.002, drives)
+        # the step's twist: least squares of the true model at the mid-step steering angles
+        twist, res = forward_kinematics(A, theta_mid - A.beta, th_dot, psi_dot)
+        assert sim.twist == pytest.approx(twist, abs=1e-12)
+        if slips:
+            assert np.abs(res).max() > 2e-3  # wrong parameters: slip, and the twist drifts
+            assert np.abs(sim.twist - [*v, w]).max() > 1e-3
+        else:
+            # consistent commands (held for one 2 ms step): slip below 10 um/s
+            assert np.abs(res).max() < 1e-5
+            assert sim.twist == pytest.approx([*v, w], abs=1e-4)
+
+
+def test_hard_rows_win_over_conflicting_soft_rows() -> None:
+    A_h = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    A_s = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    xi = prioritized_twist(
+        (A_h, np.array([0.1, 0.2])),
+        (A_s, np.array([5.0, 0.3])),
+        (np.eye(3), np.zeros(3)),
+        np.eye(3),
+        np.zeros(3),
+        np.zeros(3),
+        0.01,
+    )
+    assert xi == pytest.approx([0.1, 0.2, 0.3], abs=1e-12)
+
+
+def test_slip_bursts_only_move_the_encoder() -> None:
+    sim = RobotSim(TRUTH, PhysicsOptions(slip_burst_rate=2.0, seed=4), theta0=[0.8, 0, 0, 0])
+    spin(sim, 0, 4.0)
+    assert sim.slip_bursts
+    extra = sim.psi_encoder - sim.psi
+    slipped = {j for j, *_ in sim.slip_bursts}
+    for j in range(4):
+        if j in slipped:
+            assert abs(extra[j]) > 1e-3
+        else:
+            assert extra[j] == 0.0
+    assert 0 not in slipped  # the braked wheel does not roll, so it cannot slip
+
+
+def test_axis_drive_follows_the_controller_modes() -> None:
+    ax = AxisModel(state=AxisState.ENABLED, mode=ControlMode.POSITION, setpoint=1.0)
+    ax.max_velocity = 3.0
+    assert axis_drive(ax, Axis.STEER, 0.99, 0.002, 0.02) == ("rate", pytest.approx(0.5))
+    assert axis_drive(ax, Axis.STEER, -5.0, 0.002, 0.02) == ("rate", 3.0)
+    ax.mode = ControlMode.HOLD
+    assert axis_drive(ax, Axis.WHEEL, 0.0, 0.002, 0.02) == ("brake", 0.0)
+    assert axis_drive(ax, Axis.STEER, 0.0, 0.002, 0.02) == ("rate", 0.0)
+    ax.mode, ax.setpoint = ControlMode.TORQUE, -0.6
+    assert axis_drive(ax, Axis.WHEEL, 0.0, 0.002, 0.02) == ("torque", -0.6)
+    ax.state = AxisState.FAULT
+    assert axis_drive(ax, Axis.WHEEL, 0.0, 0.002, 0.02) == ("passive", 0.0)
+    ax.state = AxisState.HOMING
+    assert axis_drive(ax, Axis.STEER, 0.0, 0.002, 0.02) == ("rate", 0.5)
+    assert quantize(1.0, 2**14) == pytest.approx(1.0, abs=math.pi / 2**14)
+    assert quantize(1.0, 2**14) / (2 * math.pi / 2**14) == pytest.approx(
+        round(quantize(1.0, 2**14) / (2 * math.pi / 2**14)), abs=1e-9
+    )
+
+
+def test_mocap_noise_dropout_outliers_and_timestamps() -> None:
+    rng = np.random.default_rng(0)
+    opt = MocapOptions(sigma_xy=1e-3, sigma_yaw=1e-3, dropout=0.1, outliers=0.05)
+    out = [corrupt_pose(rng, np.zeros(3), opt) for _ in range(20000)]
+    kept = np.array([p for p, o in out if p is not None and not o])
+    n_out = sum(o for _, o in out)
+    assert len(kept) + n_out == pytest.approx(18000, rel=0.02)
+    assert n_out == pytest.approx(0.05 * 18000, rel=0.15)
+    assert kept[:, :2].std() == pytest.approx(1e-3, rel=0.03)
+    assert kept[:, 2].std() == pytest.approx(1e-3, rel=0.03)
+    jumps = np.array([np.hypot(p[0], p[1]) for p, o in out if o and p is not None])
+    assert np.median(jumps) == pytest.approx(0.05, abs=0.005)
+
+    m = MocapSim(
+        "r1",
+        MocapOptions(rate=200, latency=0.012, clock_offset=3.0, encoding="ros2-cdr"),
+        keep_sent=100,
+    )
+    assert m.due_times(0.0, 0.0101) == pytest.approx([0.0, 0.005, 0.01])
+    assert m.due_times(0.0101, 0.02) == pytest.approx([0.015, 0.02])
+    m.sample(0.0, np.array([1.0, 2.0, 0.5]))
+    m.sample(0.005, np.array([1.0, 2.0, 0.5]))
+    assert m.flush(0.011) == 0 and m.flush(0.012) == 1 and m.flush(0.02) == 1
+    assert [p.t for p in m.sent] == pytest.approx([3.0, 3.005])
+    assert m.sent[0].yaw == pytest.approx(0.5)
+    assert decode_pose(encode_cdr(m.sent[0])).x == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        MocapOptions(rate=2500)
