@@ -38,7 +38,7 @@ while [[ $# -gt 0 ]]; do
         --restart-ms) need_value "$@"; restart_ms="$2"; shift 2 ;;
         --sample-point) need_value "$@"; sample_point="$2"; shift 2 ;;
         --txqueuelen) need_value "$@"; txqueuelen="$2"; shift 2 ;;
-        -h|--help) sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h|--help) awk 'NR > 1 && !/^#/ {exit} NR > 1 {sub(/^# ?/, ""); print}' "$0"; exit 0 ;;
         -*) fail 2 "unknown option $1" ;;
         *) iface="$1"; shift ;;
     esac

@@ -17,7 +17,7 @@ mtu=16
 for arg in "$@"; do
     case "$arg" in
         --fd) mtu=72 ;;
-        -h|--help) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h|--help) awk 'NR > 1 && !/^#/ {exit} NR > 1 {sub(/^# ?/, ""); print}' "$0"; exit 0 ;;
         -*) echo "vcan-up: unknown option $arg" >&2; exit 2 ;;
         *) iface="$arg" ;;
     esac

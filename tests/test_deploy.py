@@ -1,0 +1,281 @@
+"""deploy/: scripts, systemd units, env file, robot config and zenoh configs.
+
+The success paths of ``vcan-up.sh`` and ``can-up.sh`` need a kernel with SocketCAN: they
+run in ``make test-vcan`` (deploy/vm/in-vm.sh).  Here: their error paths on this kernel,
+``systemd-analyze verify`` of both units, and that every example file loads into the
+real settings/config models and documents every key.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from pydantic import BaseModel
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+UNITS = ("swpc-service.service", "swpc-sim.service")
+
+
+def run(*cmd: str | Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(c) for c in cmd], capture_output=True, text=True, timeout=30, env=env, check=False
+    )
+
+
+def kernel_has_vcan() -> bool:
+    if Path("/sys/module/vcan").exists():
+        return True
+    return shutil.which("modprobe") is not None and run("modprobe", "-n", "vcan").returncode == 0
+
+
+# ---------------------------------------------------------------------------- scripts
+@pytest.mark.parametrize(
+    "script", ["vcan-up.sh", "can-up.sh", "vm/setup.sh", "vm/run-in-vm.sh", "vm/in-vm.sh"]
+)
+def test_scripts_are_executable_bash(script: str) -> None:
+    path = DEPLOY / script
+    assert os.access(path, os.X_OK)
+    assert run("bash", "-n", path).returncode == 0
+
+
+@pytest.mark.skipif(kernel_has_vcan(), reason="this kernel has vcan: make test-vcan covers it")
+@pytest.mark.skipif(os.geteuid() != 0, reason="as non-root the script stops at the permission")
+def test_vcan_up_without_vcan_is_a_clear_error() -> None:
+    r = run(DEPLOY / "vcan-up.sh", "swpctest0")
+    assert r.returncode == 3, r
+    assert r.stdout == ""
+    msg = r.stderr
+    assert msg.startswith("vcan-up: error: the running kernel (") and "has no vcan support" in msg
+    assert os.uname().release in msg
+    assert "modprobe vcan failed" in msg
+    assert "CONFIG_CAN_VCAN" in msg and "'virtual'" in msg
+    assert not Path("/sys/class/net/swpctest0").exists()
+
+
+def test_vcan_up_usage() -> None:
+    r = run(DEPLOY / "vcan-up.sh", "--bogus")
+    assert (r.returncode, r.stderr) == (2, "vcan-up: unknown option --bogus\n")
+    h = run(DEPLOY / "vcan-up.sh", "--help")
+    assert h.returncode == 0 and "Exit status" in h.stdout and "set -e" not in h.stdout
+
+
+def test_can_up_errors() -> None:
+    r = run(DEPLOY / "can-up.sh", "swpcnone0")
+    assert r.returncode == 3
+    assert r.stderr.startswith("can-up: error: no interface named swpcnone0.")
+    lo = run(DEPLOY / "can-up.sh", "lo")
+    assert (lo.returncode, lo.stderr) == (3, "can-up: error: lo is not a CAN interface\n")
+    for args, text in (
+        (["--bitrate", "2000000"], "--bitrate must be an integer in 1..1000000"),
+        (["--bitrate"], "--bitrate needs a value"),
+        (["--restart-ms", "-1"], "--restart-ms must be a non-negative integer"),
+        (["--sample-point", "87.5"], "--sample-point must be a fraction"),
+    ):
+        bad = run(DEPLOY / "can-up.sh", "can0", *args)
+        assert bad.returncode == 2 and text in bad.stderr, (args, bad)
+    h = run(DEPLOY / "can-up.sh", "--help")
+    assert h.returncode == 0 and "--restart-ms" in h.stdout and "set -e" not in h.stdout
+
+
+# ---------------------------------------------------------------------------- systemd
+def _unit_root(tmp_path: Path) -> Path:
+    """A root with the host's unit tree, our units and stubs for the ExecStart paths."""
+    root = tmp_path / "root"
+    (root / "usr/lib/systemd").mkdir(parents=True)
+    shutil.copytree("/usr/lib/systemd/system", root / "usr/lib/systemd/system", symlinks=True)
+    units = root / "etc/systemd/system"
+    units.mkdir(parents=True)
+    for unit in UNITS:
+        shutil.copy(DEPLOY / "systemd" / unit, units / unit)
+    for exe in (".venv/bin/swpc", "deploy/can-up.sh", "deploy/vcan-up.sh"):
+        stub = root / "opt/swpc" / exe
+        stub.parent.mkdir(parents=True, exist_ok=True)
+        stub.write_text("#!/bin/sh\n")
+        stub.chmod(0o755)
+    return root
+
+
+def _exec_paths(unit: str) -> set[str]:
+    text = (DEPLOY / "systemd" / unit).read_text()
+    return {m.lstrip("+-@!:") for m in re.findall(r"^Exec\w+=(\S+)", text, re.M)}
+
+
+@pytest.fixture(scope="module")
+def systemd_analyze() -> str:
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze missing: apt-get install systemd")
+    return exe
+
+
+def test_units_verify(systemd_analyze: str, tmp_path: Path) -> None:
+    root = _unit_root(tmp_path)
+    for unit in UNITS:
+        assert _exec_paths(unit) <= {
+            "/opt/swpc/.venv/bin/swpc",
+            "/opt/swpc/deploy/can-up.sh",
+            "/opt/swpc/deploy/vcan-up.sh",
+        }
+    r = run(systemd_analyze, "verify", f"--root={root}", *UNITS)
+    assert (r.returncode, r.stdout, r.stderr) == (0, "", "")
+
+
+def test_units_verify_catches_mistakes(systemd_analyze: str, tmp_path: Path) -> None:
+    """The check above is live: a typo or a missing executable is reported."""
+    root = _unit_root(tmp_path)
+    unit = root / "etc/systemd/system" / UNITS[0]
+    unit.write_text(unit.read_text().replace("ProtectSystem=strict", "ProtectSystem=strickt"))
+    r = run(systemd_analyze, "verify", f"--root={root}", UNITS[0])
+    assert "Failed to parse protect system value" in r.stderr
+    (root / "opt/swpc/.venv/bin/swpc").unlink()
+    r = run(systemd_analyze, "verify", f"--root={root}", UNITS[0])
+    assert r.returncode != 0 and "/opt/swpc/.venv/bin/swpc is not executable" in r.stderr
+
+
+def _directives(unit: str) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for line in (DEPLOY / "systemd" / unit).read_text().splitlines():
+        if "=" in line and not line.startswith(("#", "[")):
+            key, value = line.split("=", 1)
+            out.setdefault(key, []).append(value)
+    return out
+
+
+@pytest.mark.parametrize("unit", UNITS)
+def test_units_are_hardened(unit: str) -> None:
+    d = _directives(unit)
+    assert d["User"] == ["swpc"] and d["Restart"] == ["on-failure"]
+    assert d["ProtectSystem"] == ["strict"] and d["NoNewPrivileges"] == ["yes"]
+    assert d["CapabilityBoundingSet"] == [""]
+    assert "AF_CAN" in d["RestrictAddressFamilies"][0].split()
+    assert "EnvironmentFile" in d
+    assert all(v.startswith("+/opt/swpc/deploy/") for v in d["ExecStartPre"])
+    if unit == "swpc-service.service":
+        # the data dir is the only writable path: the state dir, nothing else
+        assert d["StateDirectory"] == ["swpc"] and "ReadWritePaths" not in d
+        assert d["Environment"] == ["SWPC_DATA_DIR=/var/lib/swpc"]
+        assert d["ExecStart"] == ["/opt/swpc/.venv/bin/swpc serve --data-dir /var/lib/swpc"]
+    else:
+        assert "StateDirectory" not in d and "ReadWritePaths" not in d
+        assert d["ExecStart"] == [
+            "/opt/swpc/.venv/bin/swpc sim --interface socketcan --channel vcan0"
+        ]
+
+
+# ---------------------------------------------------------------------------- env + config
+def test_env_example_loads_and_names_every_setting() -> None:
+    from services.settings import ServiceSettings
+
+    path = DEPLOY / "swpc.env.example"
+    text = path.read_text()
+    for name in ServiceSettings.model_fields:
+        assert re.search(rf"^#?SWPC_{name.upper()}=", text, re.M), name
+    s = ServiceSettings(_env_file=str(path))
+    assert s.can_interface == "socketcan" and s.can_channel == "can0"
+    assert s.can_bitrate == 1_000_000 and s.zenoh_mode == "peer"
+    assert s.data_dir == Path("/var/lib/swpc") and s.host == "127.0.0.1"
+    assert s.zenoh_config_file == "/opt/swpc/deploy/zenoh/robot-peer.json5"
+
+
+def _keys(model: type[BaseModel], prefix: str = "") -> list[str]:
+    keys = []
+    for name, field in model.model_fields.items():
+        keys.append(prefix + name)
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel) and name != "nominal":
+            keys += _keys(ann, prefix + name + ".")
+    return keys
+
+
+def test_robot_example_loads_and_documents_every_key() -> None:
+    from services.robot_config import RobotConfig, load_robot_config
+    from swpc_hw.reference import PAPER_NOMINAL
+
+    path = DEPLOY / "robot.example.yaml"
+    cfg = load_robot_config(path)
+    assert cfg == RobotConfig()  # the example spells out the defaults (the paper's robot)
+    assert cfg.nominal == PAPER_NOMINAL and cfg.pose_key == "mocap/swpc/pose"
+    doc: dict[str, Any] = yaml.safe_load(path.read_text())
+    lines = path.read_text().splitlines()
+    for key in _keys(RobotConfig):
+        node: Any = doc
+        for part in key.split("."):
+            assert part in node, f"{key} missing from {path.name}"
+            node = node[part]
+        leaf = key.split(".")[-1]
+        found = [ln for ln in lines if re.match(rf"^\s*{leaf}:", ln)]
+        assert found and all("#" in ln for ln in found), f"{key} has no comment"
+    for field in ("id", "x_s", "y_s", "beta", "b", "r"):
+        assert any(re.match(rf"^\s*-? ?{field}: .*#", ln) for ln in lines), field
+
+
+# ---------------------------------------------------------------------------- zenoh
+ZENOH_FILES = ("robot-peer.json5", "mocap-peer.json5", "lab-router.json5")
+
+
+@pytest.mark.parametrize("name", ZENOH_FILES)
+def test_zenoh_configs_load_with_scouting_off(name: str) -> None:
+    import zenoh
+
+    cfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / name))
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(cfg.get_json("scouting/gossip/enabled")) is False
+    mode = json.loads(cfg.get_json("mode"))
+    assert mode == ("router" if name == "lab-router.json5" else "peer")
+
+
+def test_mocap_bridge_maps_ros_pose_topics_to_our_key_space() -> None:
+    import zenoh
+
+    cfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "mocap-peer.json5"))
+    ros = json.loads(cfg.get_json("plugins/ros2dds"))
+    assert ros["namespace"] == "/mocap"  # /robot1/pose -> mocap/robot1/pose
+    (pattern,) = ros["allow"]["publishers"]
+    assert re.fullmatch(pattern, "/robot1/pose") and not re.fullmatch(pattern, "/tf")
+
+
+def test_lab_router_routes_each_robot_its_poses_and_denies_the_rest() -> None:
+    """The router file on loopback: mocap PC and robot connect to it as in the README."""
+    import zenoh
+
+    from swpc_hw.zenoh_session import free_tcp_endpoint, zenoh_config
+
+    ep = free_tcp_endpoint()
+    rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "lab-router.json5"))
+    rcfg.insert_json5("listen/endpoints", json.dumps([ep]))
+    mcfg = zenoh_config(config_file=str(DEPLOY / "zenoh" / "mocap-peer.json5"), connect=[ep])
+    mcfg.insert_json5("listen/endpoints", "[]")
+    mcfg.insert_json5("plugins", "{}")
+    got: dict[str, list[str]] = {"robot1": [], "other": []}
+    sessions = [zenoh.open(rcfg)]
+    try:
+        robot = zenoh.open(zenoh_config(mode="client", connect=[ep]))
+        other = zenoh.open(zenoh_config(mode="client", connect=[ep]))
+        mocap = zenoh.open(mcfg)
+        sessions += [robot, other, mocap]
+        robot.declare_subscriber(
+            "mocap/robot1/pose", lambda s: got["robot1"].append(str(s.payload.to_bytes()))
+        )
+        other.declare_subscriber("other/**", lambda s: got["other"].append(str(s.key_expr)))
+        deadline = time.monotonic() + 5.0
+        while not got["robot1"] and time.monotonic() < deadline:
+            mocap.put("mocap/robot1/pose", b"p1")
+            mocap.put("mocap/robot2/pose", b"p2")
+            mocap.put("other/key", b"x")
+            time.sleep(0.1)
+        time.sleep(0.2)
+    finally:
+        for s in reversed(sessions):
+            s.close()  # type: ignore[no-untyped-call]
+    assert got["robot1"] and set(got["robot1"]) == {"b'p1'"}
+    assert got["other"] == []  # denied by the router's access control
