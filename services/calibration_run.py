@@ -9,7 +9,8 @@ One place to read it — :data:`TRANSITIONS`::
     SOLVE   -> WRITE -> DONE
     any non-terminal state -> FAILED | ABORTED
 
-* CONNECT: the robot's controllers are activated (commands flow, watchdog refreshed).
+* CONNECT: the robot's controllers are activated (commands flow, watchdog refreshed) and
+  any steering not homed yet runs its homing sequence.
 * PRECHECK: every node alive, no active errors, steering homed, mocap stream live.
 * LOCK k: steering of k position-held at the first angle, wheel braked.
 * ALIGN: the other (dynamic) modules steer to their nominal trailing angle for a spin
@@ -151,7 +152,7 @@ class CalibrationRun:
         time_scale: float = 1.0,
         install: str = "if-within-tolerance",
         on_change: Callable[[CalibrationRun], None] | None = None,
-        poll: float = 0.002,
+        poll: float = 0.005,
     ) -> None:
         self.robot = robot
         self.mocap = mocap
@@ -294,6 +295,13 @@ class CalibrationRun:
         angles = [math.radians(a) for a in cfg.protocol.angles_deg]
         self._enter(State.CONNECT, "activating the controllers")
         self.robot.activate()
+        unhomed = self.robot.unhomed()
+        if unhomed:
+            self.status.step = f"homing the steering of modules {unhomed}"
+            self._changed()
+            for m in unhomed:
+                self.robot.start_homing(m)
+            self._wait_until(lambda: not self.robot.unhomed(), motion=False, what="homing")
         self._enter(State.PRECHECK, "checking nodes, errors, homing and mocap")
         self._precheck()
         nominal = cfg.nominal.arrays()
@@ -389,27 +397,26 @@ class CalibrationRun:
         t_spin = time.monotonic()
         deadline = self._deadline()
         window_start: float | None = None
-        yaw_prev = latest[3]
+        yaw_prev = latest.yaw
         yaw_acc = 0.0
         acc_at_start = 0.0
-        last_rate_t, last_rate_acc = latest[0], 0.0
+        rate_t, rate_acc = latest.t_source, 0.0
         while True:
             self._check(True, deadline)
             p = self.mocap.latest()
             assert p is not None
-            d = float(wrap_angle(p[3] - yaw_prev))
-            yaw_prev = p[3]
-            yaw_acc += d
-            if p[0] - last_rate_t >= 0.1 / self.time_scale:
-                rate = (yaw_acc - last_rate_acc) / ((p[0] - last_rate_t) * self.time_scale)
+            yaw_acc += float(wrap_angle(p.yaw - yaw_prev))
+            yaw_prev = p.yaw
+            if p.t_source - rate_t >= 0.2:  # yaw rate over 0.2 s of mocap (robot) time
+                rate = (yaw_acc - rate_acc) / (p.t_source - rate_t)
                 if abs(rate) > limits.max_yaw_rate:
                     raise RunFailedError(
                         f"yaw rate {rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
                     )
-                last_rate_t, last_rate_acc = p[0], yaw_acc
+                rate_t, rate_acc = p.t_source, yaw_acc
             now = time.monotonic()
             if window_start is None and now - t_spin >= self._robot_seconds(proto.settle_time):
-                window_start, acc_at_start = p[0], yaw_acc
+                window_start, acc_at_start = p.t_host, yaw_acc
             if window_start is not None:
                 sweep = abs(yaw_acc - acc_at_start)
                 with self._lock:
@@ -417,7 +424,7 @@ class CalibrationRun:
                     self.status.progress = min((done + min(sweep / sweep_target, 1.0)) / total, 1.0)
                     self.status.poses = self.mocap.counters.accepted
                 if sweep >= sweep_target:
-                    self.segments.append(Segment(k, window_start, p[0]))
+                    self.segments.append(Segment(k, window_start, p.t_host))
                     self.status.segments = len(self.segments)
                     return
             time.sleep(self._poll)

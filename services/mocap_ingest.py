@@ -6,12 +6,16 @@ monotonic receive time.  Dropped and counted: undecodable payloads, NaN/inf valu
 non-unit quaternions (``| |q| - 1 | > quaternion_tol``), duplicates (same source time)
 and out-of-order samples (source time older than the last accepted one).
 
-Clock mapping: the mocap clock and the host clock differ by an unknown offset plus a
-positive transport delay; the service maps source time to host time with the lower
-envelope ``offset = min(t_recv - t_source / s)`` over the samples seen so far (the
-classic one-way clock estimate; ``s`` is the time scale of a simulator running faster
-than real time, 1 for a real mocap), so recorded poses keep the mocap's exact spacing
-on the host clock.
+Clock mapping: the mocap clock and the host clock differ by an offset plus a positive
+transport delay; each sample's host time is ``t_source / s + offset`` with the lower
+envelope ``offset = min(t_recv - t_source / s)`` over the last ``sync_window`` seconds
+(the classic one-way clock estimate, as a sliding minimum so that it follows drift —
+e.g. a simulator that slows its clock when the machine cannot keep up; ``s`` is the
+time scale of a simulator running faster than real time, 1 for a real mocap).  Recorded
+poses thus keep the mocap's exact spacing on the host clock.  A sliding minimum follows
+an offset, not a change of *rate*: for a source whose clock rate varies (a simulator
+that slows its clock when the machine cannot keep up) use ``clock="receive"``, which
+takes the host receive time itself (transport jitter, but no drift).
 
 A stream whose newest accepted sample is older than ``stale_after`` seconds (host
 time) is *stale*; during motion the state machine treats that as a fault.
@@ -26,7 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +41,15 @@ FloatArray = NDArray[np.float64]
 
 #: columns of :meth:`MocapIngest.samples`
 COLUMNS = ("t_source", "t_recv", "t_host", "x", "y", "yaw")
+
+
+class LatestPose(NamedTuple):
+    t_source: float
+    """mocap clock (robot time for a simulator)"""
+    t_host: float
+    x: float
+    y: float
+    yaw: float
 
 
 @dataclass
@@ -66,6 +79,8 @@ class MocapIngest:
         capacity: int = 2_000_000,
         clock: Callable[[], float] = time.monotonic,
         time_scale: float = 1.0,
+        sync_window: float = 1.0,
+        clock_mode: str = "source",
     ) -> None:
         self.encoding = PoseEncoding(encoding)
         self.stale_after = float(stale_after)
@@ -80,7 +95,12 @@ class MocapIngest:
         self._n = 0
         self._capacity = int(capacity)
         self._last_source = -math.inf
-        self._offset = math.inf  # min(t_recv - t_source)
+        self.sync_window = float(sync_window)
+        if clock_mode not in ("source", "receive"):
+            raise ValueError(f"clock_mode must be 'source' or 'receive', not {clock_mode!r}")
+        self.clock_mode = clock_mode
+        self._offset = math.inf  # sliding min(t_recv - t_source / s)
+        self._delays: deque[tuple[float, float]] = deque()  # (t_recv, delay), increasing delay
         self._recent = deque[float](maxlen=4096)  # receive times for the rate
         self._latency = deque[float](maxlen=4096)
         self._subscriber: Any = None
@@ -131,8 +151,16 @@ class MocapIngest:
                 c.out_of_order += 1
                 return False
             self._last_source = p.t
-            self._offset = min(self._offset, now - p.t / self.time_scale)
-            self._append((p.t, now, math.nan, p.x, p.y, p.yaw))
+            delay = now - p.t / self.time_scale
+            dq = self._delays  # monotonic queue: sliding-window minimum in O(1)
+            while dq and dq[-1][1] >= delay:
+                dq.pop()
+            dq.append((now, delay))
+            while dq[0][0] < now - self.sync_window:
+                dq.popleft()
+            self._offset = dq[0][1]
+            t_host = now if self.clock_mode == "receive" else p.t / self.time_scale + self._offset
+            self._append((p.t, now, t_host, p.x, p.y, p.yaw))
             self._recent.append(now)
             self._latency.append(now - p.t / self.time_scale)
             c.accepted += 1
@@ -159,23 +187,20 @@ class MocapIngest:
     def samples(self, since_host: float = -math.inf) -> FloatArray:
         """Accepted samples (rows as :data:`COLUMNS`) with host time >= ``since_host``.
 
-        ``t_host = t_source + offset`` uses the current (best) clock offset for every row.
+        ``t_host`` is fixed when the sample arrives (the clock offset of that moment).
         """
         with self._lock:
             data = self._buf[: self._n].copy()
-            offset = self._offset
-        data[:, 2] = data[:, 0] / self.time_scale + offset
         i = int(np.searchsorted(data[:, 2], since_host))
         return data[i:]
 
-    def latest(self) -> tuple[float, float, float, float] | None:
-        """``(t_host, x, y, yaw)`` of the newest accepted sample."""
+    def latest(self) -> LatestPose | None:
+        """The newest accepted sample."""
         with self._lock:
             if self._n == 0:
                 return None
             r = self._buf[self._n - 1]
-            t_host = r[0] / self.time_scale + self._offset
-            return float(t_host), float(r[3]), float(r[4]), float(r[5])
+            return LatestPose(float(r[0]), float(r[2]), float(r[3]), float(r[4]), float(r[5]))
 
     def age(self, now: float | None = None) -> float:
         """Host seconds since the newest accepted sample was received (inf if none)."""

@@ -34,6 +34,14 @@ class RobotIO(Protocol):
         """Clear errors and let commands flow (controllers enabled, watchdog refreshed)."""
         ...
 
+    def unhomed(self) -> list[int]:
+        """Modules whose steering has not been homed yet."""
+        ...
+
+    def start_homing(self, module: int) -> None:
+        """Run the controller's homing sequence on the steering axis."""
+        ...
+
     def lock(self, module: int, steer: float) -> None:
         """Steering position-hold at ``steer`` (reported angle), wheel braked."""
         ...
@@ -110,6 +118,12 @@ class DriverRobotIO:
             d.clear_errors(m)
             d.enable(m, Axis.STEER)
             d.enable(m, Axis.WHEEL)
+
+    def unhomed(self) -> list[int]:
+        return [m for m in self.module_ids if not self.driver.module_state(m).homed]
+
+    def start_homing(self, module: int) -> None:
+        self.driver.start_homing(module)
 
     def lock(self, module: int, steer: float) -> None:
         self.driver.set_position(module, Axis.STEER, steer)

@@ -9,6 +9,7 @@ in-process on a python-can ``virtual`` bus and zenoh on a loopback endpoint.
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 import uuid
@@ -56,6 +57,7 @@ class Runtime:
             encoding=settings.pose_encoding,
             stale_after=settings.mocap_stale_after,
             time_scale=settings.time_scale,
+            clock_mode=settings.mocap_clock or ("receive" if settings.simulated else "source"),
         )
         self.started = time.time()
         self._closed = False
@@ -77,14 +79,20 @@ class Runtime:
         )
         self.mocap.subscribe(self.session, self.config.pose_key)
         lim = self.config.limits
+        # The controllers count their watchdog in *their* time.  Against a simulator (which
+        # may run time_scale times faster, on a host it shares) keep >= 400 ms of host time.
+        watchdog_ms = lim.watchdog_ms
+        if s.simulated:
+            watchdog_ms = max(watchdog_ms, math.ceil(400.0 * s.time_scale))
         self.driver = CanDriver(
             CanConfig(
                 interface=interface,
                 channel=channel,
                 bitrate=s.can_bitrate,
                 modules=dict(self.config.nodes or {}),
-                watchdog_timeout_ms=lim.watchdog_ms,
-                refresh_period_s=min(0.02, lim.watchdog_ms / 5000.0),
+                watchdog_timeout_ms=watchdog_ms,
+                refresh_period_s=min(0.02, watchdog_ms / 4000.0 / s.time_scale),
+                heartbeat_loss_periods=max(1, math.ceil(s.heartbeat_timeout_s / 0.1)),
                 max_torque=(lim.max_wheel_torque, lim.max_wheel_torque),
                 max_velocity=(lim.max_steer_velocity, lim.max_wheel_velocity),
                 log_path=str(self.data_dir / f"can-{time.strftime('%Y%m%dT%H%M%S')}.log"),

@@ -25,13 +25,24 @@ class ServiceSettings(BaseSettings):
     can_interface: str | None = Field(None, description="python-can interface; unset: embedded")
     can_channel: str = "vcan0"
     can_bitrate: int = 1_000_000
+    heartbeat_timeout: float | None = Field(
+        None,
+        gt=0,
+        description="host seconds without a heartbeat = node lost; default 0.3 s on a robot, "
+        "1 s against a simulator (which shares a possibly loaded host)",
+    )
 
     zenoh_mode: str = "peer"
     zenoh_listen: list[str] = Field(default_factory=list)
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_config_file: str | None = None
     pose_encoding: str = Field("auto", description="native | ros2-cdr | auto")
-    mocap_stale_after: float = Field(0.25, gt=0, description="s without poses = stale")
+    mocap_stale_after: float = Field(0.5, gt=0, description="s without poses = stale")
+    mocap_clock: str | None = Field(
+        None,
+        description="pose time base: 'source' (mocap clock mapped to host) or 'receive' "
+        "(host receive time); default: receive with a simulator, source otherwise",
+    )
 
     robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")
     data_dir: Path = Path("swpc-data")
@@ -43,6 +54,17 @@ class ServiceSettings(BaseSettings):
     @property
     def embedded(self) -> bool:
         return self.can_interface is None
+
+    @property
+    def simulated(self) -> bool:
+        """Talking to a simulator (embedded, or time-scaled) rather than a robot."""
+        return self.embedded or self.time_scale != 1.0
+
+    @property
+    def heartbeat_timeout_s(self) -> float:
+        if self.heartbeat_timeout is not None:
+            return self.heartbeat_timeout
+        return 1.0 if self.simulated else 0.3
 
     @property
     def kinematics_file(self) -> Path:

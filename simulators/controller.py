@@ -211,6 +211,7 @@ class VirtualController:
             _integrate(ax, dt)
             if (
                 ax.state == AxisState.ENABLED
+                and ax.mode != ControlMode.FREE  # a free axis is moved by the world, not us
                 and abs(ax.velocity) > OVER_SPEED_FACTOR * ax.max_velocity
             ):
                 out += self._fault(axis, ErrorFlag.OVER_SPEED)

@@ -50,11 +50,31 @@ def test_staleness_and_clock_mapping() -> None:
         ing.feed(native(10.0 + 0.01 * i), t_recv=990.0 + 0.01 * i + delay)
     assert ing.clock_offset == pytest.approx(980.002)
     host = ing.samples()[:, 2]
-    assert host.tolist() == pytest.approx([990.002 + 0.01 * i for i in range(4)])
+    # each sample is mapped with the lower envelope known when it arrived
+    assert host.tolist() == pytest.approx([990.004, 990.012, 990.022, 990.032])
     now[0] = 990.03 + 0.003 + 0.05
     assert not ing.is_stale()
     now[0] += 0.2
     assert ing.is_stale()
+
+
+@pytest.mark.parametrize(("mode", "bound"), [("source", 0.2), ("receive", 0.0011)])
+def test_clock_modes_with_a_source_clock_that_changes_rate(mode: str, bound: float) -> None:
+    """A simulator whose clock slows down (time scale 5 -> 4): only receive time follows."""
+    ing = MocapIngest(time_scale=5.0, sync_window=0.5, clock_mode=mode)
+    t_src, t_host = 0.0, 100.0
+    errors = []
+    for i in range(2000):  # 1 kHz of host time, source rate drops after 1 s
+        scale = 5.0 if i < 1000 else 4.0
+        t_host += 0.001
+        t_src += 0.001 * scale
+        delay = 0.0005 + 0.0005 * ((i * 7919) % 13) / 13  # jittery transport
+        ing.feed(native(t_src), t_recv=t_host + delay)
+        if i > 1500:
+            errors.append(abs(ing.samples()[-1, 2] - t_host))
+    assert 0.0 < max(errors) < bound
+    if mode == "source":
+        assert max(errors) > 0.05  # the lower envelope lags the rate change
 
 
 def test_growth_keeps_every_sample() -> None:
