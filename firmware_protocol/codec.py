@@ -7,10 +7,13 @@ that name the node, the message and the signal.
 Frame ids: ``id = node << 5 | command`` (11-bit, ODrive "CAN Simple" layout).  Node 0 is the
 broadcast address (``Sync``); controllers are nodes 1..``MAX_NODE``.
 
-Positions are fixed point in the frames (steer int20 at 2*pi/2**14 rad per count, wheel
-int36 at 2*pi/2**16 rad per count): the quantisation step is the same after hours of
-rotation as at power-up, which a float32 would not give (its step at 5e5 rad is 0.03 rad).
-The counters wrap; :func:`unwrap` restores a continuous angle on the host.
+Positions are fixed point in the frames, all at ``2*pi/2**17`` rad per count: feedback
+steer int20 (range +-4 turns) and wheel int36 (+-2**18 turns), PositionSetpoint and
+HomingStatus SensorPosition int32 (+-2**14 turns).  The quantisation step is the same after
+hours of rotation as at power-up, which a float32 would not give (its step at 5e5 rad is
+0.03 rad).  The feedback counters wrap; :func:`unwrap` restores a continuous angle on the
+host.  The module constants (:data:`STEER_LSB`, :data:`STEER_COUNTS_PER_TURN`,
+:data:`STEER_SPAN` and the wheel's) are read from the DBC, not repeated here.
 """
 
 from __future__ import annotations
@@ -624,7 +627,20 @@ def _build(command: Command, node: int, v: dict[str, Any]) -> Decoded:
     raise UnknownFrameError(f"node {node}: no decoder for {command.name}")  # pragma: no cover
 
 
-STEER_SPAN = 2.0 * math.pi * 2**20 / 2**14
-"""Wrap period of the steering position signal (64 turns), rad."""
-WHEEL_SPAN = 2.0 * math.pi * 2**36 / 2**16
-"""Wrap period of the wheel position signal (2**20 turns), rad."""
+def signal_scale(name: str, command: Command = Command.FEEDBACK_POSITION) -> float:
+    """Physical value of one count of a signal (its DBC scale), e.g. rad per count."""
+    return float(message_for(1, command).get_signal_by_name(name).scale)
+
+
+STEER_LSB = signal_scale("SteerPosition")
+"""Steering position resolution, rad per count: ``2*pi/2**17``."""
+WHEEL_LSB = signal_scale("WheelPosition")
+"""Wheel position resolution, rad per count: ``2*pi/2**17``."""
+STEER_COUNTS_PER_TURN = round(2.0 * math.pi / STEER_LSB)
+"""Steering position counts per turn (2**17)."""
+WHEEL_COUNTS_PER_TURN = round(2.0 * math.pi / WHEEL_LSB)
+"""Wheel position counts per turn (2**17)."""
+STEER_SPAN = signal_span("SteerPosition")
+"""Wrap period of the steering position signal, rad: ``2**20 * 2*pi/2**17`` = 8 turns."""
+WHEEL_SPAN = signal_span("WheelPosition")
+"""Wrap period of the wheel position signal, rad: ``2**36 * 2*pi/2**17`` = 2**19 turns."""

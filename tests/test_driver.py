@@ -297,9 +297,12 @@ def test_sync_mode_samples_all_nodes_together() -> None:
 def test_feedback_history_pairs_frames_and_unwraps(active: Rig) -> None:
     drv = active.drv
     drv.enable(3, Axis.WHEEL)
+    drv.enable(3, Axis.STEER)
     drv.set_velocity(3, Axis.WHEEL, 20.0)
-    with active.emu.lock:  # park the wheel just below the int36 wrap
+    drv.set_velocity(3, Axis.STEER, -10.0)
+    with active.emu.lock:  # park the wheel below the int36 wrap, the steering above int20's
         active.ctrl(3).axes[Axis.WHEEL].position = codec.WHEEL_SPAN / 2 - 2.0
+        active.ctrl(3).axes[Axis.STEER].position = -codec.STEER_SPAN / 2 + 2.0
     time.sleep(0.05)
     drv.clear_history()
     time.sleep(0.5)
@@ -315,6 +318,12 @@ def test_feedback_history_pairs_frames_and_unwraps(active: Rig) -> None:
     assert psi[-1] > codec.WHEEL_SPAN / 2  # crossed the wrap point without a jump
     steps = [b - a for a, b in itertools.pairwise(psi)]
     assert max(steps) < 0.2 and min(steps) > 0.0  # 20 rad/s x 5 ms = 0.1 rad
+    theta = [s.theta_hat for s in hist]  # -4 turns + 2 rad, then -10 rad/s for 0.5 s
+    assert theta[-1] < -codec.STEER_SPAN / 2  # crossed -4 turns without a jump
+    steps = [b - a for a, b in itertools.pairwise(theta)]
+    # -10 rad/s x 5 ms = -0.05 rad a sample (more if the emulator thread woke late); a
+    # missed wrap would be a jump of +8 turns = +50 rad
+    assert min(steps) > -0.5 and max(steps) < 0.0
     cols = drv.history_arrays(3)
     assert cols["psi"].shape == cols["t"].shape == cols["counter"].shape
     st = drv.stats()

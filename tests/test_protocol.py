@@ -27,8 +27,11 @@ from firmware_protocol.codec import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-STEER_LSB = 2 * math.pi / 2**14
-WHEEL_LSB = 2 * math.pi / 2**16
+# Every position on the bus (feedback steer and wheel, PositionSetpoint, SensorPosition)
+# is 2**17 counts per turn.  Written out here, not taken from the codec, so that the byte
+# expectations below check the DBC's scale.
+LSB = 2 * math.pi / 2**17  # 4.7936899621e-05 rad; 1 rad = 2**17 / (2 pi) = 20860.7567 counts
+STEER_LSB = WHEEL_LSB = LSB
 
 # (builder, frame id, data hex, decoded record)
 CASES: list[tuple[Callable[[], Frame], int, str, codec.Decoded]] = [
@@ -54,12 +57,13 @@ CASES: list[tuple[Callable[[], Frame], int, str, codec.Decoded]] = [
         "0103b8880000",
         codec.SetControl(2, Axis.WHEEL, ControlMode.VELOCITY, 3.5),
     ),
-    # position -1 rad / (2 pi / 65536) = -10430.4 -> -10430 = 0xFFFFD742
+    # position -1 rad / (2 pi / 2**17) = -20860.76 -> -20861; 20861 = 0x517D, so
+    # int32 -20861 = 0xFFFFFFFF - 0x517D + 1 = 0xFFFFAE83 -> LE 83 AE FF FF
     (
         lambda: codec.make_set_control(1, Axis.STEER, ControlMode.POSITION, -1.0),
         0x022,
-        "000242d7ffff",
-        codec.SetControl(1, Axis.STEER, ControlMode.POSITION, -10430 * WHEEL_LSB),
+        "000283aeffff",
+        codec.SetControl(1, Axis.STEER, ControlMode.POSITION, -20861 * LSB),
     ),
     # torque 1.25 N.m / 1e-4 = 12500 = 0x30D4
     (
@@ -95,13 +99,22 @@ CASES: list[tuple[Callable[[], Frame], int, str, codec.Decoded]] = [
         "6400f0ffffffff07",
         codec.FeedbackPosition(1, 100 * STEER_LSB, -WHEEL_LSB, 7),
     ),
-    # steer raw -1 = 0xFFFFF, wheel 1000 turns = 65_536_000 = 0x3E80000, counter 0:
-    # 0x00_003E80000_FFFFF -> LE FF FF 0F 00 80 3E 00 00
+    # steer raw -1 = 0xFFFFF, wheel 1000 turns = 1000 * 2**17 = 131_072_000 = 0x7D00000
+    # (0x20000 * 0x3E8), counter 0: 0x00_007D00000_FFFFF -> LE FF FF 0F 00 00 7D 00 00
     (
         lambda: codec.make_feedback_position(2, -STEER_LSB, 1000 * 2 * math.pi, 0),
         0x044,
-        "ffff0f00803e0000",
+        "ffff0f00007d0000",
         codec.FeedbackPosition(2, -STEER_LSB, 1000 * 2 * math.pi, 0),
+    ),
+    # steer 1.0 rad -> 20860.76 -> 20861 = 0x0517D (20 bits);
+    # wheel -0.5 rad -> -10430.38 -> -10430; 10430 = 0x28BE, int36 = 0xFFFFFD742;
+    # counter 42 = 0x2A: 0x2A_FFFFFD742_0517D -> LE 7D 51 20 74 FD FF FF 2A
+    (
+        lambda: codec.make_feedback_position(5, 1.0, -0.5, 42),
+        0x0A4,
+        "7d512074fdffff2a",
+        codec.FeedbackPosition(5, 20861 * STEER_LSB, -10430 * WHEEL_LSB, 42),
     ),
     # 1.0 rad/s -> 1000 = 0x03E8; -2.0 rad/s / 0.002 = -1000 = 0xFC18; 0.5 N.m -> 50 = 0x032;
     # -0.01 N.m -> -1 = 0xFFF; counter 9: 0x09_FFF_032_FC18_03E8
@@ -151,12 +164,12 @@ CASES: list[tuple[Callable[[], Frame], int, str, codec.Decoded]] = [
         codec.SetFeedback(1, 200, True),
     ),
     (lambda: codec.make_start_homing(8), 0x10B, "00", codec.StartHoming(8, Axis.STEER)),
-    # 0.3 rad / (2 pi / 65536) = 3129.1 -> 3129 = 0x0C39
+    # 0.3 rad / (2 pi / 2**17) = 6258.23 -> 6258 = 0x1872 -> LE 72 18 00 00
     (
         lambda: codec.make_homing_status(1, Axis.STEER, HomingState.DONE, 0.3),
         0x02C,
-        "0002390c0000",
-        codec.HomingStatus(1, Axis.STEER, HomingState.DONE, 3129 * WHEEL_LSB),
+        "000272180000",
+        codec.HomingStatus(1, Axis.STEER, HomingState.DONE, 6258 * LSB),
     ),
 ]
 
@@ -195,7 +208,11 @@ RANGE_CASES: list[tuple[Callable[[], Frame], str]] = [
         "VelocitySetpoint",
     ),
     (lambda: codec.make_set_control(1, Axis.WHEEL, ControlMode.TORQUE, -51.0), "TorqueSetpoint"),
-    (lambda: codec.make_set_control(1, Axis.STEER, ControlMode.POSITION, 3e5), "PositionSetpoint"),
+    # int32 at 2 pi / 2**17 spans +-2**14 turns = +-102943.7 rad
+    (
+        lambda: codec.make_set_control(1, Axis.STEER, ControlMode.POSITION, 1.03e5),
+        "PositionSetpoint",
+    ),
     (lambda: codec.make_fault_report(1, Axis.STEER, 1 << 16, 0, AxisState.FAULT), "NewErrors"),
     (lambda: codec.make_feedback_position(1, 0.0, 0.0, 256), "Counter"),
     (lambda: codec.make_feedback_velocity_torque(1, 33.0, 0.0, 0.0, 0.0, 0), "SteerVelocity"),
@@ -251,27 +268,70 @@ def test_decode_errors_name_signal_length_and_id() -> None:
         codec.frame_id(0, Command.HEARTBEAT)
 
 
+def test_position_resolution_and_spans_are_2_17_counts_per_turn() -> None:
+    assert codec.STEER_LSB == codec.WHEEL_LSB == LSB
+    assert codec.STEER_COUNTS_PER_TURN == codec.WHEEL_COUNTS_PER_TURN == 2**17
+    for name, cmd in (
+        ("PositionSetpoint", Command.SET_CONTROL),
+        ("SensorPosition", Command.HOMING_STATUS),
+    ):
+        assert codec.signal_scale(name, cmd) == LSB, name
+        # int32: 2**32 counts / 2**17 counts per turn = 2**15 turns, i.e. +-2**14 turns
+        assert codec.signal_span(name, cmd) == 2**15 * 2 * math.pi, name
+    # int20 steer: 2**20 / 2**17 = 8 turns; int36 wheel: 2**36 / 2**17 = 2**19 turns
+    assert codec.STEER_SPAN == codec.signal_span("SteerPosition") == 8 * 2 * math.pi
+    assert codec.WHEEL_SPAN == codec.signal_span("WheelPosition") == 2**19 * 2 * math.pi
+
+
 def test_positions_keep_precision_over_hours_and_unwrap() -> None:
-    # 30 h of a 0.054 m wheel at 1 m/s: 2.0e6 rad; the step stays 2 pi / 65536 rad.
-    psi = 1.0 / 0.054 * 30 * 3600 + 0.123456
+    # 20 h of a 0.054 m wheel at 1 m/s: 1.33e6 rad = 2.1e5 turns, inside the +-2**18-turn
+    # range; the step stays 2 pi / 2**17 rad.
+    psi = 1.0 / 0.054 * 20 * 3600 + 0.123456
     f = codec.make_feedback_position(1, 0.7, psi, 0)
     dec = codec.parse(f.arbitration_id, f.data)
     assert isinstance(dec, codec.FeedbackPosition)
     assert abs(dec.wheel - psi) <= WHEEL_LSB / 2 + 1e-9
-    # beyond the 2**19-turn range the counter wraps; unwrap() restores the angle
+    # beyond the 2**18-turn range (24 h at 3 rev/s) the counter wraps; unwrap() restores it
     big = codec.WHEEL_SPAN * 0.5 + 10.0
     f = codec.make_feedback_position(1, 0.0, big, 0)
     dec = codec.parse(f.arbitration_id, f.data)
     assert isinstance(dec, codec.FeedbackPosition)
     assert dec.wheel < 0
     assert abs(codec.unwrap(big - 0.5, dec.wheel, codec.WHEEL_SPAN) - big) <= WHEEL_LSB
-    assert codec.signal_span("WheelPosition") == pytest.approx(codec.WHEEL_SPAN)
-    assert codec.signal_span("SteerPosition") == pytest.approx(codec.STEER_SPAN)
-    # steering: 2 pi / 16384 rad (0.022 deg) per count
+    # steering: 2 pi / 2**17 rad (0.0027 deg) per count; -3.0 rad -> -62582.27 -> -62582,
+    # an error of 0.27 count = 1.3e-5 rad (at 2**14 counts/turn: -7822.78 -> -7823, an
+    # error of 0.22 x 2 pi / 2**14 = 8.3e-5 rad, over the bound below)
     f = codec.make_feedback_position(1, -3.0, 0.0, 0)
     dec = codec.parse(f.arbitration_id, f.data)
     assert isinstance(dec, codec.FeedbackPosition)
+    assert dec.steer == -62582 * STEER_LSB
     assert abs(dec.steer + 3.0) <= STEER_LSB / 2
+
+
+def test_steering_wraps_at_4_turns_and_unwraps() -> None:
+    # 4 turns + 0.1 rad is past the int20 maximum (2**19 - 1 counts): the counter wraps by
+    # 2**20 counts = 8 turns, to -4 turns + 0.1 rad
+    steer = 4 * 2 * math.pi + 0.1
+    f = codec.make_feedback_position(1, steer, 0.0, 0)
+    dec = codec.parse(f.arbitration_id, f.data)
+    assert isinstance(dec, codec.FeedbackPosition)
+    assert dec.steer == pytest.approx(steer - 8 * 2 * math.pi, abs=STEER_LSB / 2)
+    # a whole number of turns: the steering direction survives the wrap
+    assert math.cos(dec.steer) == pytest.approx(math.cos(steer), abs=STEER_LSB)
+    assert math.sin(dec.steer) == pytest.approx(math.sin(steer), abs=STEER_LSB)
+    # from the previous (unwrapped) reading just below 4 turns, unwrap() adds the 8 turns
+    prev = 4 * 2 * math.pi - 0.05
+    assert codec.unwrap(prev, dec.steer, codec.STEER_SPAN) == pytest.approx(
+        steer, abs=STEER_LSB / 2
+    )
+    # and on the way back down through -4 turns
+    f = codec.make_feedback_position(1, -steer, 0.0, 0)
+    dec = codec.parse(f.arbitration_id, f.data)
+    assert isinstance(dec, codec.FeedbackPosition)
+    assert dec.steer > 0
+    assert codec.unwrap(-prev, dec.steer, codec.STEER_SPAN) == pytest.approx(
+        -steer, abs=STEER_LSB / 2
+    )
 
 
 def test_dbc_node_copies_identical_and_up_to_date() -> None:
@@ -335,7 +395,7 @@ int main(void) {
     struct swpc_n1_feedback_position_t fp;
     swpc_n1_feedback_position_init(&fp);
     fp.steer_position = swpc_n1_feedback_position_steer_position_encode(-3.0);
-    fp.wheel_position = swpc_n1_feedback_position_wheel_position_encode(2000000.123456);
+    fp.wheel_position = swpc_n1_feedback_position_wheel_position_encode(1300000.123456);
     fp.counter = 7;
     dump(buf, swpc_n1_feedback_position_pack(buf, &fp, sizeof buf));
     struct swpc_n1_feedback_velocity_torque_t fv;
@@ -402,7 +462,7 @@ def test_generated_c_is_current_and_compiles_strict(tmp_path: Path) -> None:
         False,
         200,
     )
-    py_fp = codec.make_feedback_position(1, -3.0, 2000000.123456, 7)
+    py_fp = codec.make_feedback_position(1, -3.0, 1300000.123456, 7)  # inside +-2**18 turns
     assert lines[0] == py_hb.data.hex() == "03310100000001c8"
     assert lines[1] == py_fp.data.hex()
     assert lines[2] == "e80318fc32f0ff09"

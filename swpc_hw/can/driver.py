@@ -21,7 +21,8 @@ ids, bad DLC, undecodable frames and listener exceptions are counted in
 :meth:`CanDriver.stats` and reported as :class:`DriverEvent` (callback and queue).
 
 Positions at this boundary are SI: ``theta_hat`` (steering, rad, 0 at the homing
-sensor) and ``psi`` (cumulative wheel angle, rad, unwrapped on the host).
+sensor) and ``psi`` (cumulative wheel angle, rad); the frames carry both wrapped (steering
++-4 turns, wheel +-2**18 turns) and the driver unwraps both on the host.
 """
 
 from __future__ import annotations
