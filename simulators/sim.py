@@ -451,6 +451,11 @@ class Simulator:
                         n += 1
                         if n >= 64:
                             break
+                        # catching up: frames that arrived meanwhile are handled in order
+                        msg = self.bus.recv(0)
+                        while msg is not None:
+                            self._on_message(msg)
+                            msg = self.bus.recv(0)
                     lag = target - self.robot.t
                     if lag > self.options.max_lag * scale:
                         # cannot keep up: slow the simulated clock down instead of bursting

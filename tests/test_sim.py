@@ -1,0 +1,449 @@
+"""The virtual robot end to end: driven only through CAN frames, observed only through zenoh.
+
+Every test runs the real simulator thread on a python-can ``virtual`` bus and a zenoh
+session on a loopback tcp endpoint; the host side is the real CAN driver
+(:class:`swpc_hw.can.CanDriver`) or raw frames from :mod:`firmware_protocol.codec`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from firmware_protocol import codec
+from firmware_protocol.codec import Axis, AxisState, ErrorFlag
+from simulators.mocap_sim import MocapOptions, truth_params_key, truth_pose_key
+from simulators.sim import SimOptions, Simulator
+from swpc_hw.can import CanConfig, CanDriver
+from swpc_hw.mocap import PoseEncoding, decode_pose
+from swpc_hw.model import RobotParams, rot
+from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+
+DEG = math.pi / 180.0
+
+
+@dataclass
+class PoseLog:
+    """Poses received over zenoh: (t_source, x, y, yaw, t_recv wall monotonic)."""
+
+    rows: list[tuple[float, float, float, float, float]] = field(default_factory=list)
+    frame_ids: set[str] = field(default_factory=set)
+    encodings: set[PoseEncoding] = field(default_factory=set)
+    cond: threading.Condition = field(default_factory=threading.Condition)
+
+    def on_sample(self, sample: Any) -> None:
+        payload = sample.payload.to_bytes()
+        p = decode_pose(payload)
+        now = time.monotonic()
+        with self.cond:
+            self.rows.append((p.t, p.x, p.y, p.yaw, now))
+            self.frame_ids.add(p.frame_id)
+            self.cond.notify_all()
+
+    def last_t(self) -> float:
+        with self.cond:
+            return self.rows[-1][0] if self.rows else -math.inf
+
+    def wait_until(self, t_source: float, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while not self.rows or self.rows[-1][0] < t_source:
+                left = deadline - time.monotonic()
+                assert left > 0, f"no pose at source time {t_source} (last {self.last_t()})"
+                self.cond.wait(left)
+
+    def wait_for(self, dt: float) -> None:
+        """Wait ``dt`` seconds of simulated (mocap) time."""
+        self.wait_until(self.last_t() + dt)
+
+    def array(self, t0: float = -math.inf, t1: float = math.inf) -> np.ndarray:
+        with self.cond:
+            a = np.array(self.rows)
+        return a[(a[:, 0] >= t0) & (a[:, 0] <= t1)]
+
+
+@dataclass
+class Rig:
+    sim: Simulator
+    channel: str
+    session: Any
+    poses: PoseLog
+
+    def truth_params(self) -> dict[str, Any]:
+        replies = list(self.session.get(truth_params_key(self.sim.options.robot), timeout=5.0))
+        assert replies, "no reply from the truth params queryable"
+        doc: dict[str, Any] = json.loads(replies[0].ok.payload.to_bytes())
+        return doc
+
+
+@contextmanager
+def rig(**opts: Any) -> Iterator[Rig]:
+    channel = f"test-sim-{uuid.uuid4().hex[:8]}"
+    ep = free_tcp_endpoint()
+    sim_session = open_session(listen=[ep])
+    client = open_session(connect=[ep])
+    bus = can.Bus(interface="virtual", channel=channel)
+    opts.setdefault("start_time", 0.0)
+    sim = Simulator(bus=bus, session=sim_session, options=SimOptions(**opts))
+    log = PoseLog()
+    sub = client.declare_subscriber(f"mocap/{sim.options.robot}/pose", log.on_sample)
+    try:
+        sim.start()
+        log.wait_until(0.0, timeout=10.0)
+        yield Rig(sim, channel, client, log)
+    finally:
+        sim.stop()
+        sim.stop()  # idempotent
+        sub.undeclare()
+        client.close()
+        sim_session.close()
+        bus.shutdown()
+    assert sim.error is None
+
+
+def fixed_point(poses: np.ndarray) -> tuple[np.ndarray, float]:
+    """Body point C (in R) fixed in W over ``poses`` (rows t, x, y, yaw): least squares of
+    ``p_i + R(yaw_i) C = C_W``; returns C and the RMS residual (m)."""
+    R = rot(poses[:, 3])
+    n = poses.shape[0]
+    M = np.zeros((2 * n, 4))
+    M[:, :2] = R.reshape(2 * n, 2)
+    M[0::2, 2] = -1.0
+    M[1::2, 3] = -1.0
+    rhs = -poses[:, 1:3].reshape(-1)
+    sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    res = M @ sol - rhs
+    return sol[:2], float(np.sqrt(np.mean(res**2)))
+
+
+def slope(t: np.ndarray, y: np.ndarray) -> float:
+    return float(np.polyfit(t - t.mean(), y, 1)[0])
+
+
+# --------------------------------------------------------------------------- 1 and 2
+
+
+def test_lock_spin_resteer_spin_through_can_and_zenoh_gives_the_true_contact_points() -> None:
+    """What it must show 1 and 2, driven only through the CAN driver, poses only from zenoh."""
+    scale = 3.0
+    with rig(
+        time_scale=scale,
+        physics_dt=0.004,
+        feedback_rate_hz=50,
+        watchdog_ms=1000,
+        mocap=MocapOptions(rate=100),
+        seed=7,
+    ) as r:
+        truth = RobotParams.model_validate(r.truth_params())  # the ground-truth channel
+        T = truth.arrays()
+        k, a1, a2 = 1, 45 * DEG, 165 * DEG
+        ik = truth.index(k)
+        others = [m for m in truth.ids if m != k]
+        # generous timeouts: the test checks geometry, not a loaded machine's scheduling
+        drv = CanDriver(
+            CanConfig(
+                channel=r.channel,
+                watchdog_timeout_ms=1000,
+                feedback_rate_hz=50,
+                heartbeat_loss_periods=10,
+                activate_timeout_s=5.0,
+            )
+        )
+        try:
+            drv.configure()
+            drv.activate()
+            for m in truth.ids:
+                drv.clear_errors(m)
+                drv.enable(m, Axis.STEER)
+                drv.enable(m, Axis.WHEEL)
+                drv.start_homing(m)
+            for m in truth.ids:
+                drv.wait_for(m, lambda s: s.homed and s.feedback is not None, 5.0, "homed")
+
+            def spin_and_measure(a: float) -> np.ndarray:
+                for m in others:  # casters start from wherever they are
+                    drv.free(m, Axis.STEER)
+                    drv.set_torque(m, Axis.WHEEL, -0.6)
+                r.poses.wait_for(3.0)  # settle
+                t0 = r.poses.last_t()
+                w0 = time.monotonic()
+                r.poses.wait_until(t0 + 3.0)
+                w1 = time.monotonic()
+                P = r.poses.array(t0, t0 + 3.0)
+                C_meas, rms = fixed_point(P)
+                C_true = T.P_s[ik] + T.b[ik] * np.array(
+                    [math.cos(a + T.beta[ik]), math.sin(a + T.beta[ik])]
+                )
+                faults = [e.message for e in drv.events() if e.severity.value == "fault"]
+                assert not faults
+                assert rms < 1e-6
+                assert np.linalg.norm(C_meas - C_true) <= 0.1e-3
+                # 2: settled casters are perpendicular to the radius from the pivot, and the
+                # wheel encoders turn by D d(yaw) / r.  Rates per simulated second: poses carry
+                # their source time; feedback samples come every 1/50 s, numbered by `seq`.
+                yaw_rate = slope(P[:, 0], np.unwrap(P[:, 3]))
+                assert 0.3 < abs(yaw_rate) < 1.0
+                for m in others:
+                    j = truth.index(m)
+                    h = drv.history_arrays(m)
+                    sel = (h["t"] >= w0) & (h["t"] <= w1)
+                    th = h["theta_hat"][sel][-1] + T.beta[j]
+                    u = np.array([math.cos(th), math.sin(th)])
+                    P_w = T.P_s[j] + T.b[j] * u
+                    D = np.linalg.norm(P_w - C_true)
+                    assert abs((P_w - C_true) @ u) < 0.3e-3  # 2**14 counts/turn on the wire
+                    psi_rate = slope(h["seq"][sel] / 50.0, h["psi"][sel])
+                    assert psi_rate == pytest.approx(-D * abs(yaw_rate) / T.r[j], rel=1e-3)
+                return C_meas
+
+            drv.set_position(k, Axis.STEER, a1)
+            drv.hold(k, Axis.WHEEL)
+            r.poses.wait_for(1.0)
+            P1 = spin_and_measure(a1)
+            for m in others:  # stop: torque off, wheels held
+                drv.hold(m, Axis.WHEEL)
+            r.poses.wait_for(0.5)
+            for m in others:  # re-steer with the dynamic modules free
+                drv.free(m, Axis.WHEEL)
+                drv.free(m, Axis.STEER)
+            yaw_before = r.poses.array()[-1, 3]
+            drv.set_position(k, Axis.STEER, a2)
+            r.poses.wait_for(2.5)
+            assert abs(r.poses.array()[-1, 3] - yaw_before) > 10 * DEG  # body moved about the pin
+            assert drv.module_state(k).theta_hat == pytest.approx(a2, abs=1e-3)
+            P2 = spin_and_measure(a2)
+            chord = 2 * T.b[ik] * math.sin((a2 - a1) / 2)
+            assert np.linalg.norm(P2 - P1) == pytest.approx(chord, abs=0.2e-3)
+            assert not [e for e in drv.events() if e.severity.value == "fault"]
+        finally:
+            drv.shutdown()
+        st = r.sim.stats()
+        assert st.sim_time > 15.0 and st.frames_rx > 100
+
+
+# --------------------------------------------------------------------------- 3
+
+
+@dataclass
+class RawHost:
+    """Raw frames on the bus: a receive thread that decodes what the controllers send."""
+
+    bus: can.BusABC
+    frames: list[tuple[float, codec.Decoded]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    stop: threading.Event = field(default_factory=threading.Event)
+
+    def __post_init__(self) -> None:
+        self.last_tx = -math.inf
+        self.tx_times: dict[int, list[float]] = {}
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is None or msg.is_error_frame:
+                continue
+            _node, cmd = codec.split_id(msg.arbitration_id)
+            if cmd not in codec.CONTROLLER_FRAMES:
+                continue
+            d = codec.parse(msg.arbitration_id, bytes(msg.data))
+            with self.lock:
+                self.frames.append((msg.timestamp, d))  # bus time stamp (wall clock)
+
+    def send(self, *frames: codec.Frame) -> None:
+        for f in frames:
+            self.bus.send(
+                can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False)
+            )
+            now = time.time()  # the virtual bus stamps frames with time.time()
+            self.last_tx = now
+            self.tx_times.setdefault(codec.split_id(f.arbitration_id)[0], []).append(now)
+
+    def of(self, kind: type, since: float = -math.inf, node: int | None = None) -> list[Any]:
+        with self.lock:
+            return [
+                (t, d)
+                for t, d in self.frames
+                if isinstance(d, kind) and t >= since and (node is None or d.node == node)
+            ]
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(2.0)
+
+
+def test_watchdog_frees_the_axes_and_heartbeat_loss_silences_a_node() -> None:
+    """What it must show 3."""
+    scale = 1.0
+    watchdog = 0.2  # s; commands go every 10 ms
+    with rig(time_scale=scale, feedback_rate_hz=100, watchdog_ms=200, seed=3) as r:
+        host = RawHost(can.Bus(interface="virtual", channel=r.channel))
+        try:
+            for n in (1, 2, 3, 4):
+                host.send(codec.make_set_axis_state(n, Axis.WHEEL, True))
+            host.send(codec.make_set_axis_state(1, Axis.STEER, True))
+            # keep the commands flowing for 0.5 s: module 1 steer held and braked, wheels torqued
+            t_end = time.time() + 0.5
+            while time.time() < t_end:
+                host.send(codec.make_set_control(1, Axis.STEER, codec.ControlMode.HOLD))
+                host.send(codec.make_set_control(1, Axis.WHEEL, codec.ControlMode.HOLD))
+                for n in (2, 3, 4):
+                    host.send(codec.make_set_control(n, Axis.WHEEL, codec.ControlMode.TORQUE, -0.6))
+                time.sleep(0.01)
+            spinning = abs(r.sim.truth_snapshot()["twist"][2])
+            assert spinning > 0.05
+            t_last = host.last_tx  # stop sending: the watchdog runs out
+            time.sleep(0.5)
+            reports = host.of(codec.FaultReport)
+            by_node = {
+                d.node: t for t, d in reports if d.active_errors & ErrorFlag.WATCHDOG_TIMEOUT
+            }
+            assert sorted(by_node) == [1, 2, 3, 4]
+            # from each node's last command to its FaultReport, on the bus time stamps
+            delays = [
+                (t - max(x for x in host.tx_times[n] if x < t)) * scale for n, t in by_node.items()
+            ]
+            # timeout + a tick + how late a loaded machine may run the tick (max_lag)
+            assert max(delays) <= watchdog + 0.004 + r.sim.options.max_lag
+            assert min(delays) >= watchdog - 0.005  # commands are handled within a 2 ms tick
+            assert min(by_node.values()) > t_last  # it went off because the commands stopped
+            hb = host.of(codec.Heartbeat, since=t_last + watchdog + 0.06)
+            assert {d.node for _, d in hb} == {1, 2, 3, 4}
+            for _, d in hb:
+                assert d.states[Axis.WHEEL] == AxisState.FAULT
+                assert d.errors[Axis.WHEEL] & ErrorFlag.WATCHDOG_TIMEOUT
+            time.sleep(0.5)  # free wheels: the robot coasts to a stop
+            assert abs(r.sim.truth_snapshot()["twist"][2]) < 0.05 * spinning
+
+            # heartbeat loss: node 3 falls silent, the others go on
+            r.sim.mute(3)
+            t_mute = time.time()
+            time.sleep(0.3)
+            late = time.time() - 0.2
+            assert not host.of(codec.Heartbeat, since=t_mute + 0.01, node=3)
+            assert not host.of(codec.FeedbackPosition, since=t_mute + 0.01, node=3)
+            assert len(host.of(codec.Heartbeat, since=late, node=2)) >= 2
+            r.sim.mute(3, False)
+            time.sleep(0.2)
+            assert host.of(codec.Heartbeat, since=time.time() - 0.15, node=3)
+            # an injected hardware fault is reported
+            t_f = time.time()
+            r.sim.inject_fault(2, Axis.STEER, ErrorFlag.OVER_TEMPERATURE)
+            time.sleep(0.05)
+            rep = host.of(codec.FaultReport, since=t_f, node=2)
+            assert rep and rep[0][1].new_errors == ErrorFlag.OVER_TEMPERATURE
+        finally:
+            host.close()
+            host.bus.shutdown()
+
+
+# --------------------------------------------------------------------------- mocap, truth, time
+
+
+def test_ros2_cdr_poses_truth_channel_and_time_scale() -> None:
+    scale = 3.0
+    with rig(
+        time_scale=scale,
+        physics_dt=0.004,
+        mocap=MocapOptions(rate=200, encoding="ros2-cdr", frame_id="mocap"),
+        theta0=[0.0, 0.0, 0.0, 0.0],
+    ) as r:
+        truth_rows: list[dict[str, Any]] = []
+        sub = r.session.declare_subscriber(
+            truth_pose_key("swpc"), lambda s: truth_rows.append(json.loads(s.payload.to_bytes()))
+        )
+        t0 = r.poses.last_t()
+        r.poses.wait_until(t0 + 5.0)
+        sub.undeclare()
+        params = r.truth_params()
+        st = r.sim.stats()
+    P = r.poses.array(t0, t0 + 5.0)
+    assert r.poses.frame_ids == {"mocap"}
+    assert np.diff(P[:, 0]) == pytest.approx(np.full(len(P) - 1, 0.005), abs=1e-9)
+    # the source clock runs `scale` times faster than the receiver's wall clock (slower
+    # only if this machine cannot keep up, and then as the simulator reports)
+    assert slope(P[:, 4], P[:, 0]) == pytest.approx(st.achieved_time_scale, rel=0.35)
+    assert st.overruns > 0 or st.achieved_time_scale == pytest.approx(scale, rel=0.05)
+    assert truth_rows and set(truth_rows[-1]) >= {"pose", "theta", "psi", "contact_points"}
+    assert params["format"] == "swpc-kinematics/1"
+    fb = codec.message_for(1, codec.Command.FEEDBACK_POSITION)
+    for axis, sig in (("steer", "SteerPosition"), ("wheel", "WheelPosition")):
+        step = fb.get_signal_by_name(sig).scale  # what the feedback frame carries
+        assert params["simulator"][f"frame_{axis}_counts"] == round(2 * math.pi / step)
+    assert next(m["beta"] for m in params["modules"]) == pytest.approx(0.6349 * DEG)
+
+
+def test_simulator_lifecycle() -> None:
+    sim = Simulator.open(
+        interface="virtual",
+        channel=f"lc-{uuid.uuid4().hex[:6]}",
+        zenoh_listen=[free_tcp_endpoint()],
+        options=SimOptions(start_time=0.0),
+    )
+    with pytest.raises(RuntimeError):
+        sim.start()
+        sim.start()
+    assert sim.running
+    time.sleep(0.1)
+    sim.stop()
+    sim.stop()
+    assert not sim.running and sim.error is None
+    assert sim.stats().ticks > 10
+
+
+def test_swpc_sim_runs_as_a_separate_process() -> None:
+    ep = free_tcp_endpoint()
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "swpc_hw.cli",
+            "sim",
+            "--interface",
+            "virtual",
+            "--channel",
+            "proc",
+            "--zenoh-listen",
+            ep,
+            "--duration",
+            "4",
+            "--time-scale",
+            "2",
+            "--pose-encoding",
+            "ros2-cdr",
+            "--pose-rate",
+            "50",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    client = open_session(connect=[ep])
+    log = PoseLog()
+    sub = client.declare_subscriber("mocap/swpc/pose", log.on_sample)
+    try:
+        log.wait_until(-1e18, timeout=20.0)
+        t0 = log.last_t()
+        log.wait_until(t0 + 1.0, timeout=10.0)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sub.undeclare()
+        client.close()
+    assert proc.returncode == 0, out
+    assert "swpc sim: robot 'swpc'" in out and "overruns" in out
