@@ -57,7 +57,12 @@ def register(sub: Any) -> None:
         "--nodes", help="module:node pairs, e.g. 1:1,2:2,3:3,4:4 (default 1..N in order)"
     )
     p.add_argument("--time-scale", type=float, default=1.0, help="simulated s per wall s (1)")
-    p.add_argument("--physics-dt", type=float, default=2.0, help="physics step, ms (2)")
+    p.add_argument(
+        "--physics-dt",
+        type=float,
+        default=5.0,
+        help="longest physics step, ms (5; shorter when the feedback rate asks for it)",
+    )
     p.add_argument("--feedback-rate", type=int, default=200, help="initial feedback Hz (200)")
     p.add_argument("--watchdog-ms", type=int, default=100, help="initial watchdog, ms (100)")
     p.add_argument("--steer-counts", type=int, default=2**17, help="steering counts/turn")

@@ -69,9 +69,6 @@ from swpc_hw.model import (
     RobotArrays,
     RobotParams,
     contact_point,
-    cross2,
-    steering_direction,
-    steering_normal,
 )
 from swpc_hw.reference import PAPER_CALIBRATED
 
@@ -130,14 +127,23 @@ def constraint_rows(arrays: RobotArrays, theta: ArrayLike) -> tuple[FloatArray, 
     """Rolling and lateral constraint rows ``U`` and ``N`` (N, 3) at true steering ``theta``.
 
     ``U_i = (u_x, u_y, P_w,i x u_i)``, ``N_i = (n_x, n_y, P_w,i x n_i)`` so that
-    ``U_i . xi = (v + omega x P_w,i) . u_i`` and likewise for ``n``.
+    ``U_i . xi = (v + omega x P_w,i) . u_i`` and likewise for ``n``; with
+    ``P_w = P_s + b u`` (:func:`swpc_hw.model.contact_point`), ``u = (cos, sin)``,
+    ``n = (sin, -cos)`` written out (this runs every physics step).
     """
     th = np.asarray(theta, dtype=float)
-    P_w = contact_point(arrays.P_s, arrays.b, th)
-    u = steering_direction(th)
-    nn = steering_normal(th)
-    U = np.column_stack([u, cross2(P_w, u)])
-    N = np.column_stack([nn, cross2(P_w, nn)])
+    c = np.cos(th)
+    s = np.sin(th)
+    px = arrays.P_s[:, 0] + arrays.b * c
+    py = arrays.P_s[:, 1] + arrays.b * s
+    U = np.empty((th.shape[0], 3))
+    N = np.empty((th.shape[0], 3))
+    U[:, 0] = c
+    U[:, 1] = s
+    U[:, 2] = px * s - py * c
+    N[:, 0] = s
+    N[:, 1] = -c
+    N[:, 2] = -px * c - py * s
     return U, N
 
 

@@ -9,7 +9,8 @@ ended by :meth:`stop` (idempotent), on a bus and a zenoh session that the caller
 embedded case: python-can ``virtual``) or that it opens itself (:meth:`Simulator.open`,
 used by ``swpc sim``).
 
-Every tick (``physics_dt`` of simulated time, 2 ms by default):
+Every tick of simulated time (``physics_dt``, at most 5 ms by default, and never longer than
+the fastest feedback period the host has set, so 2 ms at 500 Hz):
 
 1. each module's axes are turned into drives from their controller's state and mode
    (:func:`axis_drive`): FREE/disabled/fault -> passive, HOLD -> locked (a held wheel
@@ -17,7 +18,7 @@ Every tick (``physics_dt`` of simulated time, 2 ms by default):
    (time constant ``position_tau``, clamped to MaxVelocity), VELOCITY -> the setpoint,
    TORQUE -> a wheel torque (a steering torque drives the steering through ``J dv/dt =
    tau - c v`` of the controller's axis), homing -> the steering turns at 0.5 rad/s;
-2. the physics advances by ``physics_dt``;
+2. the physics advances by one tick;
 3. the encoders are written into the controllers: steering ``theta_hat = theta - beta``
    after homing (``+ sensor_position`` before: the power-up coordinate), wheel ``psi``
    plus slip, both quantised to ``steer_counts`` / ``wheel_counts`` per turn (the
@@ -91,7 +92,8 @@ class SimOptions:
     nodes: Mapping[int, int] | None = None
     """Module id -> CAN node id (default: 1..N in module order)."""
     time_scale: float = 1.0
-    physics_dt: float = 0.002
+    physics_dt: float = 0.005
+    """Longest physics step (s); a tick is also no longer than the fastest feedback period."""
     start_time: float | None = None
     """Simulated clock at start (default: the wall clock, ``time.time()``)."""
     steer_counts: int = 2**17
@@ -439,9 +441,9 @@ class Simulator:
     # ------------------------------------------------------------------ the loop
     def _run(self) -> None:
         cpu0 = time.thread_time()
-        dt = self.options.physics_dt
         try:
             while not self._stop.is_set():
+                dt = self.tick_dt()
                 scale = self.options.time_scale
                 target = scale * (time.monotonic() - self._wall0)  # robot time due now
                 with self._lock:
@@ -474,6 +476,12 @@ class Simulator:
                 raise
         finally:
             self._cpu = time.thread_time() - cpu0
+
+    def tick_dt(self) -> float:
+        """``min(physics_dt, 1 / fastest free-running feedback rate)`` (s)."""
+        rates = [c.rate_hz for c in self.controllers if c.rate_hz > 0 and not c.sync_mode]
+        dt = self.options.physics_dt
+        return min(dt, 1.0 / max(rates)) if rates else dt
 
     def _on_message(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
