@@ -147,15 +147,19 @@ def constraint_rows(arrays: RobotArrays, theta: ArrayLike) -> tuple[FloatArray, 
     return U, N
 
 
-def _null_space(A: FloatArray, basis: FloatArray, tol: float = 1e-10) -> FloatArray:
-    """Orthonormal basis (columns) of ``{basis @ y : A @ basis @ y = 0}``."""
-    if A.shape[0] == 0 or basis.shape[1] == 0:
-        return basis
-    B = A @ basis
-    _, s, Vt = np.linalg.svd(B)
-    smax = float(s[0]) if s.size else 0.0
-    rank = int(np.sum(s > tol * max(smax, 1.0)))
-    return np.asarray(basis @ Vt[rank:].T, dtype=float)
+def _lsq_null(
+    A: FloatArray, t: FloatArray, basis: FloatArray, tol: float = 1e-10
+) -> tuple[FloatArray, FloatArray]:
+    """Least squares within ``span(basis)`` and what is left free, from one SVD.
+
+    With ``A basis = W S V^T`` (numerical rank ``k``): ``y = V_k S_k^-1 W_k^T t`` (the
+    minimum-norm least-squares solution of ``A basis y = t``) and the orthonormal basis
+    ``basis V_{k:}`` of ``{basis y : A basis y = 0}``.  Returns ``(basis @ y, null basis)``.
+    """
+    W, sv, Vt = np.linalg.svd(A @ basis)
+    rank = int(np.sum(sv > tol * max(float(sv[0]) if sv.size else 0.0, 1.0)))
+    y = Vt[:rank].T @ ((W[:, :rank].T @ t) / sv[:rank])
+    return np.asarray(basis @ y, dtype=float), np.asarray(basis @ Vt[rank:].T, dtype=float)
 
 
 def prioritized_twist(
@@ -179,20 +183,17 @@ def prioritized_twist(
     A_h, t_h = hard
     A_s, t_s = soft
     C, d = damping
-    basis = np.eye(3)
+    Z = np.eye(3)
     xi: FloatArray = np.zeros(3)
     if A_h.shape[0]:
-        xi = np.asarray(np.linalg.lstsq(A_h, t_h, rcond=None)[0], dtype=float)
-        basis = _null_space(A_h, basis)
-    if A_s.shape[0] and basis.shape[1]:
-        y = np.linalg.lstsq(A_s @ basis, t_s - A_s @ xi, rcond=None)[0]
-        xi = xi + basis @ y
-        basis = _null_space(A_s, basis)
-    if basis.shape[1] == 0:
-        return np.asarray(xi, dtype=float)
-    Z = basis
+        xi, Z = _lsq_null(A_h, t_h, Z)
+    if A_s.shape[0] and Z.shape[1]:
+        dxi, Z = _lsq_null(A_s, t_s - A_s @ xi, Z)
+        xi = xi + dxi
+    if Z.shape[1] == 0:
+        return xi
     lhs = Z.T @ (mass + dt * C) @ Z
-    rhs = Z.T @ (mass @ (twist0 - xi)) + dt * (Z.T @ (force - C @ xi + d))
+    rhs = Z.T @ (mass @ (twist0 - xi) + dt * (force - C @ xi + d))
     z = np.linalg.solve(lhs, rhs)
     return np.asarray(xi + Z @ z, dtype=float)
 
@@ -221,6 +222,29 @@ class DriveArrays:
         tq = np.array([d.wheel_value if d.wheel is WheelDrive.TORQUE else 0.0 for d in drives])
         wr = np.array([d.wheel_value if d.wheel is WheelDrive.RATE else 0.0 for d in drives])
         return cls(sd, sr, brake, rate, tq, wr)
+
+    def __post_init__(self) -> None:
+        st = self.steer_driven
+        dyn = ~(self.brake | self.rate)
+        # row selections used every step (index arrays: cheaper than boolean masks)
+        idx = np.flatnonzero
+        object.__setattr__(self, "i_brake", idx(self.brake))
+        object.__setattr__(self, "i_brake_st", idx(self.brake & st))
+        object.__setattr__(self, "i_rate", idx(self.rate))
+        object.__setattr__(self, "i_rate_st", idx(self.rate & st))
+        object.__setattr__(self, "i_dyn", idx(dyn))
+        object.__setattr__(self, "i_dyn_st", idx(dyn & st))
+        object.__setattr__(self, "n_steered", int(st.sum()))
+        object.__setattr__(self, "steer_rate_sum", float(self.steer_rate.sum()))
+
+    i_brake: NDArray[np.intp] = field(init=False)
+    i_brake_st: NDArray[np.intp] = field(init=False)
+    i_rate: NDArray[np.intp] = field(init=False)
+    i_rate_st: NDArray[np.intp] = field(init=False)
+    i_dyn: NDArray[np.intp] = field(init=False)
+    i_dyn_st: NDArray[np.intp] = field(init=False)
+    n_steered: int = field(init=False)
+    steer_rate_sum: float = field(init=False)
 
 
 def module_rates(
@@ -286,6 +310,9 @@ class RobotSim:
         self._slip: list[_SlipBurst | None] = [None] * n
         o = self.options
         self._mass = np.diag([o.body_mass, o.body_mass, o.body_inertia])
+        self._damping = np.diag([o.body_damping, o.body_damping, o.body_rot_damping])
+        self._drives: tuple[ModuleDrive, ...] = ()
+        self._drive_arrays: DriveArrays | None = None
 
     @property
     def n(self) -> int:
@@ -313,26 +340,25 @@ class RobotSim:
         theta_mid = self.theta + 0.5 * dt * np.where(st, drives.steer_rate, self.theta_dot)
         U, N = constraint_rows(A, theta_mid)
         lat = A.b * drives.steer_rate
+        ib, ibs, ir, irs = drives.i_brake, drives.i_brake_st, drives.i_rate, drives.i_rate_st
         hard = (
-            np.vstack([U[drives.brake], N[drives.brake & st]]),
-            np.concatenate([np.zeros(int(drives.brake.sum())), lat[drives.brake & st]]),
+            np.concatenate([U[ib], N[ibs]]),
+            np.concatenate([np.zeros(ib.size), lat[ibs]]),
         )
         soft = (
-            np.vstack([U[drives.rate], N[drives.rate & st]]),
-            np.concatenate(
-                [A.r[drives.rate] * drives.wheel_rate[drives.rate], lat[drives.rate & st]]
-            ),
+            np.concatenate([U[ir], N[irs]]),
+            np.concatenate([A.r[ir] * drives.wheel_rate[ir], lat[irs]]),
         )
-        dyn = ~(drives.brake | drives.rate)
-        H = U[dyn] / A.r[dyn, None]
-        Lr = N[dyn & st]
-        C = np.diag([o.body_damping, o.body_damping, o.body_rot_damping])
-        C += o.wheel_damping * (H.T @ H) + o.lateral_damping * (Lr.T @ Lr)
-        C[2, 2] += o.scrub_damping * int(st.sum())
-        d = o.lateral_damping * (Lr.T @ lat[dyn & st])
-        d[2] -= o.scrub_damping * float(drives.steer_rate[st].sum())
-        mass = self._mass + o.wheel_inertia * (H.T @ H)
-        force = H.T @ drives.torque[dyn]
+        idn, ids = drives.i_dyn, drives.i_dyn_st
+        H = U[idn] / A.r[idn, None]
+        Lr = N[ids]
+        HtH = H.T @ H
+        C = o.wheel_damping * HtH + o.lateral_damping * (Lr.T @ Lr) + self._damping
+        C[2, 2] += o.scrub_damping * drives.n_steered
+        d = o.lateral_damping * (Lr.T @ lat[ids])
+        d[2] -= o.scrub_damping * drives.steer_rate_sum
+        mass = self._mass + o.wheel_inertia * HtH
+        force = H.T @ drives.torque[idn]
         return prioritized_twist(hard, soft, (C, d), mass, force, self.twist, dt)
 
     # ------------------------------------------------------------------ step
@@ -342,7 +368,10 @@ class RobotSim:
             return
         if len(drives) != self.n:
             raise ValueError(f"{len(drives)} drives for {self.n} modules")
-        da = DriveArrays.of(drives)
+        key = tuple(drives)
+        if self._drive_arrays is None or key != self._drives:
+            self._drives, self._drive_arrays = key, DriveArrays.of(drives)
+        da = self._drive_arrays
         xi = self.solve_twist(da, dt)
         A = self.arrays
 
