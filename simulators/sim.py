@@ -56,7 +56,7 @@ import contextlib
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -276,6 +276,8 @@ class Simulator:
         self._sent: Counter[int] = Counter()
         self._wall0 = 0.0
         self._cpu = 0.0
+        self._epoch_offset = 0.0
+        self._pending: deque[tuple[float, can.Message]] = deque()
         self._next_bus_error = 0.0
         self._rng = rng
         self.error: BaseException | None = None
@@ -347,6 +349,7 @@ class Simulator:
             opt = self.options
             self.start_time = time.time() if opt.start_time is None else opt.start_time
             self._wall0 = time.monotonic()
+            self._epoch_offset = time.time() - time.monotonic()
             self._write_encoders()
             for c in self.controllers:
                 self._transmit(c.step(self.now))  # first call initialises its clocks
@@ -450,14 +453,10 @@ class Simulator:
                     n = 0
                     while self.robot.t + dt <= target + 1e-12 and not self._stop.is_set():
                         self._tick(dt)
+                        self._receive_pending()
                         n += 1
                         if n >= 64:
                             break
-                        # catching up: frames that arrived meanwhile are handled in order
-                        msg = self.bus.recv(0)
-                        while msg is not None:
-                            self._on_message(msg)
-                            msg = self.bus.recv(0)
                     lag = target - self.robot.t
                     if lag > self.options.max_lag * scale:
                         # cannot keep up: slow the simulated clock down instead of bursting
@@ -467,15 +466,42 @@ class Simulator:
                 next_wall = self._wall0 + (self.robot.t + dt) / scale
                 timeout = next_wall - time.monotonic()
                 msg = self.bus.recv(timeout=max(timeout, 0.0)) if timeout > 0 else self.bus.recv(0)
-                while msg is not None:
-                    self._on_message(msg)
-                    msg = self.bus.recv(0)
+                if msg is not None:
+                    self._queue_frame(msg)
+                    self._receive_pending()
         except BaseException as exc:  # surfaced through .error; the thread ends
             self.error = exc
             if not self._stop.is_set():
                 raise
         finally:
             self._cpu = time.thread_time() - cpu0
+
+    def _queue_frame(self, msg: can.Message) -> None:
+        """Queue a received frame for the simulated time of its arrival.
+
+        ``t_sim = scale * (arrival - wall0)`` with the arrival taken from the frame's bus
+        time stamp (wall clock) when it is plausible, else now.
+        """
+        now = time.monotonic()
+        arrival = now
+        if msg.timestamp:
+            stamped = msg.timestamp - self._epoch_offset
+            if now - 1.0 < stamped <= now:
+                arrival = stamped
+        due = self.options.time_scale * (arrival - self._wall0)
+        self._pending.append((due, msg))
+
+    def _receive_pending(self) -> None:
+        """Read what the bus holds, then handle every frame whose arrival time has been
+        reached: a frame takes effect at the first tick at or after its arrival, never
+        before it (so a lagging simulation cannot shorten the watchdog)."""
+        msg = self.bus.recv(0)
+        while msg is not None:
+            self._queue_frame(msg)
+            msg = self.bus.recv(0)
+        q = self._pending
+        while q and q[0][0] <= self.robot.t + 1e-9:
+            self._on_message(q.popleft()[1])
 
     def tick_dt(self) -> float:
         """``min(physics_dt, 1 / fastest free-running feedback rate)`` (s)."""
