@@ -57,6 +57,30 @@ class Problem(BaseModel):
     detail: str
 
 
+def runtime(request: Request) -> Runtime:
+    """The runtime opened in the lifespan (dependency)."""
+    rt: Runtime = request.app.state.runtime
+    return rt
+
+
+Rt = Annotated[Runtime, Depends(runtime)]
+_bearer = HTTPBearer(auto_error=False)
+
+
+def auth(
+    request: Request,
+    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """Motion and write endpoints: the bearer token of the settings, else 401."""
+    token: str = request.app.state.token
+    if creds is None or not secrets.compare_digest(creds.credentials.encode(), token.encode()):
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "missing or invalid bearer token",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+
+
 def create_app(
     settings: ServiceSettings | None = None,
     runtime_factory: Callable[[ServiceSettings], Runtime] | None = None,
@@ -80,23 +104,7 @@ def create_app(
         lifespan=lifespan,
         description="Calibrates SWPC robots: start / watch / abort runs, read results.",
     )
-    bearer = HTTPBearer(auto_error=False)
-
-    def runtime(request: Request) -> Runtime:
-        rt: Runtime = request.app.state.runtime
-        return rt
-
-    def auth(
-        creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
-    ) -> None:
-        if creds is None or not secrets.compare_digest(creds.credentials.encode(), token.encode()):
-            raise HTTPException(
-                status.HTTP_401_UNAUTHORIZED,
-                "missing or invalid bearer token",
-                headers={"WWW-Authenticate": "Bearer"},
-            )
-
-    Rt = Annotated[Runtime, Depends(runtime)]
+    app.state.token = token
     responses_run: dict[int | str, dict[str, Any]] = {404: {"model": Problem}}
 
     @app.post(

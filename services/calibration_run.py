@@ -57,7 +57,7 @@ from services.robot_config import RobotConfig
 from services.robot_io import RobotIO
 from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
-from swpc_hw.dataset import Dataset, Segment, save_dataset
+from swpc_hw.dataset import Dataset, Segment, load_dataset, save_dataset
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
 
@@ -279,6 +279,8 @@ class CalibrationRun:
             self.robot.release()
         except Exception as exc:
             self.status.errors.append(f"release failed: {exc}")
+        if self.status.state not in TERMINAL and self.status.state is not State.PENDING:
+            reason = f"{reason} (during {self.status.state}: {self.status.step})"
         with self._lock:
             self.status.reason = reason
             self.status.errors.append(reason)
@@ -444,9 +446,11 @@ class CalibrationRun:
         ds = self.dataset()
         self.status.encoder_samples = int(sum(v.shape[0] for v in ds.encoders.values()))
         self.status.poses = int(ds.poses.shape[0])
-        save_dataset(self.run_dir / "dataset", ds)
+        directory = self.run_dir / "dataset"
+        save_dataset(directory, ds)
+        # solve what was written, so that `swpc solve <dataset>` reproduces it exactly
         self.result = solve(
-            ds, SolverOptions(time_offset=0.0), source=str(self.run_dir / "dataset")
+            load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory)
         )
 
     def within_tolerance(self) -> bool:

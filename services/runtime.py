@@ -51,11 +51,13 @@ class Runtime:
         self.current: CalibrationRun | None = None
         self._lock = threading.Lock()
         self.simulator: Simulator | None = None
+        self.can_channel = settings.can_channel
+        self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
         self.driver: CanDriver | None = None
         self.mocap = MocapIngest(
             encoding=settings.pose_encoding,
-            stale_after=settings.mocap_stale_after,
+            stale_after=settings.mocap_stale_s,
             time_scale=settings.time_scale,
             clock_mode=settings.mocap_clock or ("receive" if settings.simulated else "source"),
         )
@@ -74,16 +76,17 @@ class Runtime:
                 ep = free_tcp_endpoint()
                 listen = [ep]
             self.simulator = self._embedded_simulator(channel, listen or connect)
+        self.can_channel, self.can_interface = channel, interface
         self.session = open_session(
             mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
         )
         self.mocap.subscribe(self.session, self.config.pose_key)
         lim = self.config.limits
         # The controllers count their watchdog in *their* time.  Against a simulator (which
-        # may run time_scale times faster, on a host it shares) keep >= 400 ms of host time.
+        # may run time_scale times faster, on a host it shares) keep >= 1 s of host time.
         watchdog_ms = lim.watchdog_ms
         if s.simulated:
-            watchdog_ms = max(watchdog_ms, math.ceil(400.0 * s.time_scale))
+            watchdog_ms = max(watchdog_ms, math.ceil(1000.0 * s.time_scale))
         self.driver = CanDriver(
             CanConfig(
                 interface=interface,

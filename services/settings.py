@@ -37,7 +37,12 @@ class ServiceSettings(BaseSettings):
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_config_file: str | None = None
     pose_encoding: str = Field("auto", description="native | ros2-cdr | auto")
-    mocap_stale_after: float = Field(0.5, gt=0, description="s without poses = stale")
+    mocap_stale_after: float | None = Field(
+        None,
+        gt=0,
+        description="host seconds without poses = stale; default 0.5 s on a robot, 1.5 s "
+        "against a simulator (it stalls with a loaded host, and so does its robot)",
+    )
     mocap_clock: str | None = Field(
         None,
         description="pose time base: 'source' (mocap clock mapped to host) or 'receive' "
@@ -65,6 +70,12 @@ class ServiceSettings(BaseSettings):
         if self.heartbeat_timeout is not None:
             return self.heartbeat_timeout
         return 1.0 if self.simulated else 0.3
+
+    @property
+    def mocap_stale_s(self) -> float:
+        if self.mocap_stale_after is not None:
+            return self.mocap_stale_after
+        return 1.5 if self.simulated else 0.5
 
     @property
     def kinematics_file(self) -> Path:

@@ -1,0 +1,298 @@
+"""The calibration service through HTTP, against the in-process simulator (time-scaled).
+
+The real app, the real CAN driver on python-can's virtual bus, the real simulator, zenoh
+on loopback.  A second bus on the same virtual channel records every frame, so the fault
+tests can check that zero-torque (FREE) and DISABLE frames reached every axis.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import SecretStr
+
+from firmware_protocol import codec
+from firmware_protocol.codec import ControlMode
+from services.api import create_app
+from services.runtime import Runtime
+from services.settings import ServiceSettings
+from swpc_hw.calibration.solver import solve_directory
+from swpc_hw.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+
+TOKEN = "test-token-123"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+NAMES = ("x_s", "y_s", "beta", "b", "r")
+SHORT = {"protocol": {"modules": [1], "sweep_deg": 1440}}  # one long spin: faults land in it
+
+
+class Recorder(can.Listener):  # type: ignore[misc]
+    def __init__(self) -> None:
+        self.frames: list[tuple[float, can.Message]] = []
+        self.lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.lock:
+            self.frames.append((time.monotonic(), msg))
+
+    def stop_frames_after(self, t: float) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
+        """(node, axis) pairs that got SetControl FREE, and SetAxisState disabled, after t."""
+        free, disabled = set(), set()
+        with self.lock:
+            frames = [m for ts, m in self.frames if ts >= t]
+        for m in frames:
+            node, cmd = codec.split_id(m.arbitration_id)
+            if cmd == codec.Command.SET_CONTROL:
+                d = codec.parse(m.arbitration_id, bytes(m.data))
+                if d.mode == ControlMode.FREE:  # type: ignore[union-attr]
+                    free.add((node, int(d.axis)))  # type: ignore[union-attr]
+            elif cmd == codec.Command.SET_AXIS_STATE:
+                d = codec.parse(m.arbitration_id, bytes(m.data))
+                if not d.enabled:  # type: ignore[union-attr]
+                    disabled.add((node, int(d.axis)))  # type: ignore[union-attr]
+        return free, disabled
+
+
+@pytest.fixture(scope="module")
+def service(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Iterator[tuple[TestClient, Runtime, Recorder]]:
+    data = tmp_path_factory.mktemp("svc")
+    settings = ServiceSettings(data_dir=data, time_scale=4.0, token=SecretStr(TOKEN))
+    app = create_app(settings)
+    with TestClient(app) as client:
+        rt: Runtime = app.state.runtime
+        rec = Recorder()
+        bus = can.Bus(interface="virtual", channel=rt.can_channel)
+        notifier = can.Notifier(bus, [rec])
+        try:
+            yield client, rt, rec
+        finally:
+            notifier.stop()
+            bus.shutdown()
+
+
+def wait_state(
+    client: TestClient, run_id: str, states: set[str], timeout: float = 240.0
+) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st: dict[str, Any] = client.get(f"/calibrations/{run_id}").json()
+        if st["state"] in states:
+            return st
+        time.sleep(0.05)
+    raise AssertionError(f"run {run_id} never reached {states}: {st}")
+
+
+def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        st = client.get(f"/calibrations/{run_id}").json()
+        assert st["state"] not in ("FAILED", "ABORTED", "DONE"), st
+        if st["state"] == "SPIN" and st["sweep_deg"] >= sweep:
+            return
+        time.sleep(0.02)
+    raise AssertionError("never reached a steady spin")
+
+
+def start(client: TestClient, overrides: dict[str, Any] | None = None, **kw: Any) -> str:
+    r = client.post("/calibrations", json={"overrides": overrides or {}, **kw}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    assert r.headers["Location"] == f"/calibrations/{r.json()['id']}"
+    return str(r.json()["id"])
+
+
+# ---------------------------------------------------------------------- happy path
+
+
+def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recorder]) -> None:
+    client, rt, _ = service
+    assert client.get("/health").json()["embedded_simulator"] is True
+    assert client.get("/kinematics").status_code == 404
+    t0 = time.monotonic()
+    run_id = start(client)
+    assert client.get(f"/calibrations/{run_id}/result").status_code == 409
+    st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
+    wall = time.monotonic() - t0
+    assert st["state"] == "DONE", st["errors"]
+    assert st["progress"] == 1.0 and st["segments"] == 8 and st["installed"] is True
+    res = client.get(f"/calibrations/{run_id}/result").json()
+    truth = {m.id: m for m in PAPER_CALIBRATED.modules}
+    for m in res["modules"]:
+        t = truth[m["id"]]
+        for k in ("x_s", "y_s", "b", "r"):
+            assert abs(m[k] - getattr(t, k)) < 0.1e-3, (m["id"], k, m[k], getattr(t, k))
+        assert abs(m["beta"] - t.beta) < math.radians(0.05), (m["id"], m["beta"], t.beta)
+        assert m["nominal"]["x_s"] == PAPER_NOMINAL.module(m["id"]).x_s
+    assert len(res["table"]) == 20
+    # the kinematic file in force is the result, and loads
+    k = load_kinematics(rt.settings.kinematics_file)
+    got = np.array([[getattr(m, n) for n in NAMES] for m in k.params.modules])
+    api = np.array([[m[n] for n in NAMES] for m in res["modules"]])
+    np.testing.assert_allclose(got, api, rtol=0, atol=1e-12)
+    assert client.get("/kinematics").json()["modules"][0]["id"] == 1
+    # offline `swpc solve` of the recorded dataset gives the same result
+    offline = solve_directory(res["dataset_dir"])
+    off = np.array([[getattr(m, n) for n in NAMES] for m in offline.params.modules])
+    np.testing.assert_allclose(off, api, rtol=0, atol=1e-15)
+    # plot, listing, metrics
+    png = client.get(f"/calibrations/{run_id}/plot.png")
+    assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+    assert any(r["id"] == run_id for r in client.get("/calibrations").json())
+    metrics = client.get("/metrics").text
+    assert 'swpc_runs{state="DONE"} 1.0' in metrics
+    assert "swpc_pose_rate_hz" in metrics and 'swpc_can_frames_total{direction="rx"}' in metrics
+    print(f"\nend-to-end calibration through HTTP: {wall:.1f} s wall at time scale 4")
+
+
+# ---------------------------------------------------------------------- faults
+
+
+@pytest.fixture()
+def installed(service: tuple[TestClient, Runtime, Recorder]) -> Iterator[bytes]:
+    """A kinematic file in force whose bytes must survive every failed run."""
+    _, rt, _ = service
+    path = rt.settings.kinematics_file
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_kinematics(path, PAPER_NOMINAL, created="2026-01-01T00:00:00Z")
+    before = path.read_bytes()
+    yield before
+    assert path.read_bytes() == before, "a failed run touched the kinematic file"
+
+
+def assert_stopped(rec: Recorder, since: float, rt: Runtime) -> None:
+    nodes = set((rt.config.nodes or {}).values())
+    want = {(n, a) for n in nodes for a in (0, 1)}
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        free, disabled = rec.stop_frames_after(since)
+        if want <= free and want <= disabled:
+            return
+        time.sleep(0.01)
+    raise AssertionError(
+        f"zero-torque frames missing: free {sorted(free)}, disabled {sorted(disabled)}"
+    )
+
+
+def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
+    client, rt, rec = service
+    run_id = start(client, SHORT)
+    wait_spinning(client, run_id)
+    t = time.monotonic()
+    assert client.post(f"/calibrations/{run_id}/abort").status_code == 401
+    r = client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
+    assert r.status_code == 200
+    st = wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})
+    assert st["state"] == "ABORTED" and st["reason"].startswith("aborted by the operator")
+    assert_stopped(rec, t, rt)
+    assert client.post(f"/calibrations/{run_id}/abort", headers=AUTH).status_code == 409
+    assert client.get(f"/calibrations/{run_id}/result").status_code == 409
+
+
+def test_heartbeat_loss_mid_spin(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    client, rt, rec = service
+    sim = rt.simulator
+    run_id = start(client, SHORT)
+    wait_spinning(client, run_id)
+    t = time.monotonic()
+    sim.mute(3)  # type: ignore[union-attr]
+    try:
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
+    finally:
+        sim.mute(3, False)  # type: ignore[union-attr]
+    assert st["state"] == "FAILED" and "no heartbeat" in st["reason"] and "module 3" in st["reason"]
+    assert_stopped(rec, t, rt)
+
+
+def test_mocap_stale_mid_spin(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    client, rt, rec = service
+    mocap = rt.simulator.mocap  # type: ignore[union-attr]
+    opts = mocap.options
+    run_id = start(client, SHORT)
+    wait_spinning(client, run_id)
+    t = time.monotonic()
+    mocap.options = dataclasses.replace(opts, dropout=1.0)
+    try:
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
+    finally:
+        mocap.options = opts
+    assert st["state"] == "FAILED" and "motion capture stale" in st["reason"]
+    assert_stopped(rec, t, rt)
+
+
+def test_step_timeout(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
+    client, rt, rec = service
+    t = time.monotonic()
+    run_id = start(
+        client, {"protocol": {"modules": [2], "sweep_deg": 3600}, "limits": {"step_timeout": 4}}
+    )
+    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    assert st["state"] == "FAILED" and "step timeout" in st["reason"], st
+    assert_stopped(rec, t, rt)
+
+
+def test_bus_off_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
+    client, rt, rec = service
+    run_id = start(client, SHORT)
+    wait_spinning(client, run_id)
+    t = time.monotonic()
+    with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
+        bus.send(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))  # CAN_ERR_BUSOFF
+    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
+    assert st["state"] == "FAILED" and "bus-off" in st["reason"], st
+    assert_stopped(rec, t, rt)
+
+
+def test_second_start_conflicts_and_auth_and_bad_config(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    client, _rt, _ = service
+    assert client.post("/calibrations", json={}).status_code == 401
+    bad = client.post("/calibrations", json={}, headers={"Authorization": "Bearer wrong"})
+    assert bad.status_code == 401
+    r = client.post(
+        "/calibrations", json={"overrides": {"limits": {"spin_torque": "fast"}}}, headers=AUTH
+    )
+    assert r.status_code == 422 and "spin_torque" in r.text
+    r = client.post(
+        "/calibrations", json={"overrides": {"protocol": {"angles_deg": [45]}}}, headers=AUTH
+    )
+    assert r.status_code == 422
+    run_id = start(client, SHORT)
+    r = client.post("/calibrations", json={}, headers=AUTH)
+    assert r.status_code == 409 and run_id in r.text
+    client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
+    assert wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
+    assert client.get("/calibrations/nope").status_code == 404
+
+
+def test_restart_lists_past_runs_and_fails_interrupted_ones(tmp_path: Path) -> None:
+    from services.store import RunStore
+
+    store = RunStore(tmp_path / "runs.sqlite")
+    store.upsert("a1", "2026-01-01T00:00:00Z", {"id": "a1", "state": "DONE", "created": "x"})
+    store.set_result("a1", {"run": "a1", "modules": []})
+    store.upsert("b2", "2026-01-01T00:01:00Z", {"id": "b2", "state": "SPIN", "created": "y"})
+    store.close()
+    store = RunStore(tmp_path / "runs.sqlite")  # "restart"
+    assert store.mark_interrupted() == ["b2"]
+    states = {r["id"]: r["state"] for r in store.list()}
+    assert states == {"a1": "DONE", "b2": "FAILED"}
+    got = store.get("b2")
+    assert got is not None and got[0]["reason"] == "service restarted during the run"
+    got = store.get("a1")
+    assert got is not None and got[1] == {"run": "a1", "modules": []}
