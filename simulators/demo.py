@@ -1,52 +1,193 @@
-"""``make demo``: a whole calibration on the embedded default, offline.
+"""``make demo``: a whole calibration on the embedded default, as an operator runs it.
 
-Generates a simulated calibration run of the paper's robot (truth = Table 4 calibrated
-values, prior = nominal design) with realistic sensor noise, writes it as a dataset
-directory, solves it with ``swpc solve`` and prints nominal / calibrated / true values.
+1. starts ``swpc serve`` (a separate process) on the embedded default: the virtual robot
+   (hidden truth = the paper's Table 4 calibrated values; the robot config claims the
+   nominal design) in-process on a virtual CAN bus, mocap over zenoh on loopback, at a
+   time scale of 4;
+2. starts a calibration through the HTTP API with the bearer token (what ``curl -X POST
+   -H 'Authorization: Bearer ...' http://127.0.0.1:PORT/calibrations`` does);
+3. shows the progress, then prints the nominal / calibrated / true table and where the
+   kinematic file was written;
+4. stops the service (by its PID).
+
+``--offline`` instead generates a dataset and solves it with ``swpc solve`` (no service).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import secrets
+import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
-from simulators.datagen import ExperimentOptions, generate_experiment
-from swpc_hw.cli import main as swpc_main
+import httpx
+
 from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.zenoh_session import free_tcp_endpoint
+
+
+def _free_port() -> int:
+    return int(free_tcp_endpoint().rsplit(":", 1)[1])
+
+
+def _table(result: dict[str, Any]) -> str:
+    truth = {m.id: m for m in PAPER_CALIBRATED.modules}
+    rows = [["module", "param", "unit", "nominal", "calibrated", "std dev", "true", "error"]]
+    units = {
+        "x_s": ("mm", 1e3),
+        "y_s": ("mm", 1e3),
+        "beta": ("deg", 180 / math.pi),
+        "b": ("mm", 1e3),
+        "r": ("mm", 1e3),
+    }
+    for m in result["modules"]:
+        for k, (unit, f) in units.items():
+            est, nom, tru = m[k] * f, m["nominal"][k] * f, getattr(truth[m["id"]], k) * f
+            sd = (m["stddev"] or {}).get(k, math.nan) * f
+            fmt = "{:.4f}" if unit == "deg" else "{:.3f}"
+            rows.append(
+                [
+                    str(m["id"]),
+                    k,
+                    unit,
+                    fmt.format(nom),
+                    fmt.format(est),
+                    fmt.format(sd),
+                    fmt.format(tru),
+                    f"{est - tru:+.4f}",
+                ]
+            )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def run_service_demo(data_dir: Path, time_scale: float) -> int:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    token = secrets.token_urlsafe(16)
+    port = _free_port()
+    env = dict(
+        os.environ,
+        SWPC_TOKEN=token,
+        SWPC_DATA_DIR=str(data_dir),
+        SWPC_TIME_SCALE=str(time_scale),
+        SWPC_PORT=str(port),
+    )
+    env.pop("SWPC_CAN_INTERFACE", None)
+    t0 = time.monotonic()
+    log = open(data_dir / "service.log", "w")  # noqa: SIM115 - lives as long as the process
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "swpc_hw.cli", "serve", "--log-level", "warning"],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    base = f"http://127.0.0.1:{port}"
+    print(f"swpc serve started (pid {proc.pid}) on {base}, embedded simulator at {time_scale:g}x")
+    try:
+        with httpx.Client(base_url=base, timeout=10.0) as http:
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    health = http.get("/health").json()
+                    if not health["mocap_stale"]:
+                        break
+                except httpx.TransportError:
+                    pass
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    print((data_dir / "service.log").read_text()[-2000:], file=sys.stderr)
+                    print("demo: the service did not come up", file=sys.stderr)
+                    return 1
+                time.sleep(0.2)
+            auth = {"Authorization": f"Bearer {token}"}
+            r = http.post("/calibrations", json={}, headers=auth)
+            r.raise_for_status()
+            run_id = r.json()["id"]
+            print(f"POST /calibrations -> {r.status_code}, Location: {r.headers['location']}")
+            with Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                TextColumn("{task.percentage:>5.1f}%"),
+                TimeElapsedColumn(),
+            ) as bar:
+                task = bar.add_task("starting", total=1.0)
+                while True:
+                    st = http.get(f"/calibrations/{run_id}").json()
+                    desc = f"{st['state']:<8} module {st['module'] or '-'}/{st['modules_total']}"
+                    bar.update(task, completed=st["progress"], description=desc)
+                    if st["state"] in ("DONE", "FAILED", "ABORTED"):
+                        break
+                    time.sleep(0.25)
+            if st["state"] != "DONE":
+                print(f"calibration {st['state']}: {st['reason']}", file=sys.stderr)
+                return 1
+            res = http.get(f"/calibrations/{run_id}/result").json()
+            print()
+            print(_table(res))
+            q = res["quality"]
+            print(f"\nposes used {q['poses_used']}, wheel increments used {q['increments_used']}")
+            print(f"kinematic file written: {res['kinematics_path']}")
+            print(f"run dataset (solve offline with `swpc solve`): {res['dataset_dir']}")
+            print(f"demo wall time: {time.monotonic() - t0:.1f} s")
+            return 0
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+        print(f"service (pid {proc.pid}) stopped")
+
+
+def run_offline_demo(out: Path, seed: int) -> int:
+    from simulators.datagen import ExperimentOptions, generate_experiment
+    from swpc_hw.cli import main as swpc_main
+
+    opts = ExperimentOptions(
+        pose_sigma_xy=0.5e-3,
+        pose_sigma_yaw=math.radians(0.05),
+        dropout_fraction=0.05,
+        outlier_fraction=0.005,
+        slip_burst_rate=0.1,
+        seed=seed,
+    )
+    exp = generate_experiment(PAPER_CALIBRATED, opts)
+    dataset = out / "dataset"
+    exp.save(dataset)
+    return swpc_main(
+        [
+            "solve",
+            str(dataset),
+            "-o",
+            str(out / "kinematics.yaml"),
+            "--truth",
+            str(dataset / "truth.yaml"),
+        ]
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--out", default="out/demo", help="data directory (default out/demo)")
+    parser.add_argument("--time-scale", type=float, default=4.0)
+    parser.add_argument("--offline", action="store_true", help="dataset + swpc solve only")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    opts = ExperimentOptions(
-        pose_sigma_xy=0.5e-3,
-        pose_sigma_yaw=math.radians(0.05),
-        counts_per_rev=2**17,
-        dropout_fraction=0.05,
-        outlier_fraction=0.005,
-        slip_burst_rate=0.1,
-        seed=args.seed,
-    )
-    t0 = time.perf_counter()
-    exp = generate_experiment(PAPER_CALIBRATED, opts)
-    dataset = out / "dataset"
-    exp.save(dataset)
-    print(
-        f"simulated run: {len(exp.dataset.segments)} spins, {exp.dataset.poses.shape[0]} poses, "
-        f"{exp.duration:.0f} s of robot time -> {dataset} ({time.perf_counter() - t0:.2f} s)\n"
-        f"noise: mocap 0.5 mm / 0.05 deg, 5 % dropouts, 0.5 % outliers, wheel slip bursts\n"
-    )
-    kin = out / "kinematics.yaml"
-    return swpc_main(
-        ["solve", str(dataset), "-o", str(kin), "--truth", str(dataset / "truth.yaml")]
-    )
+    if args.offline:
+        return run_offline_demo(out, args.seed)
+    return run_service_demo(out.resolve(), args.time_scale)
 
 
 if __name__ == "__main__":
