@@ -22,14 +22,17 @@ the fastest feedback period the host has set, so 2 ms at 500 Hz):
 3. the encoders are written into the controllers: steering ``theta_hat = theta - beta``
    after homing (``+ sensor_position`` before: the power-up coordinate), wheel ``psi``
    plus slip, both quantised to ``steer_counts`` / ``wheel_counts`` per turn (the
-   feedback frame then carries them at the DBC's resolution: 2**14 counts/turn for the
-   steering, 2**16 for the wheel);
+   feedback frame then carries them at the DBC's resolution, which ``truth/params``
+   reports as ``frame_steer_counts`` / ``frame_wheel_counts``; 2**17 per turn for both
+   at the time of writing, so the defaults lose nothing on the wire);
 4. mocap samples due in the tick are taken (exact SE(2) interpolation inside the tick)
    and published when their latency has elapsed; the truth pose when due;
 5. the controllers run their firmware logic at the new time (watchdog, homing,
    heartbeat, feedback) and their frames go on the bus.
 
-Frames received between ticks are handled at the current simulated time.
+A received frame takes effect at the first tick at or after the simulated time of its
+arrival (from its bus time stamp), never earlier: commands act within one tick, and a
+simulation that lags and catches up does not shorten the watchdog.
 
 Time scale
 ----------

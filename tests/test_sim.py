@@ -204,7 +204,7 @@ def test_lock_spin_resteer_spin_through_can_and_zenoh_gives_the_true_contact_poi
                     u = np.array([math.cos(th), math.sin(th)])
                     P_w = T.P_s[j] + T.b[j] * u
                     D = np.linalg.norm(P_w - C_true)
-                    assert abs((P_w - C_true) @ u) < 0.3e-3  # 2**14 counts/turn on the wire
+                    assert abs((P_w - C_true) @ u) < 0.3e-3  # even at 2**14 counts/turn on the wire
                     psi_rate = slope(h["seq"][sel] / 50.0, h["psi"][sel])
                     assert psi_rate == pytest.approx(-D * abs(yaw_rate) / T.r[j], rel=1e-3)
                 return C_meas
