@@ -248,6 +248,7 @@ class RawHost:
 
     def __post_init__(self) -> None:
         self.last_tx = -math.inf
+        self.error_frames = 0
         self.tx_times: dict[int, list[float]] = {}
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -255,7 +256,10 @@ class RawHost:
     def _run(self) -> None:
         while not self.stop.is_set():
             msg = self.bus.recv(0.05)
-            if msg is None or msg.is_error_frame:
+            if msg is None:
+                continue
+            if msg.is_error_frame:
+                self.error_frames += 1
                 continue
             _node, cmd = codec.split_id(msg.arbitration_id)
             if cmd not in codec.CONTROLLER_FRAMES:
@@ -450,3 +454,45 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
         client.close()
     assert proc.returncode == 0, out
     assert "swpc sim: robot 'swpc'" in out and "overruns" in out
+
+
+def test_custom_nodes_encoder_quantisation_and_bus_errors() -> None:
+    truth = RobotParams.from_arrays(
+        [10, 20, 30],
+        [[0.2, 0.1], [-0.2, 0.1], [0.0, -0.2]],
+        [0.01, 0.02, 0.03],
+        [0.02, 0.02, 0.02],
+        [0.05, 0.05, 0.05],
+    )
+    channel = f"test-sim-{uuid.uuid4().hex[:8]}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    host = RawHost(can.Bus(interface="virtual", channel=channel))
+    sim = Simulator(
+        truth,
+        bus=bus,
+        options=SimOptions(
+            nodes={10: 5, 20: 6, 30: 7}, steer_counts=2**10, wheel_counts=2**12, start_time=0.0
+        ),
+    )
+    try:
+        sim.start()
+        time.sleep(0.3)
+        heard = {d.node for _, d in host.of(codec.Heartbeat)}
+        assert heard == {5, 6, 7}
+        fb = host.of(codec.FeedbackPosition)
+        q = 2 * math.pi / 2**10
+        steer = np.array([d.steer for _, d in fb])
+        assert np.abs(steer / q - np.round(steer / q)).max() < 1e-3  # 2**10 counts per turn
+        with host.lock:
+            host.frames.clear()
+        sim.set_bus_error_rate(100.0)
+        time.sleep(0.3)
+        sim.set_bus_error_rate(0.0)
+        n = host.error_frames
+        assert 5 <= n <= 80 and sim.stats().bus_errors_injected >= n
+    finally:
+        sim.stop()
+        host.close()
+        host.bus.shutdown()
+        bus.shutdown()
+    assert sim.error is None

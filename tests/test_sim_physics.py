@@ -23,7 +23,7 @@ from simulators.robot_sim import (
 )
 from simulators.sim import axis_drive, quantize
 from swpc_hw.mocap import decode_pose, encode_cdr
-from swpc_hw.model import forward_kinematics, inverse_kinematics, wrap_angle
+from swpc_hw.model import RobotParams, forward_kinematics, inverse_kinematics, wrap_angle
 from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
 
 TRUTH = PAPER_CALIBRATED
@@ -223,3 +223,23 @@ def test_mocap_noise_dropout_outliers_and_timestamps() -> None:
     assert decode_pose(encode_cdr(m.sent[0])).x == pytest.approx(1.0)
     with pytest.raises(ValueError):
         MocapOptions(rate=2500)
+
+
+@pytest.mark.parametrize("n", [2, 3, 6])
+def test_any_number_of_modules_spins_about_the_locked_contact_point(n: int) -> None:
+    ang = np.linspace(0.0, 2 * math.pi, n, endpoint=False) + 0.3
+    truth = RobotParams.from_arrays(
+        np.arange(1, n + 1),
+        np.column_stack([0.3 * np.cos(ang), 0.2 * np.sin(ang)]),
+        np.full(n, 0.01),
+        np.full(n, 0.02),
+        np.full(n, 0.05),
+    )
+    sim = RobotSim(truth, theta0=np.random.default_rng(n).uniform(-3, 3, n))
+    C_W = sim.contact_points_world()[0].copy()
+    spin(sim, 0, 5.0)
+    assert abs(sim.twist[2]) > 0.1
+    assert np.abs(sim.contact_points_world()[0] - C_W).max() < 1e-12
+    Ta = truth.arrays()
+    target, _ = settled_trailing(Ta.P_s, Ta.b, sim.contact_points()[0], np.sign(sim.twist[2]))
+    assert np.abs(wrap_angle(sim.theta - target)[1:]).max() < 1e-6
