@@ -15,11 +15,12 @@ from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
 
 from fastapi import Depends, FastAPI, HTTPException, Request, Response, status
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from services.robot_config import RobotConfig
+from services.robot_config import ConfigOverrides, RobotConfig
 from services.runtime import RunConflictError, Runtime
 from services.settings import ServiceSettings
 from swpc_hw.errors import KinematicFileError
@@ -29,7 +30,9 @@ from swpc_hw.kinematic_file import load_kinematics
 class StartRequest(BaseModel):
     """Start a calibration; ``overrides`` are deep-merged into the robot config."""
 
-    overrides: dict[str, Any] = Field(default_factory=dict)
+    model_config = ConfigDict(extra="forbid")
+
+    overrides: ConfigOverrides = Field(default_factory=ConfigOverrides)
     install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
 
 
@@ -112,17 +115,22 @@ def create_app(
         status_code=202,
         response_model=RunStatusModel,
         dependencies=[Depends(auth)],
-        responses={
-            401: {"model": Problem},
-            409: {"model": Problem},
-            422: {"model": Problem},
-        },
+        responses={401: {"model": Problem}, 409: {"model": Problem}},
     )
     def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
         try:
-            config: RobotConfig = rt.config.with_overrides(body.overrides)
+            config: RobotConfig = rt.config.with_overrides(body.overrides.document())
         except (ValidationError, ValueError, TypeError) as exc:
-            raise HTTPException(422, f"invalid robot config override: {exc}") from exc
+            # same shape as FastAPI's own request-validation errors (one schema for 422)
+            raise RequestValidationError(
+                [
+                    {
+                        "loc": ["body", "overrides"],
+                        "msg": f"invalid robot config override: {exc}",
+                        "type": "value_error",
+                    }
+                ]
+            ) from exc
         try:
             run = rt.start_run(config, body.install)
         except RunConflictError as exc:

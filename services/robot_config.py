@@ -17,7 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -164,3 +164,41 @@ def load_robot_config(path: str | Path | None) -> RobotConfig:
     except ValueError as exc:
         first = str(exc).splitlines()
         raise RobotConfigError(f"{p}: {' '.join(first[:3])}") from exc
+
+
+def _partial(model: type[BaseModel], name: str) -> type[BaseModel]:
+    """A copy of ``model`` whose fields are all optional (default None), same constraints."""
+    from pydantic import create_model
+    from pydantic.fields import FieldInfo
+
+    fields: dict[str, Any] = {}
+    for fname, f in model.model_fields.items():
+        info = FieldInfo.merge_field_infos(f, default=None)
+        info.default_factory = None
+        fields[fname] = (Optional[f.annotation], info)  # noqa: UP045 - runtime type
+    return create_model(name, __config__=ConfigDict(extra="forbid"), **fields)
+
+
+LimitsOverride = _partial(MotionLimits, "LimitsOverride")
+ProtocolOverride = _partial(ProtocolConfig, "ProtocolOverride")
+TolerancesOverride = _partial(Tolerances, "TolerancesOverride")
+
+
+class ConfigOverrides(BaseModel):
+    """Overrides of the robot config for one run (every key optional, deep-merged)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot: str | None = None
+    nominal: RobotParams | None = None
+    nodes: dict[int, int] | None = None
+    limits: LimitsOverride | None = None  # type: ignore[valid-type]
+    protocol: ProtocolOverride | None = None  # type: ignore[valid-type]
+    tolerances: TolerancesOverride | None = None  # type: ignore[valid-type]
+
+    def document(self) -> dict[str, Any]:
+        """Only what the request set, as plain data (nominal in the file's schema)."""
+        doc: dict[str, Any] = self.model_dump(mode="json", exclude_unset=True, exclude_none=True)
+        if self.nominal is not None:
+            doc["nominal"] = {"modules": kinematics_document(self.nominal)["modules"]}
+        return doc
