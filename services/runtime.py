@@ -156,10 +156,15 @@ class Runtime:
             self.runs[run.id] = run
             self.current = run
         self._persist(run)
+        # raw CAN traffic of the run, beside its dataset (candump format, our DBC decodes it)
+        (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
+        self.driver.start_recording(str(run.run_dir / "dataset" / "can.log"))
         run.start()
         return run
 
     def _persist(self, run: CalibrationRun) -> None:
+        if run.finished and self.driver is not None and run is self.current:
+            self.driver.stop_recording()
         self.store.upsert(run.id, run.status.created, run.status.to_dict())
         if run.status.state is State.DONE and run.result_doc is not None:
             self.store.set_result(run.id, run.result_doc)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -145,6 +147,16 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
     offline = solve_directory(res["dataset_dir"])
     off = np.array([[getattr(m, n) for n in NAMES] for m in offline.params.modules])
     np.testing.assert_allclose(off, api, rtol=0, atol=1e-15)
+    # the run's raw CAN traffic, decoded by cantools with our DBC
+    log = Path(res["dataset_dir"]) / "can.log"
+    out = subprocess.run(
+        [sys.executable, "-m", "cantools", "decode", "firmware_protocol/swpc.dbc"],
+        stdin=log.open("rb"),
+        capture_output=True,
+        check=True,
+        timeout=120,
+    ).stdout.decode()
+    assert "N1_FeedbackPosition(" in out and "N4_SetControl(" in out
     # plot, listing, metrics
     png = client.get(f"/calibrations/{run_id}/plot.png")
     assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
@@ -296,3 +308,39 @@ def test_restart_lists_past_runs_and_fails_interrupted_ones(tmp_path: Path) -> N
     assert got is not None and got[0]["reason"] == "service restarted during the run"
     got = store.get("a1")
     assert got is not None and got[1] == {"run": "a1", "modules": []}
+
+
+def test_result_outside_tolerance_is_reported_not_installed(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    client, _rt, _ = service
+    quick = {
+        "protocol": {"sweep_deg": 90, "settle_time": 1.5, "stop_time": 0.5},
+        "tolerances": {"position": 1e-9},  # no real result is this good
+    }
+    run_id = start(client, quick)
+    st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
+    assert st["state"] == "DONE" and st["installed"] is False, st
+    res = client.get(f"/calibrations/{run_id}/result").json()
+    assert res["within_tolerance"] is False and res["kinematics_path"] is None
+    assert Path(res["run_kinematics_path"]).exists()  # the result itself is kept with the run
+    # the `installed` fixture checks that the file in force is untouched
+
+
+def test_install_always_overrides_the_tolerance(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    client, rt, _ = service
+    quick = {
+        "protocol": {"sweep_deg": 90, "settle_time": 1.5, "stop_time": 0.5},
+        "tolerances": {"position": 1e-9},
+    }
+    run_id = start(client, quick, install="always")
+    st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
+    assert st["state"] == "DONE" and st["installed"] is True, st
+    path = rt.settings.kinematics_file
+    backups = sorted(path.parent.glob(f"{path.stem}.*{path.suffix}"))
+    assert backups and backups[-1].read_bytes() == installed  # the previous file, kept
+    k = load_kinematics(path)
+    assert k.extra["provenance"]["run"] == run_id
+    path.write_bytes(installed)  # restore for the fixture's check

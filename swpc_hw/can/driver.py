@@ -260,6 +260,7 @@ class CanDriver:
         self._bus: can.BusABC | None = None
         self._notifier: can.Notifier | None = None
         self._logger: _LockedLog | None = None
+        self._recorder: _LockedLog | None = None
         self._supervisor: threading.Thread | None = None
         self._stop_supervisor = threading.Event()
         self._wake = threading.Event()
@@ -379,6 +380,7 @@ class CanDriver:
             self._supervisor.join(timeout=2.0)
         if self._notifier is not None:
             self._notifier.stop(timeout=1.0)
+        self.stop_recording()
         if self._logger is not None:
             self._logger.stop()
         if self._bus is not None:
@@ -482,6 +484,31 @@ class CanDriver:
         with self._lock:
             nd.homing = HomingState.IN_PROGRESS
             nd.commanded.pop(Axis.STEER, None)
+
+    def start_recording(self, path: str) -> None:
+        """Record every frame in and out to ``path`` until :meth:`stop_recording`.
+
+        python-can's Logger picks the format from the suffix (``.log``: candump, which
+        ``cantools decode`` reads with our DBC).  Independent of ``CanConfig.log_path``.
+        """
+        with self._lock:
+            if self._notifier is None:
+                raise LifecycleError("start_recording() needs an open bus (configure() first)")
+            self.stop_recording()
+            rec = _LockedLog(path, threading.Lock())
+            self._recorder = rec
+            self._notifier.add_listener(rec)
+
+    def stop_recording(self) -> None:
+        """Stop the recording started by :meth:`start_recording` (idempotent)."""
+        with self._lock:
+            rec, self._recorder = self._recorder, None
+            if rec is None:
+                return
+            if self._notifier is not None:
+                with contextlib.suppress(ValueError):
+                    self._notifier.remove_listener(rec)
+        rec.stop()
 
     def send_sync(self) -> int:
         """Broadcast a SYNC frame; returns its counter (the next samples carry it)."""
@@ -676,6 +703,9 @@ class CanDriver:
                     continue
                 if self._logger is not None:
                     self._logger.on_message_received(msg)
+                rec = self._recorder
+                if rec is not None:
+                    rec.on_message_received(msg)
                 with self._lock:
                     self._stats.tx_frames += 1
                     nd = self._by_node.get(f.arbitration_id >> codec.NODE_SHIFT)
