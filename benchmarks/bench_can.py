@@ -98,7 +98,8 @@ def stream(seconds: float) -> None:
     c0, w0 = _cpu(threads), time.monotonic()
     time.sleep(seconds)
     c1, w1 = _cpu(threads), time.monotonic()
-    emu.mute(1), emu.mute(2), emu.mute(3), emu.mute(4)
+    for node in (1, 2, 3, 4):
+        emu.mute(node)
     time.sleep(0.2)  # let the driver drain its queue
     sent = sum(emu.sent[i] for i in fb_ids) - sent0
     recv = sum(drv.module_state(m).feedback_frames for m in nodes) - recv0

@@ -7,6 +7,7 @@ is opened in the lifespan and :mod:`services.calibration_run` for the protocol.
 
 from __future__ import annotations
 
+import asyncio
 import io
 import math
 import secrets
@@ -168,7 +169,9 @@ def create_app(
         dependencies=[Depends(auth)],
         responses={401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}},
     )
-    def abort(run_id: str, rt: Rt) -> dict[str, Any]:
+    async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
+        # async: runs on the event loop itself, so stop_all() is not queued behind a
+        # threadpool hand-off; only the wait for the run's thread goes to a worker
         run = rt.runs.get(run_id)
         if run is None:
             if rt.status(run_id) is None:
@@ -177,7 +180,7 @@ def create_app(
         if run.finished:
             raise HTTPException(409, f"calibration {run_id} is {run.status.state}")
         run.abort()
-        run.join(10.0)
+        await asyncio.to_thread(run.join, 10.0)
         return run.status.to_dict()
 
     @app.get(

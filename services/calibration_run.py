@@ -457,6 +457,8 @@ class CalibrationRun:
         assert self.result is not None
         tol = self.config.tolerances
         sd = self.result.stddev_array()
+        if not np.all(np.isfinite(sd)):
+            return False  # an unknown uncertainty is never within tolerance
         return bool(
             np.all(sd[:, [0, 1, 3]] <= tol.position)
             and np.all(sd[:, 2] <= tol.beta)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import threading
 import time
 import uuid
@@ -25,6 +26,8 @@ from services.store import RunStore
 from swpc_hw.can.config import CanConfig
 from swpc_hw.can.driver import CanDriver
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+
+SWITCH_INTERVAL_S = 0.001
 
 
 class Simulator(Protocol):
@@ -66,6 +69,9 @@ class Runtime:
 
     # ---------------------------------------------------------------- lifecycle
     def open(self) -> Runtime:
+        # Safety paths (abort, driver faults) must not wait behind CPU-bound threads for the
+        # default 5 ms GIL switch interval at every thread hand-off.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         s = self.settings
         listen, connect = list(s.zenoh_listen), list(s.zenoh_connect)
         channel = s.can_channel

@@ -51,12 +51,14 @@ from swpc_hw.calibration.prepare import (
 )
 from swpc_hw.dataset import Dataset, load_dataset
 from swpc_hw.errors import CalibrationError
-from swpc_hw.model import RobotParams
+from swpc_hw.model import ModuleStddev, RobotParams
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 PARAM_NAMES = ("x_s", "y_s", "beta", "b", "r")
+MIN_SLIP_INCREMENTS = 8
+"""Series with fewer wheel increments are not screened for slip (too little statistics)."""
 
 
 @dataclass
@@ -554,11 +556,17 @@ def solve(
         C = prob.contact_points(X)
         idx, inc_res, _ = prob.increments(X, C)
         ser = nodes.ser[idx]
+        # robust scale per series, floored by half the pooled scale of all series so that
+        # a short series (few increments) cannot produce a tiny, over-rejecting scale
         inc_sig = np.zeros(inc_res.size)
+        dev = inc_res - _series_median(inc_res, ser)
+        pooled = 0.5 * _mad_sigma(dev) if dev.size else 0.0
+        enough = np.zeros(inc_res.size, dtype=bool)
         for k in np.unique(ser):
             sel = ser == k
-            inc_sig[sel] = max(_mad_sigma(inc_res[sel]), 1e-12)
-        bad = np.abs(inc_res - _series_median(inc_res, ser)) > opts.slip_sigmas * inc_sig
+            inc_sig[sel] = max(_mad_sigma(inc_res[sel]), pooled, 1e-12)
+            enough[sel] = int(sel.sum()) >= MIN_SLIP_INCREMENTS
+        bad = enough & (np.abs(dev) > opts.slip_sigmas * inc_sig)
         slip = bad.copy()  # dilate by one increment within the series
         same_prev = np.zeros_like(bad)
         same_prev[1:] = ser[1:] == ser[:-1]
@@ -601,11 +609,7 @@ def solve(
     f = prob.residuals(x)
     dof = max(f.size - x.size, 1)
     s2 = float(f @ f) / dof
-    try:
-        cov = np.linalg.inv(J.T @ J) * max(s2, 1e-30)
-        std = np.sqrt(np.maximum(np.diag(cov), 0.0)).reshape(n, 5)
-    except np.linalg.LinAlgError:
-        std = np.full((n, 5), np.nan)
+    std = parameter_stddev(J, s2).reshape(n, 5)
     X[:, 2] = (X[:, 2] + np.pi) % (2 * np.pi) - np.pi
     params = RobotParams.from_arrays(
         ids,
@@ -615,7 +619,19 @@ def solve(
         X[:, 4],
         robot=ds.robot.robot,
         frame=ds.robot.frame,
-        stddev=np.nan_to_num(std, nan=0.0),
+    )
+    # a module whose uncertainty is not known carries no stddev (never a 0 = "exact")
+    params = params.model_copy(
+        update={
+            "modules": [
+                m.model_copy(
+                    update={"stddev": ModuleStddev(**dict(zip(PARAM_NAMES, row, strict=True)))}
+                )
+                if np.all(np.isfinite(row))
+                else m
+                for m, row in zip(params.modules, std.tolist(), strict=True)
+            ]
+        }
     )
     quality = _quality(prob, segs, x, ids, np.array(sig), slip)
     inc_rej = int(slip.sum())
@@ -632,6 +648,33 @@ def solve(
         increments_rejected=inc_rej,
         reduced_chi2=s2,
     )
+
+
+def parameter_stddev(J: FloatArray, s2: float) -> FloatArray:
+    """Standard deviations ``sqrt(diag(s2 (J^T J)^-1))`` computed stably.
+
+    The columns are first scaled to unit norm (Jacobi preconditioning: parameters in
+    metres and radians with weights spanning many decades make ``J^T J`` numerically
+    singular otherwise), then inverted by SVD.  A parameter the data do not determine
+    (zero singular value, or a non-finite/non-positive variance) gets NaN — unknown,
+    never 0.
+    """
+    norms = np.linalg.norm(J, axis=0)
+    out = np.full(J.shape[1], np.nan)
+    ok = norms > 0
+    if not ok.any():
+        return out
+    Js = J[:, ok] / norms[ok]
+    _, sv, Vt = np.linalg.svd(Js, full_matrices=False)
+    if sv.size == 0 or sv[-1] <= sv[0] * 1e-12:
+        return out
+    cov_s = (Vt.T / sv**2) @ Vt
+    var = np.diag(cov_s) * max(s2, 1e-30) / norms[ok] ** 2
+    good = np.isfinite(var) & (var > 0)
+    sub = np.full(var.shape, np.nan)
+    sub[good] = np.sqrt(var[good])
+    out[ok] = sub
+    return out
 
 
 def _jacobian(f: Callable[[FloatArray], FloatArray], x: FloatArray) -> FloatArray:

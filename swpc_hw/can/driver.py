@@ -219,14 +219,18 @@ class _LockedLog(can.Listener):
     def __init__(self, path: str, lock: threading.Lock) -> None:
         self.logger = can.Logger(path)
         self.lock = lock
+        self.closed = False
 
     def on_message_received(self, msg: can.Message) -> None:
         with self.lock:
-            self.logger.on_message_received(msg)
+            if not self.closed:  # a frame racing with stop() is dropped, not an error
+                self.logger.on_message_received(msg)
 
     def stop(self) -> None:
         with self.lock:
-            self.logger.stop()
+            if not self.closed:
+                self.closed = True
+                self.logger.stop()
 
 
 class CanDriver:
