@@ -155,9 +155,19 @@ class DriverRobotIO:
             self.driver.deactivate()
 
     def encoders(self, module: int, since: float) -> FloatArray:
+        """Feedback on the host monotonic clock, timed by the frames' *bus* timestamps.
+
+        The bus timestamp (kernel arrival on SocketCAN, send time on the virtual bus) does
+        not include the receive thread's queueing delay, which can reach a second on a
+        loaded host; it is mapped from the wall clock onto the monotonic clock.
+        """
         h = self.driver.history_arrays(module)
-        sel = h["t"] >= since
-        return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
+        wall_minus_mono = time.time() - time.monotonic()
+        t = h["t_bus"] - wall_minus_mono
+        bad = ~np.isfinite(t) | (np.abs(t - h["t"]) > 5.0)  # no usable bus stamp: receive time
+        t = np.where(bad, h["t"], t)
+        sel = t >= since
+        return np.column_stack([t[sel], h["theta_hat"][sel], h["psi"][sel]])
 
     def take_faults(self) -> list[str]:
         with self._lock:
