@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: all install test lint typecheck bench demo clean
+.PHONY: all install test lint typecheck bench demo demo-offline clean
 
 all: test
 
@@ -27,13 +27,16 @@ typecheck: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check swpc_hw firmware_protocol services simulators tests benchmarks
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
 demo: $(STAMP)
 	$(BIN)/python -m simulators.demo
+
+demo-offline: $(STAMP)
+	$(BIN)/python -m simulators.demo --offline
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info
