@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from services.mcap_export import write_mcap
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig
 from services.robot_io import RobotIO
@@ -448,6 +449,7 @@ class CalibrationRun:
         self.status.poses = int(ds.poses.shape[0])
         directory = self.run_dir / "dataset"
         save_dataset(directory, ds)
+        write_mcap(self.run_dir / "run.mcap", ds)  # the same data, for Foxglove
         # solve what was written, so that `swpc solve <dataset>` reproduces it exactly
         self.result = solve(
             load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory)

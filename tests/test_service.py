@@ -159,6 +159,15 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
         timeout=120,
     ).stdout.decode()
     assert "N1_FeedbackPosition(" in out and "N4_SetControl(" in out
+    # the same data as MCAP (Foxglove)
+    from mcap.reader import make_reader
+
+    with (Path(res["dataset_dir"]).parent / "run.mcap").open("rb") as fh:
+        reader = make_reader(fh)
+        topics = {ch.topic for ch in reader.get_summary().channels.values()}  # type: ignore[union-attr]
+        count = sum(1 for _ in reader.iter_messages(topics=["/calibration/segments"]))
+    assert {"/mocap/pose", "/module1/encoders", "/calibration/segments"} <= topics
+    assert count == 8
     # plot, listing, metrics
     png = client.get(f"/calibrations/{run_id}/plot.png")
     assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
