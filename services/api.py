@@ -21,6 +21,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from services.calibration_run import RunStatus
 from services.robot_config import ConfigOverrides, RobotConfig
 from services.runtime import RunConflictError, Runtime
 from services.settings import ServiceSettings
@@ -35,26 +36,6 @@ class StartRequest(BaseModel):
 
     overrides: ConfigOverrides = Field(default_factory=ConfigOverrides)
     install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
-
-
-class RunStatusModel(BaseModel):
-    id: str
-    created: str
-    state: str
-    step: str
-    module: int | None = None
-    module_index: int = 0
-    modules_total: int = 0
-    progress: float = 0.0
-    sweep_deg: float = 0.0
-    poses: int = 0
-    encoder_samples: int = 0
-    segments: int = 0
-    errors: list[str] = Field(default_factory=list)
-    reason: str | None = None
-    started: str | None = None
-    finished: str | None = None
-    installed: bool | None = None
 
 
 class Problem(BaseModel):
@@ -114,7 +95,7 @@ def create_app(
     @app.post(
         "/calibrations",
         status_code=202,
-        response_model=RunStatusModel,
+        response_model=RunStatus,
         dependencies=[Depends(auth)],
         responses={401: {"model": Problem}, 409: {"model": Problem}},
     )
@@ -139,11 +120,11 @@ def create_app(
         response.headers["Location"] = f"/calibrations/{run.id}"
         return run.status.to_dict()
 
-    @app.get("/calibrations", response_model=list[RunStatusModel])
+    @app.get("/calibrations", response_model=list[RunStatus])
     def list_runs(rt: Rt) -> list[dict[str, Any]]:
         return rt.list_runs()
 
-    @app.get("/calibrations/{run_id}", response_model=RunStatusModel, responses=responses_run)
+    @app.get("/calibrations/{run_id}", response_model=RunStatus, responses=responses_run)
     def get_run(run_id: str, rt: Rt) -> dict[str, Any]:
         st = rt.status(run_id)
         if st is None:
@@ -165,7 +146,7 @@ def create_app(
 
     @app.post(
         "/calibrations/{run_id}/abort",
-        response_model=RunStatusModel,
+        response_model=RunStatus,
         dependencies=[Depends(auth)],
         responses={401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}},
     )

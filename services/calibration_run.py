@@ -45,12 +45,12 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, Field
 
 from services.mcap_export import write_mcap
 from services.mocap_ingest import MocapIngest
@@ -108,8 +108,9 @@ class RunAbortedError(Exception):
     """The operator aborted: the run ends ABORTED."""
 
 
-@dataclass
-class RunStatus:
+class RunStatus(BaseModel):
+    """What an operator sees of a run (``GET /calibrations/{id}``)."""
+
     id: str
     created: str
     state: State = State.PENDING
@@ -122,17 +123,14 @@ class RunStatus:
     poses: int = 0
     encoder_samples: int = 0
     segments: int = 0
-    errors: list[str] = field(default_factory=list)
+    errors: list[str] = Field(default_factory=list)
     reason: str | None = None
     started: str | None = None
     finished: str | None = None
     installed: bool | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        d = dict(self.__dict__)
-        d["state"] = str(self.state)
-        d["errors"] = list(self.errors)
-        return d
+        return self.model_dump(mode="json")
 
 
 def _now_iso() -> str:
