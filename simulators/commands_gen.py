@@ -11,6 +11,8 @@ import argparse
 import math
 from typing import Any
 
+from simulators.cli_options import add_noise_arguments
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -31,12 +33,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--yaw-rate", type=float, default=0.5, help="rad/s, <0 clockwise (0.5)")
     p.add_argument("--spin-duration", type=float, default=12.0, help="s per segment (12)")
-    p.add_argument("--pose-sigma-xy", type=float, default=0.0, help="pose noise (mm, 0)")
-    p.add_argument("--pose-sigma-yaw", type=float, default=0.0, help="yaw noise (deg, 0)")
-    p.add_argument("--dropout", type=float, default=0.0, help="fraction of poses dropped")
-    p.add_argument("--outliers", type=float, default=0.0, help="fraction of outlier poses")
-    p.add_argument("--outlier-magnitude", type=float, default=50.0, help="outlier jump (mm)")
-    p.add_argument("--slip-rate", type=float, default=0.0, help="slip bursts /s per wheel")
+    add_noise_arguments(p)
     p.add_argument("--clock-offset", type=float, default=0.0, help="encoder - pose clock (s)")
     p.add_argument(
         "--counts-per-rev", type=int, default=2**17, help="encoder resolution, 0 = exact"

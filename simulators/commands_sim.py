@@ -19,6 +19,8 @@ import threading
 import time
 from typing import Any
 
+from simulators.cli_options import add_noise_arguments
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
@@ -74,14 +76,9 @@ def register(sub: Any) -> None:
         default="native",
         help="mocap payload (native)",
     )
-    p.add_argument("--pose-sigma-xy", type=float, default=0.0, help="mocap noise, mm (0)")
-    p.add_argument("--pose-sigma-yaw", type=float, default=0.0, help="mocap yaw noise, deg (0)")
-    p.add_argument("--dropout", type=float, default=0.0, help="fraction of poses dropped")
-    p.add_argument("--outliers", type=float, default=0.0, help="fraction of outlier poses")
-    p.add_argument("--outlier-magnitude", type=float, default=50.0, help="outlier jump, mm")
+    add_noise_arguments(p)
     p.add_argument("--latency", type=float, default=0.0, help="mocap latency, ms")
     p.add_argument("--clock-offset", type=float, default=0.0, help="mocap clock - sim clock, s")
-    p.add_argument("--slip-rate", type=float, default=0.0, help="slip bursts /s per wheel")
     p.add_argument("--bus-error-rate", type=float, default=0.0, help="injected bus errors /s")
     p.add_argument(
         "--mute",
