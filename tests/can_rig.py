@@ -3,26 +3,90 @@
 The bus is selected by environment variables, so the same tests run on python-can's
 ``virtual`` interface (default, a unique channel per test) and on SocketCAN::
 
-    SWPC_TEST_CAN_INTERFACE=socketcan SWPC_TEST_CAN_CHANNEL=vcan0 pytest tests/test_driver.py
+    SWPC_TEST_CAN_INTERFACE=socketcan SWPC_TEST_CAN_CHANNEL=vcan1,vcan2,vcan3 \
+    SWPC_TEST_TIME_FACTOR=4 pytest tests/test_driver.py
+
+``SWPC_TEST_CAN_CHANNEL`` is one interface or a comma-separated pool: each rig takes the
+next one (round robin), so with at least as many interfaces as tests every test has a bus
+of its own and no frame of one test (e.g. an emulator left running by a failed test)
+reaches the next.
+
+``SWPC_TEST_TIME_FACTOR`` (F, default 1) slows the whole rig down by F, for slow machines
+(QEMU software emulation runs Python ~12x slower than this host): every protocol period
+(feedback, driver refresh, heartbeat, watchdog) is F times longer, every rate F times
+lower, and every timeout, sleep and time window of the tests is F times longer
+(:func:`T`, :func:`wait_until`, :class:`ScaledDriver`).  Counts of frames per window stay
+the same, so the assertions hold unchanged at any F.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 import time
 import uuid
 from collections.abc import Callable
+from typing import Any
 
 import can
 
+from simulators.controller import VirtualController
+from swpc_hw.can import CanConfig, CanDriver, ModuleState
+
 INTERFACE = os.environ.get("SWPC_TEST_CAN_INTERFACE", "virtual")
-FIXED_CHANNEL = os.environ.get("SWPC_TEST_CAN_CHANNEL")
+CHANNELS = [c for c in os.environ.get("SWPC_TEST_CAN_CHANNEL", "").split(",") if c.strip()]
+TIME_FACTOR = float(os.environ.get("SWPC_TEST_TIME_FACTOR", "1"))
+if not TIME_FACTOR >= 1.0:
+    raise ValueError(f"SWPC_TEST_TIME_FACTOR must be >= 1, got {TIME_FACTOR}")
+_channel_pool = itertools.cycle([c.strip() for c in CHANNELS])
+
+FEEDBACK_RATE_HZ = round(200 / TIME_FACTOR)
+"""Feedback rate of the rig's controllers and driver (200 Hz at F = 1)."""
+WATCHDOG_MS = round(100 * TIME_FACTOR)
+"""Controller watchdog timeout set by the driver (100 ms at F = 1)."""
+
+
+def T(seconds: float) -> float:
+    """A test time (timeout, sleep, window, bound) in rig seconds: ``seconds * F``."""
+    return seconds * TIME_FACTOR
 
 
 def new_channel() -> str:
-    """A fresh channel name (virtual) or the configured SocketCAN interface."""
-    return FIXED_CHANNEL or f"swpc-test-{uuid.uuid4().hex[:8]}"
+    """A fresh channel name (virtual) or the next configured SocketCAN interface."""
+    return next(_channel_pool) if CHANNELS else f"swpc-test-{uuid.uuid4().hex[:8]}"
+
+
+def controller(node: int) -> VirtualController:
+    """An emulated controller with the rig's periods (feedback, heartbeat, watchdog)."""
+    return VirtualController(
+        node, rate_hz=FEEDBACK_RATE_HZ, watchdog_ms=WATCHDOG_MS, heartbeat_period=T(0.1)
+    )
+
+
+def can_config(channel: str, **cfg: Any) -> CanConfig:
+    """The driver configuration of the rig: defaults with every period scaled by F."""
+    scaled: dict[str, Any] = {
+        "feedback_rate_hz": FEEDBACK_RATE_HZ,
+        "watchdog_timeout_ms": WATCHDOG_MS,
+        "refresh_period_s": T(0.02),
+        "heartbeat_period_s": T(0.1),
+        "activate_timeout_s": T(cfg.pop("activate_timeout_s", 1.0)),
+    }
+    return CanConfig(interface=INTERFACE, channel=channel, **{**scaled, **cfg})
+
+
+class ScaledDriver(CanDriver):
+    """The real :class:`CanDriver`; only the tests' wait timeouts are multiplied by F."""
+
+    def wait_for(
+        self,
+        module: int,
+        predicate: Callable[[ModuleState], bool],
+        timeout: float,
+        what: str = "condition",
+    ) -> ModuleState:
+        return super().wait_for(module, predicate, T(timeout), what)
 
 
 class Observer(can.Listener):
@@ -60,8 +124,8 @@ class Observer(can.Listener):
 
 
 def wait_until(pred: Callable[[], bool], timeout: float = 2.0, step: float = 0.005) -> bool:
-    """Poll ``pred`` every ``step`` s until true or ``timeout`` (test helper)."""
-    end = time.monotonic() + timeout
+    """Poll ``pred`` every ``step`` s until true or ``T(timeout)`` (test helper)."""
+    end = time.monotonic() + T(timeout)
     while time.monotonic() < end:
         if pred():
             return True

@@ -1,7 +1,8 @@
 """Back-to-back tests: the CAN driver against emulated controllers on a real python-can bus.
 
 Default bus: python-can ``virtual`` with a unique channel per test.  The same module runs
-on SocketCAN with ``SWPC_TEST_CAN_INTERFACE=socketcan SWPC_TEST_CAN_CHANNEL=vcan0``.
+on SocketCAN with ``SWPC_TEST_CAN_INTERFACE=socketcan SWPC_TEST_CAN_CHANNEL=vcan1,vcan2,...``
+and, on a slow machine, ``SWPC_TEST_TIME_FACTOR`` (see :mod:`tests.can_rig`).
 """
 
 from __future__ import annotations
@@ -34,7 +35,19 @@ from swpc_hw.can import (
     NodeTimeoutError,
 )
 from swpc_hw.errors import SwpcError
-from tests.can_rig import INTERFACE, Observer, new_channel, wait_until
+from tests.can_rig import (
+    FEEDBACK_RATE_HZ,
+    INTERFACE,
+    TIME_FACTOR,
+    WATCHDOG_MS,
+    Observer,
+    ScaledDriver,
+    T,
+    can_config,
+    controller,
+    new_channel,
+    wait_until,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 NODES = (1, 2, 3, 4)
@@ -66,12 +79,9 @@ class Rig:
 def make_rig(nodes: tuple[int, ...] = NODES, **cfg: object) -> Iterator[Rig]:
     channel = new_channel()
     obs = Observer(channel)
-    emu = ControllerEmulator(
-        [VirtualController(n) for n in nodes], interface=INTERFACE, channel=channel
-    )
+    emu = ControllerEmulator([controller(n) for n in nodes], interface=INTERFACE, channel=channel)
     emu.start()
-    config = CanConfig(interface=INTERFACE, channel=channel, **cfg)  # type: ignore[arg-type]
-    drv = CanDriver(config)
+    drv = ScaledDriver(can_config(channel, **cfg))
     try:
         yield Rig(channel, emu, drv, obs)
     finally:
@@ -131,10 +141,10 @@ def test_lifecycle_inactive_reads_without_sending(rig: Rig) -> None:
     assert wait_until(lambda: len(rig.host_frames(t0)) >= 8)
     sent = rig.host_frames(t0)
     assert {(f.node, f.timeout_ms) for f in sent if isinstance(f, codec.SetWatchdog)} == {
-        (n, 100) for n in NODES
+        (n, WATCHDOG_MS) for n in NODES
     }
     assert {(f.node, f.rate_hz) for f in sent if isinstance(f, codec.SetFeedback)} == {
-        (n, 200) for n in NODES
+        (n, FEEDBACK_RATE_HZ) for n in NODES
     }
     drv.enable(2, Axis.STEER)
     drv.wait_axis_state(2, Axis.STEER, AxisState.ENABLED)
@@ -154,8 +164,8 @@ def test_lifecycle_inactive_reads_without_sending(rig: Rig) -> None:
 def test_context_manager_and_shutdown_from_active() -> None:
     channel = new_channel()
     obs = Observer(channel)
-    with ControllerEmulator([VirtualController(1)], interface=INTERFACE, channel=channel):
-        with CanDriver(CanConfig(interface=INTERFACE, channel=channel, modules={1: 1})) as drv:
+    with ControllerEmulator([controller(1)], interface=INTERFACE, channel=channel):
+        with ScaledDriver(can_config(channel, modules={1: 1})) as drv:
             assert drv.state == Lifecycle.INACTIVE
             drv.activate()
             drv.enable(1, Axis.WHEEL)
@@ -206,8 +216,8 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
     st = drv.wait_for(1, lambda s: s.modes[1] == ControlMode.VELOCITY, 1.0)
     assert wait_until(lambda: drv.module_state(1).feedback.wheel_velocity == pytest.approx(4.0))  # type: ignore[union-attr]
     psi0 = drv.module_state(1).psi
-    time.sleep(0.25)
-    assert drv.module_state(1).psi - psi0 == pytest.approx(1.0, abs=0.15)  # 4 rad/s x 0.25 s
+    time.sleep(T(0.25))
+    assert drv.module_state(1).psi - psi0 == pytest.approx(T(1.0), abs=T(0.15))  # 4 rad/s x 0.25 s
 
     drv.set_torque(1, Axis.WHEEL, 0.01)
     drv.wait_for(1, lambda s: s.modes[1] == ControlMode.TORQUE, 1.0)
@@ -215,9 +225,9 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
 
     drv.hold(1, Axis.WHEEL)
     drv.wait_for(1, lambda s: s.modes[1] == ControlMode.HOLD, 1.0)
-    time.sleep(0.05)
+    time.sleep(T(0.05))
     held = drv.module_state(1).psi
-    time.sleep(0.2)
+    time.sleep(T(0.2))
     assert drv.module_state(1).psi == held  # brake: the wheel angle does not move
 
     drv.free(1, Axis.WHEEL)
@@ -280,7 +290,7 @@ def test_sync_mode_samples_all_nodes_together() -> None:
     for r in make_rig(sync_mode=True):
         r.drv.configure()
         r.drv.activate()
-        time.sleep(0.05)
+        time.sleep(T(0.05))
         r.drv.clear_history()
         counters = [r.drv.send_sync() for _ in range(5)]
         for m in NODES:
@@ -290,7 +300,7 @@ def test_sync_mode_samples_all_nodes_together() -> None:
         t_by_counter = [
             [s.t for m in NODES for s in r.drv.history(m) if s.counter == c] for c in counters
         ]
-        assert all(max(ts) - min(ts) < 0.02 for ts in t_by_counter)
+        assert all(max(ts) - min(ts) < T(0.02) for ts in t_by_counter)
 
 
 # ---------------------------------------------------------------------------- feedback
@@ -303,11 +313,11 @@ def test_feedback_history_pairs_frames_and_unwraps(active: Rig) -> None:
     with active.emu.lock:  # park the wheel below the int36 wrap, the steering above int20's
         active.ctrl(3).axes[Axis.WHEEL].position = codec.WHEEL_SPAN / 2 - 2.0
         active.ctrl(3).axes[Axis.STEER].position = -codec.STEER_SPAN / 2 + 2.0
-    time.sleep(0.05)
+    time.sleep(T(0.05))
     drv.clear_history()
-    time.sleep(0.5)
+    time.sleep(T(0.5))
     hist = drv.history(3)
-    assert 80 <= len(hist) <= 120  # 200 Hz for 0.5 s
+    assert 80 <= len(hist) <= 120  # 200 Hz for 0.5 s (200/F Hz for 0.5 F s)
     assert all(not math.isnan(s.wheel_velocity) for s in hist[:-1])  # both frames paired
     assert all(
         (b.counter - a.counter) % 256 == 1 and b.seq == a.seq + 1
@@ -317,13 +327,13 @@ def test_feedback_history_pairs_frames_and_unwraps(active: Rig) -> None:
     psi = [s.psi for s in hist]
     assert psi[-1] > codec.WHEEL_SPAN / 2  # crossed the wrap point without a jump
     steps = [b - a for a, b in itertools.pairwise(psi)]
-    assert max(steps) < 0.2 and min(steps) > 0.0  # 20 rad/s x 5 ms = 0.1 rad
+    assert max(steps) < T(0.2) and min(steps) > 0.0  # 20 rad/s x 5 ms = 0.1 rad
     theta = [s.theta_hat for s in hist]  # -4 turns + 2 rad, then -10 rad/s for 0.5 s
     assert theta[-1] < -codec.STEER_SPAN / 2  # crossed -4 turns without a jump
     steps = [b - a for a, b in itertools.pairwise(theta)]
     # -10 rad/s x 5 ms = -0.05 rad a sample (more if the emulator thread woke late); a
     # missed wrap would be a jump of +8 turns = +50 rad
-    assert min(steps) > -0.5 and max(steps) < 0.0
+    assert min(steps) > T(-0.5) and max(steps) < 0.0
     cols = drv.history_arrays(3)
     assert cols["psi"].shape == cols["t"].shape == cols["counter"].shape
     st = drv.stats()
@@ -338,7 +348,7 @@ def test_watchdog_expiry_frees_and_disables_the_axis(rig: Rig) -> None:
     ctrl = rig.ctrl(1)
     t0 = time.monotonic()
     for f in (
-        codec.make_set_watchdog(1, 100),
+        codec.make_set_watchdog(1, WATCHDOG_MS),
         codec.make_set_axis_state(1, Axis.WHEEL, True),
         codec.make_set_control(1, Axis.WHEEL, ControlMode.VELOCITY, 3.0),
     ):
@@ -348,7 +358,7 @@ def test_watchdog_expiry_frees_and_disables_the_axis(rig: Rig) -> None:
     assert wait_until(lambda: ctrl.axes[Axis.WHEEL].state == AxisState.ENABLED, 0.5)
     assert wait_until(lambda: ctrl.axes[Axis.WHEEL].state == AxisState.FAULT, 1.0)
     t_fault = time.monotonic()
-    assert 0.09 <= t_fault - t0 <= 0.3
+    assert T(0.09) <= t_fault - t0 <= T(0.3)
     with rig.emu.lock:
         ax = ctrl.axes[Axis.WHEEL]
         assert ax.errors == ErrorFlag.WATCHDOG_TIMEOUT
@@ -367,7 +377,7 @@ def test_driver_refresh_keeps_the_watchdog_fed(active: Rig) -> None:
     drv = active.drv
     drv.enable(4, Axis.WHEEL)
     drv.set_velocity(4, Axis.WHEEL, 1.0)
-    time.sleep(0.6)  # six watchdog timeouts without a user command
+    time.sleep(T(0.6))  # six watchdog timeouts without a user command
     assert drv.module_state(4).states[1] == AxisState.ENABLED
     assert active.ctrl(4).axes[Axis.WHEEL].errors == 0
     refreshes = [f for f in active.host_frames() if isinstance(f, codec.SetControl) and f.node == 4]
@@ -394,12 +404,12 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
     drv = active.drv
     drv.enable(1, Axis.WHEEL)
     drv.set_velocity(1, Axis.WHEEL, 2.0)
-    time.sleep(0.05)
+    time.sleep(T(0.05))
     t0 = time.monotonic()
     active.emu.mute(3)
     assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
     dt = time.monotonic() - t0
-    assert 0.2 <= dt <= 0.6  # 3 heartbeat periods after the last heartbeat
+    assert T(0.2) <= dt <= T(0.6)  # 3 heartbeat periods after the last heartbeat
     lost = [e for e in drv.events() if e.kind == EventKind.HEARTBEAT_LOST]
     assert [e.node for e in lost] == [3] and "module 3 (node 3)" in lost[0].message
     assert wait_until(lambda: stop_frames(active.host_frames(t0)) == (ALL_AXES, ALL_AXES))
@@ -494,10 +504,10 @@ def test_stop_all_sends_free_then_disable_to_every_axis(active: Rig) -> None:
     assert all(isinstance(f, codec.SetControl) for f in frames[:8])  # all FREE first
     for m in NODES:
         drv.wait_axis_state(m, Axis.WHEEL, AxisState.DISABLED)
-    time.sleep(0.1)  # no refresh of the old setpoints after stop_all()
+    time.sleep(T(0.1))  # no refresh of the old setpoints after stop_all()
     assert [f for f in stops()[16:] if isinstance(f, codec.SetControl)] == []
     n = len(active.host_frames(t0))
-    time.sleep(0.1)
+    time.sleep(T(0.1))
     assert len(active.host_frames(t0)) == n
 
 
@@ -509,11 +519,13 @@ def test_recording_decodes_with_cantools(tmp_path: Path) -> None:
         r.drv.activate()
         r.drv.enable(2, Axis.WHEEL)
         r.drv.set_velocity(2, Axis.WHEEL, 1.5)
-        time.sleep(0.2)
+        time.sleep(T(0.2))
         r.drv.shutdown()
     text = log.read_text()
     lines = text.splitlines()
-    assert any(line.endswith(" T") for line in lines) and any(line.endswith(" R") for line in lines)
+    assert any(line.endswith(" T") for line in lines)
+    if INTERFACE == "virtual":  # SocketCAN flags every frame made on this host as sent (T)
+        assert any(line.endswith(" R") for line in lines)
     out = subprocess.run(
         [sys.executable, "-m", "cantools", "decode", str(ROOT / "firmware_protocol" / "swpc.dbc")],
         input=text,
@@ -535,7 +547,7 @@ def test_can_monitor_prints_nodes(capsys: pytest.CaptureFixture[str]) -> None:
     channel = new_channel()
     rc = main(
         ["can", "monitor", "--interface", INTERFACE, "--channel", channel, "--emulate",
-         "--duration", "0.7", "--interval", "0.3", "--plain"]
+         "--duration", str(T(1.2)), "--interval", str(T(0.3)), "--plain"]
     )  # fmt: skip
     assert rc == 0
     out = capsys.readouterr().out
@@ -543,5 +555,7 @@ def test_can_monitor_prints_nodes(capsys: pytest.CaptureFixture[str]) -> None:
     assert {r[0] for r in rows} == {"1", "2", "3", "4"}
     assert all(r[2] == "yes" and r[3] == "DISABLED/FREE" for r in rows)
     last = rows[-4:]
-    assert all(100.0 < float(r[8]) < 260.0 for r in last)  # feedback ~200 Hz
+    # feedback ~200 Hz: the monitor's emulated controllers run at their default 200 Hz, which
+    # a slow machine (F > 1) cannot sustain for 4 nodes: at least 100/F Hz there
+    assert all(100.0 / TIME_FACTOR < float(r[8]) < 260.0 for r in last)
     assert "error frames 0" in out and "unknown ids 0" in out
