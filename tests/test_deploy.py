@@ -13,6 +13,7 @@ import os
 import re
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -279,3 +280,34 @@ def test_lab_router_routes_each_robot_its_poses_and_denies_the_rest() -> None:
             s.close()  # type: ignore[no-untyped-call]
     assert got["robot1"] and set(got["robot1"]) == {"b'p1'"}
     assert got["other"] == []  # denied by the router's access control
+
+
+# ---------------------------------------------------------------------------- VM comparison
+def _result_doc(values: dict[str, float], std: dict[str, float] | None) -> dict[str, Any]:
+    modules = [{"id": 1, **values, "stddev": std}]
+    status = {"state": "DONE", "poses": 10, "encoder_samples": 20}
+    return {"status": status, "wall_s": 1.0, "overrides": {}, "result": {"modules": modules}}
+
+
+@pytest.mark.parametrize(
+    ("shift", "std_b", "status", "needle"),
+    [
+        (2.9e-4, 1e-4, 0, "largest |A-B| / combined std dev: 2.05 (limit 3)"),
+        (4.3e-4, 1e-4, 1, "MISMATCH module 1 x_s: |A-B| = 0.00043 > 3 x 0.000141"),
+        (0.0, None, 1, "MISMATCH module 1 x_s: std dev unknown"),
+    ],
+)
+def test_vm_calibration_comparison(
+    tmp_path: Path, shift: float, std_b: float | None, status: int, needle: str
+) -> None:
+    """deploy/vm/sim_calibration.py compare: |A - B| <= 3 sqrt(sA^2 + sB^2) per parameter."""
+    vals = {"x_s": 0.1, "y_s": 0.2, "beta": 0.3, "b": 0.02, "r": 0.05}
+    std_a = dict.fromkeys(vals, 1e-4)
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps(_result_doc(vals, std_a)))
+    std = None if std_b is None else dict.fromkeys(vals, std_b)
+    b.write_text(json.dumps(_result_doc({**vals, "x_s": vals["x_s"] - shift}, std)))
+    r = run(sys.executable, DEPLOY / "vm/sim_calibration.py", "compare", a, b)
+    assert r.returncode == status, r.stdout + r.stderr
+    assert needle in r.stdout

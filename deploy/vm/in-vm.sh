@@ -9,9 +9,11 @@
 #   candump       `candump -L vcan0` records all traffic of the run to OUT/vcan0.log
 #   cansend       a DBC Sync frame sent with cansend is seen by candump
 #   python-can    deploy/vm/can_exchange.py: sync/feedback round trips on socketcan/vcan0
-#   driver-tests  tests/test_driver*.py with SWPC_TEST_CAN_INTERFACE=socketcan,
-#                 SWPC_TEST_CAN_CHANNEL=vcan0 (when those files exist)
-#   sim-calibration  HOOK, not implemented yet (see calibration_through_simulator below)
+#   driver-tests  tests/test_driver*.py with SWPC_TEST_CAN_INTERFACE=socketcan on vcan1..vcanN
+#                 (one interface per test), SWPC_TEST_TIME_FACTOR=8 (SWPC_VM_TIME_FACTOR)
+#   sim-calibration  `swpc sim` as a separate process on vcan0 + `swpc serve` calibrating
+#                 through it over HTTP (OUT/sim-calibration.json; compared by run-in-vm.sh
+#                 with an in-process run of the same configuration on the host)
 #   can-up        deploy/can-up.sh on can0/can1, two SJA1000 (kvaser_pci) controllers that
 #                 QEMU emulates on one CAN bus; python-can exchange can0 -> can1
 #   decode        `cantools decode firmware_protocol/swpc.dbc` of OUT/vcan0.log
@@ -51,8 +53,11 @@ result() { # result NAME STATUS(PASS|FAIL|SKIP) DETAIL
     [[ "$2" == FAIL ]] && failures=$((failures + 1))
     return 0
 }
-step() { # step NAME CMD...: run CMD, PASS on status 0
+step() { # step NAME CMD...: run CMD, PASS on status 0 (SKIP if not in SWPC_VM_ONLY)
     local name=$1; shift
+    if [[ -n "${SWPC_VM_ONLY:-}" && $name != vcan-up && " $SWPC_VM_ONLY " != *" $name "* ]]; then
+        result "$name" SKIP "(not in SWPC_VM_ONLY)"; return 0
+    fi
     local t0; t0=$(now)
     echo "-- $name: $*"
     if "$@"; then result "$name" PASS "($(secs "$t0" "$(now)") s)"
@@ -86,29 +91,73 @@ step python-can "$PY" deploy/vm/can_exchange.py --interface socketcan --tx vcan0
 shopt -s nullglob
 driver_tests=(tests/test_driver*.py)
 shopt -u nullglob
+# One vcan interface per test (vcan1..vcanN, used round robin by tests/can_rig.py): no
+# frame of one test reaches the next.  The rig runs F times slower (SWPC_TEST_TIME_FACTOR:
+# feedback 200/F Hz, watchdog/heartbeat/refresh periods and all test windows x F): Python
+# runs ~12x slower under TCG than on the host, ~25x with the host's other core busy; at
+# F = 4 a loaded host still starved the 400 ms controller watchdog.
+TEST_VCANS="${SWPC_VM_TEST_VCANS:-24}"
+TIME_FACTOR="${SWPC_VM_TIME_FACTOR:-8}"
+make_test_vcans() {
+    local i names=()
+    for ((i = 1; i <= TEST_VCANS; i++)); do
+        ip link show dev "vcan$i" >/dev/null 2>&1 || ip link add dev "vcan$i" type vcan || return 1
+        ip link set dev "vcan$i" up || return 1
+        names+=("vcan$i")
+    done
+    TEST_CHANNELS="$(IFS=,; echo "${names[*]}")"
+}
 if ((${#driver_tests[@]})); then
-    step driver-tests env SWPC_TEST_CAN_INTERFACE=socketcan SWPC_TEST_CAN_CHANNEL=vcan0 \
+    make_test_vcans || result driver-tests FAIL "(could not create vcan1..vcan$TEST_VCANS)"
+    step driver-tests env SWPC_TEST_CAN_INTERFACE=socketcan \
+        SWPC_TEST_CAN_CHANNEL="$TEST_CHANNELS" SWPC_TEST_TIME_FACTOR="$TIME_FACTOR" \
         "$PY" -m pytest -q -p no:cacheprovider --junitxml="$OUT/driver-tests.xml" \
         "${driver_tests[@]}"
 else
     result driver-tests SKIP "(no tests/test_driver*.py yet)"
 fi
 
-# --- HOOK: calibration through the simulator as a separate process (NOT READY) --------------
-# To be filled in by the "simulator on vcan0 + service" issue.  Intended shape:
-#   swpc sim --interface socketcan --channel vcan0 --time-scale K ... &     (separate process)
-#   swpc serve ... / a calibration run through the service on socketcan/vcan0
-#   compare the kinematic file with the in-process (virtual bus) result; PASS if they match.
-# Keep it on vcan0 so that candump records it and the decode step below covers it.
+# --- calibration through the simulator as a separate process on vcan0 ----------------------
+# `swpc sim` (controllers + physics + mocap, its own process) on socketcan/vcan0, zenoh
+# listening on loopback; `swpc serve` on the same bus, connected to it, calibrating over
+# HTTP (deploy/vm/sim_calibration.py).  Both run SIM_TS times real time (the VM's one
+# emulated CPU cannot run both at real time); the service's host-time windows (heartbeat
+# loss, mocap staleness) are widened to match.  candump records all of it on vcan0.  The
+# result (OUT/sim-calibration.json) is compared on the host with an in-process run of the
+# same configuration (run-in-vm.sh).
+SIM_TS="${SWPC_VM_SIM_TIME_SCALE:-0.1}"
+SIM_OVERRIDES="${SWPC_VM_SIM_OVERRIDES:-{\"protocol\": {\"sweep_deg\": 120, \"settle_time\": 1.5, \"stop_time\": 0.5}}}"
+SIM_SEED="${SWPC_VM_SIM_SEED:-1}"
 calibration_through_simulator() {
-    return 200   # 200 = not implemented
+    local ts=$SIM_TS ep=tcp/127.0.0.1:7447 port=8080 token=vm-token rc=0 sim_pid svc_pid
+    local hb stale data=/tmp/swpc-data
+    # The data dir must not be on the 9p share (OUT): SQLite there fails ("disk I/O error",
+    # no POSIX locks over 9p), which is why the service never answered /health before.
+    # /tmp is the guest's own tmpfs; the run's files are copied to OUT afterwards.
+    hb=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 0.75 / s}')     # 7.5 heartbeat periods
+    stale=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 0.75 / s}')  # 75 mocap periods
+    ip link set dev lo up || return 1                     # no network device, but loopback
+    swpc sim --interface socketcan --channel vcan0 --zenoh-listen "$ep" --time-scale "$ts" \
+        --pose-sigma-xy 0.5 --pose-sigma-yaw 0.05 --seed "$SIM_SEED" --stats-every 20 \
+        > "$OUT/sim.log" 2>&1 &
+    sim_pid=$!
+    SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL=vcan0 SWPC_ZENOH_CONNECT="[\"$ep\"]" \
+    SWPC_TIME_SCALE="$ts" SWPC_HEARTBEAT_TIMEOUT="$hb" SWPC_MOCAP_STALE_AFTER="$stale" \
+    SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
+        swpc serve > "$OUT/service.log" 2>&1 &
+    svc_pid=$!
+    echo "simulator pid $sim_pid, service pid $svc_pid, time scale $ts," \
+        "heartbeat timeout $hb s, mocap stale after $stale s"
+    "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
+        --overrides "$SIM_OVERRIDES" --out "$OUT/sim-calibration.json" \
+        --service-log "$OUT/service.log" --health-timeout 300 --timeout 1500 || rc=1
+    kill "$svc_pid" "$sim_pid" 2>/dev/null
+    wait "$svc_pid" "$sim_pid" 2>/dev/null
+    mkdir -p "$OUT/service-data" && cp -r "$data/runs" "$OUT/service-data/" 2>/dev/null
+    echo "simulator log (tail):"; tail -n 4 "$OUT/sim.log"
+    return $rc
 }
-calibration_through_simulator
-case $? in
-    0) result sim-calibration PASS "" ;;
-    200) result sim-calibration SKIP "(hook: simulator + service calibration not implemented)" ;;
-    *) result sim-calibration FAIL "" ;;
-esac
+step sim-calibration calibration_through_simulator
 
 # --- real CAN controllers (QEMU kvaser_pci / SJA1000 on one emulated bus) ---------------------
 if [[ -e /sys/class/net/can0 && -e /sys/class/net/can1 ]]; then

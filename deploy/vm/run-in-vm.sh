@@ -17,7 +17,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 CACHE="${SWPC_VM_CACHE:-$ROOT/.cache/vm}"
 OUT="$CACHE/run"
-TIMEOUT="${SWPC_VM_TIMEOUT:-900}"
+TIMEOUT="${SWPC_VM_TIMEOUT:-1800}"
 cd "$ROOT"
 
 t_setup0=$EPOCHREALTIME
@@ -28,6 +28,12 @@ t_setup1=$EPOCHREALTIME
 
 rm -rf "$OUT" && mkdir -p "$OUT"
 if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
+# The in-VM script's knobs pass through: SWPC_VM_ONLY, SWPC_VM_TIME_FACTOR,
+# SWPC_VM_SIM_TIME_SCALE, SWPC_VM_SIM_OVERRIDES, SWPC_VM_SIM_SEED, SWPC_VM_TEST_VCANS.
+for v in ONLY TIME_FACTOR SIM_TIME_SCALE SIM_OVERRIDES SIM_SEED TEST_VCANS; do
+    v="SWPC_VM_$v"
+    [[ -n "${!v:-}" ]] && cmd="$v=$(printf '%q' "${!v}") $cmd"
+done
 cmd="SWPC_VM_MPLCONFIGDIR=$SWPC_VM_MPLCONFIGDIR $cmd"
 
 export PATH="$ROOT/.venv/bin:$PATH"
@@ -57,6 +63,46 @@ status=${PIPESTATUS[0]}
 set -e
 t_end=$EPOCHREALTIME
 
+
+# The VM's calibration through the simulator process on vcan0 against an in-process run of
+# the same configuration here: `swpc serve` on its embedded simulator (python-can virtual
+# bus, same truth, seed, mocap noise, protocol overrides), driven by the same HTTP client.
+# Exit status 10 if they do not agree within 3 combined std devs.
+ref_status=0
+t_ref=$EPOCHREALTIME
+set +e
+if [[ -s "$OUT/sim-calibration.json" ]] && grep -q '"result"' "$OUT/sim-calibration.json"; then
+    ref="$OUT/in-process"
+    mkdir -p "$ref"
+    ref_ts="${SWPC_VM_REF_TIME_SCALE:-1}"
+    ref_port="${SWPC_VM_REF_PORT:-18080}"
+    overrides="$("$ROOT/.venv/bin/python" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))["overrides"]))' "$OUT/sim-calibration.json")"
+    echo "[test-vcan] in-process reference: swpc serve (embedded simulator), time scale $ref_ts"
+    SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="${SWPC_VM_SIM_SEED:-1}" SWPC_TOKEN=ref-token \
+    SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" SWPC_HEARTBEAT_TIMEOUT=3 \
+    SWPC_MOCAP_STALE_AFTER=3 "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
+    ref_pid=$!
+    "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py run \
+        --url "http://127.0.0.1:$ref_port" --token ref-token --overrides "$overrides" \
+        --out "$OUT/in-process.json" --service-log "$ref/service.log" --health-timeout 120 \
+        | sed 's/^/[in-process] /' || true
+    kill "$ref_pid" 2>/dev/null; wait "$ref_pid" 2>/dev/null || true
+    "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py compare \
+        "$OUT/sim-calibration.json" "$OUT/in-process.json" | tee "$OUT/comparison.txt" \
+        | sed 's/^/[compare] /'
+    ref_status=${PIPESTATUS[0]}
+    if ((ref_status)); then
+        echo "[test-vcan] FAIL: VM (socketcan, separate simulator) and in-process results differ"
+    else
+        echo "[test-vcan] PASS: VM (socketcan, separate simulator) and in-process results agree"
+    fi
+elif ((!$#)); then
+    echo "[test-vcan] no VM calibration result (sim-calibration failed or skipped): no comparison"
+fi
+t_end2=$EPOCHREALTIME
+((status == 0 && ref_status != 0)) && status=10
+set -e
+
 t_ready=$t_end
 [[ -s "$ready_file" ]] && t_ready="$(cat "$ready_file")"
 fmt() { awk -v a="$1" -v b="$2" 'BEGIN {printf "%.1f", b - a}'; }
@@ -64,7 +110,8 @@ fmt() { awk -v a="$1" -v b="$2" 'BEGIN {printf "%.1f", b - a}'; }
     echo "set-up (deploy/vm/setup.sh): $(fmt "$t_setup0" "$t_setup1") s"
     echo "VM boot (vng start -> in-VM script running): $(fmt "$t_boot0" "$t_ready") s"
     echo "tests in VM + shutdown: $(fmt "$t_ready" "$t_end") s"
-    echo "total: $(fmt "$t_setup0" "$t_end") s"
+    echo "in-process reference calibration + comparison (host): $(fmt "$t_ref" "$t_end2") s"
+    echo "total: $(fmt "$t_setup0" "$t_end2") s"
     echo "exit status: $status"
 } | sed 's/^/[test-vcan] /' | tee "$OUT/timing.txt"
 [[ $status -eq 124 ]] && echo "[test-vcan] error: timed out after $TIMEOUT s" >&2
