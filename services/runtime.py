@@ -100,7 +100,11 @@ class Runtime:
                 bitrate=s.can_bitrate,
                 modules=dict(self.config.nodes or {}),
                 watchdog_timeout_ms=watchdog_ms,
-                refresh_period_s=min(0.02, watchdog_ms / 4000.0 / s.time_scale),
+                # 20 ms of robot time (longer in host time when the simulator runs slower
+                # than real time, e.g. under emulation: fewer frames for it to process)
+                refresh_period_s=min(
+                    0.02 / min(1.0, s.time_scale), watchdog_ms / 4000.0 / s.time_scale
+                ),
                 heartbeat_loss_periods=max(1, math.ceil(s.heartbeat_timeout_s / 0.1)),
                 max_torque=(lim.max_wheel_torque, lim.max_wheel_torque),
                 max_velocity=(lim.max_steer_velocity, lim.max_wheel_velocity),
