@@ -20,6 +20,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "services.commands_serve",
     "swpc_hw.commands.can",
     "simulators.commands_sim",
+    "swpc_hw.commands.validate",
 )
 
 

@@ -1,0 +1,276 @@
+"""``swpc validate --kinematics FILE [--compare NOMINAL_FILE]``: the square-path odometry test.
+
+Drives the seed's validation (:mod:`swpc_hw.validation`): a 2.5 m square with a 90 deg turn
+at each corner, CW and CCW, 4 runs each, ~0.2 m/s, once with the reference file (default:
+the robot config's nominal, i.e. the paper's design) and once with ``--kinematics``, each
+used for both control and odometry; prints the Table-5-like comparison and writes
+``validation.txt``, ``validation.json`` and ``validation.png`` (Figure-13-like paths).
+
+With no CAN interface it runs on the embedded simulator (like ``swpc serve``: in-process on a
+python-can ``virtual`` bus, zenoh on loopback; truth = paper Table 4, default noise), truth
+from ``sim/<robot>/truth/pose``.  With ``--can-interface`` it drives the robot on that bus and
+takes the truth from the motion-capture pose key ``mocap/<robot>/pose`` over zenoh.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from services.robot_config import RobotConfig
+    from swpc_hw.can.driver import CanDriver
+    from swpc_hw.model import RobotParams
+    from swpc_hw.validation import SquareOptions, ValidationReport
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "validate",
+        help="square-path odometry validation: nominal vs calibrated kinematics",
+        description=__doc__.split("\n\n")[1] if __doc__ else None,
+    )
+    p.add_argument("--kinematics", required=True, help="kinematic file under test")
+    p.add_argument(
+        "--compare", default="nominal",
+        help="reference kinematic file ('nominal': the robot config's nominal, default; "
+        "'none': only --kinematics)",
+    )
+    p.add_argument("--label", default="calibrated", help="name of --kinematics in the report")
+    p.add_argument("--compare-label", default="nominal", help="name of the reference")
+    p.add_argument("--runs", type=int, default=4, help="squares per direction and file (4)")
+    p.add_argument("--side", type=float, default=2.5, help="square side, m (2.5)")
+    p.add_argument("--speed", type=float, default=0.2, help="leg speed, m/s (0.2)")
+    p.add_argument("--yaw-rate", type=float, default=0.3, help="turn rate, rad/s (0.3)")
+    p.add_argument("--directions", nargs="+", choices=["cw", "ccw"], default=["cw", "ccw"])
+    p.add_argument("--out", default="swpc-validation", help="output directory")
+    p.add_argument("--robot-config", help="robot config YAML (default: the paper's robot)")
+    p.add_argument(
+        "--time-scale", type=float, default=4.0,
+        help="embedded simulator speed-up (default 4; ignored on a robot)",
+    )
+    p.add_argument("--seed", type=int, default=1, help="embedded simulator seed")
+    p.add_argument("--can-interface", help="python-can interface (unset: embedded simulator)")
+    p.add_argument("--can-channel", default="vcan0")
+    p.add_argument("--can-bitrate", type=int, default=1_000_000)
+    p.add_argument("--zenoh-mode", default="peer")
+    p.add_argument("--zenoh-listen", nargs="*", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-connect", nargs="*", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", help="zenoh JSON5 config file")
+    p.add_argument(
+        "--truth-key",
+        help="zenoh key of the true pose (default: sim/<robot>/truth/pose embedded, "
+        "mocap/<robot>/pose on a robot)",
+    )
+    p.set_defaults(func=run)
+
+
+# --------------------------------------------------------------------------- shared set-up
+
+EMBEDDED_FEEDBACK_HZ = 100
+"""Feedback rate against the in-process simulator: at a time scale of 4 the host handles
+800 feedback cycles per second, which with 200 Hz starves the simulator thread of the GIL
+(it lags, and late commands make the casters slip)."""
+
+
+def driver_config_for(
+    config: RobotConfig, *, interface: str, channel: str, bitrate: int, time_scale: float,
+    simulated: bool,
+    feedback_rate_hz: int = 200,
+) -> Any:
+    """The CAN driver settings the service uses (``services.runtime``), for this robot."""
+    from swpc_hw.can.config import CanConfig
+
+    lim = config.limits
+    watchdog_ms = lim.watchdog_ms
+    if simulated:  # >= 1 s of host time against a (time-scaled, host-sharing) simulator
+        watchdog_ms = max(watchdog_ms, math.ceil(1000.0 * time_scale))
+    return CanConfig(
+        interface=interface,
+        channel=channel,
+        bitrate=bitrate,
+        modules=dict(config.nodes or {}),
+        watchdog_timeout_ms=watchdog_ms,
+        refresh_period_s=min(0.02, watchdog_ms / 4000.0 / time_scale),
+        heartbeat_loss_periods=10 if simulated else 3,
+        max_torque=(lim.max_wheel_torque, lim.max_wheel_torque),
+        max_velocity=(lim.max_steer_velocity, lim.max_wheel_velocity),
+        activate_timeout_s=5.0 if simulated else 1.0,
+        feedback_rate_hz=feedback_rate_hz,
+    )
+
+
+def drive_files(
+    driver: CanDriver,
+    session: Any,
+    truth_key: str,
+    files: Sequence[tuple[str, RobotParams]],
+    options: SquareOptions,
+    *,
+    time_scale: float = 1.0,
+    mocap_truth: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> ValidationReport:
+    """Home, then run :func:`swpc_hw.validation.validate` on a configured driver."""
+    from swpc_hw.validation import (
+        SquareDrive,
+        ZenohTruth,
+        mocap_decoder,
+        prepare_driver,
+        sim_truth_decoder,
+        validate,
+    )
+
+    truth = ZenohTruth(session, truth_key, mocap_decoder if mocap_truth else sim_truth_decoder)
+    try:
+        truth.wait_first(10.0)
+        try:
+            prepare_driver(driver, timeout=10.0)
+            drive = SquareDrive(
+                driver, truth, files[0][1], options, time_scale=time_scale, log=log
+            )
+            return validate(drive, files)
+        finally:
+            with contextlib.suppress(Exception):
+                driver.stop_all()
+    finally:
+        truth.close()
+
+
+def run_embedded(
+    files: Sequence[tuple[str, RobotParams]],
+    options: SquareOptions,
+    *,
+    time_scale: float = 4.0,
+    seed: int = 1,
+    config: RobotConfig | None = None,
+    log: Callable[[str], None] | None = None,
+) -> ValidationReport:
+    """The drive against the embedded simulator (truth: paper Table 4, default noise)."""
+    from services.robot_config import RobotConfig
+    from simulators.embedded import embedded_simulator
+    from simulators.mocap_sim import truth_pose_key
+    from swpc_hw.can.driver import CanDriver
+    from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+
+    cfg = config or RobotConfig()
+    channel = f"swpc-validate-{uuid.uuid4().hex[:8]}"
+    ep = free_tcp_endpoint()
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(0.001)  # as the service: command/feedback threads hand off fast
+    session = open_session(listen=[ep])
+    sim = None
+    driver = None
+    try:
+        sim = embedded_simulator(
+            config=cfg, channel=channel, zenoh_endpoints=[ep], time_scale=time_scale, seed=seed
+        )
+        driver = CanDriver(
+            driver_config_for(cfg, interface="virtual", channel=channel, bitrate=1_000_000,
+                              time_scale=time_scale, simulated=True,
+                              feedback_rate_hz=EMBEDDED_FEEDBACK_HZ)
+        )
+        driver.configure()
+        sim.start()
+        report = drive_files(
+            driver, session, truth_pose_key(cfg.robot), files, options,
+            time_scale=time_scale, log=log,
+        )
+        if sim.error is not None:
+            raise RuntimeError(f"simulator failed: {sim.error!r}")
+        return report
+    finally:
+        if driver is not None:
+            driver.shutdown()
+        if sim is not None:
+            sim.stop()
+        with contextlib.suppress(Exception):
+            session.close()
+        sys.setswitchinterval(switch)
+
+
+# --------------------------------------------------------------------------- command
+
+
+def _files(args: argparse.Namespace, config: RobotConfig) -> list[tuple[str, RobotParams]]:
+    from swpc_hw.kinematic_file import load_robot
+
+    files: list[tuple[str, RobotParams]] = []
+    if args.compare == "nominal":
+        files.append((args.compare_label, config.nominal))
+    elif args.compare != "none":
+        files.append((args.compare_label, load_robot(args.compare)))
+    files.append((args.label, load_robot(args.kinematics)))
+    return files
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from services.robot_config import load_robot_config
+    from swpc_hw.validation import SquareOptions
+
+    config = load_robot_config(args.robot_config)
+    files = _files(args, config)
+    lim = config.limits
+    options = SquareOptions(
+        side=args.side, speed=args.speed, yaw_rate=args.yaw_rate, runs=args.runs,
+        directions=tuple(args.directions),
+        max_wheel_rate=min(16.0, 0.8 * lim.max_wheel_velocity),
+        max_steer_rate=min(0.8, 0.8 * lim.max_steer_velocity),
+    )
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+
+    if args.can_interface is None:
+        log(f"swpc validate: embedded simulator (time scale {args.time_scale:g}, "
+            f"seed {args.seed}); files: {', '.join(lab for lab, _ in files)}")
+        report = run_embedded(
+            files, options, time_scale=args.time_scale, seed=args.seed, config=config, log=log
+        )
+    else:
+        from swpc_hw.can.driver import CanDriver
+        from swpc_hw.zenoh_session import open_session
+
+        session = open_session(
+            mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
+            config_file=args.zenoh_config,
+        )
+        driver = CanDriver(
+            driver_config_for(config, interface=args.can_interface, channel=args.can_channel,
+                              bitrate=args.can_bitrate, time_scale=1.0, simulated=False)
+        )
+        try:
+            driver.configure()
+            report = drive_files(
+                driver, session, args.truth_key or config.pose_key, files, options,
+                mocap_truth=args.truth_key is None or args.truth_key.startswith("mocap/"),
+                log=log,
+            )
+        finally:
+            driver.shutdown()
+            with contextlib.suppress(Exception):
+                session.close()
+    report.files = {
+        lab: (args.kinematics if lab == args.label else str(args.compare)) for lab, _ in files
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = report.table()
+    (out / "validation.txt").write_text(table + "\n", encoding="utf-8")
+    (out / "validation.json").write_text(
+        json.dumps(report.to_document(), indent=2) + "\n", encoding="utf-8"
+    )
+    report.plot(str(out / "validation.png"))
+    print()
+    print(table)
+    print(f"\nwrote {out / 'validation.txt'}, {out / 'validation.json'}, "
+          f"{out / 'validation.png'}")
+    return 0
