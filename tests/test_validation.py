@@ -196,15 +196,16 @@ def test_driver_odometry_aligns_unsynchronised_modules_on_the_counter_clock() ->
 
 
 def test_square_drive_on_the_embedded_simulator_calibrated_beats_nominal_by_95_percent() -> None:
-    """The short variant of ``swpc validate``: a 0.4 m square each way, 1 run each, at time
-    scale 4, through CAN and zenoh; errors of the calibrated file are >= 95 % smaller."""
+    """The short variant of ``swpc validate``: a 0.3 m square each way, 1 run each, at time
+    scale 2 (as the command; lag spikes at 4 on a loaded host make casters slip), through
+    CAN and zenoh; errors of the calibrated file are >= 95 % smaller."""
     from swpc_hw.commands.validate import run_embedded
 
     calibrated = load_robot(DEMO_FILE) if DEMO_FILE.exists() else PAPER_CALIBRATED
-    opt = SquareOptions(side=0.4, runs=1, yaw_rate=0.5, settle=0.4)
+    opt = SquareOptions(side=0.3, runs=1, yaw_rate=0.6, yaw_accel=0.8, settle=0.4)
     lines: list[str] = []
     rep = run_embedded(
-        [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, time_scale=4.0,
+        [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, time_scale=2.0,
         log=lines.append,
     )
     print("\n".join(lines))
@@ -215,7 +216,7 @@ def test_square_drive_on_the_embedded_simulator_calibrated_beats_nominal_by_95_p
         assert r.true_path.shape[0] > 50 and r.odometry_path.shape[0] > 50
         # the robot really drove the square (truth), not just the odometry
         span = np.ptp(r.true_path, axis=0)
-        assert np.all(span > 0.35)
+        assert np.all(span > 0.27)
     assert s["nominal"]["all"]["position"] > 2e-3  # the nominal file is measurably wrong
     assert s["nominal"]["all"]["heading"] > math.radians(0.3)
     red = rep.reduction()
