@@ -790,29 +790,15 @@ class CanDriver:
             return False
         try:
             dec = codec.parse(msg.arbitration_id, bytes(msg.data))
-        except codec.FrameLengthError as exc:
-            st.bad_dlc += 1
-            events.append(
-                (
-                    EventKind.BAD_DLC,
-                    Severity.WARNING,
-                    f"{_where(nd.module, nd.node)}: {exc}",
-                    nd,
-                    None,
-                )
-            )
-            return False
         except codec.ProtocolError as exc:
-            st.decode_errors += 1
-            events.append(
-                (
-                    EventKind.DECODE_ERROR,
-                    Severity.WARNING,
-                    f"{_where(nd.module, nd.node)}: {exc}",
-                    nd,
-                    None,
-                )
-            )
+            if isinstance(exc, codec.FrameLengthError):
+                st.bad_dlc += 1
+                kind = EventKind.BAD_DLC
+            else:
+                st.decode_errors += 1
+                kind = EventKind.DECODE_ERROR
+            where = _where(nd.module, nd.node)
+            events.append((kind, Severity.WARNING, f"{where}: {exc}", nd, None))
             return False
         if isinstance(dec, codec.FeedbackPosition):
             nd.feedback_frames += 1
