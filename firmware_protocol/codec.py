@@ -205,18 +205,26 @@ def _messages_by_id() -> dict[int, Message]:
     return {m.frame_id: m for m in database().messages}
 
 
+@functools.cache
 def message_for(node: int, command: Command) -> Message:
-    """The DBC message of ``command`` for ``node``."""
+    """The DBC message of ``command`` for ``node`` (cached; errors are not)."""
     try:
         return _messages_by_id()[frame_id(node, command)]
     except KeyError:
         raise UnknownFrameError(f"no DBC message for node {node} command {command.name}") from None
 
 
+@functools.cache
+def _signal_format(name: str, command: Command) -> tuple[float, int]:
+    """``(scale, length)`` of a signal (identical in every node's copy of the message)."""
+    sig = message_for(1, command).get_signal_by_name(name)
+    return float(sig.scale), int(sig.length)
+
+
 def signal_span(name: str, command: Command = Command.FEEDBACK_POSITION) -> float:
     """Physical span ``2**length * scale`` of a signal (the period of its wrap-around)."""
-    sig = message_for(1, command).get_signal_by_name(name)
-    return float(2**sig.length * sig.scale)
+    scale, length = _signal_format(name, command)
+    return float(2**length * scale)
 
 
 def wrap(value: float, name: str, command: Command = Command.FEEDBACK_POSITION) -> float:
@@ -225,11 +233,11 @@ def wrap(value: float, name: str, command: Command = Command.FEEDBACK_POSITION) 
     ``raw = round(value / scale)``; ``raw`` is reduced modulo ``2**length`` into
     ``[-2**(length-1), 2**(length-1))``; returns ``raw * scale``.
     """
-    sig = message_for(1, command).get_signal_by_name(name)
-    raw = round(value / sig.scale)
-    half = 1 << (sig.length - 1)
-    raw = (raw + half) % (1 << sig.length) - half
-    return float(raw * sig.scale)
+    scale, length = _signal_format(name, command)
+    raw = round(value / scale)
+    half = 1 << (length - 1)
+    raw = (raw + half) % (1 << length) - half
+    return float(raw * scale)
 
 
 def unwrap(previous: float, current: float, span: float) -> float:
@@ -241,10 +249,50 @@ def unwrap(previous: float, current: float, span: float) -> float:
     return current + span * round((previous - current) / span)
 
 
+@functools.cache
+def _range_checks(frame_id: int) -> tuple[frozenset[str], tuple[_RangeCheck, ...]]:
+    """Per message: its signal names and the physical range of every signal, as cantools'
+    strict encoding checks them (``minimum - |scale| 1e-6 <= value <= maximum + ...``)."""
+    msg = _messages_by_id()[frame_id]
+    checks = []
+    for sig in msg.signals:
+        tol = abs(sig.conversion.scale) * 1e-6
+        lo = -math.inf if sig.minimum is None else sig.minimum - tol
+        hi = math.inf if sig.maximum is None else sig.maximum + tol
+        checks.append(_RangeCheck(str(sig.name), lo, hi, bool(sig.conversion.choices)))
+    return frozenset(c.name for c in checks), tuple(checks)
+
+
+@dataclass(frozen=True)
+class _RangeCheck:
+    name: str
+    low: float
+    high: float
+    has_choices: bool
+
+
+def _fast_valid(frame_id: int, values: dict[str, Any]) -> bool:
+    """True if ``values`` certainly passes cantools' strict checks: every signal present,
+    numeric and within its range (signals with value tables are left to cantools)."""
+    names, checks = _range_checks(frame_id)
+    if values.keys() != names:
+        return False
+    for c in checks:
+        v = values[c.name]
+        if c.has_choices or type(v) not in (int, float) or not c.low <= v <= c.high:
+            return False
+    return True
+
+
 def _encode(node: int, command: Command, values: dict[str, Any]) -> Frame:
     msg = message_for(node, command)
     try:
-        data = msg.encode(values, scaling=True, padding=False, strict=True)
+        if _fast_valid(msg.frame_id, values):
+            # the same bytes as strict encoding, without its per-signal lookups (the
+            # simulator sends thousands of feedback frames per second)
+            data = msg.encode(values, scaling=True, padding=False, strict=False)
+        else:  # strict: cantools names the offending signal
+            data = msg.encode(values, scaling=True, padding=False, strict=True)
     except cantools.database.EncodeError as exc:
         signal = _signal_in(str(exc), msg)
         raise SignalRangeError(f"node {node} {msg.name}: {exc}", signal) from exc

@@ -467,3 +467,49 @@ def test_generated_c_is_current_and_compiles_strict(tmp_path: Path) -> None:
     assert lines[1] == py_fp.data.hex()
     assert lines[2] == "e80318fc32f0ff09"
     assert lines[3:] == ["1", "3", "3.5000"]
+
+
+def test_fast_encode_path_gives_the_strict_bytes_and_errors() -> None:
+    """_encode skips cantools' strict per-signal checks when its own precomputed range
+    check passes: for every message and random in-range values the bytes are identical
+    to strict encoding, and edge / out-of-range values still raise the strict error."""
+    import random
+
+    rng = random.Random(7)
+    db = codec.database()
+    checked = 0
+    for msg in db.messages:
+        if msg.is_multiplexed():  # a subset of signals per mode: always the strict path
+            continue
+        _, checks = codec._range_checks(msg.frame_id)
+        for _ in range(30):
+            values: dict[str, float | int] = {}
+            for c, sig in zip(checks, msg.signals, strict=True):
+                lo = max(c.low, -1e6)
+                hi = min(c.high, 1e6)
+                v = rng.uniform(lo, hi)
+                if sig.is_float is False and sig.scale == 1 and sig.offset == 0:
+                    v = round(min(max(v, math.ceil(lo)), math.floor(hi)))
+                values[c.name] = v
+            assert codec._fast_valid(msg.frame_id, values) or any(c.has_choices for c in checks)
+            strict = msg.encode(values, scaling=True, padding=False, strict=True)
+            node, command = codec.split_id(msg.frame_id)
+            assert codec._encode(node, codec.Command(command), values).data == bytes(strict)
+            checked += 1
+        # just beyond the top of the first ranged signal: the strict error, naming it
+        ranged = [c for c in checks if math.isfinite(c.high) and not c.has_choices]
+        if ranged:
+            c = ranged[0]
+            bad = {
+                k: (v if k != c.name else c.high + max(1.0, abs(c.high) * 1e-3))
+                for k, v in values.items()
+            }
+            assert not codec._fast_valid(msg.frame_id, bad)
+            node, command = codec.split_id(msg.frame_id)
+            with pytest.raises(codec.SignalRangeError) as info:
+                codec._encode(node, codec.Command(command), bad)
+            assert info.value.signal == c.name
+    assert checked >= 30 * 8 * 9
+    # the simulator's hot frames take the fast path
+    fid = codec.frame_id(3, Command.FEEDBACK_POSITION)
+    assert codec._fast_valid(fid, {"SteerPosition": 0.5, "WheelPosition": -2.0, "Counter": 3})
