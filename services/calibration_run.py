@@ -401,20 +401,24 @@ class CalibrationRun:
         yaw_prev = latest.yaw
         yaw_acc = 0.0
         acc_at_start = 0.0
-        rate_t, rate_acc = latest.t_source, 0.0
+        rate_t, rate_acc = latest.t_host, 0.0
         while True:
             self._check(True, deadline)
             p = self.mocap.latest()
             assert p is not None
             yaw_acc += float(wrap_angle(p.yaw - yaw_prev))
             yaw_prev = p.yaw
-            if p.t_source - rate_t >= 0.2:  # yaw rate over 0.2 s of mocap (robot) time
-                rate = (yaw_acc - rate_acc) / (p.t_source - rate_t)
+            # yaw rate over 0.2 s of robot time: the poses' host times (the mocap's own
+            # spacing), times the time scale of a simulator (its nominal one: when the
+            # simulator cannot keep up, this reads low)
+            robot_dt = (p.t_host - rate_t) * self.time_scale
+            if robot_dt >= 0.2:
+                rate = (yaw_acc - rate_acc) / robot_dt
                 if abs(rate) > limits.max_yaw_rate:
                     raise RunFailedError(
                         f"yaw rate {rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
                     )
-                rate_t, rate_acc = p.t_source, yaw_acc
+                rate_t, rate_acc = p.t_host, yaw_acc
             now = time.monotonic()
             if window_start is None and now - t_spin >= self._robot_seconds(proto.settle_time):
                 window_start, acc_at_start = p.t_host, yaw_acc

@@ -9,13 +9,13 @@ and out-of-order samples (source time older than the last accepted one).
 Clock mapping: the mocap clock and the host clock differ by an offset plus a positive
 transport delay; each sample's host time is ``t_source / s + offset`` with the lower
 envelope ``offset = min(t_recv - t_source / s)`` over the last ``sync_window`` seconds
-(the classic one-way clock estimate, as a sliding minimum so that it follows drift —
-e.g. a simulator that slows its clock when the machine cannot keep up; ``s`` is the
-time scale of a simulator running faster than real time, 1 for a real mocap).  Recorded
-poses thus keep the mocap's exact spacing on the host clock.  A sliding minimum follows
-an offset, not a change of *rate*: for a source whose clock rate varies (a simulator
-that slows its clock when the machine cannot keep up) use ``clock="receive"``, which
-takes the host receive time itself (transport jitter, but no drift).
+(the classic one-way clock estimate, as a sliding minimum so that it follows drift;
+``s`` is the rate of a source clock that runs faster than real time, 1 for a real mocap
+and for ``swpc sim``, which stamps its poses with the host clock at sampling).  Recorded
+poses thus keep the mocap's exact spacing on the host clock, free of transport jitter.
+A sliding minimum follows an offset, not a change of *rate*: for a source whose clock
+rate varies (a simulator stamping its own slowing clock) use ``clock_mode="receive"``,
+which takes the host receive time itself (transport jitter, but no drift).
 
 A stream whose newest accepted sample is older than ``stale_after`` seconds (host
 time) is *stale*; during motion the state machine treats that as a fault.
@@ -45,7 +45,7 @@ COLUMNS = ("t_source", "t_recv", "t_host", "x", "y", "yaw")
 
 class LatestPose(NamedTuple):
     t_source: float
-    """mocap clock (robot time for a simulator)"""
+    """the mocap's own clock (the host's wall clock for ``swpc sim``)"""
     t_host: float
     x: float
     y: float

@@ -78,7 +78,17 @@ def register(sub: Any) -> None:
     )
     add_noise_arguments(p)
     p.add_argument("--latency", type=float, default=0.0, help="mocap latency, ms")
-    p.add_argument("--clock-offset", type=float, default=0.0, help="mocap clock - sim clock, s")
+    p.add_argument(
+        "--mocap-clock",
+        choices=["host", "sim"],
+        default="host",
+        help="pose time stamps: the host's wall clock at sampling, as a real mocap's clock "
+        "(host), or the simulated time (sim; the service then needs SWPC_MOCAP_CLOCK=receive "
+        "if the time scale is not 1)",
+    )
+    p.add_argument(
+        "--clock-offset", type=float, default=0.0, help="mocap clock - its base clock, s"
+    )
     p.add_argument("--bus-error-rate", type=float, default=0.0, help="injected bus errors /s")
     p.add_argument(
         "--mute",
@@ -138,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         ),
         truth_rate=args.truth_rate,
         bus_error_rate=args.bus_error_rate,
+        mocap_clock=args.mocap_clock,
         seed=args.seed,
     )
     listen = args.zenoh_listen or ([] if args.zenoh_connect else [DEFAULT_ENDPOINT])

@@ -8,7 +8,9 @@ Mocap (what the service uses): poses of R in W on ``mocap/<robot>/pose`` at ``ra
   rosbags, byte for byte what zenoh-bridge-ros2dds forwards from a ROS 2 mocap driver.
 
 Samples are taken at simulated times ``k / rate`` and stamped with the *mocap clock*
-``t_mocap = t_sim + clock_offset``.  Options model a real system (the generator's noise
+``t_mocap = stamp + clock_offset``, where ``stamp`` is the simulated time of the sample
+unless the simulator gives another (:class:`simulators.sim.Simulator` gives the host's wall
+clock at sampling, see its ``mocap_clock``).  Options model a real system (the generator's noise
 options, :class:`simulators.datagen.ExperimentOptions`, are the template): Gaussian noise
 on x, y and yaw, dropouts (a sample is not sent), outliers (a jump of ``outlier_magnitude``
 in a random direction and ``outlier_magnitude / 0.25`` rad of yaw), and a transport
@@ -160,8 +162,9 @@ class MocapSim:
             self._k_next += 1
         return out
 
-    def sample(self, t: float, pose: FloatArray) -> None:
-        """Take the sample of simulated time ``t`` from the true pose ``(x, y, yaw)``."""
+    def sample(self, t: float, pose: FloatArray, stamp: float | None = None) -> None:
+        """Take the sample of simulated time ``t`` from the true pose ``(x, y, yaw)``,
+        stamped ``stamp`` (default ``t``) plus the clock offset."""
         self.counters.sampled += 1
         meas, outlier = corrupt_pose(self._rng, pose, self.options)
         if meas is None:
@@ -169,7 +172,7 @@ class MocapSim:
             return
         self.counters.outliers += int(outlier)
         ps = PoseSample.planar(
-            t + self.options.clock_offset,
+            (t if stamp is None else stamp) + self.options.clock_offset,
             float(meas[0]),
             float(meas[1]),
             float(meas[2]),

@@ -38,13 +38,20 @@ Time scale
 ----------
 With ``time_scale = s`` the simulated clock runs ``s`` times faster than wall time:
 ``t_sim = start_time + s (t_wall - t_wall_at_start)``.  Everything is in simulated time:
-feedback rate, heartbeat period, watchdog timeout, homing duration, mocap rate, latency
-and the poses' source timestamps.  A client matches it by dividing its own periods by
-``s`` (e.g. the driver's command refresh period must be shorter than ``watchdog_ms / s``
-of wall time, or the watchdog raised with ``SetWatchdog``) and by reading pose times as
-``t_source / s`` on its own clock (:class:`services.mocap_ingest.MocapIngest` takes
-``time_scale``).  If the machine cannot keep up, the simulated clock slows down rather
-than bursting (counted in ``overruns``; :meth:`Simulator.stats` gives the achieved scale).
+feedback rate, heartbeat period, watchdog timeout, homing duration, mocap rate and
+latency.  A client matches it by dividing its own periods by ``s`` (e.g. the driver's
+command refresh period must be shorter than ``watchdog_ms / s`` of wall time, or the
+watchdog raised with ``SetWatchdog``).  If the machine cannot keep up, the simulated clock
+slows down rather than bursting (counted in ``overruns``; :meth:`Simulator.stats` gives
+the achieved scale).
+
+Pose time stamps (``mocap_clock``): ``"host"`` (default) stamps each pose with the host's
+wall clock (``time.time()``) at the tick that samples it, ``t_wall_tick - (t_tick -
+t_sample) / s`` (plus the mocap clock offset): the CAN frames of that tick carry the same
+time in their bus time stamps, and to a client the simulated mocap is a real one, a clock
+at real rate with a transport delay (:class:`services.mocap_ingest.MocapIngest` in its
+``source`` mode).  ``"sim"`` stamps the simulated time itself (deterministic; a client
+divides it by ``s``, and must take receive times when the simulator slows its clock).
 
 Fault injection: :meth:`Simulator.mute` (heartbeat loss: the node sends nothing),
 :meth:`Simulator.inject_fault` (a latched hardware error and its FaultReport),
@@ -117,11 +124,15 @@ class SimOptions:
     bus_error_rate: float = 0.0
     max_lag: float = 0.05
     """Wall seconds the simulation may fall behind before its clock is slowed down."""
+    mocap_clock: str = "host"
+    """Pose time stamps: ``"host"`` wall clock at sampling, or ``"sim"`` simulated time."""
     seed: int = 0
 
     def __post_init__(self) -> None:
         if not self.time_scale > 0.0:
             raise ValueError("time_scale must be > 0")
+        if self.mocap_clock not in ("host", "sim"):
+            raise ValueError(f"mocap_clock must be 'host' or 'sim', not {self.mocap_clock!r}")
         if not 0.0 < self.physics_dt <= 0.01:
             raise ValueError("physics_dt must be in (0, 0.01] s")
 
@@ -583,9 +594,12 @@ class Simulator:
             s.torque = s.friction * s.velocity if d.steer is SteerDrive.RATE else 0.0
 
     def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
+        host = self.options.mocap_clock == "host"
+        wall = time.time()  # this tick's moment: its feedback frames go out right after
         for tp in self.mocap.due_times(t0, t1):
             pose = se2_step(pose0, twist[:2], float(twist[2]), tp - t0) if tp > t0 else pose0
-            self.mocap.sample(tp, pose)
+            stamp = wall - (t1 - tp) / self.options.time_scale if host else tp
+            self.mocap.sample(tp, pose, stamp=stamp)
         self.mocap.flush(t1)
 
     def _transmit(self, frames: Iterable[Frame]) -> None:

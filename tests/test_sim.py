@@ -97,6 +97,8 @@ def rig(**opts: Any) -> Iterator[Rig]:
     client = open_session(connect=[ep])
     bus = can.Bus(interface="virtual", channel=channel)
     opts.setdefault("start_time", 0.0)
+    # these tests read pose times as simulated time (test_host_mocap_clock_... the default)
+    opts.setdefault("mocap_clock", "sim")
     sim = Simulator(bus=bus, session=sim_session, options=SimOptions(**opts))
     log = PoseLog()
     sub = client.declare_subscriber(f"mocap/{sim.options.robot}/pose", log.on_sample)
@@ -131,6 +133,31 @@ def fixed_point(poses: np.ndarray) -> tuple[np.ndarray, float]:
 
 def slope(t: np.ndarray, y: np.ndarray) -> float:
     return float(np.polyfit(t - t.mean(), y, 1)[0])
+
+
+def test_host_mocap_clock_stamps_the_wall_time_of_sampling() -> None:
+    """The default pose clock: the host's wall clock at the tick that samples the pose, so
+    a client sees a mocap at real rate with a transport delay, whatever the time scale."""
+    scale = 2.0
+    with rig(time_scale=scale, mocap=MocapOptions(rate=100), mocap_clock="host") as r:
+        wall_minus_mono = time.time() - time.monotonic()
+        t0 = r.poses.last_t()
+        deadline = time.monotonic() + 10.0
+        while r.poses.last_t() < t0 + 1.5 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        st = r.sim.stats()
+    P = r.poses.array(t0)
+    assert P.shape[0] > 200
+    delay = P[:, 4] + wall_minus_mono - P[:, 0]  # receive (wall) - stamp
+    print(f"stamp -> receive: median {np.median(delay) * 1e3:.2f} ms, max {delay.max() * 1e3:.2f}")
+    assert delay.min() > -1e-3  # never stamped after it arrived (clocks read 1 ms apart)
+    assert np.median(delay) < 0.02
+    # 100 Hz of simulated time = 200 Hz of wall time at scale 2 (lower if the host lags)
+    rate = (P.shape[0] - 1) / (P[-1, 0] - P[0, 0])
+    assert rate == pytest.approx(100 * st.achieved_time_scale, rel=0.1)
+    assert SimOptions(mocap_clock="sim").mocap_clock == "sim"
+    with pytest.raises(ValueError, match="mocap_clock"):
+        SimOptions(mocap_clock="gps")
 
 
 # --------------------------------------------------------------------------- 1 and 2
