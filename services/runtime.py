@@ -61,8 +61,7 @@ class Runtime:
         self.mocap = MocapIngest(
             encoding=settings.pose_encoding,
             stale_after=settings.mocap_stale_s,
-            time_scale=settings.time_scale,
-            clock_mode=settings.mocap_clock or ("receive" if settings.simulated else "source"),
+            clock_mode=settings.mocap_clock,
         )
         self.started = time.time()
         self._closed = False
@@ -99,6 +98,7 @@ class Runtime:
                 channel=channel,
                 bitrate=s.can_bitrate,
                 modules=dict(self.config.nodes or {}),
+                feedback_rate_hz=s.feedback_rate,
                 watchdog_timeout_ms=watchdog_ms,
                 # 20 ms of robot time (longer in host time when the simulator runs slower
                 # than real time, e.g. under emulation: fewer frames for it to process)
