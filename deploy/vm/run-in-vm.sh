@@ -20,6 +20,7 @@ OUT="$CACHE/run"
 TIMEOUT="${SWPC_VM_TIMEOUT:-1800}"
 cd "$ROOT"
 
+fmt() { awk -v a="$1" -v b="$2" 'BEGIN {printf "%.1f", b - a}'; }
 t_setup0=$EPOCHREALTIME
 envfile="$(bash deploy/vm/setup.sh | tail -n1)"
 # shellcheck disable=SC1090
@@ -28,9 +29,19 @@ t_setup1=$EPOCHREALTIME
 
 rm -rf "$OUT" && mkdir -p "$OUT"
 if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
+# The calibration through the simulator: the same configuration in the VM (socketcan,
+# separate simulator process) and in the in-process reference below.  A short protocol
+# (4 modules x 2 angles, 45 deg sweeps: ~31 s of robot time) at 100 Hz encoder feedback
+# and SIM_TIME_SCALE times real time: Python runs ~20x slower under TCG than here.
+: "${SWPC_VM_CPUS:=2}"
+: "${SWPC_VM_SIM_TIME_SCALE:=0.3}"
+: "${SWPC_VM_SIM_SEED:=1}"
+: "${SWPC_VM_FEEDBACK_RATE:=100}"
+: "${SWPC_VM_SIM_OVERRIDES:={\"protocol\": {\"sweep_deg\": 45, \"settle_time\": 1.0, \"stop_time\": 0.5, \"align_time\": 0.5, \"resteer_time\": 1.5\}\}}"
 # The in-VM script's knobs pass through: SWPC_VM_ONLY, SWPC_VM_TIME_FACTOR,
-# SWPC_VM_SIM_TIME_SCALE, SWPC_VM_SIM_OVERRIDES, SWPC_VM_SIM_SEED, SWPC_VM_TEST_VCANS.
-for v in ONLY TIME_FACTOR SIM_TIME_SCALE SIM_OVERRIDES SIM_SEED TEST_VCANS; do
+# SWPC_VM_SIM_TIME_SCALE, SWPC_VM_SIM_OVERRIDES, SWPC_VM_SIM_SEED, SWPC_VM_FEEDBACK_RATE,
+# SWPC_VM_TEST_VCANS.
+for v in ONLY TIME_FACTOR SIM_TIME_SCALE SIM_OVERRIDES SIM_SEED FEEDBACK_RATE TEST_VCANS; do
     v="SWPC_VM_$v"
     [[ -n "${!v:-}" ]] && cmd="$v=$(printf '%q' "${!v}") $cmd"
 done
@@ -42,7 +53,7 @@ export PATH="$ROOT/.venv/bin:$PATH"
 # would otherwise go to the host again).
 pybase="$("$ROOT/.venv/bin/python" -c 'import sys; print(sys.base_prefix)')"
 vng_args=(
-    -r "$SWPC_VM_KIMG" --disable-kvm --force-9p --cpus 1 --memory 1G
+    -r "$SWPC_VM_KIMG" --disable-kvm --force-9p --cpus "$SWPC_VM_CPUS" --memory 1G
     --rwdir="$OUT" --rodir="$ROOT/.venv"
     --qemu-opts="-object can-bus,id=canbus0 -device kvaser_pci,canbus=canbus0 -device kvaser_pci,canbus=canbus0"
     --exec "$cmd"
@@ -64,10 +75,50 @@ set -e
 t_end=$EPOCHREALTIME
 
 
+# candump's recording of vcan0 in the VM, decoded here by `cantools decode` with our DBC:
+# every frame must decode, and the run's message types must all be there.
+decode_status=0
+t_dec=$EPOCHREALTIME
+if [[ -n "${SWPC_VM_ONLY:-}" ]]; then  # a partial run: every recorded frame must decode
+    [[ -f "$OUT/vcan0.log" ]] || : > "$OUT/vcan0.log"
+    "$ROOT/.venv/bin/cantools" decode --single-line firmware_protocol/swpc.dbc \
+        < "$OUT/vcan0.log" > "$OUT/vcan0.decoded.txt" || decode_status=1
+    if grep -q 'Unknown frame id' "$OUT/vcan0.decoded.txt"; then decode_status=1; fi
+    echo "[test-vcan] decode (partial run): $(wc -l < "$OUT/vcan0.log") frames, status $decode_status"
+elif [[ -s "$OUT/vcan0.log" ]]; then
+    "$ROOT/.venv/bin/cantools" decode --single-line firmware_protocol/swpc.dbc \
+        < "$OUT/vcan0.log" > "$OUT/vcan0.decoded.txt" || decode_status=1
+    frames=$(wc -l < "$OUT/vcan0.log")
+    unknown=$(grep -c 'Unknown frame id' "$OUT/vcan0.decoded.txt" || true)
+    # the cansend test frame (Sync 42) and, from the calibration, every message of a run
+    need=(Sync N1_FeedbackPosition N1_FeedbackVelocityTorque N1_Heartbeat N1_SetControl
+          N1_SetAxisState N1_SetWatchdog N1_SetFeedback N1_SetLimits N1_StartHoming
+          N1_HomingStatus N4_FeedbackPosition)
+    missing=()
+    for m in "${need[@]}"; do
+        grep -q ":: $m(" "$OUT/vcan0.decoded.txt" || missing+=("$m")
+    done
+    grep -q ':: Sync(SyncCounter: 42)' "$OUT/vcan0.decoded.txt" || missing+=("Sync(42)")
+    echo "[test-vcan] decode: $frames frames in vcan0.log, $unknown with ids not in the DBC; by message:"
+    grep -v 'Unknown frame id' "$OUT/vcan0.decoded.txt" \
+        | sed -n 's/.* :: \([A-Za-z0-9_]*\)(.*/\1/p' | sort | uniq -c | sort -rn | head -n 12 \
+        | sed 's/^/[test-vcan]   /'
+    if ((${#missing[@]} || unknown)); then
+        echo "[test-vcan] decode: FAIL (missing: ${missing[*]:-none}; unknown ids: $unknown)"
+        decode_status=1
+    fi
+else
+    echo "[test-vcan] decode: FAIL (no $OUT/vcan0.log)"
+    decode_status=1
+fi
+printf '%-16s %-4s %s\n' decode "$( ((decode_status)) && echo FAIL || echo PASS)" \
+    "($(fmt "$t_dec" "$EPOCHREALTIME") s, on the host)" >> "$OUT/summary.txt"
+
 # The VM's calibration through the simulator process on vcan0 against an in-process run of
 # the same configuration here: `swpc serve` on its embedded simulator (python-can virtual
 # bus, same truth, seed, mocap noise, protocol overrides), driven by the same HTTP client.
-# Exit status 10 if they do not agree within 3 combined std devs.
+# Exit status 10 if they do not agree within 3 combined std devs (11: the recording does
+# not decode).
 ref_status=0
 t_ref=$EPOCHREALTIME
 set +e
@@ -78,7 +129,8 @@ if [[ -s "$OUT/sim-calibration.json" ]] && grep -q '"result"' "$OUT/sim-calibrat
     ref_port="${SWPC_VM_REF_PORT:-18080}"
     overrides="$("$ROOT/.venv/bin/python" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))["overrides"]))' "$OUT/sim-calibration.json")"
     echo "[test-vcan] in-process reference: swpc serve (embedded simulator), time scale $ref_ts"
-    SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="${SWPC_VM_SIM_SEED:-1}" SWPC_TOKEN=ref-token \
+    SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
+    SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" \
     SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" SWPC_HEARTBEAT_TIMEOUT=3 \
     SWPC_MOCAP_STALE_AFTER=3 "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
     ref_pid=$!
@@ -101,15 +153,16 @@ elif ((!$#)); then
 fi
 t_end2=$EPOCHREALTIME
 ((status == 0 && ref_status != 0)) && status=10
+((status == 0 && decode_status != 0)) && status=11
 set -e
 
 t_ready=$t_end
 [[ -s "$ready_file" ]] && t_ready="$(cat "$ready_file")"
-fmt() { awk -v a="$1" -v b="$2" 'BEGIN {printf "%.1f", b - a}'; }
 {
     echo "set-up (deploy/vm/setup.sh): $(fmt "$t_setup0" "$t_setup1") s"
     echo "VM boot (vng start -> in-VM script running): $(fmt "$t_boot0" "$t_ready") s"
     echo "tests in VM + shutdown: $(fmt "$t_ready" "$t_end") s"
+    echo "decode on the host: $(fmt "$t_dec" "$t_ref") s"
     echo "in-process reference calibration + comparison (host): $(fmt "$t_ref" "$t_end2") s"
     echo "total: $(fmt "$t_setup0" "$t_end2") s"
     echo "exit status: $status"
