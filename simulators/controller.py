@@ -103,7 +103,7 @@ class VirtualController:
                 return []
             assert isinstance(msg, codec.Sync)
             if self.sync_mode:
-                self._advance(now)
+                self._advance(now, on_frame=True)
                 return self._feedback(msg.counter)
             return []
         if node != self.node or cmd not in codec.HOST_COMMANDS:
@@ -113,7 +113,7 @@ class VirtualController:
         except codec.ProtocolError:
             self.invalid_frames += 1
             return []
-        self._advance(now)
+        self._advance(now, on_frame=True)
         self._last_command = now
         self.commands += 1
         return self._apply(msg2, now)
@@ -198,7 +198,16 @@ class VirtualController:
             due = min(due, self._last_command + self.watchdog_ms / 1000.0)
         return due
 
-    def _advance(self, now: float) -> list[Frame]:
+    def _advance(self, now: float, on_frame: bool = False) -> list[Frame]:
+        """Integrate the axes to ``now``, then the watchdog, over-speed and homing checks.
+
+        Over-speed is judged on the velocity an axis reached under the mode in force.  A
+        frame handled at the instant of the last update (``dt = 0``, ``on_frame``: always
+        so under a simulator's physics, which owns the axes and sets ``_t``) has moved
+        nothing: the velocity is the one of the mode before a command that may just have
+        changed it (a free caster swinging at 7 rad/s, just put in POSITION mode), so the
+        check waits for the next :meth:`step`, after the axes moved under the new mode.
+        """
         if self._t is None:
             self._t = now
             self._last_command = now
@@ -210,7 +219,8 @@ class VirtualController:
         for axis, ax in zip(Axis, self.axes, strict=True):
             _integrate(ax, dt)
             if (
-                ax.state == AxisState.ENABLED
+                (dt > 0.0 or not on_frame)
+                and ax.state == AxisState.ENABLED
                 and ax.mode != ControlMode.FREE  # a free axis is moved by the world, not us
                 and abs(ax.velocity) > OVER_SPEED_FACTOR * ax.max_velocity
             ):

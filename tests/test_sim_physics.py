@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from firmware_protocol.codec import Axis, AxisState, ControlMode
-from simulators.controller import AxisModel
+from firmware_protocol import codec
+from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag
+from simulators.controller import AxisModel, VirtualController
 from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
 from simulators.physics import caster_rates, settled_trailing
 from simulators.robot_sim import (
@@ -193,6 +194,45 @@ def test_axis_drive_follows_the_controller_modes() -> None:
     assert quantize(1.0, 2**14) / (2 * math.pi / 2**14) == pytest.approx(
         round(quantize(1.0, 2**14) / (2 * math.pi / 2**14)), abs=1e-9
     )
+
+
+def test_over_speed_is_judged_under_the_mode_in_force_not_on_a_command_frame() -> None:
+    """Under a simulator the physics owns the axes (it sets ``_t``): a free caster swinging
+    at 7 rad/s, then put in POSITION mode, must not fault on the next command frame (its
+    velocity is still the free one); it faults if it really runs that fast under a command."""
+    c = VirtualController(node=3, watchdog_ms=0)
+    c.homed = True
+    t = 1.0
+    c.handle(codec.make_set_axis_state(3, Axis.STEER, True), t)
+    c.handle(codec.make_set_limits(3, Axis.STEER, 5.0, 3.0), t)
+    steer = c.axes[Axis.STEER]
+    assert steer.state == AxisState.ENABLED and steer.mode == ControlMode.FREE
+    t += 0.005
+    steer.velocity = -7.0  # the physics: the free caster trails a moving body
+    c._t = t
+    c.step(t)
+    assert steer.errors == 0  # FREE: moved by the world, no check
+    c.handle(codec.make_set_control(3, Axis.STEER, ControlMode.POSITION, 0.5), t)
+    c.handle(codec.make_set_control(3, Axis.WHEEL, ControlMode.HOLD), t)  # same instant
+    c.handle(codec.make_set_control(3, Axis.STEER, ControlMode.POSITION, 0.5), t)  # refresh
+    assert steer.state == AxisState.ENABLED and steer.errors == 0
+    t += 0.005
+    steer.velocity = 3.0  # the physics under POSITION: clamped to max_velocity
+    c._t = t
+    c.step(t)
+    assert steer.state == AxisState.ENABLED and steer.errors == 0
+    t += 0.005
+    steer.velocity = 3.7  # > 1.2 x 3 rad/s under a command: the firmware stops it
+    c._t = t
+    c.step(t)
+    assert steer.state == AxisState.FAULT and steer.errors == ErrorFlag.OVER_SPEED
+    # without a physics (ControllerEmulator), a frame after time passed still checks
+    w = c.axes[Axis.WHEEL]
+    c.handle(codec.make_set_axis_state(3, Axis.WHEEL, True), t)
+    c.handle(codec.make_set_limits(3, Axis.WHEEL, 5.0, 2.0), t)
+    c.handle(codec.make_set_control(3, Axis.WHEEL, ControlMode.TORQUE, 5.0), t)
+    c.handle(codec.make_set_control(3, Axis.WHEEL, ControlMode.TORQUE, 5.0), t + 0.5)
+    assert w.velocity > 2.4 and w.errors == ErrorFlag.OVER_SPEED
 
 
 def test_mocap_noise_dropout_outliers_and_timestamps() -> None:
