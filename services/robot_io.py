@@ -7,6 +7,7 @@ same CAN frames) and the real robot are interchangeable.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Protocol
@@ -16,6 +17,8 @@ from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
 from swpc_hw.can.driver import CanDriver, DriverEvent, Lifecycle, Severity
+from swpc_hw.can.errors import NodeError
+from swpc_hw.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
 
@@ -43,10 +46,13 @@ class RobotIO(Protocol):
         ...
 
     def lock(self, module: int, steer: float) -> None:
-        """Steering position-hold at ``steer`` (reported angle), wheel braked."""
+        """Steering position-hold at ``steer`` (reported angle, any turn: the steering
+        takes the shortest way), wheel braked."""
         ...
 
-    def steer_to(self, module: int, steer: float) -> None: ...
+    def steer_to(self, module: int, steer: float) -> None:
+        """Steering to ``steer`` (reported angle, any turn), the shortest way."""
+        ...
 
     def free_steer(self, module: int) -> None: ...
 
@@ -125,12 +131,26 @@ class DriverRobotIO:
     def start_homing(self, module: int) -> None:
         self.driver.start_homing(module)
 
+    def _steer_setpoint(self, module: int, steer: float) -> float:
+        """``steer`` on the turn nearest the steering's reported position: the controller's
+        position is multi-turn (free casters trail through whole turns during spins), a
+        raw ``steer`` could send it the long way round, up to many turns."""
+        now = self.driver.module_state(module).theta_hat
+        if not math.isfinite(now):
+            st = self.driver.module_state(module)
+            raise NodeError(
+                f"module {module} (node {st.node}): no steering feedback, cannot steer it",
+                node=st.node,
+                axis=int(Axis.STEER),
+            )
+        return float(nearest_turn(now, steer))
+
     def lock(self, module: int, steer: float) -> None:
-        self.driver.set_position(module, Axis.STEER, steer)
+        self.driver.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
         self.driver.hold(module, Axis.WHEEL)
 
     def steer_to(self, module: int, steer: float) -> None:
-        self.driver.set_position(module, Axis.STEER, steer)
+        self.driver.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
 
     def free_steer(self, module: int) -> None:
         self.driver.free(module, Axis.STEER)

@@ -137,6 +137,12 @@ class VirtualController:
                 ax.setpoint = _clamp(msg.setpoint, ax.max_velocity)
             elif msg.mode == ControlMode.TORQUE:
                 ax.setpoint = _clamp(msg.setpoint, ax.max_torque)
+            elif msg.mode == ControlMode.POSITION and msg.axis == Axis.STEER:
+                # modulo the feedback's wrap (8 turns), nearest the position: the host knows
+                # the steering only modulo that span (it unwraps from its first sample)
+                ax.setpoint = ax.position + math.remainder(
+                    msg.setpoint - ax.position, codec.STEER_SPAN
+                )
             elif msg.mode == ControlMode.POSITION:
                 ax.setpoint = msg.setpoint
             elif msg.mode == ControlMode.HOLD:

@@ -324,3 +324,15 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
     """Wrap angles to ``(-pi, pi]``."""
     x = np.asarray(a, dtype=float)
     return np.asarray(np.pi - np.mod(np.pi - x, 2.0 * np.pi), dtype=float)
+
+
+def nearest_turn(current: ArrayLike, target: ArrayLike) -> FloatArray:
+    """The angle equal to ``target`` modulo 2 pi that is closest to ``current``::
+
+        theta_cmd = theta + wrap(target - theta)
+
+    A steering setpoint for a multi-turn axis: the shortest move (at most half a turn) to
+    the direction ``target`` from the axis' continuous position ``current``.
+    """
+    c = np.asarray(current, dtype=float)
+    return np.asarray(c + wrap_angle(np.asarray(target, dtype=float) - c), dtype=float)

@@ -257,6 +257,35 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
     assert drv.state == Lifecycle.ACTIVE
 
 
+def test_robot_io_steers_the_shortest_way_from_a_multi_turn_position(active: Rig) -> None:
+    """The state machine's lock / steer_to: a free caster has trailed to -352.5 deg (multi-
+    turn); locking it at 45 deg must turn it 37.5 deg (to -315 deg), not 397.5 deg back."""
+    from services.robot_io import DriverRobotIO
+
+    drv, c1 = active.drv, active.ctrl(1)
+    io = DriverRobotIO(drv)
+    drv.enable(1, Axis.WHEEL)
+    drv.hold(1, Axis.WHEEL)  # a commanded axis: the driver's refresh feeds the watchdog
+    drv.enable(1, Axis.STEER)
+    drv.start_homing(1)
+    drv.wait_for(1, lambda s: s.homed and s.states[0] == AxisState.ENABLED, 2.0, "homed")
+    drv.free(1, Axis.STEER)
+    drv.wait_for(1, lambda s: s.modes[0] == ControlMode.FREE, 1.0)
+    with active.emu.lock:
+        c1.axes[Axis.STEER].position = math.radians(-352.5)  # trailed round in FREE mode
+    assert wait_until(lambda: abs(drv.module_state(1).theta_hat - math.radians(-352.5)) < 1e-3)
+    def setpoint_is(deg: float) -> bool:
+        with active.emu.lock:
+            return abs(c1.axes[Axis.STEER].setpoint - math.radians(deg)) < 1e-4
+
+    io.lock(1, math.radians(45.0))
+    assert wait_until(lambda: setpoint_is(-315.0)), c1.axes[Axis.STEER].setpoint
+    assert wait_until(lambda: abs(drv.module_state(1).theta_hat - math.radians(-315.0)) < 1e-3)
+    io.steer_to(1, math.radians(170.0))  # from -315 deg: -125 deg (to -190), not +235
+    assert wait_until(lambda: setpoint_is(-190.0)), c1.axes[Axis.STEER].setpoint
+    assert drv.module_state(1).errors == (0, 0)
+
+
 def test_fault_then_clear_errors(active: Rig) -> None:
     drv = active.drv
     drv.enable(2, Axis.STEER)

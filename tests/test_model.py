@@ -11,6 +11,7 @@ from swpc_hw.model import (
     cross_z,
     forward_kinematics,
     inverse_kinematics,
+    nearest_turn,
     steering_direction,
     steering_normal,
     trailing_steering_angle,
@@ -89,3 +90,12 @@ def test_robot_params_validation() -> None:
         RobotParams.from_arrays([1, 2], [[0, 0], [1, 1]], [0, 0], [0.02, -0.01], [0.05, 0.05])
     with pytest.raises(ValueError, match="finite"):
         RobotParams.from_arrays([1, 2], [[0, np.nan], [1, 1]], [0, 0], [0.02, 0.02], [0.05, 0.05])
+
+
+def test_nearest_turn_is_the_shortest_move_to_the_direction() -> None:
+    cur = np.radians([-352.5, 10.0, 370.0, 0.0])
+    tgt = np.radians([45.0, 200.0 + 720.0, -10.0, 179.0])
+    got = np.degrees(nearest_turn(cur, tgt))
+    np.testing.assert_allclose(got, [-315.0, -160.0, 350.0, 179.0], atol=1e-9)
+    assert np.all(np.abs(nearest_turn(cur, tgt) - cur) <= np.pi)
+    np.testing.assert_allclose(wrap_angle(nearest_turn(cur, tgt) - tgt), 0.0, atol=1e-12)

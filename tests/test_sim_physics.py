@@ -235,6 +235,21 @@ def test_over_speed_is_judged_under_the_mode_in_force_not_on_a_command_frame() -
     assert w.velocity > 2.4 and w.errors == ErrorFlag.OVER_SPEED
 
 
+def test_steering_position_setpoints_are_taken_modulo_the_feedback_wrap() -> None:
+    """The host knows the multi-turn steering only modulo the SteerPosition wrap (8 turns):
+    a setpoint goes to its equivalent nearest the current position."""
+    c = VirtualController(node=1, watchdog_ms=0)
+    c.homed = True
+    c.handle(codec.make_set_axis_state(1, Axis.STEER, True), 0.0)
+    steer = c.axes[Axis.STEER]
+    steer.position = 60.0  # 9.5 turns, e.g. the host unwrapped from a sample 8 turns off
+    c._t = 0.0
+    c.handle(codec.make_set_control(1, Axis.STEER, ControlMode.POSITION, 0.5), 0.0)
+    assert steer.setpoint == pytest.approx(0.5 + codec.STEER_SPAN, abs=1e-4)
+    c.handle(codec.make_set_control(1, Axis.STEER, ControlMode.POSITION, 59.0), 0.0)
+    assert steer.setpoint == pytest.approx(59.0, abs=1e-4)  # within half a span: as sent
+
+
 def test_mocap_noise_dropout_outliers_and_timestamps() -> None:
     rng = np.random.default_rng(0)
     opt = MocapOptions(sigma_xy=1e-3, sigma_yaw=1e-3, dropout=0.1, outliers=0.05)
