@@ -433,10 +433,20 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
     drv = active.drv
     drv.enable(1, Axis.WHEEL)
     drv.set_velocity(1, Axis.WHEEL, 2.0)
+    queued_when_inactive: list[EventKind] = []
+    begin_fault = drv._begin_fault
+
+    def probe() -> bool:  # the moment the driver drops to INACTIVE
+        queued_when_inactive.extend(e.kind for e in list(drv._events.queue))
+        return begin_fault()
+
+    drv._begin_fault = probe  # type: ignore[method-assign]
     time.sleep(T(0.05))
     t0 = time.monotonic()
     active.emu.mute(3)
     assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
+    # whoever sees INACTIVE finds the cause already queued
+    assert EventKind.HEARTBEAT_LOST in queued_when_inactive
     dt = time.monotonic() - t0
     assert T(0.2) <= dt <= T(0.6)  # 3 heartbeat periods after the last heartbeat
     lost = [e for e in drv.events() if e.kind == EventKind.HEARTBEAT_LOST]

@@ -749,8 +749,9 @@ class CanDriver:
                     )
             else:
                 fault = self._on_data_frame(msg, t, callbacks, events)
-            was_active = self._begin_fault() if fault else False
+            # events queued before the state drops: whoever sees INACTIVE finds its cause
             recorded = [self._record(*e) for e in events]
+            was_active = self._begin_fault() if fault else False
             self._changed.notify_all()
         for ev in recorded:
             self._notify(ev)
@@ -930,12 +931,12 @@ class CanDriver:
         with self._lock:
             self._stats.listener_errors += 1
             self.last_exception = exc
-            was_active = self._begin_fault()
             ev = self._record(
                 EventKind.LISTENER_ERROR,
                 Severity.FAULT,
                 f"exception in the receive thread: {type(exc).__name__}: {exc}",
             )
+            was_active = self._begin_fault()
         self._notify(ev)
         self._fault_stop(was_active)
 
@@ -970,9 +971,6 @@ class CanDriver:
                             deadlines.append(now + cfg.refresh_period_s)
                         else:
                             deadlines.append(nd.last_tx + cfg.refresh_period_s)
-                if lost:
-                    was_active = self._begin_fault()
-                    refresh = []
                 recorded = [
                     self._record(
                         EventKind.HEARTBEAT_LOST,
@@ -982,6 +980,9 @@ class CanDriver:
                     )
                     for nd in lost
                 ]
+                if lost:  # after the events are queued: whoever sees INACTIVE finds why
+                    was_active = self._begin_fault()
+                    refresh = []
             for ev in recorded:
                 self._notify(ev)
             if lost:
