@@ -125,6 +125,7 @@ class Runtime:
             zenoh_endpoints=endpoints,
             time_scale=self.settings.time_scale,
             seed=self.settings.sim_seed,
+            physics_dt=self.settings.sim_physics_dt,
         )
 
     def close(self) -> None:

@@ -63,6 +63,9 @@ class ServiceSettings(BaseSettings):
 
     time_scale: float = Field(1.0, gt=0, description="simulated-time speed-up (simulator only)")
     sim_seed: int = 1
+    sim_physics_dt: float = Field(
+        0.005, gt=0, le=0.01, description="embedded simulator: longest physics step, s"
+    )
 
     @property
     def embedded(self) -> bool:

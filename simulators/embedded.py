@@ -28,6 +28,7 @@ def embedded_simulator(
     seed: int = 1,
     truth: RobotParams | None = None,
     mocap: MocapOptions | None = None,
+    physics_dt: float = 0.005,
 ) -> Simulator:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
     service's zenoh endpoint (it connects to ``zenoh_endpoints``)."""
@@ -38,6 +39,7 @@ def embedded_simulator(
         robot=config.robot,
         nodes=dict(config.nodes or {}),
         time_scale=time_scale,
+        physics_dt=physics_dt,
         watchdog_ms=config.limits.watchdog_ms,
         mocap=MocapOptions(**{**base.__dict__, "seed": seed}),
         seed=seed,

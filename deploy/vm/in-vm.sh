@@ -120,12 +120,15 @@ fi
 # --- calibration through the simulator as a separate process on vcan0 ----------------------
 # `swpc sim` (controllers + physics + mocap, its own process) on socketcan/vcan0, zenoh
 # listening on loopback; `swpc serve` on the same bus, connected to it, calibrating over
-# HTTP (deploy/vm/sim_calibration.py).  Both run SIM_TS times real time (the VM's one
-# emulated CPU cannot run both at real time); the service's host-time windows (heartbeat
-# loss, mocap staleness) are widened to match.  candump records all of it on vcan0.  The
+# HTTP (deploy/vm/sim_calibration.py).  Both run SIM_TS times real time (each has one of
+# the VM's two emulated CPUs, ~20x slower than the host for Python); the simulator steps
+# its physics every PHYSICS_DT (5 ms: at 10 ms the VM's wheel radii came out 0.3-0.5 %
+# below the in-process ones, 5-8 std devs, not yet explained); the service's
+# host-time windows (heartbeat loss, mocap staleness) are widened to match.  candump records all of it on vcan0.  The
 # result (OUT/sim-calibration.json) is compared on the host with an in-process run of the
 # same configuration (run-in-vm.sh).
 SIM_TS="${SWPC_VM_SIM_TIME_SCALE:-0.3}"
+PHYSICS_DT="${SWPC_VM_PHYSICS_DT:-0.005}"
 SIM_OVERRIDES="${SWPC_VM_SIM_OVERRIDES:-{\}}"
 SIM_SEED="${SWPC_VM_SIM_SEED:-1}"
 FEEDBACK_RATE="${SWPC_VM_FEEDBACK_RATE:-100}"
@@ -139,6 +142,8 @@ calibration_through_simulator() {
     stale=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 0.75 / s}')  # 75 mocap periods
     ip link set dev lo up || return 1                     # no network device, but loopback
     swpc sim --interface socketcan --channel vcan0 --zenoh-listen "$ep" --time-scale "$ts" \
+        --physics-dt "$(awk -v d="$PHYSICS_DT" 'BEGIN {print d * 1000}')" \
+        --feedback-rate "$FEEDBACK_RATE" \
         --pose-sigma-xy 0.5 --pose-sigma-yaw 0.05 --seed "$SIM_SEED" --stats-every 20 \
         > "$OUT/sim.log" 2>&1 &
     sim_pid=$!

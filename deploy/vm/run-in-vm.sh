@@ -32,16 +32,18 @@ if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
 # The calibration through the simulator: the same configuration in the VM (socketcan,
 # separate simulator process) and in the in-process reference below.  A short protocol
 # (4 modules x 2 angles, 45 deg sweeps: ~31 s of robot time) at 100 Hz encoder feedback
-# and SIM_TIME_SCALE times real time: Python runs ~20x slower under TCG than here.
+# with 5 ms physics steps, and SIM_TIME_SCALE times real time: Python runs ~20x slower
+# under TCG than here.
 : "${SWPC_VM_CPUS:=2}"
 : "${SWPC_VM_SIM_TIME_SCALE:=0.3}"
+: "${SWPC_VM_PHYSICS_DT:=0.005}"
 : "${SWPC_VM_SIM_SEED:=1}"
 : "${SWPC_VM_FEEDBACK_RATE:=100}"
 : "${SWPC_VM_SIM_OVERRIDES:={\"protocol\": {\"sweep_deg\": 45, \"settle_time\": 1.0, \"stop_time\": 0.5, \"align_time\": 0.5, \"resteer_time\": 1.5\}\}}"
 # The in-VM script's knobs pass through: SWPC_VM_ONLY, SWPC_VM_TIME_FACTOR,
 # SWPC_VM_SIM_TIME_SCALE, SWPC_VM_SIM_OVERRIDES, SWPC_VM_SIM_SEED, SWPC_VM_FEEDBACK_RATE,
-# SWPC_VM_TEST_VCANS.
-for v in ONLY TIME_FACTOR SIM_TIME_SCALE SIM_OVERRIDES SIM_SEED FEEDBACK_RATE TEST_VCANS; do
+# SWPC_VM_PHYSICS_DT, SWPC_VM_TEST_VCANS.
+for v in ONLY TIME_FACTOR SIM_TIME_SCALE SIM_OVERRIDES SIM_SEED FEEDBACK_RATE PHYSICS_DT TEST_VCANS; do
     v="SWPC_VM_$v"
     [[ -n "${!v:-}" ]] && cmd="$v=$(printf '%q' "${!v}") $cmd"
 done
@@ -130,7 +132,7 @@ if [[ -s "$OUT/sim-calibration.json" ]] && grep -q '"result"' "$OUT/sim-calibrat
     overrides="$("$ROOT/.venv/bin/python" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))["overrides"]))' "$OUT/sim-calibration.json")"
     echo "[test-vcan] in-process reference: swpc serve (embedded simulator), time scale $ref_ts"
     SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
-    SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" \
+    SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" SWPC_SIM_PHYSICS_DT="$SWPC_VM_PHYSICS_DT" \
     SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" SWPC_HEARTBEAT_TIMEOUT=3 \
     SWPC_MOCAP_STALE_AFTER=3 "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
     ref_pid=$!
