@@ -36,6 +36,10 @@ TOKEN = "test-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 SHORT = {"protocol": {"modules": [1], "sweep_deg": 1440}}  # one long spin: faults land in it
+# the whole protocol with short spins (as make test-vcan): a real result, quickly
+QUICK_PROTOCOL = {
+    "sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5, "resteer_time": 1.5
+}
 
 
 class Recorder(can.Listener):  # type: ignore[misc]
@@ -326,7 +330,7 @@ def test_result_outside_tolerance_is_reported_not_installed(
 ) -> None:
     client, _rt, _ = service
     quick = {
-        "protocol": {"sweep_deg": 90, "settle_time": 1.5, "stop_time": 0.5},
+        "protocol": QUICK_PROTOCOL,
         "tolerances": {"position": 1e-9},  # no real result is this good
     }
     run_id = start(client, quick)
@@ -343,7 +347,7 @@ def test_install_always_overrides_the_tolerance(
 ) -> None:
     client, rt, _ = service
     quick = {
-        "protocol": {"sweep_deg": 90, "settle_time": 1.5, "stop_time": 0.5},
+        "protocol": QUICK_PROTOCOL,
         "tolerances": {"position": 1e-9},
     }
     run_id = start(client, quick, install="always")

@@ -189,20 +189,26 @@ def test_driver_odometry_aligns_unsynchronised_modules_on_the_counter_clock() ->
     # readings 0..298 of module 1 (299 has no bracket yet), the others interpolated
     assert tr[-1, 1] == pytest.approx(v * 298 / rate, abs=1e-6)  # float clocks: ~0.1 us
     assert abs(tr[-1, 2]) < 1e-7 and abs(tr[-1, 3]) < 1e-7
-    assert max(feed.slip) < 1e-6
+    # ~0: bus stamps are wall-clock floats (~1.7e9 s, ulp 2.4e-7 s, x time scale 4 of
+    # robot time) and readings 10 ms apart at 0.2 m/s: v * 1e-6 / 0.01 = 2e-5 m/s of jitter;
+    # a slipping wheel reads > 0.02 m/s (test_odometry)
+    assert max(feed.slip) < 1e-4
 
 
 # --------------------------------------------------------------------------- end to end
 
 
 def test_square_drive_on_the_embedded_simulator_calibrated_beats_nominal_by_95_percent() -> None:
-    """The short variant of ``swpc validate``: a 0.3 m square each way, 1 run each, at time
-    scale 2 (as the command; lag spikes at 4 on a loaded host make casters slip), through
-    CAN and zenoh; errors of the calibrated file are >= 95 % smaller."""
+    """The short variant of ``swpc validate``: a 0.3 m square counter-clockwise (the
+    command drives both ways), 1 run per file, at time scale 2 (as the command; lag spikes
+    at 4 on a loaded host make casters slip), through CAN and zenoh; errors of the
+    calibrated file are >= 95 % smaller."""
     from swpc_hw.commands.validate import run_embedded
 
     calibrated = load_robot(DEMO_FILE) if DEMO_FILE.exists() else PAPER_CALIBRATED
-    opt = SquareOptions(side=0.3, runs=1, yaw_rate=0.6, yaw_accel=0.8, settle=0.4)
+    opt = SquareOptions(
+        side=0.3, runs=1, yaw_rate=0.6, yaw_accel=0.8, settle=0.4, directions=("ccw",)
+    )
     lines: list[str] = []
     rep = run_embedded(
         [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, time_scale=2.0,
@@ -210,7 +216,7 @@ def test_square_drive_on_the_embedded_simulator_calibrated_beats_nominal_by_95_p
     )
     print("\n".join(lines))
     print(rep.table())
-    assert len(rep.results) == 4
+    assert len(rep.results) == 2
     s = rep.summary()
     for r in rep.results:
         assert r.true_path.shape[0] > 50 and r.odometry_path.shape[0] > 50
