@@ -135,15 +135,14 @@ class DriverRobotIO:
         """``steer`` on the turn nearest the steering's reported position: the controller's
         position is multi-turn (free casters trail through whole turns during spins), a
         raw ``steer`` could send it the long way round, up to many turns."""
-        now = self.driver.module_state(module).theta_hat
-        if not math.isfinite(now):
-            st = self.driver.module_state(module)
+        st = self.driver.module_state(module)
+        if not math.isfinite(st.theta_hat):
             raise NodeError(
                 f"module {module} (node {st.node}): no steering feedback, cannot steer it",
                 node=st.node,
                 axis=int(Axis.STEER),
             )
-        return float(nearest_turn(now, steer))
+        return float(nearest_turn(st.theta_hat, steer))
 
     def lock(self, module: int, steer: float) -> None:
         self.driver.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))

@@ -123,10 +123,10 @@ fi
 # HTTP (deploy/vm/sim_calibration.py).  Both run SIM_TS times real time (each has one of
 # the VM's two emulated CPUs, ~20x slower than the host for Python); the simulator steps
 # its physics every PHYSICS_DT (5 ms: at 10 ms the VM's wheel radii came out 0.3-0.5 %
-# below the in-process ones, 5-8 std devs, not yet explained); the service's
-# host-time windows (heartbeat loss, mocap staleness) are widened to match.  candump records all of it on vcan0.  The
-# result (OUT/sim-calibration.json) is compared on the host with an in-process run of the
-# same configuration (run-in-vm.sh).
+# below the in-process ones, 5-8 std devs, not yet explained); the service's host-time
+# windows (heartbeat loss, mocap staleness) are widened to match.  candump records all of
+# it on vcan0.  The result (OUT/sim-calibration.json) is compared on the host with an
+# in-process run of the same configuration (run-in-vm.sh).
 SIM_TS="${SWPC_VM_SIM_TIME_SCALE:-0.3}"
 PHYSICS_DT="${SWPC_VM_PHYSICS_DT:-0.005}"
 SIM_OVERRIDES="${SWPC_VM_SIM_OVERRIDES:-{\}}"

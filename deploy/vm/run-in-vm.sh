@@ -31,7 +31,7 @@ rm -rf "$OUT" && mkdir -p "$OUT"
 if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
 # The calibration through the simulator: the same configuration in the VM (socketcan,
 # separate simulator process) and in the in-process reference below.  A short protocol
-# (4 modules x 2 angles, 45 deg sweeps: ~31 s of robot time) at 100 Hz encoder feedback
+# (4 modules x 2 angles, 45 deg sweeps: ~55 s of robot time) at 100 Hz encoder feedback
 # with 5 ms physics steps, and SIM_TIME_SCALE times real time: Python runs ~20x slower
 # under TCG than here.
 : "${SWPC_VM_CPUS:=2}"
