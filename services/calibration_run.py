@@ -376,6 +376,9 @@ class CalibrationRun:
             problems = self.robot.problems()
             if self.mocap.is_stale():
                 problems.append(f"motion capture not live (last pose {self.mocap.age():.2f} s ago)")
+            clock = self.mocap.clock_problem()
+            if clock is not None:
+                problems.append(clock)
             if not problems:
                 return
             if time.monotonic() > deadline:

@@ -45,6 +45,7 @@ def render_metrics(rt: Runtime) -> tuple[bytes, str]:
         "non_unit_quaternion",
         "duplicates",
         "out_of_order",
+        "clock_resets",
     ):
         poses.labels(k).set(st[k])
     if "latency_p99_s" in st:

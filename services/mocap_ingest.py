@@ -17,6 +17,18 @@ A sliding minimum follows an offset, not a change of *rate*: for a source whose 
 rate varies (a simulator stamping its own slowing clock) use ``clock_mode="receive"``,
 which takes the host receive time itself (transport jitter, but no drift).
 
+The lower envelope is the clock offset plus the *smallest* transport delay of the window,
+which is only ~0 when some samples get through at once.  A publisher that is itself
+CPU-bound (``swpc sim`` under emulation: 12-23 ms floor, measured) shifts every pose that
+much later than the CAN feedback of the same instant, whose bus time stamps carry no
+such delay, and a shift of the poses against the wheel encoders biases the wheel radius
+(0.1-0.2 mm at 12-23 ms in the VM run of ``make test-vcan``).  When the source stamps the
+host's own wall clock (``swpc sim`` on this machine) or a clock synchronised with it (PTP,
+chrony), ``clock_mode="wall"`` maps each stamp exactly, the way the driver maps the CAN
+bus time stamps: ``t_host = t_source / s - (wall - monotonic)``.  A stamp more than
+``max_clock_error`` off the host's wall clock (an unsynchronised source) is reported by
+:meth:`MocapIngest.clock_problem`, which the calibration's precheck refuses to start on.
+
 A stream whose newest accepted sample is older than ``stale_after`` seconds (host
 time) is *stale*; during motion the state machine treats that as a fault.
 """
@@ -38,6 +50,9 @@ from numpy.typing import NDArray
 from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose
 
 FloatArray = NDArray[np.float64]
+
+#: pose time bases of :class:`MocapIngest` (module docstring)
+CLOCK_MODES = ("source", "receive", "wall")
 
 #: columns of :meth:`MocapIngest.samples`
 COLUMNS = ("t_source", "t_recv", "t_host", "x", "y", "yaw")
@@ -61,6 +76,8 @@ class IngestCounters:
     non_unit_quaternion: int = 0
     duplicates: int = 0
     out_of_order: int = 0
+    clock_resets: int = 0
+    """source clock stepped back by more than ``max_clock_step``: the stamp sequence restarts"""
 
     @property
     def dropped(self) -> int:
@@ -81,6 +98,9 @@ class MocapIngest:
         time_scale: float = 1.0,
         sync_window: float = 1.0,
         clock_mode: str = "source",
+        wall_clock: Callable[[], float] = time.time,
+        max_clock_error: float = 1.0,
+        max_clock_step: float = 1.0,
     ) -> None:
         self.encoding = PoseEncoding(encoding)
         self.stale_after = float(stale_after)
@@ -96,9 +116,13 @@ class MocapIngest:
         self._capacity = int(capacity)
         self._last_source = -math.inf
         self.sync_window = float(sync_window)
-        if clock_mode not in ("source", "receive"):
-            raise ValueError(f"clock_mode must be 'source' or 'receive', not {clock_mode!r}")
+        if clock_mode not in CLOCK_MODES:
+            raise ValueError(f"clock_mode must be one of {CLOCK_MODES}, not {clock_mode!r}")
         self.clock_mode = clock_mode
+        self.wall_clock = wall_clock
+        self.max_clock_error = float(max_clock_error)
+        self.max_clock_step = float(max_clock_step)
+        self._wall_delay = math.nan  # clock_mode "wall": receive minus mapped stamp, last sample
         self._offset = math.inf  # sliding min(t_recv - t_source / s)
         self._delays: deque[tuple[float, float]] = deque()  # (t_recv, delay), increasing delay
         self._recent = deque[float](maxlen=4096)  # receive times for the rate
@@ -148,8 +172,14 @@ class MocapIngest:
                 c.duplicates += 1
                 return False
             if p.t < self._last_source:
-                c.out_of_order += 1
-                return False
+                if (self._last_source - p.t) / self.time_scale <= self.max_clock_step:
+                    c.out_of_order += 1
+                    return False
+                # the source clock was stepped back (mocap PC restarted, clock re-synced):
+                # restart the stamp sequence and the delay envelope rather than refusing
+                # every pose from now on
+                c.clock_resets += 1
+                self._delays.clear()
             self._last_source = p.t
             delay = now - p.t / self.time_scale
             dq = self._delays  # monotonic queue: sliding-window minimum in O(1)
@@ -159,7 +189,13 @@ class MocapIngest:
             while dq[0][0] < now - self.sync_window:
                 dq.popleft()
             self._offset = dq[0][1]
-            t_host = now if self.clock_mode == "receive" else p.t / self.time_scale + self._offset
+            if self.clock_mode == "wall":
+                t_host = p.t / self.time_scale - (self.wall_clock() - self.clock())
+                self._wall_delay = now - t_host
+            elif self.clock_mode == "receive":
+                t_host = now
+            else:
+                t_host = p.t / self.time_scale + self._offset
             self._append((p.t, now, t_host, p.x, p.y, p.yaw))
             self._recent.append(now)
             self._latency.append(now - p.t / self.time_scale)
@@ -211,6 +247,22 @@ class MocapIngest:
     def is_stale(self, now: float | None = None) -> bool:
         return self.age(now) > self.stale_after
 
+    def clock_problem(self) -> str | None:
+        """Why the pose stamps cannot be used as they are (``None``: they can).
+
+        Only ``clock_mode="wall"`` trusts the source clock; it needs the newest stamp to be
+        within ``max_clock_error`` of its receive time on the host's wall clock.
+        """
+        with self._lock:
+            d = self._wall_delay
+        if self.clock_mode != "wall" or not math.isfinite(d) or abs(d) <= self.max_clock_error:
+            return None
+        return (
+            f"motion-capture stamps are {d:+.3f} s off the host's wall clock at receipt "
+            f"(limit {self.max_clock_error:g} s): clock mode 'wall' needs the mocap clock "
+            "synchronised with this host (PTP, chrony), else use 'source'"
+        )
+
     @property
     def clock_offset(self) -> float:
         """Host minus mocap clock (lower envelope of the receive delays)."""
@@ -233,6 +285,7 @@ class MocapIngest:
                 "non_unit_quaternion": float(c.non_unit_quaternion),
                 "duplicates": float(c.duplicates),
                 "out_of_order": float(c.out_of_order),
+                "clock_resets": float(c.clock_resets),
             }
         out["age_s"] = self.age(now)
         if lat.size:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import secrets
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -50,11 +51,13 @@ class ServiceSettings(BaseSettings):
         description="host seconds without poses = stale; default 0.5 s on a robot, 1.5 s "
         "against a simulator (it stalls with a loaded host, and so does its robot)",
     )
-    mocap_clock: str = Field(
+    mocap_clock: Literal["source", "receive", "wall"] = Field(
         "source",
         description="pose time base: 'source' (the mocap's time stamps mapped to the host "
-        "clock; a real mocap, or the simulator, which stamps the host clock at sampling) or "
-        "'receive' (host receive time: transport jitter)",
+        "clock by the lower envelope of the delays: any mocap, late by the smallest "
+        "transport delay), 'wall' (the stamps are this host's wall clock: `swpc sim` on "
+        "this machine, or a mocap synchronised by PTP/chrony; exact) or 'receive' (host "
+        "receive time: transport jitter)",
     )
 
     robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")

@@ -83,8 +83,9 @@ def register(sub: Any) -> None:
         choices=["host", "sim"],
         default="host",
         help="pose time stamps: the host's wall clock at sampling, as a real mocap's clock "
-        "(host), or the simulated time (sim; the service then needs SWPC_MOCAP_CLOCK=receive "
-        "if the time scale is not 1)",
+        "(host; a service on this machine maps them exactly with SWPC_MOCAP_CLOCK=wall), or "
+        "the simulated time (sim; the service then needs SWPC_MOCAP_CLOCK=receive if the "
+        "time scale is not 1)",
     )
     p.add_argument(
         "--clock-offset", type=float, default=0.0, help="mocap clock - its base clock, s"

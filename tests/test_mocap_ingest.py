@@ -36,6 +36,21 @@ def test_bad_samples_are_dropped_and_counted() -> None:
     assert s[1, 3:].tolist() == pytest.approx([1.0, 2.0, 0.5])
 
 
+def test_a_source_clock_stepped_back_restarts_the_stream() -> None:
+    """A mocap PC restarted (or re-synced) mid-session must not lock the stream out."""
+    ing = MocapIngest(max_clock_step=1.0)
+    for i in range(5):
+        assert ing.feed(native(100.0 + 0.01 * i), t_recv=10.0 + 0.01 * i)
+    assert not ing.feed(native(99.5), t_recv=10.06)  # 0.54 s back: reordering, dropped
+    assert ing.feed(native(40.0), t_recv=10.07)  # 60 s back: the clock was reset
+    assert ing.feed(native(40.01), t_recv=10.08)
+    c = ing.counters
+    assert (c.out_of_order, c.clock_resets, c.accepted) == (1, 1, 7)
+    # the delay envelope restarted with the new clock instead of keeping the old minimum
+    assert ing.clock_offset == pytest.approx(10.07 - 40.0)
+    assert ing.samples()[-2:, 2].tolist() == pytest.approx([10.07, 10.08])
+
+
 def test_configured_encoding_rejects_the_other() -> None:
     ing = MocapIngest(encoding=PoseEncoding.CDR)
     assert not ing.feed(native(1.0), t_recv=0.0)
@@ -123,3 +138,52 @@ def test_ingest_over_zenoh_detects_the_encoding(encoding: PoseEncoding) -> None:
 
 def test_native_layout_is_documented_size() -> None:
     assert struct.calcsize("<4sId3d4d") == 72
+
+
+def test_wall_mode_maps_each_stamp_exactly_despite_a_late_publisher() -> None:
+    """A source stamping the host's wall clock, every pose 12-23 ms late on arrival.
+
+    'source' maps with the lower envelope (here >= 12 ms), so every pose sits >= 12 ms late
+    against the CAN bus stamps; 'wall' maps each stamp exactly.
+    """
+    epoch = 1.7e9  # wall minus monotonic
+    results: dict[str, float] = {}
+    now = [500.0]
+    for mode in ("source", "wall"):
+        ing = MocapIngest(
+            clock_mode=mode, clock=lambda: now[0], wall_clock=lambda: now[0] + epoch
+        )
+        worst = 0.0
+        for i in range(300):
+            t_sample = 500.0 + 0.01 * i  # host monotonic moment of the sample
+            delay = 0.012 + 0.011 * ((i * 7919) % 17) / 17
+            now[0] = t_sample + delay
+            assert ing.feed(native(t_sample + epoch, x=0.001 * i))
+            worst = max(worst, abs(ing.samples()[-1, 2] - t_sample))
+        results[mode] = worst
+        assert ing.clock_problem() is None
+    assert results["wall"] < 1e-6
+    assert 0.012 <= results["source"] < 0.024
+
+
+def test_wall_mode_reports_an_unsynchronised_source() -> None:
+    now = [100.0]
+    ing = MocapIngest(
+        clock_mode="wall", clock=lambda: now[0], wall_clock=lambda: now[0] + 1000.0,
+        max_clock_error=0.5,
+    )
+    assert ing.clock_problem() is None  # nothing received yet: staleness reports that
+    ing.feed(native(1100.0 - 2.5))  # stamped 2.5 s behind this host's wall clock
+    msg = ing.clock_problem()
+    assert msg is not None and "+2.500 s" in msg and "limit 0.5 s" in msg
+    ing.feed(native(1100.0 - 0.1))
+    assert ing.clock_problem() is None
+    # the other modes do not trust the source clock, so they have nothing to report
+    other = MocapIngest(clock_mode="source", clock=lambda: now[0])
+    other.feed(native(5.0))
+    assert other.clock_problem() is None
+
+
+def test_unknown_clock_mode_is_refused() -> None:
+    with pytest.raises(ValueError, match="clock_mode must be one of"):
+        MocapIngest(clock_mode="host")

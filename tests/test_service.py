@@ -261,6 +261,47 @@ def test_mocap_stale_mid_spin(
     assert_stopped(rec, t, rt)
 
 
+def test_precheck_refuses_a_mocap_clock_off_the_host_clock(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    """Clock mode 'wall' trusts the pose stamps: a source 30 s off must not start a run."""
+    client, rt, rec = service
+    mocap = rt.simulator.mocap  # type: ignore[union-attr]
+    opts, mode = mocap.options, rt.mocap.clock_mode
+    rt.mocap.clock_mode = "wall"
+    try:
+        deadline = time.monotonic() + 5.0  # the simulator stamps this host's wall clock
+        n0 = rt.mocap.counters.accepted
+        while rt.mocap.counters.accepted < n0 + 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert rt.mocap.counters.accepted >= n0 + 10
+        assert rt.mocap.clock_problem() is None
+        mocap.options = dataclasses.replace(opts, clock_offset=30.0)
+        t = time.monotonic()
+        run_id = start(client, SHORT)
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    finally:
+        mocap.options = opts
+        rt.mocap.clock_mode = mode
+    assert st["state"] == "FAILED", st
+    assert "precheck failed" in st["reason"] and "off the host's wall clock" in st["reason"]
+    with rec.lock:
+        driven = [
+            m for ts, m in rec.frames
+            if ts >= t and not m.is_error_frame
+            and isinstance(_parse(m), codec.SetControl)
+            and _parse(m).mode != ControlMode.FREE  # type: ignore[union-attr]
+        ]
+    assert driven == []  # nothing was commanded to move
+
+
+def _parse(m: can.Message) -> object:
+    try:
+        return codec.parse(m.arbitration_id, bytes(m.data))
+    except codec.ProtocolError:
+        return None
+
+
 def test_step_timeout(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
     client, rt, rec = service
     t = time.monotonic()

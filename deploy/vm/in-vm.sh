@@ -150,7 +150,7 @@ calibration_through_simulator() {
     SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL=vcan0 SWPC_ZENOH_CONNECT="[\"$ep\"]" \
     SWPC_TIME_SCALE="$ts" SWPC_HEARTBEAT_TIMEOUT="$hb" SWPC_MOCAP_STALE_AFTER="$stale" \
     SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
-    SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" \
+    SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
         swpc serve > "$OUT/service.log" 2>&1 &
     svc_pid=$!
     echo "simulator pid $sim_pid, service pid $svc_pid, time scale $ts," \
