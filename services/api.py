@@ -26,6 +26,7 @@ from services.robot_config import ConfigOverrides, RobotConfig
 from services.runtime import RunConflictError, Runtime
 from services.settings import ServiceSettings
 from swpc_hw.errors import KinematicFileError
+from swpc_hw.gc_pause import freeze_startup_heap
 from swpc_hw.kinematic_file import load_kinematics
 
 
@@ -78,6 +79,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         rt = runtime_factory(cfg) if runtime_factory else Runtime(cfg).open()
         app.state.runtime = rt
+        freeze_startup_heap()  # no full-collection pause over the start-up heap mid-run
         try:
             yield
         finally:

@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     from simulators.mocap_sim import MocapOptions
     from simulators.robot_sim import PhysicsOptions
     from simulators.sim import SimOptions, Simulator
+    from swpc_hw.gc_pause import freeze_startup_heap
     from swpc_hw.kinematic_file import load_robot
     from swpc_hw.reference import PAPER_CALIBRATED
 
@@ -174,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
     for m in args.mute:
         sim.mute(m)
     sim.start()
+    freeze_startup_heap()  # no full-collection pause over the start-up heap (heartbeats)
     print(
         f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
         f"{args.interface}:{args.channel} (nodes {sim.nodes}), mocap {args.pose_rate:g} Hz "

@@ -43,27 +43,36 @@ QUICK_PROTOCOL = {
 
 
 class Recorder(can.Listener):  # type: ignore[misc]
+    """Every frame on the bus as ``(host time, id, data)``: tuples of atomic values, which
+    the garbage collector stops tracking (a million ``can.Message`` kept for the module
+    made full collections pause the process for up to 2 s, enough to lose heartbeats)."""
+
     def __init__(self) -> None:
-        self.frames: list[tuple[float, can.Message]] = []
+        self.frames: list[tuple[float, int, bytes]] = []
         self.lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            return
         with self.lock:
-            self.frames.append((time.monotonic(), msg))
+            self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
+
+    def decoded_since(self, t: float) -> list[tuple[int, object]]:
+        """``(node, decoded frame)`` of the frames of our protocol recorded at or after t."""
+        with self.lock:
+            frames = [(i, d) for ts, i, d in self.frames if ts >= t]
+        out = []
+        for i, data in frames:
+            try:
+                out.append((codec.split_id(i)[0], codec.parse(i, data)))
+            except codec.ProtocolError:
+                continue
+        return out
 
     def stop_frames_after(self, t: float) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
         """(node, axis) pairs that got SetControl FREE, and SetAxisState disabled, after t."""
         free, disabled = set(), set()
-        with self.lock:
-            frames = [m for ts, m in self.frames if ts >= t]
-        for m in frames:
-            if m.is_error_frame:
-                continue
-            try:
-                d = codec.parse(m.arbitration_id, bytes(m.data))
-            except codec.ProtocolError:
-                continue
-            node, _ = codec.split_id(m.arbitration_id)
+        for node, d in self.decoded_since(t):
             if isinstance(d, codec.SetControl) and d.mode == ControlMode.FREE:
                 free.add((node, int(d.axis)))
             elif isinstance(d, codec.SetAxisState) and not d.enabled:
@@ -285,21 +294,11 @@ def test_precheck_refuses_a_mocap_clock_off_the_host_clock(
         rt.mocap.clock_mode = mode
     assert st["state"] == "FAILED", st
     assert "precheck failed" in st["reason"] and "off the host's wall clock" in st["reason"]
-    with rec.lock:
-        driven = [
-            m for ts, m in rec.frames
-            if ts >= t and not m.is_error_frame
-            and isinstance(_parse(m), codec.SetControl)
-            and _parse(m).mode != ControlMode.FREE  # type: ignore[union-attr]
-        ]
+    driven = [
+        d for _, d in rec.decoded_since(t)
+        if isinstance(d, codec.SetControl) and d.mode != ControlMode.FREE
+    ]
     assert driven == []  # nothing was commanded to move
-
-
-def _parse(m: can.Message) -> object:
-    try:
-        return codec.parse(m.arbitration_id, bytes(m.data))
-    except codec.ProtocolError:
-        return None
 
 
 def test_step_timeout(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:

@@ -53,6 +53,7 @@ from swpc_hw.can.errors import (
     NodeError,
     NodeTimeoutError,
 )
+from swpc_hw.can.history import FeedbackRing
 
 log = logging.getLogger(__name__)
 
@@ -174,7 +175,7 @@ class DriverStats:
 class _Node:
     module: int
     node: int
-    history: deque[FeedbackSample]
+    history: FeedbackRing
     alive: bool = False
     lost_reported: bool = False
     states: tuple[AxisState, AxisState] = (AxisState.DISABLED, AxisState.DISABLED)
@@ -251,7 +252,7 @@ class CanDriver:
         self._nodes: dict[int, _Node] = {}
         self._by_node: dict[int, _Node] = {}
         for module, node in self.config.modules.items():
-            nd = _Node(module, node, deque(maxlen=self.config.history_len))
+            nd = _Node(module, node, FeedbackRing(self.config.history_len))
             self._nodes[module] = nd
             self._by_node[node] = nd
         self._stats = DriverStats()
@@ -569,26 +570,21 @@ class CanDriver:
         return list(self._nodes)
 
     def history(self, module: int) -> list[FeedbackSample]:
+        """The kept feedback samples of a module, oldest first (objects made on demand;
+        :meth:`history_arrays` for computation)."""
         nd = self._node(module)
         with self._lock:
-            return list(nd.history)
+            a = nd.history.array()
+        return [
+            FeedbackSample(r[0], r[1], int(r[2]), int(r[3]), *r[4:]) for r in a.tolist()
+        ]
 
     def history_arrays(self, module: int) -> dict[str, NDArray[np.float64]]:
-        """Feedback history as columns: t, t_bus, counter, seq, theta_hat, psi, ..."""
-        hist = self.history(module)
-        names = [
-            "t",
-            "t_bus",
-            "counter",
-            "seq",
-            "theta_hat",
-            "psi",
-            "steer_velocity",
-            "wheel_velocity",
-            "steer_torque",
-            "wheel_torque",
-        ]
-        return {n: np.array([getattr(s, n) for s in hist], dtype=float) for n in names}
+        """Feedback history as columns (:data:`swpc_hw.can.history.COLUMNS`): t, t_bus,
+        counter, seq, theta_hat, psi, steer/wheel velocity, steer/wheel torque."""
+        nd = self._node(module)
+        with self._lock:
+            return nd.history.columns()
 
     def clear_history(self) -> None:
         with self._lock:
@@ -828,7 +824,7 @@ class CanDriver:
             sample = FeedbackSample(t, float(msg.timestamp), dec.counter, seq, theta, psi)
             nd.seq = seq
             nd.last = sample
-            nd.history.append(sample)
+            nd.history.append((t, sample.t_bus, dec.counter, seq, theta, psi))
             callbacks.append((nd.module, sample))
         elif isinstance(dec, codec.FeedbackVelocityTorque):
             nd.feedback_frames += 1
@@ -842,8 +838,11 @@ class CanDriver:
                     wheel_torque=dec.wheel_torque,
                 )
                 nd.last = full
-                if nd.history and nd.history[-1] is last:
-                    nd.history[-1] = full
+                if len(nd.history):  # the newest row is ``last`` unless cleared since
+                    nd.history.set_last_velocity_torque(
+                        (dec.steer_velocity, dec.wheel_velocity, dec.steer_torque,
+                         dec.wheel_torque)
+                    )
             else:
                 st.unpaired_feedback += 1
         elif isinstance(dec, codec.Heartbeat):
