@@ -311,3 +311,15 @@ def test_vm_calibration_comparison(
     r = run(sys.executable, DEPLOY / "vm/sim_calibration.py", "compare", a, b)
     assert r.returncode == status, r.stdout + r.stderr
     assert needle in r.stdout
+
+
+def test_vm_calibration_comparison_refuses_different_protocols(tmp_path: Path) -> None:
+    """The reference runs from the environment, the VM from its own copy: same overrides."""
+    vals = {"x_s": 0.1, "y_s": 0.2, "beta": 0.3, "b": 0.02, "r": 0.05}
+    docs = [_result_doc(vals, dict.fromkeys(vals, 1e-4)) for _ in range(2)]
+    docs[1]["overrides"] = {"protocol": {"sweep_deg": 45}}
+    paths = [tmp_path / "a.json", tmp_path / "b.json"]
+    for p, d in zip(paths, docs, strict=True):
+        p.write_text(json.dumps(d))
+    r = run(sys.executable, DEPLOY / "vm/sim_calibration.py", "compare", *paths)
+    assert r.returncode == 1 and "not the same protocol" in r.stdout, r.stdout + r.stderr

@@ -114,6 +114,10 @@ def compare(args: argparse.Namespace) -> int:
         if "result" not in d:
             print(f"{p}: no result (run {d.get('status', {}).get('state')})")
             return 1
+    if docs[0].get("overrides") != docs[1].get("overrides"):
+        print(f"not the same protocol: overrides {docs[0].get('overrides')} in {args.a}, "
+              f"{docs[1].get('overrides')} in {args.b}")
+        return 1
     mods = [{m["id"]: m for m in d["result"]["modules"]} for d in docs]
     print(
         f"{'module':>6} {'param':>5} {'A':>14} {'B':>14} {'A-B':>11} {'std dev':>10} {'|d|/s':>6}"
