@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose
+from swpc_hw.ring import RowRing
 
 FloatArray = NDArray[np.float64]
 
@@ -111,9 +112,7 @@ class MocapIngest:
         self.counters = IngestCounters()
         self.detected_encoding: PoseEncoding | None = None
         self._lock = threading.Lock()
-        self._buf = np.zeros((min(capacity, 1 << 16), len(COLUMNS)))
-        self._n = 0
-        self._capacity = int(capacity)
+        self._rows = RowRing(len(COLUMNS), capacity, initial=1 << 16)
         self._last_source = -math.inf
         self.sync_window = float(sync_window)
         if clock_mode not in CLOCK_MODES:
@@ -196,7 +195,7 @@ class MocapIngest:
                 t_host = now
             else:
                 t_host = p.t / self.time_scale + self._offset
-            self._append((p.t, now, t_host, p.x, p.y, p.yaw))
+            self._rows.append((p.t, now, t_host, p.x, p.y, p.yaw))
             self._recent.append(now)
             self._latency.append(now - p.t / self.time_scale)
             c.accepted += 1
@@ -206,19 +205,6 @@ class MocapIngest:
     def _finite(p: PoseSample) -> bool:
         return all(math.isfinite(v) for v in (p.t, p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw))
 
-    def _append(self, row: tuple[float, ...]) -> None:
-        if self._n == self._buf.shape[0]:
-            if self._n >= self._capacity:  # keep the newest half
-                half = self._n // 2
-                self._buf[:half] = self._buf[self._n - half : self._n]
-                self._n = half
-            else:
-                grown = np.zeros((min(2 * self._buf.shape[0], self._capacity), len(COLUMNS)))
-                grown[: self._n] = self._buf[: self._n]
-                self._buf = grown
-        self._buf[self._n] = row
-        self._n += 1
-
     # ----------------------------------------------------------------- output
     def samples(self, since_host: float = -math.inf) -> FloatArray:
         """Accepted samples (rows as :data:`COLUMNS`) with host time >= ``since_host``.
@@ -226,23 +212,23 @@ class MocapIngest:
         ``t_host`` is fixed when the sample arrives (the clock offset of that moment).
         """
         with self._lock:
-            data = self._buf[: self._n].copy()
+            data = self._rows.array()
         i = int(np.searchsorted(data[:, 2], since_host))
         return data[i:]
 
     def latest(self) -> LatestPose | None:
         """The newest accepted sample."""
         with self._lock:
-            if self._n == 0:
+            if not len(self._rows):
                 return None
-            r = self._buf[self._n - 1]
+            r = self._rows.last()
             return LatestPose(float(r[0]), float(r[2]), float(r[3]), float(r[4]), float(r[5]))
 
     def age(self, now: float | None = None) -> float:
         """Host seconds since the newest accepted sample was received (inf if none)."""
         now = self.clock() if now is None else now
         with self._lock:
-            return now - float(self._buf[self._n - 1, 1]) if self._n else math.inf
+            return now - float(self._rows.last()[1]) if len(self._rows) else math.inf
 
     def is_stale(self, now: float | None = None) -> bool:
         return self.age(now) > self.stale_after

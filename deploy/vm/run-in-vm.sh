@@ -51,34 +51,6 @@ cmd="SWPC_VM_MPLCONFIGDIR=$SWPC_VM_MPLCONFIGDIR $cmd"
 
 export PATH="$ROOT/.venv/bin:$PATH"
 
-# The in-process reference: the same calibration configuration here, `swpc serve` on its
-# embedded simulator (python-can virtual bus, same truth, seed, mocap noise, feedback rate,
-# physics step, protocol overrides), driven by the same HTTP client, after the VM: run
-# concurrently (with the VM's boot, or its driver tests) it took a host core from the
-# emulation and the VM's timing tests failed (64 feedback samples where 80-120 are due,
-# heartbeats lost).  Its poses are stamped with this host's wall clock at sampling (clock
-# mode "wall"), as in the VM.
-want_ref=1
-if (($#)) || [[ -n "${SWPC_VM_ONLY:-}" && " $SWPC_VM_ONLY " != *" sim-calibration "* ]]; then
-    want_ref=0  # a custom command or a partial run without the calibration: nothing to compare
-fi
-ref="$OUT/in-process"
-run_reference() {
-    local ref_ts="${SWPC_VM_REF_TIME_SCALE:-1}" ref_port="${SWPC_VM_REF_PORT:-18080}" pid
-    mkdir -p "$ref"
-    echo "in-process reference: swpc serve (embedded simulator), time scale $ref_ts"
-    SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
-    SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" SWPC_SIM_PHYSICS_DT="$SWPC_VM_PHYSICS_DT" \
-    SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" SWPC_HEARTBEAT_TIMEOUT=3 \
-    SWPC_MOCAP_STALE_AFTER=3 SWPC_MOCAP_CLOCK=wall \
-        "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
-    pid=$!
-    "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py run \
-        --url "http://127.0.0.1:$ref_port" --token ref-token \
-        --overrides "$SWPC_VM_SIM_OVERRIDES" --out "$OUT/in-process.json" \
-        --service-log "$ref/service.log" --health-timeout 120 || true
-    kill "$pid" 2>/dev/null; wait "$pid" 2>/dev/null || true
-}
 # The venv and its base Python are also exported as separate read-only 9p shares, which
 # in-vm.sh remounts with cache=loose (the root share is uncached: every Python import
 # would otherwise go to the host again).
@@ -145,17 +117,38 @@ fi
 printf '%-16s %-4s %s\n' decode "$( ((decode_status)) && echo FAIL || echo PASS)" \
     "($(fmt "$t_dec" "$EPOCHREALTIME") s, on the host)" >> "$OUT/summary.txt"
 
+# The in-process reference: the same calibration configuration here, `swpc serve` on its
+# embedded simulator (python-can virtual bus, same truth, seed, mocap noise, feedback rate,
+# physics step, protocol overrides), driven by the same HTTP client, after the VM (run
+# concurrently, it took a host core from the emulation and the VM's timing tests
+# failed).  Poses in clock mode "wall", as in the VM.
+ref="$OUT/in-process"
+run_reference() {
+    local ref_ts="${SWPC_VM_REF_TIME_SCALE:-1}" ref_port="${SWPC_VM_REF_PORT:-18080}" pid
+    mkdir -p "$ref"
+    echo "in-process reference: swpc serve (embedded simulator), time scale $ref_ts"
+    SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
+    SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" SWPC_SIM_PHYSICS_DT="$SWPC_VM_PHYSICS_DT" \
+    SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" SWPC_HEARTBEAT_TIMEOUT=3 \
+    SWPC_MOCAP_STALE_AFTER=3 SWPC_MOCAP_CLOCK=wall \
+        "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
+    pid=$!
+    "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py run \
+        --url "http://127.0.0.1:$ref_port" --token ref-token \
+        --overrides "$SWPC_VM_SIM_OVERRIDES" --out "$OUT/in-process.json" \
+        --service-log "$ref/service.log" --health-timeout 120 || true
+    kill "$pid" 2>/dev/null; wait "$pid" 2>/dev/null || true
+}
 # The VM's calibration through the simulator process on vcan0 against the in-process
-# reference (run_reference above).  Exit status 10 if they do not agree within 3 combined
-# std devs (11: the recording does not decode).
+# reference.  Exit status 10 if they do not agree within 3 combined std devs (11: the
+# recording does not decode).
 ref_status=0
 t_ref=$EPOCHREALTIME
+t_cmp=$t_ref
 set +e
-if ((want_ref)) && grep -qs '"result"' "$OUT/sim-calibration.json"; then
+if grep -qs '"result"' "$OUT/sim-calibration.json"; then
     run_reference 2>&1 | tee "$OUT/in-process.log" | sed 's/^/[in-process] /'
-fi
-t_cmp=$EPOCHREALTIME
-if [[ -s "$OUT/sim-calibration.json" ]] && grep -q '"result"' "$OUT/sim-calibration.json"; then
+    t_cmp=$EPOCHREALTIME
     "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py compare \
         "$OUT/sim-calibration.json" "$OUT/in-process.json" | tee "$OUT/comparison.txt" \
         | sed 's/^/[compare] /'

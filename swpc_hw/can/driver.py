@@ -53,6 +53,7 @@ from swpc_hw.can.errors import (
     NodeError,
     NodeTimeoutError,
 )
+from swpc_hw.can.history import COLUMNS as HISTORY_COLUMNS
 from swpc_hw.can.history import FeedbackRing
 
 log = logging.getLogger(__name__)
@@ -575,13 +576,15 @@ class CanDriver:
         nd = self._node(module)
         with self._lock:
             a = nd.history.array()
-        return [
-            FeedbackSample(r[0], r[1], int(r[2]), int(r[3]), *r[4:]) for r in a.tolist()
-        ]
+        samples = []
+        for r in a.tolist():
+            f = dict(zip(HISTORY_COLUMNS, r, strict=True))
+            f["counter"], f["seq"] = int(f["counter"]), int(f["seq"])
+            samples.append(FeedbackSample(**f))
+        return samples
 
     def history_arrays(self, module: int) -> dict[str, NDArray[np.float64]]:
-        """Feedback history as columns (:data:`swpc_hw.can.history.COLUMNS`): t, t_bus,
-        counter, seq, theta_hat, psi, steer/wheel velocity, steer/wheel torque."""
+        """Feedback history as columns (the fields of :class:`FeedbackSample`)."""
         nd = self._node(module)
         with self._lock:
             return nd.history.columns()

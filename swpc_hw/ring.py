@@ -1,0 +1,76 @@
+"""A ring buffer of float64 rows: the newest ``capacity`` rows, no Python object per row.
+
+Per-sample data that a long-running process keeps (CAN feedback, motion-capture poses)
+live here rather than in lists of objects: CPython's full garbage collections walk every
+live container object, and millions of them paused the service for 0.5-2 s
+(:mod:`swpc_hw.gc_pause`).  Not thread-safe: the owner calls it under its own lock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+class RowRing:
+    """The newest ``capacity`` rows of ``n_columns`` floats; the oldest are overwritten.
+
+    Memory grows by doubling from ``initial`` rows up to ``capacity``, so a large capacity
+    costs nothing until it is used.
+    """
+
+    def __init__(self, n_columns: int, capacity: int, initial: int = 1024) -> None:
+        if capacity < 1:
+            raise ValueError(f"history capacity must be >= 1, not {capacity}")
+        self.capacity = int(capacity)
+        self._buf: NDArray[np.float64] = np.empty((min(self.capacity, initial), n_columns))
+        self._start = 0  # index of the oldest row
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _index(self, k: int) -> int:
+        return (self._start + k) % int(self._buf.shape[0])
+
+    def append(self, row: Sequence[float]) -> None:
+        """Add a row; columns beyond ``len(row)`` are NaN."""
+        size = self._buf.shape[0]
+        if self._n == size and size < self.capacity:  # grow: unroll into a larger array
+            grown = np.empty((min(2 * size, self.capacity), self._buf.shape[1]))
+            grown[:size] = self.array()
+            self._buf, self._start = grown, 0
+            size = grown.shape[0]
+        i = self._index(self._n)
+        self._buf[i, : len(row)] = row
+        self._buf[i, len(row) :] = np.nan
+        if self._n == size:
+            self._start = (self._start + 1) % size
+        else:
+            self._n += 1
+
+    def last(self) -> NDArray[np.float64]:
+        """A copy of the newest row."""
+        if not self._n:
+            raise IndexError("empty ring")
+        row: NDArray[np.float64] = self._buf[self._index(self._n - 1)].copy()
+        return row
+
+    def set_last(self, columns: slice, values: Sequence[float]) -> None:
+        """Overwrite ``columns`` of the newest row."""
+        if not self._n:
+            raise IndexError("empty ring")
+        self._buf[self._index(self._n - 1), columns] = values
+
+    def clear(self) -> None:
+        self._start = self._n = 0
+
+    def array(self) -> NDArray[np.float64]:
+        """A copy of the rows, oldest first, shape (len, n_columns)."""
+        size = self._buf.shape[0]
+        end = self._start + self._n
+        if end <= size:
+            return self._buf[self._start : end].copy()
+        return np.concatenate((self._buf[self._start :], self._buf[: end - size]))
