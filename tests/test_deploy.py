@@ -323,3 +323,45 @@ def test_vm_calibration_comparison_refuses_different_protocols(tmp_path: Path) -
         p.write_text(json.dumps(d))
     r = run(sys.executable, DEPLOY / "vm/sim_calibration.py", "compare", *paths)
     assert r.returncode == 1 and "not the same protocol" in r.stdout, r.stdout + r.stderr
+
+
+def _vm_speed_module() -> Any:
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("vm_speed", DEPLOY / "vm/speed.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize(
+    ("loop_s", "factor", "time_scale"),
+    [
+        (0.6, 8.0, 0.3),  # the reference speed: the values that passed
+        (1.2, 16.0, 0.15),  # half as fast: twice the periods, half the simulated speed
+        (0.9, 12.0, 0.2),
+        (0.75, 10.0, 0.24),
+        (0.3, 8.0, 0.3),  # faster: never less margin than at the reference
+        (5.0, 24.0, 0.1),  # far too slow: clamped, the run then takes its time
+    ],
+)
+def test_vm_speed_scales_time_factor_and_time_scale(
+    loop_s: float, factor: float, time_scale: float
+) -> None:
+    """deploy/vm/speed.py: F = 8 s and k = 0.3 / s with s = loop / 0.6 s, clamped."""
+    sp = _vm_speed_module()
+    s = sp.slowness(loop_s)
+    assert sp.time_factor(s) == pytest.approx(factor)
+    assert sp.sim_time_scale(s) == pytest.approx(time_scale)
+    with pytest.raises(ValueError, match="must be > 0"):
+        sp.slowness(0.0)
+
+
+def test_vm_speed_prints_shell_assignments() -> None:
+    r = run(sys.executable, "-S", DEPLOY / "vm/speed.py", "--repeat", "1", "--ref-loop", "1e-6")
+    assert r.returncode == 0, r.stderr
+    got = dict(kv.split("=") for kv in r.stdout.split())
+    assert set(got) == {"LOOP_S", "SLOWNESS", "TIME_FACTOR", "SIM_TIME_SCALE"}
+    # any real loop is far slower than 1 us: the slowest settings
+    assert float(got["TIME_FACTOR"]) == 24.0 and float(got["SIM_TIME_SCALE"]) == 0.1
