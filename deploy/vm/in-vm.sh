@@ -86,11 +86,15 @@ if kill -0 "$CANDUMP_PID" 2>/dev/null; then result candump PASS "(pid $CANDUMP_P
 else result candump FAIL "$(cat "$OUT/candump.err")"; fi
 
 cansend_seen() {
-    cansend vcan0 000#2A || return 1
-    local i  # candump writes to the 9p share: up to 5 s (0.3 s was too short on a slow host)
-    for ((i = 0; i < 50; i++)); do
-        grep -q ' vcan0 000#2A$' "$DUMP" && return 0
-        sleep 0.1
+    # candump may not have bound its socket yet (the 0.3 s above are not enough on a slow
+    # host, and a frame sent before that is never recorded): send again until it is seen
+    local i j
+    for ((i = 0; i < 10; i++)); do
+        cansend vcan0 000#2A || return 1
+        for ((j = 0; j < 10; j++)); do
+            grep -q ' vcan0 000#2A$' "$DUMP" && return 0
+            sleep 0.2
+        done
     done
     return 1
 }
