@@ -422,8 +422,12 @@ class CalibrationRun:
                         f"yaw rate {rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
                     )
                 rate_t, rate_acc = p.t_host, yaw_acc
-            now = time.monotonic()
-            if window_start is None and now - t_spin >= self._robot_seconds(proto.settle_time):
+            # the window opens at the first pose *sampled* settle_time after the spin began
+            # (not the newest pose at that moment: with late poses, from a slow mocap
+            # network or a starved ingest, that one was sampled before the spin was steady
+            # and the window took in the spin-up; the VM under load saw it start at rest)
+            settled = p.t_host - t_spin >= self._robot_seconds(proto.settle_time)
+            if window_start is None and settled:
                 window_start, acc_at_start = p.t_host, yaw_acc
             if window_start is not None:
                 sweep = abs(yaw_acc - acc_at_start)

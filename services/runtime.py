@@ -126,6 +126,7 @@ class Runtime:
             time_scale=self.settings.time_scale,
             seed=self.settings.sim_seed,
             physics_dt=self.settings.sim_physics_dt,
+            mocap_latency=self.settings.sim_mocap_latency,
         )
 
     def close(self) -> None:

@@ -69,6 +69,9 @@ class ServiceSettings(BaseSettings):
     sim_physics_dt: float = Field(
         0.005, gt=0, le=0.01, description="embedded simulator: longest physics step, s"
     )
+    sim_mocap_latency: float = Field(
+        0.0, ge=0, le=5.0, description="embedded simulator: pose publication delay, robot s"
+    )
 
     @property
     def embedded(self) -> bool:

@@ -29,6 +29,7 @@ def embedded_simulator(
     truth: RobotParams | None = None,
     mocap: MocapOptions | None = None,
     physics_dt: float = 0.005,
+    mocap_latency: float | None = None,
 ) -> Simulator:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
     service's zenoh endpoint (it connects to ``zenoh_endpoints``)."""
@@ -41,7 +42,13 @@ def embedded_simulator(
         time_scale=time_scale,
         physics_dt=physics_dt,
         watchdog_ms=config.limits.watchdog_ms,
-        mocap=MocapOptions(**{**base.__dict__, "seed": seed}),
+        mocap=MocapOptions(
+            **{
+                **base.__dict__,
+                "seed": seed,
+                "latency": base.latency if mocap_latency is None else mocap_latency,
+            }
+        ),
         seed=seed,
     )
     return Simulator.open(
