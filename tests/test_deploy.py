@@ -338,18 +338,18 @@ def _vm_speed_module() -> Any:
 @pytest.mark.parametrize(
     ("loop_s", "factor", "time_scale"),
     [
-        (0.6, 8.0, 0.3),  # the reference speed: the values that passed
-        (1.2, 16.0, 0.15),  # half as fast: twice the periods, half the simulated speed
-        (0.9, 12.0, 0.2),
-        (0.75, 10.0, 0.24),
-        (0.3, 8.0, 0.3),  # faster: never less margin than at the reference
+        (0.5, 8.0, 0.3),  # the reference speed: the values that passed
+        (1.0, 16.0, 0.15),  # half as fast: twice the periods, half the simulated speed
+        (0.75, 12.0, 0.2),
+        (0.625, 10.0, 0.24),
+        (0.25, 8.0, 0.3),  # faster: never less margin than at the reference
         (5.0, 24.0, 0.1),  # far too slow: clamped, the run then takes its time
     ],
 )
 def test_vm_speed_scales_time_factor_and_time_scale(
     loop_s: float, factor: float, time_scale: float
 ) -> None:
-    """deploy/vm/speed.py: F = 8 s and k = 0.3 / s with s = loop / 0.6 s, clamped."""
+    """deploy/vm/speed.py: F = 8 s and k = 0.3 / s with s = loop / 0.5 s, clamped."""
     sp = _vm_speed_module()
     s = sp.slowness(loop_s)
     assert sp.time_factor(s) == pytest.approx(factor)

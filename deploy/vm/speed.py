@@ -2,7 +2,7 @@
 
 Standard library only (it runs inside the QEMU VM, started by ``deploy/vm/in-vm.sh``)::
 
-    speed.py [--repeat 8] [--procs CPUS] [--ref-loop 0.6] [--factor 8] [--time-scale 0.3]
+    speed.py [--repeat 8] [--procs CPUS] [--ref-loop 0.5] [--factor 8] [--time-scale 0.3]
 
 prints one shell line, e.g. ``LOOP_S=0.712 SLOWNESS=1.08 TIME_FACTOR=8.6 SIM_TIME_SCALE=0.28``.
 
@@ -37,9 +37,10 @@ import sys
 import time
 from typing import Any
 
-REF_LOOP_S = 0.6
-"""Loop time (s) of :func:`loop_seconds` in the VM on a full-speed host (2026-11-23:
-0.44-0.81 s within an hour)."""
+REF_LOOP_S = 0.5
+"""Loop time (s) of :func:`loop_seconds` in the VM on a full-speed host, conservatively
+(2026-11-23: one loop 0.34-0.55 s; one loop per CPU with a busy loop on one host core
+0.58-0.80 s, and at k = 0.3 that run saturated the simulator and lost a watchdog)."""
 F_REF, K_REF = 8.0, 0.3
 """The time factor and time scale that passed with margin at ``REF_LOOP_S``."""
 F_MIN, F_MAX = F_REF, 24.0
