@@ -255,8 +255,15 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
     # homing of the steering axis, then a position setpoint
     drv.enable(1, Axis.STEER)
     drv.start_homing(1)
-    st = drv.wait_for(1, lambda s: s.homed and s.states[0] == AxisState.ENABLED, 2.0, "homed")
-    assert st.homing == HomingState.DONE
+    # the heartbeat's homed flag and the HomingStatus frame are two frames: wait for both (in
+    # the VM the heartbeat came first, and homing still read IN_PROGRESS)
+    st = drv.wait_for(
+        1,
+        lambda s: s.homed and s.homing == HomingState.DONE and s.states[0] == AxisState.ENABLED,
+        2.0,
+        "homed",
+    )
+    assert st.homed and st.homing == HomingState.DONE
     assert any(e.kind == EventKind.HOMING and "DONE" in e.message for e in drv.events())
     drv.set_position(1, Axis.STEER, 0.5)
     assert wait_until(
