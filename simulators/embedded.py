@@ -7,6 +7,7 @@ the nominal design.  Default sensor noise: mocap 0.5 mm / 0.05 deg at 100 Hz, en
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -42,12 +43,8 @@ def embedded_simulator(
         time_scale=time_scale,
         physics_dt=physics_dt,
         watchdog_ms=config.limits.watchdog_ms,
-        mocap=MocapOptions(
-            **{
-                **base.__dict__,
-                "seed": seed,
-                "latency": base.latency if mocap_latency is None else mocap_latency,
-            }
+        mocap=dataclasses.replace(
+            base, seed=seed, latency=base.latency if mocap_latency is None else mocap_latency
         ),
         seed=seed,
     )

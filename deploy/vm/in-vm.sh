@@ -57,9 +57,12 @@ result() { # result NAME STATUS(PASS|FAIL|SKIP) DETAIL
     [[ "$2" == FAIL ]] && failures=$((failures + 1))
     return 0
 }
+selected() { # selected NAME: the step runs (vcan-up always; else as SWPC_VM_ONLY says)
+    [[ -z "${SWPC_VM_ONLY:-}" || $1 == vcan-up || " $SWPC_VM_ONLY " == *" $1 "* ]]
+}
 step() { # step NAME CMD...: run CMD, PASS on status 0 (SKIP if not in SWPC_VM_ONLY)
     local name=$1; shift
-    if [[ -n "${SWPC_VM_ONLY:-}" && $name != vcan-up && " $SWPC_VM_ONLY " != *" $name "* ]]; then
+    if ! selected "$name"; then
         result "$name" SKIP "(not in SWPC_VM_ONLY)"; return 0
     fi
     local t0; t0=$(now)
@@ -107,9 +110,11 @@ step python-can "$PY" deploy/vm/can_exchange.py --interface socketcan --tx vcan0
 # a day.  Before each timed step deploy/vm/speed.py times a Python loop and scales the time
 # factor and the simulator's time scale with it, so the CPU load stays where it passed with
 # margin (unless SWPC_VM_TIME_FACTOR / SWPC_VM_SIM_TIME_SCALE fix them).  Sets SPEED_LOOP_S,
-# SPEED_SLOWNESS, SPEED_TIME_FACTOR, SPEED_SIM_TIME_SCALE.
-measure_speed() { # measure_speed STEP
+# SPEED_SLOWNESS, SPEED_TIME_FACTOR, SPEED_SIM_TIME_SCALE; nothing if STEP does not run or
+# FIXED (the knob that fixes its value) is set.
+measure_speed() { # measure_speed STEP FIXED
     local line kv
+    selected "$1" && [[ -z "$2" ]] || return 0
     line=$("$PY" -S deploy/vm/speed.py) || { echo "speed.py failed"; return 1; }
     for kv in $line; do declare -g "SPEED_$kv"; done
     echo "speed before $1: $line" | tee -a "$OUT/speed.txt"
@@ -129,7 +134,7 @@ TEST_VCANS="${SWPC_VM_TEST_VCANS:-24}"
 # The suite needs none of the installed pytest plugins for schemathesis, hypothesis and anyio;
 # loading them took ~45 s of the step under TCG (5 s of pytest start-up on the host).
 NO_PLUGINS=(-p no:schemathesis -p no:hypothesispytest -p no:anyio)
-measure_speed driver-tests
+measure_speed driver-tests "${SWPC_VM_TIME_FACTOR:-}"
 TIME_FACTOR="${SWPC_VM_TIME_FACTOR:-${SPEED_TIME_FACTOR:-8}}"
 make_test_vcans() {
     local i names=()
@@ -161,7 +166,7 @@ fi
 # windows (heartbeat loss, mocap staleness) are widened to match.  candump records all of
 # it on vcan0.  The result (OUT/sim-calibration.json) is compared on the host with an
 # in-process run of the same configuration (run-in-vm.sh).
-measure_speed sim-calibration
+measure_speed sim-calibration "${SWPC_VM_SIM_TIME_SCALE:-}"
 SIM_TS="${SWPC_VM_SIM_TIME_SCALE:-${SPEED_SIM_TIME_SCALE:-0.3}}"
 PHYSICS_DT="${SWPC_VM_PHYSICS_DT:-0.005}"
 SIM_OVERRIDES="${SWPC_VM_SIM_OVERRIDES:-{\}}"
@@ -169,15 +174,14 @@ SIM_SEED="${SWPC_VM_SIM_SEED:-1}"
 FEEDBACK_RATE="${SWPC_VM_FEEDBACK_RATE:-50}"
 calibration_through_simulator() {
     local ts=$SIM_TS ep=tcp/127.0.0.1:7447 port=8080 token=vm-token rc=0 sim_pid svc_pid
-    local hb stale data=/tmp/swpc-data
+    local window data=/tmp/swpc-data
     # The data dir must not be on the 9p share (OUT): SQLite there fails ("disk I/O error",
     # no POSIX locks over 9p), which is why the service never answered /health before.
     # /tmp is the guest's own tmpfs; the run's files are copied to OUT afterwards.
     # 15 heartbeat periods, 150 mocap periods (of robot time): the emulation's scheduling
     # hiccups are not what this step tests (make test and the driver suite test the
     # supervision); 7.5 periods lost every node once on a slow host (2.5 s, in LOCK).
-    hb=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
-    stale=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
+    window=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
     ip link set dev lo up || return 1                     # no network device, but loopback
     swpc sim --interface socketcan --channel vcan0 --zenoh-listen "$ep" --time-scale "$ts" \
         --physics-dt "$(awk -v d="$PHYSICS_DT" 'BEGIN {print d * 1000}')" \
@@ -186,13 +190,13 @@ calibration_through_simulator() {
         > "$OUT/sim.log" 2>&1 &
     sim_pid=$!
     SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL=vcan0 SWPC_ZENOH_CONNECT="[\"$ep\"]" \
-    SWPC_TIME_SCALE="$ts" SWPC_HEARTBEAT_TIMEOUT="$hb" SWPC_MOCAP_STALE_AFTER="$stale" \
+    SWPC_TIME_SCALE="$ts" SWPC_HEARTBEAT_TIMEOUT="$window" SWPC_MOCAP_STALE_AFTER="$window" \
     SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
     SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
         swpc serve > "$OUT/service.log" 2>&1 &
     svc_pid=$!
     echo "simulator pid $sim_pid, service pid $svc_pid, time scale $ts," \
-        "heartbeat timeout $hb s, mocap stale after $stale s"
+        "heartbeat timeout and mocap stale after $window s"
     "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
         --overrides "$SIM_OVERRIDES" --out "$OUT/sim-calibration.json" \
         --service-log "$OUT/service.log" --health-timeout 300 --timeout 1500 || rc=1

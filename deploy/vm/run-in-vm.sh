@@ -37,8 +37,8 @@ if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
 # separate simulator process) and in the in-process reference below.  A short protocol
 # (4 modules x 2 angles, 45 deg sweeps: ~30 s of robot time) at 50 Hz encoder feedback
 # (100 Hz put 240 frames/s of wall time through the simulator's and the service's Python
-# under TCG) with 5 ms physics steps, slowed down to a fraction of real time that in-vm.sh picks from
-# the measured speed of the emulation (deploy/vm/speed.py).
+# under TCG) with 5 ms physics steps, slowed down to a fraction of real time that in-vm.sh
+# picks from the measured speed of the emulation (deploy/vm/speed.py).
 : "${SWPC_VM_CPUS:=2}"
 : "${SWPC_VM_PHYSICS_DT:=0.005}"
 : "${SWPC_VM_SIM_SEED:=1}"
