@@ -37,6 +37,7 @@ FAILED or ABORTED with the reason.  Durations are robot time; with a simulator r
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import math
 import shutil
@@ -264,7 +265,23 @@ class CalibrationRun:
         except RunFailedError as exc:
             self._end(State.FAILED, str(exc))
         except Exception as exc:  # a bug or an I/O error: still stop the robot first
-            self._end(State.FAILED, f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            error = f"{type(exc).__name__}: {exc}"
+            # a command refused because the driver had just stopped on a fault: the fault is
+            # the reason, the refusal only its consequence
+            faults = self._take_faults_quietly()
+            if faults:
+                self._end(State.FAILED, f"robot fault: {faults[0]}", f"then {error}")
+            else:
+                self._end(State.FAILED, error, traceback.format_exc())
+        finally:
+            with contextlib.suppress(Exception):
+                self.robot.close()
+
+    def _take_faults_quietly(self) -> list[str]:
+        try:
+            return self.robot.take_faults()
+        except Exception:
+            return []
 
     def _end(self, state: State, reason: str, detail: str | None = None) -> None:
         t = time.monotonic()

@@ -82,6 +82,10 @@ class RobotIO(Protocol):
         """Fault messages observed since the last call."""
         ...
 
+    def close(self) -> None:
+        """Stop listening to the robot (the run is over); idempotent."""
+        ...
+
 
 class DriverRobotIO:
     """:class:`RobotIO` on a :class:`CanDriver` (which owns the bus and its lifecycle)."""
@@ -89,13 +93,18 @@ class DriverRobotIO:
     def __init__(self, driver: CanDriver) -> None:
         self.driver = driver
         self._faults: list[str] = []
+        self._cause_taken = driver.fault_cause  # the driver's fault cause last looked at
+        self._skip_event: str | None = None  # its event, when the cause was reported first
         self._lock = threading.Lock()
         driver.add_event_callback(self._on_event)
 
     def _on_event(self, ev: DriverEvent) -> None:
         if ev.severity is Severity.FAULT:
             with self._lock:
-                self._faults.append(ev.message)
+                if ev.message == self._skip_event:
+                    self._skip_event = None  # already reported through the driver's cause
+                else:
+                    self._faults.append(ev.message)
 
     @property
     def module_ids(self) -> list[int]:
@@ -189,9 +198,22 @@ class DriverRobotIO:
         return np.column_stack([t[sel], h["theta_hat"][sel], h["psi"][sel]])
 
     def take_faults(self) -> list[str]:
+        """The fault events since the last call, and the driver's fault cause as soon as it
+        has dropped out of ACTIVE: the event callbacks run just after that drop, so a
+        caller polling between the two would otherwise see no fault yet its next command
+        refused (LifecycleError)."""
+        cause = self.driver.fault_cause if self.driver.state is not Lifecycle.ACTIVE else None
         with self._lock:
             out, self._faults = self._faults, []
+            if cause is not None and cause is not self._cause_taken:  # a new fault stop
+                self._cause_taken = cause
+                if cause not in out:  # its event has not arrived yet
+                    out.insert(0, cause)
+                    self._skip_event = cause
         return out
+
+    def close(self) -> None:
+        self.driver.remove_event_callback(self._on_event)
 
 
 def monotonic() -> float:

@@ -11,6 +11,7 @@ import itertools
 import math
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ from swpc_hw.can import (
     CanConfigError,
     CanDriver,
     CanError,
+    DriverEvent,
     EventKind,
     Lifecycle,
     LifecycleError,
@@ -454,9 +456,9 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
     queued_when_inactive: list[EventKind] = []
     begin_fault = drv._begin_fault
 
-    def probe() -> bool:  # the moment the driver drops to INACTIVE
+    def probe(cause: str) -> bool:  # the moment the driver drops to INACTIVE
         queued_when_inactive.extend(e.kind for e in list(drv._events.queue))
-        return begin_fault()
+        return begin_fault(cause)
 
     drv._begin_fault = probe  # type: ignore[method-assign]
     time.sleep(T(0.05))
@@ -472,9 +474,71 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
     assert wait_until(lambda: stop_frames(active.host_frames(t0)) == (ALL_AXES, ALL_AXES))
     drv.wait_axis_state(1, Axis.WHEEL, AxisState.DISABLED)
     assert drv.stats().heartbeat_losses == 1
+    # a command refused after the fault stop names the fault, not only the state
+    assert drv.fault_cause == lost[0].message
+    with pytest.raises(
+        LifecycleError,
+        match=r"module 1 \(node 1\) axis 1 \(wheel\): cannot .* in state inactive "
+        r"\(stopped by a fault: module 3 \(node 3\): no heartbeat for",
+    ):
+        drv.hold(1, Axis.WHEEL)
     active.emu.mute(3, False)
     assert wait_until(lambda: drv.module_state(3).alive, 1.0)
     assert any(e.kind == EventKind.HEARTBEAT_RESTORED for e in drv.events())
+    drv.activate()
+    assert drv.fault_cause is None
+    drv.deactivate()  # an orderly stop has no fault cause
+    assert drv.fault_cause is None
+    with pytest.raises(LifecycleError, match=r"in state inactive$"):
+        drv.hold(1, Axis.WHEEL)
+
+
+def test_robot_io_reports_a_fault_stop_before_its_event_callback_runs(active: Rig) -> None:
+    """The state machine polls take_faults() between commands.  The driver drops out of
+    ACTIVE before it runs the event callbacks (on the supervisor thread); a slow callback
+    ahead of the RobotIO's must not leave a window in which take_faults() is empty yet the
+    next command is refused."""
+    from services.robot_io import DriverRobotIO
+
+    drv = active.drv
+    release = threading.Event()
+    slow_seen: list[str] = []
+
+    def slow(ev: DriverEvent) -> None:  # registered first: runs before the RobotIO's
+        slow_seen.append(ev.message)
+        release.wait(5.0)
+
+    drv.add_event_callback(slow)
+    io = DriverRobotIO(drv)
+    drv.enable(1, Axis.WHEEL)
+    drv.hold(1, Axis.WHEEL)
+    assert io.take_faults() == []
+    active.emu.mute(3)
+    try:
+        assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
+        faults = io.take_faults()  # the event callbacks are still blocked
+        assert len(faults) == 1 and "module 3 (node 3): no heartbeat" in faults[0], faults
+        with pytest.raises(LifecycleError, match="stopped by a fault: module 3"):
+            io.wheel_hold(1)
+        assert io.take_faults() == []  # reported once
+    finally:
+        release.set()
+    assert wait_until(lambda: len(slow_seen) >= 1, 1.0)
+    time.sleep(T(0.1))
+    assert io.take_faults() == []  # its late event is not a second fault
+    # after close() the RobotIO no longer listens; the driver keeps its other callbacks
+    io.close()
+    drv.remove_event_callback(slow)
+    io.close()  # idempotent
+    active.emu.mute(3, False)
+    assert wait_until(lambda: drv.module_state(3).alive, 1.0)
+    drv.activate()
+    n = len(slow_seen)
+    active.emu.mute(3)
+    assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
+    time.sleep(T(0.1))
+    assert len(slow_seen) == n  # removed: not called
+    active.emu.mute(3, False)
 
 
 @virtual_only

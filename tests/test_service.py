@@ -29,6 +29,7 @@ from services.api import create_app
 from services.runtime import Runtime
 from services.settings import ServiceSettings
 from swpc_hw.calibration.solver import solve_directory
+from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
@@ -250,6 +251,43 @@ def test_heartbeat_loss_mid_spin(
     finally:
         sim.mute(3, False)  # type: ignore[union-attr]
     assert st["state"] == "FAILED" and "no heartbeat" in st["reason"] and "module 3" in st["reason"]
+    assert_stopped(rec, t, rt)
+
+
+def test_fault_stop_fails_the_run_at_once_even_before_its_event_callback(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    """The driver stops on a fault before it runs the event callbacks; another slow
+    callback ahead of the run's must not keep the run spinning (or let its next command
+    be refused with only "cannot ... in state inactive" as the reason)."""
+    client, rt, rec = service
+    sim, drv = rt.simulator, rt.driver
+    assert drv is not None
+    release = threading.Event()
+
+    def slow(ev: DriverEvent) -> None:  # added before the run's RobotIO: runs first
+        if ev.severity is Severity.FAULT:
+            release.wait(20.0)
+
+    drv.add_event_callback(slow)
+    try:
+        run_id = start(client, SHORT)
+        wait_spinning(client, run_id)
+        t = time.monotonic()
+        sim.mute(3)  # type: ignore[union-attr]
+        deadline = t + 10.0
+        while drv.state is Lifecycle.ACTIVE and time.monotonic() < deadline:
+            time.sleep(0.005)
+        t_stop = time.monotonic()
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
+        t_failed = time.monotonic()
+    finally:
+        release.set()
+        sim.mute(3, False)  # type: ignore[union-attr]
+        drv.remove_event_callback(slow)
+    assert st["state"] == "FAILED", st
+    assert st["reason"].startswith("robot fault: module 3 (node 3): no heartbeat"), st
+    assert t_failed - t_stop < 2.0  # not after the 20 s the callbacks are held
     assert_stopped(rec, t, rt)
 
 

@@ -271,6 +271,7 @@ class CanDriver:
         self._stop_supervisor = threading.Event()
         self._wake = threading.Event()
         self._configured_at = 0.0
+        self._fault_cause: str | None = None
         self._sync_counter = 0
         self.last_exception: BaseException | None = None
         self._log_counts: dict[EventKind, int] = {}
@@ -279,6 +280,12 @@ class CanDriver:
     @property
     def state(self) -> Lifecycle:
         return self._state
+
+    @property
+    def fault_cause(self) -> str | None:
+        """Why the driver last dropped from ACTIVE on a fault (None after activate() or an
+        orderly deactivate())."""
+        return self._fault_cause
 
     def __enter__(self) -> CanDriver:
         if self._state == Lifecycle.UNCONFIGURED:
@@ -345,6 +352,7 @@ class CanDriver:
                     )
                 self._changed.wait(left)
             self._state = Lifecycle.ACTIVE
+            self._fault_cause = None
         frames: list[codec.Frame] = []
         for nd in self._nodes.values():
             frames.append(codec.make_set_watchdog(nd.node, cfg.watchdog_timeout_ms))
@@ -370,6 +378,7 @@ class CanDriver:
         with self._lock:
             if self._state == Lifecycle.ACTIVE:
                 self._state = Lifecycle.INACTIVE
+                self._fault_cause = None
 
     def shutdown(self) -> None:
         """Any state -> FINALIZED (idempotent): stop_all if active, close everything."""
@@ -407,7 +416,9 @@ class CanDriver:
     def _require_active(self, what: str, nd: _Node | None = None, axis: Axis | None = None) -> None:
         if self._state != Lifecycle.ACTIVE:
             where = _where(nd.module, nd.node, axis) + ": " if nd else ""
-            raise LifecycleError(f"{where}cannot {what} in state {self._state.value}")
+            cause = self._fault_cause
+            why = f" (stopped by a fault: {cause})" if cause is not None else ""
+            raise LifecycleError(f"{where}cannot {what} in state {self._state.value}{why}")
 
     def _command(
         self, what: str, module: int, axis: Axis | None, build: Callable[[int], codec.Frame]
@@ -617,7 +628,14 @@ class CanDriver:
                 return out
 
     def add_event_callback(self, fn: Callable[[DriverEvent], None]) -> None:
-        self._event_callbacks.append(fn)
+        """``fn(event)`` on every event, on the thread that raised it, in the order added."""
+        with self._lock:
+            self._event_callbacks = [*self._event_callbacks, fn]
+
+    def remove_event_callback(self, fn: Callable[[DriverEvent], None]) -> None:
+        """Undo :meth:`add_event_callback` (no-op for a callback not registered)."""
+        with self._lock:
+            self._event_callbacks = [f for f in self._event_callbacks if f != fn]
 
     def add_feedback_callback(self, fn: Callable[[int, FeedbackSample], None]) -> None:
         """``fn(module, sample)`` on every position frame, on the receive thread.
@@ -750,7 +768,8 @@ class CanDriver:
                 fault = self._on_data_frame(msg, t, callbacks, events)
             # events queued before the state drops: whoever sees INACTIVE finds its cause
             recorded = [self._record(*e) for e in events]
-            was_active = self._begin_fault() if fault else False
+            cause = next((e[2] for e in events if e[1] is Severity.FAULT), "fault")
+            was_active = self._begin_fault(cause) if fault else False
             self._changed.notify_all()
         for ev in recorded:
             self._notify(ev)
@@ -843,8 +862,7 @@ class CanDriver:
                 nd.last = full
                 if len(nd.history):  # the newest row is ``last`` unless cleared since
                     nd.history.set_last_velocity_torque(
-                        (dec.steer_velocity, dec.wheel_velocity, dec.steer_torque,
-                         dec.wheel_torque)
+                        (dec.steer_velocity, dec.wheel_velocity, dec.steer_torque, dec.wheel_torque)
                     )
             else:
                 st.unpaired_feedback += 1
@@ -938,7 +956,7 @@ class CanDriver:
                 Severity.FAULT,
                 f"exception in the receive thread: {type(exc).__name__}: {exc}",
             )
-            was_active = self._begin_fault()
+            was_active = self._begin_fault(ev.message)
         self._notify(ev)
         self._fault_stop(was_active)
 
@@ -983,7 +1001,7 @@ class CanDriver:
                     for nd in lost
                 ]
                 if lost:  # after the events are queued: whoever sees INACTIVE finds why
-                    was_active = self._begin_fault()
+                    was_active = self._begin_fault(recorded[0].message)
                     refresh = []
             for ev in recorded:
                 self._notify(ev)
@@ -997,17 +1015,23 @@ class CanDriver:
                 self._wake.wait(wait)
                 self._wake.clear()
 
-    def _begin_fault(self) -> bool:
-        """Drop from ACTIVE to INACTIVE (no more commands); True if the driver was active."""
+    def _begin_fault(self, cause: str) -> bool:
+        """Drop from ACTIVE to INACTIVE (no more commands); True if the driver was active.
+
+        ``cause`` (the fault's message) is kept for :attr:`fault_cause`, and commands refused
+        afterwards name it: a caller that meets the refusal before the fault's event
+        callback has run still learns why.
+        """
         with self._lock:
             active = self._state == Lifecycle.ACTIVE
             if active:
                 self._state = Lifecycle.INACTIVE
+                self._fault_cause = cause
             return active
 
-    def _fault_stop(self, was_active: bool | None = None) -> None:
-        """Every fault path: stop_all() and drop from ACTIVE to INACTIVE."""
-        active = self._begin_fault() if was_active is None else was_active
+    def _fault_stop(self, was_active: bool) -> None:
+        """Every fault path, after :meth:`_begin_fault`: stop_all() if the driver was active."""
+        active = was_active
         if active:
             try:
                 self.stop_all()
