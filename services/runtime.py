@@ -88,10 +88,11 @@ class Runtime:
         self.mocap.subscribe(self.session, self.config.pose_key)
         lim = self.config.limits
         # The controllers count their watchdog in *their* time.  Against a simulator (which
-        # may run time_scale times faster, on a host it shares) keep >= 1 s of host time.
+        # may run time_scale times faster, on a host it shares) keep >= sim_watchdog_host_s
+        # (1 s) of host time.
         watchdog_ms = lim.watchdog_ms
         if s.simulated:
-            watchdog_ms = max(watchdog_ms, math.ceil(1000.0 * s.time_scale))
+            watchdog_ms = max(watchdog_ms, math.ceil(1000.0 * s.sim_watchdog_host_s * s.time_scale))
         self.driver = CanDriver(
             CanConfig(
                 interface=interface,

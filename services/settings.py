@@ -69,6 +69,14 @@ class ServiceSettings(BaseSettings):
     sim_physics_dt: float = Field(
         0.005, gt=0, le=0.01, description="embedded simulator: longest physics step, s"
     )
+    sim_watchdog_host_s: float = Field(
+        1.0,
+        gt=0,
+        le=30.0,
+        description="against a simulator: the controllers' watchdog lasts at least this many "
+        "host seconds (the simulator shares a possibly loaded host; an emulated one, the lab's "
+        "VM, stalls for longer); a robot uses its config's limits.watchdog_ms",
+    )
     sim_mocap_latency: float = Field(
         0.0, ge=0, le=5.0, description="embedded simulator: pose publication delay, robot s"
     )

@@ -33,6 +33,7 @@ from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+from tests.can_rig import wait_until
 
 TOKEN = "test-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -438,6 +439,32 @@ def test_install_always_overrides_the_tolerance(
     k = load_kinematics(path)
     assert k.extra["provenance"]["run"] == run_id
     path.write_bytes(installed)  # restore for the fixture's check
+
+
+@pytest.mark.parametrize(("host_s", "want_ms"), [(None, 4000), (2.5, 10000)])
+def test_simulator_watchdog_floor_in_host_seconds(
+    tmp_path: Path, host_s: float | None, want_ms: int
+) -> None:
+    """Against a simulator at time scale 4 the controllers' watchdog (counted in robot
+    time) lasts sim_watchdog_host_s of host time, 1 s by default (the robot config's
+    200 ms would be 50 ms of host time): the SetWatchdog frame reaches the controllers."""
+    extra = {} if host_s is None else {"sim_watchdog_host_s": host_s}
+    settings = ServiceSettings(
+        data_dir=tmp_path, time_scale=4.0, token=SecretStr(TOKEN), **extra  # type: ignore[arg-type]
+    )
+    app = create_app(settings)
+    with TestClient(app):
+        rt: Runtime = app.state.runtime
+        assert rt.driver is not None and rt.simulator is not None
+        assert rt.config.limits.watchdog_ms * 4 < want_ms
+        rt.driver.activate()
+        try:
+            ctrls = rt.simulator.controllers
+            assert wait_until(lambda: all(c.watchdog_ms == want_ms for c in ctrls), 5.0), [
+                c.watchdog_ms for c in ctrls
+            ]
+        finally:
+            rt.driver.deactivate()
 
 
 def test_late_poses_open_the_window_on_a_steady_spin(tmp_path: Path) -> None:

@@ -178,9 +178,11 @@ calibration_through_simulator() {
     # The data dir must not be on the 9p share (OUT): SQLite there fails ("disk I/O error",
     # no POSIX locks over 9p), which is why the service never answered /health before.
     # /tmp is the guest's own tmpfs; the run's files are copied to OUT afterwards.
-    # 15 heartbeat periods, 150 mocap periods (of robot time): the emulation's scheduling
-    # hiccups are not what this step tests (make test and the driver suite test the
-    # supervision); 7.5 periods lost every node once on a slow host (2.5 s, in LOCK).
+    # 15 heartbeat periods, 150 mocap periods (of robot time), and the controllers'
+    # watchdog as long: the emulation's scheduling hiccups are not what this step tests
+    # (make test and the driver suite test the supervision).  7.5 periods lost every node
+    # once on a slow host (2.5 s, in LOCK); a 1 s watchdog expired on every controller once
+    # (the service starved mid-spin on a slow host).
     window=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
     ip link set dev lo up || return 1                     # no network device, but loopback
     swpc sim --interface socketcan --channel vcan0 --zenoh-listen "$ep" --time-scale "$ts" \
@@ -191,12 +193,13 @@ calibration_through_simulator() {
     sim_pid=$!
     SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL=vcan0 SWPC_ZENOH_CONNECT="[\"$ep\"]" \
     SWPC_TIME_SCALE="$ts" SWPC_HEARTBEAT_TIMEOUT="$window" SWPC_MOCAP_STALE_AFTER="$window" \
+    SWPC_SIM_WATCHDOG_HOST_S="$window" \
     SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
     SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
         swpc serve > "$OUT/service.log" 2>&1 &
     svc_pid=$!
     echo "simulator pid $sim_pid, service pid $svc_pid, time scale $ts," \
-        "heartbeat timeout and mocap stale after $window s"
+        "heartbeat timeout, mocap stale after and watchdog $window s"
     "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
         --overrides "$SIM_OVERRIDES" --out "$OUT/sim-calibration.json" \
         --service-log "$OUT/service.log" --health-timeout 300 --timeout 1500 || rc=1
