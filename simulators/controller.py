@@ -81,6 +81,10 @@ class VirtualController:
     homed: bool = False
     muted: bool = False
     """A muted controller sends nothing (an unplugged or dead node)."""
+    lose: frozenset[int] = frozenset()
+    """Commands (:class:`~firmware_protocol.codec.Command`) whose frames never reach the
+    host, as from a receive queue that overflowed: a one-shot frame like HomingStatus is
+    then gone for good."""
     invalid_frames: int = 0
     commands: int = 0
     _t: float | None = None
@@ -295,7 +299,11 @@ class VirtualController:
         )
 
     def _send(self, frames: list[Frame]) -> list[Frame]:
-        return [] if self.muted else frames
+        if self.muted:
+            return []
+        if self.lose:
+            return [f for f in frames if codec.split_id(f.arbitration_id)[1] not in self.lose]
+        return frames
 
 
 def _clamp(x: float, limit: float) -> float:

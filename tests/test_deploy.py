@@ -198,6 +198,22 @@ def _keys(model: type[BaseModel], prefix: str = "") -> list[str]:
     return keys
 
 
+def test_sysctl_makes_room_for_the_drivers_receive_buffer() -> None:
+    """The robot's sysctl file lets an unprivileged service get the receive buffer the
+    driver asks for (SO_RCVBUF is capped at net.core.rmem_max)."""
+    from swpc_hw.can import CanConfig
+
+    path = DEPLOY / "sysctl" / "60-swpc-can.conf"
+    lines = [ln.strip() for ln in path.read_text().splitlines()]
+    values = dict(
+        (k.strip(), v.strip())
+        for k, v in (ln.split("=", 1) for ln in lines if ln and not ln.startswith("#"))
+    )
+    assert set(values) == {"net.core.rmem_max"}
+    assert int(values["net.core.rmem_max"]) >= CanConfig().rx_buffer_bytes
+    assert "deploy/sysctl/60-swpc-can.conf /etc/sysctl.d/" in (DEPLOY / "README.md").read_text()
+
+
 def test_robot_example_loads_and_documents_every_key() -> None:
     from services.robot_config import RobotConfig, load_robot_config
     from swpc_hw.reference import PAPER_NOMINAL

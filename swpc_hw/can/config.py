@@ -35,6 +35,10 @@ class CanConfig:
     max_velocity: tuple[float, float] | None = None
     """(steer, wheel) velocity limits in rad/s sent at activation."""
     activate_timeout_s: float = 1.0
+    rx_buffer_bytes: int = 1 << 20
+    """Kernel receive buffer asked for a socket bus (SocketCAN), bytes; 0 keeps the
+    system default (net.core.rmem_default: ~300 frames, under 2 s of a 4-module robot's
+    traffic, after which a stalled reader loses frames)."""
     bus_kwargs: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -61,6 +65,8 @@ class CanConfig:
             )
         if self.refresh_period_s <= 0 or self.heartbeat_period_s <= 0:
             raise CanConfigError("refresh_period_s and heartbeat_period_s must be > 0")
+        if not 0 <= self.rx_buffer_bytes <= 1 << 28:
+            raise CanConfigError(f"rx_buffer_bytes: {self.rx_buffer_bytes} outside 0..2**28")
         if self.heartbeat_loss_periods < 1:
             raise CanConfigError("heartbeat_loss_periods must be >= 1")
 

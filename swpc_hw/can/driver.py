@@ -32,6 +32,7 @@ import enum
 import logging
 import math
 import queue
+import socket
 import threading
 import time
 from collections import deque
@@ -170,6 +171,9 @@ class DriverStats:
     heartbeat_losses: int = 0
     node_faults: int = 0
     stop_all_calls: int = 0
+    rx_buffer_bytes: int | None = None
+    """The kernel receive buffer in effect on a socket bus (SocketCAN), bytes; None on
+    others."""
 
 
 @dataclass
@@ -184,6 +188,7 @@ class _Node:
     errors: tuple[int, int] = (0, 0)
     homed: bool = False
     homing: HomingState = HomingState.NOT_HOMED
+    homing_seen: bool = False  # a heartbeat showed the steering HOMING since start_homing()
     t_heartbeat: float | None = None
     heartbeats: int = 0
     feedback_frames: int = 0
@@ -233,6 +238,31 @@ class _LockedLog(can.Listener):
             if not self.closed:
                 self.closed = True
                 self.logger.stop()
+
+
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux; not in Python's socket
+
+
+def grow_receive_buffer(sock: socket.socket, size: int) -> int:
+    """Ask the kernel for a ``size``-byte receive buffer on ``sock``; returns the one in effect.
+
+    SO_RCVBUFFORCE (CAP_NET_ADMIN) may exceed net.core.rmem_max; without the capability
+    SO_RCVBUF is capped at rmem_max.  Linux doubles the value asked (bookkeeping overhead),
+    and a CAN frame's buffer costs several hundred bytes of it.
+    """
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, size)
+    except OSError:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+    got = int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    if got < size:
+        log.warning(
+            "CAN receive buffer %d bytes, asked %d: raise net.core.rmem_max "
+            "(deploy/sysctl.d/60-swpc-can.conf) or grant CAP_NET_ADMIN",
+            got,
+            size,
+        )
+    return got
 
 
 class CanDriver:
@@ -315,6 +345,9 @@ class CanDriver:
                     f"cannot open CAN bus interface={cfg.interface!r} "
                     f"channel={cfg.channel!r}: {exc}"
                 ) from exc
+            sock = getattr(self._bus, "socket", None)
+            if cfg.rx_buffer_bytes and isinstance(sock, socket.socket):
+                self._stats.rx_buffer_bytes = grow_receive_buffer(sock, cfg.rx_buffer_bytes)
             listeners: list[can.Listener] = [_Receiver(self)]
             if cfg.log_path:
                 self._logger = _LockedLog(cfg.log_path, self._log_lock)
@@ -495,11 +528,22 @@ class CanDriver:
 
     def start_homing(self, module: int) -> None:
         """Start the steering axis's homing run (the axis must be enabled)."""
-        nd = self._command(
-            "start homing", module, Axis.STEER, lambda n: codec.make_start_homing(n, Axis.STEER)
-        )
+        nd = self._node(module)
+        with self._lock:  # before the frame: the controller's answers may come back at once
+            before = nd.homing, nd.homing_seen
+            nd.homing, nd.homing_seen = HomingState.IN_PROGRESS, False
+        try:
+            self._command(
+                "start homing",
+                module,
+                Axis.STEER,
+                lambda n: codec.make_start_homing(n, Axis.STEER),
+            )
+        except BaseException:
+            with self._lock:
+                nd.homing, nd.homing_seen = before
+            raise
         with self._lock:
-            nd.homing = HomingState.IN_PROGRESS
             nd.commanded.pop(Axis.STEER, None)
 
     def start_recording(self, path: str) -> None:
@@ -929,6 +973,22 @@ class CanDriver:
                     )
                 )
                 fault = True
+        if hb.states[Axis.STEER] == AxisState.HOMING:
+            nd.homing_seen = True
+        elif nd.homing == HomingState.IN_PROGRESS and nd.homing_seen and hb.homed:
+            # homing ran and ended homed, but its HomingStatus frame (sent once) was lost,
+            # e.g. by a receive queue that overflowed: the heartbeat repeats the outcome
+            nd.homing = HomingState.DONE
+            events.append(
+                (
+                    EventKind.HOMING,
+                    Severity.WARNING,
+                    f"{_where(nd.module, nd.node, Axis.STEER)}: homing DONE by the heartbeat "
+                    "(its HomingStatus frame was not received)",
+                    nd,
+                    Axis.STEER,
+                )
+            )
         nd.states, nd.modes, nd.errors, nd.homed = hb.states, hb.modes, hb.errors, hb.homed
         nd.t_heartbeat = t
         nd.heartbeats += 1
