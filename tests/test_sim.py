@@ -375,10 +375,11 @@ def test_watchdog_frees_the_axes_and_heartbeat_loss_silences_a_node() -> None:
             r.sim.mute(3)
             t_mute = time.time()
             time.sleep(0.3)
-            late = time.time() - 0.2
             assert not host.of(codec.Heartbeat, since=t_mute + 0.01, node=3)
             assert not host.of(codec.FeedbackPosition, since=t_mute + 0.01, node=3)
-            assert len(host.of(codec.Heartbeat, since=late, node=2)) >= 2
+            # 3 heartbeats of node 2 are due (one per 0.1 s); a loaded host delays a tick
+            # past the window's end (in make test once only 1 in the last 0.2 s)
+            assert len(host.of(codec.Heartbeat, since=t_mute + 0.01, node=2)) >= 2
             r.sim.mute(3, False)
             time.sleep(0.2)
             assert host.of(codec.Heartbeat, since=time.time() - 0.15, node=3)
