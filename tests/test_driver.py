@@ -337,6 +337,9 @@ def test_homing_done_by_the_heartbeat_when_its_status_frame_is_lost(active: Rig)
     drv, c1 = active.drv, active.ctrl(1)
     with active.emu.lock:
         c1.lose = frozenset({int(Command.HOMING_STATUS)})
+        # a real homing run takes seconds: heartbeats show it (the emulator's default 0.2 s
+        # is shorter than a heartbeat period at time factor 8: none showed HOMING in the VM)
+        c1.homing_duration = T(0.5)
     drv.enable(1, Axis.WHEEL)
     drv.hold(1, Axis.WHEEL)  # a commanded axis: the driver's refresh feeds the watchdog
     drv.enable(1, Axis.STEER)
