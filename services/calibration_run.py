@@ -268,7 +268,9 @@ class CalibrationRun:
             error = f"{type(exc).__name__}: {exc}"
             # a command refused because the driver had just stopped on a fault: the fault is
             # the reason, the refusal only its consequence
-            faults = self._take_faults_quietly()
+            faults: list[str] = []
+            with contextlib.suppress(Exception):
+                faults = self.robot.take_faults()
             if faults:
                 self._end(State.FAILED, f"robot fault: {faults[0]}", f"then {error}")
             else:
@@ -276,12 +278,6 @@ class CalibrationRun:
         finally:
             with contextlib.suppress(Exception):
                 self.robot.close()
-
-    def _take_faults_quietly(self) -> list[str]:
-        try:
-            return self.robot.take_faults()
-        except Exception:
-            return []
 
     def _end(self, state: State, reason: str, detail: str | None = None) -> None:
         t = time.monotonic()

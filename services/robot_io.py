@@ -202,7 +202,7 @@ class DriverRobotIO:
         has dropped out of ACTIVE: the event callbacks run just after that drop, so a
         caller polling between the two would otherwise see no fault yet its next command
         refused (LifecycleError)."""
-        cause = self.driver.fault_cause if self.driver.state is not Lifecycle.ACTIVE else None
+        cause = self.driver.fault_cause  # None while the driver is ACTIVE
         with self._lock:
             out, self._faults = self._faults, []
             if cause is not None and cause is not self._cause_taken:  # a new fault stop

@@ -258,7 +258,7 @@ def grow_receive_buffer(sock: socket.socket, size: int) -> int:
     if got < size:
         log.warning(
             "CAN receive buffer %d bytes, asked %d: raise net.core.rmem_max "
-            "(deploy/sysctl.d/60-swpc-can.conf) or grant CAP_NET_ADMIN",
+            "(deploy/sysctl/60-swpc-can.conf) or grant CAP_NET_ADMIN",
             got,
             size,
         )
@@ -812,8 +812,11 @@ class CanDriver:
                 fault = self._on_data_frame(msg, t, callbacks, events)
             # events queued before the state drops: whoever sees INACTIVE finds its cause
             recorded = [self._record(*e) for e in events]
-            cause = next((e[2] for e in events if e[1] is Severity.FAULT), "fault")
-            was_active = self._begin_fault(cause) if fault else False
+            was_active = (
+                self._begin_fault(next((e[2] for e in events if e[1] is Severity.FAULT), "fault"))
+                if fault
+                else False
+            )
             self._changed.notify_all()
         for ev in recorded:
             self._notify(ev)
@@ -906,7 +909,8 @@ class CanDriver:
                 nd.last = full
                 if len(nd.history):  # the newest row is ``last`` unless cleared since
                     nd.history.set_last_velocity_torque(
-                        (dec.steer_velocity, dec.wheel_velocity, dec.steer_torque, dec.wheel_torque)
+                        (dec.steer_velocity, dec.wheel_velocity, dec.steer_torque,
+                         dec.wheel_torque)
                     )
             else:
                 st.unpaired_feedback += 1
@@ -1091,8 +1095,7 @@ class CanDriver:
 
     def _fault_stop(self, was_active: bool) -> None:
         """Every fault path, after :meth:`_begin_fault`: stop_all() if the driver was active."""
-        active = was_active
-        if active:
+        if was_active:
             try:
                 self.stop_all()
             except CanError as exc:
