@@ -2,7 +2,7 @@
 
 One place to read it — :data:`TRANSITIONS`::
 
-    PENDING -> CONNECT -> PRECHECK -> LOCK -> ALIGN -> FREE -> SPIN -> STOP
+    PENDING -> CONNECT -> PRECHECK -> REST -> LOCK -> ALIGN -> FREE -> SPIN -> STOP
     STOP    -> RESTEER (next angle of the same module) | RELEASE
     RESTEER -> SPIN
     RELEASE -> LOCK (next module) | SOLVE
@@ -12,6 +12,8 @@ One place to read it — :data:`TRANSITIONS`::
 * CONNECT: the robot's controllers are activated (commands flow, watchdog refreshed) and
   any steering not homed yet runs its homing sequence.
 * PRECHECK: every node alive, no active errors, steering homed, mocap stream live.
+* REST: every wheel braked until mocap shows the robot still (a robot coasting from an
+  aborted run, or pushed, would drag the module being locked off its angle).
 * LOCK k: steering of k position-held at the first angle, wheel braked.
 * ALIGN: the other (dynamic) modules steer to their nominal trailing angle for a spin
   about k's contact point (so their transients are short), wheels free.
@@ -61,13 +63,14 @@ from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.dataset import Dataset, Segment, load_dataset, save_dataset
 from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
+from swpc_hw.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
 
 class State(StrEnum):
     PENDING = "PENDING"
     CONNECT = "CONNECT"
     PRECHECK = "PRECHECK"
+    REST = "REST"
     LOCK = "LOCK"
     ALIGN = "ALIGN"
     FREE = "FREE"
@@ -83,12 +86,13 @@ class State(StrEnum):
 
 
 TERMINAL = frozenset({State.DONE, State.FAILED, State.ABORTED})
-MOTION = frozenset({State.ALIGN, State.FREE, State.SPIN, State.STOP, State.RESTEER})
+MOTION = frozenset({State.REST, State.ALIGN, State.FREE, State.SPIN, State.STOP, State.RESTEER})
 
 TRANSITIONS: dict[State, frozenset[State]] = {
     State.PENDING: frozenset({State.CONNECT}),
     State.CONNECT: frozenset({State.PRECHECK}),
-    State.PRECHECK: frozenset({State.LOCK}),
+    State.PRECHECK: frozenset({State.REST}),
+    State.REST: frozenset({State.LOCK}),
     State.LOCK: frozenset({State.ALIGN}),
     State.ALIGN: frozenset({State.FREE}),
     State.FREE: frozenset({State.SPIN}),
@@ -99,6 +103,30 @@ TRANSITIONS: dict[State, frozenset[State]] = {
     State.SOLVE: frozenset({State.WRITE}),
     State.WRITE: frozenset({State.DONE}),
 }
+
+
+REST_WINDOW = 0.5
+"""s of robot time over which the robot must be still before a module is locked."""
+
+
+def motion_rates(
+    t: FloatArray, x: FloatArray, y: FloatArray, yaw: FloatArray
+) -> tuple[float, float]:
+    """Speed (m/s) and yaw rate (rad/s) of poses ``(t_k, x_k, y_k, yaw_k)``: the slopes of
+    least-squares lines through them (noise-averaging, unlike end-point differences)::
+
+        s_q = sum_k (t_k - t_mean)(q_k - q_mean) / sum_k (t_k - t_mean)^2,  q in {x, y, yaw}
+        speed = hypot(s_x, s_y),   yaw rate = s_yaw   (yaw unwrapped first)
+
+    Needs at least two distinct times.
+    """
+    tc = t - np.mean(t) if t.shape[0] else t
+    den = float(tc @ tc)
+    if den <= 0.0:
+        raise ValueError("motion_rates needs poses at two distinct times at least")
+    q = np.column_stack([x, y, np.unwrap(yaw)])
+    s = tc @ (q - q.mean(axis=0)) / den
+    return float(math.hypot(s[0], s[1])), float(s[2])
 
 
 class RunFailedError(Exception):
@@ -318,6 +346,7 @@ class CalibrationRun:
             self._wait_until(lambda: not self.robot.unhomed(), motion=False, what="homing")
         self._enter(State.PRECHECK, "checking nodes, errors, homing and mocap")
         self._precheck()
+        self._come_to_rest()
         nominal = cfg.nominal.arrays()
         ids = cfg.nominal.ids
         spins_total = len(self.modules) * len(angles)
@@ -398,6 +427,41 @@ class CalibrationRun:
                 raise RunFailedError("precheck failed: " + "; ".join(problems))
             self._check(False, None)
             time.sleep(0.01)
+
+    def _come_to_rest(self) -> None:
+        """Brake every wheel and wait until the motion capture shows the robot at rest.
+
+        A robot still coasting (a run aborted mid-spin just before, or someone pushing
+        it) would drag the module about to be locked off its angle: the spins' data then
+        fail with "the static module is not locked".  At rest: over the last
+        :data:`REST_WINDOW` s (robot time) the least-squares speed and yaw rate
+        (:func:`motion_rates`) are within ``limits.rest_speed`` / ``rest_yaw_rate``.
+        """
+        limits = self.config.limits
+        ids = self.config.nominal.ids
+        self._enter(State.REST, "braking every wheel: waiting for the robot to come to rest")
+        for m in ids:
+            self.robot.wheel_hold(m)
+        window = self._robot_seconds(REST_WINDOW)
+        t_brake = time.monotonic()
+        deadline = self._deadline()
+        while True:
+            self._check(True, deadline)
+            now = time.monotonic()
+            if now - t_brake >= window:
+                poses = self.mocap.samples(since_host=now - window)
+                if poses.shape[0] >= 3 and poses[-1, 2] - poses[0, 2] >= 0.5 * window:
+                    speed, rate = motion_rates(
+                        poses[:, 2] * self.time_scale, poses[:, 3], poses[:, 4], poses[:, 5]
+                    )
+                    if speed <= limits.rest_speed and abs(rate) <= limits.rest_yaw_rate:
+                        return
+                    with self._lock:
+                        self.status.step = (
+                            "braking every wheel: waiting for the robot to come to rest "
+                            f"(yaw rate {rate:.3f} rad/s, speed {speed:.3f} m/s)"
+                        )
+            time.sleep(self._poll)
 
     def _settle_steering(self, module: int, angle: float, tol: float = math.radians(0.5)) -> None:
         self._wait_until(

@@ -43,6 +43,12 @@ class MotionLimits(BaseModel):
     max_wheel_velocity: float = Field(20.0, gt=0, description="controller wheel speed limit, rad/s")
     max_steer_velocity: float = Field(3.0, gt=0, description="controller steering speed limit")
     max_yaw_rate: float = Field(1.2, gt=0, description="spin aborted above this yaw rate, rad/s")
+    rest_yaw_rate: float = Field(
+        0.02, gt=0, description="at rest (wheels braked, before locking) below this, rad/s"
+    )
+    rest_speed: float = Field(
+        0.01, gt=0, description="at rest (wheels braked, before locking) below this, m/s"
+    )
     step_timeout: float = Field(60.0, gt=0, description="any single step longer than this fails, s")
     watchdog_ms: int = Field(200, ge=20, le=60000, description="controller command timeout, ms")
 

@@ -39,13 +39,14 @@ inertia and viscous damping, integrated by implicit Euler (unconditionally stabl
     M = M_body + sum_j J_w h_j h_j^T                      (h_j = U_j / r_j, rolling wheels)
     D(xi) = 1/2 sum_k c_k (g_k . xi - s_k)^2               (viscous rows)
     Z^T (M + dt C) Z z = Z^T M (xi_0 - xi_p) + dt Z^T (F - C xi_p + sum_k c_k s_k g_k)
-    xi = xi_p + Z z,   C = sum_k c_k g_k g_k^T,   F = sum_j tau_j h_j
+    xi = xi_p + Z z,   C = sum_k c_k g_k g_k^T,   F = sum_j tau_j h_j + F_ext
 
 with ``xi_0`` the previous twist and ``xi_p`` the hard/soft solution.  Viscous rows: each
 rolling wheel (``g = U/r``, ``s = 0``, wheel damping), each steered but not held module's
 tyre (``g = N``, ``s = b theta_dot``, lateral damping), each steered module's fork rotation
 on the floor (``g = e_omega``, ``s = -theta_dot``, scrub damping) and the body (rolling
-resistance).  A constant wheel torque therefore gives a steady spin, and the rolling
+resistance).  ``F_ext`` is :attr:`RobotSim.push`, an external wrench on the body (someone
+pushing the robot).  A constant wheel torque therefore gives a steady spin, and the rolling
 wheels' encoder increments stay exactly those of rolling without slip:
 ``r dpsi = -D d(yaw)`` for a settled caster at distance ``D`` from the pivot.
 
@@ -301,6 +302,9 @@ class RobotSim:
         self.psi = np.zeros(n)
         self.psi_encoder = np.zeros(n)
         self.twist = np.zeros(3)
+        self.push = np.zeros(3)
+        """External wrench on the body in R: ``(f_x, f_y, tau_z)`` in N, N and N m, the
+        torque about R's origin (a person pushing the robot; zero by default)."""
         self.theta_dot = np.zeros(n)
         self.psi_dot = np.zeros(n)
         self.steps = 0
@@ -358,7 +362,7 @@ class RobotSim:
         d = o.lateral_damping * (Lr.T @ lat[ids])
         d[2] -= o.scrub_damping * drives.steer_rate_sum
         mass = self._mass + o.wheel_inertia * HtH
-        force = H.T @ drives.torque[idn]
+        force = H.T @ drives.torque[idn] + self.push
         return prioritized_twist(hard, soft, (C, d), mass, force, self.twist, dt)
 
     # ------------------------------------------------------------------ step

@@ -411,6 +411,13 @@ class Simulator:
             c = self.controllers[self.truth.index(module)]
             self._transmit(c.inject_error(axis, error))
 
+    def push(self, f_x: float = 0.0, f_y: float = 0.0, torque: float = 0.0) -> None:
+        """Push the body with a constant wrench in R (N, N, N m about R's origin) until
+        the next call; ``push()`` lets go.  A robot pushed while its wheels are free
+        moves; braked wheels hold it."""
+        with self._lock:
+            self.robot.push = np.array([f_x, f_y, torque], dtype=float)
+
     def set_bus_error_rate(self, rate_hz: float) -> None:
         with self._lock:
             self.options = replace(self.options, bus_error_rate=float(rate_hz))

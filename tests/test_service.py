@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -234,6 +234,102 @@ def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed
     assert_stopped(rec, t, rt)
     assert client.post(f"/calibrations/{run_id}/abort", headers=AUTH).status_code == 409
     assert client.get(f"/calibrations/{run_id}/result").status_code == 409
+
+
+def test_motion_rates_are_least_squares_slopes() -> None:
+    from services.calibration_run import motion_rates
+
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.uniform(10.0, 10.5, 60))
+    x = 1.0 + 0.03 * (t - 10) + rng.normal(0, 1e-4, t.size)
+    y = -2.0 - 0.04 * (t - 10) + rng.normal(0, 1e-4, t.size)
+    yaw = np.angle(np.exp(1j * (3.1 + 0.5 * (t - 10))))  # wraps through +-pi
+    speed, rate = motion_rates(t, x, y, yaw)
+    assert speed == pytest.approx(0.05, abs=2e-3) and rate == pytest.approx(0.5, abs=1e-9)
+    still = np.full(t.size, 0.7)
+    assert motion_rates(t, still, still, still) == pytest.approx((0.0, 0.0), abs=1e-15)
+    with pytest.raises(ValueError, match="two distinct times"):
+        motion_rates(np.full(3, 1.0), still[:3], still[:3], still[:3])
+    with pytest.raises(ValueError, match="two distinct times"):
+        motion_rates(t[:0], t[:0], t[:0], t[:0])
+
+
+def yaw_rate(rt: Runtime, t0: float, t1: float) -> float:
+    """Robot-time yaw rate (rad/s) from the mocap poses received in [t0, t1] (host time):
+    the slope of a straight line through them."""
+    p = rt.mocap.samples(since_host=t0)
+    p = p[p[:, 2] <= t1]
+    assert p.shape[0] >= 5, p.shape
+    return float(np.polyfit(p[:, 2], np.unwrap(p[:, 5]), 1)[0]) / rt.settings.time_scale
+
+
+def home_and_release(rt: Runtime) -> None:
+    """Home every steering not homed yet, then leave every axis free and disabled."""
+    from services.robot_io import DriverRobotIO
+
+    assert rt.driver is not None
+    io = DriverRobotIO(rt.driver)
+    try:
+        io.activate()
+        for m in io.unhomed():
+            io.start_homing(m)
+        deadline = time.monotonic() + 10.0
+        while io.unhomed() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not io.unhomed()
+    finally:
+        io.release()
+        io.close()
+
+
+def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
+    service: tuple[TestClient, Runtime, Recorder], installed: bytes
+) -> None:
+    """Someone pushes the robot (or it coasts from an aborted spin) as a run starts: every
+    wheel is braked first and the lock only comes once mocap shows it still.  Without the
+    REST step the lock came on a robot turning at 0.24 rad/s (and in make test once the
+    locked steering was dragged 24 deg: "the static module is not locked")."""
+    client, rt, rec = service
+    sim = rt.simulator
+    assert sim is not None
+    node = (rt.config.nodes or {})[1]
+    window = 0.5 / rt.settings.time_scale  # 0.5 s of robot time
+    home_and_release(rt)  # (homing steers the modules, which would stop the robot too)
+    sim.push(torque=2.0)  # turns the free robot at 0.24 rad/s
+    try:
+        time.sleep(4 * window)
+        t = time.monotonic()
+        run_id = start(client, SHORT)
+        wait_spinning(client, run_id, sweep=1.0)
+    finally:
+        sim.push()
+    client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
+    assert wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
+
+    def first(pred: Callable[[int, Any], bool]) -> float:
+        with rec.lock:
+            frames = [f for f in rec.frames if f[0] >= t]
+        for ts, i, data in frames:
+            n, cmd = codec.split_id(i)
+            if cmd in codec.HOST_COMMANDS and pred(n, codec.parse(i, data)):
+                return ts
+        raise AssertionError("no such frame")
+
+    t_lock = first(
+        lambda n, d: n == node and isinstance(d, codec.SetControl)
+        and d.axis == codec.Axis.STEER and d.mode == ControlMode.POSITION
+    )
+    wheels_braked = max(
+        first(
+            lambda n, d, m=m: n == m and isinstance(d, codec.SetControl)
+            and d.axis == codec.Axis.WHEEL and d.mode == ControlMode.HOLD
+        )
+        for m in (rt.config.nodes or {}).values()
+    )
+    assert wheels_braked < t_lock
+    assert yaw_rate(rt, wheels_braked - window, wheels_braked) > 0.1  # pushed until braked
+    # still over the last 0.5 s (robot time) before the lock
+    assert abs(yaw_rate(rt, t_lock - window, t_lock)) < rt.config.limits.rest_yaw_rate
 
 
 def test_heartbeat_loss_mid_spin(

@@ -13,6 +13,7 @@ from simulators.controller import AxisModel, VirtualController
 from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
 from simulators.physics import caster_rates, settled_trailing
 from simulators.robot_sim import (
+    FREE_MODULE,
     DriveArrays,
     ModuleDrive,
     PhysicsOptions,
@@ -160,6 +161,28 @@ def test_hard_rows_win_over_conflicting_soft_rows() -> None:
         0.01,
     )
     assert xi == pytest.approx([0.1, 0.2, 0.3], abs=1e-12)
+
+
+def test_a_push_turns_a_free_robot_steadily_and_braked_wheels_hold_it() -> None:
+    """The external wrench enters the dynamics linearly: a free robot pushed with a torque
+    settles to a steady yaw rate in the push's sense, twice the push gives twice the rate;
+    braking every wheel (HOLD) stops it dead, push or not."""
+    brake = [ModuleDrive(wheel=WheelDrive.BRAKE)] * 4
+    rates = []
+    for tau in (1.0, 2.0):
+        r = RobotSim(PAPER_CALIBRATED, theta0=[0.3, -1.0, 2.0, 0.5])
+        r.push = np.array([0.0, 0.0, tau])
+        w = []
+        for _ in range(2000):  # 10 s
+            r.step(0.005, [FREE_MODULE] * 4)
+            w.append(r.twist[2])
+        assert w[-1] == pytest.approx(w[-200], rel=1e-3)  # steady over the last second
+        rates.append(w[-1])
+        for _ in range(2):
+            r.step(0.005, brake)
+        assert r.twist == pytest.approx(np.zeros(3), abs=1e-12)
+    assert 0.05 < rates[0] < 0.2
+    assert rates[1] == pytest.approx(2 * rates[0], rel=1e-3)
 
 
 def test_slip_bursts_only_move_the_encoder() -> None:
