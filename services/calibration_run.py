@@ -447,9 +447,12 @@ class CalibrationRun:
         deadline = self._deadline()
         while True:
             self._check(True, deadline)
-            now = time.monotonic()
-            if now - t_brake >= window:
-                poses = self.mocap.samples(since_host=now - window)
+            # the poses *sampled* over the last window after the brake (by their host
+            # times: with late poses, from a slow mocap network or clock mode wall, the
+            # newest pose at hand may have been sampled a while ago)
+            latest = self.mocap.latest()
+            if latest is not None and latest.t_host - t_brake >= window:
+                poses = self.mocap.samples(since_host=latest.t_host - window)
                 if poses.shape[0] >= 3 and poses[-1, 2] - poses[0, 2] >= 0.5 * window:
                     speed, rate = motion_rates(
                         poses[:, 2] * self.time_scale, poses[:, 3], poses[:, 4], poses[:, 5]

@@ -287,15 +287,17 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
 ) -> None:
     """Someone pushes the robot (or it coasts from an aborted spin) as a run starts: every
     wheel is braked first and the lock only comes once mocap shows it still.  Without the
-    REST step the lock came on a robot turning at 0.24 rad/s (and in make test once the
-    locked steering was dragged 24 deg: "the static module is not locked")."""
+    REST step the wheels were braked with the lock, on a turning robot (mocap read 0.17-0.20
+    rad/s over the 0.5 s before it); in make test, a robot coasting from the previous test's
+    aborted spin once dragged the locked steering 24 deg ("the static module is not
+    locked")."""
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
     node = (rt.config.nodes or {})[1]
     window = 0.5 / rt.settings.time_scale  # 0.5 s of robot time
     home_and_release(rt)  # (homing steers the modules, which would stop the robot too)
-    sim.push(torque=2.0)  # turns the free robot at 0.24 rad/s
+    sim.push(torque=2.0)  # turns the free robot at 0.24 rad/s (robot time)
     try:
         time.sleep(4 * window)
         t = time.monotonic()
@@ -327,7 +329,9 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
         for m in (rt.config.nodes or {}).values()
     )
     assert wheels_braked < t_lock
-    assert yaw_rate(rt, wheels_braked - window, wheels_braked) > 0.1  # pushed until braked
+    # pushed until braked: 0.24 rad/s, read as 0.14-0.21 at the nominal time scale 4 (the
+    # in-process simulator achieves 2.5-3.5 beside the service)
+    assert yaw_rate(rt, wheels_braked - 2 * window, wheels_braked) > 0.05
     # still over the last 0.5 s (robot time) before the lock
     assert abs(yaw_rate(rt, t_lock - window, t_lock)) < rt.config.limits.rest_yaw_rate
 
