@@ -107,8 +107,8 @@ class VirtualController:
                 return []
             assert isinstance(msg, codec.Sync)
             if self.sync_mode:
-                self._advance(now, on_frame=True)
-                return self._feedback(msg.counter)
+                # what the time up to now brought first (homing done, a fault), then the sample
+                return self._advance(now, on_frame=True) + self._feedback(msg.counter)
             return []
         if node != self.node or cmd not in codec.HOST_COMMANDS:
             return []
@@ -117,10 +117,13 @@ class VirtualController:
         except codec.ProtocolError:
             self.invalid_frames += 1
             return []
-        self._advance(now, on_frame=True)
+        # the frames the time up to now brought (homing done, a watchdog or over-speed
+        # fault) go out before the command's own answer: they were dropped once, and a
+        # HomingStatus DONE due as a command arrived never reached the host
+        out = self._advance(now, on_frame=True)
         self._last_command = now
         self.commands += 1
-        return self._apply(msg2, now)
+        return out + self._apply(msg2, now)
 
     def _apply(self, msg: codec.Decoded, now: float) -> list[Frame]:
         out: list[Frame] = []

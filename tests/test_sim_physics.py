@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from firmware_protocol import codec
-from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag
+from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
 from simulators.controller import AxisModel, VirtualController
 from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
 from simulators.physics import caster_rates, settled_trailing
@@ -256,6 +256,38 @@ def test_over_speed_is_judged_under_the_mode_in_force_not_on_a_command_frame() -
     c.handle(codec.make_set_control(3, Axis.WHEEL, ControlMode.TORQUE, 5.0), t)
     c.handle(codec.make_set_control(3, Axis.WHEEL, ControlMode.TORQUE, 5.0), t + 0.5)
     assert w.velocity > 2.4 and w.errors == ErrorFlag.OVER_SPEED
+
+
+def test_frames_that_fall_due_as_a_command_arrives_go_out_with_its_answer() -> None:
+    """A homing run that ends, or a watchdog that expires, just as a host frame arrives:
+    its HomingStatus / FaultReport goes out before the command's answer.  They used to be
+    dropped: the driver suite in the VM waited 21 s for a homing DONE that never came."""
+
+    def parsed(frames: list[codec.Frame]) -> list[codec.Decoded]:
+        return [codec.parse(f.arbitration_id, f.data) for f in frames]
+
+    c = VirtualController(node=2, watchdog_ms=0, homing_duration=0.2)
+    c.handle(codec.make_set_axis_state(2, Axis.STEER, True), 0.0)
+    c.handle(codec.make_set_axis_state(2, Axis.WHEEL, True), 0.0)
+    started = parsed(c.handle(codec.make_start_homing(2), 0.0))
+    assert [(m.status, m.axis) for m in started] == [(HomingState.IN_PROGRESS, Axis.STEER)]
+    out = parsed(c.handle(codec.make_set_control(2, Axis.WHEEL, ControlMode.HOLD), 0.25))
+    done = [m for m in out if isinstance(m, codec.HomingStatus)]
+    assert c.homed and [(m.status, m.axis) for m in done] == [(HomingState.DONE, Axis.STEER)]
+    assert done[0].sensor_position == pytest.approx(c.sensor_position, abs=1e-4)
+
+    c = VirtualController(node=2, watchdog_ms=100)
+    c.handle(codec.make_set_axis_state(2, Axis.WHEEL, True), 0.0)
+    out = parsed(c.handle(codec.make_set_control(2, Axis.WHEEL, ControlMode.HOLD), 0.3))
+    faults = [m for m in out if isinstance(m, codec.FaultReport)]
+    assert [(m.axis, m.new_errors) for m in faults] == [(Axis.WHEEL, ErrorFlag.WATCHDOG_TIMEOUT)]
+    assert c.axes[Axis.WHEEL].state == AxisState.FAULT
+
+    c = VirtualController(node=2, watchdog_ms=0, homing_duration=0.2, sync_mode=True)
+    c.handle(codec.make_set_axis_state(2, Axis.STEER, True), 0.0)
+    c.handle(codec.make_start_homing(2), 0.0)
+    kinds = [type(m).__name__ for m in parsed(c.handle(codec.make_sync(7), 0.25))]
+    assert kinds == ["HomingStatus", "FeedbackPosition", "FeedbackVelocityTorque"]
 
 
 def test_steering_position_setpoints_are_taken_modulo_the_feedback_wrap() -> None:

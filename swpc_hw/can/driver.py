@@ -721,7 +721,8 @@ class CanDriver:
                     raise NodeTimeoutError(
                         f"{_where(nd.module, nd.node)}: {what} not reached within {timeout} s "
                         f"(states {[s.name for s in st.states]}, errors "
-                        f"{[codec.error_names(e) for e in st.errors]})",
+                        f"{[codec.error_names(e) for e in st.errors]}, homed {st.homed}, "
+                        f"homing {st.homing.name})",
                         node=nd.node,
                     )
                 self._changed.wait(left)
