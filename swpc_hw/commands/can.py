@@ -25,6 +25,12 @@ def register(subparsers: Any) -> None:
     mon.add_argument("--duration", type=float, default=0.0, help="stop after s (0 = Ctrl-C)")
     mon.add_argument("--plain", action="store_true", help="print plain tables, no live view")
     mon.add_argument("--emulate", action="store_true", help="also run emulated controllers")
+    mon.add_argument(
+        "--heartbeat-loss-periods",
+        type=int,
+        default=3,
+        help="heartbeat periods (0.1 s) without one before a node counts as lost (3)",
+    )
     mon.set_defaults(func=run_monitor)
 
 
@@ -105,6 +111,7 @@ def run_monitor(args: argparse.Namespace) -> int:
         channel=args.channel,
         bitrate=args.bitrate,
         modules={i + 1: n for i, n in enumerate(nodes)},
+        heartbeat_loss_periods=args.heartbeat_loss_periods,
     )
     emu = None
     if args.emulate:
