@@ -36,6 +36,7 @@ from swpc_hw.can import (
     Lifecycle,
     LifecycleError,
     NodeTimeoutError,
+    Severity,
 )
 from swpc_hw.errors import SwpcError
 from tests.can_rig import (
@@ -570,17 +571,23 @@ def test_robot_io_reports_a_fault_stop_before_its_event_callback_runs(active: Ri
     slow_seen: list[str] = []
 
     def slow(ev: DriverEvent) -> None:  # registered first: runs before the RobotIO's
-        slow_seen.append(ev.message)
-        release.wait(5.0)
+        if ev.severity is Severity.FAULT:
+            slow_seen.append(ev.message)
+            release.wait(T(5.0))
 
     drv.add_event_callback(slow)
     io = DriverRobotIO(drv)
     drv.enable(1, Axis.WHEEL)
     drv.hold(1, Axis.WHEEL)
     assert io.take_faults() == []
+    t0 = time.monotonic()
     active.emu.mute(3)
     try:
         assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
+        # the motors stop before the callbacks run: every axis freed and disabled while
+        # the slow callback still holds the fault's event (it held back the stop once)
+        assert wait_until(lambda: stop_frames(active.host_frames(t0)) == (ALL_AXES, ALL_AXES))
+        assert slow_seen and not release.is_set()
         faults = io.take_faults()  # the event callbacks are still blocked
         assert len(faults) == 1 and "module 3 (node 3): no heartbeat" in faults[0], faults
         with pytest.raises(LifecycleError, match="stopped by a fault: module 3"):

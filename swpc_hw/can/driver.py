@@ -819,10 +819,11 @@ class CanDriver:
                 else False
             )
             self._changed.notify_all()
-        for ev in recorded:
-            self._notify(ev)
         if fault:
-            self._fault_stop(was_active)
+            self._fault_stop(was_active, recorded)
+        else:
+            for ev in recorded:
+                self._notify(ev)
         for module, sample in callbacks:
             for fn in self._feedback_callbacks:
                 fn(module, sample)  # exceptions go to Notifier -> on_error
@@ -1022,8 +1023,7 @@ class CanDriver:
                 f"exception in the receive thread: {type(exc).__name__}: {exc}",
             )
             was_active = self._begin_fault(ev.message)
-        self._notify(ev)
-        self._fault_stop(was_active)
+        self._fault_stop(was_active, [ev])
 
     # ================================================================ supervision
     def _supervise(self) -> None:
@@ -1068,10 +1068,11 @@ class CanDriver:
                 if lost:  # after the events are queued: whoever sees INACTIVE finds why
                     was_active = self._begin_fault(recorded[0].message)
                     refresh = []
-            for ev in recorded:
-                self._notify(ev)
             if lost:
-                self._fault_stop(was_active)
+                self._fault_stop(was_active, recorded)
+            else:
+                for ev in recorded:
+                    self._notify(ev)
             if refresh and self._state == Lifecycle.ACTIVE:
                 with contextlib.suppress(CanError):
                     self._send_frames(refresh, best_effort=True)
@@ -1094,13 +1095,19 @@ class CanDriver:
                 self._fault_cause = cause
             return active
 
-    def _fault_stop(self, was_active: bool) -> None:
-        """Every fault path, after :meth:`_begin_fault`: stop_all() if the driver was active."""
+    def _fault_stop(self, was_active: bool, events: list[DriverEvent]) -> None:
+        """Every fault path, after :meth:`_begin_fault`: stop_all() if the driver was active,
+        *then* the event callbacks with the fault's ``events``, then STOPPED.  The motors
+        stop first: a slow event callback (the callbacks ran first once) held the stop
+        frames back for as long as it took, with the wheels still under torque."""
         if was_active:
             try:
                 self.stop_all()
             except CanError as exc:
                 log.error("stop_all() after a fault failed: %s", exc)
+        for ev in events:
+            self._notify(ev)
+        if was_active:
             self._emit(
                 EventKind.STOPPED,
                 Severity.INFO,
