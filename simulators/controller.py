@@ -96,8 +96,13 @@ class VirtualController:
     _hb_counter: int = 0
 
     # ------------------------------------------------------------------ host frames
-    def handle(self, frame: Frame, now: float) -> list[Frame]:
-        """Process one frame seen on the bus; return the frames sent in reply."""
+    def handle(self, frame: Frame, now: float, arrived: float | None = None) -> list[Frame]:
+        """Process one frame seen on the bus; return the frames sent in reply.
+
+        ``arrived``: when the frame reached the controller, if earlier than ``now`` (an
+        emulator thread that was not scheduled): the watchdog judges a command by its
+        arrival, as firmware handling frames in an interrupt would.
+        """
         node, cmd = codec.split_id(frame.arbitration_id)
         if frame.arbitration_id == codec.SYNC_ID:
             try:
@@ -120,7 +125,7 @@ class VirtualController:
         # the frames the time up to now brought (homing done, a watchdog or over-speed
         # fault) go out before the command's own answer: they were dropped once, and a
         # HomingStatus DONE due as a command arrived never reached the host
-        out = self._advance(now, on_frame=True)
+        out = self._advance(now, on_frame=True, watchdog_at=arrived)
         self._last_command = now
         self.commands += 1
         return out + self._apply(msg2, now)
@@ -211,7 +216,9 @@ class VirtualController:
             due = min(due, self._last_command + self.watchdog_ms / 1000.0)
         return due
 
-    def _advance(self, now: float, on_frame: bool = False) -> list[Frame]:
+    def _advance(
+        self, now: float, on_frame: bool = False, watchdog_at: float | None = None
+    ) -> list[Frame]:
         """Integrate the axes to ``now``, then the watchdog, over-speed and homing checks.
 
         Over-speed is judged on the velocity an axis reached under the mode in force.  A
@@ -251,7 +258,8 @@ class VirtualController:
                     )
                 ]
             )
-        if self.watchdog_ms > 0 and now - self._last_command > self.watchdog_ms / 1000.0:
+        at = now if watchdog_at is None else min(now, watchdog_at)
+        if self.watchdog_ms > 0 and at - self._last_command > self.watchdog_ms / 1000.0:
             for axis, ax in zip(Axis, self.axes, strict=True):
                 if ax.state in (AxisState.ENABLED, AxisState.HOMING):
                     out += self._fault(axis, ErrorFlag.WATCHDOG_TIMEOUT)
@@ -421,27 +429,36 @@ class ControllerEmulator:
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
+                # frames that arrived while this thread was not running come first: a
+                # command that arrived in time fed the watchdog (stepping first faulted
+                # the axes of a controller whose commands sat in the queue)
+                self._handle_queued(self.bus.recv(0))
                 now = time.monotonic()
                 with self.lock:
                     for c in self.controllers.values():
                         self._transmit(c.step(now))
                     due = min(c.next_due() for c in self.controllers.values())
                 timeout = min(max(due - time.monotonic(), 0.0), 0.05)
-                msg = self.bus.recv(timeout=timeout) if timeout > 0 else self.bus.recv(0)
-                while msg is not None:
-                    self._on_frame(msg)
-                    msg = self.bus.recv(0)
+                self._handle_queued(self.bus.recv(timeout=timeout if timeout > 0 else 0))
         except BaseException as exc:  # surfaced to the test through .error
             self.error = exc
             raise
+
+    def _handle_queued(self, msg: can.Message | None) -> None:
+        """Handle ``msg`` and every frame already queued behind it."""
+        while msg is not None:
+            self._on_frame(msg)
+            msg = self.bus.recv(0)
 
     def _on_frame(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
         frame = Frame(msg.arbitration_id, bytes(msg.data))
         now = time.monotonic()
+        # the bus's receive stamp (wall clock) on the monotonic clock
+        arrived = now - max(0.0, time.time() - msg.timestamp) if msg.timestamp else None
         with self.lock:
             if self.record_received:
                 self.received.append((now, frame))
             for c in self.controllers.values():
-                self._transmit(c.handle(frame, now))
+                self._transmit(c.handle(frame, now, arrived))

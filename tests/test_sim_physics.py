@@ -290,6 +290,19 @@ def test_frames_that_fall_due_as_a_command_arrives_go_out_with_its_answer() -> N
     assert kinds == ["HomingStatus", "FeedbackPosition", "FeedbackVelocityTorque"]
 
 
+def test_the_watchdog_judges_a_command_by_its_arrival() -> None:
+    """An emulator thread that was not scheduled handles a command late: a command that
+    arrived within the watchdog period still feeds it (the test rig faulted both axes of a
+    module under a loaded host with its commands sitting in the queue); one that arrived
+    late does not."""
+    c = VirtualController(node=2, watchdog_ms=100)
+    c.handle(codec.make_set_axis_state(2, Axis.WHEEL, True), 0.0)
+    c.handle(codec.make_set_control(2, Axis.WHEEL, ControlMode.HOLD), 0.3, arrived=0.05)
+    assert c.axes[Axis.WHEEL].state == AxisState.ENABLED and c.axes[Axis.WHEEL].errors == 0
+    c.handle(codec.make_set_control(2, Axis.WHEEL, ControlMode.HOLD), 0.6, arrived=0.45)
+    assert c.axes[Axis.WHEEL].errors == ErrorFlag.WATCHDOG_TIMEOUT
+
+
 def test_steering_position_setpoints_are_taken_modulo_the_feedback_wrap() -> None:
     """The host knows the multi-turn steering only modulo the SteerPosition wrap (8 turns):
     a setpoint goes to its equivalent nearest the current position."""
