@@ -439,7 +439,8 @@ class CalibrationRun:
         """
         limits = self.config.limits
         ids = self.config.nominal.ids
-        self._enter(State.REST, "braking every wheel: waiting for the robot to come to rest")
+        step = "braking every wheel: waiting for the robot to come to rest"
+        self._enter(State.REST, step)
         for m in ids:
             self.robot.wheel_hold(m)
         window = self._robot_seconds(REST_WINDOW)
@@ -461,8 +462,7 @@ class CalibrationRun:
                         return
                     with self._lock:
                         self.status.step = (
-                            "braking every wheel: waiting for the robot to come to rest "
-                            f"(yaw rate {rate:.3f} rad/s, speed {speed:.3f} m/s)"
+                            f"{step} (yaw rate {rate:.3f} rad/s, speed {speed:.3f} m/s)"
                         )
             time.sleep(self._poll)
 

@@ -58,17 +58,22 @@ class Recorder(can.Listener):  # type: ignore[misc]
         with self.lock:
             self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
 
-    def decoded_since(self, t: float) -> list[tuple[int, object]]:
-        """``(node, decoded frame)`` of the frames of our protocol recorded at or after t."""
+    def timed_since(self, t: float) -> list[tuple[float, int, object]]:
+        """``(host time, node, decoded frame)`` of the frames of our protocol recorded at or
+        after t."""
         with self.lock:
-            frames = [(i, d) for ts, i, d in self.frames if ts >= t]
+            frames = [f for f in self.frames if f[0] >= t]
         out = []
-        for i, data in frames:
+        for ts, i, data in frames:
             try:
-                out.append((codec.split_id(i)[0], codec.parse(i, data)))
+                out.append((ts, codec.split_id(i)[0], codec.parse(i, data)))
             except codec.ProtocolError:
                 continue
         return out
+
+    def decoded_since(self, t: float) -> list[tuple[int, object]]:
+        """``(node, decoded frame)`` of the frames of our protocol recorded at or after t."""
+        return [(node, d) for _, node, d in self.timed_since(t)]
 
     def stop_frames_after(self, t: float) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
         """(node, axis) pairs that got SetControl FREE, and SetAxisState disabled, after t."""
@@ -308,14 +313,12 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
     client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
     assert wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
 
+    frames = rec.timed_since(t)
+
     def first(pred: Callable[[int, Any], bool]) -> float:
-        with rec.lock:
-            frames = [f for f in rec.frames if f[0] >= t]
-        for ts, i, data in frames:
-            n, cmd = codec.split_id(i)
-            if cmd in codec.HOST_COMMANDS and pred(n, codec.parse(i, data)):
-                return ts
-        raise AssertionError("no such frame")
+        found = next((ts for ts, n, d in frames if pred(n, d)), None)
+        assert found is not None, "no such frame"
+        return found
 
     t_lock = first(
         lambda n, d: n == node and isinstance(d, codec.SetControl)

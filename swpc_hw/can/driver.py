@@ -813,10 +813,8 @@ class CanDriver:
                 fault = self._on_data_frame(msg, t, callbacks, events)
             # events queued before the state drops: whoever sees INACTIVE finds its cause
             recorded = [self._record(*e) for e in events]
-            was_active = (
-                self._begin_fault(next((e[2] for e in events if e[1] is Severity.FAULT), "fault"))
-                if fault
-                else False
+            was_active = fault and self._begin_fault(
+                next((ev.message for ev in recorded if ev.severity is Severity.FAULT), "fault")
             )
             self._changed.notify_all()
         if fault:
