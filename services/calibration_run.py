@@ -62,6 +62,7 @@ from services.robot_io import RobotIO
 from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.dataset import Dataset, Segment, load_dataset, save_dataset
+from swpc_hw.errors import CalibrationError
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
@@ -540,9 +541,14 @@ class CalibrationRun:
         save_dataset(directory, ds)
         write_mcap(self.run_dir / "run.mcap", ds)  # the same data, for Foxglove
         # solve what was written, so that `swpc solve <dataset>` reproduces it exactly
-        self.result = solve(
-            load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory)
-        )
+        try:
+            self.result = solve(
+                load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory)
+            )
+        except CalibrationError as exc:
+            raise CalibrationError(
+                f"{exc} (the run's data is kept: `swpc solve {directory}` reproduces this)"
+            ) from exc
 
     def within_tolerance(self) -> bool:
         assert self.result is not None

@@ -30,6 +30,7 @@ from services.runtime import Runtime
 from services.settings import ServiceSettings
 from swpc_hw.calibration.solver import solve_directory
 from swpc_hw.can import DriverEvent, Lifecycle, Severity
+from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
 
@@ -115,6 +116,27 @@ def wait_state(
             return st
         time.sleep(0.05)
     raise AssertionError(f"run {run_id} never reached {states}: {st}")
+
+
+def data_summary(rt: Runtime, run_id: str) -> str:
+    """A failed run's recorded segments, for the assertion message: the data behind a
+    solver failure is lost with the test's temporary directory (and with a CI clone)."""
+    directory = Path(rt.settings.data_dir) / "runs" / run_id / "dataset"
+    try:
+        ds = load_dataset(directory)
+    except Exception as exc:  # a summary: never the test's own failure
+        return f"(no dataset: {exc})"
+    rows = []
+    for sg in ds.segments:
+        sel = (ds.poses[:, 0] >= sg.start) & (ds.poses[:, 0] <= sg.end)
+        yaw = np.unwrap(ds.poses[sel, 3])
+        rot = math.degrees(float(yaw.max() - yaw.min())) if yaw.size else 0.0
+        gaps = float(np.diff(ds.poses[sel, 0]).max()) if yaw.size > 1 else float("nan")
+        rows.append(
+            f"module {sg.static_module} {sg.end - sg.start:.2f} s {int(sel.sum())} poses "
+            f"{rot:.1f} deg, longest pose gap {gaps:.3f} s"
+        )
+    return "; ".join(rows)
 
 
 def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
@@ -509,14 +531,16 @@ def test_restart_lists_past_runs_and_fails_interrupted_ones(tmp_path: Path) -> N
 def test_result_outside_tolerance_is_reported_not_installed(
     service: tuple[TestClient, Runtime, Recorder], installed: bytes
 ) -> None:
-    client, _rt, _ = service
+    client, rt, _ = service
     quick = {
         "protocol": QUICK_PROTOCOL,
         "tolerances": {"position": 1e-9},  # no real result is this good
     }
     run_id = start(client, quick)
     st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
-    assert st["state"] == "DONE" and st["installed"] is False, st["errors"]
+    assert st["state"] == "DONE" and st["installed"] is False, (
+        st["errors"], data_summary(rt, run_id)
+    )
     res = client.get(f"/calibrations/{run_id}/result").json()
     assert res["within_tolerance"] is False and res["kinematics_path"] is None
     assert Path(res["run_kinematics_path"]).exists()  # the result itself is kept with the run

@@ -12,7 +12,7 @@ import pytest
 from simulators.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.baseline import solve_paper
-from swpc_hw.calibration.solver import SolverOptions, solve
+from swpc_hw.calibration.solver import SolverOptions, canonical_parameters, solve
 from swpc_hw.cli import main as swpc_main
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics
@@ -73,6 +73,31 @@ def test_paper_equations_match_the_generalised_fit() -> None:
     np.testing.assert_allclose([bb, *ps, geo.homing_error(pts[0], ps, a[0])], [b, *P_s, beta])
     ps2, b2, beta2 = geo.steering_circle_fit(pts, a)
     np.testing.assert_allclose([b2, *ps2, beta2], [b, *P_s, beta])
+
+
+def test_a_module_in_its_mirror_parametrisation_is_mapped_back() -> None:
+    P_s, beta, b, r = np.array([0.21, -0.12]), 3.0, 0.021, 0.055
+    theta, C = np.array([0.4, 1.9, -2.2]), np.array([0.5, 0.1])  # steering angles, a point
+    mirror = (beta + np.pi, -b, -r)
+    # every observation block is blind to the mirror: A equal, B and C change sign
+    np.testing.assert_allclose(
+        geo.contact_point_of(P_s, np.array(-b), theta + mirror[0]),
+        geo.contact_point_of(P_s, np.array(b), theta + beta),
+        atol=1e-15,
+    )
+    np.testing.assert_allclose(
+        geo.settled_residual(P_s, np.array(-b), theta + mirror[0], C),
+        -geo.settled_residual(P_s, np.array(b), theta + beta, C),
+        atol=1e-15,
+    )
+    g = geo.rolling_lever(P_s, np.array(b), theta + beta, C)
+    g_m = geo.rolling_lever(P_s, np.array(-b), theta + mirror[0], C)
+    np.testing.assert_allclose(g_m / mirror[2], g / r, rtol=1e-12)  # same dpsi per dyaw
+    X = np.array([[*P_s, mirror[0], mirror[1], mirror[2]], [0.0, 0.2, -0.5, 0.02, 0.056]])
+    Y = canonical_parameters(X)
+    np.testing.assert_allclose(Y[0], [*P_s, beta, b, r], atol=1e-15)
+    np.testing.assert_array_equal(Y[1], X[1])  # b > 0: left alone
+    assert X[0, 3] < 0  # a copy: the input is untouched
 
 
 def test_noisy_result_is_within_its_reported_uncertainty() -> None:

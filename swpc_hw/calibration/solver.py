@@ -373,6 +373,45 @@ def closed_form_geometry(segs: list[SegmentData], n: int) -> FloatArray:
     return X
 
 
+def canonical_parameters(X: FloatArray) -> FloatArray:
+    """The representative with ``b >= 0`` of every module's mirror pair.
+
+    The model only sees ``b u(theta + beta)`` and ``r dpsi``, and
+    ``u(theta + beta + pi) = -u(theta + beta)``, so
+
+        (x_s, y_s, beta, b, r)  and  (x_s, y_s, beta + pi, -b, -r)
+
+    give identical residuals in all three blocks (A: ``C_R = P_s + b u(a + beta)``;
+    B: ``(P_s - C_R) . u(theta + beta) + b`` changes sign; C: the lever
+    ``g = (P_w - C) x u(theta)`` and ``r`` both change sign).  The trust-region step can
+    cross ``b = 0`` into the mirror; this maps such a module back, ``beta`` wrapped to
+    ``[-pi, pi)``.  ``X``: (N, 5) rows ``x_s, y_s, beta, b, r``; returns a copy.
+    """
+    Y = np.array(X, dtype=float, copy=True)
+    mirror = Y[:, 3] < 0
+    Y[mirror, 2] += np.pi
+    Y[mirror, 3:5] *= -1.0
+    Y[:, 2] = (Y[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return Y
+
+
+def _check_physical(X: FloatArray, ids: list[int]) -> None:
+    """Refuse a solution no robot can have, naming every offending parameter."""
+    bad = []
+    for mid, row in zip(ids, X, strict=True):
+        for name, v in zip(PARAM_NAMES, row, strict=True):
+            if not math.isfinite(v):
+                bad.append(f"module {mid} {name} = {v}")
+        if math.isfinite(row[3]) and math.isfinite(row[4]) and row[3] * row[4] == 0.0:
+            bad.append(f"module {mid} b = {row[3]:.6g}, r = {row[4]:.6g}")
+        elif math.isfinite(row[4]) and row[4] < 0:
+            bad.append(f"module {mid} r = {row[4]:.6g} m (with b = {row[3]:.6g} m)")
+    if bad:
+        raise CalibrationError(
+            "the solver did not converge to a physical solution: " + "; ".join(bad)
+        )
+
+
 def _fp(s: SegmentData) -> FloatArray:
     C_R, _ = geo.fixed_point(s.poses[s.inliers][:, 1:])
     return C_R
@@ -594,7 +633,7 @@ def solve(
             gtol=1e-15,
             max_nfev=200,
         )
-        x = sol.x
+        x = canonical_parameters(sol.x.reshape(n, 5)).ravel()
         _, B, _ = prob.blocks(x)
         zb = B / prob.pair_sigma
         rms_b = math.sqrt(float(np.mean(zb**2))) if zb.size else 1.0
@@ -602,15 +641,13 @@ def solve(
             prob.pair_sigma = prob.pair_sigma * rms_b
     assert sol is not None
     X = x.reshape(n, 5)
-    if not np.all(np.isfinite(X)) or np.any(X[:, 3] <= 0) or np.any(X[:, 4] <= 0):
-        raise CalibrationError("the solver did not converge to a physical solution")
+    _check_physical(X, ids)
     # covariance from the weighted Jacobian (central differences)
     J = _jacobian(prob.residuals, x)
     f = prob.residuals(x)
     dof = max(f.size - x.size, 1)
     s2 = float(f @ f) / dof
     std = parameter_stddev(J, s2).reshape(n, 5)
-    X[:, 2] = (X[:, 2] + np.pi) % (2 * np.pi) - np.pi
     params = RobotParams.from_arrays(
         ids,
         X[:, :2],
