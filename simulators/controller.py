@@ -189,9 +189,14 @@ class VirtualController:
         return self._send(out)
 
     # ------------------------------------------------------------------ time
-    def step(self, now: float) -> list[Frame]:
-        """Advance to ``now``: dynamics, watchdog, homing, heartbeat and feedback due."""
-        out = self._advance(now)
+    def step(self, now: float, watchdog_at: float | None = None) -> list[Frame]:
+        """Advance to ``now``: dynamics, watchdog, homing, heartbeat and feedback due.
+
+        ``watchdog_at``: judge the watchdog at this earlier time instead, the latest time up
+        to which every command that arrived has been handled (a host that only knows its
+        receive queue was empty some time before ``now``).
+        """
+        out = self._advance(now, watchdog_at=watchdog_at)
         if now >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + self.heartbeat_period, now)
             out += self.heartbeat()
@@ -431,12 +436,16 @@ class ControllerEmulator:
             while not self._stop.is_set():
                 # frames that arrived while this thread was not running come first: a
                 # command that arrived in time fed the watchdog (stepping first faulted
-                # the axes of a controller whose commands sat in the queue)
+                # the axes of a controller whose commands sat in the queue).  Every frame
+                # that arrived before `horizon` has then been handled; one that arrives
+                # while this thread waits for the GIL after the queue was found empty sits
+                # in the queue, so the watchdog is judged at `horizon`, not at `now`
+                horizon = time.monotonic()
                 self._handle_queued(self.bus.recv(0))
                 now = time.monotonic()
                 with self.lock:
                     for c in self.controllers.values():
-                        self._transmit(c.step(now))
+                        self._transmit(c.step(now, watchdog_at=horizon))
                     due = min(c.next_due() for c in self.controllers.values())
                 timeout = min(max(due - time.monotonic(), 0.0), 0.05)
                 self._handle_queued(self.bus.recv(timeout=timeout if timeout > 0 else 0))

@@ -520,10 +520,13 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
     drv.enable(1, Axis.WHEEL)
     drv.set_velocity(1, Axis.WHEEL, 2.0)
     queued_when_inactive: list[EventKind] = []
+    queued_messages: list[str] = []
     begin_fault = drv._begin_fault
 
     def probe(cause: str) -> bool:  # the moment the driver drops to INACTIVE
-        queued_when_inactive.extend(e.kind for e in list(drv._events.queue))
+        queued = list(drv._events.queue)
+        queued_when_inactive.extend(e.kind for e in queued)
+        queued_messages.extend(e.message for e in queued)
         return begin_fault(cause)
 
     drv._begin_fault = probe  # type: ignore[method-assign]
@@ -532,7 +535,7 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
     active.emu.mute(3)
     assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
     # whoever sees INACTIVE finds the cause already queued
-    assert EventKind.HEARTBEAT_LOST in queued_when_inactive
+    assert EventKind.HEARTBEAT_LOST in queued_when_inactive, queued_messages
     dt = time.monotonic() - t0
     assert T(0.2) <= dt <= T(0.6)  # 3 heartbeat periods after the last heartbeat
     lost = [e for e in drv.events() if e.kind == EventKind.HEARTBEAT_LOST]

@@ -303,6 +303,19 @@ def test_the_watchdog_judges_a_command_by_its_arrival() -> None:
     assert c.axes[Axis.WHEEL].errors == ErrorFlag.WATCHDOG_TIMEOUT
 
 
+def test_a_step_judges_the_watchdog_when_the_queue_was_last_found_empty() -> None:
+    """The emulator thread found its queue empty at 0.08 s and only stepped at 0.2 s (it
+    waited for the GIL); a command may sit in the queue since 0.08 s, so the watchdog
+    (100 ms after the last command, at 0.0 s) is judged at 0.08 s: no fault.  The rig
+    faulted module 1's wheel this way under a loaded host.  Judged at 0.15 s, it fires."""
+    c = VirtualController(node=1, watchdog_ms=100)
+    c.handle(codec.make_set_axis_state(1, Axis.WHEEL, True), 0.0)
+    c.step(0.2, watchdog_at=0.08)
+    assert c.axes[Axis.WHEEL].state == AxisState.ENABLED and c.axes[Axis.WHEEL].errors == 0
+    c.step(0.25, watchdog_at=0.15)
+    assert c.axes[Axis.WHEEL].errors == ErrorFlag.WATCHDOG_TIMEOUT
+
+
 def test_steering_position_setpoints_are_taken_modulo_the_feedback_wrap() -> None:
     """The host knows the multi-turn steering only modulo the SteerPosition wrap (8 turns):
     a setpoint goes to its equivalent nearest the current position."""
