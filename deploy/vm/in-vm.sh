@@ -17,6 +17,9 @@
 #                 with an in-process run of the same configuration on the host)
 #   can-up        deploy/can-up.sh on can0/can1, two SJA1000 (kvaser_pci) controllers that
 #                 QEMU emulates on one CAN bus; python-can exchange can0 -> can1
+#   robot-install deploy/vm/robot-install.sh: deploy/README.md's robot set-up on systemd
+#                 (PID 1 of a container in the VM), the service on can0 and the
+#                 simulator's unit on can1 (OUT/robot-install.log)
 # OUT/vcan0.log is decoded afterwards on the host (run-in-vm.sh: `cantools decode`).
 set -uo pipefail
 
@@ -223,6 +226,10 @@ if [[ -e /sys/class/net/can0 && -e /sys/class/net/can1 ]]; then
     step can-up can_up_both
     step python-can-sja1000 "$PY" deploy/vm/can_exchange.py --interface socketcan \
         --tx can0 --rx can1 --count 50
+    # deploy/README.md's robot set-up under systemd (a container booted in this VM):
+    # sysusers, config, can-up + sysctl, both units, health, a run aborted mid-spin,
+    # restart on failure, stop
+    step robot-install deploy/vm/robot-install.sh "$OUT"
 else
     result can-up SKIP "(no can0/can1: QEMU started without kvaser_pci devices)"
 fi

@@ -11,6 +11,10 @@ starts ``POST /calibrations`` with the overrides (``install: never``), follows t
 (state changes are printed) and writes the result document, plus the run's wall time and
 final status, to ``--out``.  Exit status 0 only if the run ended DONE.
 
+``run --abort-in STATE`` aborts the run (``POST /calibrations/{id}/abort``) once it
+reaches STATE (e.g. SPIN: the robot turning under the service's control) and exits 0 only
+if it then ends ABORTED.  ``health`` only waits for ``GET /health`` as ``run`` does.
+
 ``compare`` checks that two results of the same configuration agree: for every module
 and parameter (x_s, y_s, beta, b, r) the difference d and the combined std dev
 s = sqrt(s_A**2 + s_B**2) of the two results satisfy |d| <= k s (k = 3).  A parameter
@@ -81,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     run_id = started["id"]
     print(f"run {run_id} started with overrides {json.dumps(overrides)}", flush=True)
     seen = ""
+    aborted = False
     st: dict[str, Any] = {}
     while time.monotonic() - t0 < args.timeout:
         st = _request(f"{url}/calibrations/{run_id}", None)
@@ -95,8 +100,15 @@ def run(args: argparse.Namespace) -> int:
             )
         if st["state"] in ("DONE", "FAILED", "ABORTED"):
             break
-        time.sleep(1.0)
+        if args.abort_in and st["state"] == args.abort_in and not aborted:
+            _request(f"{url}/calibrations/{run_id}/abort", args.token, {})
+            aborted = True
+            print(f"  {time.monotonic() - t0:7.1f} s  abort requested in {st['state']}")
+        time.sleep(0.5 if args.abort_in else 1.0)
     wall = time.monotonic() - t0
+    if args.abort_in:
+        print(f"run {run_id}: {st.get('state')} after {wall:.1f} s wall; {st.get('reason') or ''}")
+        return 0 if aborted and st.get("state") == "ABORTED" else 1
     doc: dict[str, Any] = {"status": st, "wall_s": wall, "overrides": overrides}
     if st.get("state") == "DONE":
         doc["result"] = _request(f"{url}/calibrations/{run_id}/result", None)
@@ -164,11 +176,19 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--health-timeout", type=float, default=300.0)
     r.add_argument("--timeout", type=float, default=1800.0)
     r.add_argument("--service-log")
+    r.add_argument("--abort-in", metavar="STATE", help="abort the run once it reaches STATE")
+    h = sub.add_parser("health")
+    h.add_argument("--url", default="http://127.0.0.1:8080")
+    h.add_argument("--timeout", type=float, default=300.0)
+    h.add_argument("--service-log")
     c = sub.add_parser("compare")
     c.add_argument("a")
     c.add_argument("b")
     c.add_argument("--k", type=float, default=3.0)
     args = ap.parse_args(argv)
+    if args.cmd == "health":
+        wait_healthy(args.url.rstrip("/"), args.timeout, args.service_log)
+        return 0
     return run(args) if args.cmd == "run" else compare(args)
 
 
