@@ -41,7 +41,11 @@ def kernel_has_vcan() -> bool:
 
 # ---------------------------------------------------------------------------- scripts
 @pytest.mark.parametrize(
-    "script", ["vcan-up.sh", "can-up.sh", "vm/setup.sh", "vm/run-in-vm.sh", "vm/in-vm.sh"]
+    "script",
+    [
+        "vcan-up.sh", "can-up.sh", "vm/setup.sh", "vm/run-in-vm.sh", "vm/in-vm.sh",
+        "vm/robot-install.sh", "vm/robot-install-test.sh",
+    ],
 )
 def test_scripts_are_executable_bash(script: str) -> None:
     path = DEPLOY / script

@@ -30,8 +30,12 @@ fi
 
 # --- PID 1 of the new namespaces -----------------------------------------------------------
 OUT="$2"
-ov=/tmp/swpc-robot-overlay
-mkdir -p "$ov" && mount -t tmpfs tmpfs "$ov"
+# /run first: a fresh tmpfs that also holds the overlays' upper layers (a scratch mount
+# anywhere that a later mount covers is one systemd cannot unmount: with the scratch
+# under /tmp, covered by the /tmp below, the container did not exit in 4 min)
+mount -t tmpfs -o mode=0755 tmpfs /run
+ov=/run/swpc-robot-overlay
+mkdir -p "$ov"
 for d in etc var opt; do
     mkdir -p "$ov/$d/upper" "$ov/$d/work"
     mount -t overlay overlay \
@@ -58,8 +62,7 @@ case "$base" in
     ;;
 esac
 mkdir -p /opt/swpc && mount --rbind "$ROOT" /opt/swpc
-mount -t tmpfs -o mode=0755 tmpfs /run
-# and a /tmp of its own: systemd-tmpfiles empties /tmp at boot, which took the VM's
+# a /tmp of its own: systemd-tmpfiles empties /tmp at boot, which took the VM's
 # candump recording with it (the overlays above keep their mounts)
 mount -t tmpfs -o mode=1777 tmpfs /tmp
 mountpoint -q /sys/fs/cgroup || mount -t cgroup2 cgroup2 /sys/fs/cgroup
