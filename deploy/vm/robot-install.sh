@@ -15,10 +15,10 @@
 # systemd did not finish in SWPC_VM_ROBOT_TIMEOUT s (default 900).
 set -euo pipefail
 
-OUT="${1:?usage: robot-install.sh OUT}"
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 
 if [[ "${1:-}" != --pid1 ]]; then
+    OUT="${1:?usage: robot-install.sh OUT}"
     : > "$OUT/robot-install.log"
     status=0
     timeout --kill-after=10 "${SWPC_VM_ROBOT_TIMEOUT:-900}" \

@@ -13,7 +13,8 @@ final status, to ``--out``.  Exit status 0 only if the run ended DONE.
 
 ``run --abort-in STATE`` aborts the run (``POST /calibrations/{id}/abort``) once it
 reaches STATE (e.g. SPIN: the robot turning under the service's control) and exits 0 only
-if it then ends ABORTED.  ``health`` only waits for ``GET /health`` as ``run`` does.
+if it then ends ABORTED (``--out`` gets its final status).  ``health`` only waits for
+``GET /health`` as ``run`` does.
 
 ``compare`` checks that two results of the same configuration agree: for every module
 and parameter (x_s, y_s, beta, b, r) the difference d and the combined std dev
@@ -106,14 +107,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {time.monotonic() - t0:7.1f} s  abort requested in {st['state']}")
         time.sleep(0.5 if args.abort_in else 1.0)
     wall = time.monotonic() - t0
-    if args.abort_in:
-        print(f"run {run_id}: {st.get('state')} after {wall:.1f} s wall; {st.get('reason') or ''}")
-        return 0 if aborted and st.get("state") == "ABORTED" else 1
     doc: dict[str, Any] = {"status": st, "wall_s": wall, "overrides": overrides}
     if st.get("state") == "DONE":
         doc["result"] = _request(f"{url}/calibrations/{run_id}/result", None)
     Path(args.out).write_text(json.dumps(doc, indent=1))
     print(f"run {run_id}: {st.get('state')} after {wall:.1f} s wall; {st.get('reason') or ''}")
+    if args.abort_in:
+        return 0 if aborted and st.get("state") == "ABORTED" else 1
     if st.get("state") != "DONE":
         print(f"  errors: {st.get('errors')}\n  service log (tail):\n{_tail(args.service_log)}")
         return 1

@@ -399,13 +399,14 @@ def _check_physical(X: FloatArray, ids: list[int]) -> None:
     """Refuse a solution no robot can have, naming every offending parameter."""
     bad = []
     for mid, row in zip(ids, X, strict=True):
-        for name, v in zip(PARAM_NAMES, row, strict=True):
-            if not math.isfinite(v):
-                bad.append(f"module {mid} {name} = {v}")
-        if math.isfinite(row[3]) and math.isfinite(row[4]) and row[3] * row[4] == 0.0:
-            bad.append(f"module {mid} b = {row[3]:.6g}, r = {row[4]:.6g}")
-        elif math.isfinite(row[4]) and row[4] < 0:
-            bad.append(f"module {mid} r = {row[4]:.6g} m (with b = {row[3]:.6g} m)")
+        bad += [
+            f"module {mid} {name} = {v}"
+            for name, v in zip(PARAM_NAMES, row, strict=True)
+            if not math.isfinite(v)
+        ]
+        b, r = float(row[3]), float(row[4])
+        if math.isfinite(b) and math.isfinite(r) and (b <= 0 or r <= 0):
+            bad.append(f"module {mid} b = {b:.6g} m, r = {r:.6g} m")
     if bad:
         raise CalibrationError(
             "the solver did not converge to a physical solution: " + "; ".join(bad)
