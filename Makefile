@@ -20,23 +20,22 @@ install: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check swpc_hw firmware_protocol services simulators tests benchmarks
+	$(BIN)/lint-imports --no-cache
 
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-test: $(STAMP)
-	$(BIN)/ruff check swpc_hw firmware_protocol services simulators tests benchmarks
-	$(BIN)/mypy
+test: lint typecheck
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
 demo: $(STAMP)
-	$(BIN)/python -m simulators.demo
+	$(BIN)/python -m services.demo
 
 demo-offline: $(STAMP)
-	$(BIN)/python -m simulators.demo --offline
+	$(BIN)/python -m services.demo --offline
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info

@@ -14,9 +14,9 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.controller import settled_steering, settled_wheel_rates
 from swpc_hw.odometry import Odometry, OdometryOptions
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.twist_controller import settled_steering, settled_wheel_rates
 
 FloatArray = NDArray[np.float64]
 N_UPDATES = 10000

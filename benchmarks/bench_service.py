@@ -184,7 +184,7 @@ def end_to_end() -> None:
                 time.sleep(0.1)
             wall = time.monotonic() - t0
             res = client.get(f"/calibrations/{rid}/result").json() if st["state"] == "DONE" else {}
-    from swpc_hw.reference import PAPER_CALIBRATED
+    from swpc_hw.paper_robot import PAPER_CALIBRATED
 
     worst_mm, worst_deg = 0.0, 0.0
     for m in res.get("modules", []):

@@ -29,7 +29,7 @@ import can
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode
 from simulators.mocap_sim import MocapOptions
-from simulators.sim import SimOptions, Simulator
+from simulators.virtual_robot import SimOptions, Simulator
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 

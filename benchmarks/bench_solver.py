@@ -2,7 +2,7 @@
 
 1. The paper's Table 3, noiseless: 10,000 random robots (P_s within +-30 % of design,
    beta within +-30 deg, b and r within +-10 %), exact rotation data from
-   ``simulators.batch``, solved by the closed-form geometry vectorised over all trials.
+   ``simulators.random_robots``, solved by the closed-form geometry vectorised over all trials.
    Plus the full joint solver on generator runs of a subset of those robots.
 2. Noisy accuracy, truth = paper Table 4: mocap 0.5 mm / 0.05 deg at 100 Hz, encoders
    2^17 counts/rev, 20 seeds: RMSE of the paper's literal procedure and of the joint
@@ -23,13 +23,13 @@ import time
 
 import numpy as np
 
-from simulators.batch import batch_experiment, random_robots
 from simulators.datagen import ExperimentOptions, generate_experiment
+from simulators.random_robots import batch_experiment, random_robots
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.baseline import solve_paper
 from swpc_hw.calibration.solver import CalibrationResult, solve
 from swpc_hw.model import RobotParams
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 DISPLAY = np.array([1e3, 1e3, 180.0 / math.pi, 1e3, 1e3])  # mm, mm, deg, mm, mm

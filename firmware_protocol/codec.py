@@ -28,7 +28,7 @@ from typing import Any
 import cantools
 from cantools.database.can import Database, Message
 
-from swpc_hw.errors import SwpcError
+from firmware_protocol.errors import FirmwareProtocolError
 
 DBC_PATH = Path(__file__).with_name("swpc.dbc")
 NODE_SHIFT = 5
@@ -38,7 +38,7 @@ MAX_NODE = 8
 SYNC_ID = 0x000
 
 
-class ProtocolError(SwpcError, ValueError):
+class ProtocolError(FirmwareProtocolError, ValueError):
     """A frame cannot be encoded or decoded; the message names node, message and signal."""
 
 

@@ -26,7 +26,7 @@ from services.robot_config import ConfigOverrides, RobotConfig
 from services.runtime import RunConflictError, Runtime
 from services.settings import ServiceSettings
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.gc_pause import freeze_startup_heap
+from swpc_hw.heap_freeze import freeze_startup_heap
 from swpc_hw.kinematic_file import load_kinematics
 
 

@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose
-from swpc_hw.ring import RowRing
+from swpc_hw.row_ring import RowRing
 
 FloatArray = NDArray[np.float64]
 

@@ -26,7 +26,7 @@ from firmware_protocol.codec import MAX_NODE
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
 from swpc_hw.model import RobotParams
-from swpc_hw.reference import PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_NOMINAL
 
 
 class RobotConfigError(SwpcError, ValueError):

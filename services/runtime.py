@@ -118,7 +118,7 @@ class Runtime:
         return self
 
     def _embedded_simulator(self, channel: str, endpoints: list[str]) -> Simulator:
-        from simulators.embedded import embedded_simulator
+        from services.in_process_simulator import embedded_simulator
 
         return embedded_simulator(
             config=self.config,

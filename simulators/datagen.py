@@ -61,7 +61,7 @@ from simulators.physics import (
 from swpc_hw.dataset import Dataset, Segment, save_dataset
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, rot, steering_direction, wrap_angle
-from swpc_hw.reference import PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
 

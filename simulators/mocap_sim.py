@@ -9,12 +9,13 @@ Mocap (what the service uses): poses of R in W on ``mocap/<robot>/pose`` at ``ra
 
 Samples are taken at simulated times ``k / rate`` and stamped with the *mocap clock*
 ``t_mocap = stamp + clock_offset``, where ``stamp`` is the simulated time of the sample
-unless the simulator gives another (:class:`simulators.sim.Simulator` gives the host's wall
-clock at sampling, see its ``mocap_clock``).  Options model a real system (the generator's noise
-options, :class:`simulators.datagen.ExperimentOptions`, are the template): Gaussian noise
-on x, y and yaw, dropouts (a sample is not sent), outliers (a jump of ``outlier_magnitude``
-in a random direction and ``outlier_magnitude / 0.25`` rad of yaw), and a transport
-latency (a sample is published ``latency`` simulated seconds after its timestamp).
+unless the simulator gives another (:class:`simulators.virtual_robot.Simulator` gives the
+host's wall clock at sampling, see its ``mocap_clock``).  Options model a real system (the
+generator's noise options, :class:`simulators.datagen.ExperimentOptions`, are the template):
+Gaussian noise on x, y and yaw, dropouts (a sample is not sent), outliers (a jump of
+``outlier_magnitude`` in a random direction and ``outlier_magnitude / 0.25`` rad of yaw),
+and a transport latency (a sample is published ``latency`` simulated seconds after its
+timestamp).
 
 Ground truth (tests and validation only; the service never subscribes to it), kept
 apart under ``sim/<robot>/truth/``:

@@ -4,7 +4,7 @@
 calibrated values), the pose of R in W, and per module the true steering angle ``theta``
 (relative to the body), the rolling wheel angle ``psi`` and the wheel angle its encoder
 reads (``psi`` plus slip).  :meth:`RobotSim.step` advances it by ``dt`` under one
-:class:`ModuleDrive` per module (what each axis' controller does, see ``simulators.sim``).
+:class:`ModuleDrive` per module (what each axis' controller does, see ``simulators.virtual_robot``).
 
 Constraint rows
 ---------------
@@ -71,7 +71,7 @@ from swpc_hw.model import (
     RobotParams,
     contact_point,
 )
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 
 class WheelDrive(enum.Enum):

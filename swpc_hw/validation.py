@@ -2,7 +2,7 @@
 
 The robot drives a square of side ``L`` (default 2.5 m) with a 90 deg turn in place at each
 corner, clockwise and counter-clockwise, ``runs`` times each, at about 0.2 m/s, with one
-kinematic file used for *both* control (:class:`swpc_hw.controller.TwistController`) and
+kinematic file used for *both* control (:class:`swpc_hw.twist_controller.TwistController`) and
 odometry (:class:`swpc_hw.odometry.Odometry`); the end pose of the odometry is compared
 with the true end pose (simulator truth key, or motion capture on a real robot).  Doing
 this for the nominal and the calibrated file shows what calibration buys.
@@ -60,10 +60,10 @@ from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
 from swpc_hw.can.driver import CanDriver, DriverEvent, FeedbackSample, Lifecycle, Severity
-from swpc_hw.controller import TwistController
 from swpc_hw.errors import SwpcError
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.odometry import Odometry, OdometryOptions
+from swpc_hw.twist_controller import TwistController
 
 FloatArray = NDArray[np.float64]
 Direction = Literal["cw", "ccw"]

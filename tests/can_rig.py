@@ -31,7 +31,7 @@ from typing import Any
 
 import can
 
-from simulators.controller import VirtualController
+from simulators.virtual_controller import VirtualController
 from swpc_hw.can import CanConfig, CanDriver, ModuleState
 
 INTERFACE = os.environ.get("SWPC_TEST_CAN_INTERFACE", "virtual")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from swpc_hw.gc_pause import freeze_startup_heap
+from swpc_hw.heap_freeze import freeze_startup_heap
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

@@ -53,7 +53,7 @@ def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     env.pop("SWPC_CAN_INTERFACE", None)
     log = (data / "service.log").open("w")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "swpc_hw.cli", "serve", "--log-level", "warning"],
+        [sys.executable, "-m", "services.cli", "serve", "--log-level", "warning"],
         env=env,
         stdout=log,
         stderr=subprocess.STDOUT,

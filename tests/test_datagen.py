@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simulators.batch import batch_experiment, random_robots
 from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
+from simulators.random_robots import batch_experiment, random_robots
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_robot
 from swpc_hw.model import rot, wrap_angle
-from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NOISELESS = ExperimentOptions(counts_per_rev=None)
 
@@ -269,7 +269,7 @@ def test_batch_10000_trials_is_fast() -> None:
 def test_simulate_command_writes_a_loadable_dataset(tmp_path: Path) -> None:
     import argparse
 
-    from simulators import commands_gen
+    from services.cli import simulate as commands_gen
 
     parser = argparse.ArgumentParser()
     commands_gen.register(parser.add_subparsers())

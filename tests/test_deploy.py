@@ -220,7 +220,7 @@ def test_sysctl_makes_room_for_the_drivers_receive_buffer() -> None:
 
 def test_robot_example_loads_and_documents_every_key() -> None:
     from services.robot_config import RobotConfig, load_robot_config
-    from swpc_hw.reference import PAPER_NOMINAL
+    from swpc_hw.paper_robot import PAPER_NOMINAL
 
     path = DEPLOY / "robot.example.yaml"
     cfg = load_robot_config(path)

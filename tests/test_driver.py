@@ -23,7 +23,7 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, Command, ControlMode, ErrorFlag, HomingState
-from simulators.controller import ControllerEmulator, VirtualController
+from simulators.virtual_controller import ControllerEmulator, VirtualController
 from swpc_hw.can import (
     CanBusError,
     CanCommandError,
@@ -741,7 +741,7 @@ def test_recording_decodes_with_cantools(tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------------------- CLI
 def test_can_monitor_prints_nodes(capsys: pytest.CaptureFixture[str]) -> None:
-    from swpc_hw.cli import main
+    from services.cli import main
 
     channel = new_channel()
     # the emulated controllers keep real-time periods (heartbeat 0.1 s), which a slow

@@ -17,7 +17,7 @@ from swpc_hw.kinematic_file import (
     save_kinematics,
 )
 from swpc_hw.model import RobotParams
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 
 def doc() -> dict[str, Any]:

@@ -17,7 +17,7 @@ from swpc_hw.model import (
     trailing_steering_angle,
     wrap_angle,
 )
-from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 
 def random_robot(rng: np.random.Generator, n: int) -> RobotParams:

@@ -1,4 +1,4 @@
-"""Odometry (swpc_hw.odometry) and the twist controller helper (swpc_hw.controller).
+"""Odometry (swpc_hw.odometry) and the twist controller helper (swpc_hw.twist_controller).
 
 Encoder streams are generated here from the exact no-slip model: a piecewise-constant body
 twist, the pose from the SE(2) exponential (analytic), and per module the steering/wheel
@@ -24,14 +24,6 @@ import pytest
 from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
 
-from swpc_hw.controller import (
-    ControllerError,
-    TwistController,
-    saturation_scale,
-    settled_steering,
-    settled_wheel_rates,
-    twist_rates,
-)
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, forward_kinematics, wrap_angle
@@ -44,7 +36,15 @@ from swpc_hw.odometry import (
     step_twist,
     synchronize_encoders,
 )
-from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.twist_controller import (
+    ControllerError,
+    TwistController,
+    saturation_scale,
+    settled_steering,
+    settled_wheel_rates,
+    twist_rates,
+)
 
 FloatArray = NDArray[np.float64]
 Twist = tuple[float, float, float]
@@ -413,7 +413,7 @@ def test_synchronize_per_module_logs() -> None:
 
 def test_import_is_dependency_light() -> None:
     code = (
-        "import sys, swpc_hw.odometry, swpc_hw.controller\n"
+        "import sys, swpc_hw.odometry, swpc_hw.twist_controller\n"
         "bad = [m for m in ('fastapi', 'zenoh', 'scipy', 'uvicorn', 'matplotlib') "
         "if m in sys.modules]\n"
         "print(','.join(bad))\n"

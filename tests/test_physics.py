@@ -26,7 +26,7 @@ from swpc_hw.model import (
     steering_direction,
     wrap_angle,
 )
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 A = PAPER_CALIBRATED.arrays()
 

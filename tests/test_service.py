@@ -32,7 +32,7 @@ from swpc_hw.calibration.solver import solve_directory
 from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 TOKEN = "test-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -21,7 +21,7 @@ from services.api import create_app
 from services.runtime import Runtime
 from services.settings import ServiceSettings
 from swpc_hw.dataset import load_dataset
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 from tests.can_rig import wait_until
 from tests.test_service import NAMES, QUICK_PROTOCOL, TOKEN, start, wait_state
 

@@ -26,7 +26,7 @@ import pytest
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
 from simulators.mocap_sim import MocapOptions, truth_params_key, truth_pose_key
-from simulators.sim import SimOptions, Simulator
+from simulators.virtual_robot import SimOptions, Simulator
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.mocap import PoseEncoding, decode_pose
 from swpc_hw.model import RobotParams, rot
@@ -454,7 +454,7 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
         [
             sys.executable,
             "-m",
-            "swpc_hw.cli",
+            "services.cli",
             "sim",
             "--interface",
             "virtual",

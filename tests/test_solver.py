@@ -9,15 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.cli import main as swpc_main
 from simulators.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.baseline import solve_paper
 from swpc_hw.calibration.solver import SolverOptions, canonical_parameters, solve
-from swpc_hw.cli import main as swpc_main
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.model import RobotParams
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 NOISELESS = ExperimentOptions(counts_per_rev=None, spin_duration=6.0)

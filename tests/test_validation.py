@@ -19,7 +19,7 @@ from swpc_hw.can.config import CanConfig
 from swpc_hw.can.driver import CanDriver, FeedbackSample
 from swpc_hw.kinematic_file import load_robot
 from swpc_hw.model import wrap_angle
-from swpc_hw.reference import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.validation import (
     DriverOdometry,
     Leg,
@@ -203,7 +203,7 @@ def test_square_drive_on_the_embedded_simulator_calibrated_beats_nominal_by_95_p
     command drives both ways), 1 run per file, at time scale 2 (as the command; lag spikes
     at 4 on a loaded host make casters slip), through CAN and zenoh; errors of the
     calibrated file are >= 95 % smaller."""
-    from swpc_hw.commands.validate import run_embedded
+    from services.cli.validate import run_embedded
 
     calibrated = load_robot(DEMO_FILE) if DEMO_FILE.exists() else PAPER_CALIBRATED
     opt = SquareOptions(

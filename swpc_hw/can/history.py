@@ -1,4 +1,4 @@
-"""Feedback history of one controller node: a :class:`swpc_hw.ring.RowRing` of samples.
+"""Feedback history of one controller node: a :class:`swpc_hw.row_ring.RowRing` of samples.
 
 The driver receives 2 frames per node per feedback period (4 nodes at 200 Hz: 1600 frames
 a second) and keeps the samples of a whole calibration (minutes).  Kept as Python objects
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.ring import RowRing
+from swpc_hw.row_ring import RowRing
 
 COLUMNS = (
     "t",

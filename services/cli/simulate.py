@@ -1,6 +1,6 @@
 """``swpc simulate OUT_DIR``: write a simulated calibration run as a dataset directory.
 
-Register by listing ``simulators.commands_gen`` in ``swpc_hw.cli.SUBCOMMANDS``.  The
+Register by listing ``services.cli.simulate`` in ``services.cli.SUBCOMMANDS``.  The
 directory gets the dataset files of CONVENTIONS.md plus ``truth.yaml`` (the hidden truth).
 Human-facing options are in degrees and millimetres; everything written is SI.
 """
@@ -11,7 +11,7 @@ import argparse
 import math
 from typing import Any
 
-from simulators.cli_options import add_noise_arguments
+from services.cli._noise_options import add_noise_arguments
 
 
 def register(sub: Any) -> None:
@@ -45,7 +45,7 @@ def register(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from simulators.datagen import ExperimentOptions, generate_experiment
     from swpc_hw.kinematic_file import load_robot
-    from swpc_hw.reference import PAPER_CALIBRATED
+    from swpc_hw.paper_robot import PAPER_CALIBRATED
 
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
     nominal = load_robot(args.nominal) if args.nominal else None

@@ -7,7 +7,7 @@ Example (a separate process on a virtual CAN interface, mocap on loopback)::
 The service then opens the same CAN channel and connects its zenoh session to the
 listen endpoint.  Human-facing options are in mm, degrees and ms; everything published
 is SI.  ``--time-scale S`` runs the simulated clock S times faster than wall time (see
-:mod:`simulators.sim` for how a client matches it).
+:mod:`simulators.virtual_robot` for how a client matches it).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import threading
 import time
 from typing import Any
 
-from simulators.cli_options import add_noise_arguments
+from services.cli._noise_options import add_noise_arguments
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -120,10 +120,10 @@ def parse_nodes(text: str | None) -> dict[int, int] | None:
 def run(args: argparse.Namespace) -> int:
     from simulators.mocap_sim import MocapOptions
     from simulators.robot_sim import PhysicsOptions
-    from simulators.sim import SimOptions, Simulator
-    from swpc_hw.gc_pause import freeze_startup_heap
+    from simulators.virtual_robot import SimOptions, Simulator
+    from swpc_hw.heap_freeze import freeze_startup_heap
     from swpc_hw.kinematic_file import load_robot
-    from swpc_hw.reference import PAPER_CALIBRATED
+    from swpc_hw.paper_robot import PAPER_CALIBRATED
 
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
     opt = SimOptions(

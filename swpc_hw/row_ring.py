@@ -3,7 +3,7 @@
 Per-sample data that a long-running process keeps (CAN feedback, motion-capture poses)
 live here rather than in lists of objects: CPython's full garbage collections walk every
 live container object, and millions of them paused the service for 0.5-2 s
-(:mod:`swpc_hw.gc_pause`).  Not thread-safe: the owner calls it under its own lock.
+(:mod:`swpc_hw.heap_freeze`).  Not thread-safe: the owner calls it under its own lock.
 """
 
 from __future__ import annotations

@@ -155,8 +155,8 @@ def run_embedded(
     log: Callable[[str], None] | None = None,
 ) -> ValidationReport:
     """The drive against the embedded simulator (truth: paper Table 4, default noise)."""
+    from services.in_process_simulator import embedded_simulator
     from services.robot_config import RobotConfig
-    from simulators.embedded import embedded_simulator
     from simulators.mocap_sim import truth_pose_key
     from swpc_hw.can.driver import CanDriver
     from swpc_hw.zenoh_session import free_tcp_endpoint, open_session

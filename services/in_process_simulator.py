@@ -13,9 +13,9 @@ from collections.abc import Sequence
 
 from services.robot_config import RobotConfig
 from simulators.mocap_sim import MocapOptions
-from simulators.sim import SimOptions, Simulator
+from simulators.virtual_robot import SimOptions, Simulator
 from swpc_hw.model import RobotParams
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 DEFAULT_MOCAP = MocapOptions(rate=100.0, sigma_xy=0.5e-3, sigma_yaw=math.radians(0.05))
 

@@ -1,7 +1,7 @@
 """The virtual SWPC robot: controllers on CAN + physics + motion capture, on a simulated clock.
 
 :class:`Simulator` stands in for the robot's motor controllers (one
-:class:`simulators.controller.VirtualController` per module, speaking the DBC's frames on
+:class:`simulators.virtual_controller.VirtualController` per module, speaking the DBC's frames on
 any python-can bus) and for the motion-capture system (poses over zenoh, see
 :mod:`simulators.mocap_sim`); :class:`simulators.robot_sim.RobotSim` moves the hidden true
 robot under what the controllers do.  It runs in one thread started by :meth:`start` and
@@ -76,7 +76,6 @@ import numpy as np
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Frame
-from simulators.controller import AxisModel, VirtualController
 from simulators.mocap_sim import MocapOptions, MocapSim, TruthPublisher
 from simulators.physics import FloatArray, se2_step
 from simulators.robot_sim import (
@@ -86,9 +85,10 @@ from simulators.robot_sim import (
     SteerDrive,
     WheelDrive,
 )
+from simulators.virtual_controller import AxisModel, VirtualController
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams, wrap_angle
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 HOMING_SPEED = 0.5
 """Steering speed while homing (rad/s), as the virtual controller's own axis model."""

@@ -26,7 +26,7 @@ import numpy as np
 
 from simulators.physics import FloatArray, settled_trailing
 from swpc_hw.model import RobotParams, steering_direction, wrap_angle
-from swpc_hw.reference import PAPER_NOMINAL
+from swpc_hw.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
 

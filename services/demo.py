@@ -28,7 +28,7 @@ from typing import Any
 
 import httpx
 
-from swpc_hw.reference import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.zenoh_session import free_tcp_endpoint
 
 
@@ -85,7 +85,7 @@ def run_service_demo(data_dir: Path, time_scale: float) -> int:
     t0 = time.monotonic()
     log = open(data_dir / "service.log", "w")  # noqa: SIM115 - lives as long as the process
     proc = subprocess.Popen(
-        [sys.executable, "-m", "swpc_hw.cli", "serve", "--log-level", "warning"],
+        [sys.executable, "-m", "services.cli", "serve", "--log-level", "warning"],
         env=env,
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -150,8 +150,8 @@ def run_service_demo(data_dir: Path, time_scale: float) -> int:
 
 
 def run_offline_demo(out: Path, seed: int) -> int:
+    from services.cli import main as swpc_main
     from simulators.datagen import ExperimentOptions, generate_experiment
-    from swpc_hw.cli import main as swpc_main
 
     opts = ExperimentOptions(
         pose_sigma_xy=0.5e-3,
