@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can.driver import CanDriver, DriverEvent, Lifecycle, Severity
+from swpc_hw.can import CanDriver, DriverEvent, Lifecycle, Severity
 from swpc_hw.can.errors import NodeError
 from swpc_hw.model import nearest_turn
 

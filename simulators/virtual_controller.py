@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ from firmware_protocol.codec import (
     Frame,
     HomingState,
 )
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
 
 DEFAULT_RATE_HZ = 200
 DEFAULT_WATCHDOG_MS = 100
@@ -361,8 +361,13 @@ def _integrate(ax: AxisModel, dt: float) -> None:
 class ControllerEmulator:
     """Run virtual controllers on a python-can bus in one thread (no busy loop).
 
-    The thread sleeps in ``bus.recv(timeout)`` until the next frame is due, so a
-    command is answered within the OS wake-up latency.
+    On a real clock the thread sleeps in ``bus.recv(timeout)`` until the next frame is
+    due, so a command is answered within the OS wake-up latency.  On a
+    :class:`swpc_hw.clock.SimClock` the thread is the clock's master: it handles the
+    commands sent up to the current time, steps the controllers to the next instant
+    anything is due (at most ``max_step`` later), puts their frames on the bus stamped with
+    that instant, and advances the clock (lockstep: the driver's I/O step and every
+    waiting test run before time moves on again).
     """
 
     def __init__(
@@ -372,10 +377,16 @@ class ControllerEmulator:
         interface: str = "virtual",
         channel: str = "swpc",
         bus: can.BusABC | None = None,
+        clock: Clock = SYSTEM_CLOCK,
+        max_step: float = 0.005,
         **bus_kwargs: Any,
     ) -> None:
         self.controllers = {c.node: c for c in controllers}
+        self.clock = clock
+        self.max_step = float(max_step)
         self._own_bus = bus is None
+        if isinstance(clock, SimClock):
+            bus_kwargs.setdefault("preserve_timestamps", True)
         self.bus = (
             bus if bus is not None else can.Bus(interface=interface, channel=channel, **bus_kwargs)
         )
@@ -396,7 +407,8 @@ class ControllerEmulator:
         self.stop()
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="swpc-emulator", daemon=True)
+        target = self._run_lockstep if isinstance(self.clock, SimClock) else self._run
+        self._thread = threading.Thread(target=target, name="swpc-emulator", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
@@ -414,24 +426,27 @@ class ControllerEmulator:
     def send_raw(self, msg: can.Message) -> None:
         """Put an arbitrary frame on the bus (error frames, unknown ids, bad DLC)."""
         with self.lock:
+            msg.timestamp = self.clock.wall()
             self.bus.send(msg)
 
     def mute(self, node: int, muted: bool = True) -> None:
         with self.lock:
             self.controllers[node].muted = muted
 
-    def _transmit(self, frames: Iterable[Frame]) -> None:
+    def _transmit(self, frames: Iterable[Frame], stamp: float) -> None:
         for f in frames:
             self.bus.send(
                 can.Message(
                     arbitration_id=f.arbitration_id,
                     data=f.data,
                     is_extended_id=False,
+                    timestamp=stamp,
                 )
             )
             self.sent[f.arbitration_id] += 1
 
     def _run(self) -> None:
+        clock = self.clock
         try:
             while not self._stop.is_set():
                 # frames that arrived while this thread was not running come first: a
@@ -440,18 +455,40 @@ class ControllerEmulator:
                 # that arrived before `horizon` has then been handled; one that arrives
                 # while this thread waits for the GIL after the queue was found empty sits
                 # in the queue, so the watchdog is judged at `horizon`, not at `now`
-                horizon = time.monotonic()
+                horizon = clock.now()
                 self._handle_queued(self.bus.recv(0))
-                now = time.monotonic()
+                now = clock.now()
                 with self.lock:
                     for c in self.controllers.values():
-                        self._transmit(c.step(now, watchdog_at=horizon))
+                        self._transmit(c.step(now, watchdog_at=horizon), clock.wall())
                     due = min(c.next_due() for c in self.controllers.values())
-                timeout = min(max(due - time.monotonic(), 0.0), 0.05)
+                timeout = min(max((due - clock.now()) / clock.rate, 0.0), 0.05)
                 self._handle_queued(self.bus.recv(timeout=timeout if timeout > 0 else 0))
         except BaseException as exc:  # surfaced to the test through .error
             self.error = exc
             raise
+
+    def _run_lockstep(self) -> None:
+        clock = self.clock
+        assert isinstance(clock, SimClock)
+        try:
+            while not self._stop.is_set():
+                if not clock.wait_for_demand(self._stop):
+                    continue
+                t = clock.now()
+                self._handle_queued(self.bus.recv(0))  # what was sent up to t
+                with self.lock:
+                    due = min(c.next_due() for c in self.controllers.values())
+                t_next = min(max(due, t + 1e-4), clock.next_wake(), t + self.max_step)
+                t_next = max(t_next, math.nextafter(t, math.inf))
+                with self.lock:
+                    for c in self.controllers.values():
+                        self._transmit(c.step(t_next), clock.to_wall(t_next))
+                clock.advance_to(t_next, self._stop)
+        except BaseException as exc:  # surfaced to the test through .error
+            self.error = exc
+            if not self._stop.is_set():
+                raise
 
     def _handle_queued(self, msg: can.Message | None) -> None:
         """Handle ``msg`` and every frame already queued behind it."""
@@ -463,11 +500,12 @@ class ControllerEmulator:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
         frame = Frame(msg.arbitration_id, bytes(msg.data))
-        now = time.monotonic()
-        # the bus's receive stamp (wall clock) on the monotonic clock
-        arrived = now - max(0.0, time.time() - msg.timestamp) if msg.timestamp else None
+        clock = self.clock
+        now = clock.now()
+        # the bus's receive stamp on the clock's axis (when it reached the controller)
+        arrived = min(now, clock.from_wall(msg.timestamp)) if msg.timestamp else None
         with self.lock:
             if self.record_received:
                 self.received.append((now, frame))
             for c in self.controllers.values():
-                self._transmit(c.handle(frame, now, arrived))
+                self._transmit(c.handle(frame, now, arrived), clock.wall())

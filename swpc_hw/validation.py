@@ -59,7 +59,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can.driver import CanDriver, DriverEvent, FeedbackSample, Lifecycle, Severity
+from swpc_hw.can import CanDriver, DriverEvent, FeedbackSample, Lifecycle, Severity
 from swpc_hw.errors import SwpcError
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.odometry import Odometry, OdometryOptions

@@ -11,6 +11,11 @@ next one (round robin), so with at least as many interfaces as tests every test 
 of its own and no frame of one test (e.g. an emulator left running by a failed test)
 reaches the next.
 
+Clock: on the ``virtual`` bus the rig runs on a :class:`swpc_hw.clock.SimClock` in lockstep
+(the emulator is its master; the test thread is a participant), so a busy host slows a test
+down but cannot change its outcome; ``SWPC_TEST_LOCKSTEP=0`` runs it on the real clock.  On
+SocketCAN the rig runs in real time (the kernel's bus is real).
+
 ``SWPC_TEST_TIME_FACTOR`` (F, default 1) slows the whole rig down by F, for slow machines
 (QEMU software emulation runs Python ~12x slower than this host): every protocol period
 (feedback, driver refresh, heartbeat, watchdog) is F times longer, every rate F times
@@ -21,18 +26,19 @@ the same, so the assertions hold unchanged at any F.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import threading
-import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
 
-from simulators.virtual_controller import VirtualController
+from simulators.virtual_controller import ControllerEmulator, VirtualController
 from swpc_hw.can import CanConfig, CanDriver, ModuleState
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
 
 INTERFACE = os.environ.get("SWPC_TEST_CAN_INTERFACE", "virtual")
 CHANNELS = [c for c in os.environ.get("SWPC_TEST_CAN_CHANNEL", "").split(",") if c.strip()]
@@ -40,6 +46,42 @@ TIME_FACTOR = float(os.environ.get("SWPC_TEST_TIME_FACTOR", "1"))
 if not TIME_FACTOR >= 1.0:
     raise ValueError(f"SWPC_TEST_TIME_FACTOR must be >= 1, got {TIME_FACTOR}")
 _channel_pool = itertools.cycle([c.strip() for c in CHANNELS])
+LOCKSTEP = INTERFACE == "virtual" and os.environ.get("SWPC_TEST_LOCKSTEP", "1") != "0"
+
+_clock: Clock = SYSTEM_CLOCK
+
+
+def clock() -> Clock:
+    """The clock of the rig in use (the real one outside a rig)."""
+    return _clock
+
+
+@contextlib.contextmanager
+def rig_clock(lockstep: bool = LOCKSTEP) -> Iterator[Clock]:
+    """A fresh clock for one rig; the calling (test) thread is its participant."""
+    global _clock
+    prev = _clock
+    if not lockstep:
+        _clock = SYSTEM_CLOCK
+        try:
+            yield _clock
+        finally:
+            _clock = prev
+        return
+    sim = SimClock()
+    _clock = sim
+    try:
+        with sim.participant():
+            yield sim
+    finally:
+        sim.close()
+        _clock = prev
+
+
+def emulator(nodes: Any, channel: str) -> ControllerEmulator:
+    """The rig's emulated controllers (nodes: node ids or controllers) on its clock."""
+    ctrls = [n if isinstance(n, VirtualController) else controller(n) for n in nodes]
+    return ControllerEmulator(ctrls, interface=INTERFACE, channel=channel, clock=_clock)
 
 FEEDBACK_RATE_HZ = round(200 / TIME_FACTOR)
 """Feedback rate of the rig's controllers and driver (200 Hz at F = 1)."""
@@ -77,7 +119,12 @@ def can_config(channel: str, **cfg: Any) -> CanConfig:
 
 
 class ScaledDriver(CanDriver):
-    """The real :class:`CanDriver`; only the tests' wait timeouts are multiplied by F."""
+    """The real :class:`CanDriver` on the rig's clock; only the tests' wait timeouts are
+    multiplied by F."""
+
+    def __init__(self, config: CanConfig, **kwargs: Any) -> None:
+        kwargs.setdefault("clock", _clock)
+        super().__init__(config, **kwargs)
 
     def wait_for(
         self,
@@ -90,19 +137,29 @@ class ScaledDriver(CanDriver):
 
 
 class Observer(can.Listener):
-    """Records every frame seen on the bus (its own bus instance), with host time."""
+    """Records every frame seen on the bus (its own bus instance), with the time of its
+    bus stamp on the rig's clock.  In lockstep it reads its bus when asked (every frame
+    sent up to now is there); on a real clock a thread reads it."""
 
     def __init__(self, channel: str) -> None:
+        self.clock = _clock
         self.bus = can.Bus(interface=INTERFACE, channel=channel)
         self.frames: list[tuple[float, can.Message]] = []
         self._lock = threading.Lock()
-        self._notifier = can.Notifier(self.bus, [self], timeout=0.05)
+        lockstep = isinstance(self.clock, SimClock)
+        self._notifier = None if lockstep else can.Notifier(self.bus, [self], timeout=0.05)
 
     def on_message_received(self, msg: can.Message) -> None:
+        t = self.clock.from_wall(msg.timestamp) if msg.timestamp else self.clock.now()
         with self._lock:
-            self.frames.append((time.monotonic(), msg))
+            self.frames.append((t, msg))
 
     def snapshot(self) -> list[tuple[float, can.Message]]:
+        if self._notifier is None:
+            msg = self.bus.recv(0)
+            while msg is not None:
+                self.on_message_received(msg)
+                msg = self.bus.recv(0)
         with self._lock:
             return list(self.frames)
 
@@ -119,15 +176,25 @@ class Observer(can.Listener):
         self.bus.send(msg)
 
     def close(self) -> None:
-        self._notifier.stop(timeout=1.0)
+        if self._notifier is not None:
+            self._notifier.stop(timeout=1.0)
         self.bus.shutdown()
 
 
+def sleep(seconds: float) -> None:
+    """Sleep ``seconds`` of rig time (pass ``T(x)`` for a scaled duration)."""
+    _clock.sleep(seconds)
+
+
+def now() -> float:
+    return _clock.now()
+
+
 def wait_until(pred: Callable[[], bool], timeout: float = 2.0, step: float = 0.005) -> bool:
-    """Poll ``pred`` every ``step`` s until true or ``T(timeout)`` (test helper)."""
-    end = time.monotonic() + T(timeout)
-    while time.monotonic() < end:
+    """Poll ``pred`` every ``step`` s of rig time until true or ``T(timeout)``."""
+    end = _clock.now() + T(timeout)
+    while _clock.now() < end:
         if pred():
             return True
-        time.sleep(step)
+        _clock.sleep(step)
     return pred()

@@ -11,8 +11,6 @@ import itertools
 import math
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,8 +46,11 @@ from tests.can_rig import (
     ScaledDriver,
     T,
     can_config,
-    controller,
+    emulator,
     new_channel,
+    now,
+    rig_clock,
+    sleep,
     wait_until,
 )
 
@@ -81,18 +82,19 @@ class Rig:
 
 
 def make_rig(nodes: tuple[int, ...] = NODES, **cfg: object) -> Iterator[Rig]:
-    channel = new_channel()
-    obs = Observer(channel)
-    emu = ControllerEmulator([controller(n) for n in nodes], interface=INTERFACE, channel=channel)
-    emu.start()
-    drv = ScaledDriver(can_config(channel, **cfg))
-    try:
-        yield Rig(channel, emu, drv, obs)
-    finally:
-        drv.shutdown()
-        emu.stop()
-        obs.close()
-        assert emu.error is None
+    with rig_clock():
+        channel = new_channel()
+        obs = Observer(channel)
+        emu = emulator(nodes, channel)
+        emu.start()
+        drv = ScaledDriver(can_config(channel, **cfg))
+        try:
+            yield Rig(channel, emu, drv, obs)
+        finally:
+            drv.shutdown()
+            emu.stop()
+            obs.close()
+            assert emu.error is None
 
 
 @pytest.fixture
@@ -146,7 +148,7 @@ def test_lifecycle_inactive_reads_without_sending(rig: Rig) -> None:
     assert rig.host_frames() == []  # inactive: nothing sent, only received
     assert drv.stats().tx_frames == 0
 
-    t0 = time.monotonic()
+    t0 = now()
     drv.activate()
     assert drv.state == Lifecycle.ACTIVE
     assert wait_until(lambda: len(rig.host_frames(t0)) >= 8)
@@ -160,7 +162,7 @@ def test_lifecycle_inactive_reads_without_sending(rig: Rig) -> None:
     drv.enable(2, Axis.STEER)
     drv.wait_axis_state(2, Axis.STEER, AxisState.ENABLED)
 
-    t1 = time.monotonic()
+    t1 = now()
     drv.deactivate()
     assert drv.state == Lifecycle.INACTIVE
     assert wait_until(lambda: stop_frames(rig.host_frames(t1)) == (ALL_AXES, ALL_AXES))
@@ -192,28 +194,29 @@ def test_grow_receive_buffer_asks_the_kernel() -> None:
 
 
 def test_context_manager_and_shutdown_from_active() -> None:
-    channel = new_channel()
-    obs = Observer(channel)
-    with ControllerEmulator([controller(1)], interface=INTERFACE, channel=channel):
-        with ScaledDriver(can_config(channel, modules={1: 1})) as drv:
-            assert drv.state == Lifecycle.INACTIVE
-            drv.activate()
-            drv.enable(1, Axis.WHEEL)
-            t0 = time.monotonic()
-        assert drv.state == Lifecycle.FINALIZED
+    with rig_clock():
+        channel = new_channel()
+        obs = Observer(channel)
+        with emulator([1], channel):
+            with ScaledDriver(can_config(channel, modules={1: 1})) as drv:
+                assert drv.state == Lifecycle.INACTIVE
+                drv.activate()
+                drv.enable(1, Axis.WHEEL)
+                t0 = now()
+            assert drv.state == Lifecycle.FINALIZED
 
-        def frames() -> list[codec.Decoded]:
-            return [
-                codec.parse(m.arbitration_id, bytes(m.data))
-                for t, m in obs.snapshot()
-                if t >= t0 and codec.split_id(m.arbitration_id)[1] in codec.HOST_COMMANDS
-            ]
+            def frames() -> list[codec.Decoded]:
+                return [
+                    codec.parse(m.arbitration_id, bytes(m.data))
+                    for t, m in obs.snapshot()
+                    if t >= t0 and codec.split_id(m.arbitration_id)[1] in codec.HOST_COMMANDS
+                ]
 
-        # the observer's own bus receives on its own thread: the stop frames, sent
-        # before shutdown returned, may reach it a moment later (seen in the VM at F = 8)
-        want = ({(1, Axis.STEER), (1, Axis.WHEEL)},) * 2
-        assert wait_until(lambda: stop_frames(frames()) == want), stop_frames(frames())
-    obs.close()
+            # on a real clock the observer's own bus receives on its own thread: the stop
+            # frames, sent before shutdown returned, may reach it a moment later
+            want = ({(1, Axis.STEER), (1, Axis.WHEEL)},) * 2
+            assert wait_until(lambda: stop_frames(frames()) == want), stop_frames(frames())
+        obs.close()
 
 
 def test_activate_names_the_silent_node() -> None:
@@ -251,8 +254,8 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
     drv.set_velocity(1, Axis.WHEEL, 4.0)
     st = drv.wait_for(1, lambda s: s.modes[1] == ControlMode.VELOCITY, 1.0)
     assert wait_until(lambda: drv.module_state(1).feedback.wheel_velocity == pytest.approx(4.0))  # type: ignore[union-attr]
-    t_start = time.monotonic()
-    time.sleep(T(0.25))
+    t_start = now()
+    sleep(T(0.25))
     # the wheel turns at 4 rad/s by its encoder: the slope of the samples over their bus
     # stamps (the angle gained in a fixed sleep also counted a late wake-up, 9.8 for
     # 8 +- 1.2 at F = 8; the receive stamps carry the listener's delays, 5.3 for 4 +- 0.6)
@@ -269,9 +272,9 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
 
     drv.hold(1, Axis.WHEEL)
     drv.wait_for(1, lambda s: s.modes[1] == ControlMode.HOLD, 1.0)
-    time.sleep(T(0.05))
+    sleep(T(0.05))
     held = drv.module_state(1).psi
-    time.sleep(T(0.2))
+    sleep(T(0.2))
     assert drv.module_state(1).psi == held  # brake: the wheel angle does not move
 
     drv.free(1, Axis.WHEEL)
@@ -403,7 +406,7 @@ def test_sync_mode_samples_all_nodes_together() -> None:
     for r in make_rig(sync_mode=True):
         r.drv.configure()
         r.drv.activate()
-        time.sleep(T(0.05))
+        sleep(T(0.05))
         r.drv.clear_history()
         counters = [r.drv.send_sync() for _ in range(5)]
         for m in NODES:
@@ -426,9 +429,9 @@ def test_feedback_history_pairs_frames_and_unwraps(active: Rig) -> None:
     with active.emu.lock:  # park the wheel below the int36 wrap, the steering above int20's
         active.ctrl(3).axes[Axis.WHEEL].position = codec.WHEEL_SPAN / 2 - 2.0
         active.ctrl(3).axes[Axis.STEER].position = -codec.STEER_SPAN / 2 + 2.0
-    time.sleep(T(0.05))
+    sleep(T(0.05))
     drv.clear_history()
-    time.sleep(T(0.5))
+    sleep(T(0.5))
     hist = drv.history(3)
     assert 80 <= len(hist) <= 120  # 200 Hz for 0.5 s (200/F Hz for 0.5 F s)
     assert all(not math.isnan(s.wheel_velocity) for s in hist[:-1])  # both frames paired
@@ -464,7 +467,7 @@ def test_watchdog_expiry_frees_and_disables_the_axis(rig: Rig) -> None:
     """A host that stops commanding: the controller faults the axis within its timeout."""
     rig.drv.configure()  # inactive driver: only listens and reports
     ctrl = rig.ctrl(1)
-    t0 = time.monotonic()
+    t0 = now()
     for f in (
         codec.make_set_watchdog(1, WATCHDOG_MS),
         codec.make_set_axis_state(1, Axis.WHEEL, True),
@@ -475,7 +478,7 @@ def test_watchdog_expiry_frees_and_disables_the_axis(rig: Rig) -> None:
         )
     assert wait_until(lambda: ctrl.axes[Axis.WHEEL].state == AxisState.ENABLED, 0.5)
     assert wait_until(lambda: ctrl.axes[Axis.WHEEL].state == AxisState.FAULT, 1.0)
-    t_fault = time.monotonic()
+    t_fault = now()
     assert T(0.09) <= t_fault - t0 <= T(0.3)
     with rig.emu.lock:
         ax = ctrl.axes[Axis.WHEEL]
@@ -495,7 +498,7 @@ def test_driver_refresh_keeps_the_watchdog_fed(active: Rig) -> None:
     drv = active.drv
     drv.enable(4, Axis.WHEEL)
     drv.set_velocity(4, Axis.WHEEL, 1.0)
-    time.sleep(T(0.6))  # six watchdog timeouts without a user command
+    sleep(T(0.6))  # six watchdog timeouts without a user command
     assert drv.module_state(4).states[1] == AxisState.ENABLED
     assert active.ctrl(4).axes[Axis.WHEEL].errors == 0
     refreshes = [f for f in active.host_frames() if isinstance(f, codec.SetControl) and f.node == 4]
@@ -508,7 +511,7 @@ def test_over_speed_limit_stops_everything(active: Rig) -> None:
     drv.enable(2, Axis.WHEEL)
     drv.enable(1, Axis.WHEEL)
     drv.set_velocity(1, Axis.WHEEL, 1.0)
-    t0 = time.monotonic()
+    t0 = now()
     drv.set_torque(2, Axis.WHEEL, 0.5)  # accelerates past 1.2 x 2 rad/s
     drv.wait_axis_state(2, Axis.WHEEL, AxisState.FAULT)
     assert drv.module_state(2).errors[1] == ErrorFlag.OVER_SPEED
@@ -533,13 +536,13 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
         return begin_fault(cause)
 
     drv._begin_fault = probe  # type: ignore[method-assign]
-    time.sleep(T(0.05))
-    t0 = time.monotonic()
+    sleep(T(0.05))
+    t0 = now()
     active.emu.mute(3)
     assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
     # whoever sees INACTIVE finds the cause already queued
     assert EventKind.HEARTBEAT_LOST in queued_when_inactive, queued_messages
-    dt = time.monotonic() - t0
+    dt = now() - t0
     assert T(0.2) <= dt <= T(0.6)  # 3 heartbeat periods after the last heartbeat
     lost = [e for e in drv.events() if e.kind == EventKind.HEARTBEAT_LOST]
     assert [e.node for e in lost] == [3] and "module 3 (node 3)" in lost[0].message
@@ -567,55 +570,78 @@ def test_heartbeat_loss_raises_fault_and_stops_all(active: Rig) -> None:
 
 def test_robot_io_reports_a_fault_stop_before_its_event_callback_runs(active: Rig) -> None:
     """The state machine polls take_faults() between commands.  The driver drops out of
-    ACTIVE before it runs the event callbacks (on the supervisor thread); a slow callback
-    ahead of the RobotIO's must not leave a window in which take_faults() is empty yet the
-    next command is refused."""
+    ACTIVE before it runs the event callbacks; a callback ahead of the RobotIO's (which
+    may be slow) must not leave a window in which take_faults() is empty yet the next
+    command is refused, and the motors stop before any callback runs.  Checked from
+    inside that first callback, at the moment it runs."""
     from services.robot_io import DriverRobotIO
 
     drv = active.drv
-    release = threading.Event()
-    slow_seen: list[str] = []
+    seen: list[dict[str, object]] = []
+    io: DriverRobotIO | None = None
 
-    def slow(ev: DriverEvent) -> None:  # registered first: runs before the RobotIO's
-        if ev.severity is Severity.FAULT:
-            slow_seen.append(ev.message)
-            release.wait(T(5.0))
+    def first(ev: DriverEvent) -> None:  # registered first: runs before the RobotIO's
+        if ev.severity is not Severity.FAULT or io is None:
+            return
+        refused = ""
+        try:
+            io.wheel_hold(1)
+        except LifecycleError as exc:
+            refused = str(exc)
+        seen.append(
+            {
+                "message": ev.message,
+                "t": now(),
+                "stop_all_calls": drv.stats().stop_all_calls,
+                "faults": io.take_faults(),
+                "refused": refused,
+            }
+        )
 
-    drv.add_event_callback(slow)
+    drv.add_event_callback(first)
     io = DriverRobotIO(drv)
     drv.enable(1, Axis.WHEEL)
     drv.hold(1, Axis.WHEEL)
     assert io.take_faults() == []
-    t0 = time.monotonic()
+    t0 = now()
     active.emu.mute(3)
-    try:
-        assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
-        # the motors stop before the callbacks run: every axis freed and disabled while
-        # the slow callback still holds the fault's event (it held back the stop once)
-        assert wait_until(lambda: stop_frames(active.host_frames(t0)) == (ALL_AXES, ALL_AXES))
-        assert slow_seen and not release.is_set()
-        faults = io.take_faults()  # the event callbacks are still blocked
-        assert len(faults) == 1 and "module 3 (node 3): no heartbeat" in faults[0], faults
-        with pytest.raises(LifecycleError, match="stopped by a fault: module 3"):
-            io.wheel_hold(1)
-        assert io.take_faults() == []  # reported once
-    finally:
-        release.set()
-    assert wait_until(lambda: len(slow_seen) >= 1, 1.0)
-    time.sleep(T(0.1))
+    assert wait_until(lambda: len(seen) >= 1, 1.0)
+    got = seen[0]
+    assert "module 3 (node 3): no heartbeat" in str(got["message"])
+    # every axis freed and disabled before the first callback ran: stop_all() had been
+    # called, and its frames are on the bus stamped no later than the callback
+    assert got["stop_all_calls"] == 1
+    t_cb = got["t"]
+    assert isinstance(t_cb, float)
+
+    def stops_by_callback() -> tuple[set[tuple[int, Axis]], set[tuple[int, Axis]]]:
+        frames = [
+            codec.parse(m.arbitration_id, bytes(m.data))
+            for t, m in active.obs.snapshot()
+            if t0 <= t <= t_cb and codec.split_id(m.arbitration_id)[1] in codec.HOST_COMMANDS
+        ]
+        return stop_frames(frames)
+
+    assert wait_until(lambda: stops_by_callback() == (ALL_AXES, ALL_AXES))
+    # the RobotIO's own callback had not run, yet it reported the fault (once)
+    faults = got["faults"]
+    assert isinstance(faults, list) and len(faults) == 1
+    assert "module 3 (node 3): no heartbeat" in faults[0], faults
+    assert "stopped by a fault: module 3" in str(got["refused"])
+    sleep(T(0.1))
     assert io.take_faults() == []  # its late event is not a second fault
     # after close() the RobotIO no longer listens; the driver keeps its other callbacks
     io.close()
-    drv.remove_event_callback(slow)
+    drv.remove_event_callback(first)
     io.close()  # idempotent
     active.emu.mute(3, False)
     assert wait_until(lambda: drv.module_state(3).alive, 1.0)
     drv.activate()
-    n = len(slow_seen)
+    n = len(seen)
     active.emu.mute(3)
     assert wait_until(lambda: drv.state == Lifecycle.INACTIVE, 1.0)
-    time.sleep(T(0.1))
-    assert len(slow_seen) == n  # removed: not called
+    sleep(T(0.1))
+    assert len(seen) == n  # removed: not called
     active.emu.mute(3, False)
 
 
@@ -626,7 +652,7 @@ def test_error_frames_counted_and_bus_off_is_a_fault(active: Rig) -> None:
     assert wait_until(lambda: drv.stats().error_frames == 1)
     assert drv.state == Lifecycle.ACTIVE
     assert [e.kind for e in drv.events()].count(EventKind.ERROR_FRAME) == 1
-    t0 = time.monotonic()
+    t0 = now()
     active.emu.send_raw(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))
     assert wait_until(lambda: drv.state == Lifecycle.INACTIVE)
     assert drv.stats().bus_off == 1
@@ -686,7 +712,7 @@ def test_stop_all_sends_free_then_disable_to_every_axis(active: Rig) -> None:
     for m in NODES:
         drv.enable(m, Axis.WHEEL)
         drv.set_velocity(m, Axis.WHEEL, 1.0)
-    t0 = time.monotonic()
+    t0 = now()
     drv.stop_all()
 
     def stops() -> list[codec.Decoded]:
@@ -703,10 +729,10 @@ def test_stop_all_sends_free_then_disable_to_every_axis(active: Rig) -> None:
     assert all(isinstance(f, codec.SetControl) for f in frames[:8])  # all FREE first
     for m in NODES:
         drv.wait_axis_state(m, Axis.WHEEL, AxisState.DISABLED)
-    time.sleep(T(0.1))  # no refresh of the old setpoints after stop_all()
+    sleep(T(0.1))  # no refresh of the old setpoints after stop_all()
     assert [f for f in stops()[16:] if isinstance(f, codec.SetControl)] == []
     n = len(active.host_frames(t0))
-    time.sleep(T(0.1))
+    sleep(T(0.1))
     assert len(active.host_frames(t0)) == n
 
 
@@ -718,7 +744,7 @@ def test_recording_decodes_with_cantools(tmp_path: Path) -> None:
         r.drv.activate()
         r.drv.enable(2, Axis.WHEEL)
         r.drv.set_velocity(2, Axis.WHEEL, 1.5)
-        time.sleep(T(0.2))
+        sleep(T(0.2))
         r.drv.shutdown()
     text = log.read_text()
     lines = text.splitlines()

@@ -4,16 +4,7 @@ from __future__ import annotations
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
 from swpc_hw.can.config import CanConfig
-from swpc_hw.can.driver import (
-    CanDriver,
-    DriverEvent,
-    DriverStats,
-    EventKind,
-    FeedbackSample,
-    Lifecycle,
-    ModuleState,
-    Severity,
-)
+from swpc_hw.can.driver import CanDriver
 from swpc_hw.can.errors import (
     CanBusError,
     CanCommandError,
@@ -22,6 +13,15 @@ from swpc_hw.can.errors import (
     LifecycleError,
     NodeError,
     NodeTimeoutError,
+)
+from swpc_hw.can.types import (
+    DriverEvent,
+    DriverStats,
+    EventKind,
+    FeedbackSample,
+    Lifecycle,
+    ModuleState,
+    Severity,
 )
 
 __all__ = [

@@ -35,6 +35,12 @@ class CanConfig:
     max_velocity: tuple[float, float] | None = None
     """(steer, wheel) velocity limits in rad/s sent at activation."""
     activate_timeout_s: float = 1.0
+    refresh_in_kernel: bool | None = None
+    """Feed the watchdog from the kernel (SocketCAN broadcast manager, with a dead-man):
+    None = on SocketCAN only."""
+    deadman_s: float = 0.5
+    """The kernel refresh stops this long after the driver's last renewal (renewed every
+    half of it): a stopped service frees every axis within ``deadman_s`` + watchdog."""
     rx_buffer_bytes: int = 1 << 20
     """Kernel receive buffer asked for a socket bus (SocketCAN), bytes; 0 keeps the
     system default (net.core.rmem_default: ~300 frames, under 2 s of a 4-module robot's
@@ -67,6 +73,11 @@ class CanConfig:
             raise CanConfigError("refresh_period_s and heartbeat_period_s must be > 0")
         if not 0 <= self.rx_buffer_bytes <= 1 << 28:
             raise CanConfigError(f"rx_buffer_bytes: {self.rx_buffer_bytes} outside 0..2**28")
+        if self.deadman_s < 2 * self.refresh_period_s:
+            raise CanConfigError(
+                f"deadman_s: {self.deadman_s} s must be at least two refresh periods "
+                f"({self.refresh_period_s} s)"
+            )
         if self.heartbeat_loss_periods < 1:
             raise CanConfigError("heartbeat_loss_periods must be >= 1")
 

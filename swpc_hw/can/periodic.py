@@ -1,0 +1,106 @@
+"""The watchdog refresh in the kernel: SocketCAN's broadcast manager, with a dead-man.
+
+On a real robot the service shares its computer with navigation and perception; a
+Python thread can be held off the CPU (GIL, garbage collection, a loaded core) for
+longer than the controllers' watchdog.  Refreshing from a Python thread then trips the
+watchdog and aborts a calibration for nothing.  Here the kernel sends each node's last
+SetControl frames every ``period`` (python-can ``send_periodic`` -> BCM ``TX_SETUP``):
+a stall of the process does not starve the controllers.
+
+Dead-man: every task is set up with a finite count, ``deadman / period`` frames, and
+the driver renews it (restarts the count) every ``deadman / 2``.  A hung or stopped
+service (``kill -STOP``, a deadlock) therefore stops feeding the controllers at most
+``deadman`` after its last renewal, and every axis is free (watchdog FAULT) within
+``deadman + watchdog`` -- while a stall shorter than ``deadman / 2`` goes unnoticed.
+
+A node's task cycles through its commanded axes' frames, one per ``period`` (the
+watchdog is per node: any valid command restarts it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from dataclasses import dataclass
+
+import can
+
+from firmware_protocol import codec
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Task:
+    task: can.broadcastmanager.CyclicSendTaskABC
+    frames: tuple[codec.Frame, ...]
+
+
+def _message(f: codec.Frame, channel: str | int | None) -> can.Message:
+    return can.Message(
+        arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False, channel=channel
+    )
+
+
+class KernelRefresh:
+    """Per-node periodic tasks on a bus that schedules them in the kernel (SocketCAN).
+
+    Not thread-safe: the driver calls it under its transmit lock.
+    """
+
+    def __init__(self, bus: can.BusABC, period: float, deadman: float) -> None:
+        if not 0 < 2 * period <= deadman:
+            raise ValueError(f"dead-man {deadman} s must be at least two periods of {period} s")
+        self.bus = bus
+        self.period = float(period)
+        self.deadman = float(deadman)
+        self._tasks: dict[int, _Task] = {}
+        self.renewals = 0
+
+    @property
+    def renew_every(self) -> float:
+        return self.deadman / 2.0
+
+    def set_node(self, node: int, frames: list[codec.Frame]) -> None:
+        """Refresh ``node`` with ``frames`` from now on (none: stop refreshing it)."""
+        new = tuple(frames)
+        cur = self._tasks.get(node)
+        if cur is not None and cur.frames == new:
+            return
+        if cur is not None and len(cur.frames) == len(new) and new:
+            msgs = [_message(f, self.bus.channel_info) for f in new]
+            cur.task.modify_data(msgs)  # type: ignore[attr-defined]
+            cur.frames = new
+            return
+        if cur is not None:
+            self._stop(node)
+        if new:
+            msgs = [_message(f, self.bus.channel_info) for f in new]
+            task = self.bus.send_periodic(msgs, self.period, duration=self.deadman)
+            self._tasks[node] = _Task(task, new)
+
+    def renew(self) -> None:
+        """Restart every task's count (the dead-man's renewal)."""
+        for t in self._tasks.values():
+            t.task.start()  # type: ignore[attr-defined]
+        self.renewals += 1
+
+    def _stop(self, node: int) -> None:
+        t = self._tasks.pop(node, None)
+        if t is not None:
+            try:
+                t.task.stop()
+            except (can.CanError, OSError) as exc:
+                log.error("cannot stop the periodic refresh of node %d: %s", node, exc)
+
+    def stop_all(self) -> None:
+        """Delete every task (before the stop frames go out: no refresh after them)."""
+        for node in list(self._tasks):
+            self._stop(node)
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.stop_all()
+
+    def nodes(self) -> list[int]:
+        return sorted(self._tasks)

@@ -1,0 +1,151 @@
+"""The CAN driver's data types: lifecycle, events, feedback samples, snapshots, counters."""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
+
+AXIS_NAMES = {Axis.STEER: "steer", Axis.WHEEL: "wheel"}
+
+
+class Lifecycle(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FINALIZED = "finalized"
+
+
+class EventKind(enum.Enum):
+    HEARTBEAT_LOST = "heartbeat_lost"
+    HEARTBEAT_RESTORED = "heartbeat_restored"
+    NODE_FAULT = "node_fault"
+    BUS_OFF = "bus_off"
+    ERROR_FRAME = "error_frame"
+    UNKNOWN_ID = "unknown_id"
+    BAD_DLC = "bad_dlc"
+    DECODE_ERROR = "decode_error"
+    LISTENER_ERROR = "listener_error"
+    SEND_ERROR = "send_error"
+    FEEDBACK_GAP = "feedback_gap"
+    HOMING = "homing"
+    STOPPED = "stopped"
+
+
+class Severity(enum.Enum):
+    INFO = "info"
+    WARNING = "warning"
+    FAULT = "fault"
+
+
+def where(module: int | None, node: int | None, axis: Axis | None = None) -> str:
+    """``module 2 (node 2) axis 1 (wheel)``: how messages name what they concern."""
+    parts = []
+    if module is not None:
+        parts.append(f"module {module}")
+    if node is not None:
+        parts.append(f"(node {node})" if module is not None else f"node {node}")
+    if axis is not None:
+        parts.append(f"axis {int(axis)} ({AXIS_NAMES[axis]})")
+    return " ".join(parts)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Something a pure core observed, before the driver stamps and queues it as a
+    :class:`DriverEvent`."""
+
+    kind: EventKind
+    severity: Severity
+    message: str
+    module: int | None = None
+    node: int | None = None
+    axis: Axis | None = None
+
+
+@dataclass(frozen=True)
+class DriverEvent:
+    """Something the driver observed; FAULT events have already triggered ``stop_all()``."""
+
+    t: float
+    kind: EventKind
+    severity: Severity
+    message: str
+    module: int | None = None
+    node: int | None = None
+    axis: Axis | None = None
+
+
+@dataclass(frozen=True)
+class FeedbackSample:
+    """One feedback sample of a module (both frames with the same counter).
+
+    ``t``: the driver clock's time when the position frame was handled; ``t_bus``: the
+    frame's bus time stamp (python-can, epoch s; the driver clock's ``from_wall`` maps
+    it); ``counter``: the frame's own counter (mod 256); ``seq``: the counter unwrapped on
+    the host (monotonic sample index).  Velocities and torques are NaN if their frame was
+    lost.
+    """
+
+    t: float
+    t_bus: float
+    counter: int
+    seq: int
+    theta_hat: float
+    psi: float
+    steer_velocity: float = math.nan
+    wheel_velocity: float = math.nan
+    steer_torque: float = math.nan
+    wheel_torque: float = math.nan
+
+
+@dataclass(frozen=True)
+class ModuleState:
+    """Latest known state of one module's controller (a snapshot)."""
+
+    module: int
+    node: int
+    alive: bool
+    states: tuple[AxisState, AxisState]
+    modes: tuple[ControlMode, ControlMode]
+    errors: tuple[int, int]
+    homed: bool
+    homing: HomingState
+    feedback: FeedbackSample | None
+    t_heartbeat: float | None
+    heartbeats: int
+    feedback_frames: int
+
+    @property
+    def theta_hat(self) -> float:
+        return self.feedback.theta_hat if self.feedback else math.nan
+
+    @property
+    def psi(self) -> float:
+        return self.feedback.psi if self.feedback else math.nan
+
+
+@dataclass
+class DriverStats:
+    rx_frames: int = 0
+    tx_frames: int = 0
+    error_frames: int = 0
+    bus_off: int = 0
+    unknown_ids: int = 0
+    bad_dlc: int = 0
+    decode_errors: int = 0
+    listener_errors: int = 0
+    send_errors: int = 0
+    feedback_gaps: int = 0
+    """Feedback samples missing according to the frames' counters."""
+    unpaired_feedback: int = 0
+    heartbeat_losses: int = 0
+    node_faults: int = 0
+    stop_all_calls: int = 0
+    periodic_renewals: int = 0
+    """Dead-man renewals of the kernel's periodic refresh (SocketCAN broadcast manager)."""
+    rx_buffer_bytes: int | None = None
+    """The kernel receive buffer in effect on a socket bus (SocketCAN), bytes; None on
+    others."""

@@ -1,0 +1,261 @@
+"""The driver's pure cores, without threads, buses or sleeps: node tracking and supervision
+as functions of state and time; and the kernel refresh's dead-man on python-can's own
+periodic tasks."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import can
+import pytest
+
+from firmware_protocol import codec
+from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
+from swpc_hw.can.history import FeedbackRing
+from swpc_hw.can.node_tracking import NodeTrack, apply_frame, frame_time
+from swpc_hw.can.periodic import KernelRefresh
+from swpc_hw.can.supervision import check
+from swpc_hw.can.types import DriverStats, EventKind, Severity
+
+ENABLED = (AxisState.ENABLED, AxisState.ENABLED)
+FREE = (ControlMode.FREE, ControlMode.FREE)
+
+
+def track(node: int = 2, module: int = 7) -> NodeTrack:
+    return NodeTrack(module, node, FeedbackRing(64))
+
+
+def msg(frame: codec.Frame, stamp: float = 0.0) -> can.Message:
+    return can.Message(
+        arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False, timestamp=stamp
+    )
+
+
+def heartbeat(node: int, states: tuple[AxisState, AxisState] = ENABLED, homed: bool = True,
+              errors: tuple[int, int] = (0, 0)) -> codec.Frame:  # fmt: skip
+    return codec.make_heartbeat(node, states, FREE, errors, homed, False, 0)
+
+
+def test_heartbeats_make_a_node_alive_at_their_arrival_time() -> None:
+    nd, stats = track(), DriverStats()
+    out = apply_frame({2: nd}, msg(heartbeat(2)), 10.25, stats)
+    assert out.observations == [] and not out.fault
+    assert nd.alive and nd.t_heartbeat == 10.25 and nd.heartbeats == 1 and nd.homed
+    # a late-handled older heartbeat never moves the time back
+    apply_frame({2: nd}, msg(heartbeat(2)), 10.0, stats)
+    assert nd.t_heartbeat == 10.25 and stats.rx_frames == 2
+
+
+def test_a_heartbeat_reporting_fault_is_a_fault_once() -> None:
+    nd, stats = track(), DriverStats()
+    apply_frame({2: nd}, msg(heartbeat(2)), 1.0, stats)
+    faulted = (AxisState.ENABLED, AxisState.FAULT)
+    out = apply_frame({2: nd}, msg(heartbeat(2, faulted, errors=(0, 1))), 1.1, stats)
+    assert out.fault
+    [obs] = out.observations
+    assert obs.kind is EventKind.NODE_FAULT and obs.severity is Severity.FAULT
+    assert obs.message == (
+        "module 7 (node 2) axis 1 (wheel): heartbeat reports FAULT (WATCHDOG_TIMEOUT)"
+    )
+    assert not apply_frame({2: nd}, msg(heartbeat(2, faulted, errors=(0, 1))), 1.2, stats).fault
+
+
+def test_feedback_pairs_unwraps_and_counts_gaps() -> None:
+    nd, stats = track(), DriverStats()
+    by = {2: nd}
+    span = codec.WHEEL_SPAN
+    p0 = span / 2 - 0.05  # just below the wheel's wrap point
+    apply_frame(by, msg(codec.make_feedback_position(2, 0.1, p0, 254), 5.0), 1.0, stats)
+    vt = codec.make_feedback_velocity_torque(2, 0.5, 20.0, 0.1, 0.2, 254)
+    apply_frame(by, msg(vt, 5.0), 1.0, stats)
+    # counter 254 -> 1: samples 255 and 0 lost; the wheel wrapped in between
+    out = apply_frame(by, msg(codec.make_feedback_position(2, 0.1, p0 + 0.2 - span, 1), 5.015),
+                      1.015, stats)  # fmt: skip
+    assert out.sample is not None and out.sample[0] == 7
+    s = out.sample[1]
+    assert s.seq == 257 and s.counter == 1 and s.t == 1.015 and s.t_bus == 5.015
+    assert s.psi == pytest.approx(p0 + 0.2, abs=1e-4)  # unwrapped: no jump of a span
+    assert math.isnan(s.wheel_velocity)
+    assert stats.feedback_gaps == 2 and stats.unpaired_feedback == 0
+    [gap] = out.observations
+    assert gap.kind is EventKind.FEEDBACK_GAP and "2 feedback sample(s) missing" in gap.message
+    cols = nd.history.columns()
+    assert cols["wheel_velocity"][0] == pytest.approx(20.0, abs=2e-3)  # paired
+    assert math.isnan(cols["wheel_velocity"][1])
+
+
+def test_unknown_bad_and_error_frames_are_observed_not_applied() -> None:
+    nd, stats = track(), DriverStats()
+    by = {2: nd}
+    out = apply_frame(by, can.Message(arbitration_id=0x7FF, data=b"\x01", is_extended_id=False),
+                      0.0, stats)  # fmt: skip
+    assert [o.kind for o in out.observations] == [EventKind.UNKNOWN_ID] and not out.fault
+    out = apply_frame(by, can.Message(arbitration_id=2 << 5 | 6, data=bytes(3),
+                                      is_extended_id=False), 0.0, stats)  # fmt: skip
+    assert [o.kind for o in out.observations] == [EventKind.BAD_DLC]
+    out = apply_frame(by, can.Message(is_error_frame=True, arbitration_id=0x040), 0.0, stats)
+    assert out.fault and out.observations[0].kind is EventKind.BUS_OFF
+    assert (stats.unknown_ids, stats.bad_dlc, stats.bus_off, stats.error_frames) == (1, 1, 1, 1)
+    assert not nd.alive and nd.heartbeats == 0
+
+
+def test_fault_report_and_homing_status() -> None:
+    nd, stats = track(), DriverStats()
+    report = codec.make_fault_report(2, Axis.WHEEL, ErrorFlag.OVER_SPEED, ErrorFlag.OVER_SPEED,
+                                     AxisState.FAULT)  # fmt: skip
+    out = apply_frame({2: nd}, msg(report), 3.0, stats)
+    assert out.fault and nd.states[Axis.WHEEL] == AxisState.FAULT
+    assert nd.errors[Axis.WHEEL] == ErrorFlag.OVER_SPEED and stats.node_faults == 1
+    done = codec.make_homing_status(2, Axis.STEER, HomingState.DONE, 0.25)
+    out = apply_frame({2: nd}, msg(done), 3.1, stats)
+    assert nd.homed and nd.homing == HomingState.DONE and not out.fault
+    assert out.observations[0].message == (
+        "module 7 (node 2) axis 0 (steer): homing DONE, sensor at 0.2500 rad"
+    )
+
+
+def test_homing_done_read_from_heartbeats_when_the_status_frame_is_lost() -> None:
+    nd, stats = track(), DriverStats()
+    nd.homing = HomingState.IN_PROGRESS
+    homing = (AxisState.HOMING, AxisState.ENABLED)
+    apply_frame({2: nd}, msg(heartbeat(2, homing, homed=False)), 1.0, stats)
+    assert nd.homing == HomingState.IN_PROGRESS and nd.homing_seen
+    out = apply_frame({2: nd}, msg(heartbeat(2, ENABLED, homed=True)), 1.1, stats)
+    assert nd.homing == HomingState.DONE
+    assert out.observations[0].severity is Severity.WARNING
+
+
+def test_frame_time_takes_the_bus_stamp_only_when_plausible() -> None:
+    assert frame_time(1e9 + 5.0, handled=10.0, mapped=9.2) == 9.2
+    assert frame_time(1e9 + 5.0, handled=10.0, mapped=10.5) == 10.0  # from the future
+    assert frame_time(1e9 + 5.0, handled=10.0, mapped=2.0) == 10.0  # older than 5 s
+    assert frame_time(0.0, handled=10.0, mapped=9.9) == 10.0  # no stamp
+
+
+def test_supervision_judges_loss_on_heartbeat_arrival_times() -> None:
+    a, b = track(1, 1), track(2, 2)
+    stats = DriverStats()
+    apply_frame({1: a}, msg(heartbeat(1)), 1.00, stats)
+    apply_frame({2: b}, msg(heartbeat(2)), 1.25, stats)
+    kw = {"t_configured": 0.0, "loss_after": 0.3, "refresh_period": 0.02, "refresh": False}
+    res = check([a, b], 1.2999, **kw)  # type: ignore[arg-type]
+    assert res.lost == [] and res.next_deadline == pytest.approx(1.30)
+    res = check([a, b], 1.30, **kw)  # type: ignore[arg-type]
+    assert res.lost == [a] and not a.alive and b.alive
+    assert res.next_deadline == pytest.approx(1.55)
+    assert check([a, b], 1.31, **kw).lost == []  # type: ignore[arg-type]  # once
+    # loss counts from the newest heartbeat's arrival (its bus time), however late it was
+    # handled: arrived at 2.28, so alive until 2.58
+    c = track(3, 3)
+    apply_frame({3: c}, msg(heartbeat(3)), 2.0, stats)
+    apply_frame({3: c}, msg(heartbeat(3)), 2.28, stats)
+    assert check([c], 2.579, **kw).lost == []  # type: ignore[arg-type]
+    assert check([c], 2.581, **kw).lost == [c]  # type: ignore[arg-type]
+    # never heard: lost from the configuration time
+    d = track(4, 4)
+    assert check([d], 0.31, **kw).lost == [d]  # type: ignore[arg-type]
+
+
+def test_supervision_refreshes_idle_commanded_nodes_only() -> None:
+    a, b = track(1, 1), track(2, 2)
+    for n in (a, b):
+        n.t_heartbeat, n.alive = 10.0, True
+    a.commanded = {Axis.WHEEL: (ControlMode.TORQUE, -0.6), Axis.STEER: (ControlMode.FREE, 0.0)}
+    a.last_tx = 10.0
+    kw = {"t_configured": 0.0, "loss_after": 0.3, "refresh_period": 0.02}
+    res = check([a, b], 10.019, refresh=True, **kw)  # type: ignore[arg-type]
+    assert res.refresh == [] and res.next_deadline == pytest.approx(10.02)
+    res = check([a, b], 10.021, refresh=True, **kw)  # type: ignore[arg-type]
+    decoded = [codec.parse(f.arbitration_id, f.data) for f in res.refresh]
+    got = {(d.node, d.axis, d.mode, round(d.setpoint, 4)) for d in decoded}  # type: ignore[union-attr]
+    assert got == {
+        (1, Axis.WHEEL, ControlMode.TORQUE, -0.6),
+        (1, Axis.STEER, ControlMode.FREE, 0.0),
+    }
+    assert check([a, b], 10.05, refresh=False, **kw).refresh == []  # type: ignore[arg-type]
+    # a lost node: nothing is refreshed (the fault path stops the motors)
+    res = check([a, b], 10.31, refresh=True, **kw)  # type: ignore[arg-type]
+    assert res.lost == [a, b] and res.refresh == []
+
+
+def test_kernel_refresh_deadman_stops_unless_renewed() -> None:
+    """The dead-man on python-can's periodic tasks (thread-based on the virtual bus; the
+    same calls go to the kernel's broadcast manager on SocketCAN): a task renewed keeps
+    sending past its dead-man; left alone it stops within it."""
+    channel = f"deadman-{time.monotonic_ns()}"
+    with can.Bus(interface="virtual", channel=channel) as tx, can.Bus(
+        interface="virtual", channel=channel
+    ) as rx:
+        ref = KernelRefresh(tx, period=0.02, deadman=0.4)
+        ref.set_node(3, [codec.make_set_control(3, Axis.WHEEL, ControlMode.HOLD)])
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.0:  # renewed every 0.1 s for 1 s
+            ref.renew()
+            time.sleep(0.1)
+        late = 0
+        while (m := rx.recv(0)) is not None:
+            late += m.timestamp > t0 + 0.8
+        assert late >= 5, "renewed: still sending after two dead-man periods"
+        t_last_renewal = time.monotonic()
+        time.sleep(1.2)  # no renewal: the task runs out
+        stamps = []
+        while (m := rx.recv(0)) is not None:
+            stamps.append(m.timestamp)
+        assert stamps and max(stamps) - time.time() < 0  # sanity: stamps are wall times
+        wall_of_last_renewal = time.time() - (time.monotonic() - t_last_renewal)
+        assert max(stamps) <= wall_of_last_renewal + 0.4 + 0.1
+        assert rx.recv(0.3) is None  # silent
+        ref.set_node(3, [])  # stop: no task left
+        assert ref.nodes() == []
+        ref.close()
+
+
+def test_kernel_refresh_cycles_a_nodes_axes_and_updates_in_place() -> None:
+    channel = f"cycle-{time.monotonic_ns()}"
+    with can.Bus(interface="virtual", channel=channel) as tx, can.Bus(
+        interface="virtual", channel=channel
+    ) as rx:
+        ref = KernelRefresh(tx, period=0.01, deadman=2.0)
+        hold = codec.make_set_control(1, Axis.WHEEL, ControlMode.HOLD)
+        free = codec.make_set_control(1, Axis.STEER, ControlMode.FREE)
+        ref.set_node(1, [hold, free])
+        time.sleep(0.15)
+        torque = codec.make_set_control(1, Axis.WHEEL, ControlMode.TORQUE, -0.5)
+        ref.set_node(1, [torque, free])  # same count: data modified in place
+        time.sleep(0.15)
+        ref.stop_all()
+        seen = []
+        while (m := rx.recv(0)) is not None:
+            seen.append(bytes(m.data))
+        assert hold.data in seen and free.data in seen and torque.data in seen
+        assert seen.index(torque.data) > max(i for i, d in enumerate(seen) if d == hold.data)
+        assert rx.recv(0.1) is None  # stopped
+
+
+def test_driver_drains_its_queue_before_judging_heartbeat_loss() -> None:
+    """The test is the clock's master: one jump of 1 s while heartbeats sat in the
+    driver's receive queue (a starved receive path).  The I/O step applies them first,
+    so the node is alive; loss counts from the newest one's bus time."""
+    from swpc_hw.can import CanConfig, CanDriver
+    from swpc_hw.clock import SimClock
+
+    clock = SimClock()
+    channel = f"drain-{time.monotonic_ns()}"
+    cfg = CanConfig(interface="virtual", channel=channel, modules={1: 1})
+    with CanDriver(cfg, clock=clock) as drv, can.Bus(
+        interface="virtual", channel=channel, preserve_timestamps=True
+    ) as ctrl:
+        for k in range(1, 10):  # 0.1 ... 0.9 s
+            m = msg(heartbeat(1), clock.to_wall(0.1 * k))
+            ctrl.send(m)
+        clock.advance_to(1.0)
+        assert drv.module_state(1).alive
+        assert drv.module_state(1).t_heartbeat == pytest.approx(0.9)
+        assert [e.kind for e in drv.events()] == []
+        clock.advance_to(1.199)
+        assert drv.module_state(1).alive
+        clock.advance_to(1.201)
+        assert not drv.module_state(1).alive
+        [lost] = drv.events()
+        assert lost.kind is EventKind.HEARTBEAT_LOST and lost.t == pytest.approx(1.201)
