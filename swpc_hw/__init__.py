@@ -2,7 +2,7 @@
 
 Kinematic model, kinematic file I/O, offline datasets, calibration solver,
 odometry and the CAN driver for the dual-axis motor controllers.
-Conventions (units, frames, formats): ``shared/docs/CONVENTIONS.md``.
+Conventions (units, frames, formats): ``docs/`` at the repository root.
 """
 
 __version__ = "0.1.0"

@@ -25,7 +25,7 @@ def register(sub: Any) -> None:
         help="calibrate from an offline dataset directory and write the kinematic file",
         description=(
             "Solve a dataset directory (robot.yaml, poses.csv, encoders.csv, segments.csv; "
-            "see CONVENTIONS.md) and write the kinematic file. Bad data: one-line error, "
+            "see docs/dataset-format.md) and write the kinematic file. Bad data: one-line error, "
             "exit status 2, no output file."
         ),
     )
