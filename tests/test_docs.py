@@ -1,15 +1,142 @@
-"""The CAN frame table in ``docs/can-protocol.md`` is the one the DBC gives."""
+"""The repository explains itself: its docs exist, link only inside it, and the CAN frame
+table in ``docs/can-protocol.md`` is the one the DBC gives.
+
+Fast (no I/O beyond reading the Markdown files and the DBC once).
+"""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
+from urllib.parse import unquote
 
 import pytest
 
 from firmware_protocol import codec, frame_table
 
 ROOT = Path(__file__).resolve().parents[1]
-CAN_DOC = ROOT / "docs" / "can-protocol.md"
+DOCS = ROOT / "docs"
+CAN_DOC = DOCS / "can-protocol.md"
+DOC_FILES = ("README.md", "model-and-frames.md", "dataset-format.md", "kinematic-file.md",
+             "can-protocol.md")
+
+
+def checked_files() -> list[Path]:
+    """The Markdown files whose links must stay inside the repository."""
+    files = [ROOT / "README.md", ROOT / "deploy" / "README.md",
+             ROOT / "firmware_protocol" / "README.md"]
+    return files + sorted(DOCS.rglob("*.md"))
+
+
+# ---------------------------------------------------------------------------- link check
+FENCE = re.compile(r"^\s*(```|~~~)")
+INLINE_CODE = re.compile(r"(`+)(?:(?!\1).)+?\1")
+HTML_COMMENT = re.compile(r"<!--.*?-->", re.S)
+INLINE_LINK = re.compile(r"\]\(\s*<?([^)\s>]*)>?(?:\s+(?:\"[^\"]*\"|'[^']*'))?\s*\)")
+REFERENCE_DEF = re.compile(r"^ {0,3}\[[^\]\n]+\]:[ \t]*<?([^\s>]+)>?", re.M)
+HTML_ATTR = re.compile(r"\b(?:href|src)\s*=\s*[\"']([^\"']*)[\"']", re.I)
+AUTOLINK = re.compile(r"<([a-zA-Z][a-zA-Z0-9+.-]*:[^>\s]*)>")
+BARE_URL = re.compile(r"\b(?:https?|ftp)://\S+|\bwww\.[a-z0-9-]+\.\S+", re.I)
+SCHEME = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*:")
+
+
+def prose(text: str) -> str:
+    """``text`` without code (fenced blocks, inline spans) and HTML comments: what renders
+    as prose, where a link is a link."""
+    out, fenced = [], False
+    for line in HTML_COMMENT.sub("", text).splitlines():
+        if FENCE.match(line):
+            fenced = not fenced
+            continue
+        if not fenced and not line.startswith("    "):
+            out.append(INLINE_CODE.sub("", line))
+    return "\n".join(out)
+
+
+def link_targets(text: str) -> list[str]:
+    """Every link target of a Markdown text (inline, reference, HTML, autolinks, bare URLs)."""
+    body = prose(text)
+    found = []
+    for rx in (INLINE_LINK, REFERENCE_DEF, HTML_ATTR, AUTOLINK):
+        found += [m.group(1) for m in rx.finditer(body)]
+        body = rx.sub(" ", body)
+    # what is left: URLs in the prose, which GitHub renders as links too
+    return found + [m.group(0).rstrip(".,;:!?)'\"") for m in BARE_URL.finditer(body)]
+
+
+def bad_links(path: Path, root: Path = ROOT) -> list[str]:
+    """Links of the Markdown file ``path`` that leave ``root`` or point at nothing."""
+    bad = []
+    for target in link_targets(path.read_text(encoding="utf-8")):
+        where = f"{path.relative_to(root)}: {target!r}"
+        if SCHEME.match(target) or target.startswith(("//", "www.")):
+            bad.append(f"{where}: leaves the repository")
+            continue
+        rel = unquote(target.split("#", 1)[0].split("?", 1)[0])
+        if not rel:
+            continue  # an anchor in the same file
+        if rel.startswith("/"):
+            bad.append(f"{where}: absolute path (use a path relative to the file)")
+            continue
+        dest = (path.parent / rel).resolve()
+        if not dest.is_relative_to(root.resolve()):
+            bad.append(f"{where}: resolves outside the repository")
+        elif not dest.exists():
+            bad.append(f"{where}: no such file")
+    return bad
+
+
+def test_docs_exist_and_the_index_lists_each() -> None:
+    index = (DOCS / "README.md").read_text(encoding="utf-8")
+    for name in DOC_FILES:
+        assert (DOCS / name).is_file(), name
+    for doc in DOCS.glob("*.md"):
+        if doc.name != "README.md":
+            assert f"]({doc.name})" in index, f"docs/README.md does not link {doc.name}"
+    assert list((DOCS / "history").glob("*.md")), "docs/history/ has no dated record"
+
+
+@pytest.mark.parametrize("path", checked_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_links_stay_inside_the_repository_and_resolve(path: Path) -> None:
+    assert bad_links(path) == []
+    assert "../shared" not in path.read_text(encoding="utf-8")
+
+
+def test_link_check_catches_what_it_must(tmp_path: Path) -> None:
+    root = tmp_path / "repo"
+    (root / "docs").mkdir(parents=True)
+    (root / "docs" / "there.md").write_text("# there\n")
+    doc = root / "docs" / "doc.md"
+    doc.write_text(
+        "Good: [a](there.md), [b](there.md#there), [c](#local), [d](../docs/),\n"
+        "[`e`](there.md \"title\"), ![f](there.md).\n"
+        "Code is not a link: `http://127.0.0.1:8080/health`, `[x](../../out.md)`\n"
+        "```sh\ncurl https://example.com/x\n```\n"
+        "    indented code: https://example.com/y\n"
+        "<!-- a comment: [g](missing.md) -->\n"
+        "Bad: [h](https://example.com/h), [i](../../outside.md), [j](missing.md),\n"
+        "[k](/abs/path.md), <https://example.com/k>, see http://example.com/l,\n"
+        '<a href="http://example.com/m">m</a>, [n](mailto:someone@example.com).\n'
+        "[ref]: ../../../ref.md\n"
+    )
+    bad = bad_links(doc, root)
+    assert [b.split(": ", 2)[1] for b in bad] == [
+        "'https://example.com/h'",
+        "'../../outside.md'",
+        "'missing.md'",
+        "'/abs/path.md'",
+        "'mailto:someone@example.com'",
+        "'../../../ref.md'",
+        "'http://example.com/m'",
+        "'https://example.com/k'",
+        "'http://example.com/l'",
+    ]
+    assert "resolves outside the repository" in bad[1] and "no such file" in bad[2]
+
+
+def test_readme_starts_with_the_two_set_up_commands() -> None:
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+    assert lines[1:6] == ["", "```sh", "make demo", "make test", "```"]
 
 
 # ---------------------------------------------------------------------------- frame table
