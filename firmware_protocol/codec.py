@@ -1,8 +1,13 @@
 """Python codec of the SWPC controller protocol: pure ``make_*`` builders and ``parse``.
 
-Every frame is encoded and decoded by cantools from ``swpc.dbc`` (the single source of
-truth); this module only adds typed values, SI units at the boundary and error messages
-that name the node, the message and the signal.
+Every frame is defined by ``swpc.dbc`` (the single source of truth) and cantools reads it;
+this module adds typed values, SI units at the boundary and error messages that name the
+node, the message and the signal.  Hot paths (the simulator sends, and the driver decodes,
+thousands of frames per second) use a layout compiled from the same DBC at import
+(:func:`frame_layout`: every signal's start bit, length, sign and scaling): a valid frame
+packs to, and unpacks from, exactly cantools' bytes and values (checked over random frames
+by ``tests/test_protocol.py``); anything else goes through cantools, whose errors name the
+offending signal.
 
 Frame ids: ``id = node << 5 | command`` (11-bit, ODrive "CAN Simple" layout).  Node 0 is the
 broadcast address (``Sync``); controllers are nodes 1..``MAX_NODE``.
@@ -249,50 +254,114 @@ def unwrap(previous: float, current: float, span: float) -> float:
     return current + span * round((previous - current) / span)
 
 
-@functools.cache
-def _range_checks(frame_id: int) -> tuple[frozenset[str], tuple[_RangeCheck, ...]]:
-    """Per message: its signal names and the physical range of every signal, as cantools'
-    strict encoding checks them (``minimum - |scale| 1e-6 <= value <= maximum + ...``)."""
-    msg = _messages_by_id()[frame_id]
-    checks = []
-    for sig in msg.signals:
-        tol = abs(sig.conversion.scale) * 1e-6
-        lo = -math.inf if sig.minimum is None else sig.minimum - tol
-        hi = math.inf if sig.maximum is None else sig.maximum + tol
-        checks.append(_RangeCheck(str(sig.name), lo, hi, bool(sig.conversion.choices)))
-    return frozenset(c.name for c in checks), tuple(checks)
-
-
 @dataclass(frozen=True)
-class _RangeCheck:
+class SignalLayout:
+    """Where one signal of a little-endian integer DBC message lives, and its scaling:
+    ``raw = bits[start : start + length]`` (two's complement if signed) and
+    ``value = raw`` (identity) or ``raw * scale + offset``."""
+
     name: str
+    start: int
+    length: int
+    signed: bool
+    identity: bool
+    scale: float
+    offset: float
     low: float
     high: float
-    has_choices: bool
+    mux_ids: frozenset[int] | None
+    """Multiplexed: present only when the multiplexer signal has one of these values."""
+    is_mux: bool
+
+    @property
+    def mask(self) -> int:
+        return (1 << self.length) - 1
 
 
-def _fast_valid(frame_id: int, values: dict[str, Any]) -> bool:
-    """True if ``values`` certainly passes cantools' strict checks: every signal present,
-    numeric and within its range (signals with value tables are left to cantools)."""
-    names, checks = _range_checks(frame_id)
-    if values.keys() != names:
-        return False
-    for c in checks:
-        v = values[c.name]
-        if c.has_choices or type(v) not in (int, float) or not c.low <= v <= c.high:
-            return False
-    return True
+@functools.cache
+def frame_layout(frame_id: int) -> tuple[SignalLayout, ...] | None:
+    """The compiled layout of a DBC message (None when a signal is big-endian or float:
+    such messages always go through cantools).  Ranges as cantools' strict encoding
+    checks them (``minimum - |scale| 1e-6 <= value <= maximum + |scale| 1e-6``)."""
+    msg = _messages_by_id()[frame_id]
+    out = []
+    for sig in msg.signals:
+        if sig.byte_order != "little_endian" or sig.is_float:
+            return None
+        conv = sig.conversion
+        tol = abs(conv.scale) * 1e-6
+        out.append(
+            SignalLayout(
+                name=str(sig.name),
+                start=int(sig.start),
+                length=int(sig.length),
+                signed=bool(sig.is_signed),
+                identity=conv.scale == 1 and conv.offset == 0,
+                scale=float(conv.scale),
+                offset=float(conv.offset),
+                low=-math.inf if sig.minimum is None else sig.minimum - tol,
+                high=math.inf if sig.maximum is None else sig.maximum + tol,
+                mux_ids=None if sig.multiplexer_ids is None else frozenset(sig.multiplexer_ids),
+                is_mux=bool(sig.is_multiplexer),
+            )
+        )
+    # multiplexers first: the others' presence depends on them
+    return tuple(sorted(out, key=lambda s: not s.is_mux))
+
+
+def pack_frame(layout: tuple[SignalLayout, ...], values: dict[str, Any]) -> int | None:
+    """The frame's bits as an integer (little-endian), or None unless ``values`` certainly
+    encodes: exactly the signals the multiplexer selects, each an int or float within its
+    range.  ``raw = round(value)`` (identity) or ``round((value - offset) / scale)``, as
+    cantools."""
+    acc = 0
+    used = 0
+    mux: Any = None
+    for s in layout:
+        if s.mux_ids is not None and mux not in s.mux_ids:
+            continue
+        v = values.get(s.name)
+        if not isinstance(v, int | float) or isinstance(v, bool):
+            return None
+        x = float(v)  # exact: signals are at most 53 bits wide
+        if not s.low <= x <= s.high:
+            return None
+        if s.is_mux:
+            mux = v
+        raw = round(x) if s.identity else round((x - s.offset) / s.scale)
+        acc |= (raw & s.mask) << s.start
+        used += 1
+    return acc if used == len(values) else None
+
+
+def unpack_frame(layout: tuple[SignalLayout, ...], data: bytes) -> dict[str, Any]:
+    """Every signal present in ``data`` (the multiplexer decides), scaled as cantools
+    decodes with ``scaling=True``: identity signals as ints, the others
+    ``raw * scale + offset``."""
+    acc = int.from_bytes(data, "little")
+    out: dict[str, Any] = {}
+    mux: int | None = None
+    for s in layout:
+        if s.mux_ids is not None and mux not in s.mux_ids:
+            continue
+        raw = (acc >> s.start) & s.mask
+        if s.signed and raw >> (s.length - 1):
+            raw -= 1 << s.length
+        if s.is_mux:
+            mux = raw
+        out[s.name] = raw if s.identity else raw * s.scale + s.offset
+    return out
 
 
 def _encode(node: int, command: Command, values: dict[str, Any]) -> Frame:
     msg = message_for(node, command)
-    try:
-        if _fast_valid(msg.frame_id, values):
-            # the same bytes as strict encoding, without its per-signal lookups (the
-            # simulator sends thousands of feedback frames per second)
-            data = msg.encode(values, scaling=True, padding=False, strict=False)
-        else:  # strict: cantools names the offending signal
-            data = msg.encode(values, scaling=True, padding=False, strict=True)
+    layout = frame_layout(msg.frame_id)
+    if layout is not None:
+        bits = pack_frame(layout, values)
+        if bits is not None:
+            return Frame(msg.frame_id, bits.to_bytes(msg.length, "little"))
+    try:  # strict: cantools names the offending signal
+        data = msg.encode(values, scaling=True, padding=False, strict=True)
     except cantools.database.EncodeError as exc:
         signal = _signal_in(str(exc), msg)
         raise SignalRangeError(f"node {node} {msg.name}: {exc}", signal) from exc
@@ -576,15 +645,19 @@ def _decode_values(msg: Message, node: int, data: bytes) -> dict[str, Any]:
         raise FrameLengthError(
             f"node {node} {msg.name}: DLC {len(data)}, the DBC says {msg.length}"
         )
-    try:
-        values = msg.decode(data, decode_choices=False, scaling=True)
-    except cantools.database.DecodeError as exc:
-        raise ProtocolError(f"node {node} {msg.name}: {exc}") from exc
+    layout = frame_layout(msg.frame_id)
+    if layout is not None:
+        values = unpack_frame(layout, data)
+    else:
+        try:
+            values = msg.decode(data, decode_choices=False, scaling=True)  # type: ignore[assignment]
+        except cantools.database.DecodeError as exc:
+            raise ProtocolError(f"node {node} {msg.name}: {exc}") from exc
     assert isinstance(values, dict)
     for name, value in values.items():
         sig = msg.get_signal_by_name(name)
         lo, hi = sig.minimum, sig.maximum
-        v = float(value)  # type: ignore[arg-type]
+        v = float(value)
         if (lo is not None and v < lo - 1e-9 * abs(lo)) or (
             hi is not None and v > hi + 1e-9 * abs(hi)
         ):

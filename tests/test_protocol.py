@@ -14,6 +14,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import cantools
 import pytest
 
 from firmware_protocol import busload, codec, dbc_nodes
@@ -262,7 +263,7 @@ def test_decode_errors_name_signal_length_and_id() -> None:
         codec.parse(0x03F, bytes(8))
     with pytest.raises(codec.UnknownFrameError):
         codec.parse(9 << 5 | 6, bytes(8))  # node 9 is not in the DBC
-    with pytest.raises(codec.ProtocolError, match="multiplexer"):
+    with pytest.raises(codec.SignalRangeError, match=r"signal \"Mode\" = 9 outside \[0, 4\]"):
         codec.parse(0x022, bytes.fromhex("000900000000"))
     with pytest.raises(codec.ProtocolError):
         codec.frame_id(0, Command.HEARTBEAT)
@@ -469,47 +470,59 @@ def test_generated_c_is_current_and_compiles_strict(tmp_path: Path) -> None:
     assert lines[3:] == ["1", "3", "3.5000"]
 
 
-def test_fast_encode_path_gives_the_strict_bytes_and_errors() -> None:
-    """_encode skips cantools' strict per-signal checks when its own precomputed range
-    check passes: for every message and random in-range values the bytes are identical
-    to strict encoding, and edge / out-of-range values still raise the strict error."""
+def test_compiled_layout_packs_and_unpacks_exactly_as_cantools() -> None:
+    """The codec's fast path (a layout compiled from the DBC) against cantools itself: for
+    every message, multiplexed ones per multiplexer value, random in-range values encode
+    to cantools' strict bytes; cantools' decode of those bytes, and of random bytes, equals
+    the fast unpack (same values, same types); an out-of-range value leaves the fast path
+    and gets cantools' error, naming the signal."""
     import random
 
     rng = random.Random(7)
-    db = codec.database()
-    checked = 0
-    for msg in db.messages:
-        if msg.is_multiplexed():  # a subset of signals per mode: always the strict path
-            continue
-        _, checks = codec._range_checks(msg.frame_id)
-        for _ in range(30):
-            values: dict[str, float | int] = {}
-            for c, sig in zip(checks, msg.signals, strict=True):
-                lo = max(c.low, -1e6)
-                hi = min(c.high, 1e6)
-                v = rng.uniform(lo, hi)
-                if sig.is_float is False and sig.scale == 1 and sig.offset == 0:
-                    v = round(min(max(v, math.ceil(lo)), math.floor(hi)))
-                values[c.name] = v
-            assert codec._fast_valid(msg.frame_id, values) or any(c.has_choices for c in checks)
-            strict = msg.encode(values, scaling=True, padding=False, strict=True)
-            node, command = codec.split_id(msg.frame_id)
-            assert codec._encode(node, codec.Command(command), values).data == bytes(strict)
-            checked += 1
-        # just beyond the top of the first ranged signal: the strict error, naming it
-        ranged = [c for c in checks if math.isfinite(c.high) and not c.has_choices]
-        if ranged:
-            c = ranged[0]
-            bad = {
-                k: (v if k != c.name else c.high + max(1.0, abs(c.high) * 1e-3))
-                for k, v in values.items()
-            }
-            assert not codec._fast_valid(msg.frame_id, bad)
-            node, command = codec.split_id(msg.frame_id)
-            with pytest.raises(codec.SignalRangeError) as info:
-                codec._encode(node, codec.Command(command), bad)
-            assert info.value.signal == c.name
-    assert checked >= 30 * 8 * 9
-    # the simulator's hot frames take the fast path
-    fid = codec.frame_id(3, Command.FEEDBACK_POSITION)
-    assert codec._fast_valid(fid, {"SteerPosition": 0.5, "WheelPosition": -2.0, "Counter": 3})
+    checked = decoded = 0
+    for msg in codec.database().messages:
+        layout = codec.frame_layout(msg.frame_id)
+        assert layout is not None, msg.name  # every message of our DBC compiles
+        node, command = codec.split_id(msg.frame_id)
+        mux = next((s for s in layout if s.is_mux), None)
+        mux_values = [None] if mux is None else list(range(int(mux.low + 1), int(mux.high) + 1))
+        for mv in mux_values:
+            selected = [
+                s for s in layout if s.mux_ids is None or (mv is not None and mv in s.mux_ids)
+            ]
+            for _ in range(25):
+                values: dict[str, float | int] = {}
+                for sig in selected:
+                    lo, hi = max(sig.low, -1e6), min(sig.high, 1e6)
+                    if sig.identity:
+                        values[sig.name] = rng.randint(math.ceil(lo), math.floor(hi))
+                    else:
+                        values[sig.name] = rng.uniform(lo, hi)
+                if mux is not None:
+                    values[mux.name] = mv
+                strict = bytes(msg.encode(values, scaling=True, padding=False, strict=True))
+                assert codec._encode(node, codec.Command(command), values).data == strict
+                ref = msg.decode(strict, decode_choices=False, scaling=True)
+                fast = codec.unpack_frame(layout, strict)
+                assert fast == ref and [type(v) for v in fast.values()] == [
+                    type(ref[k]) for k in fast  # type: ignore[call-overload]
+                ]
+                checked += 1
+        for _ in range(50):
+            data = rng.randbytes(msg.length)
+            try:
+                ref = msg.decode(data, decode_choices=False, scaling=True)
+            except cantools.database.DecodeError:
+                continue
+            assert codec.unpack_frame(layout, data) == ref, (msg.name, data.hex())
+            decoded += 1
+        ranged = [s for s in layout if math.isfinite(s.high) and s.mux_ids is None]
+        sig = ranged[-1]
+        bad = {s.name: (s.high + max(1.0, abs(s.high) * 1e-3) if s is sig else 0) for s in ranged}
+        assert codec.pack_frame(layout, bad) is None
+        with pytest.raises(codec.SignalRangeError) as info:
+            codec._encode(node, codec.Command(command), bad)
+        assert info.value.signal == sig.name
+    assert checked >= 25 * 9 * 13 and decoded >= 50 * 9 * 8
+
+
