@@ -218,7 +218,7 @@ def create_app(
             "mocap_age_s": age if math.isfinite(age) else None,
             "mocap_stale": rt.mocap.is_stale(),
             "running": rt.running(),
-            "embedded_simulator": rt.simulator is not None,
+            "in_process_simulator": rt.simulator is not None,
         }
 
     @app.get("/metrics", response_class=PlainTextResponse)

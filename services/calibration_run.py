@@ -33,8 +33,13 @@ One place to read it — :data:`TRANSITIONS`::
 
 Any fault (driver fault event, stale mocap stream during motion, yaw rate above the
 limit, a step longer than ``step_timeout``) or an abort: ``stop_all()`` first, then
-FAILED or ABORTED with the reason.  Durations are robot time; with a simulator running
-``time_scale`` times faster than real time the waits shrink accordingly.
+FAILED or ABORTED with the reason.
+
+Time is an input: every duration is robot seconds on the injected clock
+(:mod:`swpc_hw.clock`): the host's on a robot, the simulated one in lockstep against the
+in-process simulator (the run's thread is then a participant: the simulation waits for it
+at every step), a scaled one against an external time-scaled simulator.  Solving and
+installing live in :mod:`services.calibration_result`.
 """
 
 from __future__ import annotations
@@ -42,12 +47,11 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import math
-import shutil
 import threading
 import time
 import traceback
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -55,14 +59,18 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, Field
 
-from services.mcap_export import write_mcap
+from services.calibration_result import (
+    install_kinematics,
+    result_document,
+    solve_run,
+    within_tolerance,
+)
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig
 from services.robot_io import RobotIO
-from swpc_hw.calibration.report import result_rows
-from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
-from swpc_hw.dataset import Dataset, Segment, load_dataset, save_dataset
-from swpc_hw.errors import CalibrationError
+from swpc_hw.calibration.solver import CalibrationResult
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.dataset import Dataset, Segment
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
@@ -108,6 +116,8 @@ TRANSITIONS: dict[State, frozenset[State]] = {
 
 REST_WINDOW = 0.5
 """s of robot time over which the robot must be still before a module is locked."""
+YAW_RATE_WINDOW = 0.2
+"""s of robot time over which the spin's yaw rate is checked against its limit."""
 
 
 def motion_rates(
@@ -176,17 +186,17 @@ class CalibrationRun:
         mocap: MocapIngest,
         config: RobotConfig,
         *,
+        clock: Clock = SYSTEM_CLOCK,
         data_dir: Path,
         kinematics_path: Path,
-        time_scale: float = 1.0,
         install: str = "if-within-tolerance",
         on_change: Callable[[CalibrationRun], None] | None = None,
-        poll: float = 0.005,
+        poll: float = 0.02,
     ) -> None:
         self.robot = robot
         self.mocap = mocap
         self.config = config
-        self.time_scale = float(time_scale)
+        self.clock = clock
         self.install = install
         self.status = RunStatus(id=uuid.uuid4().hex[:12], created=_now_iso())
         self.run_dir = Path(data_dir) / "runs" / self.status.id
@@ -238,13 +248,14 @@ class CalibrationRun:
             self.status.state = state
             self.status.step = step
         self._changed()
+        if state not in TERMINAL:
+            # an abort or a fault since the last check ends the run before this state's
+            # first command
+            self._check(False, None)
 
     def _changed(self) -> None:
         if self._on_change is not None:
             self._on_change(self)
-
-    def _robot_seconds(self, seconds: float) -> float:
-        return seconds / self.time_scale
 
     def _check(self, motion: bool, deadline: float | None) -> None:
         if self._abort.is_set():
@@ -257,36 +268,48 @@ class CalibrationRun:
                 f"motion capture stale: no pose for {self.mocap.age():.3f} s "
                 f"(limit {self.mocap.stale_after:.3f} s)"
             )
-        if deadline is not None and time.monotonic() > deadline:
+        if deadline is not None and self.clock.now() > deadline:
             raise RunFailedError(
                 f"step timeout: {self.status.step} took longer than "
                 f"{self.config.limits.step_timeout:g} s"
             )
 
     def _deadline(self) -> float:
-        return time.monotonic() + self._robot_seconds(self.config.limits.step_timeout)
+        return self.clock.now() + self.config.limits.step_timeout
 
     def _wait(self, seconds: float, motion: bool = True) -> None:
         """Wait ``seconds`` of robot time, checking for faults and abort."""
-        end = time.monotonic() + self._robot_seconds(seconds)
+        end = self.clock.now() + seconds
         deadline = self._deadline()
         while True:
             self._check(motion, deadline)
-            left = end - time.monotonic()
+            left = end - self.clock.now()
             if left <= 0:
                 return
-            time.sleep(min(self._poll, left))
+            self.clock.sleep(min(self._poll, left))
 
-    def _wait_until(self, cond: Callable[[], bool], motion: bool, what: str) -> None:
+    def _wait_until(self, cond: Callable[[], bool], motion: bool) -> None:
         deadline = self._deadline()
         while not cond():
             self._check(motion, deadline)
-            time.sleep(self._poll)
-        del what
+            self.clock.sleep(self._poll)
+
+    @contextlib.contextmanager
+    def _in_step(self) -> Iterator[None]:
+        """Lockstep: the run's thread is a participant of the simulated clock."""
+        if isinstance(self.clock, SimClock):
+            with self.clock.participant():
+                yield
+        else:
+            yield
 
     def _main(self) -> None:
+        with self._in_step():
+            self._run()
+
+    def _run(self) -> None:
         self.status.started = _now_iso()
-        self._t0 = time.monotonic()
+        self._t0 = self.clock.now()
         try:
             self._protocol()
         except RunAbortedError as exc:
@@ -309,13 +332,13 @@ class CalibrationRun:
                 self.robot.close()
 
     def _end(self, state: State, reason: str, detail: str | None = None) -> None:
-        t = time.monotonic()
+        t = time.perf_counter()  # a measurement of the host, not a judgement of time
         try:
             self.robot.stop_all()
         except Exception as exc:
             self.status.errors.append(f"stop_all failed: {exc}")
         if state is State.ABORTED and self.abort_latency is None:
-            self.abort_latency = time.monotonic() - t
+            self.abort_latency = time.perf_counter() - t
         try:
             self.robot.release()
         except Exception as exc:
@@ -344,7 +367,7 @@ class CalibrationRun:
             self._changed()
             for m in unhomed:
                 self.robot.start_homing(m)
-            self._wait_until(lambda: not self.robot.unhomed(), motion=False, what="homing")
+            self._wait_until(lambda: not self.robot.unhomed(), motion=False)
         self._enter(State.PRECHECK, "checking nodes, errors, homing and mocap")
         self._precheck()
         self._come_to_rest()
@@ -406,6 +429,8 @@ class CalibrationRun:
         self.robot.release()
         self._enter(State.SOLVE, "solving")
         self._solve()
+        if self._abort.is_set():  # nothing moves any more, but nothing is installed either
+            raise RunAbortedError("aborted by the operator (the result is not installed)")
         self._enter(State.WRITE, "writing the kinematic file")
         self._write()
         with self._lock:
@@ -414,7 +439,7 @@ class CalibrationRun:
         self._enter(State.DONE, "done")
 
     def _precheck(self) -> None:
-        deadline = time.monotonic() + self._robot_seconds(min(5.0, self.config.limits.step_timeout))
+        deadline = self.clock.now() + min(5.0, self.config.limits.step_timeout)
         while True:
             problems = self.robot.problems()
             if self.mocap.is_stale():
@@ -424,10 +449,10 @@ class CalibrationRun:
                 problems.append(clock)
             if not problems:
                 return
-            if time.monotonic() > deadline:
+            if self.clock.now() > deadline:
                 raise RunFailedError("precheck failed: " + "; ".join(problems))
             self._check(False, None)
-            time.sleep(0.01)
+            self.clock.sleep(0.01)
 
     def _come_to_rest(self) -> None:
         """Brake every wheel and wait until the motion capture shows the robot at rest.
@@ -444,8 +469,8 @@ class CalibrationRun:
         self._enter(State.REST, step)
         for m in ids:
             self.robot.wheel_hold(m)
-        window = self._robot_seconds(REST_WINDOW)
-        t_brake = time.monotonic()
+        window = REST_WINDOW
+        t_brake = self.clock.now()
         deadline = self._deadline()
         while True:
             self._check(True, deadline)
@@ -456,22 +481,19 @@ class CalibrationRun:
             if latest is not None and latest.t_host - t_brake >= window:
                 poses = self.mocap.samples(since_host=latest.t_host - window)
                 if poses.shape[0] >= 3 and poses[-1, 2] - poses[0, 2] >= 0.5 * window:
-                    speed, rate = motion_rates(
-                        poses[:, 2] * self.time_scale, poses[:, 3], poses[:, 4], poses[:, 5]
-                    )
+                    speed, rate = motion_rates(poses[:, 2], poses[:, 3], poses[:, 4], poses[:, 5])
                     if speed <= limits.rest_speed and abs(rate) <= limits.rest_yaw_rate:
                         return
                     with self._lock:
                         self.status.step = (
                             f"{step} (yaw rate {rate:.3f} rad/s, speed {speed:.3f} m/s)"
                         )
-            time.sleep(self._poll)
+            self.clock.sleep(self._poll)
 
     def _settle_steering(self, module: int, angle: float, tol: float = math.radians(0.5)) -> None:
         self._wait_until(
             lambda: bool(abs(wrap_angle(self.robot.steering(module) - angle)) < tol),
             motion=True,
-            what=f"steering of module {module}",
         )
 
     def _spin(self, k: int, done: int, total: int) -> None:
@@ -479,7 +501,7 @@ class CalibrationRun:
         sweep_target = math.radians(proto.sweep_deg)
         latest = self.mocap.latest()
         assert latest is not None
-        t_spin = time.monotonic()
+        t_spin = self.clock.now()
         deadline = self._deadline()
         window_start: float | None = None
         yaw_prev = latest.yaw
@@ -492,11 +514,9 @@ class CalibrationRun:
             assert p is not None
             yaw_acc += float(wrap_angle(p.yaw - yaw_prev))
             yaw_prev = p.yaw
-            # yaw rate over 0.2 s of robot time: the poses' host times (the mocap's own
-            # spacing), times the time scale of a simulator (its nominal one: when the
-            # simulator cannot keep up, this reads low)
-            robot_dt = (p.t_host - rate_t) * self.time_scale
-            if robot_dt >= 0.2:
+            # yaw rate over YAW_RATE_WINDOW of the poses' own times (the mocap's spacing)
+            robot_dt = p.t_host - rate_t
+            if robot_dt >= YAW_RATE_WINDOW:
                 rate = (yaw_acc - rate_acc) / robot_dt
                 if abs(rate) > limits.max_yaw_rate:
                     raise RunFailedError(
@@ -507,7 +527,7 @@ class CalibrationRun:
             # (not the newest pose at that moment: with late poses, from a slow mocap
             # network or a starved ingest, that one was sampled before the spin was steady
             # and the window took in the spin-up; the VM under load saw it start at rest)
-            settled = p.t_host - t_spin >= self._robot_seconds(proto.settle_time)
+            settled = p.t_host - t_spin >= proto.settle_time
             if window_start is None and settled:
                 window_start, acc_at_start = p.t_host, yaw_acc
             if window_start is not None:
@@ -520,10 +540,10 @@ class CalibrationRun:
                     self.segments.append(Segment(k, window_start, p.t_host))
                     self.status.segments = len(self.segments)
                     return
-            time.sleep(self._poll)
+            self.clock.sleep(self._poll)
 
     def dataset(self) -> Dataset:
-        """The run's recorded data in the offline dataset form (host monotonic clock)."""
+        """The run's recorded data in the offline dataset form (the run's clock)."""
         poses = self.mocap.samples(since_host=self._t0 - 1.0)
         enc = {m: self.robot.encoders(m, self._t0 - 1.0) for m in self.config.nominal.ids}
         return Dataset(
@@ -537,30 +557,11 @@ class CalibrationRun:
         ds = self.dataset()
         self.status.encoder_samples = int(sum(v.shape[0] for v in ds.encoders.values()))
         self.status.poses = int(ds.poses.shape[0])
-        directory = self.run_dir / "dataset"
-        save_dataset(directory, ds)
-        write_mcap(self.run_dir / "run.mcap", ds)  # the same data, for Foxglove
-        # solve what was written, so that `swpc solve <dataset>` reproduces it exactly
-        try:
-            self.result = solve(
-                load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory)
-            )
-        except CalibrationError as exc:
-            raise CalibrationError(
-                f"{exc} (the run's data is kept: `swpc solve {directory}` reproduces this)"
-            ) from exc
+        self.result = solve_run(self.run_dir, ds)
 
     def within_tolerance(self) -> bool:
         assert self.result is not None
-        tol = self.config.tolerances
-        sd = self.result.stddev_array()
-        if not np.all(np.isfinite(sd)):
-            return False  # an unknown uncertainty is never within tolerance
-        return bool(
-            np.all(sd[:, [0, 1, 3]] <= tol.position)
-            and np.all(sd[:, 2] <= tol.beta)
-            and np.all(sd[:, 4] <= tol.radius)
-        )
+        return within_tolerance(self.result, self.config.tolerances)
 
     def _write(self) -> None:
         assert self.result is not None
@@ -573,41 +574,14 @@ class CalibrationRun:
         }
         save_kinematics(self.run_dir / "kinematics.yaml", res.params, extra=extra)
         if install:
-            if self.kinematics_path.exists():
-                stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
-                backup = self.kinematics_path.with_name(
-                    f"{self.kinematics_path.stem}.{stamp}{self.kinematics_path.suffix}"
-                )
-                shutil.copy2(self.kinematics_path, backup)
-            self.kinematics_path.parent.mkdir(parents=True, exist_ok=True)
-            save_kinematics(self.kinematics_path, res.params, extra=extra)
+            install_kinematics(self.kinematics_path, res, extra)
         self.status.installed = install
-        self.result_doc = self._result_document(ok, install)
-
-    def _result_document(self, within: bool, installed: bool) -> dict[str, Any]:
-        assert self.result is not None
-        res = self.result
-        modules = []
-        for m in res.params.modules:
-            nom = self.config.nominal.module(m.id)
-            std = m.stddev
-            modules.append(
-                {
-                    "id": m.id,
-                    **{k: getattr(m, k) for k in ("x_s", "y_s", "beta", "b", "r")},
-                    "stddev": None if std is None else std.model_dump(),
-                    "nominal": {k: getattr(nom, k) for k in ("x_s", "y_s", "beta", "b", "r")},
-                }
-            )
-        header = ["module", "param", "unit", "nominal", "estimate", "std dev"]
-        return {
-            "run": self.id,
-            "modules": modules,
-            "quality": res.quality_document(),
-            "table": [dict(zip(header, row, strict=True)) for row in result_rows(res)],
-            "within_tolerance": within,
-            "installed": installed,
-            "kinematics_path": str(self.kinematics_path) if installed else None,
-            "run_kinematics_path": str(self.run_dir / "kinematics.yaml"),
-            "dataset_dir": str(self.run_dir / "dataset"),
-        }
+        self.result_doc = result_document(
+            self.id,
+            res,
+            self.config,
+            run_dir=self.run_dir,
+            kinematics_path=self.kinematics_path,
+            within=ok,
+            installed=install,
+        )

@@ -1,13 +1,14 @@
-"""``make demo``: a whole calibration on the embedded default, as an operator runs it.
+"""``make demo``: a whole calibration on the in-process simulator, as an operator runs it.
 
-1. starts ``swpc serve`` (a separate process) on the embedded default: the virtual robot
-   (hidden truth = the paper's Table 4 calibrated values; the robot config claims the
-   nominal design) in-process on a virtual CAN bus, mocap over zenoh on loopback, at a
-   time scale of 4;
+1. starts ``swpc serve`` (a separate process) on its default: the virtual robot (hidden
+   truth = the paper's Table 4 calibrated values; the robot config claims the nominal
+   design) in the service's process on a virtual CAN bus, mocap over zenoh on loopback,
+   in simulated time (as fast as the host allows; ``--sim-speed`` caps it);
 2. starts a calibration through the HTTP API with the bearer token (what ``curl -X POST
    -H 'Authorization: Bearer ...' http://127.0.0.1:PORT/calibrations`` does);
-3. shows the progress, then prints the nominal / calibrated / true table and where the
-   kinematic file was written;
+3. shows the progress, then prints the nominal / calibrated / true table, where the
+   kinematic file was written, and a digest of the calibrated parameters: the same seed
+   gives the same digest, bit for bit, on any host and at any load;
 4. stops the service (by its PID).
 
 ``--offline`` instead generates a dataset and solves it with ``swpc solve`` (no service).
@@ -16,6 +17,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import os
 import secrets
@@ -69,7 +71,15 @@ def _table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run_service_demo(data_dir: Path, time_scale: float) -> int:
+def parameters_digest(result: dict[str, Any]) -> str:
+    """sha256 (first 16 hex digits) of every calibrated parameter's exact float value."""
+    values = [
+        float(m[k]).hex() for m in result["modules"] for k in ("x_s", "y_s", "beta", "b", "r")
+    ]
+    return hashlib.sha256(" ".join(values).encode()).hexdigest()[:16]
+
+
+def run_service_demo(data_dir: Path, sim_speed: float, seed: int) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     token = secrets.token_urlsafe(16)
@@ -78,10 +88,12 @@ def run_service_demo(data_dir: Path, time_scale: float) -> int:
         os.environ,
         SWPC_TOKEN=token,
         SWPC_DATA_DIR=str(data_dir),
-        SWPC_TIME_SCALE=str(time_scale),
+        SWPC_SIM_SPEED=str(sim_speed),
+        SWPC_SIM_SEED=str(seed),
         SWPC_PORT=str(port),
     )
-    env.pop("SWPC_CAN_INTERFACE", None)
+    for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
+        env.pop(key, None)
     t0 = time.monotonic()
     log = open(data_dir / "service.log", "w")  # noqa: SIM115 - lives as long as the process
     proc = subprocess.Popen(
@@ -91,7 +103,8 @@ def run_service_demo(data_dir: Path, time_scale: float) -> int:
         stderr=subprocess.STDOUT,
     )
     base = f"http://127.0.0.1:{port}"
-    print(f"swpc serve started (pid {proc.pid}) on {base}, embedded simulator at {time_scale:g}x")
+    speed = "as fast as the host allows" if sim_speed <= 0 else f"at most {sim_speed:g}x"
+    print(f"swpc serve started (pid {proc.pid}) on {base}, in-process simulator ({speed})")
     try:
         with httpx.Client(base_url=base, timeout=10.0) as http:
             deadline = time.monotonic() + 60
@@ -136,6 +149,7 @@ def run_service_demo(data_dir: Path, time_scale: float) -> int:
             print(f"\nposes used {q['poses_used']}, wheel increments used {q['increments_used']}")
             print(f"kinematic file written: {res['kinematics_path']}")
             print(f"run dataset (solve offline with `swpc solve`): {res['dataset_dir']}")
+            print(f"calibrated parameters digest (seed {seed}): {parameters_digest(res)}")
             print(f"demo wall time: {time.monotonic() - t0:.1f} s")
             return 0
     finally:
@@ -179,7 +193,10 @@ def run_offline_demo(out: Path, seed: int) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--out", default="out/demo", help="data directory (default out/demo)")
-    parser.add_argument("--time-scale", type=float, default=4.0)
+    parser.add_argument(
+        "--sim-speed", type=float, default=0.0,
+        help="most simulated s per wall s (default 0: as fast as the host allows)",
+    )
     parser.add_argument("--offline", action="store_true", help="dataset + swpc solve only")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
@@ -187,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.offline:
         return run_offline_demo(out, args.seed)
-    return run_service_demo(out.resolve(), args.time_scale)
+    return run_service_demo(out.resolve(), args.sim_speed, args.seed)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,10 @@
-"""The embedded default: the virtual robot the service runs against when no CAN is set.
+"""The in-process simulator: the virtual robot the service runs against when no CAN is set.
+
+It runs in the service's own process on a python-can ``virtual`` bus, publishes its
+motion capture over zenoh on loopback, and keeps simulated time in lockstep with the
+service (:class:`swpc_hw.clock.SimClock`): a busy host slows a run down and never faults
+it, so the service uses the robot's own timing windows against it, and the same seed gives
+the same run.
 
 Hidden truth: the paper's Table 4 calibrated values; the service's robot config claims
 the nominal design.  Default sensor noise: mocap 0.5 mm / 0.05 deg at 100 Hz, encoders
@@ -14,41 +20,47 @@ from collections.abc import Sequence
 from services.robot_config import RobotConfig
 from simulators.mocap_sim import MocapOptions
 from simulators.virtual_robot import SimOptions, Simulator
+from swpc_hw.clock import SimClock
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 DEFAULT_MOCAP = MocapOptions(rate=100.0, sigma_xy=0.5e-3, sigma_yaw=math.radians(0.05))
 
 
-def embedded_simulator(
+def in_process_simulator(
     *,
     config: RobotConfig,
     channel: str,
     zenoh_endpoints: Sequence[str],
-    time_scale: float = 1.0,
+    clock: SimClock,
     seed: int = 1,
     truth: RobotParams | None = None,
     mocap: MocapOptions | None = None,
     physics_dt: float = 0.005,
     mocap_latency: float | None = None,
+    feedback_rate_hz: int = 200,
 ) -> Simulator:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
-    service's zenoh endpoint (it connects to ``zenoh_endpoints``)."""
+    service's zenoh endpoint (it connects to ``zenoh_endpoints``), master of ``clock``."""
     if truth is None:
         truth = PAPER_CALIBRATED if config.nominal.ids == PAPER_CALIBRATED.ids else config.nominal
     base = mocap or DEFAULT_MOCAP
     opts = SimOptions(
         robot=config.robot,
         nodes=dict(config.nodes or {}),
-        time_scale=time_scale,
         physics_dt=physics_dt,
         watchdog_ms=config.limits.watchdog_ms,
+        feedback_rate_hz=feedback_rate_hz,
         mocap=dataclasses.replace(
             base, seed=seed, latency=base.latency if mocap_latency is None else mocap_latency
         ),
         seed=seed,
     )
     return Simulator.open(
-        truth, interface="virtual", channel=channel, zenoh_connect=list(zenoh_endpoints),
+        truth,
+        interface="virtual",
+        channel=channel,
+        zenoh_connect=list(zenoh_endpoints),
         options=opts,
+        clock=clock,
     )

@@ -1,36 +1,36 @@
 """Motion-capture ingest: a zenoh subscriber on the robot's pose key.
 
 Every payload is decoded (native or ROS 2 CDR ``PoseStamped``, configured or detected)
-and checked; accepted samples are kept with their source timestamp and the host's
-monotonic receive time.  Dropped and counted: undecodable payloads, NaN/inf values,
-non-unit quaternions (``| |q| - 1 | > quaternion_tol``), duplicates (same source time)
-and out-of-order samples (source time older than the last accepted one).
+and checked; accepted samples are kept with their source timestamp and their time on the
+service clock (:mod:`swpc_hw.clock`: robot seconds).  Dropped and counted: undecodable
+payloads, NaN/inf values, non-unit quaternions (``| |q| - 1 | > quaternion_tol``),
+duplicates (same source time) and out-of-order samples (source time older than the last
+accepted one).
 
-Clock mapping: the mocap clock and the host clock differ by an offset plus a positive
-transport delay; each sample's host time is ``t_source / s + offset`` with the lower
-envelope ``offset = min(t_recv - t_source / s)`` over the last ``sync_window`` seconds
-(the classic one-way clock estimate, as a sliding minimum so that it follows drift;
-``s`` is the rate of a source clock that runs faster than real time, 1 for a real mocap
-and for ``swpc sim``, which stamps its poses with the host clock at sampling).  Recorded
-poses thus keep the mocap's exact spacing on the host clock, free of transport jitter.
-A sliding minimum follows an offset, not a change of *rate*: for a source whose clock
-rate varies (a simulator stamping its own slowing clock) use ``clock_mode="receive"``,
-which takes the host receive time itself (transport jitter, but no drift).
+Time bases (``clock_mode``), each sample's time ``t_host`` on the clock's axis:
 
-The lower envelope is the clock offset plus the *smallest* transport delay of the window,
-which is only ~0 when some samples get through at once.  A publisher that is itself
-CPU-bound (``swpc sim`` under emulation: 12-23 ms floor, measured) shifts every pose that
-much later than the CAN feedback of the same instant, whose bus time stamps carry no
-such delay, and a shift of the poses against the wheel encoders biases the wheel radius
-(0.1-0.2 mm at 12-23 ms in the VM run of ``make test-vcan``).  When the source stamps the
-host's own wall clock (``swpc sim`` on this machine) or a clock synchronised with it (PTP,
-chrony), ``clock_mode="wall"`` maps each stamp exactly, the way the driver maps the CAN
-bus time stamps: ``t_host = t_source / s - (wall - monotonic)``.  A stamp more than
-``max_clock_error`` off the host's wall clock (an unsynchronised source) is reported by
-:meth:`MocapIngest.clock_problem`, which the calibration's precheck refuses to start on.
+* ``wall``: the stamps are the host's wall clock (``swpc sim`` on this machine, the
+  in-process simulator's simulated wall clock, or a mocap PC synchronised by PTP or
+  chrony): ``t_host = clock.from_wall(t_source)``, exact, the way the driver maps the CAN
+  bus time stamps.  A stamp more than ``max_clock_error`` off its receipt (an
+  unsynchronised source) is reported by :meth:`MocapIngest.clock_problem`, which the
+  calibration's precheck refuses to start on.
+* ``source`` (default): any mocap clock, mapped by the lower envelope of the delays,
+  ``t_host = s t_source + min over the last sync_window of (t_recv - s t_source)`` (the
+  classic one-way clock estimate, a sliding minimum that follows drift; ``s`` =
+  ``source_rate``, clock seconds per source second).  Poses keep the mocap's exact
+  spacing, late by the *smallest* transport delay of the window: a CPU-bound publisher
+  (``swpc sim`` under emulation: a 12-23 ms floor, measured) shifts every pose against the
+  CAN feedback, whose bus stamps carry no such delay, and biases the wheel radius
+  (0.1-0.2 mm at 12-23 ms in the VM).  Use ``wall`` when the clocks are synchronised.
+* ``receive``: ``t_host`` is the receive time itself (transport jitter, no drift).
 
-A stream whose newest accepted sample is older than ``stale_after`` seconds (host
-time) is *stale*; during motion the state machine treats that as a fault.
+A stream whose newest accepted sample was received more than ``stale_after`` clock seconds
+ago is *stale*; during motion the state machine treats that as a fault.
+
+Lockstep (:class:`swpc_hw.clock.SimClock`): the subscriber tells the clock of every
+arrival on its key, so the simulated time moves on only once every pose published up to
+now has been stored: a reader at any simulated time sees all of them.
 """
 
 from __future__ import annotations
@@ -38,16 +38,15 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
-import time
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose, detect_encoding
 from swpc_hw.row_ring import RowRing
 
 FloatArray = NDArray[np.float64]
@@ -91,24 +90,25 @@ class MocapIngest:
     def __init__(
         self,
         *,
+        clock: Clock = SYSTEM_CLOCK,
         encoding: PoseEncoding | str = PoseEncoding.AUTO,
         stale_after: float = 0.25,
         quaternion_tol: float = 1e-3,
         capacity: int = 2_000_000,
-        clock: Callable[[], float] = time.monotonic,
-        time_scale: float = 1.0,
+        source_rate: float | None = None,
         sync_window: float = 1.0,
         clock_mode: str = "source",
-        wall_clock: Callable[[], float] = time.time,
         max_clock_error: float = 1.0,
         max_clock_step: float = 1.0,
     ) -> None:
+        self.clock = clock
         self.encoding = PoseEncoding(encoding)
         self.stale_after = float(stale_after)
         self.quaternion_tol = float(quaternion_tol)
-        self.clock = clock
-        self.time_scale = float(time_scale)
-        """Source seconds per host second (a simulator running faster than real time)."""
+        rate = clock.rate if source_rate is None else source_rate
+        self.source_rate = float(rate) if math.isfinite(rate) else 1.0
+        """Clock seconds per source second (``swpc sim --time-scale k`` stamps host wall
+        time, on a clock that runs k times faster: k)."""
         self.counters = IngestCounters()
         self.detected_encoding: PoseEncoding | None = None
         self._lock = threading.Lock()
@@ -118,23 +118,33 @@ class MocapIngest:
         if clock_mode not in CLOCK_MODES:
             raise ValueError(f"clock_mode must be one of {CLOCK_MODES}, not {clock_mode!r}")
         self.clock_mode = clock_mode
-        self.wall_clock = wall_clock
         self.max_clock_error = float(max_clock_error)
         self.max_clock_step = float(max_clock_step)
         self._wall_delay = math.nan  # clock_mode "wall": receive minus mapped stamp, last sample
-        self._offset = math.inf  # sliding min(t_recv - t_source / s)
+        self._offset = math.inf  # sliding min(t_recv - s t_source)
         self._delays: deque[tuple[float, float]] = deque()  # (t_recv, delay), increasing delay
         self._recent = deque[float](maxlen=4096)  # receive times for the rate
         self._latency = deque[float](maxlen=4096)
         self._subscriber: Any = None
+        self._lockstep_key: str | None = None
 
     # ------------------------------------------------------------------ zenoh
     def subscribe(self, session: Any, key: str) -> None:
         """Declare the zenoh subscriber (callback runs on zenoh's threads)."""
+        clock = self.clock
+        lockstep = isinstance(clock, SimClock)
 
         def on_sample(sample: Any) -> None:
-            self.feed(sample.payload.to_bytes())
+            try:
+                self.feed(sample.payload.to_bytes())
+            finally:
+                if lockstep:
+                    assert isinstance(clock, SimClock)
+                    clock.arrived(key)
 
+        if isinstance(clock, SimClock):
+            clock.subscribe(key)
+            self._lockstep_key = key
         self._subscriber = session.declare_subscriber(key, on_sample)
 
     def close(self) -> None:
@@ -143,11 +153,15 @@ class MocapIngest:
         if sub is not None:
             with contextlib.suppress(Exception):  # session already closed
                 sub.undeclare()
+        key, self._lockstep_key = self._lockstep_key, None
+        if key is not None and isinstance(self.clock, SimClock):
+            self.clock.unsubscribe(key)
 
     # ------------------------------------------------------------------ input
     def feed(self, payload: bytes, t_recv: float | None = None) -> bool:
         """Decode, check and store one payload; returns whether it was accepted."""
-        now = self.clock() if t_recv is None else t_recv
+        clock = self.clock
+        now = clock.now() if t_recv is None else t_recv
         with self._lock:
             c = self.counters
             c.received += 1
@@ -155,8 +169,6 @@ class MocapIngest:
                 enc = self.encoding
                 p = decode_pose(payload, enc)
                 if enc is PoseEncoding.AUTO and self.detected_encoding is None:
-                    from swpc_hw.mocap import detect_encoding
-
                     self.detected_encoding = detect_encoding(payload)
             except PoseDecodeError:
                 c.decode_errors += 1
@@ -171,7 +183,7 @@ class MocapIngest:
                 c.duplicates += 1
                 return False
             if p.t < self._last_source:
-                if (self._last_source - p.t) / self.time_scale <= self.max_clock_step:
+                if (self._last_source - p.t) * self.source_rate <= self.max_clock_step:
                     c.out_of_order += 1
                     return False
                 # the source clock was stepped back (mocap PC restarted, clock re-synced):
@@ -180,7 +192,8 @@ class MocapIngest:
                 c.clock_resets += 1
                 self._delays.clear()
             self._last_source = p.t
-            delay = now - p.t / self.time_scale
+            s = self.source_rate
+            delay = now - s * p.t
             dq = self._delays  # monotonic queue: sliding-window minimum in O(1)
             while dq and dq[-1][1] >= delay:
                 dq.pop()
@@ -189,15 +202,15 @@ class MocapIngest:
                 dq.popleft()
             self._offset = dq[0][1]
             if self.clock_mode == "wall":
-                t_host = p.t / self.time_scale - (self.wall_clock() - self.clock())
+                t_host = clock.from_wall(p.t)
                 self._wall_delay = now - t_host
             elif self.clock_mode == "receive":
                 t_host = now
             else:
-                t_host = p.t / self.time_scale + self._offset
+                t_host = s * p.t + self._offset
             self._rows.append((p.t, now, t_host, p.x, p.y, p.yaw))
             self._recent.append(now)
-            self._latency.append(now - p.t / self.time_scale)
+            self._latency.append(now - s * p.t)
             c.accepted += 1
             return True
 
@@ -225,8 +238,8 @@ class MocapIngest:
             return LatestPose(float(r[0]), float(r[2]), float(r[3]), float(r[4]), float(r[5]))
 
     def age(self, now: float | None = None) -> float:
-        """Host seconds since the newest accepted sample was received (inf if none)."""
-        now = self.clock() if now is None else now
+        """Clock seconds since the newest accepted sample was received (inf if none)."""
+        now = self.clock.now() if now is None else now
         with self._lock:
             return now - float(self._rows.last()[1]) if len(self._rows) else math.inf
 
@@ -237,7 +250,7 @@ class MocapIngest:
         """Why the pose stamps cannot be used as they are (``None``: they can).
 
         Only ``clock_mode="wall"`` trusts the source clock; it needs the newest stamp to be
-        within ``max_clock_error`` of its receive time on the host's wall clock.
+        within ``max_clock_error`` clock seconds of its receipt.
         """
         with self._lock:
             d = self._wall_delay
@@ -256,7 +269,7 @@ class MocapIngest:
 
     def stats(self, window: float = 1.0) -> dict[str, float]:
         """Rate (Hz over the last ``window`` s), latency percentiles (s), counters."""
-        now = self.clock()
+        now = self.clock.now()
         with self._lock:
             recent = [t for t in self._recent if t >= now - window]
             lat = np.array(self._latency) - (self._offset if math.isfinite(self._offset) else 0)

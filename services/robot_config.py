@@ -155,7 +155,7 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_robot_config(path: str | Path | None) -> RobotConfig:
-    """Load a robot config YAML (``None``: the embedded default, the paper's robot)."""
+    """Load a robot config YAML (``None``: the default, the paper's robot)."""
     if path is None:
         return RobotConfig()
     p = Path(path)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from typing import Protocol
 
 import numpy as np
@@ -75,7 +74,7 @@ class RobotIO(Protocol):
         ...
 
     def encoders(self, module: int, since: float) -> FloatArray:
-        """Feedback rows ``(t_host, theta_hat, psi)`` received at host time >= ``since``."""
+        """Feedback rows ``(t, theta_hat, psi)`` received at clock time >= ``since``."""
         ...
 
     def take_faults(self) -> list[str]:
@@ -183,19 +182,16 @@ class DriverRobotIO:
             self.driver.deactivate()
 
     def encoders(self, module: int, since: float) -> FloatArray:
-        """Feedback on the host monotonic clock, timed by the frames' *bus* timestamps.
+        """Feedback on the driver's clock, timed by the frames' *bus* time stamps.
 
-        The bus timestamp (kernel arrival on SocketCAN, send time on the virtual bus) does
-        not include the receive thread's queueing delay, which can reach a second on a
-        loaded host; it is mapped from the wall clock onto the monotonic clock.
+        The driver maps every bus stamp (kernel arrival on SocketCAN, send time on the
+        virtual bus) onto its clock (:func:`swpc_hw.can.node_tracking.frame_time`): the
+        receive thread's queueing delay, which can reach a second on a loaded host, is not
+        in it.
         """
         h = self.driver.history_arrays(module)
-        wall_minus_mono = time.time() - time.monotonic()
-        t = h["t_bus"] - wall_minus_mono
-        bad = ~np.isfinite(t) | (np.abs(t - h["t"]) > 5.0)  # no usable bus stamp: receive time
-        t = np.where(bad, h["t"], t)
-        sel = t >= since
-        return np.column_stack([t[sel], h["theta_hat"][sel], h["psi"][sel]])
+        sel = h["t"] >= since
+        return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
 
     def take_faults(self) -> list[str]:
         """The fault events since the last call, and the driver's fault cause as soon as it
@@ -214,7 +210,3 @@ class DriverRobotIO:
 
     def close(self) -> None:
         self.driver.remove_event_callback(self._on_event)
-
-
-def monotonic() -> float:
-    return time.monotonic()

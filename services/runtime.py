@@ -1,39 +1,38 @@
-"""What the service holds while it runs: bus, driver, zenoh session, mocap ingest, runs.
+"""What the service holds while it runs: clock, bus, driver, zenoh session, mocap, runs.
 
 Opened in the FastAPI lifespan (or by tests) and injected into the app, so tests run
 the real app against the in-process simulator.  With no CAN interface configured
-(``SWPC_CAN_INTERFACE`` unset) it runs on the *embedded default*: the simulator
-in-process on a python-can ``virtual`` bus and zenoh on a loopback endpoint.
+(``SWPC_CAN_INTERFACE`` unset) it runs on the *in-process simulator*: the virtual robot in
+this process on a python-can ``virtual`` bus and zenoh on a loopback endpoint, in
+simulated time (one :class:`swpc_hw.clock.SimClock` shared by the simulator, the driver,
+the mocap ingest and the calibration runs).  Otherwise the clock is the host's, scaled by
+``time_scale`` for an external simulator (:mod:`services.timing`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 import sys
 import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from services.calibration_run import TERMINAL, CalibrationRun, State
+from services.in_process_simulator import in_process_simulator
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig, load_robot_config
 from services.robot_io import DriverRobotIO
 from services.settings import ServiceSettings
 from services.store import RunStore
-from swpc_hw.can.config import CanConfig
+from services.timing import TimingBudget, driver_config, timing_budget
+from simulators.virtual_robot import Simulator
 from swpc_hw.can.driver import CanDriver
+from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 SWITCH_INTERVAL_S = 0.001
-
-
-class Simulator(Protocol):
-    def start(self) -> None: ...
-
-    def stop(self) -> None: ...
 
 
 class RunConflictError(RuntimeError):
@@ -58,77 +57,65 @@ class Runtime:
         self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
         self.driver: CanDriver | None = None
+        self.timing: TimingBudget = timing_budget(settings, self.config)
+        self.clock: Clock = (
+            SimClock(max_speed=settings.sim_speed)
+            if settings.in_process
+            else SystemClock(rate=settings.external_time_scale)
+        )
         self.mocap = MocapIngest(
+            clock=self.clock,
             encoding=settings.pose_encoding,
-            stale_after=settings.mocap_stale_s,
-            clock_mode=settings.mocap_clock,
+            stale_after=self.timing.mocap_stale,
+            # the in-process simulator stamps its simulated wall time: exact
+            clock_mode="wall" if settings.in_process else settings.mocap_clock,
         )
         self.started = time.time()
         self._closed = False
 
     # ---------------------------------------------------------------- lifecycle
     def open(self) -> Runtime:
-        # Safety paths (abort, driver faults) must not wait behind CPU-bound threads for the
-        # default 5 ms GIL switch interval at every thread hand-off.
+        # An optimisation, not a correctness condition: safety paths (abort, driver
+        # faults) hand off between threads sooner than the default 5 ms switch interval.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         s = self.settings
         listen, connect = list(s.zenoh_listen), list(s.zenoh_connect)
         channel = s.can_channel
         interface = s.can_interface or "virtual"
-        if s.embedded:
-            channel = f"swpc-embedded-{uuid.uuid4().hex[:8]}"
+        if s.in_process:
+            channel = f"swpc-sim-{uuid.uuid4().hex[:8]}"
             if not listen and not connect:
-                ep = free_tcp_endpoint()
-                listen = [ep]
-            self.simulator = self._embedded_simulator(channel, listen or connect)
+                listen = [free_tcp_endpoint()]
         self.can_channel, self.can_interface = channel, interface
         self.session = open_session(
             mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
         )
         self.mocap.subscribe(self.session, self.config.pose_key)
-        lim = self.config.limits
-        # The controllers count their watchdog in *their* time.  Against a simulator (which
-        # may run time_scale times faster, on a host it shares) keep >= sim_watchdog_host_s
-        # (1 s) of host time.
-        watchdog_ms = lim.watchdog_ms
-        if s.simulated:
-            watchdog_ms = max(watchdog_ms, math.ceil(1000.0 * s.sim_watchdog_host_s * s.time_scale))
         self.driver = CanDriver(
-            CanConfig(
+            driver_config(
+                s,
+                self.config,
                 interface=interface,
                 channel=channel,
-                bitrate=s.can_bitrate,
-                modules=dict(self.config.nodes or {}),
-                feedback_rate_hz=s.feedback_rate,
-                watchdog_timeout_ms=watchdog_ms,
-                # 20 ms of robot time (longer in host time when the simulator runs slower
-                # than real time, e.g. under emulation: fewer frames for it to process)
-                refresh_period_s=min(
-                    0.02 / min(1.0, s.time_scale), watchdog_ms / 4000.0 / s.time_scale
-                ),
-                heartbeat_loss_periods=max(1, math.ceil(s.heartbeat_timeout_s / 0.1)),
-                max_torque=(lim.max_wheel_torque, lim.max_wheel_torque),
-                max_velocity=(lim.max_steer_velocity, lim.max_wheel_velocity),
-                log_path=str(self.data_dir / f"can-{time.strftime('%Y%m%dT%H%M%S')}.log"),
-            )
+                log_path=self.data_dir / f"can-{time.strftime('%Y%m%dT%H%M%S')}.log",
+            ),
+            clock=self.clock,
         )
         self.driver.configure()
-        if self.simulator is not None:
+        if s.in_process:
+            assert isinstance(self.clock, SimClock)
+            self.simulator = in_process_simulator(
+                config=self.config,
+                channel=channel,
+                zenoh_endpoints=listen or connect,
+                clock=self.clock,
+                seed=s.sim_seed,
+                physics_dt=s.sim_physics_dt,
+                mocap_latency=s.sim_mocap_latency,
+                feedback_rate_hz=s.feedback_rate,
+            )
             self.simulator.start()
         return self
-
-    def _embedded_simulator(self, channel: str, endpoints: list[str]) -> Simulator:
-        from services.in_process_simulator import embedded_simulator
-
-        return embedded_simulator(
-            config=self.config,
-            channel=channel,
-            zenoh_endpoints=endpoints,
-            time_scale=self.settings.time_scale,
-            seed=self.settings.sim_seed,
-            physics_dt=self.settings.sim_physics_dt,
-            mocap_latency=self.settings.sim_mocap_latency,
-        )
 
     def close(self) -> None:
         if self._closed:
@@ -145,6 +132,8 @@ class Runtime:
         self.mocap.close()
         if self.simulator is not None:
             self.simulator.stop()
+        if isinstance(self.clock, SimClock):
+            self.clock.close()
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()
@@ -160,9 +149,9 @@ class Runtime:
                 DriverRobotIO(self.driver),
                 self.mocap,
                 config,
+                clock=self.clock,
                 data_dir=self.data_dir,
                 kinematics_path=self.settings.kinematics_file,
-                time_scale=self.settings.time_scale,
                 install=install,
                 on_change=self._persist,
             )

@@ -1,7 +1,9 @@
 """Service settings (pydantic-settings): environment variables ``SWPC_*`` and an env file.
 
-With no CAN interface configured the service runs on the *embedded default*: the
-simulator in-process on a python-can ``virtual`` bus and zenoh on loopback.
+With no CAN interface configured the service runs on the *in-process simulator* (the
+default of ``make demo``): the virtual robot in the service's own process, on a python-can
+``virtual`` bus and zenoh on loopback, in simulated time (lockstep).  Durations are
+seconds of robot time; :mod:`services.timing` derives every window from them.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ class ServiceSettings(BaseSettings):
     port: int = Field(8080, ge=0, le=65535)
     token: SecretStr | None = Field(None, description="bearer token for motion/write endpoints")
 
-    can_interface: str | None = Field(None, description="python-can interface; unset: embedded")
+    can_interface: str | None = Field(
+        None, description="python-can interface; unset: in-process simulator"
+    )
     can_channel: str = "vcan0"
     can_bitrate: int = 1_000_000
     feedback_rate: int = Field(
@@ -36,8 +40,9 @@ class ServiceSettings(BaseSettings):
     heartbeat_timeout: float | None = Field(
         None,
         gt=0,
-        description="host seconds without a heartbeat = node lost; default 0.3 s on a robot, "
-        "1 s against a simulator (which shares a possibly loaded host)",
+        le=60,
+        description="robot seconds without a heartbeat = node lost (default 0.3; against an "
+        "external time-scaled simulator at least time_scale x sim_host_window_s)",
     )
 
     zenoh_mode: str = "peer"
@@ -48,8 +53,9 @@ class ServiceSettings(BaseSettings):
     mocap_stale_after: float | None = Field(
         None,
         gt=0,
-        description="host seconds without poses = stale; default 0.5 s on a robot, 1.5 s "
-        "against a simulator (it stalls with a loaded host, and so does its robot)",
+        le=60,
+        description="robot seconds without poses = stale (default 0.5; against an external "
+        "time-scaled simulator at least time_scale x sim_host_window_s)",
     )
     mocap_clock: Literal["source", "receive", "wall"] = Field(
         "source",
@@ -64,50 +70,52 @@ class ServiceSettings(BaseSettings):
     data_dir: Path = Path("swpc-data")
     kinematics_path: Path | None = Field(None, description="default: <data_dir>/kinematics.yaml")
 
-    time_scale: float = Field(1.0, gt=0, description="simulated-time speed-up (simulator only)")
+    time_scale: float = Field(
+        1.0,
+        gt=0,
+        le=100,
+        description="an external simulator (`swpc sim --time-scale k` on a CAN interface) runs "
+        "k times faster than real time: the service's clock runs at the same rate",
+    )
+    sim_speed: float = Field(
+        0.0,
+        ge=0,
+        le=1000,
+        description="in-process simulator: most simulated seconds per wall second (0: as fast "
+        "as the host can; 1: real time, to watch a run); it never faults when slower",
+    )
     sim_seed: int = 1
     sim_physics_dt: float = Field(
-        0.005, gt=0, le=0.01, description="embedded simulator: longest physics step, s"
+        0.005, gt=0, le=0.01, description="in-process simulator: longest physics step, s"
     )
-    sim_watchdog_host_s: float = Field(
+    sim_host_window_s: float = Field(
         1.0,
         gt=0,
         le=30.0,
-        description="against a simulator: the controllers' watchdog lasts at least this many "
-        "host seconds (the simulator shares a possibly loaded host; an emulated one, the lab's "
-        "VM, stalls for longer); a robot uses its config's limits.watchdog_ms",
+        description="against an external time-scaled simulator: the watchdog, heartbeat and "
+        "stale windows last at least this many host seconds (the simulator shares, or "
+        "emulates, the host); a robot and the in-process simulator use the robot's windows",
     )
     sim_mocap_latency: float = Field(
-        0.0, ge=0, le=5.0, description="embedded simulator: pose publication delay, robot s"
+        0.0, ge=0, le=5.0, description="in-process simulator: pose publication delay, robot s"
     )
 
     @property
-    def embedded(self) -> bool:
+    def in_process(self) -> bool:
+        """No CAN interface: the simulator runs in this process, in simulated time."""
         return self.can_interface is None
 
     @property
-    def simulated(self) -> bool:
-        """Talking to a simulator (embedded, or time-scaled) rather than a robot."""
-        return self.embedded or self.time_scale != 1.0
-
-    @property
-    def heartbeat_timeout_s(self) -> float:
-        if self.heartbeat_timeout is not None:
-            return self.heartbeat_timeout
-        return 1.0 if self.simulated else 0.3
-
-    @property
-    def mocap_stale_s(self) -> float:
-        if self.mocap_stale_after is not None:
-            return self.mocap_stale_after
-        return 1.5 if self.simulated else 0.5
+    def external_time_scale(self) -> float:
+        """Rate of the service clock against the host's (1 on a robot and in-process)."""
+        return 1.0 if self.in_process else self.time_scale
 
     @property
     def kinematics_file(self) -> Path:
         return self.kinematics_path or self.data_dir / "kinematics.yaml"
 
     def ensure_token(self) -> str:
-        """The configured token, or a freshly generated one (embedded demo)."""
+        """The configured token, or a freshly generated one."""
         if self.token is None:
             self.token = SecretStr(secrets.token_urlsafe(24))
         return self.token.get_secret_value()

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from simulators.physics import FloatArray
+from swpc_hw.clock import SimClock
 from swpc_hw.mocap import PoseEncoding, PoseSample, encode_pose, zenoh_encoding_name
 
 MAX_RATE_HZ = 2000.0
@@ -56,6 +57,20 @@ def truth_pose_key(robot: str) -> str:
 
 def truth_params_key(robot: str) -> str:
     return f"sim/{robot}/truth/params"
+
+
+def lockstep_put(clock: SimClock | None, key: str, pub: Any, payload: bytes) -> bool:
+    """``pub.put(payload)``, announced to a lockstep ``clock`` first (its receivers'
+    arrivals are then waited for before time moves on); False if the put failed."""
+    if clock is not None:
+        clock.expect(key)
+    try:
+        pub.put(payload)
+    except Exception:  # a closed session while stopping: the caller counts it
+        if clock is not None:
+            clock.arrived(key)  # nothing will arrive
+        return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -136,6 +151,8 @@ class MocapSim:
     session: Any = None
     keep_sent: int = 0
     """Keep the last ``keep_sent`` published samples in :attr:`sent` (0: none)."""
+    clock: SimClock | None = None
+    """Lockstep: announce every publication to this simulated clock."""
 
     def __post_init__(self) -> None:
         self.key = pose_key(self.robot)
@@ -209,10 +226,8 @@ class MocapSim:
                     ps.seq,
                     self.options.frame_id,
                 )
-            try:
-                self._pub.put(encode_pose(ps, self._encoding))
-            except Exception:  # a closed session while stopping: count, do not kill the sim
-                self.counters.put_errors += 1
+            if not lockstep_put(self.clock, self.key, self._pub, encode_pose(ps, self._encoding)):
+                self.counters.put_errors += 1  # a closed session while stopping
                 return
         self.counters.published += 1
 
@@ -232,6 +247,7 @@ class TruthPublisher:
     session: Any = None
     rate: float = 50.0
     params_period: float = 5.0
+    clock: SimClock | None = None
 
     def __post_init__(self) -> None:
         self.pose_key = truth_pose_key(self.robot)
@@ -264,11 +280,10 @@ class TruthPublisher:
         return False
 
     def publish_pose(self, doc: dict[str, Any]) -> None:
-        if self._pub is not None:
-            try:
-                self._pub.put(json.dumps(doc).encode())
-            except Exception:  # session closed while stopping
-                return
+        if self._pub is not None and not lockstep_put(
+            self.clock, self.pose_key, self._pub, json.dumps(doc).encode()
+        ):
+            return  # session closed while stopping
         self.published += 1
 
     def maybe_publish_params(self, now: float) -> None:

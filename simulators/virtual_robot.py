@@ -86,9 +86,11 @@ from simulators.robot_sim import (
     WheelDrive,
 )
 from simulators.virtual_controller import AxisModel, VirtualController
+from swpc_hw.clock import SimClock
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.zenoh_session import open_session
 
 HOMING_SPEED = 0.5
 """Steering speed while homing (rad/s), as the virtual controller's own axis model."""
@@ -247,9 +249,11 @@ class Simulator:
         options: SimOptions | None = None,
         own_bus: bool = False,
         own_session: bool = False,
+        clock: SimClock | None = None,
     ) -> None:
         self.truth = truth
         self.options = opt = options or SimOptions()
+        self.clock = clock
         self.bus = bus
         self.session = session
         self._own_bus = own_bus
@@ -278,8 +282,10 @@ class Simulator:
             for i, m in enumerate(truth.ids)
         ]
         self._by_node = {c.node: c for c in self.controllers}
-        self.mocap = MocapSim(opt.robot, opt.mocap, session)
-        self.truth_pub = TruthPublisher(opt.robot, self._params_doc(), session, rate=opt.truth_rate)
+        self.mocap = MocapSim(opt.robot, opt.mocap, session, clock=clock)
+        self.truth_pub = TruthPublisher(
+            opt.robot, self._params_doc(), session, rate=opt.truth_rate, clock=clock
+        )
         self.start_time = 0.0
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -296,6 +302,7 @@ class Simulator:
         self._rng = rng
         self.error: BaseException | None = None
         self._last_pose = self.robot.pose.copy()
+        self._t_exact: float | None = None
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -310,13 +317,20 @@ class Simulator:
         zenoh_connect: Sequence[str] = (),
         zenoh_config: str | None = None,
         options: SimOptions | None = None,
+        clock: SimClock | None = None,
     ) -> Simulator:
-        """Open its own bus and zenoh session (both closed by :meth:`stop`)."""
-        from swpc_hw.zenoh_session import open_session
+        """Open its own bus and zenoh session (both closed by :meth:`stop`).
 
+        ``clock``: run in lockstep on this simulated clock (in-process bus only)."""
         kwargs: dict[str, Any] = {}
         if bitrate is not None:
             kwargs["bitrate"] = bitrate
+        if clock is not None:
+            if interface != "virtual":
+                raise ValueError(
+                    f"a simulated clock needs the in-process bus ('virtual'), not {interface!r}"
+                )
+            kwargs["preserve_timestamps"] = True  # frames carry the simulated wall time
         bus = can.Bus(interface=interface, channel=channel, **kwargs)
         try:
             session = open_session(
@@ -325,7 +339,15 @@ class Simulator:
         except BaseException:
             bus.shutdown()
             raise
-        return cls(truth, bus=bus, session=session, options=options, own_bus=True, own_session=True)
+        return cls(
+            truth,
+            bus=bus,
+            session=session,
+            options=options,
+            own_bus=True,
+            own_session=True,
+            clock=clock,
+        )
 
     def _params_doc(self) -> dict[str, Any]:
         doc = kinematics_document(
@@ -361,7 +383,11 @@ class Simulator:
                 raise RuntimeError("the simulator was already started")
             self._started = True
             opt = self.options
-            self.start_time = time.time() if opt.start_time is None else opt.start_time
+            if self.clock is not None:
+                self.start_time = self.clock.now()  # the simulation's time is the clock's
+                self._t_exact = self.start_time
+            else:
+                self.start_time = time.time() if opt.start_time is None else opt.start_time
             self._wall0 = time.monotonic()
             self._epoch_offset = time.time() - time.monotonic()
             self._write_encoders()
@@ -369,7 +395,8 @@ class Simulator:
                 self._transmit(c.step(self.now))  # first call initialises its clocks
             self.truth_pub.maybe_publish_params(self.now)
             self._sample_mocap(self.now, self.now, self.robot.pose, np.zeros(3))
-            self._thread = threading.Thread(target=self._run, name="swpc-sim", daemon=True)
+            target = self._run if self.clock is None else self._run_lockstep
+            self._thread = threading.Thread(target=target, name="swpc-sim", daemon=True)
             self._thread.start()
 
     def stop(self) -> None:
@@ -396,7 +423,10 @@ class Simulator:
 
     @property
     def now(self) -> float:
-        """Current simulated time (s, on the simulated clock)."""
+        """Current simulated time (s, on the simulated clock; lockstep: the clock's own,
+        exactly)."""
+        if self._t_exact is not None:
+            return self._t_exact
         return self.start_time + self.robot.t
 
     # ------------------------------------------------------------------ injection
@@ -497,6 +527,45 @@ class Simulator:
         finally:
             self._cpu = time.thread_time() - cpu0
 
+    def _run_lockstep(self) -> None:
+        """The master of a :class:`SimClock` (lockstep, see :mod:`swpc_hw.clock`).
+
+        Each step: the frames the host sent up to ``t`` take effect at ``t``; the physics
+        advances to ``t_next`` (the next tick, or sooner when a controller or a waiting
+        participant is due), the controllers' frames and the poses go out stamped with it;
+        then the clock moves to ``t_next`` once everything sent has been delivered.
+        """
+        clock = self.clock
+        assert clock is not None
+        cpu0 = time.thread_time()
+        try:
+            while not self._stop.is_set():
+                if not clock.wait_for_demand(self._stop):
+                    continue
+                with self._lock:
+                    t = clock.now()
+                    msg = self.bus.recv(0)
+                    while msg is not None:
+                        self._on_message(msg)
+                        msg = self.bus.recv(0)
+                    due = min(c.next_due() for c in self.controllers)
+                    t_next = min(t + self.tick_dt(), max(due, t + 1e-4), clock.next_wake())
+                    t_next = max(t_next, math.nextafter(t, math.inf))
+                    self._tick(t_next - t, t_end=t_next)
+                    self._cpu = time.thread_time() - cpu0
+                clock.advance_to(t_next, self._stop)
+        except BaseException as exc:  # surfaced through .error; the thread ends
+            self.error = exc
+            if not self._stop.is_set():
+                raise
+        finally:
+            self._cpu = time.thread_time() - cpu0
+
+    def _stamp(self, t: float) -> float:
+        """The bus / pose time stamp of simulated time ``t`` (lockstep: the simulated
+        clock's wall time; real time: the host's wall clock now)."""
+        return self.clock.to_wall(t) if self.clock is not None else time.time()
+
     def _queue_frame(self, msg: can.Message) -> None:
         """Queue a received frame for the simulated time of its arrival.
 
@@ -547,7 +616,8 @@ class Simulator:
                 c._t = now  # the physics owns the axes: the firmware logic only, no dt
                 self._transmit(c.handle(frame, now))
 
-    def _tick(self, dt: float) -> None:
+    def _tick(self, dt: float, t_end: float | None = None) -> None:
+        """Advance by ``dt`` (``t_end``: the simulated time reached, exactly: lockstep)."""
         opt = self.options
         r = self.robot
         drives = []
@@ -561,6 +631,8 @@ class Simulator:
         t0 = self.now
         pose0 = r.pose.copy()
         r.step(dt, drives)
+        if t_end is not None:
+            self._t_exact = t_end
         now = self.now
         self._write_encoders(drives)
         self._sample_mocap(t0, now, pose0, r.twist)
@@ -602,18 +674,26 @@ class Simulator:
 
     def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
         host = self.options.mocap_clock == "host"
-        wall = time.time()  # this tick's moment: its feedback frames go out right after
+        wall = self._stamp(t1)  # this tick's moment: its feedback frames go out right after
+        scale = 1.0 if self.clock is not None else self.options.time_scale
         for tp in self.mocap.due_times(t0, t1):
             pose = se2_step(pose0, twist[:2], float(twist[2]), tp - t0) if tp > t0 else pose0
-            stamp = wall - (t1 - tp) / self.options.time_scale if host else tp
+            stamp = self._stamp(tp) if self.clock is not None else wall - (t1 - tp) / scale
+            stamp = stamp if host else tp
             self.mocap.sample(tp, pose, stamp=stamp)
         self.mocap.flush(t1)
 
     def _transmit(self, frames: Iterable[Frame]) -> None:
+        stamp = self.clock.to_wall(self.now) if self.clock is not None else 0.0
         for f in frames:
             try:
                 self.bus.send(
-                    can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False)
+                    can.Message(
+                        arbitration_id=f.arbitration_id,
+                        data=f.data,
+                        is_extended_id=False,
+                        timestamp=stamp,
+                    )
                 )
             except (can.CanError, OSError):
                 self._stats.tx_errors += 1

@@ -9,6 +9,7 @@ import time
 import pytest
 
 from services.mocap_ingest import MocapIngest
+from swpc_hw.clock import VirtualClock
 from swpc_hw.mocap import PoseEncoding, PoseSample, encode_cdr, encode_native, encode_pose
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
@@ -58,8 +59,8 @@ def test_configured_encoding_rejects_the_other() -> None:
 
 
 def test_staleness_and_clock_mapping() -> None:
-    now = [1000.0]
-    ing = MocapIngest(stale_after=0.1, clock=lambda: now[0])
+    clock = VirtualClock(start=1000.0)
+    ing = MocapIngest(stale_after=0.1, clock=clock)
     assert ing.is_stale()
     for i, delay in enumerate([0.004, 0.002, 0.009, 0.003]):
         ing.feed(native(10.0 + 0.01 * i), t_recv=990.0 + 0.01 * i + delay)
@@ -67,16 +68,16 @@ def test_staleness_and_clock_mapping() -> None:
     host = ing.samples()[:, 2]
     # each sample is mapped with the lower envelope known when it arrived
     assert host.tolist() == pytest.approx([990.004, 990.012, 990.022, 990.032])
-    now[0] = 990.03 + 0.003 + 0.05
-    assert not ing.is_stale()
-    now[0] += 0.2
-    assert ing.is_stale()
+    # age: clock time since the newest sample's receipt (990.033)
+    assert not ing.is_stale(now=990.03 + 0.003 + 0.05)
+    assert ing.is_stale(now=990.03 + 0.003 + 0.25)
+    assert ing.age() == pytest.approx(1000.0 - 990.033)
 
 
 @pytest.mark.parametrize(("mode", "bound"), [("source", 0.2), ("receive", 0.0011)])
 def test_clock_modes_with_a_source_clock_that_changes_rate(mode: str, bound: float) -> None:
     """A simulator whose clock slows down (time scale 5 -> 4): only receive time follows."""
-    ing = MocapIngest(time_scale=5.0, sync_window=0.5, clock_mode=mode)
+    ing = MocapIngest(source_rate=1 / 5.0, sync_window=0.5, clock_mode=mode)
     t_src, t_host = 0.0, 100.0
     errors = []
     for i in range(2000):  # 1 kHz of host time, source rate drops after 1 s
@@ -148,16 +149,14 @@ def test_wall_mode_maps_each_stamp_exactly_despite_a_late_publisher() -> None:
     """
     epoch = 1.7e9  # wall minus monotonic
     results: dict[str, float] = {}
-    now = [500.0]
     for mode in ("source", "wall"):
-        ing = MocapIngest(
-            clock_mode=mode, clock=lambda: now[0], wall_clock=lambda: now[0] + epoch
-        )
+        clock = VirtualClock(start=500.0, epoch=epoch)
+        ing = MocapIngest(clock_mode=mode, clock=clock)
         worst = 0.0
         for i in range(300):
             t_sample = 500.0 + 0.01 * i  # host monotonic moment of the sample
             delay = 0.012 + 0.011 * ((i * 7919) % 17) / 17
-            now[0] = t_sample + delay
+            clock.sleep_until(t_sample + delay)
             assert ing.feed(native(t_sample + epoch, x=0.001 * i))
             worst = max(worst, abs(ing.samples()[-1, 2] - t_sample))
         results[mode] = worst
@@ -167,11 +166,8 @@ def test_wall_mode_maps_each_stamp_exactly_despite_a_late_publisher() -> None:
 
 
 def test_wall_mode_reports_an_unsynchronised_source() -> None:
-    now = [100.0]
-    ing = MocapIngest(
-        clock_mode="wall", clock=lambda: now[0], wall_clock=lambda: now[0] + 1000.0,
-        max_clock_error=0.5,
-    )
+    clock = VirtualClock(start=100.0, epoch=1000.0)
+    ing = MocapIngest(clock_mode="wall", clock=clock, max_clock_error=0.5)
     assert ing.clock_problem() is None  # nothing received yet: staleness reports that
     ing.feed(native(1100.0 - 2.5))  # stamped 2.5 s behind this host's wall clock
     msg = ing.clock_problem()
@@ -179,7 +175,7 @@ def test_wall_mode_reports_an_unsynchronised_source() -> None:
     ing.feed(native(1100.0 - 0.1))
     assert ing.clock_problem() is None
     # the other modes do not trust the source clock, so they have nothing to report
-    other = MocapIngest(clock_mode="source", clock=lambda: now[0])
+    other = MocapIngest(clock_mode="source", clock=clock)
     other.feed(native(5.0))
     assert other.clock_problem() is None
 

@@ -1,13 +1,20 @@
-"""The calibration service through HTTP, against the in-process simulator (time-scaled).
+"""The calibration service through HTTP, against the in-process simulator (lockstep).
 
 The real app, the real CAN driver on python-can's virtual bus, the real simulator, zenoh
-on loopback.  A second bus on the same virtual channel records every frame, so the fault
-tests can check that zero-torque (FREE) and DISABLE frames reached every axis.
+on loopback, all on one simulated clock: a busy host slows these tests down and cannot
+change their outcome.  A second bus on the same virtual channel records every frame with
+its time on that clock, so the fault tests can check that zero-torque (FREE) and DISABLE
+frames reached every axis.  Waits on wall time here are only guards against a hang.
+
+The state machine's every transition, fault, abort and timeout is tested on a fake robot
+and a virtual clock in ``tests/test_state_machine.py``; here the paths that need the real
+driver, simulator and HTTP.  (That the driver reports a fault stop before its event
+callbacks run is checked from inside a callback in ``tests/test_driver.py``; here a
+callback held for long would hold the simulated clock itself.)
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import subprocess
 import sys
@@ -29,7 +36,7 @@ from services.api import create_app
 from services.runtime import Runtime
 from services.settings import ServiceSettings
 from swpc_hw.calibration.solver import solve_directory
-from swpc_hw.can import DriverEvent, Lifecycle, Severity
+from swpc_hw.clock import Clock
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
@@ -45,22 +52,23 @@ QUICK_PROTOCOL = {
 
 
 class Recorder(can.Listener):  # type: ignore[misc]
-    """Every frame on the bus as ``(host time, id, data)``: tuples of atomic values, which
-    the garbage collector stops tracking (a million ``can.Message`` kept for the module
-    made full collections pause the process for up to 2 s, enough to lose heartbeats)."""
+    """Every frame on the bus as ``(clock time, id, data)`` (its bus stamp on the service
+    clock): tuples of atomic values, which the garbage collector stops tracking."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
         self.frames: list[tuple[float, int, bytes]] = []
         self.lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             return
+        t = self.clock.from_wall(msg.timestamp)
         with self.lock:
-            self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
+            self.frames.append((t, msg.arbitration_id, bytes(msg.data)))
 
     def timed_since(self, t: float) -> list[tuple[float, int, object]]:
-        """``(host time, node, decoded frame)`` of the frames of our protocol recorded at or
+        """``(clock time, node, decoded frame)`` of the frames of our protocol sent at or
         after t."""
         with self.lock:
             frames = [f for f in self.frames if f[0] >= t]
@@ -92,11 +100,11 @@ def service(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Iterator[tuple[TestClient, Runtime, Recorder]]:
     data = tmp_path_factory.mktemp("svc")
-    settings = ServiceSettings(data_dir=data, time_scale=4.0, token=SecretStr(TOKEN))
+    settings = ServiceSettings(data_dir=data, token=SecretStr(TOKEN))
     app = create_app(settings)
     with TestClient(app) as client:
         rt: Runtime = app.state.runtime
-        rec = Recorder()
+        rec = Recorder(rt.clock)
         bus = can.Bus(interface="virtual", channel=rt.can_channel)
         notifier = can.Notifier(bus, [rec])
         try:
@@ -161,11 +169,13 @@ def start(client: TestClient, overrides: dict[str, Any] | None = None, **kw: Any
 
 
 def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recorder]) -> None:
+    """Every module, two angles each, short spins (the whole default protocol is what
+    ``make demo`` runs): DONE, accurate, installed, reproducible offline, recorded."""
     client, rt, _ = service
-    assert client.get("/health").json()["embedded_simulator"] is True
+    assert client.get("/health").json()["in_process_simulator"] is True
     assert client.get("/kinematics").status_code == 404
     t0 = time.monotonic()
-    run_id = start(client)
+    run_id = start(client, {"protocol": QUICK_PROTOCOL})
     assert client.get(f"/calibrations/{run_id}/result").status_code == 409
     st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
     wall = time.monotonic() - t0
@@ -175,9 +185,12 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
     truth = {m.id: m for m in PAPER_CALIBRATED.modules}
     for m in res["modules"]:
         t = truth[m["id"]]
-        for k in ("x_s", "y_s", "b", "r"):
-            assert abs(m[k] - getattr(t, k)) < 0.1e-3, (m["id"], k, m[k], getattr(t, k))
-        assert abs(m["beta"] - t.beta) < math.radians(0.05), (m["id"], m["beta"], t.beta)
+        for k in NAMES:
+            err, sd = m[k] - getattr(t, k), m["stddev"][k]
+            # near the truth (the nominal is 0.3-2 mm and 0.6-1.5 deg off), and within
+            # what the solver says of itself
+            assert abs(err) < (0.3e-3 if k != "beta" else math.radians(0.05)), (m["id"], k, err)
+            assert abs(err) < 4 * sd, (m["id"], k, err, sd)
         assert m["nominal"]["x_s"] == PAPER_NOMINAL.module(m["id"]).x_s
     assert len(res["table"]) == 20
     # the kinematic file in force is the result, and loads
@@ -216,7 +229,8 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
     metrics = client.get("/metrics").text
     assert 'swpc_runs{state="DONE"} 1.0' in metrics
     assert "swpc_pose_rate_hz" in metrics and 'swpc_can_frames_total{direction="rx"}' in metrics
-    print(f"\nend-to-end calibration through HTTP: {wall:.1f} s wall at time scale 4")
+    print(f"\nend-to-end calibration through HTTP: {wall:.1f} s wall, "
+          f"{rt.clock.now():.1f} s of robot time so far")
 
 
 # ---------------------------------------------------------------------- faults
@@ -252,7 +266,7 @@ def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed
     client, rt, rec = service
     run_id = start(client, SHORT)
     wait_spinning(client, run_id)
-    t = time.monotonic()
+    t = rt.clock.now()
     assert client.post(f"/calibrations/{run_id}/abort").status_code == 401
     r = client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
     assert r.status_code == 200
@@ -282,12 +296,12 @@ def test_motion_rates_are_least_squares_slopes() -> None:
 
 
 def yaw_rate(rt: Runtime, t0: float, t1: float) -> float:
-    """Robot-time yaw rate (rad/s) from the mocap poses received in [t0, t1] (host time):
-    the slope of a straight line through them."""
+    """Yaw rate (rad/s) from the mocap poses sampled in [t0, t1] (clock time): the slope of
+    a straight line through them."""
     p = rt.mocap.samples(since_host=t0)
     p = p[p[:, 2] <= t1]
     assert p.shape[0] >= 5, p.shape
-    return float(np.polyfit(p[:, 2], np.unwrap(p[:, 5]), 1)[0]) / rt.settings.time_scale
+    return float(np.polyfit(p[:, 2], np.unwrap(p[:, 5]), 1)[0])
 
 
 def home_and_release(rt: Runtime) -> None:
@@ -300,9 +314,9 @@ def home_and_release(rt: Runtime) -> None:
         io.activate()
         for m in io.unhomed():
             io.start_homing(m)
-        deadline = time.monotonic() + 10.0
-        while io.unhomed() and time.monotonic() < deadline:
-            time.sleep(0.01)
+        deadline = rt.clock.now() + 10.0  # robot time: the clock moves while we wait on it
+        while io.unhomed() and rt.clock.now() < deadline:
+            rt.clock.sleep(0.01)
         assert not io.unhomed()
     finally:
         io.release()
@@ -322,12 +336,12 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
     sim = rt.simulator
     assert sim is not None
     node = (rt.config.nodes or {})[1]
-    window = 0.5 / rt.settings.time_scale  # 0.5 s of robot time
+    window = 0.5  # s of robot time
     home_and_release(rt)  # (homing steers the modules, which would stop the robot too)
-    sim.push(torque=2.0)  # turns the free robot at 0.24 rad/s (robot time)
+    sim.push(torque=2.0)  # turns the free robot at 0.24 rad/s
     try:
-        time.sleep(4 * window)
-        t = time.monotonic()
+        rt.clock.sleep(4 * window)  # robot time passes while this thread waits on it
+        t = rt.clock.now()
         run_id = start(client, SHORT)
         wait_spinning(client, run_id, sweep=1.0)
     finally:
@@ -354,9 +368,8 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
         for m in (rt.config.nodes or {}).values()
     )
     assert wheels_braked < t_lock
-    # pushed until braked: 0.24 rad/s, read as 0.14-0.21 at the nominal time scale 4 (the
-    # in-process simulator achieves 2.5-3.5 beside the service)
-    assert yaw_rate(rt, wheels_braked - 2 * window, wheels_braked) > 0.05
+    # pushed until braked: 0.24 rad/s
+    assert yaw_rate(rt, wheels_braked - 2 * window, wheels_braked) > 0.2
     # still over the last 0.5 s (robot time) before the lock
     assert abs(yaw_rate(rt, t_lock - window, t_lock)) < rt.config.limits.rest_yaw_rate
 
@@ -368,7 +381,7 @@ def test_heartbeat_loss_mid_spin(
     sim = rt.simulator
     run_id = start(client, SHORT)
     wait_spinning(client, run_id)
-    t = time.monotonic()
+    t = rt.clock.now()
     sim.mute(3)  # type: ignore[union-attr]
     try:
         st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
@@ -378,108 +391,11 @@ def test_heartbeat_loss_mid_spin(
     assert_stopped(rec, t, rt)
 
 
-def test_fault_stop_fails_the_run_at_once_even_before_its_event_callback(
-    service: tuple[TestClient, Runtime, Recorder], installed: bytes
-) -> None:
-    """The driver stops on a fault before it runs the event callbacks; another slow
-    callback ahead of the run's must not keep the run spinning (or let its next command
-    be refused with only "cannot ... in state inactive" as the reason)."""
-    client, rt, rec = service
-    sim, drv = rt.simulator, rt.driver
-    assert drv is not None
-    release = threading.Event()
-
-    def slow(ev: DriverEvent) -> None:  # added before the run's RobotIO: runs first
-        if ev.severity is Severity.FAULT:
-            release.wait(20.0)
-
-    drv.add_event_callback(slow)
-    try:
-        run_id = start(client, SHORT)
-        wait_spinning(client, run_id)
-        t = time.monotonic()
-        sim.mute(3)  # type: ignore[union-attr]
-        deadline = t + 10.0
-        while drv.state is Lifecycle.ACTIVE and time.monotonic() < deadline:
-            time.sleep(0.005)
-        t_stop = time.monotonic()
-        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
-        t_failed = time.monotonic()
-    finally:
-        release.set()
-        sim.mute(3, False)  # type: ignore[union-attr]
-        drv.remove_event_callback(slow)
-    assert st["state"] == "FAILED", st
-    assert st["reason"].startswith("robot fault: module 3 (node 3): no heartbeat"), st
-    assert t_failed - t_stop < 2.0  # not after the 20 s the callbacks are held
-    assert_stopped(rec, t, rt)
-
-
-def test_mocap_stale_mid_spin(
-    service: tuple[TestClient, Runtime, Recorder], installed: bytes
-) -> None:
-    client, rt, rec = service
-    mocap = rt.simulator.mocap  # type: ignore[union-attr]
-    opts = mocap.options
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = time.monotonic()
-    mocap.options = dataclasses.replace(opts, dropout=1.0)
-    try:
-        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
-    finally:
-        mocap.options = opts
-    assert st["state"] == "FAILED" and "motion capture stale" in st["reason"]
-    assert_stopped(rec, t, rt)
-
-
-def test_precheck_refuses_a_mocap_clock_off_the_host_clock(
-    service: tuple[TestClient, Runtime, Recorder], installed: bytes
-) -> None:
-    """Clock mode 'wall' trusts the pose stamps: a source 30 s off must not start a run."""
-    client, rt, rec = service
-    mocap = rt.simulator.mocap  # type: ignore[union-attr]
-    opts, mode = mocap.options, rt.mocap.clock_mode
-    rt.mocap.clock_mode = "wall"
-    try:
-        deadline = time.monotonic() + 5.0  # the simulator stamps this host's wall clock
-        n0 = rt.mocap.counters.accepted
-        while rt.mocap.counters.accepted < n0 + 10 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert rt.mocap.counters.accepted >= n0 + 10
-        assert rt.mocap.clock_problem() is None
-        mocap.options = dataclasses.replace(opts, clock_offset=30.0)
-        t = time.monotonic()
-        run_id = start(client, SHORT)
-        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
-    finally:
-        mocap.options = opts
-        rt.mocap.clock_mode = mode
-    assert st["state"] == "FAILED", st
-    assert "precheck failed" in st["reason"] and "off the host's wall clock" in st["reason"]
-    driven = [
-        d for _, d in rec.decoded_since(t)
-        if isinstance(d, codec.SetControl) and d.mode != ControlMode.FREE
-    ]
-    assert driven == []  # nothing was commanded to move
-
-
-def test_step_timeout(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
-    client, rt, rec = service
-    t = time.monotonic()
-    run_id = start(
-        client, {"protocol": {"modules": [2], "sweep_deg": 3600}, "limits": {"step_timeout": 4}}
-    )
-    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
-    assert st["state"] == "FAILED" and "step timeout" in st["reason"], st
-    assert_stopped(rec, t, rt)
-
-
 def test_bus_off_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
     client, rt, rec = service
     run_id = start(client, SHORT)
     wait_spinning(client, run_id)
-    t = time.monotonic()
+    t = rt.clock.now()
     with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
         bus.send(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))  # CAN_ERR_BUSOFF
     st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
@@ -526,41 +442,3 @@ def test_restart_lists_past_runs_and_fails_interrupted_ones(tmp_path: Path) -> N
     assert got is not None and got[0]["reason"] == "service restarted during the run"
     got = store.get("a1")
     assert got is not None and got[1] == {"run": "a1", "modules": []}
-
-
-def test_result_outside_tolerance_is_reported_not_installed(
-    service: tuple[TestClient, Runtime, Recorder], installed: bytes
-) -> None:
-    client, rt, _ = service
-    quick = {
-        "protocol": QUICK_PROTOCOL,
-        "tolerances": {"position": 1e-9},  # no real result is this good
-    }
-    run_id = start(client, quick)
-    st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
-    assert st["state"] == "DONE" and st["installed"] is False, (
-        st["errors"], data_summary(rt, run_id)
-    )
-    res = client.get(f"/calibrations/{run_id}/result").json()
-    assert res["within_tolerance"] is False and res["kinematics_path"] is None
-    assert Path(res["run_kinematics_path"]).exists()  # the result itself is kept with the run
-    # the `installed` fixture checks that the file in force is untouched
-
-
-def test_install_always_overrides_the_tolerance(
-    service: tuple[TestClient, Runtime, Recorder], installed: bytes
-) -> None:
-    client, rt, _ = service
-    quick = {
-        "protocol": QUICK_PROTOCOL,
-        "tolerances": {"position": 1e-9},
-    }
-    run_id = start(client, quick, install="always")
-    st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
-    assert st["state"] == "DONE" and st["installed"] is True, st["errors"]
-    path = rt.settings.kinematics_file
-    backups = sorted(path.parent.glob(f"{path.stem}.*{path.suffix}"))
-    assert backups and backups[-1].read_bytes() == installed  # the previous file, kept
-    k = load_kinematics(path)
-    assert k.extra["provenance"]["run"] == run_id
-    path.write_bytes(installed)  # restore for the fixture's check

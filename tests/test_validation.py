@@ -9,7 +9,6 @@ and the calibrated file, and asserts the calibrated errors are >= 95 % smaller.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -161,21 +160,20 @@ def test_driver_odometry_aligns_unsynchronised_modules_on_the_counter_clock() ->
     stays ~0."""
     params = PAPER_CALIBRATED
     drv = CanDriver(CanConfig(feedback_rate_hz=100))  # never configured: only its callbacks
-    feed = DriverOdometry(drv, params, time_scale=4.0)
+    feed = DriverOdometry(drv, params)
     A = params.arrays()
     rate, v = 100.0, 0.2
-    host0 = time.monotonic()
-    wall_minus_mono = time.time() - time.monotonic()
+    t0 = 5000.0  # the driver clock's time of the first frame
     skew = {1: 0.002, 2: 0.0, 3: 0.0, 4: 0.0}  # module 1 samples 2 ms after the others
     for k in range(300):
         # after the first 10 (on time), frames arrive 10 at a time at the end of their
-        # burst (host s = robot s / 4)
-        burst = (k if k < 10 else math.ceil((k + 1) / 10) * 10) / rate / 4.0
+        # burst (their bus stamps on the driver's clock)
+        burst = (k if k < 10 else math.ceil((k + 1) / 10) * 10) / rate
         for i, m in enumerate(params.ids):
             t = k / rate + skew[m]
-            host = host0 + burst + skew[m] / 4.0
+            arrival = t0 + burst + skew[m]
             s = FeedbackSample(
-                t=host, t_bus=host + wall_minus_mono, counter=k & 0xFF, seq=k,
+                t=arrival, t_bus=arrival + 1.7e9, counter=k & 0xFF, seq=k,
                 theta_hat=math.pi - A.beta[i],  # trailing for +x: u = (-1, 0)
                 psi=-v * t / A.r[i],
             )
@@ -189,30 +187,28 @@ def test_driver_odometry_aligns_unsynchronised_modules_on_the_counter_clock() ->
     # readings 0..298 of module 1 (299 has no bracket yet), the others interpolated
     assert tr[-1, 1] == pytest.approx(v * 298 / rate, abs=1e-6)  # float clocks: ~0.1 us
     assert abs(tr[-1, 2]) < 1e-7 and abs(tr[-1, 3]) < 1e-7
-    # ~0: bus stamps are wall-clock floats (~1.7e9 s, ulp 2.4e-7 s, x time scale 4 of
-    # robot time) and readings 10 ms apart at 0.2 m/s: v * 1e-6 / 0.01 = 2e-5 m/s of jitter;
-    # a slipping wheel reads > 0.02 m/s (test_odometry)
+    # ~0 (float clocks); a slipping wheel reads > 0.02 m/s (test_odometry)
     assert max(feed.slip) < 1e-4
 
 
 # --------------------------------------------------------------------------- end to end
 
 
-def test_square_drive_on_the_embedded_simulator_calibrated_beats_nominal_by_95_percent() -> None:
+def test_square_drive_on_the_in_process_simulator_calibrated_beats_nominal_by_95_percent() -> (
+    None
+):
     """The short variant of ``swpc validate``: a 0.3 m square counter-clockwise (the
-    command drives both ways), 1 run per file, at time scale 2 (as the command; lag spikes
-    at 4 on a loaded host make casters slip), through CAN and zenoh; errors of the
-    calibrated file are >= 95 % smaller."""
-    from services.cli.validate import run_embedded
+    command drives both ways), 1 run per file, on the in-process simulator in lockstep,
+    through CAN and zenoh; errors of the calibrated file are >= 95 % smaller."""
+    from services.cli.validate import run_in_process
 
     calibrated = load_robot(DEMO_FILE) if DEMO_FILE.exists() else PAPER_CALIBRATED
     opt = SquareOptions(
         side=0.3, runs=1, yaw_rate=0.6, yaw_accel=0.8, settle=0.4, directions=("ccw",)
     )
     lines: list[str] = []
-    rep = run_embedded(
-        [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, time_scale=2.0,
-        log=lines.append,
+    rep = run_in_process(
+        [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, log=lines.append
     )
     print("\n".join(lines))
     print(rep.table())

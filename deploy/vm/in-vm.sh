@@ -195,8 +195,7 @@ calibration_through_simulator() {
         > "$OUT/sim.log" 2>&1 &
     sim_pid=$!
     SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL=vcan0 SWPC_ZENOH_CONNECT="[\"$ep\"]" \
-    SWPC_TIME_SCALE="$ts" SWPC_HEARTBEAT_TIMEOUT="$window" SWPC_MOCAP_STALE_AFTER="$window" \
-    SWPC_SIM_WATCHDOG_HOST_S="$window" \
+    SWPC_TIME_SCALE="$ts" SWPC_SIM_HOST_WINDOW_S="$window" \
     SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
     SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
         swpc serve > "$OUT/service.log" 2>&1 &

@@ -122,19 +122,18 @@ printf '%-16s %-4s %s\n' decode "$( ((decode_status)) && echo FAIL || echo PASS)
     "($(fmt "$t_dec" "$EPOCHREALTIME") s, on the host)" >> "$OUT/summary.txt"
 
 # The in-process reference: the same calibration configuration here, `swpc serve` on its
-# embedded simulator (python-can virtual bus, same truth, seed, mocap noise, feedback rate,
-# physics step, protocol overrides), driven by the same HTTP client, after the VM (run
-# concurrently, it took a host core from the emulation and the VM's timing tests
-# failed).  Poses in clock mode "wall", as in the VM.
+# in-process simulator (python-can virtual bus, same truth, seed, mocap noise, feedback
+# rate, physics step, protocol overrides; simulated time in lockstep, the robot's own
+# windows), driven by the same HTTP client, after the VM (run concurrently, it took a host
+# core from the emulation).
 ref="$OUT/in-process"
 run_reference() {
-    local ref_ts="${SWPC_VM_REF_TIME_SCALE:-1}" ref_port="${SWPC_VM_REF_PORT:-18080}" pid
+    local ref_port="${SWPC_VM_REF_PORT:-18080}" pid
     mkdir -p "$ref"
-    echo "in-process reference: swpc serve (embedded simulator), time scale $ref_ts"
-    SWPC_TIME_SCALE="$ref_ts" SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
+    echo "in-process reference: swpc serve (in-process simulator, lockstep)"
+    SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
     SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" SWPC_SIM_PHYSICS_DT="$SWPC_VM_PHYSICS_DT" \
-    SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" SWPC_HEARTBEAT_TIMEOUT=3 \
-    SWPC_MOCAP_STALE_AFTER=3 SWPC_MOCAP_CLOCK=wall \
+    SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" \
         "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
     pid=$!
     "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py run \

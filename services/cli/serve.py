@@ -1,7 +1,8 @@
 """``swpc serve``: run the calibration service (FastAPI on uvicorn).
 
-With no CAN settings (``SWPC_CAN_INTERFACE`` unset) it runs on the embedded default:
-the simulator in-process on a virtual bus and zenoh on loopback.  Settings come from
+With no CAN settings (``SWPC_CAN_INTERFACE`` unset) it runs on the in-process simulator:
+the virtual robot in the service's process on a virtual bus, zenoh on loopback, in
+simulated time.  Settings come from
 ``SWPC_*`` environment variables, an env file (``--env-file``) and the flags below.
 """
 
@@ -17,7 +18,14 @@ def register(sub: Any) -> None:
     p.add_argument("--port", type=int, help="port (default 8080)")
     p.add_argument("--env-file", help="file of SWPC_* settings")
     p.add_argument("--data-dir", help="runs, datasets, logs, kinematic file")
-    p.add_argument("--time-scale", type=float, help="embedded simulator speed-up")
+    p.add_argument(
+        "--time-scale", type=float, help="time scale of an external simulator (swpc sim)"
+    )
+    p.add_argument(
+        "--sim-speed",
+        type=float,
+        help="in-process simulator: most simulated s per wall s (default 0: unbounded)",
+    )
     p.add_argument("--log-level", default="info")
     p.set_defaults(func=run)
 
@@ -29,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from services.settings import ServiceSettings
 
     overrides: dict[str, Any] = {}
-    for key in ("host", "port", "data_dir", "time_scale"):
+    for key in ("host", "port", "data_dir", "time_scale", "sim_speed"):
         value = getattr(args, key)
         if value is not None:
             overrides[key] = value

@@ -6,18 +6,18 @@ the robot config's nominal, i.e. the paper's design) and once with ``--kinematic
 used for both control and odometry; prints the Table-5-like comparison and writes
 ``validation.txt``, ``validation.json`` and ``validation.png`` (Figure-13-like paths).
 
-With no CAN interface it runs on the embedded simulator (like ``swpc serve``: in-process on a
-python-can ``virtual`` bus, zenoh on loopback; truth = paper Table 4, default noise), truth
-from ``sim/<robot>/truth/pose``.  With ``--can-interface`` it drives the robot on that bus and
-takes the truth from the motion-capture pose key ``mocap/<robot>/pose`` over zenoh.
+With no CAN interface it runs on the in-process simulator (like ``swpc serve``: a
+python-can ``virtual`` bus, zenoh on loopback, simulated time in lockstep; truth = paper
+Table 4, default noise), truth from ``sim/<robot>/truth/pose``.  With ``--can-interface`` it
+drives the robot on that bus and takes the truth from the motion-capture pose key
+``mocap/<robot>/pose`` over zenoh.  The CAN driver's settings come from
+:func:`services.timing.driver_config`, as the service's (``SWPC_*`` settings apply).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import math
-import sys
 import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from services.robot_config import RobotConfig
+    from services.settings import ServiceSettings
     from swpc_hw.can.driver import CanDriver
     from swpc_hw.model import RobotParams
     from swpc_hw.validation import SquareOptions, ValidationReport
@@ -51,13 +52,8 @@ def register(sub: Any) -> None:
     p.add_argument("--directions", nargs="+", choices=["cw", "ccw"], default=["cw", "ccw"])
     p.add_argument("--out", default="swpc-validation", help="output directory")
     p.add_argument("--robot-config", help="robot config YAML (default: the paper's robot)")
-    p.add_argument(
-        "--time-scale", type=float, default=2.0,
-        help="embedded simulator speed-up (default 2: lag spikes of a loaded host at 4 make "
-        "the casters slip now and then; ignored on a robot)",
-    )
-    p.add_argument("--seed", type=int, default=1, help="embedded simulator seed")
-    p.add_argument("--can-interface", help="python-can interface (unset: embedded simulator)")
+    p.add_argument("--seed", type=int, default=1, help="in-process simulator seed")
+    p.add_argument("--can-interface", help="python-can interface (unset: in-process simulator)")
     p.add_argument("--can-channel", default="vcan0")
     p.add_argument("--can-bitrate", type=int, default=1_000_000)
     p.add_argument("--zenoh-mode", default="peer")
@@ -66,7 +62,7 @@ def register(sub: Any) -> None:
     p.add_argument("--zenoh-config", help="zenoh JSON5 config file")
     p.add_argument(
         "--truth-key",
-        help="zenoh key of the true pose (default: sim/<robot>/truth/pose embedded, "
+        help="zenoh key of the true pose (default: sim/<robot>/truth/pose in-process, "
         "mocap/<robot>/pose on a robot)",
     )
     p.set_defaults(func=run)
@@ -74,38 +70,16 @@ def register(sub: Any) -> None:
 
 # --------------------------------------------------------------------------- shared set-up
 
-EMBEDDED_FEEDBACK_HZ = 100
-"""Feedback rate against the in-process simulator: at a time scale of 4 the host handles
-800 feedback cycles per second, which with 200 Hz starves the simulator thread of the GIL
-(it lags, and late commands make the casters slip)."""
+IN_PROCESS_FEEDBACK_HZ = 100
+"""Feedback rate against the in-process simulator (its CPU: the odometry is as good at 100
+Hz for a 0.2 m/s square)."""
 
 
-def driver_config_for(
-    config: RobotConfig, *, interface: str, channel: str, bitrate: int, time_scale: float,
-    simulated: bool,
-    feedback_rate_hz: int = 200,
-) -> Any:
-    """The CAN driver settings the service uses (``services.runtime``), for this robot."""
-    from swpc_hw.can.config import CanConfig
+def validation_settings(**overrides: Any) -> ServiceSettings:
+    """The service settings (``SWPC_*`` environment) with the command's flags on top."""
+    from services.settings import ServiceSettings
 
-    lim = config.limits
-    watchdog_ms = lim.watchdog_ms
-    if simulated:  # >= 1 s of host time against a (time-scaled, host-sharing) simulator
-        watchdog_ms = max(watchdog_ms, math.ceil(1000.0 * time_scale))
-    return CanConfig(
-        interface=interface,
-        channel=channel,
-        bitrate=bitrate,
-        modules=dict(config.nodes or {}),
-        watchdog_timeout_ms=watchdog_ms,
-        # 20 ms of robot time, as the service (services.runtime)
-        refresh_period_s=min(0.02 / min(1.0, time_scale), watchdog_ms / 4000.0 / time_scale),
-        heartbeat_loss_periods=10 if simulated else 3,
-        max_torque=(lim.max_wheel_torque, lim.max_wheel_torque),
-        max_velocity=(lim.max_steer_velocity, lim.max_wheel_velocity),
-        activate_timeout_s=5.0 if simulated else 1.0,
-        feedback_rate_hz=feedback_rate_hz,
-    )
+    return ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
 
 
 def drive_files(
@@ -115,11 +89,11 @@ def drive_files(
     files: Sequence[tuple[str, RobotParams]],
     options: SquareOptions,
     *,
-    time_scale: float = 1.0,
     mocap_truth: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> ValidationReport:
-    """Home, then run :func:`swpc_hw.validation.validate` on a configured driver."""
+    """Home, then run :func:`swpc_hw.validation.validate` on a configured driver (on the
+    driver's clock; in lockstep the calling thread is a participant)."""
     from swpc_hw.validation import (
         SquareDrive,
         ZenohTruth,
@@ -129,14 +103,17 @@ def drive_files(
         validate,
     )
 
-    truth = ZenohTruth(session, truth_key, mocap_decoder if mocap_truth else sim_truth_decoder)
+    truth = ZenohTruth(
+        session,
+        truth_key,
+        mocap_decoder if mocap_truth else sim_truth_decoder,
+        clock=driver.clock,
+    )
     try:
         truth.wait_first(10.0)
         try:
             prepare_driver(driver, timeout=10.0)
-            drive = SquareDrive(
-                driver, truth, files[0][1], options, time_scale=time_scale, log=log
-            )
+            drive = SquareDrive(driver, truth, files[0][1], options, log=log)
             return validate(drive, files)
         finally:
             with contextlib.suppress(Exception):
@@ -145,45 +122,51 @@ def drive_files(
         truth.close()
 
 
-def run_embedded(
+def run_in_process(
     files: Sequence[tuple[str, RobotParams]],
     options: SquareOptions,
     *,
-    time_scale: float = 2.0,
     seed: int = 1,
     config: RobotConfig | None = None,
+    settings: ServiceSettings | None = None,
     log: Callable[[str], None] | None = None,
 ) -> ValidationReport:
-    """The drive against the embedded simulator (truth: paper Table 4, default noise)."""
-    from services.in_process_simulator import embedded_simulator
+    """The drive against the in-process simulator in lockstep (truth: paper Table 4,
+    default noise); a busy host slows it down, never changes it."""
+    from services.in_process_simulator import in_process_simulator
     from services.robot_config import RobotConfig
+    from services.timing import driver_config
     from simulators.mocap_sim import truth_pose_key
     from swpc_hw.can.driver import CanDriver
+    from swpc_hw.clock import SimClock
     from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
     cfg = config or RobotConfig()
+    st = settings or validation_settings(feedback_rate=IN_PROCESS_FEEDBACK_HZ)
     channel = f"swpc-validate-{uuid.uuid4().hex[:8]}"
     ep = free_tcp_endpoint()
-    switch = sys.getswitchinterval()
-    sys.setswitchinterval(0.001)  # as the service: command/feedback threads hand off fast
+    clock = SimClock(max_speed=st.sim_speed)
     session = open_session(listen=[ep])
     sim = None
     driver = None
     try:
-        sim = embedded_simulator(
-            config=cfg, channel=channel, zenoh_endpoints=[ep], time_scale=time_scale, seed=seed
-        )
         driver = CanDriver(
-            driver_config_for(cfg, interface="virtual", channel=channel, bitrate=1_000_000,
-                              time_scale=time_scale, simulated=True,
-                              feedback_rate_hz=EMBEDDED_FEEDBACK_HZ)
+            driver_config(st, cfg, interface="virtual", channel=channel), clock=clock
         )
         driver.configure()
-        sim.start()
-        report = drive_files(
-            driver, session, truth_pose_key(cfg.robot), files, options,
-            time_scale=time_scale, log=log,
+        sim = in_process_simulator(
+            config=cfg,
+            channel=channel,
+            zenoh_endpoints=[ep],
+            clock=clock,
+            seed=seed,
+            feedback_rate_hz=st.feedback_rate,
         )
+        sim.start()
+        with clock.participant():
+            report = drive_files(
+                driver, session, truth_pose_key(cfg.robot), files, options, log=log
+            )
         if sim.error is not None:
             raise RuntimeError(f"simulator failed: {sim.error!r}")
         return report
@@ -192,9 +175,9 @@ def run_embedded(
             driver.shutdown()
         if sim is not None:
             sim.stop()
+        clock.close()
         with contextlib.suppress(Exception):
             session.close()
-        sys.setswitchinterval(switch)
 
 
 # --------------------------------------------------------------------------- command
@@ -232,22 +215,26 @@ def run(args: argparse.Namespace) -> int:
         print(msg, flush=True)
 
     if args.can_interface is None:
-        log(f"swpc validate: embedded simulator (time scale {args.time_scale:g}, "
-            f"seed {args.seed}); files: {', '.join(lab for lab, _ in files)}")
-        report = run_embedded(
-            files, options, time_scale=args.time_scale, seed=args.seed, config=config, log=log
-        )
+        log(f"swpc validate: in-process simulator (seed {args.seed}); "
+            f"files: {', '.join(lab for lab, _ in files)}")
+        report = run_in_process(files, options, seed=args.seed, config=config, log=log)
     else:
+        from services.timing import driver_config
         from swpc_hw.can.driver import CanDriver
+        from swpc_hw.clock import SystemClock
         from swpc_hw.zenoh_session import open_session
 
+        st = validation_settings(
+            can_interface=args.can_interface, can_channel=args.can_channel,
+            can_bitrate=args.can_bitrate,
+        )
         session = open_session(
             mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
             config_file=args.zenoh_config,
         )
         driver = CanDriver(
-            driver_config_for(config, interface=args.can_interface, channel=args.can_channel,
-                              bitrate=args.can_bitrate, time_scale=1.0, simulated=False)
+            driver_config(st, config, interface=args.can_interface, channel=args.can_channel),
+            clock=SystemClock(rate=st.external_time_scale),
         )
         try:
             driver.configure()

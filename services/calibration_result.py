@@ -1,0 +1,105 @@
+"""What happens to a run's data after the motion: solve it, judge it, install it, report it.
+
+Kept apart from the state machine (:mod:`services.calibration_run`), which calls these in
+its SOLVE and WRITE states.  Everything here is a plain function of the run's data and
+files: ``swpc solve <run>/dataset`` reproduces :func:`solve_run` exactly, because both
+solve what was written.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.mcap_export import write_mcap
+from services.robot_config import RobotConfig, Tolerances
+from swpc_hw.calibration.report import result_rows
+from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
+from swpc_hw.dataset import Dataset, load_dataset, save_dataset
+from swpc_hw.errors import CalibrationError
+from swpc_hw.kinematic_file import save_kinematics
+
+PARAMS = ("x_s", "y_s", "beta", "b", "r")
+
+
+def solve_run(run_dir: Path, dataset: Dataset) -> CalibrationResult:
+    """Write the run's dataset (and its MCAP twin, for Foxglove) under ``run_dir``, then
+    solve what was written.  A solver failure names the kept dataset and the command that
+    reproduces it."""
+    directory = run_dir / "dataset"
+    save_dataset(directory, dataset)
+    write_mcap(run_dir / "run.mcap", dataset)
+    try:
+        return solve(load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory))
+    except CalibrationError as exc:
+        raise CalibrationError(
+            f"{exc} (the run's data is kept: `swpc solve {directory}` reproduces this)"
+        ) from exc
+
+
+def within_tolerance(result: CalibrationResult, tol: Tolerances) -> bool:
+    """Every std dev known and within its tolerance (x_s, y_s, b: position; beta; r)."""
+    sd = result.stddev_array()
+    if not np.all(np.isfinite(sd)):
+        return False  # an unknown uncertainty is never within tolerance
+    return bool(
+        np.all(sd[:, [0, 1, 3]] <= tol.position)
+        and np.all(sd[:, 2] <= tol.beta)
+        and np.all(sd[:, 4] <= tol.radius)
+    )
+
+
+def install_kinematics(path: Path, result: CalibrationResult, extra: dict[str, Any]) -> Path | None:
+    """Install the result as the kinematic file in force at ``path`` (atomic replace); the
+    file it replaces is kept beside it as ``<stem>.<UTC time><suffix>``, whose path is
+    returned (None when there was none)."""
+    backup = None
+    if path.exists():
+        stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
+        backup = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
+        shutil.copy2(path, backup)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_kinematics(path, result.params, extra=extra)
+    return backup
+
+
+def result_document(
+    run_id: str,
+    result: CalibrationResult,
+    config: RobotConfig,
+    *,
+    run_dir: Path,
+    kinematics_path: Path,
+    within: bool,
+    installed: bool,
+) -> dict[str, Any]:
+    """``GET /calibrations/{id}/result``: per module nominal, estimate and std dev, the
+    quality figures, a human table, and where the files are."""
+    modules = []
+    for m in result.params.modules:
+        nom = config.nominal.module(m.id)
+        std = m.stddev
+        modules.append(
+            {
+                "id": m.id,
+                **{k: getattr(m, k) for k in PARAMS},
+                "stddev": None if std is None else std.model_dump(),
+                "nominal": {k: getattr(nom, k) for k in PARAMS},
+            }
+        )
+    header = ["module", "param", "unit", "nominal", "estimate", "std dev"]
+    return {
+        "run": run_id,
+        "modules": modules,
+        "quality": result.quality_document(),
+        "table": [dict(zip(header, row, strict=True)) for row in result_rows(result)],
+        "within_tolerance": within,
+        "installed": installed,
+        "kinematics_path": str(kinematics_path) if installed else None,
+        "run_kinematics_path": str(run_dir / "kinematics.yaml"),
+        "dataset_dir": str(run_dir / "dataset"),
+    }
