@@ -29,7 +29,8 @@ import can
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode
 from simulators.mocap_sim import MocapOptions
-from simulators.virtual_robot import SimOptions, Simulator
+from simulators.sim_options import SimOptions
+from simulators.virtual_robot import Simulator
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 

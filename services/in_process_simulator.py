@@ -19,7 +19,8 @@ from collections.abc import Sequence
 
 from services.robot_config import RobotConfig
 from simulators.mocap_sim import MocapOptions
-from simulators.virtual_robot import SimOptions, Simulator
+from simulators.sim_options import SimOptions
+from simulators.virtual_robot import Simulator
 from swpc_hw.clock import SimClock
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED

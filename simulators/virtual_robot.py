@@ -5,16 +5,16 @@
 any python-can bus) and for the motion-capture system (poses over zenoh, see
 :mod:`simulators.mocap_sim`); :class:`simulators.robot_sim.RobotSim` moves the hidden true
 robot under what the controllers do.  It runs in one thread started by :meth:`start` and
-ended by :meth:`stop` (idempotent), on a bus and a zenoh session that the caller gives (the
-embedded case: python-can ``virtual``) or that it opens itself (:meth:`Simulator.open`,
-used by ``swpc sim``).
+ended by :meth:`stop` (idempotent), on a bus and a zenoh session that the caller gives or
+that it opens itself (:meth:`Simulator.open`, used by ``swpc sim`` and by the service's
+in-process simulator).
 
 Every tick of simulated time (``physics_dt``, at most 5 ms by default, and never longer than
 the fastest feedback period the host has set, so 2 ms at 500 Hz):
 
 1. each module's axes are turned into drives from their controller's state and mode
-   (:func:`axis_drive`): FREE/disabled/fault -> passive, HOLD -> locked (a held wheel
-   is braked), POSITION -> a first-order loop on the true position
+   (:func:`simulators.axis_drives.axis_drive`): FREE/disabled/fault -> passive, HOLD ->
+   locked (a held wheel is braked), POSITION -> a first-order loop on the true position
    (time constant ``position_tau``, clamped to MaxVelocity), VELOCITY -> the setpoint,
    TORQUE -> a wheel torque (a steering torque drives the steering through ``J dv/dt =
    tau - c v`` of the controller's axis), homing -> the steering turns at 0.5 rad/s;
@@ -34,9 +34,17 @@ A received frame takes effect at the first tick at or after the simulated time o
 arrival (from its bus time stamp), never earlier: commands act within one tick, and a
 simulation that lags and catches up does not shorten the watchdog.
 
-Time scale
-----------
-With ``time_scale = s`` the simulated clock runs ``s`` times faster than wall time:
+Time
+----
+On a :class:`swpc_hw.clock.SimClock` (``clock=``; the service's in-process simulator, the
+validation drive) the simulator is the clock's *master*, in lockstep: it handles the
+frames sent up to the current time, steps the physics to the next instant anything is due
+(a tick, a controller's frame, a waiting participant), sends the frames and poses stamped
+with that instant, and moves the clock on once everything sent has been delivered.  A
+starved host slows the run down and never changes it: the same seed gives the same run.
+
+Otherwise (``swpc sim``, a separate process on a CAN interface) it runs in real time,
+scaled: with ``time_scale = s`` the simulated clock runs ``s`` times faster than wall time:
 ``t_sim = start_time + s (t_wall - t_wall_at_start)``.  Everything is in simulated time:
 feedback rate, heartbeat period, watchdog timeout, homing duration, mocap rate and
 latency.  A client matches it by dividing its own periods by ``s`` (e.g. the driver's
@@ -67,175 +75,33 @@ import math
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, replace
 from typing import Any
 
 import can
 import numpy as np
 
 from firmware_protocol import codec
-from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Frame
-from simulators.mocap_sim import MocapOptions, MocapSim, TruthPublisher
+from firmware_protocol.codec import Axis, ErrorFlag, Frame
+from simulators.axis_drives import axis_drive, module_drive, quantize
+from simulators.mocap_sim import MocapSim, TruthPublisher
 from simulators.physics import FloatArray, se2_step
 from simulators.robot_sim import (
     ModuleDrive,
-    PhysicsOptions,
     RobotSim,
     SteerDrive,
     WheelDrive,
 )
-from simulators.virtual_controller import AxisModel, VirtualController
+from simulators.sim_options import SimOptions, SimStats
+from simulators.virtual_controller import VirtualController
 from swpc_hw.clock import SimClock
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.zenoh_session import open_session
 
-HOMING_SPEED = 0.5
-"""Steering speed while homing (rad/s), as the virtual controller's own axis model."""
-
-
-@dataclass(frozen=True)
-class SimOptions:
-    """Settings of the virtual robot (SI units; simulated time)."""
-
-    robot: str = "swpc"
-    nodes: Mapping[int, int] | None = None
-    """Module id -> CAN node id (default: 1..N in module order)."""
-    time_scale: float = 1.0
-    physics_dt: float = 0.005
-    """Longest physics step (s); a tick is also no longer than the fastest feedback period."""
-    start_time: float | None = None
-    """Simulated clock at start (default: the wall clock, ``time.time()``)."""
-    steer_counts: int = 2**17
-    wheel_counts: int = 2**17
-    """Encoder counts per turn (0: no quantisation before the frame's own)."""
-    position_tau: float = 0.02
-    feedback_rate_hz: int = 200
-    watchdog_ms: int = 100
-    homing_duration: float = 0.2
-    sensor_positions: Sequence[float] | None = None
-    """Power-up steering coordinate of each homing sensor (default: seeded random)."""
-    pose0: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    theta0: Sequence[float] | None = None
-    """Initial true steering angles (default: seeded random)."""
-    physics: PhysicsOptions = field(default_factory=PhysicsOptions)
-    mocap: MocapOptions = field(default_factory=MocapOptions)
-    truth_rate: float = 50.0
-    bus_error_rate: float = 0.0
-    max_lag: float = 0.05
-    """Wall seconds the simulation may fall behind before its clock is slowed down."""
-    mocap_clock: str = "host"
-    """Pose time stamps: ``"host"`` wall clock at sampling, or ``"sim"`` simulated time."""
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if not self.time_scale > 0.0:
-            raise ValueError("time_scale must be > 0")
-        if self.mocap_clock not in ("host", "sim"):
-            raise ValueError(f"mocap_clock must be 'host' or 'sim', not {self.mocap_clock!r}")
-        if not 0.0 < self.physics_dt <= 0.01:
-            raise ValueError("physics_dt must be in (0, 0.01] s")
-
-
-# --------------------------------------------------------------------------- drives
-
-
-def _clamp(x: float, limit: float) -> float:
-    return max(-limit, min(limit, x))
-
-
-def axis_drive(
-    ax: AxisModel, axis: Axis, position: float, dt: float, position_tau: float
-) -> tuple[str, float]:
-    """What one controller axis does to the physics during the next ``dt``.
-
-    Returns ``(kind, value)`` with kind ``"passive"``, ``"rate"`` (rad/s), ``"brake"``
-    or ``"torque"`` (N.m, wheel only).  POSITION is the first-order loop
-    ``rate = clamp((setpoint - position) / max(position_tau, dt), max_velocity)``.  A
-    steering torque becomes a rate through ``J dv/dt = tau - c v`` (exact over ``dt``).
-    """
-    if ax.state == AxisState.HOMING:
-        return "rate", HOMING_SPEED
-    if ax.state != AxisState.ENABLED or ax.mode == ControlMode.FREE:
-        return "passive", 0.0
-    if ax.mode == ControlMode.HOLD:
-        return ("brake", 0.0) if axis == Axis.WHEEL else ("rate", 0.0)
-    if ax.mode == ControlMode.POSITION:
-        rate = (ax.setpoint - position) / max(position_tau, dt)
-        return "rate", _clamp(rate, ax.max_velocity)
-    if ax.mode == ControlMode.VELOCITY:
-        return "rate", _clamp(ax.setpoint, ax.max_velocity)
-    tau = _clamp(ax.setpoint, ax.max_torque)  # TORQUE
-    if axis == Axis.WHEEL:
-        return "torque", tau
-    v_inf = tau / ax.friction
-    return "rate", v_inf + (ax.velocity - v_inf) * math.exp(-dt * ax.friction / ax.inertia)
-
-
-def module_drive(steer: tuple[str, float], wheel: tuple[str, float]) -> ModuleDrive:
-    """Combine the two axes' :func:`axis_drive` into the physics' :class:`ModuleDrive`."""
-    sk, sv = steer
-    wk, wv = wheel
-    s = SteerDrive.RATE if sk == "rate" else SteerDrive.PASSIVE
-    w = {
-        "passive": WheelDrive.PASSIVE,
-        "brake": WheelDrive.BRAKE,
-        "rate": WheelDrive.RATE,
-        "torque": WheelDrive.TORQUE,
-    }[wk]
-    return ModuleDrive(s, sv if s is SteerDrive.RATE else 0.0, w, wv)
-
-
-def quantize(x: float, counts: int) -> float:
-    """``round(x / q) * q`` with ``q = 2 pi / counts`` (``counts = 0``: unchanged)."""
-    if counts <= 0:
-        return x
-    q = 2.0 * math.pi / counts
-    return round(x / q) * q
-
-
 # --------------------------------------------------------------------------- simulator
-
-
-@dataclass
-class SimStats:
-    """Counters since :meth:`Simulator.start` (times in s)."""
-
-    sim_time: float = 0.0
-    wall_time: float = 0.0
-    cpu_time: float = 0.0
-    ticks: int = 0
-    overruns: int = 0
-    frames_tx: int = 0
-    frames_rx: int = 0
-    tx_errors: int = 0
-    bus_errors_injected: int = 0
-    feedback_frames: dict[int, int] = field(default_factory=dict)
-    heartbeats: dict[int, int] = field(default_factory=dict)
-    poses_published: int = 0
-    truth_published: int = 0
-
-    @property
-    def achieved_time_scale(self) -> float:
-        return self.sim_time / self.wall_time if self.wall_time > 0 else 0.0
-
-    @property
-    def cpu_share(self) -> float:
-        """CPU seconds of the simulator thread per wall second (1.0 = one full core)."""
-        return self.cpu_time / self.wall_time if self.wall_time > 0 else 0.0
-
-    def rates(self) -> dict[str, float]:
-        """Per-node feedback samples/s and heartbeats/s, poses/s, in *simulated* time."""
-        t = self.sim_time if self.sim_time > 0 else math.inf
-        out: dict[str, float] = {"poses_hz": self.poses_published / t}
-        for node, n in sorted(self.feedback_frames.items()):
-            out[f"node{node}_feedback_hz"] = n / t
-        for node, n in sorted(self.heartbeats.items()):
-            out[f"node{node}_heartbeat_hz"] = n / t
-        return out
-
 
 class Simulator:
     """The virtual robot on a python-can bus and a zenoh session (module docstring)."""

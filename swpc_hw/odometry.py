@@ -69,9 +69,9 @@ from pathlib import Path
 from typing import Literal, NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
-from swpc_hw.errors import KinematicFileError, SwpcError
+from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.model import RobotParams
 
@@ -521,98 +521,13 @@ class Odometry:
         return self._pose
 
 
-# --------------------------------------------------------------------------- logs
-
-
-@dataclass(frozen=True)
-class OdometryTrack:
-    """Result of integrating a log: one row per reading (row 0 = initial pose, zero twist)."""
-
-    t: FloatArray  # (T,)
-    poses: FloatArray  # (T, 3) x, y, yaw
-    twists: FloatArray  # (T, 3) v_x, v_y, omega of the step ending at t
-    residuals: FloatArray  # (T, N) m/s, per step
-    weights: FloatArray  # (T, N)
-
-
-def integrate_log(
-    params: RobotParams,
-    t: ArrayLike,
-    theta_hat: ArrayLike,
-    psi: ArrayLike,
-    *,
-    pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    options: OdometryOptions | None = None,
-) -> OdometryTrack:
-    """Run :class:`Odometry` over synchronous readings ``t`` (T,), ``theta_hat``/``psi`` (T, N)."""
-    tt = np.asarray(t, dtype=float).reshape(-1)
-    TH = np.asarray(theta_hat, dtype=float)
-    PS = np.asarray(psi, dtype=float)
-    n = len(params.modules)
-    if TH.shape != (tt.size, n) or PS.shape != (tt.size, n):
-        raise OdometryError(
-            f"odometry: readings must be ({tt.size}, {n}) (got {TH.shape} and {PS.shape})"
-        )
-    odo = Odometry(params, pose=pose, options=options)
-    poses = np.zeros((tt.size, 3))
-    twists = np.zeros((tt.size, 3))
-    residuals = np.zeros((tt.size, n))
-    weights = np.ones((tt.size, n))
-    th_rows = TH.tolist()
-    ps_rows = PS.tolist()
-    for k in range(tt.size):
-        poses[k] = odo.update(float(tt[k]), th_rows[k], ps_rows[k])
-        if k > 0 and odo._last is not None:
-            sol = odo._last[2]
-            twists[k] = sol.twist
-            residuals[k] = sol.residuals
-            weights[k] = sol.weights
-    return OdometryTrack(t=tt, poses=poses, twists=twists, residuals=residuals, weights=weights)
-
-
-def synchronize_encoders(
-    encoders: Mapping[int, ArrayLike], ids: Sequence[int], t: ArrayLike | None = None
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Resample per-module encoder logs onto common timestamps.
-
-    ``encoders[id]`` is (K, 3) rows ``t, steer, wheel`` (as in :class:`swpc_hw.dataset.Dataset`).
-    ``t`` defaults to the timestamps of the first module inside the common time span.
-    Steering is unwrapped before linear interpolation.  Returns ``(t, theta_hat, psi)`` with
-    (T, N) arrays in ``ids`` order.
-    """
-    tables: list[FloatArray] = []
-    for mid in ids:
-        if mid not in encoders:
-            raise OdometryError(f"odometry: no encoder readings for module {mid}")
-        e = np.asarray(encoders[mid], dtype=float)
-        if e.ndim != 2 or e.shape[1] != 3 or e.shape[0] < 2:
-            raise OdometryError(f"odometry: module {mid}: need (K >= 2, 3) rows t, steer, wheel")
-        tables.append(e[np.argsort(e[:, 0], kind="stable")])
-    lo = max(float(e[0, 0]) for e in tables)
-    hi = min(float(e[-1, 0]) for e in tables)
-    if t is None:
-        t0 = tables[0][:, 0]
-        tt = t0[(t0 >= lo) & (t0 <= hi)]
-    else:
-        tt = np.asarray(t, dtype=float).reshape(-1)
-        if tt.size and (tt.min() < lo or tt.max() > hi):
-            raise OdometryError(f"odometry: requested times outside the common span [{lo}, {hi}]")
-    TH = np.column_stack([np.interp(tt, e[:, 0], np.unwrap(e[:, 1])) for e in tables])
-    PS = np.column_stack([np.interp(tt, e[:, 0], e[:, 2]) for e in tables])
-    return tt, TH, PS
-
-
 __all__ = [
-    "KinematicFileError",
     "Odometry",
     "OdometryError",
     "OdometryOptions",
     "OdometryStep",
-    "OdometryTrack",
     "Pose",
     "StepSolution",
-    "integrate_log",
     "se2_exp_step",
     "step_twist",
-    "synchronize_encoders",
 ]

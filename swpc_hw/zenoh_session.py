@@ -1,8 +1,8 @@
 """Zenoh session configuration shared by the simulator and the service.
 
 Always explicit: peer (or client) mode, multicast scouting off, gossip off, explicit
-``listen`` / ``connect`` endpoints (loopback ``tcp/127.0.0.1:<port>`` in tests and the
-embedded default).  Nothing here ever touches a multicast or non-loopback address by
+``listen`` / ``connect`` endpoints (loopback ``tcp/127.0.0.1:<port>`` in tests and for the
+in-process simulator).  Nothing here ever touches a multicast or non-loopback address by
 itself: the endpoints are exactly the ones configured.
 """
 

@@ -1,6 +1,6 @@
 """schemathesis against the service's own OpenAPI schema: no 5xx, no schema violation.
 
-The real service (``swpc serve`` on the embedded default, a separate process on a free
+The real service (``swpc serve`` on the in-process simulator, a separate process on a free
 loopback port) is fuzzed with and without the bearer token.
 """
 
@@ -48,7 +48,6 @@ def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         SWPC_TOKEN=TOKEN,
         SWPC_DATA_DIR=str(data),
         SWPC_PORT=str(port),
-        SWPC_TIME_SCALE="4",
     )
     env.pop("SWPC_CAN_INTERFACE", None)
     log = (data / "service.log").open("w")

@@ -31,11 +31,10 @@ from swpc_hw.odometry import (
     Odometry,
     OdometryError,
     OdometryOptions,
-    integrate_log,
     se2_exp_step,
     step_twist,
-    synchronize_encoders,
 )
+from swpc_hw.odometry_log import integrate_log, synchronize_encoders
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.twist_controller import (
     ControllerError,

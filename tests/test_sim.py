@@ -26,7 +26,8 @@ import pytest
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
 from simulators.mocap_sim import MocapOptions, truth_params_key, truth_pose_key
-from simulators.virtual_robot import SimOptions, Simulator
+from simulators.sim_options import SimOptions
+from simulators.virtual_robot import Simulator
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.mocap import PoseEncoding, decode_pose
 from swpc_hw.model import RobotParams, rot

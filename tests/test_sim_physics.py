@@ -9,6 +9,7 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
+from simulators.axis_drives import axis_drive, quantize
 from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
 from simulators.physics import caster_rates, settled_trailing
 from simulators.robot_sim import (
@@ -23,7 +24,6 @@ from simulators.robot_sim import (
     prioritized_twist,
 )
 from simulators.virtual_controller import AxisModel, VirtualController
-from simulators.virtual_robot import axis_drive, quantize
 from swpc_hw.mocap import decode_pose, encode_cdr
 from swpc_hw.model import RobotParams, forward_kinematics, inverse_kinematics, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL

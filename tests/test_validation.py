@@ -1,7 +1,7 @@
 """Square-path validation drive (issue 6, "Validation drive").
 
 Pure parts (path, follower, statistics, odometry feed from the real driver's feedback type)
-run instantly; the end-to-end test drives the embedded simulator through CAN (python-can
+run instantly; the end-to-end test drives the in-process simulator through CAN (python-can
 ``virtual``) with truth over zenoh on loopback: one small square each way with the nominal
 and the calibrated file, and asserts the calibrated errors are >= 95 % smaller.
 """

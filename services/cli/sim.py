@@ -120,7 +120,8 @@ def parse_nodes(text: str | None) -> dict[int, int] | None:
 def run(args: argparse.Namespace) -> int:
     from simulators.mocap_sim import MocapOptions
     from simulators.robot_sim import PhysicsOptions
-    from simulators.virtual_robot import SimOptions, Simulator
+    from simulators.sim_options import SimOptions
+    from simulators.virtual_robot import Simulator
     from swpc_hw.heap_freeze import freeze_startup_heap
     from swpc_hw.kinematic_file import load_robot
     from swpc_hw.paper_robot import PAPER_CALIBRATED

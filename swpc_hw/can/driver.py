@@ -35,37 +35,32 @@ import queue
 import socket
 import threading
 from collections import deque
-from collections.abc import Callable, Iterator
-from dataclasses import replace
+from collections.abc import Callable
 
 import can
-import numpy as np
-from numpy.typing import NDArray
 
 from firmware_protocol import codec
-from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
+from firmware_protocol.codec import Axis
+from swpc_hw.can.commands import DriverCommands
 from swpc_hw.can.config import CanConfig
 from swpc_hw.can.errors import (
     CanBusError,
-    CanCommandError,
     CanError,
     LifecycleError,
     NodeTimeoutError,
 )
-from swpc_hw.can.history import COLUMNS as HISTORY_COLUMNS
 from swpc_hw.can.history import FeedbackRing
 from swpc_hw.can.node_tracking import NodeTrack, apply_frame, frame_time
+from swpc_hw.can.observation import DriverObservation
 from swpc_hw.can.periodic import KernelRefresh
 from swpc_hw.can.recording import Recorder, grow_receive_buffer
-from swpc_hw.can.supervision import check, refresh_frames
+from swpc_hw.can.supervision import check
 from swpc_hw.can.types import (
-    AXIS_NAMES,
     DriverEvent,
     DriverStats,
     EventKind,
     FeedbackSample,
     Lifecycle,
-    ModuleState,
     Observation,
     Severity,
     where,
@@ -78,8 +73,9 @@ IO_WAIT_MAX = 0.05
 """Longest wall wait of the I/O thread for a frame (s): how soon it notices shutdown."""
 
 
-class CanDriver:
-    """Driver of the module controllers on one CAN bus (see the module docstring)."""
+class CanDriver(DriverCommands, DriverObservation):
+    """Driver of the module controllers on one CAN bus (see the module docstring); its
+    command API is :class:`DriverCommands`, its observation API :class:`DriverObservation`."""
 
     def __init__(
         self,
@@ -270,321 +266,6 @@ class CanDriver:
         with self._lock:
             self._state = Lifecycle.FINALIZED
             self._changed.notify_all()
-
-    # ================================================================ commands
-    def _node(self, module: int) -> NodeTrack:
-        try:
-            return self._nodes[module]
-        except KeyError:
-            raise CanCommandError(
-                f"module {module} is not configured (modules: {sorted(self._nodes)})"
-            ) from None
-
-    def _require_active(
-        self, what: str, nd: NodeTrack | None = None, axis: Axis | None = None
-    ) -> None:
-        if self._state != Lifecycle.ACTIVE:
-            at = where(nd.module, nd.node, axis) + ": " if nd else ""
-            cause = self._fault_cause
-            why = f" (stopped by a fault: {cause})" if cause is not None else ""
-            raise LifecycleError(f"{at}cannot {what} in state {self._state.value}{why}")
-
-    def _command(
-        self,
-        what: str,
-        module: int,
-        axis: Axis | None,
-        build: Callable[[int], codec.Frame],
-        commanded: tuple[ControlMode, float] | bool | None = False,
-    ) -> NodeTrack:
-        """Send one command frame; ``commanded`` (if not False) becomes the axis's
-        refreshed setpoint (None: no longer refreshed).  Serialised with stop_all() by
-        the transmit lock: a command either goes before the stop frames, or after them to
-        a disabled axis (which ignores it)."""
-        nd = self._node(module)
-        with self._tx_lock:
-            self._require_active(what, nd, axis)
-            try:
-                frame = build(nd.node)
-            except codec.ProtocolError as exc:
-                raise CanCommandError(f"{where(nd.module, nd.node, axis)}: {what}: {exc}") from exc
-            self._send_frames([frame])
-            if commanded is not False and axis is not None:
-                with self._lock:
-                    if commanded is None:
-                        nd.commanded.pop(axis, None)
-                    else:
-                        assert not isinstance(commanded, bool)
-                        nd.commanded[axis] = commanded
-                    frames = refresh_frames(nd)
-                if self._kernel is not None:
-                    self._kernel.set_node(nd.node, frames)
-        return nd
-
-    def enable(self, module: int, axis: Axis) -> None:
-        """Enable (closed loop, mode FREE) one axis."""
-        axis = Axis(axis)
-        self._command(
-            "enable",
-            module,
-            axis,
-            lambda n: codec.make_set_axis_state(n, axis, True),
-            (ControlMode.FREE, 0.0),
-        )
-
-    def disable(self, module: int, axis: Axis) -> None:
-        axis = Axis(axis)
-        self._command(
-            "disable", module, axis, lambda n: codec.make_set_axis_state(n, axis, False), None
-        )
-
-    def set_control(
-        self, module: int, axis: Axis, mode: ControlMode, setpoint: float = 0.0
-    ) -> None:
-        """Control mode and setpoint (rad, rad/s or N.m by mode) of one axis."""
-        axis, mode = Axis(axis), ControlMode(mode)
-        self._command(
-            f"set {mode.name} {setpoint:g}",
-            module,
-            axis,
-            lambda n: codec.make_set_control(n, axis, mode, setpoint),
-            (mode, setpoint),
-        )
-
-    def set_position(self, module: int, axis: Axis, position: float) -> None:
-        self.set_control(module, axis, ControlMode.POSITION, position)
-
-    def set_velocity(self, module: int, axis: Axis, velocity: float) -> None:
-        self.set_control(module, axis, ControlMode.VELOCITY, velocity)
-
-    def set_torque(self, module: int, axis: Axis, torque: float) -> None:
-        self.set_control(module, axis, ControlMode.TORQUE, torque)
-
-    def hold(self, module: int, axis: Axis) -> None:
-        """Hold the current position (steering lock / wheel brake)."""
-        self.set_control(module, axis, ControlMode.HOLD)
-
-    def free(self, module: int, axis: Axis) -> None:
-        """Zero torque (the axis turns freely)."""
-        self.set_control(module, axis, ControlMode.FREE)
-
-    def clear_errors(self, module: int, axes: tuple[Axis, ...] = (Axis.STEER, Axis.WHEEL)) -> None:
-        mask = sum(1 << int(a) for a in axes)
-        self._command("clear errors", module, None, lambda n: codec.make_clear_errors(n, mask))
-
-    def set_limits(self, module: int, axis: Axis, max_torque: float, max_velocity: float) -> None:
-        axis = Axis(axis)
-        self._command(
-            "set limits",
-            module,
-            axis,
-            lambda n: codec.make_set_limits(n, axis, max_torque, max_velocity),
-        )
-
-    def start_homing(self, module: int) -> None:
-        """Start the steering axis's homing run (the axis must be enabled)."""
-        nd = self._node(module)
-        with self._lock:  # before the frame: the controller's answers may come back at once
-            before = nd.homing, nd.homing_seen
-            nd.homing, nd.homing_seen = HomingState.IN_PROGRESS, False
-        try:
-            self._command(
-                "start homing",
-                module,
-                Axis.STEER,
-                lambda n: codec.make_start_homing(n, Axis.STEER),
-                None,
-            )
-        except BaseException:
-            with self._lock:
-                nd.homing, nd.homing_seen = before
-            raise
-
-    def start_recording(self, path: str) -> None:
-        """Record every frame in and out to ``path`` until :meth:`stop_recording`.
-
-        python-can's Logger picks the format from the suffix (``.log``: candump, which
-        ``cantools decode`` reads with our DBC).  Independent of ``CanConfig.log_path``.
-        Frames the kernel sends for the watchdog refresh are not in it (candump sees them).
-        """
-        with self._lock:
-            if self._bus is None or self._state == Lifecycle.FINALIZED:
-                raise LifecycleError("start_recording() needs an open bus (configure() first)")
-        self.stop_recording()
-        rec = Recorder(path)
-        with self._lock:
-            self._recorder = rec
-
-    def stop_recording(self) -> None:
-        """Stop the recording started by :meth:`start_recording` (idempotent)."""
-        with self._lock:
-            rec, self._recorder = self._recorder, None
-        if rec is not None:
-            rec.stop()
-
-    def send_sync(self) -> int:
-        """Broadcast a SYNC frame; returns its counter (the next samples carry it)."""
-        self._require_active("send SYNC")
-        with self._lock:
-            counter = self._sync_counter
-            self._sync_counter = (counter + 1) & 0xFF
-        self._send_frames([codec.make_sync(counter)])
-        return counter
-
-    def stop_all(self) -> None:
-        """FREE then DISABLED to every axis of every node; clears the refreshed setpoints.
-
-        Sends regardless of the lifecycle state as long as the bus is open; this is what
-        every fault path calls.  The kernel's periodic refresh is deleted first, so no
-        refresh follows the stop frames.  Send failures are counted and re-raised at the
-        end.
-        """
-        with self._tx_lock:
-            with self._lock:
-                self._stats.stop_all_calls += 1
-                nodes = list(self._nodes.values())
-                for nd in nodes:
-                    nd.commanded.clear()
-                bus_open = self._bus is not None and self._state in (
-                    Lifecycle.INACTIVE,
-                    Lifecycle.ACTIVE,
-                )
-            if self._kernel is not None:
-                self._kernel.stop_all()
-            if not bus_open:
-                return
-            frames = [
-                codec.make_set_control(nd.node, a, ControlMode.FREE) for nd in nodes for a in Axis
-            ]
-            frames += [codec.make_set_axis_state(nd.node, a, False) for nd in nodes for a in Axis]
-            self._send_frames(frames, best_effort=True)
-
-    # ================================================================ observation
-    def module_state(self, module: int) -> ModuleState:
-        nd = self._node(module)
-        with self._lock:
-            return nd.snapshot()
-
-    def modules(self) -> list[int]:
-        return list(self._nodes)
-
-    def history(self, module: int) -> list[FeedbackSample]:
-        """The kept feedback samples of a module, oldest first (objects made on demand;
-        :meth:`history_arrays` for computation)."""
-        nd = self._node(module)
-        with self._lock:
-            a = nd.history.array()
-        samples = []
-        for r in a.tolist():
-            f = dict(zip(HISTORY_COLUMNS, r, strict=True))
-            f["counter"], f["seq"] = int(f["counter"]), int(f["seq"])
-            samples.append(FeedbackSample(**f))
-        return samples
-
-    def history_arrays(self, module: int) -> dict[str, NDArray[np.float64]]:
-        """Feedback history as columns (the fields of :class:`FeedbackSample`); ``t`` is
-        the arrival on the bus on the driver's clock."""
-        nd = self._node(module)
-        with self._lock:
-            return nd.history.columns()
-
-    def clear_history(self) -> None:
-        with self._lock:
-            for nd in self._nodes.values():
-                nd.history.clear()
-
-    def stats(self) -> DriverStats:
-        with self._lock:
-            st = replace(self._stats)
-        if self._kernel is not None:
-            st.periodic_renewals = self._kernel.renewals
-        return st
-
-    def latencies(self) -> NDArray[np.float64]:
-        """Receive latencies (clock's wall time when handled minus the bus stamp), s."""
-        with self._lock:
-            return np.array(self._latency, dtype=float)
-
-    def clear_latencies(self) -> None:
-        with self._lock:
-            self._latency.clear()
-
-    def events(self) -> list[DriverEvent]:
-        """Drain the event queue."""
-        out: list[DriverEvent] = []
-        while True:
-            try:
-                out.append(self._events.get_nowait())
-            except queue.Empty:
-                return out
-
-    def add_event_callback(self, fn: Callable[[DriverEvent], None]) -> None:
-        """``fn(event)`` on every event, on the thread that raised it, in the order added."""
-        with self._lock:
-            self._event_callbacks = [*self._event_callbacks, fn]
-
-    def remove_event_callback(self, fn: Callable[[DriverEvent], None]) -> None:
-        """Undo :meth:`add_event_callback` (no-op for a callback not registered)."""
-        with self._lock:
-            self._event_callbacks = [f for f in self._event_callbacks if f != fn]
-
-    def add_feedback_callback(self, fn: Callable[[int, FeedbackSample], None]) -> None:
-        """``fn(module, sample)`` on every position frame, on the receive path.
-
-        An exception in ``fn`` is a listener error: counted, reported, and a fault.
-        """
-        with self._lock:
-            self._feedback_callbacks = [*self._feedback_callbacks, fn]
-
-    def threads(self) -> list[threading.Thread]:
-        """The driver's own thread (receive and supervision; none in lockstep)."""
-        return [self._io_thread] if self._io_thread is not None else []
-
-    def wait_for(
-        self,
-        module: int,
-        predicate: Callable[[ModuleState], bool],
-        timeout: float,
-        what: str = "condition",
-    ) -> ModuleState:
-        """Block until ``predicate(module_state)`` holds; :class:`NodeTimeoutError` otherwise."""
-        nd = self._node(module)
-        deadline = self.clock.now() + timeout
-        reached: list[ModuleState] = []
-
-        def holds() -> bool:
-            st = nd.snapshot()
-            if predicate(st):
-                reached.append(st)
-                return True
-            return False
-
-        with self._changed:
-            if wait_until(self.clock, self._changed, holds, deadline):
-                return reached[-1]
-            st = nd.snapshot()
-        raise NodeTimeoutError(
-            f"{where(nd.module, nd.node)}: {what} not reached within {timeout} s "
-            f"(states {[s.name for s in st.states]}, errors "
-            f"{[codec.error_names(e) for e in st.errors]}, homed {st.homed}, "
-            f"homing {st.homing.name})",
-            node=nd.node,
-        )
-
-    def wait_axis_state(
-        self, module: int, axis: Axis, state: AxisState, timeout: float = 1.0
-    ) -> None:
-        axis = Axis(axis)
-        self.wait_for(
-            module,
-            lambda s: s.states[axis] == state,
-            timeout,
-            f"axis {int(axis)} ({AXIS_NAMES[axis]}) state {state.name}",
-        )
-
-    def iter_modules(self) -> Iterator[ModuleState]:
-        for module in self._nodes:
-            yield self.module_state(module)
 
     # ================================================================ transmit
     def _send_frames(self, frames: list[codec.Frame], best_effort: bool = False) -> None:

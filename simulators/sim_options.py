@@ -1,0 +1,91 @@
+"""Settings and counters of the virtual robot (:class:`simulators.virtual_robot.Simulator`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+from simulators.mocap_sim import MocapOptions
+from simulators.robot_sim import PhysicsOptions
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Settings of the virtual robot (SI units; simulated time)."""
+
+    robot: str = "swpc"
+    nodes: Mapping[int, int] | None = None
+    """Module id -> CAN node id (default: 1..N in module order)."""
+    time_scale: float = 1.0
+    physics_dt: float = 0.005
+    """Longest physics step (s); a tick is also no longer than the fastest feedback period."""
+    start_time: float | None = None
+    """Simulated clock at start (default: the wall clock, ``time.time()``)."""
+    steer_counts: int = 2**17
+    wheel_counts: int = 2**17
+    """Encoder counts per turn (0: no quantisation before the frame's own)."""
+    position_tau: float = 0.02
+    feedback_rate_hz: int = 200
+    watchdog_ms: int = 100
+    homing_duration: float = 0.2
+    sensor_positions: Sequence[float] | None = None
+    """Power-up steering coordinate of each homing sensor (default: seeded random)."""
+    pose0: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    theta0: Sequence[float] | None = None
+    """Initial true steering angles (default: seeded random)."""
+    physics: PhysicsOptions = field(default_factory=PhysicsOptions)
+    mocap: MocapOptions = field(default_factory=MocapOptions)
+    truth_rate: float = 50.0
+    bus_error_rate: float = 0.0
+    max_lag: float = 0.05
+    """Wall seconds the simulation may fall behind before its clock is slowed down."""
+    mocap_clock: str = "host"
+    """Pose time stamps: ``"host"`` wall clock at sampling, or ``"sim"`` simulated time."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.time_scale > 0.0:
+            raise ValueError("time_scale must be > 0")
+        if self.mocap_clock not in ("host", "sim"):
+            raise ValueError(f"mocap_clock must be 'host' or 'sim', not {self.mocap_clock!r}")
+        if not 0.0 < self.physics_dt <= 0.01:
+            raise ValueError("physics_dt must be in (0, 0.01] s")
+
+
+@dataclass
+class SimStats:
+    """Counters since :meth:`Simulator.start` (times in s)."""
+
+    sim_time: float = 0.0
+    wall_time: float = 0.0
+    cpu_time: float = 0.0
+    ticks: int = 0
+    overruns: int = 0
+    frames_tx: int = 0
+    frames_rx: int = 0
+    tx_errors: int = 0
+    bus_errors_injected: int = 0
+    feedback_frames: dict[int, int] = field(default_factory=dict)
+    heartbeats: dict[int, int] = field(default_factory=dict)
+    poses_published: int = 0
+    truth_published: int = 0
+
+    @property
+    def achieved_time_scale(self) -> float:
+        return self.sim_time / self.wall_time if self.wall_time > 0 else 0.0
+
+    @property
+    def cpu_share(self) -> float:
+        """CPU seconds of the simulator thread per wall second (1.0 = one full core)."""
+        return self.cpu_time / self.wall_time if self.wall_time > 0 else 0.0
+
+    def rates(self) -> dict[str, float]:
+        """Per-node feedback samples/s and heartbeats/s, poses/s, in *simulated* time."""
+        t = self.sim_time if self.sim_time > 0 else math.inf
+        out: dict[str, float] = {"poses_hz": self.poses_published / t}
+        for node, n in sorted(self.feedback_frames.items()):
+            out[f"node{node}_feedback_hz"] = n / t
+        for node, n in sorted(self.heartbeats.items()):
+            out[f"node{node}_heartbeat_hz"] = n / t
+        return out
