@@ -112,7 +112,7 @@ class Runtime:
                 seed=s.sim_seed,
                 physics_dt=s.sim_physics_dt,
                 mocap_latency=s.sim_mocap_latency,
-                feedback_rate_hz=s.feedback_rate,
+                feedback_rate_hz=s.feedback_rate_hz,
             )
             self.simulator.start()
         return self

@@ -11,7 +11,7 @@ robot time:
 
 The budget (robot defaults in brackets; ``W`` comes from the robot config)::
 
-    T_fb  = 1 / feedback_rate                 encoder feedback period           [5 ms]
+    T_fb  = 1 / feedback_rate                 encoder feedback period     [5 ms; 10 ms in-process]
     T_hb  = 0.1                               controller heartbeat period (firmware)
     W     = limits.watchdog_ms / 1000         controller command watchdog       [0.2 s]
     T_ref = min(0.02 max(1, k), W / 4)        driver re-sends the last command  [20 ms]
@@ -113,7 +113,7 @@ def timing_budget(settings: ServiceSettings, config: RobotConfig) -> TimingBudge
         stale = max(stale, floor)
     refresh = min(HOST_REFRESH_FLOOR_S * max(1.0, k), watchdog / 4)
     return TimingBudget(
-        feedback_period=1.0 / settings.feedback_rate,
+        feedback_period=1.0 / settings.feedback_rate_hz,
         heartbeat_period=HEARTBEAT_PERIOD_S,
         watchdog=watchdog,
         refresh=refresh,
@@ -141,7 +141,7 @@ def driver_config(
         channel=channel,
         bitrate=settings.can_bitrate,
         modules=dict(config.nodes or {}),
-        feedback_rate_hz=settings.feedback_rate,
+        feedback_rate_hz=settings.feedback_rate_hz,
         watchdog_timeout_ms=math.ceil(1000.0 * b.watchdog),
         refresh_period_s=b.refresh,
         heartbeat_period_s=b.heartbeat_period,

@@ -22,15 +22,19 @@ def test_the_in_process_simulator_gets_the_robots_own_windows() -> None:
     assert b.refresh == 0.02 and b.deadman == 0.5 and b.stop_bound == pytest.approx(0.7)
     c = driver_config(settings(), cfg, interface="virtual", channel="x")
     assert (c.watchdog_timeout_ms, c.refresh_period_s, c.heartbeat_loss_periods) == (200, 0.02, 3)
-    assert c.activate_timeout_s == 1.0 and c.feedback_rate_hz == 200
+    assert c.activate_timeout_s == 1.0 and c.feedback_rate_hz == 100  # the simulator's CPU
     assert c.modules == {1: 1, 2: 2, 3: 3, 4: 4}
     assert c.max_torque == (2.0, 2.0) and c.max_velocity == (3.0, 20.0)
 
 
 def test_a_robot_is_the_same_budget_on_its_own_interface() -> None:
     cfg = RobotConfig.model_validate({"limits": {"watchdog_ms": 100}})
-    b = timing_budget(settings(can_interface="socketcan", can_channel="can0"), cfg)
+    st = settings(can_interface="socketcan", can_channel="can0")
+    b = timing_budget(st, cfg)
     assert (b.watchdog, b.refresh, b.heartbeat_loss, b.mocap_stale) == (0.1, 0.02, 0.3, 0.5)
+    assert b.feedback_period == 0.005  # 200 Hz on a bus
+    c = driver_config(settings(feedback_rate=150), cfg, interface="virtual", channel="x")
+    assert c.feedback_rate_hz == 150
 
 
 @pytest.mark.parametrize(

@@ -70,10 +70,6 @@ def register(sub: Any) -> None:
 
 # --------------------------------------------------------------------------- shared set-up
 
-IN_PROCESS_FEEDBACK_HZ = 100
-"""Feedback rate against the in-process simulator (its CPU: the odometry is as good at 100
-Hz for a 0.2 m/s square)."""
-
 
 def validation_settings(**overrides: Any) -> ServiceSettings:
     """The service settings (``SWPC_*`` environment) with the command's flags on top."""
@@ -142,7 +138,7 @@ def run_in_process(
     from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
     cfg = config or RobotConfig()
-    st = settings or validation_settings(feedback_rate=IN_PROCESS_FEEDBACK_HZ)
+    st = settings or validation_settings()
     channel = f"swpc-validate-{uuid.uuid4().hex[:8]}"
     ep = free_tcp_endpoint()
     clock = SimClock(max_speed=st.sim_speed)
@@ -160,7 +156,7 @@ def run_in_process(
             zenoh_endpoints=[ep],
             clock=clock,
             seed=seed,
-            feedback_rate_hz=st.feedback_rate,
+            feedback_rate_hz=st.feedback_rate_hz,
         )
         sim.start()
         with clock.participant():
