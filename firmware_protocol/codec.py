@@ -272,6 +272,9 @@ class SignalLayout:
     mux_ids: frozenset[int] | None
     """Multiplexed: present only when the multiplexer signal has one of these values."""
     is_mux: bool
+    minimum: float | None
+    maximum: float | None
+    """The DBC range as written (decoded values are checked against it)."""
 
     @property
     def mask(self) -> int:
@@ -303,6 +306,8 @@ def frame_layout(frame_id: int) -> tuple[SignalLayout, ...] | None:
                 high=math.inf if sig.maximum is None else sig.maximum + tol,
                 mux_ids=None if sig.multiplexer_ids is None else frozenset(sig.multiplexer_ids),
                 is_mux=bool(sig.is_multiplexer),
+                minimum=sig.minimum,
+                maximum=sig.maximum,
             )
         )
     # multiplexers first: the others' presence depends on them
@@ -648,15 +653,16 @@ def _decode_values(msg: Message, node: int, data: bytes) -> dict[str, Any]:
     layout = frame_layout(msg.frame_id)
     if layout is not None:
         values = unpack_frame(layout, data)
+        ranges = [(s.name, s.minimum, s.maximum) for s in layout if s.name in values]
     else:
         try:
             values = msg.decode(data, decode_choices=False, scaling=True)  # type: ignore[assignment]
         except cantools.database.DecodeError as exc:
             raise ProtocolError(f"node {node} {msg.name}: {exc}") from exc
-    assert isinstance(values, dict)
-    for name, value in values.items():
-        sig = msg.get_signal_by_name(name)
-        lo, hi = sig.minimum, sig.maximum
+        sigs = [msg.get_signal_by_name(n) for n in values]
+        ranges = [(str(s.name), s.minimum, s.maximum) for s in sigs]
+    for name, lo, hi in ranges:
+        value = values[name]
         v = float(value)
         if (lo is not None and v < lo - 1e-9 * abs(lo)) or (
             hi is not None and v > hi + 1e-9 * abs(hi)
