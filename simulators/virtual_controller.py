@@ -39,7 +39,7 @@ from firmware_protocol.codec import (
     Frame,
     HomingState,
 )
-from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, next_instant
 
 DEFAULT_RATE_HZ = 200
 DEFAULT_WATCHDOG_MS = 100
@@ -479,8 +479,7 @@ class ControllerEmulator:
                 self._handle_queued(self.bus.recv(0))  # what was sent up to t
                 with self.lock:
                     due = min(c.next_due() for c in self.controllers.values())
-                t_next = min(max(due, t + 1e-4), clock.next_wake(), t + self.max_step)
-                t_next = max(t_next, math.nextafter(t, math.inf))
+                t_next = next_instant(t, [due, clock.next_wake(), t + self.max_step])
                 with self.lock:
                     for c in self.controllers.values():
                         self._transmit(c.step(t_next), clock.to_wall(t_next))

@@ -95,7 +95,7 @@ from simulators.robot_sim import (
 )
 from simulators.sim_options import SimOptions, SimStats
 from simulators.virtual_controller import VirtualController
-from swpc_hw.clock import SimClock
+from swpc_hw.clock import SimClock, next_instant
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -415,8 +415,7 @@ class Simulator:
                         self._on_message(msg)
                         msg = self.bus.recv(0)
                     due = min(c.next_due() for c in self.controllers)
-                    t_next = min(t + self.tick_dt(), max(due, t + 1e-4), clock.next_wake())
-                    t_next = max(t_next, math.nextafter(t, math.inf))
+                    t_next = next_instant(t, [t + self.tick_dt(), due, clock.next_wake()])
                     self._tick(t_next - t, t_end=t_next)
                     self._cpu = time.thread_time() - cpu0
                 clock.advance_to(t_next, self._stop)

@@ -1,0 +1,101 @@
+"""The clocks (swpc_hw/clock.py): the lockstep master's schedule, wall stamps, virtual time."""
+
+from __future__ import annotations
+
+import collections
+import threading
+import uuid
+
+import pytest
+
+from simulators.sim_options import SimOptions
+from simulators.virtual_robot import Simulator
+from swpc_hw.clock import COINCIDENT_S, SimClock, VirtualClock, next_instant
+
+
+def test_next_instant_merges_coincident_instants_and_skips_what_is_due() -> None:
+    t = 10.0
+    # the earliest, moved on to a candidate within a microsecond after it
+    assert next_instant(t, [t + 0.005, t + 0.005 - 3e-7, t + 0.02]) == t + 0.005
+    assert next_instant(t, [t + 0.005 + 2e-7, t + 0.005]) == t + 0.005 + 2e-7
+    # not merged when further apart
+    assert next_instant(t, [t + 0.005, t + 0.005 + 10 * COINCIDENT_S]) == t + 0.005
+    # already due (a controller that sent its frame at t): the next step, not a tiny one
+    assert next_instant(t, [t, t + 1e-7, t + 0.005]) == t + 0.005
+    assert next_instant(t, [t - 1.0]) > t  # time always moves on
+
+
+def test_sim_clock_wall_stamps_round_trip_exactly_whatever_the_epoch() -> None:
+    """Times live on the wall-stamp grid, so a frame stamped ``wall()`` maps back to
+    ``now()`` exactly, and two runs with different epochs see the same times (the same
+    seed gives the same run, bit for bit)."""
+    times = []
+    for epoch in (1.7e9, 1.76e9 + 12345.0):
+        clock = SimClock(epoch=epoch)
+        stop = threading.Event()
+        seen = []
+
+        def master(clock: SimClock = clock, stop: threading.Event = stop) -> None:
+            while not stop.is_set():
+                if clock.wait_for_demand(stop):
+                    clock.advance_to(clock.now() + 0.005, stop)
+
+        th = threading.Thread(target=master, daemon=True)
+        th.start()
+        with clock.participant():
+            for _ in range(50):
+                clock.sleep(0.0137)
+                assert clock.from_wall(clock.wall()) == clock.now()
+                seen.append(clock.now())
+        stop.set()
+        clock.close()
+        th.join(2.0)
+        times.append(seen)
+    assert times[0] == times[1]
+
+
+def test_virtual_clock_moves_only_when_slept_on_and_runs_its_world() -> None:
+    clock = VirtualClock(start=3.0, epoch=100.0)
+    calls: list[float] = []
+    clock.on_sleep.append(calls.append)
+    assert clock.now() == 3.0 and clock.wall() == 103.0 and clock.from_wall(104.5) == 4.5
+    clock.sleep(0.25)
+    clock.sleep_until(4.0)
+    clock.sleep_until(1.0)  # the past: no step
+    assert clock.now() == 4.0 and calls == [3.25, 4.0]
+
+
+@pytest.mark.parametrize("wake", [0.02, 0.0137])
+def test_the_simulator_in_lockstep_takes_only_whole_ticks(wake: float) -> None:
+    """A participant waking every ``wake`` s beside the simulator's 5 ms ticks: no step
+    is a sliver between two instants that only rounding set apart (a fifth of the steps
+    were, 1e-8 to 1e-6 s, each costing a whole tick); with wake-ups on the tick grid every
+    step is a whole tick."""
+    clock = SimClock()
+    sim = Simulator.open(
+        interface="virtual",
+        channel=f"ticks-{uuid.uuid4().hex[:8]}",
+        options=SimOptions(physics_dt=0.005),
+        clock=clock,
+    )
+    steps: collections.Counter[float] = collections.Counter()
+    tick = sim._tick
+
+    def counted(dt: float, t_end: float | None = None) -> None:
+        steps[round(dt * 1e5) / 1e5] += 1  # 10 us bins
+        tick(dt, t_end=t_end)
+
+    sim._tick = counted  # type: ignore[method-assign]
+    sim.start()
+    try:
+        with clock.participant():
+            for _ in range(int(1.0 / wake)):
+                clock.sleep(wake)
+    finally:
+        sim.stop()
+        clock.close()
+    assert sum(steps.values()) >= 1.0 / 0.005
+    if wake == 0.02:
+        assert set(steps) == {0.005}, steps
+    else:  # wake-ups cut ticks, at 0.1 ms at least here, never at rounding's scale
+        assert min(steps) >= 1e-4, steps
