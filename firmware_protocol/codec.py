@@ -122,6 +122,24 @@ CONTROLLER_FRAMES = frozenset(
 )
 
 
+def host_receive_filters() -> list[dict[str, int | bool]]:
+    """Acceptance filters (python-can ``can_filters``) for a host: every standard frame
+    whose command is not one a host sends, and every extended frame.
+
+    On SocketCAN the kernel applies them: the host's own commands (the kernel's periodic
+    watchdog refresh among them, looped back to every socket) never reach its receive
+    path, while the controllers' frames and anything unexpected (unknown commands and
+    nodes, extended ids) still do.
+    """
+    out: list[dict[str, int | bool]] = [
+        {"can_id": c, "can_mask": COMMAND_MASK, "extended": False}
+        for c in range(1 << NODE_SHIFT)
+        if c != Command.SYNC and c not in HOST_COMMANDS
+    ]
+    out.append({"can_id": 0, "can_mask": 0, "extended": True})
+    return out
+
+
 class Axis(enum.IntEnum):
     STEER = 0
     WHEEL = 1

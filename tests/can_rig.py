@@ -113,6 +113,7 @@ def can_config(channel: str, **cfg: Any) -> CanConfig:
         "watchdog_timeout_ms": WATCHDOG_MS,
         "refresh_period_s": T(0.02),
         "heartbeat_period_s": T(0.1),
+        "deadman_s": T(0.5),
         "activate_timeout_s": T(cfg.pop("activate_timeout_s", 1.0)),
     }
     return CanConfig(interface=INTERFACE, channel=channel, **{**scaled, **cfg})

@@ -4,6 +4,7 @@ periodic tasks."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 
@@ -193,10 +194,14 @@ def test_kernel_refresh_deadman_stops_unless_renewed() -> None:
         while time.monotonic() - t0 < 1.0:  # renewed every 0.1 s for 1 s
             ref.renew()
             time.sleep(0.1)
-        late = 0
+        stamps = []
         while (m := rx.recv(0)) is not None:
-            late += m.timestamp > t0 + 0.8
+            stamps.append(m.timestamp)
+        late = sum(ts > time.time() - 0.2 for ts in stamps)
         assert late >= 5, "renewed: still sending after two dead-man periods"
+        # and without a gap: a renewal moves the end of a running task (a task that ran
+        # out between renewals left the controllers without a refresh for 0.1 s)
+        assert max(b - a for a, b in itertools.pairwise(stamps)) < 0.1
         t_last_renewal = time.monotonic()
         time.sleep(1.2)  # no renewal: the task runs out
         stamps = []
@@ -209,6 +214,70 @@ def test_kernel_refresh_deadman_stops_unless_renewed() -> None:
         ref.set_node(3, [])  # stop: no task left
         assert ref.nodes() == []
         ref.close()
+
+
+def test_host_frames_are_counted_not_reported_and_the_kernel_keeps_them_out() -> None:
+    """A host's command seen on the bus (another tool's, or the kernel's periodic refresh
+    looped back on SocketCAN) is counted, never an unknown id; the receive filters the
+    driver gives SocketCAN keep host commands out and let everything else in."""
+    nd, stats = track(), DriverStats()
+    for f in (codec.make_set_control(2, Axis.WHEEL, ControlMode.HOLD), codec.make_sync(3)):
+        out = apply_frame({2: nd}, msg(f), 1.0, stats)
+        assert out.observations == [] and not out.fault
+    assert stats.host_frames == 2 and stats.unknown_ids == 0
+    filters = codec.host_receive_filters()
+    channel = f"filters-{time.monotonic_ns()}"
+    with can.Bus(interface="virtual", channel=channel) as tx, can.Bus(
+        interface="virtual", channel=channel, can_filters=filters
+    ) as rx:  # python-can applies the same filters in software here
+        sent = [
+            codec.make_set_control(1, Axis.STEER, ControlMode.FREE),
+            codec.make_set_watchdog(4, 200),
+            codec.make_sync(0),
+            heartbeat(3),
+            codec.make_feedback_position(2, 0.1, 0.2, 5),
+        ]
+        for f in sent:
+            tx.send(msg(f))
+        tx.send(can.Message(arbitration_id=0x7FF, data=b"\x01", is_extended_id=False))
+        tx.send(can.Message(arbitration_id=0x1234567, data=b"", is_extended_id=True))
+        got = []
+        while (m := rx.recv(0.05)) is not None:
+            got.append(m.arbitration_id)
+    assert got == [sent[3].arbitration_id, sent[4].arbitration_id, 0x7FF, 0x1234567]
+
+
+def test_a_drain_step_ends_although_frames_never_stop_coming() -> None:
+    """A receive path that cannot empty its queue (frames arriving as fast as it applies
+    them) still supervises: a step ends once it has applied a frame that arrived after it
+    began, and judges at that start, so a lost node is still found (and the dead-man
+    renewed)."""
+    from swpc_hw.can import CanConfig, CanDriver
+    from swpc_hw.clock import VirtualClock
+
+    clock = VirtualClock(start=50.0)
+
+    class Endless:
+        """A bus whose queue is never empty: each frame arrived 1 ms after the last."""
+
+        def __init__(self) -> None:
+            self.t = clock.now() - 0.01
+            self.served = 0
+
+        def recv(self, timeout: float | None = None) -> can.Message:
+            self.t += 0.001
+            self.served += 1
+            clock.sleep(0.0002)  # applying a frame takes time
+            return msg(heartbeat(1), clock.wall() - clock.now() + self.t)
+
+    drv = CanDriver(CanConfig(modules={1: 1, 2: 2}), clock=clock)
+    lost: list[str] = []
+    drv.add_event_callback(lambda ev: lost.append(ev.message) if ev.node == 2 else None)
+    bus = Endless()
+    drv._io_step(bus)  # type: ignore[arg-type]
+    assert 10 <= bus.served < 40  # the backlog of the step's start, then one more
+    assert drv.module_state(1).alive and not drv.module_state(2).alive
+    assert lost == ["module 2 (node 2): no heartbeat for 0.300 s"]
 
 
 def test_kernel_refresh_cycles_a_nodes_axes_and_updates_in_place() -> None:

@@ -157,6 +157,10 @@ class CanDriver(DriverCommands, DriverObservation):
                         f"not {cfg.interface!r}"
                     )
                 kwargs.setdefault("preserve_timestamps", True)  # stamps on the sim clock
+            if cfg.interface == "socketcan":
+                # in the kernel: our own commands (the periodic refresh, looped back) never
+                # reach the receive path
+                kwargs.setdefault("can_filters", codec.host_receive_filters())
             try:
                 self._bus = can.Bus(
                     interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **kwargs
@@ -344,13 +348,20 @@ class CanDriver(DriverCommands, DriverObservation):
         """Drain the receive queue, then supervise; returns the next deadline.
 
         ``t_check`` is taken before each ``recv(0)``: when that finds the queue empty,
-        every frame that arrived by ``t_check`` has been applied.
+        every frame that arrived by ``t_check`` has been applied.  A step also ends once
+        it has applied a frame that arrived after the step began: the backlog of the
+        step's start is then applied, so supervision (and the dead-man's renewal) runs at
+        that start time even while frames never stop coming.
         """
-        t_check = self.clock.now()
+        clock = self.clock
+        t0 = t_check = clock.now()
         msg = bus.recv(0)
         while msg is not None:
             self._handle(msg)
-            t_check = self.clock.now()
+            if msg.timestamp and clock.from_wall(msg.timestamp) > t0:
+                t_check = t0
+                break
+            t_check = clock.now()
             msg = bus.recv(0)
         return self._supervise(t_check)
 

@@ -116,6 +116,9 @@ def apply_frame(
             )
         return out
     node, cmd = codec.split_id(msg.arbitration_id)
+    if not msg.is_extended_id and (cmd in codec.HOST_COMMANDS or msg.arbitration_id == 0):
+        stats.host_frames += 1  # a host's command (or SYNC) seen on the bus: not ours to apply
+        return out
     nd = by_node.get(node)
     if (
         msg.is_extended_id

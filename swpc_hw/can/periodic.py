@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from dataclasses import dataclass
 
 import can
@@ -80,9 +81,20 @@ class KernelRefresh:
             self._tasks[node] = _Task(task, new)
 
     def renew(self) -> None:
-        """Restart every task's count (the dead-man's renewal)."""
+        """Restart every task's count (the dead-man's renewal).
+
+        The kernel's broadcast manager restarts a task's count on every ``TX_SETUP``
+        (python-can ``start()``).  python-can's thread-based fallback (any other bus)
+        starts a new period only once its thread has ended; a task still running gets its
+        end moved instead, so that both keep sending without a gap while renewed."""
         for t in self._tasks.values():
-            t.task.start()  # type: ignore[attr-defined]
+            task = t.task
+            if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask) and (
+                task.thread is not None and task.thread.is_alive() and not task.stopped
+            ):
+                task.end_time = time.perf_counter() + self.deadman
+            else:
+                task.start()  # type: ignore[attr-defined]
         self.renewals += 1
 
     def _stop(self, node: int) -> None:

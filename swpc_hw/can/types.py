@@ -134,6 +134,9 @@ class DriverStats:
     error_frames: int = 0
     bus_off: int = 0
     unknown_ids: int = 0
+    host_frames: int = 0
+    """Host commands seen on the bus (another host tool's; on SocketCAN the kernel filters
+    them out before the driver)."""
     bad_dlc: int = 0
     decode_errors: int = 0
     listener_errors: int = 0
