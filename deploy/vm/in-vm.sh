@@ -12,6 +12,8 @@
 #   python-can    deploy/vm/can_exchange.py: sync/feedback round trips on socketcan/vcan0
 #   driver-tests  tests/test_driver*.py with SWPC_TEST_CAN_INTERFACE=socketcan on vcan1..vcanN
 #                 (one interface per test), SWPC_TEST_TIME_FACTOR=8 (SWPC_VM_TIME_FACTOR)
+#   deadman       deploy/vm/deadman.py on vcan40: held ACTIVE at the robot's windows beside
+#                 busy loops (kernel refresh), then kill -STOP: every axis free in time
 #   sim-calibration  `swpc sim` as a separate process on vcan0 + `swpc serve` calibrating
 #                 through it over HTTP (OUT/sim-calibration.json; compared by run-in-vm.sh
 #                 with an in-process run of the same configuration on the host)
@@ -158,6 +160,20 @@ if ((${#driver_tests[@]})); then
 else
     result driver-tests SKIP "(no tests/test_driver*.py yet)"
 fi
+
+# --- the watchdog refresh in the kernel, and its dead-man ------------------------------------
+# deploy/vm/deadman.py: the service's CAN settings at the robot's own windows (200 ms
+# watchdog, 0.3 s heartbeat loss, 0.5 s dead-man; the refresh in the kernel's broadcast
+# manager) held ACTIVE for 60 s beside two busy loops, the emulated controllers at real-time
+# priority (firmware, not the robot computer); then kill -STOP of the service: every axis
+# must be free within dead-man + watchdog.  A 20 s hold with the refresh sent from Python
+# instead is reported beside it.  OUT/deadman.json.
+deadman() {
+    deploy/vcan-up.sh vcan40 >/dev/null || return 1
+    "$PY" deploy/vm/deadman.py run --channel vcan40 --hold "${SWPC_VM_DEADMAN_HOLD:-60}" \
+        --contrast "${SWPC_VM_DEADMAN_CONTRAST:-20}" --out "$OUT/deadman.json"
+}
+step deadman deadman
 
 # --- calibration through the simulator as a separate process on vcan0 ----------------------
 # `swpc sim` (controllers + physics + mocap, its own process) on socketcan/vcan0, zenoh
