@@ -261,8 +261,7 @@ class Simulator:
                 self._transmit(c.step(self.now))  # first call initialises its clocks
             self.truth_pub.maybe_publish_params(self.now)
             self._sample_mocap(self.now, self.now, self.robot.pose, np.zeros(3))
-            target = self._run if self.clock is None else self._run_lockstep
-            self._thread = threading.Thread(target=target, name="swpc-sim", daemon=True)
+            self._thread = threading.Thread(target=self._run, name="swpc-sim", daemon=True)
             self._thread.start()
 
     def stop(self) -> None:
@@ -360,32 +359,13 @@ class Simulator:
 
     # ------------------------------------------------------------------ the loop
     def _run(self) -> None:
+        """The thread body: the real-time loop, or the lockstep master on a SimClock."""
         cpu0 = time.thread_time()
         try:
-            while not self._stop.is_set():
-                dt = self.tick_dt()
-                scale = self.options.time_scale
-                target = scale * (time.monotonic() - self._wall0)  # robot time due now
-                with self._lock:
-                    n = 0
-                    while self.robot.t + dt <= target + 1e-12 and not self._stop.is_set():
-                        self._tick(dt)
-                        self._receive_pending()
-                        n += 1
-                        if n >= 64:
-                            break
-                    lag = target - self.robot.t
-                    if lag > self.options.max_lag * scale:
-                        # cannot keep up: slow the simulated clock down instead of bursting
-                        self._wall0 += (lag - dt) / scale
-                        self._stats.overruns += 1
-                    self._cpu = time.thread_time() - cpu0
-                next_wall = self._wall0 + (self.robot.t + dt) / scale
-                timeout = next_wall - time.monotonic()
-                msg = self.bus.recv(timeout=max(timeout, 0.0)) if timeout > 0 else self.bus.recv(0)
-                if msg is not None:
-                    self._queue_frame(msg)
-                    self._receive_pending()
+            if self.clock is None:
+                self._run_real_time(cpu0)
+            else:
+                self._run_lockstep(cpu0)
         except BaseException as exc:  # surfaced through .error; the thread ends
             self.error = exc
             if not self._stop.is_set():
@@ -393,7 +373,34 @@ class Simulator:
         finally:
             self._cpu = time.thread_time() - cpu0
 
-    def _run_lockstep(self) -> None:
+    def _run_real_time(self, cpu0: float) -> None:
+        """Simulated time follows the wall clock times ``time_scale`` (module docstring)."""
+        while not self._stop.is_set():
+            dt = self.tick_dt()
+            scale = self.options.time_scale
+            target = scale * (time.monotonic() - self._wall0)  # robot time due now
+            with self._lock:
+                n = 0
+                while self.robot.t + dt <= target + 1e-12 and not self._stop.is_set():
+                    self._tick(dt)
+                    self._receive_pending()
+                    n += 1
+                    if n >= 64:
+                        break
+                lag = target - self.robot.t
+                if lag > self.options.max_lag * scale:
+                    # cannot keep up: slow the simulated clock down instead of bursting
+                    self._wall0 += (lag - dt) / scale
+                    self._stats.overruns += 1
+                self._cpu = time.thread_time() - cpu0
+            next_wall = self._wall0 + (self.robot.t + dt) / scale
+            timeout = next_wall - time.monotonic()
+            msg = self.bus.recv(timeout=max(timeout, 0.0)) if timeout > 0 else self.bus.recv(0)
+            if msg is not None:
+                self._queue_frame(msg)
+                self._receive_pending()
+
+    def _run_lockstep(self, cpu0: float) -> None:
         """The master of a :class:`SimClock` (lockstep, see :mod:`swpc_hw.clock`).
 
         Each step: the frames the host sent up to ``t`` take effect at ``t``; the physics
@@ -403,28 +410,20 @@ class Simulator:
         """
         clock = self.clock
         assert clock is not None
-        cpu0 = time.thread_time()
-        try:
-            while not self._stop.is_set():
-                if not clock.wait_for_demand(self._stop):
-                    continue
-                with self._lock:
-                    t = clock.now()
+        while not self._stop.is_set():
+            if not clock.wait_for_demand(self._stop):
+                continue
+            with self._lock:
+                t = clock.now()
+                msg = self.bus.recv(0)
+                while msg is not None:
+                    self._on_message(msg)
                     msg = self.bus.recv(0)
-                    while msg is not None:
-                        self._on_message(msg)
-                        msg = self.bus.recv(0)
-                    due = min(c.next_due() for c in self.controllers)
-                    t_next = next_instant(t, [t + self.tick_dt(), due, clock.next_wake()])
-                    self._tick(t_next - t, t_end=t_next)
-                    self._cpu = time.thread_time() - cpu0
-                clock.advance_to(t_next, self._stop)
-        except BaseException as exc:  # surfaced through .error; the thread ends
-            self.error = exc
-            if not self._stop.is_set():
-                raise
-        finally:
-            self._cpu = time.thread_time() - cpu0
+                due = min(c.next_due() for c in self.controllers)
+                t_next = next_instant(t, [t + self.tick_dt(), due, clock.next_wake()])
+                self._tick(t_next - t, t_end=t_next)
+                self._cpu = time.thread_time() - cpu0
+            clock.advance_to(t_next, self._stop)
 
     def _stamp(self, t: float) -> float:
         """The bus / pose time stamp of simulated time ``t`` (lockstep: the simulated

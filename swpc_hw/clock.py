@@ -165,10 +165,38 @@ SYSTEM_CLOCK = SystemClock()
 """The real robot's clock."""
 
 
+# --------------------------------------------------------------------------- simulated
+
+
+class _EpochClock:
+    """A simulated time ``t`` whose wall stamps are ``epoch + t`` (the shared arithmetic of
+    :class:`VirtualClock` and :class:`SimClock`)."""
+
+    _t: float
+    _epoch: float
+
+    @property
+    def epoch(self) -> float:
+        return self._epoch
+
+    def to_wall(self, t: float) -> float:
+        """The wall stamp of clock time ``t``."""
+        return self._epoch + t
+
+    def now(self) -> float:
+        return self._t
+
+    def wall(self) -> float:
+        return self._epoch + self._t
+
+    def from_wall(self, t_wall: float) -> float:
+        return t_wall - self._epoch
+
+
 # --------------------------------------------------------------------------- one thread
 
 
-class VirtualClock:
+class VirtualClock(_EpochClock):
     """Virtual time for one thread: ``sleep(dt)`` advances the clock by ``dt`` at once.
 
     For pure cores (e.g. the calibration state machine on a fake robot): a minute of
@@ -184,15 +212,6 @@ class VirtualClock:
     @property
     def rate(self) -> float:
         return math.inf
-
-    def now(self) -> float:
-        return self._t
-
-    def wall(self) -> float:
-        return self._epoch + self._t
-
-    def from_wall(self, t_wall: float) -> float:
-        return t_wall - self._epoch
 
     def advance(self, dt: float) -> None:
         if dt > 0:
@@ -217,7 +236,7 @@ class SimClockError(RuntimeError):
     """The lockstep is broken (a participant never blocked again, a closed clock)."""
 
 
-class SimClock:
+class SimClock(_EpochClock):
     """Simulated time in lockstep with one master (see the module docstring).
 
     *Participants* (threads inside :meth:`participant`) run only while the master waits:
@@ -276,23 +295,6 @@ class SimClock:
         if w - self._epoch < t:
             w = math.nextafter(w, math.inf)
         return w - self._epoch
-
-    def to_wall(self, t: float) -> float:
-        """The wall stamp of clock time ``t``."""
-        return self._epoch + t
-
-    @property
-    def epoch(self) -> float:
-        return self._epoch
-
-    def now(self) -> float:
-        return self._t
-
-    def wall(self) -> float:
-        return self._epoch + self._t
-
-    def from_wall(self, t_wall: float) -> float:
-        return t_wall - self._epoch
 
     def sleep_until(self, t: float) -> None:
         self._sleep(t, poll=False)
