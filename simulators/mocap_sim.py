@@ -165,8 +165,10 @@ class MocapSim:
         self._pub: Any = None
         self._encoding = PoseEncoding(self.options.encoding)
         if self.session is not None:
+            # express: each pose goes out at once, not batched with the next (a motion
+            # capture system's latency is its own; lockstep waits for every delivery)
             self._pub = self.session.declare_publisher(
-                self.key, encoding=zenoh_encoding_name(self._encoding)
+                self.key, encoding=zenoh_encoding_name(self._encoding), express=True
             )
 
     def due_times(self, t0: float, t1: float) -> list[float]:
@@ -270,14 +272,21 @@ class TruthPublisher:
         query.reply(self.params_key, self._params_payload, encoding="application/json")
 
     def due(self, now: float) -> bool:
-        """True when a truth pose is due at simulated time ``now`` (and schedules the next)."""
-        if self.rate <= 0.0:
+        """True when a truth pose is due at simulated time ``now`` (and schedules the next)
+        and someone listens (the service never does: its document is not even built)."""
+        if self.rate <= 0.0 or (self._pub is not None and not self._listened()):
             return False
         if self._next_pose is None or now >= self._next_pose - 1e-12:
             base = now if self._next_pose is None else self._next_pose
             self._next_pose = max(base + 1.0 / self.rate, now)
             return True
         return False
+
+    def _listened(self) -> bool:
+        try:
+            return bool(self._pub.matching_status.matching)
+        except Exception:  # a closed session while stopping
+            return False
 
     def publish_pose(self, doc: dict[str, Any]) -> None:
         if self._pub is not None and not lockstep_put(
