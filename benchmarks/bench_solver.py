@@ -78,6 +78,8 @@ def table3(n_trials: int) -> None:
     }
     print(f"[table3] {n_trials} random robots, 4 modules, 2 angles, noiseless")
     print(f"[table3] data {t1 - t0:.2f} s + closed-form solve {t2 - t1:.2f} s = {t2 - t0:.2f} s")
+    e = generate_experiment(PAPER_CALIBRATED)
+    print(f"[datagen] one default experiment (paper robot): {e.generation_seconds:.2f} s")
     for k, v in mae.items():
         print(f"[table3] MAE {k:<11} {v:.3e}   (paper Table 3: ~1e-16..1e-13; goal <= 1e-9)")
     # the joint solver on full generator runs of a subset of the same robots

@@ -206,12 +206,12 @@ def test_save_and_load_roundtrip(tmp_path: Path) -> None:
         assert np.allclose(ds.encoders[mid], enc, atol=1e-6)
 
 
-def test_default_run_is_fast() -> None:
+def test_default_run_reports_its_generation_time() -> None:
+    """How long it takes is a benchmark's figure (make bench: [datagen]), not a test's."""
     t0 = time.perf_counter()
     e = generate_experiment(PAPER_CALIBRATED)
     elapsed = time.perf_counter() - t0
-    assert elapsed < 2.0
-    assert e.generation_seconds <= elapsed
+    assert 0.0 < e.generation_seconds <= elapsed
 
 
 def test_batch_agrees_with_generator() -> None:
@@ -256,14 +256,12 @@ def test_batch_agrees_with_generator() -> None:
             assert np.allclose(dpsi / dyaw, ratio, rtol=1e-9, atol=0)
 
 
-def test_batch_10000_trials_is_fast() -> None:
+def test_batch_of_10000_trials_is_finite_and_shaped() -> None:
+    """Its speed is make bench's figure ([table3] data ... s), not a test's."""
     rng = np.random.default_rng(0)
-    t0 = time.perf_counter()
     bx = batch_experiment(*random_robots(10_000, rng))
-    elapsed = time.perf_counter() - t0
     assert bx.poses.shape == (10_000, 4, 2, 36, 3)
     assert np.isfinite(bx.poses).all()
-    assert elapsed < 3.0
 
 
 def test_simulate_command_writes_a_loadable_dataset(tmp_path: Path) -> None:
