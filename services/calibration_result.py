@@ -3,11 +3,13 @@
 Kept apart from the state machine (:mod:`services.calibration_run`), which calls these in
 its SOLVE and WRITE states.  Everything here is a plain function of the run's data and
 files: ``swpc solve <run>/dataset`` reproduces :func:`solve_run` exactly, because both
-solve what was written.
+solve what was written (the run streams its dataset to disk as it records it,
+:mod:`services.run_recording`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import shutil
 from pathlib import Path
@@ -15,24 +17,20 @@ from typing import Any
 
 import numpy as np
 
-from services.mcap_export import write_mcap
 from services.robot_config import RobotConfig, Tolerances
 from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
-from swpc_hw.dataset import Dataset, load_dataset, save_dataset
-from swpc_hw.errors import CalibrationError
+from swpc_hw.dataset import load_dataset
+from swpc_hw.errors import CalibrationError, KinematicFileError
 from swpc_hw.kinematic_file import save_kinematics
 
 PARAMS = ("x_s", "y_s", "beta", "b", "r")
 
 
-def solve_run(run_dir: Path, dataset: Dataset) -> CalibrationResult:
-    """Write the run's dataset (and its MCAP twin, for Foxglove) under ``run_dir``, then
-    solve what was written.  A solver failure names the kept dataset and the command that
-    reproduces it."""
+def solve_run(run_dir: Path) -> CalibrationResult:
+    """Solve the dataset the run wrote under ``run_dir``.  A solver failure names the kept
+    dataset and the command that reproduces it."""
     directory = run_dir / "dataset"
-    save_dataset(directory, dataset)
-    write_mcap(run_dir / "run.mcap", dataset)
     try:
         return solve(load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory))
     except CalibrationError as exc:
@@ -61,7 +59,15 @@ def install_kinematics(path: Path, result: CalibrationResult, extra: dict[str, A
     if path.exists():
         stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
         backup = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
-        shutil.copy2(path, backup)
+        try:
+            shutil.copy2(path, backup)
+        except OSError as exc:  # a full disk: no half backup left behind, nothing replaced
+            with contextlib.suppress(OSError):
+                backup.unlink()
+            raise KinematicFileError(
+                f"{backup}: cannot keep the kinematic file in force as a backup: "
+                f"{exc.strerror or exc} (the file in force is untouched)"
+            ) from exc
     path.parent.mkdir(parents=True, exist_ok=True)
     save_kinematics(path, result.params, extra=extra)
     return backup

@@ -32,8 +32,18 @@ One place to read it — :data:`TRANSITIONS`::
   unless the request said ``install: always``).
 
 Any fault (driver fault event, stale mocap stream during motion, yaw rate above the
-limit, a step longer than ``step_timeout``) or an abort: ``stop_all()`` first, then
-FAILED or ABORTED with the reason.
+limit, a step longer than ``step_timeout``, a recording that cannot be written, a state
+that cannot be saved) or an abort: ``stop_all()`` first, then FAILED or ABORTED with the
+reason.  A service that stops (SIGTERM) ends its run FAILED, not "aborted by the
+operator" (:meth:`CalibrationRun.shutdown`).  Before PENDING -> CONNECT, the config's
+:meth:`~services.robot_config.RobotConfig.run_problems` (the service refuses such a run
+with 422 before it gets here).
+
+Recording: from the start, the run streams its poses and encoder samples to its dataset
+directory and MCAP file (:mod:`services.run_recording`) every :data:`RECORD_PERIOD` of
+robot time; SOLVE solves what is on disk.  Every event (state, segment, fault, result)
+is a structured log line on the ``swpc.run`` logger (:mod:`services.logs`) and a
+``foxglove.Log`` message in the MCAP.
 
 Time is an input: every duration is robot seconds on the injected clock
 (:mod:`swpc_hw.clock`): the host's on a robot, the simulated one in lockstep against the
@@ -46,6 +56,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import logging
 import math
 import threading
 import time
@@ -65,14 +76,19 @@ from services.calibration_result import (
     solve_run,
     within_tolerance,
 )
+from services.logs import event
 from services.mocap_ingest import MocapIngest
+from services.provenance import UNITS, config_sha256, dataset_sha256, provenance
 from services.robot_config import RobotConfig
 from services.robot_io import RobotIO
+from services.run_recording import RecordingError, RunRecording, SpaceGuard, json_bytes
 from swpc_hw.calibration.solver import CalibrationResult
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
-from swpc_hw.dataset import Dataset, Segment
+from swpc_hw.dataset import Dataset, Segment, load_dataset
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
+
+log = logging.getLogger("swpc.run")
 
 
 class State(StrEnum):
@@ -118,6 +134,8 @@ REST_WINDOW = 0.5
 """s of robot time over which the robot must be still before a module is locked."""
 YAW_RATE_WINDOW = 0.2
 """s of robot time over which the spin's yaw rate is checked against its limit."""
+RECORD_PERIOD = 0.5
+"""s of robot time between two writes of the run's recordings (what a kill may lose)."""
 
 
 def motion_rates(
@@ -146,6 +164,10 @@ class RunFailedError(Exception):
 
 class RunAbortedError(Exception):
     """The operator aborted: the run ends ABORTED."""
+
+
+class PersistError(RunFailedError):
+    """The run's state could not be saved (the run store): the run ends FAILED."""
 
 
 class RunStatus(BaseModel):
@@ -192,6 +214,8 @@ class CalibrationRun:
         install: str = "if-within-tolerance",
         on_change: Callable[[CalibrationRun], None] | None = None,
         poll: float = 0.02,
+        space: SpaceGuard | None = None,
+        robot_config_path: str | None = None,
     ) -> None:
         self.robot = robot
         self.mocap = mocap
@@ -214,6 +238,17 @@ class CalibrationRun:
         modules = config.protocol.modules or config.nominal.ids
         self.modules = [m for m in config.nominal.ids if m in modules]
         self.status.modules_total = len(self.modules)
+        self.space = space
+        self.robot_config_path = robot_config_path
+        self.config_sha256 = config_sha256(config.to_document())
+        self.recording: RunRecording | None = None
+        self._recording_live = False
+        self._next_record = -math.inf
+        self._pose_cursor = 0
+        self._enc_cursors = dict.fromkeys(config.nominal.ids, 0)
+        self._stop_reason: str | None = None
+        self.persist_error: str | None = None
+        self.backup: Path | None = None
 
     # ------------------------------------------------------------------ control
     @property
@@ -235,6 +270,15 @@ class CalibrationRun:
         self._abort.set()
         self.robot.stop_all()
 
+    def shutdown(self, reason: str = "the service was stopped during the run") -> None:
+        """Stop motion at once and end FAILED with ``reason`` (the service is stopping:
+        SIGTERM is no operator's abort)."""
+        if self.finished:
+            return
+        self._stop_reason = reason
+        self._abort.set()
+        self.robot.stop_all()
+
     def join(self, timeout: float | None = None) -> None:
         if self._thread is not None:
             self._thread.join(timeout)
@@ -247,6 +291,9 @@ class CalibrationRun:
         with self._lock:
             self.status.state = state
             self.status.step = step
+        self._event(
+            logging.INFO, "run.state", state=str(state), step=step, module=self.status.module
+        )
         self._changed()
         if state not in TERMINAL:
             # an abort or a fault since the last check ends the run before this state's
@@ -254,12 +301,56 @@ class CalibrationRun:
             self._check(False, None)
 
     def _changed(self) -> None:
-        if self._on_change is not None:
+        """Tell the owner (the service saves the state); a failure to save fails a run
+        still going (robot stopped first), and is kept in :attr:`persist_error`."""
+        if self._on_change is None:
+            return
+        try:
             self._on_change(self)
+        except Exception as exc:
+            self.persist_error = f"{type(exc).__name__}: {exc}"
+            self._event(logging.ERROR, "run.persist_failed", error=self.persist_error)
+            if self.status.state not in TERMINAL:
+                raise PersistError(f"cannot save the run's state: {self.persist_error}") from exc
+
+    def _event(self, level: int, name: str, **fields: Any) -> None:
+        """A structured log line (``event=<name> run=<id> ...``) and, once recording, a
+        ``foxglove.Log`` message in the run's MCAP."""
+        line = event(log, level, name, run=self.id, **fields)
+        if self.recording is not None and self._recording_live:
+            self.recording.event(
+                self.clock.now(), logging.getLevelName(level).lower(), line
+            )
+
+    def _record(self, force: bool = False) -> None:
+        """Every :data:`RECORD_PERIOD` (or now): the poses and encoder samples since the
+        last time to the run's dataset and MCAP, then the disk checks."""
+        rec = self.recording
+        if rec is None or not self._recording_live or not rec.dataset_open:
+            return
+        now = self.clock.now()
+        if not force and now < self._next_record:
+            return
+        self._next_record = now + RECORD_PERIOD
+        since = self._t0 - 1.0
+        rows, self._pose_cursor = self.mocap.samples_since(self._pose_cursor, since)
+        enc = {}
+        for m in self.config.nominal.ids:
+            enc[m], self._enc_cursors[m] = self.robot.encoder_rows(
+                m, self._enc_cursors[m], since
+            )
+        rec.add(np.ascontiguousarray(rows[:, [2, 3, 4, 5]]), enc)
+        rec.flush()
+        with self._lock:
+            self.status.poses = rec.poses
+            self.status.encoder_samples = rec.encoder_samples
 
     def _check(self, motion: bool, deadline: float | None) -> None:
         if self._abort.is_set():
+            if self._stop_reason is not None:
+                raise RunFailedError(self._stop_reason)
             raise RunAbortedError("aborted by the operator")
+        self._record()
         faults = self.robot.take_faults()
         if faults:
             raise RunFailedError(f"robot fault: {faults[0]}")
@@ -310,11 +401,24 @@ class CalibrationRun:
     def _run(self) -> None:
         self.status.started = _now_iso()
         self._t0 = self.clock.now()
+        self._event(
+            logging.INFO,
+            "run.start",
+            install=self.install,
+            modules=",".join(map(str, self.modules)),
+            angles_deg=",".join(f"{a:g}" for a in self.config.protocol.angles_deg),
+            config_sha256=self.config_sha256[:16],
+            dir=str(self.run_dir),
+        )
         try:
+            problems = self.config.run_problems()
+            if problems:  # the service refuses these with 422: never reached through it
+                raise RunFailedError("refused before any motion: " + "; ".join(problems))
+            self._start_recording()
             self._protocol()
         except RunAbortedError as exc:
             self._end(State.ABORTED, str(exc))
-        except RunFailedError as exc:
+        except (RunFailedError, RecordingError) as exc:
             self._end(State.FAILED, str(exc))
         except Exception as exc:  # a bug or an I/O error: still stop the robot first
             error = f"{type(exc).__name__}: {exc}"
@@ -330,6 +434,43 @@ class CalibrationRun:
         finally:
             with contextlib.suppress(Exception):
                 self.robot.close()
+
+    def _start_recording(self) -> None:
+        wall_offset = self.clock.wall() - self.clock.now()
+        self.recording = RunRecording(
+            self.run_dir, self.config.nominal, wall_offset=wall_offset, guard=self.space
+        )
+        self.recording.open(
+            {
+                "robot-config": self.config.to_document(),
+                "provenance": self._provenance(),
+                "run": {"id": self.id, "install": self.install, "created": self.status.created},
+            }
+        )
+        self._recording_live = True
+        self._record(force=True)
+
+    def _provenance(self, dataset_hash: str | None = None) -> dict[str, Any]:
+        return provenance(
+            "swpc service",
+            run=self.id,
+            robot_config=self.robot_config_path,
+            config_sha256=self.config_sha256,
+            dataset_sha256=dataset_hash,
+        )
+
+    def _finish_recording(self, outcome: dict[str, Any]) -> None:
+        rec, self.recording = self.recording, None
+        self._recording_live = False
+        if rec is None:
+            return
+        attachments: dict[str, tuple[bytes, str]] = {}
+        run_kin = self.run_dir / "kinematics.yaml"
+        if outcome.get("state") == "DONE" and run_kin.is_file():
+            attachments["kinematics.yaml"] = (run_kin.read_bytes(), "application/yaml")
+        if self.result_doc is not None:
+            attachments["result.json"] = (json_bytes(self.result_doc), "application/json")
+        rec.finish(self.clock.now(), outcome, attachments)
 
     def _end(self, state: State, reason: str, detail: str | None = None) -> None:
         t = time.perf_counter()  # a measurement of the host, not a judgement of time
@@ -353,6 +494,13 @@ class CalibrationRun:
             self.status.finished = _now_iso()
             self.status.state = state
             self.status.step = "stopped"
+        level = logging.WARNING if state is State.ABORTED else logging.ERROR
+        self._event(level, "run.end", state=str(state), reason=reason)
+        with contextlib.suppress(Exception):  # best effort: the end is decided
+            if self._recording_live:
+                self._record(force=True)
+        with contextlib.suppress(Exception):
+            self._finish_recording({"state": str(state), "reason": reason})
         self._changed()
 
     # ------------------------------------------------------------------ protocol
@@ -430,12 +578,17 @@ class CalibrationRun:
         self._enter(State.SOLVE, "solving")
         self._solve()
         if self._abort.is_set():  # nothing moves any more, but nothing is installed either
+            if self._stop_reason is not None:
+                raise RunFailedError(f"{self._stop_reason} (the result is not installed)")
             raise RunAbortedError("aborted by the operator (the result is not installed)")
         self._enter(State.WRITE, "writing the kinematic file")
         self._write()
         with self._lock:
             self.status.progress = 1.0
             self.status.finished = _now_iso()
+        self._finish_recording(
+            {"state": "DONE", "installed": self.status.installed, "reason": ""}
+        )
         self._enter(State.DONE, "done")
 
     def _precheck(self) -> None:
@@ -537,27 +690,31 @@ class CalibrationRun:
                     self.status.progress = min((done + min(sweep / sweep_target, 1.0)) / total, 1.0)
                     self.status.poses = self.mocap.counters.accepted
                 if sweep >= sweep_target:
-                    self.segments.append(Segment(k, window_start, p.t_host))
+                    seg = Segment(k, window_start, p.t_host)
+                    self.segments.append(seg)
                     self.status.segments = len(self.segments)
+                    if self.recording is not None:
+                        self.recording.add_segment(seg)
+                    self._event(
+                        logging.INFO,
+                        "run.segment",
+                        module=k,
+                        start=seg.start,
+                        end=seg.end,
+                        sweep_deg=math.degrees(sweep),
+                    )
                     return
             self.clock.sleep(self._poll)
 
     def dataset(self) -> Dataset:
-        """The run's recorded data in the offline dataset form (the run's clock)."""
-        poses = self.mocap.samples(since_host=self._t0 - 1.0)
-        enc = {m: self.robot.encoders(m, self._t0 - 1.0) for m in self.config.nominal.ids}
-        return Dataset(
-            robot=self.config.nominal,
-            poses=np.column_stack([poses[:, 2], poses[:, 3], poses[:, 4], poses[:, 5]]),
-            encoders=enc,
-            segments=list(self.segments),
-        )
+        """The run's recorded data: its dataset directory, as written (the run's clock)."""
+        return load_dataset(self.run_dir / "dataset")
 
     def _solve(self) -> None:
-        ds = self.dataset()
-        self.status.encoder_samples = int(sum(v.shape[0] for v in ds.encoders.values()))
-        self.status.poses = int(ds.poses.shape[0])
-        self.result = solve_run(self.run_dir, ds)
+        assert self.recording is not None
+        self._record(force=True)
+        self.recording.close_dataset()
+        self.result = solve_run(self.run_dir)
 
     def within_tolerance(self) -> bool:
         assert self.result is not None
@@ -568,13 +725,28 @@ class CalibrationRun:
         res = self.result
         ok = self.within_tolerance()
         install = self.install == "always" or (self.install == "if-within-tolerance" and ok)
-        extra = {
-            "provenance": {"tool": "swpc service", "run": self.id, "method": res.method},
-            "quality": res.quality_document(),
-        }
+        prov = self._provenance(dataset_sha256(self.run_dir / "dataset"))
+        prov["method"] = res.method
+        prov["units"] = dict(UNITS)
+        extra = {"provenance": prov, "quality": res.quality_document()}
         save_kinematics(self.run_dir / "kinematics.yaml", res.params, extra=extra)
         if install:
-            install_kinematics(self.kinematics_path, res, extra)
+            self.backup = install_kinematics(self.kinematics_path, res, extra)
+            self._event(
+                logging.INFO,
+                "run.install",
+                path=str(self.kinematics_path),
+                backup=None if self.backup is None else str(self.backup),
+                within_tolerance=ok,
+            )
+        else:
+            self._event(
+                logging.WARNING if not ok else logging.INFO,
+                "run.not_installed",
+                within_tolerance=ok,
+                install=self.install,
+                result=str(self.run_dir / "kinematics.yaml"),
+            )
         self.status.installed = install
         self.result_doc = result_document(
             self.id,
