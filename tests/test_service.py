@@ -41,10 +41,10 @@ from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
-TOKEN = "test-token-123"
+TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 NAMES = ("x_s", "y_s", "beta", "b", "r")
-SHORT = {"protocol": {"modules": [1], "sweep_deg": 1440}}  # one long spin: faults land in it
+SHORT = {"protocol": {"sweep_deg": 1440}}  # a long first spin (module 1): faults land in it
 # the whole protocol with short spins (as make test-vcan): a real result, quickly
 QUICK_PROTOCOL = {
     "sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5, "resteer_time": 1.5
