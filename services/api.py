@@ -124,7 +124,6 @@ def _offline_docs(app: FastAPI) -> None:
     import fastapi_offline
 
     static = Path(fastapi_offline.__file__).parent / "static"
-    app.mount("/docs/assets", StaticFiles(directory=static), name="docs-assets")
     openapi_url = app.openapi_url or "/openapi.json"
 
     @app.get("/docs", include_in_schema=False)
@@ -166,6 +165,9 @@ def _offline_docs(app: FastAPI) -> None:
             "Software) and ReDoc (MIT licence, Redocly); its own licence:\n\n"
         )
         return PlainTextResponse(note + text)
+
+    # after the licence route: the mount would otherwise answer its path (404)
+    app.mount("/docs/assets", StaticFiles(directory=static), name="docs-assets")
 
 
 def create_app(
