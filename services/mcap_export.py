@@ -130,6 +130,11 @@ def _stamp(ns: int) -> dict[str, int]:
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
+def _num(x: float) -> str:
+    """A JSON number (``null`` when not finite: JSON has no NaN)."""
+    return repr(x) if math.isfinite(x) else "null"
+
+
 class McapRecorder:
     """An MCAP file written as a run records (module docstring).
 
@@ -169,33 +174,31 @@ class McapRecorder:
         return max(0, round((t + self.wall_offset) * 1e9))
 
     def _add(self, channel: int, ns: int, doc: dict[str, Any]) -> None:
-        self._w.add_message(
-            channel_id=channel, log_time=ns, publish_time=ns, data=json.dumps(doc).encode()
-        )
+        self._raw(channel, ns, json.dumps(doc))
+
+    def _raw(self, channel: int, ns: int, text: str) -> None:
+        self._w.add_message(channel_id=channel, log_time=ns, publish_time=ns, data=text.encode())
         self.messages += 1
 
     def poses(self, rows: FloatArray) -> None:
-        """Rows ``t, x, y, yaw`` (clock s, m, m, rad)."""
+        """Rows ``t, x, y, yaw`` (clock s, m, m, rad): a ``foxglove.PoseInFrame`` and a
+        ``foxglove.FrameTransform`` each (formatted directly: the hot path of a run)."""
         for t, x, y, yaw in rows.tolist():
             ns = self.ns(t)
-            stamp = _stamp(ns)
-            q = {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
-            p = {"x": x, "y": y, "z": 0.0}
-            self._add(
+            stamp = f'{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}}'
+            p = f'{{"x":{_num(x)},"y":{_num(y)},"z":0.0}}'
+            q = f'{{"x":0.0,"y":0.0,"z":{_num(math.sin(yaw / 2))},"w":{_num(math.cos(yaw / 2))}}}'
+            self._raw(
                 self._pose,
                 ns,
-                {"timestamp": stamp, "frame_id": WORLD, "pose": {"position": p, "orientation": q}},
+                f'{{"timestamp":{stamp},"frame_id":"{WORLD}",'
+                f'"pose":{{"position":{p},"orientation":{q}}}}}',
             )
-            self._add(
+            self._raw(
                 self._tf,
                 ns,
-                {
-                    "timestamp": stamp,
-                    "parent_frame_id": WORLD,
-                    "child_frame_id": ROBOT,
-                    "translation": p,
-                    "rotation": q,
-                },
+                f'{{"timestamp":{stamp},"parent_frame_id":"{WORLD}","child_frame_id":"{ROBOT}",'
+                f'"translation":{p},"rotation":{q}}}',
             )
 
     def encoders(self, module: int, rows: FloatArray) -> None:
@@ -203,8 +206,11 @@ class McapRecorder:
         ch = self._enc[module]
         for t, th, psi in rows.tolist():
             ns = self.ns(t)
-            self._add(
-                ch, ns, {"timestamp": _stamp(ns), "module": module, "theta_hat": th, "psi": psi}
+            self._raw(
+                ch,
+                ns,
+                f'{{"timestamp":{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}},'
+                f'"module":{module},"theta_hat":{_num(th)},"psi":{_num(psi)}}}',
             )
 
     def segment(self, static_module: int, start: float, end: float) -> None:
