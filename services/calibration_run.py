@@ -216,6 +216,7 @@ class CalibrationRun:
         poll: float = 0.02,
         space: SpaceGuard | None = None,
         robot_config_path: str | None = None,
+        mcap: bool = True,
     ) -> None:
         self.robot = robot
         self.mocap = mocap
@@ -239,6 +240,7 @@ class CalibrationRun:
         self.modules = [m for m in config.nominal.ids if m in modules]
         self.status.modules_total = len(self.modules)
         self.space = space
+        self.mcap = mcap
         self.robot_config_path = robot_config_path
         self.config_sha256 = config_sha256(config.to_document())
         self.recording: RunRecording | None = None
@@ -438,7 +440,11 @@ class CalibrationRun:
     def _start_recording(self) -> None:
         wall_offset = self.clock.wall() - self.clock.now()
         self.recording = RunRecording(
-            self.run_dir, self.config.nominal, wall_offset=wall_offset, guard=self.space
+            self.run_dir,
+            self.config.nominal,
+            wall_offset=wall_offset,
+            guard=self.space,
+            mcap=self.mcap,
         )
         self.recording.open(
             {

@@ -121,8 +121,10 @@ class RunRecording:
         *,
         wall_offset: float,
         guard: SpaceGuard | None = None,
+        mcap: bool = True,
     ) -> None:
         self.run_dir = Path(run_dir)
+        self.with_mcap = mcap
         self.dataset_dir = self.run_dir / "dataset"
         self.robot = robot
         self.wall_offset = wall_offset
@@ -155,12 +157,13 @@ class RunRecording:
                 "segments": _Appender(self.dataset_dir / "segments.csv", SEGMENTS_COLUMNS),
             }
             self._dataset_open = True
-            self.mcap = McapRecorder(
-                self.mcap_path, list(self.robot.ids), wall_offset=self.wall_offset
-            )
-            for name, values in metadata.items():
-                self.mcap.metadata(name, values)
-            self.mcap.flush()
+            if self.with_mcap:
+                self.mcap = McapRecorder(
+                    self.mcap_path, list(self.robot.ids), wall_offset=self.wall_offset
+                )
+                for name, values in metadata.items():
+                    self.mcap.metadata(name, values)
+                self.mcap.flush()
         except RecordingError:
             raise
         except (OSError, SwpcError) as exc:
