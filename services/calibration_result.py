@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -109,3 +110,44 @@ def result_document(
         "run_kinematics_path": str(run_dir / "kinematics.yaml"),
         "dataset_dir": str(run_dir / "dataset"),
     }
+
+
+@dataclass(frozen=True)
+class Written:
+    """What :func:`write_result` did: within tolerance, installed, the backup of the file
+    it replaced, the result document."""
+
+    within: bool
+    installed: bool
+    backup: Path | None
+    document: dict[str, Any]
+
+
+def write_result(
+    run_id: str,
+    result: CalibrationResult,
+    config: RobotConfig,
+    *,
+    run_dir: Path,
+    kinematics_path: Path,
+    install: str,
+    provenance: dict[str, Any],
+) -> Written:
+    """The run's WRITE: its kinematic file (with ``provenance`` and the quality figures)
+    in ``run_dir``, installed at ``kinematics_path`` when ``install`` is ``always``, or
+    ``if-within-tolerance`` and every std dev is within the config's tolerances."""
+    ok = within_tolerance(result, config.tolerances)
+    installed = install == "always" or (install == "if-within-tolerance" and ok)
+    extra = {"provenance": provenance, "quality": result.quality_document()}
+    save_kinematics(run_dir / "kinematics.yaml", result.params, extra=extra)
+    backup = install_kinematics(kinematics_path, result, extra) if installed else None
+    document = result_document(
+        run_id,
+        result,
+        config,
+        run_dir=run_dir,
+        kinematics_path=kinematics_path,
+        within=ok,
+        installed=installed,
+    )
+    return Written(ok, installed, backup, document)
