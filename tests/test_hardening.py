@@ -600,6 +600,27 @@ def test_corrupt_kinematic_file_is_a_clear_error_and_degraded_health(tmp_path: P
     assert any("kinematic file in force unreadable" in p for p in health["problems"])
 
 
+def test_the_plot_after_a_restart_is_rendered_once_and_served_from_disk(
+    done_run: tuple[Any, Any, list[str]],
+) -> None:
+    _, run, _ = done_run
+    data = run.run_dir.parent.parent
+    app = app_without_robot(data)
+    with TestClient(app) as client:
+        # the finished run, as the service that ran it saved it (this "restart" has none
+        # of it in memory)
+        app.state.runtime.store.upsert(run.id, run.status.created, run.status.to_dict())
+        assert client.get(f"/calibrations/{run.id}").json()["state"] == "DONE"
+        r = client.get(f"/calibrations/{run.id}/plot.png")  # was 409 "no result in memory"
+        assert r.status_code == 200 and r.content[:8] == b"\x89PNG\r\n\x1a\n", r.text
+        cached = run.run_dir / "plot.png"
+        assert cached.read_bytes() == r.content
+        stamp = cached.stat().st_mtime_ns
+        again = client.get(f"/calibrations/{run.id}/plot.png")
+        assert again.content == r.content and cached.stat().st_mtime_ns == stamp  # not redrawn
+        assert client.get("/calibrations/nope/plot.png").status_code == 404
+
+
 def test_docs_are_served_without_internet(tmp_path: Path) -> None:
     with TestClient(app_without_robot(tmp_path)) as client:
         for page, asset in (("/docs", "swagger-ui-bundle.js"), ("/redoc", "redoc.standalone.js")):
