@@ -122,9 +122,10 @@ class Runtime:
         self._closed = False
 
     def _apply_file_group(self) -> None:
-        """``SWPC_FILE_GROUP``: the data dir gets the group and the setgid bit (new files
-        and directories inherit the group), group read and search; the kinematic file and
-        its backups, if any, the group too."""
+        """``SWPC_FILE_GROUP``: the data dir gets the group, group read and search, and
+        the kinematic file and its backups, if any, the group too.  New files get the
+        group as the service's primary group (the unit's ``Group=``), else from the data
+        dir's setgid bit, set here (the unit's ``RestrictSUIDSGID=`` would refuse it)."""
         name = self.settings.file_group
         if not name:
             return
@@ -132,6 +133,7 @@ class Runtime:
             gid = grp.getgrnam(name).gr_gid
         except KeyError:
             raise SettingsError(f"SWPC_FILE_GROUP: no group named {name!r}") from None
+        setgid = 0 if os.getegid() == gid else stat.S_ISGID
         targets = [self.data_dir] + [
             d for d in (self.data_dir / "runs", self.data_dir / "can") if d.is_dir()
         ]
@@ -139,7 +141,7 @@ class Runtime:
         try:
             for d in targets:
                 os.chown(d, -1, gid)
-                os.chmod(d, stat.S_IMODE(d.stat().st_mode) | stat.S_ISGID | 0o050)
+                os.chmod(d, stat.S_IMODE(d.stat().st_mode) | setgid | 0o050)
             for f in kin.parent.glob(f"{kin.stem}*{kin.suffix}"):
                 if f.is_file():
                     os.chown(f, -1, gid)
@@ -147,7 +149,8 @@ class Runtime:
         except PermissionError as exc:
             raise SettingsError(
                 f"SWPC_FILE_GROUP={name}: cannot give {exc.filename} the group (the service "
-                "must own it and be a member of the group: SupplementaryGroups=)"
+                "must own it and have the group: Group= in its unit, as deploy/systemd/"
+                "swpc-service.service)"
             ) from None
 
     # ---------------------------------------------------------------- lifecycle

@@ -355,17 +355,39 @@ def test_the_installed_file_and_the_dataset_are_readable_by_the_group(
         assert mode == 0o640, (path, oct(mode))  # was 0600: the odometry user could not read
 
 
-def test_file_group_gives_the_data_dir_its_group_and_setgid(tmp_path: Path) -> None:
+def other_group() -> int | None:
+    """A group this process may give its files other than its own (any, as root)."""
+    mine = os.getegid()
+    if os.geteuid() == 0:
+        return next((g.gr_gid for g in grp.getgrall() if g.gr_gid != mine), None)
+    return next((g for g in os.getgroups() if g != mine), None)
+
+
+def test_file_group_gives_the_data_dir_its_group(tmp_path: Path) -> None:
     from services.settings import SettingsError
 
-    group = grp.getgrgid(os.getegid()).gr_name
-    data = tmp_path / "data"
-    data.mkdir()
-    save_kinematics(data / "kinematics.yaml", PAPER_NOMINAL)
-    rt = Runtime(ServiceSettings(data_dir=data, token=SecretStr(TOKEN), file_group=group))
-    rt.close()
-    st = data.stat()
-    assert st.st_gid == os.getegid() and st.st_mode & stat.S_ISGID and st.st_mode & 0o050 == 0o050
+    def serve(data: Path, gid: int) -> os.stat_result:
+        data.mkdir()
+        save_kinematics(data / "kinematics.yaml", PAPER_NOMINAL)
+        os.chmod(data / "kinematics.yaml", 0o600)
+        group = grp.getgrgid(gid).gr_name
+        Runtime(ServiceSettings(data_dir=data, token=SecretStr(TOKEN), file_group=group)).close()
+        kin = (data / "kinematics.yaml").stat()
+        assert kin.st_gid == gid and kin.st_mode & 0o040, oct(kin.st_mode)
+        return data.stat()
+
+    # the unit's case: the group is the service's own (Group=), new files get it anyway:
+    # no setgid bit, which the unit's RestrictSUIDSGID= would refuse
+    st = serve(tmp_path / "own", os.getegid())
+    assert st.st_gid == os.getegid() and st.st_mode & 0o050 == 0o050
+    assert not st.st_mode & stat.S_ISGID
+    # another group (a supplementary one): the setgid bit makes new files inherit it
+    gid = other_group()
+    if gid is not None:
+        st = serve(tmp_path / "other", gid)
+        assert st.st_gid == gid and st.st_mode & stat.S_ISGID and st.st_mode & 0o050 == 0o050
+        (tmp_path / "other" / "new").write_text("x")
+        assert (tmp_path / "other" / "new").stat().st_gid == gid
     with pytest.raises(SettingsError, match="no group named"):
         Runtime(ServiceSettings(data_dir=tmp_path / "d2", file_group="no-such-group-xyz"))
 
