@@ -417,6 +417,47 @@ def test_the_installed_file_says_where_it_came_from(
         load_kinematics(bad)
 
 
+def test_the_run_mcap_is_foxglove_json_that_matches_its_schemas(
+    done_run: tuple[Rig, Any, list[str]],
+) -> None:
+    """Every message of a finished run's MCAP is standard JSON valid against its channel's
+    JSON schema (Foxglove's own for poses, transforms and logs), one per recorded row."""
+    import jsonschema_rs
+    from mcap.reader import make_reader
+
+    _, run, lines = done_run
+    ds = load_dataset(run.run_dir / "dataset")
+    with (run.run_dir / "run.mcap").open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None  # finished: the summary is written
+        schemas = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
+        validators = {
+            t: jsonschema_rs.validator_for(json.loads(s.data)) for t, s in schemas.items()
+        }
+        counts: dict[str, int] = {}
+        for _schema, channel, message in reader.iter_messages():
+            doc = json.loads(message.data, parse_constant=lambda c: pytest.fail(c))
+            errors = [e.message for e in validators[channel.topic].iter_errors(doc)]
+            assert errors == [], (channel.topic, doc, errors)
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+        attachments = {a.name for a in reader.iter_attachments()}
+        metadata = {m.name for m in reader.iter_metadata()}
+    assert schemas["/mocap/pose"].name == "foxglove.PoseInFrame"
+    assert schemas["/tf"].name == "foxglove.FrameTransform"
+    assert schemas["/calibration/events"].name == "foxglove.Log"
+    assert counts["/mocap/pose"] == counts["/tf"] == ds.poses.shape[0]
+    for m, rows in ds.encoders.items():
+        assert counts[f"/module{m}/encoders"] == rows.shape[0]
+    assert counts["/calibration/segments"] == len(ds.segments)
+    # every run event as a log too, from the recordings' opening (after run.start) to the
+    # last before DONE (the outcome metadata has the end)
+    assert lines[0].startswith("event=run.start ") and "state=DONE" in lines[-1]
+    assert counts["/calibration/events"] == len(lines) - 2
+    assert {"kinematics.yaml", "result.json"} <= attachments
+    assert {"robot-config", "provenance", "outcome"} <= metadata
+
+
 def test_every_run_event_is_a_structured_log_line(
     done_run: tuple[Rig, Any, list[str]], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
