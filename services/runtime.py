@@ -426,11 +426,16 @@ class Runtime:
         (CAN not open or faulted, a node lost, no live motion capture, its clock off, the
         disk full, the store unwritable), ``degraded`` when it can but something needs
         attention (node errors, a CAN log stopped, the kinematic file in force unreadable,
-        the disk budget nearly used), else ``ok``."""
+        the disk budget nearly used), else ``ok``.  The in-process simulator's nodes and
+        poses are not judged between runs: its time stands still then."""
         failing: list[str] = []
         degraded: list[str] = []
         d = self.driver
         nodes: dict[str, Any] = {}
+        # the in-process simulator between runs: simulated time stands still (it flows
+        # only while someone waits on it, docs/time.md), so no heartbeat or pose is late;
+        # the run's PRECHECK judges them once time flows
+        still = self.simulator is not None and not self.running()
         if d is None or d.state in (Lifecycle.UNCONFIGURED, Lifecycle.FINALIZED):
             failing.append("CAN driver not open")
         else:
@@ -439,7 +444,7 @@ class Runtime:
             for m in d.modules():
                 st = d.module_state(m)
                 nodes[str(m)] = {"alive": st.alive, "errors": list(st.errors), "homed": st.homed}
-                if not st.alive:
+                if not st.alive and not still:
                     failing.append(f"module {m} (node {st.node}): no heartbeat")
                 elif any(st.errors):
                     degraded.append(f"module {m} (node {st.node}): active errors {st.errors}")
@@ -447,7 +452,7 @@ class Runtime:
             if err is not None:
                 degraded.append(f"CAN log stopped: {err}")
         age = self.mocap.age()
-        if self.mocap.is_stale():
+        if self.mocap.is_stale() and not still:
             failing.append(
                 "motion capture stale: "
                 + ("no pose yet" if not math.isfinite(age) else f"no pose for {age:.2f} s")
@@ -486,6 +491,7 @@ class Runtime:
             "mocap_stale": self.mocap.is_stale(),
             "running": self.running(),
             "in_process_simulator": self.simulator is not None,
+            "simulated_time_still": still,
             "disk": disk,
         }
         return status, doc
