@@ -38,7 +38,7 @@ from services.settings import ServiceSettings
 from swpc_hw.mocap import PoseEncoding, PoseSample, encode_pose
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
-TOKEN = "bench"
+TOKEN = "bench-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 

@@ -3,37 +3,56 @@
 Operators start a calibration, watch it and read the result; motion and write
 endpoints need the bearer token from the settings.  See :mod:`services.runtime` for what
 is opened in the lifespan and :mod:`services.calibration_run` for the protocol.
+
+Before a request reaches a route, :class:`services.http_guard.RequestGuard` checks the
+token of every request that may change something (before its body is read), the body's
+size and that a JSON body is standard JSON.  Responses are standard JSON too: a
+non-finite number is written ``null`` (:class:`FiniteJSONResponse`), and a validation
+error never fails to render.  ``/docs`` and ``/redoc`` are served with their JavaScript
+and CSS from this service (the ``fastapi-offline`` package's copies of Swagger UI and
+ReDoc; its licence at ``/docs/assets/LICENSE``): they work in a lab without internet.
 """
 
 from __future__ import annotations
 
 import asyncio
-import io
+import json
 import math
 import secrets
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from importlib import metadata
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from fastapi import Depends, FastAPI, HTTPException, Request, Response, status
+from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.openapi.docs import (
+    get_redoc_html,
+    get_swagger_ui_html,
+    get_swagger_ui_oauth2_redirect_html,
+)
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.calibration_run import RunStatus
-from services.robot_config import ConfigOverrides, RobotConfig
-from services.runtime import RunConflictError, Runtime
+from services.http_guard import RequestGuard
+from services.provenance import tool_version
+from services.robot_config import ConfigOverrides, OverrideError, RobotConfig
+from services.runtime import DiskSpaceError, NoResultError, RunConflictError, Runtime
 from services.settings import ServiceSettings
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.heap_freeze import freeze_startup_heap
-from swpc_hw.kinematic_file import load_kinematics
 
 
 class StartRequest(BaseModel):
-    """Start a calibration; ``overrides`` are deep-merged into the robot config."""
+    """Start a calibration; ``overrides`` are deep-merged into the robot config (limits and
+    tolerances may only be tightened)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     overrides: ConfigOverrides = Field(default_factory=ConfigOverrides)
     install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
@@ -41,6 +60,38 @@ class StartRequest(BaseModel):
 
 class Problem(BaseModel):
     detail: str
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by ``None`` (JSON has no NaN)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _printable(value: Any) -> Any:
+    """``value`` with every non-finite float as its name (``"inf"``, ``"nan"``): for the
+    ``input`` of a validation error, which must say what was sent."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, dict):
+        return {k: _printable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_printable(v) for v in value]
+    return value
+
+
+class FiniteJSONResponse(JSONResponse):
+    """Standard JSON: non-finite numbers as ``null`` (never a 500 while rendering)."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(
+            _finite(content), ensure_ascii=False, allow_nan=False, separators=(",", ":")
+        ).encode("utf-8")
 
 
 def runtime(request: Request) -> Runtime:
@@ -57,7 +108,8 @@ def auth(
     request: Request,
     creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
-    """Motion and write endpoints: the bearer token of the settings, else 401."""
+    """Motion and write endpoints: the bearer token of the settings, else 401 (the guard
+    has already refused such requests before reading their body; this documents it)."""
     token: str = request.app.state.token
     if creds is None or not secrets.compare_digest(creds.credentials.encode(), token.encode()):
         raise HTTPException(
@@ -65,6 +117,57 @@ def auth(
             "missing or invalid bearer token",
             headers={"WWW-Authenticate": "Bearer"},
         )
+
+
+def _offline_docs(app: FastAPI) -> None:
+    """``/docs`` and ``/redoc`` with their assets served here (module docstring)."""
+    import fastapi_offline
+
+    static = Path(fastapi_offline.__file__).parent / "static"
+    openapi_url = app.openapi_url or "/openapi.json"
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return get_swagger_ui_html(
+            openapi_url=f"{root}{openapi_url}",
+            title=f"{app.title} - Swagger UI",
+            oauth2_redirect_url=f"{root}/docs/oauth2-redirect",
+            swagger_js_url=f"{root}/docs/assets/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}/docs/assets/swagger-ui.css",
+            swagger_favicon_url=f"{root}/docs/assets/favicon.png",
+        )
+
+    @app.get("/docs/oauth2-redirect", include_in_schema=False)
+    async def swagger_redirect() -> HTMLResponse:
+        return get_swagger_ui_oauth2_redirect_html()
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return get_redoc_html(
+            openapi_url=f"{root}{openapi_url}",
+            title=f"{app.title} - ReDoc",
+            redoc_js_url=f"{root}/docs/assets/redoc.standalone.js",
+            redoc_favicon_url=f"{root}/docs/assets/favicon.png",
+            with_google_fonts=False,
+        )
+
+    @app.get("/docs/assets/LICENSE", include_in_schema=False)
+    async def docs_licence() -> PlainTextResponse:
+        dist = metadata.distribution("fastapi_offline")
+        text = next(
+            (f.read_text() for f in dist.files or [] if f.name.startswith("LICENSE")), ""
+        )
+        note = (
+            "The documentation pages are served from the fastapi-offline package "
+            f"{dist.version}, which bundles Swagger UI (Apache License 2.0, SmartBear "
+            "Software) and ReDoc (MIT licence, Redocly); its own licence:\n\n"
+        )
+        return PlainTextResponse(note + text)
+
+    # after the licence route: the mount would otherwise answer its path (404)
+    app.mount("/docs/assets", StaticFiles(directory=static), name="docs-assets")
 
 
 def create_app(
@@ -83,27 +186,60 @@ def create_app(
         try:
             yield
         finally:
-            rt.close()
+            signal_name = getattr(app.state, "stop_signal", None)
+            how = f" ({signal_name})" if signal_name else ""
+            rt.close(f"the service was stopped{how} during the run")
 
     app = FastAPI(
         title="swpc calibration service",
-        version="0.1.0",
+        version=tool_version(),
         lifespan=lifespan,
         description="Calibrates SWPC robots: start / watch / abort runs, read results.",
+        default_response_class=FiniteJSONResponse,
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.token = token
+    app.add_middleware(
+        RequestGuard,
+        token=lambda: str(app.state.token),
+        max_body=cfg.max_body_bytes,
+    )
+    _offline_docs(app)
     responses_run: dict[int | str, dict[str, Any]] = {404: {"model": Problem}}
+    guarded: dict[int | str, dict[str, Any]] = {
+        401: {"model": Problem},
+        413: {"model": Problem},
+    }
 
     @app.post(
         "/calibrations",
         status_code=202,
         response_model=RunStatus,
         dependencies=[Depends(auth)],
-        responses={401: {"model": Problem}, 409: {"model": Problem}},
+        responses={
+            **guarded,
+            409: {"model": Problem},
+            507: {"model": Problem, "description": "no room on disk for a run"},
+        },
     )
     def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
+        """Start a run.  Overrides may only tighten the robot config's limits and
+        tolerances, and everything that can be checked before motion is: 422 otherwise,
+        before any CAN frame."""
         try:
-            config: RobotConfig = rt.config.with_overrides(body.overrides.document())
+            config: RobotConfig = rt.config.for_run(body.overrides.document())
+        except OverrideError as exc:
+            raise RequestValidationError(
+                [
+                    {
+                        "loc": ["body", "overrides"],
+                        "msg": f"refused before any motion: {p}",
+                        "type": "value_error",
+                    }
+                    for p in exc.problems
+                ]
+            ) from exc
         except (ValidationError, ValueError, TypeError) as exc:
             # same shape as FastAPI's own request-validation errors (one schema for 422)
             raise RequestValidationError(
@@ -119,6 +255,8 @@ def create_app(
             run = rt.start_run(config, body.install)
         except RunConflictError as exc:
             raise HTTPException(409, str(exc)) from exc
+        except DiskSpaceError as exc:
+            raise HTTPException(507, str(exc)) from exc
         response.headers["Location"] = f"/calibrations/{run.id}"
         return run.status.to_dict()
 
@@ -150,7 +288,7 @@ def create_app(
         "/calibrations/{run_id}/abort",
         response_model=RunStatus,
         dependencies=[Depends(auth)],
-        responses={401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}},
+        responses={**guarded, 404: {"model": Problem}, 409: {"model": Problem}},
     )
     async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
         # async: runs on the event loop itself, so stop_all() is not queued behind a
@@ -176,50 +314,38 @@ def create_app(
         response_class=Response,
     )
     def plot(run_id: str, rt: Rt) -> Response:
-        run = rt.runs.get(run_id)
-        if run is None or run.result is None:
-            if rt.status(run_id) is None:
-                raise HTTPException(404, f"no calibration {run_id}")
-            raise HTTPException(409, f"calibration {run_id} has no result in memory to plot")
-        from services.plots import calibration_plot
-
-        png = calibration_plot(run.dataset(), run.result)
-        return Response(content=png, media_type="image/png")
-
-    @app.get("/kinematics", responses={404: {"model": Problem}})
-    def kinematics(rt: Rt) -> dict[str, Any]:
-        path = rt.settings.kinematics_file
-        if not path.exists():
-            raise HTTPException(404, f"no kinematic file installed at {path}")
+        """The run's plot: rendered once, then served from the run's directory."""
         try:
-            k = load_kinematics(path)
-        except KinematicFileError as exc:
-            raise HTTPException(500, str(exc)) from exc
-        import yaml
+            path = rt.plot(run_id)
+        except NoResultError as exc:
+            raise HTTPException(409, str(exc)) from exc
+        if path is None:
+            raise HTTPException(404, f"no calibration {run_id}")
+        return FileResponse(path, media_type="image/png")
 
-        doc: dict[str, Any] = yaml.safe_load(path.read_text(encoding="utf-8"))
-        doc["path"] = str(path)
-        doc["robot"] = k.params.robot
+    @app.get("/kinematics", responses={404: {"model": Problem}, 500: {"model": Problem}})
+    def kinematics(rt: Rt) -> dict[str, Any]:
+        try:
+            doc = rt.kinematics_document()
+        except KinematicFileError as exc:
+            raise HTTPException(
+                500,
+                f"the kinematic file in force cannot be loaded: {exc} (its backups "
+                "kinematics.<UTC time>.yaml are beside it)",
+            ) from exc
+        if doc is None:
+            where = rt.settings.kinematics_file
+            raise HTTPException(404, f"no kinematic file installed at {where}")
         return doc
 
-    @app.get("/health")
-    def health(rt: Rt) -> dict[str, Any]:
-        d = rt.driver
-        age = rt.mocap.age()
-        nodes = {}
-        if d is not None:
-            for m in d.modules():
-                st = d.module_state(m)
-                nodes[str(m)] = {"alive": st.alive, "errors": list(st.errors), "homed": st.homed}
-        return {
-            "status": "ok",
-            "can": None if d is None else d.state.name.lower(),
-            "nodes": nodes,
-            "mocap_age_s": age if math.isfinite(age) else None,
-            "mocap_stale": rt.mocap.is_stale(),
-            "running": rt.running(),
-            "in_process_simulator": rt.simulator is not None,
-        }
+    @app.get(
+        "/health",
+        responses={503: {"description": "failing: a calibration cannot start or go on"}},
+    )
+    def health(rt: Rt) -> FiniteJSONResponse:
+        """``ok`` / ``degraded`` (200) or ``failing`` (503), with the problems."""
+        state, doc = rt.health()
+        return FiniteJSONResponse(doc, status_code=503 if state == "failing" else 200)
 
     @app.get("/metrics", response_class=PlainTextResponse)
     def metrics(rt: Rt) -> PlainTextResponse:
@@ -228,9 +354,11 @@ def create_app(
         body, content_type = render_metrics(rt)
         return PlainTextResponse(body, media_type=content_type)
 
-    @app.exception_handler(KinematicFileError)
-    async def _kin_error(request: Request, exc: KinematicFileError) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=500)
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        detail = _printable(jsonable_encoder(exc.errors()))
+        return FiniteJSONResponse({"detail": detail}, status_code=422)
 
-    _ = io  # plots are rendered in services.plots
+    # Routers of other parts of the service (e.g. the operator console) go here, one
+    # line each: app.include_router(<module>.router)
     return app

@@ -3,36 +3,35 @@
 Kept apart from the state machine (:mod:`services.calibration_run`), which calls these in
 its SOLVE and WRITE states.  Everything here is a plain function of the run's data and
 files: ``swpc solve <run>/dataset`` reproduces :func:`solve_run` exactly, because both
-solve what was written.
+solve what was written (the run streams its dataset to disk as it records it,
+:mod:`services.run_recording`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from services.mcap_export import write_mcap
 from services.robot_config import RobotConfig, Tolerances
 from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
-from swpc_hw.dataset import Dataset, load_dataset, save_dataset
-from swpc_hw.errors import CalibrationError
+from swpc_hw.dataset import load_dataset
+from swpc_hw.errors import CalibrationError, KinematicFileError
 from swpc_hw.kinematic_file import save_kinematics
 
 PARAMS = ("x_s", "y_s", "beta", "b", "r")
 
 
-def solve_run(run_dir: Path, dataset: Dataset) -> CalibrationResult:
-    """Write the run's dataset (and its MCAP twin, for Foxglove) under ``run_dir``, then
-    solve what was written.  A solver failure names the kept dataset and the command that
-    reproduces it."""
+def solve_run(run_dir: Path) -> CalibrationResult:
+    """Solve the dataset the run wrote under ``run_dir``.  A solver failure names the kept
+    dataset and the command that reproduces it."""
     directory = run_dir / "dataset"
-    save_dataset(directory, dataset)
-    write_mcap(run_dir / "run.mcap", dataset)
     try:
         return solve(load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory))
     except CalibrationError as exc:
@@ -61,7 +60,15 @@ def install_kinematics(path: Path, result: CalibrationResult, extra: dict[str, A
     if path.exists():
         stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
         backup = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
-        shutil.copy2(path, backup)
+        try:
+            shutil.copy2(path, backup)
+        except OSError as exc:  # a full disk: no half backup left behind, nothing replaced
+            with contextlib.suppress(OSError):
+                backup.unlink()
+            raise KinematicFileError(
+                f"{backup}: cannot keep the kinematic file in force as a backup: "
+                f"{exc.strerror or exc} (the file in force is untouched)"
+            ) from exc
     path.parent.mkdir(parents=True, exist_ok=True)
     save_kinematics(path, result.params, extra=extra)
     return backup
@@ -103,3 +110,44 @@ def result_document(
         "run_kinematics_path": str(run_dir / "kinematics.yaml"),
         "dataset_dir": str(run_dir / "dataset"),
     }
+
+
+@dataclass(frozen=True)
+class Written:
+    """What :func:`write_result` did: within tolerance, installed, the backup of the file
+    it replaced, the result document."""
+
+    within: bool
+    installed: bool
+    backup: Path | None
+    document: dict[str, Any]
+
+
+def write_result(
+    run_id: str,
+    result: CalibrationResult,
+    config: RobotConfig,
+    *,
+    run_dir: Path,
+    kinematics_path: Path,
+    install: str,
+    provenance: dict[str, Any],
+) -> Written:
+    """The run's WRITE: its kinematic file (with ``provenance`` and the quality figures)
+    in ``run_dir``, installed at ``kinematics_path`` when ``install`` is ``always``, or
+    ``if-within-tolerance`` and every std dev is within the config's tolerances."""
+    ok = within_tolerance(result, config.tolerances)
+    installed = install == "always" or (install == "if-within-tolerance" and ok)
+    extra = {"provenance": provenance, "quality": result.quality_document()}
+    save_kinematics(run_dir / "kinematics.yaml", result.params, extra=extra)
+    backup = install_kinematics(kinematics_path, result, extra) if installed else None
+    document = result_document(
+        run_id,
+        result,
+        config,
+        run_dir=run_dir,
+        kinematics_path=kinematics_path,
+        within=ok,
+        installed=installed,
+    )
+    return Written(ok, installed, backup, document)

@@ -32,8 +32,24 @@ One place to read it — :data:`TRANSITIONS`::
   unless the request said ``install: always``).
 
 Any fault (driver fault event, stale mocap stream during motion, yaw rate above the
-limit, a step longer than ``step_timeout``) or an abort: ``stop_all()`` first, then
-FAILED or ABORTED with the reason.
+limit, a step longer than ``step_timeout``, a recording that cannot be written, a state
+that cannot be saved) or an abort: ``stop_all()`` first, then FAILED or ABORTED with the
+reason.  A service that stops (SIGTERM) ends its run FAILED, not "aborted by the
+operator".  Before PENDING -> CONNECT, the config's
+:meth:`~services.robot_config.RobotConfig.run_problems` (the service refuses such a run
+with 422 before it gets here).
+
+This module is the protocol's steps.  The machinery under them (the run's thread, state
+entry, the checks at every poll, waits on robot time, the end that stops the robot
+first) is :class:`services.run_machine.RunMachine`; the states, the operator's view of a
+run and the errors that end one are :mod:`services.run_state`; the spin's yaw and the
+rest test are pure functions of the poses (:mod:`services.pose_motion`).  What a run
+leaves behind is written by its
+:class:`~services.run_journal.RunJournal`: from the start it streams the poses and encoder
+samples to the run's dataset directory and MCAP file every half second of robot time
+(SOLVE solves what is on disk), and every event (state, segment, fault, result) is a
+structured log line on the ``swpc.run`` logger and a ``foxglove.Log`` message in the
+MCAP.
 
 Time is an input: every duration is robot seconds on the injected clock
 (:mod:`swpc_hw.clock`): the host's on a robot, the simulated one in lockstep against the
@@ -44,140 +60,55 @@ installing live in :mod:`services.calibration_result`.
 
 from __future__ import annotations
 
-import contextlib
-import datetime as _dt
+import logging
 import math
-import threading
-import time
-import traceback
-import uuid
-from collections.abc import Callable, Iterator
-from enum import StrEnum
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, Field
 
-from services.calibration_result import (
-    install_kinematics,
-    result_document,
-    solve_run,
-    within_tolerance,
-)
+from services.calibration_result import solve_run, within_tolerance, write_result
 from services.mocap_ingest import MocapIngest
+from services.pose_motion import REST_WINDOW, SpinWindow, motion_rates
+from services.provenance import dataset_sha256
 from services.robot_config import RobotConfig
 from services.robot_io import RobotIO
+from services.run_journal import RECORD_PERIOD, RunJournal
+from services.run_machine import RunMachine
+from services.run_recording import SpaceGuard
+from services.run_state import (
+    MOTION,
+    TERMINAL,
+    TRANSITIONS,
+    PersistError,
+    RunAbortedError,
+    RunFailedError,
+    RunStatus,
+    State,
+    now_iso,
+)
 from swpc_hw.calibration.solver import CalibrationResult
-from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
-from swpc_hw.dataset import Dataset, Segment
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
+from swpc_hw.clock import SYSTEM_CLOCK, Clock
+from swpc_hw.dataset import Dataset, Segment, load_dataset
+from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
+
+__all__ = [  # the run's vocabulary, importable from here as before the split
+    "MOTION",
+    "RECORD_PERIOD",
+    "TERMINAL",
+    "TRANSITIONS",
+    "CalibrationRun",
+    "PersistError",
+    "RunAbortedError",
+    "RunFailedError",
+    "RunStatus",
+    "State",
+    "motion_rates",
+]
 
 
-class State(StrEnum):
-    PENDING = "PENDING"
-    CONNECT = "CONNECT"
-    PRECHECK = "PRECHECK"
-    REST = "REST"
-    LOCK = "LOCK"
-    ALIGN = "ALIGN"
-    FREE = "FREE"
-    SPIN = "SPIN"
-    STOP = "STOP"
-    RESTEER = "RESTEER"
-    RELEASE = "RELEASE"
-    SOLVE = "SOLVE"
-    WRITE = "WRITE"
-    DONE = "DONE"
-    FAILED = "FAILED"
-    ABORTED = "ABORTED"
-
-
-TERMINAL = frozenset({State.DONE, State.FAILED, State.ABORTED})
-MOTION = frozenset({State.REST, State.ALIGN, State.FREE, State.SPIN, State.STOP, State.RESTEER})
-
-TRANSITIONS: dict[State, frozenset[State]] = {
-    State.PENDING: frozenset({State.CONNECT}),
-    State.CONNECT: frozenset({State.PRECHECK}),
-    State.PRECHECK: frozenset({State.REST}),
-    State.REST: frozenset({State.LOCK}),
-    State.LOCK: frozenset({State.ALIGN}),
-    State.ALIGN: frozenset({State.FREE}),
-    State.FREE: frozenset({State.SPIN}),
-    State.SPIN: frozenset({State.STOP}),
-    State.STOP: frozenset({State.RESTEER, State.RELEASE}),
-    State.RESTEER: frozenset({State.SPIN}),
-    State.RELEASE: frozenset({State.LOCK, State.SOLVE}),
-    State.SOLVE: frozenset({State.WRITE}),
-    State.WRITE: frozenset({State.DONE}),
-}
-
-
-REST_WINDOW = 0.5
-"""s of robot time over which the robot must be still before a module is locked."""
-YAW_RATE_WINDOW = 0.2
-"""s of robot time over which the spin's yaw rate is checked against its limit."""
-
-
-def motion_rates(
-    t: FloatArray, x: FloatArray, y: FloatArray, yaw: FloatArray
-) -> tuple[float, float]:
-    """Speed (m/s) and yaw rate (rad/s) of poses ``(t_k, x_k, y_k, yaw_k)``: the slopes of
-    least-squares lines through them (noise-averaging, unlike end-point differences)::
-
-        s_q = sum_k (t_k - t_mean)(q_k - q_mean) / sum_k (t_k - t_mean)^2,  q in {x, y, yaw}
-        speed = hypot(s_x, s_y),   yaw rate = s_yaw   (yaw unwrapped first)
-
-    Needs at least two distinct times.
-    """
-    tc = t - np.mean(t) if t.shape[0] else t
-    den = float(tc @ tc)
-    if den <= 0.0:
-        raise ValueError("motion_rates needs poses at two distinct times at least")
-    q = np.column_stack([x, y, np.unwrap(yaw)])
-    s = tc @ (q - q.mean(axis=0)) / den
-    return float(math.hypot(s[0], s[1])), float(s[2])
-
-
-class RunFailedError(Exception):
-    """A fault: the run ends FAILED with this reason."""
-
-
-class RunAbortedError(Exception):
-    """The operator aborted: the run ends ABORTED."""
-
-
-class RunStatus(BaseModel):
-    """What an operator sees of a run (``GET /calibrations/{id}``)."""
-
-    id: str
-    created: str
-    state: State = State.PENDING
-    step: str = "waiting to start"
-    module: int | None = None
-    module_index: int = 0
-    modules_total: int = 0
-    progress: float = 0.0
-    sweep_deg: float = 0.0
-    poses: int = 0
-    encoder_samples: int = 0
-    segments: int = 0
-    errors: list[str] = Field(default_factory=list)
-    reason: str | None = None
-    started: str | None = None
-    finished: str | None = None
-    installed: bool | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        return self.model_dump(mode="json")
-
-
-def _now_iso() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
-
-
-class CalibrationRun:
+class CalibrationRun(RunMachine):
     """One calibration: runs the protocol on its own thread (see the module docstring)."""
 
     def __init__(
@@ -192,172 +123,47 @@ class CalibrationRun:
         install: str = "if-within-tolerance",
         on_change: Callable[[CalibrationRun], None] | None = None,
         poll: float = 0.02,
+        space: SpaceGuard | None = None,
+        robot_config_path: str | None = None,
+        mcap: bool = True,
     ) -> None:
-        self.robot = robot
-        self.mocap = mocap
-        self.config = config
-        self.clock = clock
+        super().__init__(robot, mocap, config, clock=clock, on_change=on_change, poll=poll)
         self.install = install
-        self.status = RunStatus(id=uuid.uuid4().hex[:12], created=_now_iso())
         self.run_dir = Path(data_dir) / "runs" / self.status.id
         self.kinematics_path = Path(kinematics_path)
         self.result: CalibrationResult | None = None
-        self.result_doc: dict[str, Any] | None = None
         self.segments: list[Segment] = []
-        self._on_change = on_change
-        self._poll = poll
-        self._abort = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._lock = threading.Lock()
-        self._t0 = 0.0
-        self.abort_latency: float | None = None
         modules = config.protocol.modules or config.nominal.ids
         self.modules = [m for m in config.nominal.ids if m in modules]
         self.status.modules_total = len(self.modules)
+        self.journal = RunJournal(
+            self.id,
+            self.run_dir,
+            config,
+            clock,
+            space=space,
+            mcap=mcap,
+            robot_config_path=robot_config_path,
+        )
+        self.backup: Path | None = None
 
-    # ------------------------------------------------------------------ control
-    @property
-    def id(self) -> str:
-        return self.status.id
-
-    @property
-    def finished(self) -> bool:
-        return self.status.state in TERMINAL
-
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._main, name=f"calib-{self.id}", daemon=True)
-        self._thread.start()
-
-    def abort(self) -> None:
-        """Stop motion at once (``stop_all()`` from the caller's thread) and end ABORTED."""
-        if self.finished:
-            return
-        self._abort.set()
-        self.robot.stop_all()
-
-    def join(self, timeout: float | None = None) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
-
-    # ---------------------------------------------------------------- internals
-    def _enter(self, state: State, step: str) -> None:
-        cur = self.status.state
-        if state not in TERMINAL and state not in TRANSITIONS.get(cur, frozenset()):
-            raise RuntimeError(f"illegal transition {cur} -> {state}")
-        with self._lock:
-            self.status.state = state
-            self.status.step = step
-        self._changed()
-        if state not in TERMINAL:
-            # an abort or a fault since the last check ends the run before this state's
-            # first command
-            self._check(False, None)
-
-    def _changed(self) -> None:
-        if self._on_change is not None:
-            self._on_change(self)
-
-    def _check(self, motion: bool, deadline: float | None) -> None:
-        if self._abort.is_set():
-            raise RunAbortedError("aborted by the operator")
-        faults = self.robot.take_faults()
-        if faults:
-            raise RunFailedError(f"robot fault: {faults[0]}")
-        if motion and self.mocap.is_stale():
-            raise RunFailedError(
-                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
-                f"(limit {self.mocap.stale_after:.3f} s)"
-            )
-        if deadline is not None and self.clock.now() > deadline:
-            raise RunFailedError(
-                f"step timeout: {self.status.step} took longer than "
-                f"{self.config.limits.step_timeout:g} s"
-            )
-
-    def _deadline(self) -> float:
-        return self.clock.now() + self.config.limits.step_timeout
-
-    def _wait(self, seconds: float, motion: bool = True) -> None:
-        """Wait ``seconds`` of robot time, checking for faults and abort."""
-        end = self.clock.now() + seconds
-        deadline = self._deadline()
-        while True:
-            self._check(motion, deadline)
-            left = end - self.clock.now()
-            if left <= 0:
-                return
-            self.clock.sleep(min(self._poll, left))
-
-    def _wait_until(self, cond: Callable[[], bool], motion: bool) -> None:
-        deadline = self._deadline()
-        while not cond():
-            self._check(motion, deadline)
-            self.clock.sleep(self._poll)
-
-    @contextlib.contextmanager
-    def _in_step(self) -> Iterator[None]:
-        """Lockstep: the run's thread is a participant of the simulated clock."""
-        if isinstance(self.clock, SimClock):
-            with self.clock.participant():
-                yield
-        else:
-            yield
-
-    def _main(self) -> None:
-        with self._in_step():
-            self._run()
-
-    def _run(self) -> None:
-        self.status.started = _now_iso()
-        self._t0 = self.clock.now()
-        try:
-            self._protocol()
-        except RunAbortedError as exc:
-            self._end(State.ABORTED, str(exc))
-        except RunFailedError as exc:
-            self._end(State.FAILED, str(exc))
-        except Exception as exc:  # a bug or an I/O error: still stop the robot first
-            error = f"{type(exc).__name__}: {exc}"
-            # a command refused because the driver had just stopped on a fault: the fault is
-            # the reason, the refusal only its consequence
-            faults: list[str] = []
-            with contextlib.suppress(Exception):
-                faults = self.robot.take_faults()
-            if faults:
-                self._end(State.FAILED, f"robot fault: {faults[0]}", f"then {error}")
-            else:
-                self._end(State.FAILED, error, traceback.format_exc())
-        finally:
-            with contextlib.suppress(Exception):
-                self.robot.close()
-
-    def _end(self, state: State, reason: str, detail: str | None = None) -> None:
-        t = time.perf_counter()  # a measurement of the host, not a judgement of time
-        try:
-            self.robot.stop_all()
-        except Exception as exc:
-            self.status.errors.append(f"stop_all failed: {exc}")
-        if state is State.ABORTED and self.abort_latency is None:
-            self.abort_latency = time.perf_counter() - t
-        try:
-            self.robot.release()
-        except Exception as exc:
-            self.status.errors.append(f"release failed: {exc}")
-        if self.status.state not in TERMINAL and self.status.state is not State.PENDING:
-            reason = f"{reason} (during {self.status.state}: {self.status.step})"
-        with self._lock:
-            self.status.reason = reason
-            self.status.errors.append(reason)
-            if detail:
-                self.status.errors.append(detail.strip().splitlines()[-1])
-            self.status.finished = _now_iso()
-            self.status.state = state
-            self.status.step = "stopped"
-        self._changed()
+    def _start_fields(self) -> dict[str, Any]:
+        return {
+            "install": self.install,
+            "modules": ",".join(map(str, self.modules)),
+            "angles_deg": ",".join(f"{a:g}" for a in self.config.protocol.angles_deg),
+            "config_sha256": self.journal.config_sha256[:16],
+            "dir": str(self.run_dir),
+        }
 
     # ------------------------------------------------------------------ protocol
     def _protocol(self) -> None:
         cfg = self.config
+        problems = cfg.run_problems()
+        if problems:  # the service refuses these with 422: never reached through it
+            raise RunFailedError("refused before any motion: " + "; ".join(problems))
+        self.journal.open(t0=self._t0, install=self.install, created=self.status.created)
+        self._record(force=True)
         angles = [math.radians(a) for a in cfg.protocol.angles_deg]
         self._enter(State.CONNECT, "activating the controllers")
         self.robot.activate()
@@ -430,12 +236,17 @@ class CalibrationRun:
         self._enter(State.SOLVE, "solving")
         self._solve()
         if self._abort.is_set():  # nothing moves any more, but nothing is installed either
+            if self._stop_reason is not None:
+                raise RunFailedError(f"{self._stop_reason} (the result is not installed)")
             raise RunAbortedError("aborted by the operator (the result is not installed)")
         self._enter(State.WRITE, "writing the kinematic file")
         self._write()
         with self._lock:
             self.status.progress = 1.0
-            self.status.finished = _now_iso()
+            self.status.finished = now_iso()
+        self.journal.finish(
+            {"state": "DONE", "installed": self.status.installed, "reason": ""}, self.result_doc
+        )
         self._enter(State.DONE, "done")
 
     def _precheck(self) -> None:
@@ -501,63 +312,45 @@ class CalibrationRun:
         sweep_target = math.radians(proto.sweep_deg)
         latest = self.mocap.latest()
         assert latest is not None
-        t_spin = self.clock.now()
+        spin = SpinWindow(self.clock.now(), proto.settle_time, latest.t_host, latest.yaw)
         deadline = self._deadline()
-        window_start: float | None = None
-        yaw_prev = latest.yaw
-        yaw_acc = 0.0
-        acc_at_start = 0.0
-        rate_t, rate_acc = latest.t_host, 0.0
         while True:
             self._check(True, deadline)
             p = self.mocap.latest()
             assert p is not None
-            yaw_acc += float(wrap_angle(p.yaw - yaw_prev))
-            yaw_prev = p.yaw
-            # yaw rate over YAW_RATE_WINDOW of the poses' own times (the mocap's spacing)
-            robot_dt = p.t_host - rate_t
-            if robot_dt >= YAW_RATE_WINDOW:
-                rate = (yaw_acc - rate_acc) / robot_dt
-                if abs(rate) > limits.max_yaw_rate:
-                    raise RunFailedError(
-                        f"yaw rate {rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
-                    )
-                rate_t, rate_acc = p.t_host, yaw_acc
-            # the window opens at the first pose *sampled* settle_time after the spin began
-            # (not the newest pose at that moment: with late poses, from a slow mocap
-            # network or a starved ingest, that one was sampled before the spin was steady
-            # and the window took in the spin-up; the VM under load saw it start at rest)
-            settled = p.t_host - t_spin >= proto.settle_time
-            if window_start is None and settled:
-                window_start, acc_at_start = p.t_host, yaw_acc
-            if window_start is not None:
-                sweep = abs(yaw_acc - acc_at_start)
+            spin.add(p.t_host, p.yaw)
+            if spin.rate is not None and abs(spin.rate) > limits.max_yaw_rate:
+                raise RunFailedError(
+                    f"yaw rate {spin.rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
+                )
+            if spin.start is not None:
+                sweep = spin.sweep
                 with self._lock:
                     self.status.sweep_deg = math.degrees(sweep)
                     self.status.progress = min((done + min(sweep / sweep_target, 1.0)) / total, 1.0)
                     self.status.poses = self.mocap.counters.accepted
                 if sweep >= sweep_target:
-                    self.segments.append(Segment(k, window_start, p.t_host))
+                    seg = Segment(k, spin.start, p.t_host)
+                    self.segments.append(seg)
                     self.status.segments = len(self.segments)
+                    self.journal.add_segment(seg)
+                    self._event(
+                        logging.INFO,
+                        "run.segment",
+                        module=k,
+                        start=seg.start,
+                        end=seg.end,
+                        sweep_deg=math.degrees(sweep),
+                    )
                     return
             self.clock.sleep(self._poll)
 
     def dataset(self) -> Dataset:
-        """The run's recorded data in the offline dataset form (the run's clock)."""
-        poses = self.mocap.samples(since_host=self._t0 - 1.0)
-        enc = {m: self.robot.encoders(m, self._t0 - 1.0) for m in self.config.nominal.ids}
-        return Dataset(
-            robot=self.config.nominal,
-            poses=np.column_stack([poses[:, 2], poses[:, 3], poses[:, 4], poses[:, 5]]),
-            encoders=enc,
-            segments=list(self.segments),
-        )
+        """The run's recorded data: its dataset directory, as written (the run's clock)."""
+        return load_dataset(self.run_dir / "dataset")
 
     def _solve(self) -> None:
-        ds = self.dataset()
-        self.status.encoder_samples = int(sum(v.shape[0] for v in ds.encoders.values()))
-        self.status.poses = int(ds.poses.shape[0])
-        self.result = solve_run(self.run_dir, ds)
+        self.result = solve_run(self.journal.close_dataset(self.mocap, self.robot))
 
     def within_tolerance(self) -> bool:
         assert self.result is not None
@@ -565,23 +358,32 @@ class CalibrationRun:
 
     def _write(self) -> None:
         assert self.result is not None
-        res = self.result
-        ok = self.within_tolerance()
-        install = self.install == "always" or (self.install == "if-within-tolerance" and ok)
-        extra = {
-            "provenance": {"tool": "swpc service", "run": self.id, "method": res.method},
-            "quality": res.quality_document(),
-        }
-        save_kinematics(self.run_dir / "kinematics.yaml", res.params, extra=extra)
-        if install:
-            install_kinematics(self.kinematics_path, res, extra)
-        self.status.installed = install
-        self.result_doc = result_document(
+        prov = self.journal.provenance(dataset_sha256(self.run_dir / "dataset"), self.result.method)
+        out = write_result(
             self.id,
-            res,
+            self.result,
             self.config,
             run_dir=self.run_dir,
             kinematics_path=self.kinematics_path,
-            within=ok,
-            installed=install,
+            install=self.install,
+            provenance=prov,
         )
+        self.backup = out.backup
+        if out.installed:
+            self._event(
+                logging.INFO,
+                "run.install",
+                path=str(self.kinematics_path),
+                backup=None if out.backup is None else str(out.backup),
+                within_tolerance=out.within,
+            )
+        else:
+            self._event(
+                logging.WARNING if not out.within else logging.INFO,
+                "run.not_installed",
+                within_tolerance=out.within,
+                install=self.install,
+                result=str(self.run_dir / "kinematics.yaml"),
+            )
+        self.status.installed = out.installed
+        self.result_doc = out.document

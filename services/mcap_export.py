@@ -1,87 +1,288 @@
-"""A run's data as an MCAP file (opens in Foxglove): JSON channels with JSON schemas.
+"""A run's data as an MCAP file that Foxglove shows natively, written as it is recorded.
 
-Channels: ``/mocap/pose`` (x, y, yaw of R in W), ``/module<id>/encoders`` (reported
-steering angle and cumulative wheel angle), ``/calibration/segments`` (one message per
-spin window).  Log times are the dataset's times in nanoseconds.
+:class:`McapRecorder` appends messages while a run goes on and finishes one chunk per
+:meth:`~McapRecorder.flush` (the run flushes every half second of robot time): a service
+killed mid-run (``kill -9``, a power cut after the page cache reached the disk) leaves
+every flushed chunk readable, without the file's summary (``mcap.reader.NonSeekingReader``
+reads it; ``mcap recover`` rewrites it with an index).  :meth:`~McapRecorder.finish`
+writes the summary.
+
+Channels (JSON messages, ``jsonschema`` schemas):
+
+===========================  ==========================  =================================
+topic                        schema                      what
+===========================  ==========================  =================================
+``/mocap/pose``              ``foxglove.PoseInFrame``    pose of R in W (frame ``W``)
+``/tf``                      ``foxglove.FrameTransform``  the same pose as the transform
+                                                         W -> R (Foxglove's 3D panel)
+``/module<id>/encoders``     ``swpc.ModuleEncoders``     reported ``theta_hat`` and ``psi``
+``/calibration/segments``    ``swpc.Segment``            one message per spin window
+``/calibration/events``      ``foxglove.Log``            the run's events (state changes,
+                                                         faults, the result)
+===========================  ==========================  =================================
+
+Log and publish times are epoch nanoseconds (the dataset's clock times plus the clock's
+wall offset at the start of the run); each message's ``timestamp`` is the same instant.
+Metadata records: ``robot-config`` (the run's robot config), ``provenance`` and, at the
+end, ``outcome`` (state, reason) and ``result`` (within tolerance, installed);
+attachments: the run's ``kinematics.yaml`` and ``result.json`` when there is a result.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
+from typing import IO, Any
 
+import numpy as np
 from mcap.writer import Writer
 
 from swpc_hw.dataset import Dataset
+from swpc_hw.model import FloatArray
 
-_POSE = {
+_TIME = {
     "type": "object",
-    "title": "swpc.Pose2D",
-    "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "yaw": {"type": "number"}},
-}
-_ENC = {
-    "type": "object",
-    "title": "swpc.ModuleEncoders",
-    "properties": {"theta_hat": {"type": "number"}, "psi": {"type": "number"}},
-}
-_SEG = {
-    "type": "object",
-    "title": "swpc.Segment",
     "properties": {
-        "static_module": {"type": "integer"},
-        "start": {"type": "number"},
-        "end": {"type": "number"},
+        "sec": {"type": "integer", "minimum": 0},
+        "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
     },
 }
+_VECTOR3 = {
+    "type": "object",
+    "title": "foxglove.Vector3",
+    "properties": {k: {"type": "number"} for k in ("x", "y", "z")},
+    "required": ["x", "y", "z"],
+}
+_QUATERNION = {
+    "type": "object",
+    "title": "foxglove.Quaternion",
+    "properties": {k: {"type": "number"} for k in ("x", "y", "z", "w")},
+    "required": ["x", "y", "z", "w"],
+}
+POSE_IN_FRAME = {
+    "title": "foxglove.PoseInFrame",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "pose": {
+            "title": "foxglove.Pose",
+            "type": "object",
+            "properties": {"position": _VECTOR3, "orientation": _QUATERNION},
+            "required": ["position", "orientation"],
+        },
+    },
+    "required": ["timestamp", "frame_id", "pose"],
+}
+FRAME_TRANSFORM = {
+    "title": "foxglove.FrameTransform",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "parent_frame_id": {"type": "string"},
+        "child_frame_id": {"type": "string"},
+        "translation": _VECTOR3,
+        "rotation": _QUATERNION,
+    },
+    "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"],
+}
+LOG = {
+    "title": "foxglove.Log",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "level": {"type": "integer", "description": "1 debug, 2 info, 3 warning, 4 error"},
+        "message": {"type": "string"},
+        "name": {"type": "string"},
+        "file": {"type": "string"},
+        "line": {"type": "integer", "minimum": 0},
+    },
+    "required": ["timestamp", "level", "message", "name", "file", "line"],
+}
+ENCODERS = {
+    "title": "swpc.ModuleEncoders",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "module": {"type": "integer"},
+        "theta_hat": {"type": "number", "description": "reported steering angle, rad"},
+        "psi": {"type": "number", "description": "cumulative wheel angle, rad"},
+    },
+}
+SEGMENT = {
+    "title": "swpc.Segment",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "static_module": {"type": "integer"},
+        "start": {"type": "number", "description": "window start, dataset clock s"},
+        "end": {"type": "number", "description": "window end, dataset clock s"},
+    },
+}
+LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
+WORLD, ROBOT = "W", "R"
 
 
-def _ns(t: float) -> int:
-    return max(0, round(t * 1e9))
+def _stamp(ns: int) -> dict[str, int]:
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
-def write_mcap(path: str | Path, ds: Dataset) -> int:
-    """Write ``ds`` to ``path``; returns the number of messages."""
-    n = 0
-    with Path(path).open("wb") as fh:
-        w = Writer(fh)
-        w.start(profile="", library="swpc")
+def _num(x: float) -> str:
+    """A JSON number (``null`` when not finite: JSON has no NaN)."""
+    return repr(x) if math.isfinite(x) else "null"
 
-        def channel(topic: str, schema: Mapping[str, object]) -> int:
-            sid = w.register_schema(
-                name=str(schema["title"]), encoding="jsonschema", data=json.dumps(schema).encode()
+
+class McapRecorder:
+    """An MCAP file written as a run records (module docstring).
+
+    ``wall_offset``: epoch seconds minus clock seconds (``clock.wall() - clock.now()`` at
+    the start of the run), so log times are epoch time.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        module_ids: list[int],
+        *,
+        wall_offset: float = 0.0,
+        library: str = "swpc",
+    ) -> None:
+        self.path = Path(path)
+        self.wall_offset = float(wall_offset)
+        self.messages = 0
+        self._fh: IO[bytes] = self.path.open("wb")
+        self._w = Writer(self._fh)
+        self._w.start(profile="", library=library)
+        self._pose = self._channel("/mocap/pose", POSE_IN_FRAME)
+        self._tf = self._channel("/tf", FRAME_TRANSFORM)
+        self._enc = {m: self._channel(f"/module{m}/encoders", ENCODERS) for m in module_ids}
+        self._seg = self._channel("/calibration/segments", SEGMENT)
+        self._log = self._channel("/calibration/events", LOG)
+        self._finished = False
+
+    def _channel(self, topic: str, schema: Mapping[str, object]) -> int:
+        sid = self._w.register_schema(
+            name=str(schema["title"]), encoding="jsonschema", data=json.dumps(schema).encode()
+        )
+        return int(self._w.register_channel(topic=topic, message_encoding="json", schema_id=sid))
+
+    def ns(self, t: float) -> int:
+        """Epoch nanoseconds of clock time ``t``."""
+        return max(0, round((t + self.wall_offset) * 1e9))
+
+    def _add(self, channel: int, ns: int, doc: dict[str, Any]) -> None:
+        self._raw(channel, ns, json.dumps(doc))
+
+    def _raw(self, channel: int, ns: int, text: str) -> None:
+        self._w.add_message(channel_id=channel, log_time=ns, publish_time=ns, data=text.encode())
+        self.messages += 1
+
+    def poses(self, rows: FloatArray) -> None:
+        """Rows ``t, x, y, yaw`` (clock s, m, m, rad): a ``foxglove.PoseInFrame`` and a
+        ``foxglove.FrameTransform`` each (formatted directly: the hot path of a run)."""
+        for t, x, y, yaw in rows.tolist():
+            ns = self.ns(t)
+            stamp = f'{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}}'
+            p = f'{{"x":{_num(x)},"y":{_num(y)},"z":0.0}}'
+            q = f'{{"x":0.0,"y":0.0,"z":{_num(math.sin(yaw / 2))},"w":{_num(math.cos(yaw / 2))}}}'
+            self._raw(
+                self._pose,
+                ns,
+                f'{{"timestamp":{stamp},"frame_id":"{WORLD}",'
+                f'"pose":{{"position":{p},"orientation":{q}}}}}',
             )
-            return int(w.register_channel(topic=topic, message_encoding="json", schema_id=sid))
-
-        pose = channel("/mocap/pose", _POSE)
-        for t, x, y, yaw in ds.poses.tolist():
-            w.add_message(
-                channel_id=pose,
-                log_time=_ns(t),
-                publish_time=_ns(t),
-                data=json.dumps({"x": x, "y": y, "yaw": yaw}).encode(),
+            self._raw(
+                self._tf,
+                ns,
+                f'{{"timestamp":{stamp},"parent_frame_id":"{WORLD}","child_frame_id":"{ROBOT}",'
+                f'"translation":{p},"rotation":{q}}}',
             )
-            n += 1
+
+    def encoders(self, module: int, rows: FloatArray) -> None:
+        """Rows ``t, theta_hat, psi`` of one module."""
+        ch = self._enc[module]
+        for t, th, psi in rows.tolist():
+            ns = self.ns(t)
+            self._raw(
+                ch,
+                ns,
+                f'{{"timestamp":{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}},'
+                f'"module":{module},"theta_hat":{_num(th)},"psi":{_num(psi)}}}',
+            )
+
+    def segment(self, static_module: int, start: float, end: float) -> None:
+        ns = self.ns(start)
+        self._add(
+            self._seg,
+            ns,
+            {"timestamp": _stamp(ns), "static_module": static_module, "start": start, "end": end},
+        )
+
+    def event(self, t: float, level: str, message: str) -> None:
+        ns = self.ns(t)
+        self._add(
+            self._log,
+            ns,
+            {
+                "timestamp": _stamp(ns),
+                "level": LOG_LEVELS.get(level, 2),
+                "message": message,
+                "name": "swpc.run",
+                "file": "",
+                "line": 0,
+            },
+        )
+
+    def metadata(self, name: str, values: Mapping[str, object]) -> None:
+        """A metadata record (MCAP metadata values are strings: others as JSON)."""
+        self._w.add_metadata(
+            name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()}
+        )
+
+    def attach(self, name: str, data: bytes, media_type: str, t: float) -> None:
+        ns = self.ns(t)
+        self._w.add_attachment(
+            create_time=ns, log_time=ns, name=name, media_type=media_type, data=data
+        )
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand everything to the OS (a killed process
+        keeps it)."""
+        if not self._finished:
+            self._w.flush()  # type: ignore[no-untyped-call]  # mcap: untyped
+
+    def finish(self) -> None:
+        """Write the summary and close (idempotent)."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._w.finish()  # type: ignore[no-untyped-call]  # mcap: untyped
+        finally:
+            self._fh.close()
+
+    def abandon(self) -> None:
+        """Close without a summary (after a write failed: the file is kept as it is)."""
+        if not self._finished:
+            self._finished = True
+            with contextlib.suppress(OSError):
+                self._fh.close()
+
+
+def write_mcap(path: str | Path, ds: Dataset, wall_offset: float = 0.0) -> int:
+    """Write dataset ``ds`` to ``path`` in one go; returns the number of messages."""
+    rec = McapRecorder(path, list(ds.robot.ids), wall_offset=wall_offset)
+    try:
+        rec.poses(np.asarray(ds.poses))
         for mid, enc in ds.encoders.items():
-            ch = channel(f"/module{mid}/encoders", _ENC)
-            for t, th, psi in enc.tolist():
-                w.add_message(
-                    channel_id=ch,
-                    log_time=_ns(t),
-                    publish_time=_ns(t),
-                    data=json.dumps({"theta_hat": th, "psi": psi}).encode(),
-                )
-                n += 1
-        seg = channel("/calibration/segments", _SEG)
+            rec.encoders(mid, enc)
         for s in ds.segments:
-            w.add_message(
-                channel_id=seg,
-                log_time=_ns(s.start),
-                publish_time=_ns(s.start),
-                data=json.dumps(
-                    {"static_module": s.static_module, "start": s.start, "end": s.end}
-                ).encode(),
-            )
-            n += 1
-        w.finish()  # type: ignore[no-untyped-call]  # mcap: untyped
-    return n
+            rec.segment(s.static_module, s.start, s.end)
+    except BaseException:
+        rec.abandon()
+        raise
+    rec.finish()
+    return rec.messages

@@ -35,6 +35,7 @@ now has been stored: a reader at any simulated time sees all of them.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import math
 import threading
@@ -53,6 +54,9 @@ FloatArray = NDArray[np.float64]
 
 #: pose time bases of :class:`MocapIngest` (module docstring)
 CLOCK_MODES = ("source", "receive", "wall")
+
+#: upper bounds (s) of the pose delay histogram (:meth:`MocapIngest.delay_histogram`)
+DELAY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0)
 
 #: columns of :meth:`MocapIngest.samples`
 COLUMNS = ("t_source", "t_recv", "t_host", "x", "y", "yaw")
@@ -125,6 +129,8 @@ class MocapIngest:
         self._delays: deque[tuple[float, float]] = deque()  # (t_recv, delay), increasing delay
         self._recent = deque[float](maxlen=4096)  # receive times for the rate
         self._latency = deque[float](maxlen=4096)
+        self._delay_counts = [0] * (len(DELAY_BUCKETS) + 1)  # the last: above every bound
+        self._delay_sum = 0.0
         self._subscriber: Any = None
         self._lockstep_key: str | None = None
 
@@ -211,6 +217,9 @@ class MocapIngest:
             self._rows.append((p.t, now, t_host, p.x, p.y, p.yaw))
             self._recent.append(now)
             self._latency.append(now - s * p.t)
+            delay = max(0.0, now - t_host)
+            self._delay_counts[bisect.bisect_left(DELAY_BUCKETS, delay)] += 1
+            self._delay_sum += delay
             c.accepted += 1
             return True
 
@@ -228,6 +237,18 @@ class MocapIngest:
             data = self._rows.array()
         i = int(np.searchsorted(data[:, 2], since_host))
         return data[i:]
+
+    def samples_since(
+        self, cursor: int, since_host: float = -math.inf
+    ) -> tuple[FloatArray, int]:
+        """Accepted samples appended after ``cursor`` (0: every one kept) with host time
+        >= ``since_host``, and the new cursor (each sample read once by a reader that
+        keeps it)."""
+        with self._lock:
+            rows, cursor = self._rows.since(cursor)
+        if since_host > -math.inf:
+            rows = rows[rows[:, 2] >= since_host]
+        return rows, cursor
 
     def latest(self) -> LatestPose | None:
         """The newest accepted sample."""
@@ -266,6 +287,19 @@ class MocapIngest:
     def clock_offset(self) -> float:
         """Host minus mocap clock (lower envelope of the receive delays)."""
         return self._offset
+
+    def delay_histogram(self) -> tuple[list[tuple[float, int]], float, int]:
+        """Cumulative counts of the accepted poses' delays, receipt minus ``t_host`` (the
+        mapped sampling time: the transport latency in clock mode ``wall``, the delay above
+        the window's smallest in ``source``, 0 in ``receive``), by upper bound, ending with
+        ``inf``; their sum (s) and count."""
+        with self._lock:
+            counts, total = list(self._delay_counts), self._delay_sum
+        out, acc = [], 0
+        for bound, n in zip((*DELAY_BUCKETS, math.inf), counts, strict=True):
+            acc += n
+            out.append((bound, acc))
+        return out, total, acc
 
     def stats(self, window: float = 1.0) -> dict[str, float]:
         """Rate (Hz over the last ``window`` s), latency percentiles (s), counters."""

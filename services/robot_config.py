@@ -9,7 +9,10 @@ YAML (every key documented in ``deploy/robot.example.yaml``)::
     protocol: {...}                  # calibration protocol (angles in degrees for humans)
     tolerances: {...}                # max std devs for a result to be installed
 
-Overrides in ``POST /calibrations`` are validated against the same model (422 on error).
+Overrides in ``POST /calibrations`` are validated against the same model and may only
+tighten the robot config's safety limits (:meth:`RobotConfig.for_run`); everything about
+a run that can be checked before motion is checked by :meth:`RobotConfig.run_problems`
+(422 on error, before any CAN frame).
 """
 
 from __future__ import annotations
@@ -33,10 +36,28 @@ class RobotConfigError(SwpcError, ValueError):
     """The robot configuration is invalid."""
 
 
-class MotionLimits(BaseModel):
-    """Everything that bounds motion during calibration (SI units)."""
+class OverrideError(SwpcError, ValueError):
+    """Per-run overrides that would loosen a safety limit, or a run that cannot succeed;
+    ``problems`` lists every reason (one line each, naming the key)."""
 
-    model_config = ConfigDict(extra="forbid")
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__("; ".join(problems))
+        self.problems = problems
+
+
+STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+"""Unknown keys and non-finite numbers are errors (NaN passes every ``gt``/``le`` test
+otherwise, and Infinity every ``gt``)."""
+
+
+class MotionLimits(BaseModel):
+    """Everything that bounds motion during calibration (SI units).
+
+    Every limit is tighter when smaller; a run's overrides may only tighten them
+    (:data:`RUN_FIXED_LIMITS`: not per run at all).
+    """
+
+    model_config = STRICT
 
     spin_torque: float = Field(0.6, gt=0, description="wheel torque of the dynamic modules, N.m")
     max_wheel_torque: float = Field(2.0, gt=0, description="controller torque limit, N.m")
@@ -59,12 +80,29 @@ class MotionLimits(BaseModel):
         return self
 
 
+RUN_FIXED_LIMITS = frozenset({"watchdog_ms"})
+"""Limits set for the service in the robot config only: the controllers' command watchdog
+is sent at activation and the driver's refresh period and the timing budget
+(:mod:`services.timing`) are derived from it."""
+
+MAX_ANGLE_DEG = 360.0
+MIN_ANGLE_SEPARATION_DEG = 10.0
+
+
+def _circular_gap(a: float, b: float) -> float:
+    """Smallest difference of two angles in degrees, modulo 360 (0..180)."""
+    d = (a - b) % 360.0
+    return min(d, 360.0 - d)
+
+
 class ProtocolConfig(BaseModel):
     """The calibration protocol (angles in degrees, times in seconds)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
-    angles_deg: list[float] = Field(default_factory=lambda: [45.0, 165.0], min_length=2)
+    angles_deg: list[float] = Field(
+        default_factory=lambda: [45.0, 165.0], min_length=2, max_length=12
+    )
     sweep_deg: float = Field(360.0, gt=10, le=3600, description="mocap-measured sweep per spin")
     settle_time: float = Field(3.0, ge=0, description="spin time before the window opens, s")
     stop_time: float = Field(1.5, ge=0, description="time allowed to spin down, s")
@@ -77,16 +115,23 @@ class ProtocolConfig(BaseModel):
     def _distinct(cls, v: list[float]) -> list[float]:
         if any(not math.isfinite(a) for a in v):
             raise ValueError("angles must be finite")
-        s = sorted(v)
-        if any(b - a < 10.0 for a, b in itertools.pairwise(s)):
-            raise ValueError("steering angles must differ by at least 10 deg")
+        if any(abs(a) > MAX_ANGLE_DEG for a in v):
+            raise ValueError(f"steering angles must be within +-{MAX_ANGLE_DEG:g} deg")
+        # the steering is a circle: 0 and 360 deg are the same angle
+        for a, b in itertools.combinations(v, 2):
+            if _circular_gap(a, b) < MIN_ANGLE_SEPARATION_DEG:
+                raise ValueError(
+                    f"steering angles must differ by at least {MIN_ANGLE_SEPARATION_DEG:g} "
+                    f"deg modulo 360 ({a:g} and {b:g} are {_circular_gap(a, b):g} deg apart)"
+                )
         return v
 
 
 class Tolerances(BaseModel):
-    """A result whose std devs exceed these is reported but not installed (SI)."""
+    """A result whose std devs exceed these is reported but not installed (SI).  Tighter
+    when smaller; a run's overrides may only tighten them."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     position: float = Field(0.5e-3, gt=0, description="x_s, y_s, b std dev, m")
     beta: float = Field(math.radians(0.2), gt=0, description="beta std dev, rad")
@@ -94,7 +139,7 @@ class Tolerances(BaseModel):
 
 
 class RobotConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     robot: str = "swpc"
     nominal: RobotParams = PAPER_NOMINAL
@@ -143,6 +188,80 @@ class RobotConfig(BaseModel):
         """A new config with ``overrides`` deep-merged (validated like the file)."""
         return RobotConfig.model_validate(_deep_merge(self.to_document(), overrides))
 
+    def for_run(self, overrides: dict[str, Any]) -> RobotConfig:
+        """The config of one run: ``overrides`` deep-merged, then checked against this
+        (the service's) config.  Raises :class:`OverrideError` listing every problem:
+
+        * a limit or tolerance above this config's (an override may tighten, never loosen
+          or remove, them), or a limit that is not per run (:data:`RUN_FIXED_LIMITS`);
+        * another robot id, CAN node map or set of module ids (the service's driver and
+          motion-capture subscription are this config's);
+        * anything :meth:`run_problems` finds.
+
+        Pydantic's ``ValidationError`` (a ``ValueError``) for an invalid merged config.
+        """
+        run = self.with_overrides(overrides)
+        problems: list[str] = []
+        for group in ("limits", "tolerances"):
+            mine, theirs = getattr(self, group), getattr(run, group)
+            for name in type(mine).model_fields:
+                base, new = getattr(mine, name), getattr(theirs, name)
+                if group == "limits" and name in RUN_FIXED_LIMITS and new != base:
+                    problems.append(
+                        f"{group}.{name}: set for the service in the robot config ({base:g}), "
+                        "not per run"
+                    )
+                elif new > base:
+                    problems.append(
+                        f"{group}.{name}: {new:g} would loosen the robot config's {base:g} "
+                        "(an override may only tighten it)"
+                    )
+        if run.robot != self.robot:
+            problems.append(
+                f"robot: {run.robot!r} is not this service's robot {self.robot!r} (its motion "
+                "capture subscription is mocap/<robot>/pose)"
+            )
+        if run.nodes != self.nodes:
+            problems.append(f"nodes: the CAN node map is the service's {self.nodes}, not per run")
+        if run.nominal.ids != self.nominal.ids:
+            problems.append(
+                f"nominal: module ids {run.nominal.ids} are not the robot's {self.nominal.ids}"
+            )
+        problems += run.run_problems()
+        if problems:
+            raise OverrideError(problems)
+        return run
+
+    def run_problems(self) -> list[str]:
+        """Why a run with this config could not succeed, found before any motion (empty
+        when none): every module locked (the solver needs spins about each), and every
+        step of the protocol possible within ``limits.step_timeout``."""
+        p, lim = self.protocol, self.limits
+        problems: list[str] = []
+        ids = self.nominal.ids
+        if p.modules is not None:
+            missing = [m for m in ids if m not in p.modules]
+            if missing:
+                problems.append(
+                    f"protocol.modules: modules {missing} are never locked; the solver needs "
+                    "spins about every module"
+                )
+        for name in ("settle_time", "stop_time", "align_time", "resteer_time"):
+            value = getattr(p, name)
+            if value >= lim.step_timeout:
+                problems.append(
+                    f"protocol.{name}: {value:g} s is not shorter than limits.step_timeout "
+                    f"{lim.step_timeout:g} s (the step would time out)"
+                )
+        shortest = p.settle_time + math.radians(p.sweep_deg) / lim.max_yaw_rate
+        if shortest >= lim.step_timeout:
+            problems.append(
+                f"protocol.sweep_deg: {p.sweep_deg:g} deg after settle_time {p.settle_time:g} s "
+                f"takes at least {shortest:.1f} s at limits.max_yaw_rate {lim.max_yaw_rate:g} "
+                f"rad/s, not shorter than limits.step_timeout {lim.step_timeout:g} s"
+            )
+        return problems
+
 
 def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     out = dict(base)
@@ -182,7 +301,7 @@ def _partial(model: type[BaseModel], name: str) -> type[BaseModel]:
         info = FieldInfo.merge_field_infos(f, default=None)
         info.default_factory = None
         fields[fname] = (Optional[f.annotation], info)  # noqa: UP045 - runtime type
-    return create_model(name, __config__=ConfigDict(extra="forbid"), **fields)
+    return create_model(name, __config__=STRICT, **fields)
 
 
 LimitsOverride = _partial(MotionLimits, "LimitsOverride")
@@ -191,9 +310,11 @@ TolerancesOverride = _partial(Tolerances, "TolerancesOverride")
 
 
 class ConfigOverrides(BaseModel):
-    """Overrides of the robot config for one run (every key optional, deep-merged)."""
+    """Overrides of the robot config for one run (every key optional, deep-merged).  Limits
+    and tolerances may only be tightened; ``robot``, ``nodes`` and the module ids are the
+    service's (:meth:`RobotConfig.for_run`)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = STRICT
 
     robot: str | None = None
     nominal: RobotParams | None = None

@@ -77,6 +77,11 @@ class RobotIO(Protocol):
         """Feedback rows ``(t, theta_hat, psi)`` received at clock time >= ``since``."""
         ...
 
+    def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
+        """Feedback rows ``(t, theta_hat, psi)`` after ``cursor`` (0 at first) with clock
+        time >= ``since``, and the new cursor: each row once, as it comes."""
+        ...
+
     def take_faults(self) -> list[str]:
         """Fault messages observed since the last call."""
         ...
@@ -87,10 +92,17 @@ class RobotIO(Protocol):
 
 
 class DriverRobotIO:
-    """:class:`RobotIO` on a :class:`CanDriver` (which owns the bus and its lifecycle)."""
+    """:class:`RobotIO` on a :class:`CanDriver` (which owns the bus and its lifecycle).
 
-    def __init__(self, driver: CanDriver) -> None:
+    ``limits``: ``(max torque, (steer, wheel) max velocity)`` sent to every controller at
+    activation, after the driver's own (a run's tightened limits, :mod:`services.robot_config`).
+    """
+
+    def __init__(
+        self, driver: CanDriver, limits: tuple[float, tuple[float, float]] | None = None
+    ) -> None:
         self.driver = driver
+        self.limits = limits
         self._faults: list[str] = []
         self._cause_taken = driver.fault_cause  # the driver's fault cause last looked at
         self._skip_event: str | None = None  # its event, when the cause was reported first
@@ -129,6 +141,10 @@ class DriverRobotIO:
         if d.state is not Lifecycle.ACTIVE:
             d.activate()
         for m in self.module_ids:
+            if self.limits is not None:
+                torque, velocity = self.limits
+                for axis in (Axis.STEER, Axis.WHEEL):
+                    d.set_limits(m, axis, torque, velocity[axis])
             d.clear_errors(m)
             d.enable(m, Axis.STEER)
             d.enable(m, Axis.WHEEL)
@@ -192,6 +208,9 @@ class DriverRobotIO:
         h = self.driver.history_arrays(module)
         sel = h["t"] >= since
         return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
+
+    def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
+        return self.driver.history_since(module, cursor, since)
 
     def take_faults(self) -> list[str]:
         """The fault events since the last call, and the driver's fault cause as soon as it

@@ -7,11 +7,24 @@ this process on a python-can ``virtual`` bus and zenoh on a loopback endpoint, i
 simulated time (one :class:`swpc_hw.clock.SimClock` shared by the simulator, the driver,
 the mocap ingest and the calibration runs).  Otherwise the clock is the host's, scaled by
 ``time_scale`` for an external simulator (:mod:`services.timing`).
+
+Long-running resources are bounded: one service per data dir and per CAN channel
+(:mod:`services.locks`, taken before anything is touched); the CAN traffic goes to a
+rolling log of at most ``SWPC_CAN_LOG_BYTES`` in ``<data dir>/can/`` plus one recording
+per run; a run starts only within the disk budget (:mod:`services.disk`) and fails when
+the disk fills.  A run's state that cannot be saved (the store unwritable) ends the run
+FAILED; what the API lists is then the in-memory state, saved again once the store
+takes writes.
 """
 
 from __future__ import annotations
 
 import contextlib
+import grp
+import logging
+import math
+import os
+import stat
 import sys
 import threading
 import time
@@ -20,23 +33,40 @@ from pathlib import Path
 from typing import Any
 
 from services.calibration_run import TERMINAL, CalibrationRun, State
+from services.disk import make_room, run_reserve
 from services.in_process_simulator import in_process_simulator
+from services.locks import ChannelLock, DataDirLock
+from services.logs import event
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig, load_robot_config
 from services.robot_io import DriverRobotIO
-from services.settings import ServiceSettings
+from services.run_recording import SpaceGuard
+from services.settings import ServiceSettings, SettingsError
 from services.store import RunStore
 from services.timing import TimingBudget, driver_config, timing_budget
 from simulators.virtual_robot import Simulator
 from swpc_hw.can.driver import CanDriver
+from swpc_hw.can.types import Lifecycle
 from swpc_hw.clock import Clock, SimClock, SystemClock
+from swpc_hw.errors import KinematicFileError, SwpcError
+from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 SWITCH_INTERVAL_S = 0.001
+log = logging.getLogger("swpc.service")
+MIB = 1 << 20
 
 
 class RunConflictError(RuntimeError):
     """A calibration is already running."""
+
+
+class DiskSpaceError(SwpcError):
+    """No room for a run: the disk budget or the file system's free space (HTTP 507)."""
+
+
+class NoResultError(SwpcError):
+    """The run has no result to plot (not DONE)."""
 
 
 class Runtime:
@@ -45,10 +75,28 @@ class Runtime:
     def __init__(self, settings: ServiceSettings, config: RobotConfig | None = None) -> None:
         self.settings = settings
         self.config = config or load_robot_config(settings.robot_config)
+        if settings.can_log_bytes and settings.can_log_bytes * 2 > settings.disk_budget:
+            raise SettingsError(
+                f"SWPC_CAN_LOG_BYTES ({settings.can_log_bytes}) must be at most half of "
+                f"SWPC_DISK_BUDGET ({settings.disk_budget})"
+            )
         self.data_dir = Path(settings.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self.store = RunStore(self.data_dir / "runs.sqlite")
-        self.interrupted = self.store.mark_interrupted()
+        # before anything in the data dir is touched: a second service stops here
+        self.dir_lock = DataDirLock(self.data_dir).acquire()
+        self.channel_lock: ChannelLock | None = None
+        try:
+            self._apply_file_group()
+            self.store = RunStore(self.data_dir / "runs.sqlite")
+            self.interrupted = self.store.mark_interrupted()
+        except BaseException:
+            self.dir_lock.release()
+            raise
+        for rid in self.interrupted:
+            event(log, logging.WARNING, "run.interrupted", run=rid)
+        self.store_error: str | None = None
+        self._unsaved: set[str] = set()
+        self._plot_lock = threading.Lock()
         self.runs: dict[str, CalibrationRun] = {}
         self.current: CalibrationRun | None = None
         self._lock = threading.Lock()
@@ -73,6 +121,38 @@ class Runtime:
         self.started = time.time()
         self._closed = False
 
+    def _apply_file_group(self) -> None:
+        """``SWPC_FILE_GROUP``: the data dir gets the group, group read and search, and
+        the kinematic file and its backups, if any, the group too.  New files get the
+        group as the service's primary group (the unit's ``Group=``), else from the data
+        dir's setgid bit, set here (the unit's ``RestrictSUIDSGID=`` would refuse it)."""
+        name = self.settings.file_group
+        if not name:
+            return
+        try:
+            gid = grp.getgrnam(name).gr_gid
+        except KeyError:
+            raise SettingsError(f"SWPC_FILE_GROUP: no group named {name!r}") from None
+        setgid = 0 if os.getegid() == gid else stat.S_ISGID
+        targets = [self.data_dir] + [
+            d for d in (self.data_dir / "runs", self.data_dir / "can") if d.is_dir()
+        ]
+        kin = self.settings.kinematics_file
+        try:
+            for d in targets:
+                os.chown(d, -1, gid)
+                os.chmod(d, stat.S_IMODE(d.stat().st_mode) | setgid | 0o050)
+            for f in kin.parent.glob(f"{kin.stem}*{kin.suffix}"):
+                if f.is_file():
+                    os.chown(f, -1, gid)
+                    os.chmod(f, stat.S_IMODE(f.stat().st_mode) | 0o040)
+        except PermissionError as exc:
+            raise SettingsError(
+                f"SWPC_FILE_GROUP={name}: cannot give {exc.filename} the group (the service "
+                "must own it and have the group: Group= in its unit, as deploy/systemd/"
+                "swpc-service.service)"
+            ) from None
+
     # ---------------------------------------------------------------- lifecycle
     def open(self) -> Runtime:
         # An optimisation, not a correctness condition: safety paths (abort, driver
@@ -86,7 +166,14 @@ class Runtime:
             channel = f"swpc-sim-{uuid.uuid4().hex[:8]}"
             if not listen and not connect:
                 listen = [free_tcp_endpoint()]
+        else:
+            self.channel_lock = ChannelLock(interface, channel).acquire()
         self.can_channel, self.can_interface = channel, interface
+        can_log = None
+        if s.can_log_bytes:
+            (self.data_dir / "can").mkdir(exist_ok=True)
+            can_log = self.data_dir / "can" / "can.log"
+        self.can_log = can_log
         self.session = open_session(
             mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
         )
@@ -97,11 +184,23 @@ class Runtime:
                 self.config,
                 interface=interface,
                 channel=channel,
-                log_path=self.data_dir / f"can-{time.strftime('%Y%m%dT%H%M%S')}.log",
+                log_path=can_log,
+                log_total_bytes=int(s.can_log_bytes) or None,
             ),
             clock=self.clock,
         )
         self.driver.configure()
+        event(
+            log,
+            logging.INFO,
+            "service.open",
+            data_dir=str(self.data_dir.resolve()),
+            can=f"{interface}:{channel}",
+            in_process_simulator=s.in_process,
+            can_log=None if can_log is None else str(can_log),
+            can_log_bytes=int(s.can_log_bytes),
+            disk_budget=int(s.disk_budget),
+        )
         if s.in_process:
             assert isinstance(self.clock, SimClock)
             self.simulator = in_process_simulator(
@@ -117,13 +216,14 @@ class Runtime:
             self.simulator.start()
         return self
 
-    def close(self) -> None:
+    def close(self, reason: str = "the service was stopped during the run") -> None:
+        """Stop everything; a run in progress ends FAILED with ``reason``."""
         if self._closed:
             return
         self._closed = True
         run = self.current
         if run is not None and not run.finished:
-            run.abort()
+            run.shutdown(reason)
             run.join(5.0)
         if self.driver is not None:
             with contextlib.suppress(Exception):
@@ -137,23 +237,60 @@ class Runtime:
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()
+        self._save_unsaved()
         self.store.close()
+        if self.channel_lock is not None:
+            self.channel_lock.release()
+        self.dir_lock.release()
+        event(log, logging.INFO, "service.close")
 
     # --------------------------------------------------------------------- runs
     def start_run(self, config: RobotConfig, install: str) -> CalibrationRun:
+        """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`).
+
+        Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
+        disk budget (after pruning the oldest runs' recordings) or the file system's free
+        space leaves no room for it.
+        """
         assert self.driver is not None
+        s = self.settings
         with self._lock:
             if self.current is not None and not self.current.finished:
                 raise RunConflictError(f"calibration {self.current.id} is still running")
+            budget, reserve = int(s.disk_budget), run_reserve(int(s.disk_budget))
+            room = make_room(self.data_dir, budget, reserve=reserve)
+            for p in room.pruned:
+                event(log, logging.INFO, "disk.pruned", path=str(p))
+            if room.used > budget - reserve:
+                raise DiskSpaceError(
+                    f"disk budget: the data dir holds {room.used / MIB:.1f} MiB of "
+                    f"SWPC_DISK_BUDGET {budget / MIB:.1f} MiB, and a run needs "
+                    f"{reserve / MIB:.1f} MiB (nothing left to prune)"
+                )
+            if room.free < int(s.min_free) + reserve:
+                raise DiskSpaceError(
+                    f"disk nearly full: {room.free / MIB:.1f} MiB free on the data dir's file "
+                    f"system; a run needs {reserve / MIB:.1f} MiB above SWPC_MIN_FREE "
+                    f"{int(s.min_free) / MIB:.1f} MiB"
+                )
+            lim = config.limits
             run = CalibrationRun(
-                DriverRobotIO(self.driver),
+                DriverRobotIO(
+                    self.driver,
+                    limits=(
+                        lim.max_wheel_torque,
+                        (lim.max_steer_velocity, lim.max_wheel_velocity),
+                    ),
+                ),
                 self.mocap,
                 config,
                 clock=self.clock,
                 data_dir=self.data_dir,
-                kinematics_path=self.settings.kinematics_file,
+                kinematics_path=s.kinematics_file,
                 install=install,
                 on_change=self._persist,
+                space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
+                robot_config_path=None if s.robot_config is None else str(s.robot_config),
             )
             self.runs[run.id] = run
             self.current = run
@@ -165,11 +302,42 @@ class Runtime:
         return run
 
     def _persist(self, run: CalibrationRun) -> None:
+        """Save a run's state (its on_change); a failure is kept (health, the runs list
+        shows the in-memory state) and raised, so that a run still going fails."""
         if run.finished and self.driver is not None and run is self.current:
-            self.driver.stop_recording()
-        self.store.upsert(run.id, run.status.created, run.status.to_dict())
-        if run.status.state is State.DONE and run.result_doc is not None:
-            self.store.set_result(run.id, run.result_doc)
+            err = self.driver.stop_recording()
+            if err is not None:
+                run.status.errors.append(f"CAN recording stopped early: {err}")
+        try:
+            self.store.upsert(run.id, run.status.created, run.status.to_dict())
+            if run.status.state is State.DONE and run.result_doc is not None:
+                self.store.set_result(run.id, run.result_doc)
+        except Exception as exc:
+            self._unsaved.add(run.id)
+            if self.store_error is None:
+                event(log, logging.ERROR, "store.write_failed", run=run.id, error=str(exc))
+            self.store_error = f"{type(exc).__name__}: {exc}"
+            raise
+        self._unsaved.discard(run.id)
+
+    def _save_unsaved(self) -> None:
+        """Save again the runs whose last save failed (once the store takes writes)."""
+        for rid in list(self._unsaved):
+            run = self.runs.get(rid)
+            if run is None:
+                self._unsaved.discard(rid)
+                continue
+            try:
+                self.store.upsert(run.id, run.status.created, run.status.to_dict())
+                if run.status.state is State.DONE and run.result_doc is not None:
+                    self.store.set_result(run.id, run.result_doc)
+            except Exception as exc:
+                self.store_error = f"{type(exc).__name__}: {exc}"
+                return
+            self._unsaved.discard(rid)
+        if not self._unsaved and self.store_error is not None:
+            event(log, logging.INFO, "store.recovered")
+            self.store_error = None
 
     def status(self, run_id: str) -> dict[str, Any] | None:
         run = self.runs.get(run_id)
@@ -189,13 +357,144 @@ class Runtime:
         return str(got[0]["state"]), got[1]
 
     def list_runs(self) -> list[dict[str, Any]]:
-        return list(self.store.list())
+        """Every run, oldest first: the store's, with the in-memory state of this
+        service's runs over it (the store may have missed a write)."""
+        if self._unsaved:
+            self._save_unsaved()
+        try:
+            stored = list(self.store.list())
+        except Exception as exc:
+            self.store_error = f"{type(exc).__name__}: {exc}"
+            stored = []
+        by_id = {str(st["id"]): st for st in stored}
+        for rid, run in self.runs.items():
+            by_id[rid] = run.status.to_dict()
+        return sorted(by_id.values(), key=lambda st: str(st.get("created", "")))
 
     def run_states(self) -> dict[str, int]:
         counts: dict[str, int] = {str(s): 0 for s in State}
-        for st in self.store.list():
+        for st in self.list_runs():
             counts[str(st["state"])] = counts.get(str(st["state"]), 0) + 1
         return counts
+
+    # ------------------------------------------------------------------ plot, kinematics
+    def plot_path(self, run_id: str) -> Path:
+        return self.data_dir / "runs" / run_id / "plot.png"
+
+    def plot(self, run_id: str) -> Path | None:
+        """The run's plot, rendered once and then served from ``runs/<id>/plot.png``
+        (also after a restart: the result is solved again from the run's dataset).
+        ``None``: no such run; :class:`NoResultError`: not DONE."""
+        st = self.status(run_id)
+        if st is None:
+            return None
+        if st["state"] != "DONE":
+            raise NoResultError(f"calibration {run_id} is {st['state']}: no result to plot")
+        path = self.plot_path(run_id)
+        with self._plot_lock:  # one rendering at a time; every later request reads the file
+            if path.is_file():
+                return path
+            from services.calibration_result import solve_run
+            from services.plots import calibration_plot
+            from swpc_hw.dataset import load_dataset
+            from swpc_hw.kinematic_file import atomic_write_bytes
+
+            run = self.runs.get(run_id)
+            result = run.result if run is not None else None
+            if result is None:
+                result = solve_run(path.parent)
+            png = calibration_plot(load_dataset(path.parent / "dataset"), result)
+            atomic_write_bytes(path, png)
+        return path
+
+    def kinematics_document(self) -> dict[str, Any] | None:
+        """The kinematic file in force as a document (``None``: none installed); a file
+        that does not load raises :class:`KinematicFileError` naming the problem."""
+        path = self.settings.kinematics_file
+        if not path.exists():
+            return None
+        k = load_kinematics(path)
+        from swpc_hw.kinematic_file import kinematics_document
+
+        doc = kinematics_document(k.params, created=k.created, extra=k.extra)
+        doc["path"] = str(path)
+        return doc
+
+    # ------------------------------------------------------------------ health
+    def health(self) -> tuple[str, dict[str, Any]]:
+        """``(status, document)``: ``failing`` when a calibration cannot start or go on
+        (CAN not open or faulted, a node lost, no live motion capture, its clock off, the
+        disk full, the store unwritable), ``degraded`` when it can but something needs
+        attention (node errors, a CAN log stopped, the kinematic file in force unreadable,
+        the disk budget nearly used), else ``ok``.  The in-process simulator's nodes and
+        poses are not judged between runs: its time stands still then."""
+        failing: list[str] = []
+        degraded: list[str] = []
+        d = self.driver
+        nodes: dict[str, Any] = {}
+        # the in-process simulator between runs: simulated time stands still (it flows
+        # only while someone waits on it, docs/time.md), so no heartbeat or pose is late;
+        # the run's PRECHECK judges them once time flows
+        still = self.simulator is not None and not self.running()
+        if d is None or d.state in (Lifecycle.UNCONFIGURED, Lifecycle.FINALIZED):
+            failing.append("CAN driver not open")
+        else:
+            if d.fault_cause is not None:
+                failing.append(f"CAN driver stopped on a fault: {d.fault_cause}")
+            for m in d.modules():
+                st = d.module_state(m)
+                nodes[str(m)] = {"alive": st.alive, "errors": list(st.errors), "homed": st.homed}
+                if not st.alive and not still:
+                    failing.append(f"module {m} (node {st.node}): no heartbeat")
+                elif any(st.errors):
+                    degraded.append(f"module {m} (node {st.node}): active errors {st.errors}")
+            err = d.log_error()
+            if err is not None:
+                degraded.append(f"CAN log stopped: {err}")
+        age = self.mocap.age()
+        if self.mocap.is_stale() and not still:
+            failing.append(
+                "motion capture stale: "
+                + ("no pose yet" if not math.isfinite(age) else f"no pose for {age:.2f} s")
+            )
+        clock = self.mocap.clock_problem()
+        if clock is not None:
+            failing.append(clock)
+        if self._unsaved:
+            self._save_unsaved()
+        if self.store_error is not None:
+            failing.append(f"run store not writable: {self.store_error}")
+        disk: dict[str, Any] = {}
+        try:
+            import shutil
+
+            free = shutil.disk_usage(self.data_dir).free
+            disk = {"free_bytes": free, "budget_bytes": int(self.settings.disk_budget)}
+            if free < int(self.settings.min_free):
+                failing.append(
+                    f"disk nearly full: {free / MIB:.1f} MiB free, below SWPC_MIN_FREE "
+                    f"{int(self.settings.min_free) / MIB:.1f} MiB"
+                )
+        except OSError as exc:
+            failing.append(f"data dir: {exc}")
+        try:
+            self.kinematics_document()
+        except KinematicFileError as exc:
+            degraded.append(f"kinematic file in force unreadable: {exc}")
+        status = "failing" if failing else ("degraded" if degraded else "ok")
+        doc = {
+            "status": status,
+            "problems": failing + degraded,
+            "can": None if d is None else d.state.name.lower(),
+            "nodes": nodes,
+            "mocap_age_s": age if math.isfinite(age) else None,
+            "mocap_stale": self.mocap.is_stale(),
+            "running": self.running(),
+            "in_process_simulator": self.simulator is not None,
+            "simulated_time_still": still,
+            "disk": disk,
+        }
+        return status, doc
 
     def running(self) -> bool:
         return self.current is not None and self.current.status.state not in TERMINAL

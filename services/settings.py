@@ -8,12 +8,26 @@ seconds of robot time; :mod:`services.timing` derives every window from them.
 
 from __future__ import annotations
 
+import ipaddress
+import os
 import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import ByteSize, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from swpc_hw.errors import SwpcError
+
+MIN_TOKEN_LENGTH = 16
+PLACEHOLDER_TOKENS = frozenset({"change-me", "changeme", "token", "secret", "password"})
+"""Values a token must not have (``deploy/swpc.env.example`` ships ``change-me``)."""
+TOKEN_FILE = "api-token"
+"""Generated on loopback when no token is set: ``<data dir>/api-token``, mode 0600."""
+
+
+class SettingsError(SwpcError, ValueError):
+    """The service's settings cannot be used as they are (names the setting)."""
 
 
 class ServiceSettings(BaseSettings):
@@ -23,7 +37,24 @@ class ServiceSettings(BaseSettings):
 
     host: str = Field("127.0.0.1", description="bind address (loopback by default)")
     port: int = Field(8080, ge=0, le=65535)
-    token: SecretStr | None = Field(None, description="bearer token for motion/write endpoints")
+    token: SecretStr | None = Field(
+        None,
+        description="bearer token for motion/write endpoints, at least 16 characters; "
+        "required when binding beyond loopback",
+    )
+    max_body_bytes: int = Field(
+        65536, ge=1024, le=16 << 20, description="largest request body accepted, bytes"
+    )
+    header_timeout: float = Field(
+        10.0,
+        gt=0,
+        le=300,
+        description="host seconds a connection may take to send a complete request head "
+        "(and stay idle between requests) before it is closed",
+    )
+    max_connections: int = Field(
+        128, ge=4, le=8192, description="open HTTP connections at most; more are closed"
+    )
 
     can_interface: str | None = Field(
         None, description="python-can interface; unset: in-process simulator"
@@ -70,6 +101,31 @@ class ServiceSettings(BaseSettings):
     robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")
     data_dir: Path = Path("swpc-data")
     kinematics_path: Path | None = Field(None, description="default: <data_dir>/kinematics.yaml")
+    file_group: str | None = Field(
+        None,
+        description="group that may read what the service writes (the kinematic file, run "
+        "data): the data dir is given this group and the setgid bit, so every file in it "
+        "inherits it; the service must be a member",
+    )
+    can_log_bytes: ByteSize = Field(
+        ByteSize(64 << 20),
+        ge=0,
+        description="rolling log of all CAN traffic (python-can's rotating logger, candump "
+        "format) in <data_dir>/can/: at most this many bytes over all its files; 0: none",
+    )
+    disk_budget: ByteSize = Field(
+        ByteSize(4 << 30),
+        ge=1 << 20,
+        description="most bytes the data dir may hold; the raw recordings (can.log, "
+        "run.mcap) of the oldest runs are pruned to stay within it, and a run that cannot "
+        "fit fails",
+    )
+    min_free: ByteSize = Field(
+        ByteSize(256 << 20),
+        ge=0,
+        description="free space to leave on the data dir's file system: no run starts, and a "
+        "running one fails, below it",
+    )
 
     time_scale: float = Field(
         1.0,
@@ -122,8 +178,71 @@ class ServiceSettings(BaseSettings):
     def kinematics_file(self) -> Path:
         return self.kinematics_path or self.data_dir / "kinematics.yaml"
 
-    def ensure_token(self) -> str:
-        """The configured token, or a freshly generated one."""
+    @property
+    def loopback_only(self) -> bool:
+        """The bind address is a loopback address (or ``localhost``)."""
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+    def check_token(self) -> str | None:
+        """The configured token after the checks (``None`` when none is set).
+
+        Raises :class:`SettingsError` for an empty, placeholder or short token, and for no
+        token when binding beyond loopback (a generated one would have to be shown to
+        someone: the journal is no place for it).
+        """
         if self.token is None:
-            self.token = SecretStr(secrets.token_urlsafe(24))
-        return self.token.get_secret_value()
+            if not self.loopback_only:
+                raise SettingsError(
+                    f"SWPC_TOKEN is required when binding to {self.host} (beyond loopback): "
+                    f"set one of at least {MIN_TOKEN_LENGTH} characters "
+                    "(e.g. openssl rand -base64 24)"
+                )
+            return None
+        token = self.token.get_secret_value()
+        if not token.strip():
+            raise SettingsError("SWPC_TOKEN is empty: set a token or remove the setting")
+        if token.strip().lower() in PLACEHOLDER_TOKENS:
+            raise SettingsError(
+                "SWPC_TOKEN is the example's placeholder: set a token of your own "
+                "(e.g. openssl rand -base64 24)"
+            )
+        if len(token) < MIN_TOKEN_LENGTH:
+            raise SettingsError(
+                f"SWPC_TOKEN is {len(token)} characters: at least {MIN_TOKEN_LENGTH} are needed"
+            )
+        return token
+
+    @property
+    def token_file(self) -> Path:
+        return self.data_dir / TOKEN_FILE
+
+    def ensure_token(self) -> str:
+        """The configured token (checked); on loopback with none set, the one kept in
+        ``<data dir>/api-token`` (mode 0600, created on first use).  Never printed."""
+        token = self.check_token()
+        if token is not None:
+            return token
+        path = self.token_file
+        try:
+            kept = path.read_text(encoding="utf-8").strip()
+        except FileNotFoundError:
+            kept = ""
+        except (OSError, UnicodeDecodeError) as exc:
+            raise SettingsError(f"{path}: cannot read the generated token: {exc}") from exc
+        if len(kept) < MIN_TOKEN_LENGTH:
+            kept = secrets.token_urlsafe(24)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                    fh.write(kept + "\n")
+                os.chmod(path, 0o600)
+            except OSError as exc:
+                raise SettingsError(f"{path}: cannot keep the generated token: {exc}") from exc
+        self.token = SecretStr(kept)
+        return kept

@@ -131,6 +131,7 @@ def driver_config(
     interface: str,
     channel: str,
     log_path: Path | None = None,
+    log_total_bytes: int | None = None,
 ) -> CanConfig:
     """The CAN driver's settings for this service and robot: the only place they are made
     (``swpc serve`` and ``swpc validate`` both take them from here)."""
@@ -151,4 +152,5 @@ def driver_config(
         activate_timeout_s=b.activate_timeout,
         deadman_s=b.deadman,
         log_path=None if log_path is None else str(log_path),
+        log_total_bytes=log_total_bytes,
     )

@@ -6,12 +6,16 @@ Schema (CONVENTIONS.md)::
     robot: <robot id>
     frame: <frame name>
     created: <ISO 8601 UTC>
+    units: {length: m, angle: rad}    # optional on load; always written
     modules:
       - {id, x_s, y_s, beta, b, r, stddev: {x_s, y_s, beta, b, r}}   # stddev optional
 
 Unknown keys are ignored on load (and preserved in ``extra`` of :class:`KinematicFile`);
-missing required keys, non-finite values, ``b <= 0``, ``r <= 0``, duplicate ids and
-N < 2 raise :class:`~swpc_hw.errors.KinematicFileError` naming the key.
+missing required keys, non-finite values, ``b <= 0``, ``r <= 0``, duplicate ids, N < 2,
+a ``units`` other than SI and a ``provenance`` that is not a mapping raise
+:class:`~swpc_hw.errors.KinematicFileError` naming the key.  Files are written with the
+mode a new file gets (``0666`` less the umask), not the temporary file's ``0600``: the
+robot's odometry, another user, reads them.
 """
 
 from __future__ import annotations
@@ -32,6 +36,8 @@ from swpc_hw.model import ModuleParams, ModuleStddev, RobotParams
 
 FORMAT = "swpc-kinematics/1"
 PARAM_KEYS = ("x_s", "y_s", "beta", "b", "r")
+UNITS = {"length": "m", "angle": "rad"}
+"""The format's units (SI); a file may say so in ``units:``, never anything else."""
 
 
 @dataclass
@@ -65,6 +71,17 @@ def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
             raise KinematicFileError(f"{where}: missing key '{key}'")
     if doc["format"] != FORMAT:
         raise KinematicFileError(f"{where}: format: expected '{FORMAT}' (got {doc['format']!r})")
+    units = doc.get("units")
+    if units is not None:
+        if not isinstance(units, dict):
+            raise KinematicFileError(f"{where}: units: must be a mapping (got {units!r})")
+        for key, unit in UNITS.items():
+            if units.get(key, unit) != unit:
+                raise KinematicFileError(
+                    f"{where}: units.{key}: {FORMAT} is in {unit} (got {units[key]!r})"
+                )
+    if "provenance" in doc and not isinstance(doc["provenance"], dict):
+        raise KinematicFileError(f"{where}: provenance: must be a mapping")
     mods = doc["modules"]
     if not isinstance(mods, list):
         raise KinematicFileError(f"{where}: modules: must be a list")
@@ -106,7 +123,7 @@ def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
                     raise KinematicFileError(f"{where}: {loc}.stddev.{key}: must be >= 0")
             std = ModuleStddev(**sdv)
         modules.append(ModuleParams(id=mid, stddev=std, **vals))
-    known = {"format", "robot", "frame", "created", "modules"}
+    known = {"format", "robot", "frame", "created", "units", "modules"}
     extra = {k: v for k, v in doc.items() if k not in known}
     params = RobotParams(robot=str(doc["robot"]), frame=str(doc["frame"]), modules=modules)
     return KinematicFile(params=params, created=str(doc.get("created", "")), extra=extra)
@@ -119,6 +136,11 @@ def load_kinematics(path: str | os.PathLike[str]) -> KinematicFile:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise KinematicFileError(f"{p}: cannot read: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise KinematicFileError(
+            f"{p}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): "
+            "a damaged or foreign file"
+        ) from exc
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -147,6 +169,7 @@ def kinematics_document(
         "robot": params.robot,
         "frame": params.frame,
         "created": created or _now_iso(),
+        "units": dict(UNITS),
         "modules": modules,
     }
     for k, v in (extra or {}).items():
@@ -155,17 +178,39 @@ def kinematics_document(
     return doc
 
 
+def current_umask() -> int:
+    """The process's umask, read without changing it (``/proc/self/status``; else set and
+    restored at once)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
     """Write ``text`` to ``path`` atomically: temp file in the same directory, fsync, rename.
 
-    On any failure the temp file is removed and ``path`` is untouched.
+    On any failure the temp file is removed and ``path`` is untouched.  The file gets the
+    mode a new file gets (``0666`` less the umask), not the temporary file's ``0600``.
     """
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """:func:`atomic_write_text` for bytes."""
     p = Path(path)
     directory = p.parent if str(p.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
+        os.fchmod(fd, 0o666 & ~current_umask())  # what open() would have made, not 0600
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, p)

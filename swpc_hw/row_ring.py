@@ -28,6 +28,8 @@ class RowRing:
         self._buf: NDArray[np.float64] = np.empty((min(self.capacity, initial), n_columns))
         self._start = 0  # index of the oldest row
         self._n = 0
+        self.total = 0
+        """Rows ever appended (a reader's cursor for :meth:`since`)."""
 
     def __len__(self) -> int:
         return self._n
@@ -50,6 +52,7 @@ class RowRing:
             self._start = (self._start + 1) % size
         else:
             self._n += 1
+        self.total += 1
 
     def last(self) -> NDArray[np.float64]:
         """A copy of the newest row."""
@@ -66,6 +69,19 @@ class RowRing:
 
     def clear(self) -> None:
         self._start = self._n = 0
+
+    def since(self, cursor: int) -> tuple[NDArray[np.float64], int]:
+        """A copy of the rows appended after ``cursor`` rows (a previous :attr:`total`),
+        oldest first, and the new cursor: a reader that keeps the cursor reads each row
+        once, however long the ring.  Rows already overwritten (or cleared) are skipped."""
+        k = min(max(self.total - cursor, 0), self._n)
+        size = self._buf.shape[0]
+        first = self._index(self._n - k)
+        if first + k <= size:
+            rows = self._buf[first : first + k].copy()
+        else:
+            rows = np.concatenate((self._buf[first:], self._buf[: first + k - size]))
+        return rows, self.total
 
     def array(self) -> NDArray[np.float64]:
         """A copy of the rows, oldest first, shape (len, n_columns)."""

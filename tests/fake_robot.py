@@ -228,6 +228,11 @@ class FakeRobot:
         a = np.array(self.rows[module], dtype=float).reshape(-1, 3)
         return a[a[:, 0] >= since]
 
+    def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
+        rows = self.rows[module]
+        a = np.array(rows[cursor:], dtype=float).reshape(-1, 3)
+        return a[a[:, 0] >= since], len(rows)
+
     def take_faults(self) -> list[str]:
         out, self.faults = self.faults, []
         return out

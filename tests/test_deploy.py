@@ -170,6 +170,13 @@ def test_units_are_hardened(unit: str) -> None:
         assert d["StateDirectory"] == ["swpc"] and "ReadWritePaths" not in d
         assert d["Environment"] == ["SWPC_DATA_DIR=/var/lib/swpc"]
         assert d["ExecStart"] == ["/opt/swpc/.venv/bin/swpc serve --data-dir /var/lib/swpc"]
+        # what it writes is 0640 in the odometry's group, with no setgid bit (refused by
+        # RestrictSUIDSGID=); file descriptors for every HTTP connection and more
+        assert d["Group"] == ["swpc-data"] and d["UMask"] == ["0027"]
+        assert d["RestrictSUIDSGID"] == ["yes"]
+        from services.settings import ServiceSettings
+
+        assert int(d["LimitNOFILE"][0]) >= 4 * ServiceSettings().max_connections
     else:
         assert "StateDirectory" not in d and "ReadWritePaths" not in d
         assert d["ExecStart"] == [

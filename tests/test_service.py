@@ -41,10 +41,10 @@ from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
-TOKEN = "test-token-123"
+TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 NAMES = ("x_s", "y_s", "beta", "b", "r")
-SHORT = {"protocol": {"modules": [1], "sweep_deg": 1440}}  # one long spin: faults land in it
+SHORT = {"protocol": {"sweep_deg": 1440}}  # a long first spin (module 1): faults land in it
 # the whole protocol with short spins (as make test-vcan): a real result, quickly
 QUICK_PROTOCOL = {
     "sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5, "resteer_time": 1.5
@@ -173,6 +173,14 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
     ``make demo`` runs): DONE, accurate, installed, reproducible offline, recorded."""
     client, rt, _ = service
     assert client.get("/health").json()["in_process_simulator"] is True
+    # between runs the simulated time stands still: nothing is late, ok (200); and once
+    # it flows (robot time passes while this thread waits on it), every node is up
+    h = client.get("/health")
+    assert h.status_code == 200 and h.json()["status"] == "ok", h.json()
+    rt.clock.sleep(1.0)
+    h = client.get("/health")
+    assert all(n["alive"] for n in h.json()["nodes"].values()), h.json()
+    assert h.status_code == 200 and h.json()["problems"] == [], h.json()
     assert client.get("/kinematics").status_code == 404
     t0 = time.monotonic()
     run_id = start(client, {"protocol": QUICK_PROTOCOL})

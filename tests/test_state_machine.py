@@ -59,6 +59,9 @@ class Rig:
         self.hooks: dict[State, Callable[[CalibrationRun], None]] = {}
         self.install = "if-within-tolerance"
         self.tmp = tmp
+        # the state machine's tests need the run's dataset, not its MCAP (tested with the
+        # service and in tests/test_hardening.py): half the CPU of a run on the fake robot
+        self.run_kwargs: dict[str, Any] = {"mcap": False}
 
     def _changed(self, run: CalibrationRun) -> None:
         st = run.status.state
@@ -80,6 +83,7 @@ class Rig:
             kinematics_path=self.kinematics,
             install=self.install,
             on_change=self._changed,
+            **self.run_kwargs,
         )
         run._main()  # the run's thread body, here on the test's thread
         assert run.finished and self.robot.closed
@@ -311,3 +315,18 @@ def test_terminal_states_have_no_way_out() -> None:
     assert not (set(TRANSITIONS) & TERMINAL)
     reachable = {State.PENDING} | {b for v in TRANSITIONS.values() for b in v}
     assert reachable | TERMINAL == set(State)
+
+
+def test_spin_window_unwraps_measures_its_rate_and_opens_once_settled() -> None:
+    """The spin's pure core: fed 10 s of poses at 100 Hz turning at 0.5 rad/s through the
+    +-pi wrap, its window opens at the first pose 1 s (settle_time) after the torque."""
+    from services.pose_motion import SpinWindow
+
+    w = SpinWindow(t_spin=10.0, settle_time=1.0, t0=10.0, yaw0=3.0)
+    assert w.sweep == 0.0 and w.rate is None
+    for k in range(1, 1001):
+        t = 10.0 + k * 0.01
+        w.add(t, float(np.angle(np.exp(1j * (3.0 + 0.5 * (t - 10.0))))))
+    assert w.start == pytest.approx(11.0, abs=1e-9) and w.end == pytest.approx(20.0)
+    assert w.rate == pytest.approx(0.5, rel=1e-9)
+    assert w.sweep == pytest.approx(0.5 * 9.0, rel=1e-9)  # 4.5 rad: through the wrap

@@ -192,7 +192,7 @@ SIM_OVERRIDES="${SWPC_VM_SIM_OVERRIDES:-{\}}"
 SIM_SEED="${SWPC_VM_SIM_SEED:-1}"
 FEEDBACK_RATE="${SWPC_VM_FEEDBACK_RATE:-50}"
 calibration_through_simulator() {
-    local ts=$SIM_TS ep=tcp/127.0.0.1:7447 port=8080 token=vm-token rc=0 sim_pid svc_pid
+    local ts=$SIM_TS ep=tcp/127.0.0.1:7447 port=8080 token=vm-token-0123456789 rc=0 sim_pid svc_pid
     local window data=/tmp/swpc-data
     # The data dir must not be on the 9p share (OUT): SQLite there fails ("disk I/O error",
     # no POSIX locks over 9p), which is why the service never answered /health before.

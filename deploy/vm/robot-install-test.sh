@@ -16,7 +16,7 @@ OUT="${1:?usage: robot-install-test.sh OUT}"
 cd /opt/swpc
 PY=/opt/swpc/.venv/bin/python
 TS="${SWPC_VM_SIM_TIME_SCALE:-0.3}"
-TOKEN=vm-robot-token
+TOKEN=vm-robot-token-0123456789
 URL=http://127.0.0.1:8080
 failures=0
 now() { date +%s.%N; }

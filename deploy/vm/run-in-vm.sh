@@ -132,13 +132,13 @@ run_reference() {
     local ref_port="${SWPC_VM_REF_PORT:-18080}" pid
     mkdir -p "$ref"
     echo "in-process reference: swpc serve (in-process simulator, lockstep)"
-    SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token \
+    SWPC_SIM_SEED="$SWPC_VM_SIM_SEED" SWPC_TOKEN=ref-token-0123456789 \
     SWPC_FEEDBACK_RATE="$SWPC_VM_FEEDBACK_RATE" SWPC_SIM_PHYSICS_DT="$SWPC_VM_PHYSICS_DT" \
     SWPC_DATA_DIR="$ref/data" SWPC_PORT="$ref_port" \
         "$ROOT/.venv/bin/swpc" serve > "$ref/service.log" 2>&1 &
     pid=$!
     "$ROOT/.venv/bin/python" deploy/vm/sim_calibration.py run \
-        --url "http://127.0.0.1:$ref_port" --token ref-token \
+        --url "http://127.0.0.1:$ref_port" --token ref-token-0123456789 \
         --overrides "$SWPC_VM_SIM_OVERRIDES" --out "$OUT/in-process.json" \
         --service-log "$ref/service.log" --health-timeout 120 || true
     kill "$pid" 2>/dev/null; wait "$pid" 2>/dev/null || true

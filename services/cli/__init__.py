@@ -5,6 +5,10 @@ start-up, as cantools discovers its subparsers): it defines ``register(subparser
 None``, which adds its parser and sets ``func(args) -> int`` as default.  Heavy imports
 stay inside ``func`` so that ``swpc --help`` is fast.  Add a subcommand by adding a
 module.
+
+Errors the user can act on (bad input, a file, a CAN interface that cannot be opened)
+are one line on stderr, ``swpc <command>: error: ...``, and exit status 2; a bug keeps
+its traceback.
 """
 
 from __future__ import annotations
@@ -29,9 +33,12 @@ def subcommand_modules() -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from services.provenance import version_line
+
     parser = argparse.ArgumentParser(
         prog="swpc", description="Calibration system for single-wheel powered caster robots."
     )
+    parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in subcommand_modules():
         importlib.import_module(name).register(sub)
@@ -43,11 +50,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except (SwpcError, FirmwareProtocolError) as exc:
-        print(f"swpc {args.command}: error: {exc}", file=sys.stderr)
+    except (SwpcError, FirmwareProtocolError, OSError) as exc:
+        print(f"swpc {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        if type(exc).__module__.split(".")[0] != "can":  # a bug: keep its traceback
+            raise
+        print(f"swpc {args.command}: error: CAN: {one_line(exc)}", file=sys.stderr)
+        return 2
+
+
+def one_line(exc: BaseException) -> str:
+    """The error's message on one line (an OSError with its errno name and file)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f"{exc.filename}: " if exc.filename else ""
+        return f"{where}{exc.strerror}"
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__
 
 
 if __name__ == "__main__":

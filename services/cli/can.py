@@ -1,7 +1,8 @@
 """``swpc can monitor``: live table of the module controllers on the CAN bus.
 
 The driver stays INACTIVE (it only listens): state, mode and errors per axis, measured
-heartbeat and feedback rates, positions, and the driver's error counters.
+heartbeat and feedback rates, positions, and the driver's error counters.  Exit status 1
+(one line on stderr naming them) when a node has no heartbeat at the end.
 ``--emulate`` runs emulated controllers on the same (virtual) bus, for a demo.
 """
 
@@ -121,6 +122,7 @@ def run_monitor(args: argparse.Namespace) -> int:
         emu.start()
     console = Console()
     prev: dict[int, tuple[float, int, int]] = {}
+    lost: list[str] = []
     end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
     try:
         with CanDriver(cfg) as drv:
@@ -138,7 +140,17 @@ def run_monitor(args: argparse.Namespace) -> int:
                         table, _ = _table(drv, prev, time.monotonic())
                         live.update(table)
                         time.sleep(args.interval)
+            lost = [
+                f"module {st.module} (node {st.node})" for st in drv.iter_modules() if not st.alive
+            ]
     finally:
         if emu is not None:
             emu.stop()
+    if lost:
+        print(
+            f"swpc can monitor: error: no heartbeat from {', '.join(lost)} on "
+            f"{args.interface}:{args.channel}",
+            file=sys.stderr,
+        )
+        return 1
     return 0

@@ -2,13 +2,16 @@
 
 With no CAN settings (``SWPC_CAN_INTERFACE`` unset) it runs on the in-process simulator:
 the virtual robot in the service's process on a virtual bus, zenoh on loopback, in
-simulated time.  Settings come from
-``SWPC_*`` environment variables, an env file (``--env-file``) and the flags below.
+simulated time.  Settings come from ``SWPC_*`` environment variables, an env file
+(``--env-file``, which must exist) and the flags below.  With no token set it binds to
+loopback only, keeping a generated token in ``<data dir>/api-token`` (mode 0600); never
+printed.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 
@@ -31,21 +34,40 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import uvicorn
+    import logging
+
+    from pydantic import ValidationError
 
     from services.api import create_app
-    from services.settings import ServiceSettings
+    from services.http_server import server
+    from services.logs import configure, event
+    from services.settings import ServiceSettings, SettingsError
 
+    if args.env_file is not None and not Path(args.env_file).is_file():
+        raise SettingsError(f"--env-file {args.env_file}: no such file")
     overrides: dict[str, Any] = {}
     for key in ("host", "port", "data_dir", "time_scale", "sim_speed"):
         value = getattr(args, key)
         if value is not None:
             overrides[key] = value
-    settings = ServiceSettings(_env_file=args.env_file, **overrides)
-    fresh = settings.token is None
-    token = settings.ensure_token()
-    if fresh:
-        print(f"swpc serve: no SWPC_TOKEN set; generated bearer token: {token}", flush=True)
+    try:
+        settings = ServiceSettings(_env_file=args.env_file, **overrides)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(x) for x in first["loc"])
+        raise SettingsError(f"setting {where}: {first['msg']}") from None
+    configure(args.log_level)
+    generated = settings.token is None
     app = create_app(settings)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level)
+    log = logging.getLogger("swpc.service")
+    if generated:
+        event(log, logging.WARNING, "service.token_generated", file=str(settings.token_file))
+    server(
+        app,
+        host=settings.host,
+        port=settings.port,
+        header_timeout=settings.header_timeout,
+        max_connections=settings.max_connections,
+        log_level=args.log_level,
+    ).run()
     return 0

@@ -13,6 +13,7 @@ is SI.  ``--time-scale S`` runs the simulated clock S times faster than wall tim
 from __future__ import annotations
 
 import argparse
+import errno
 import math
 import signal
 import threading
@@ -155,16 +156,24 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     listen = args.zenoh_listen or ([] if args.zenoh_connect else [DEFAULT_ENDPOINT])
-    sim = Simulator.open(
-        truth,
-        interface=args.interface,
-        channel=args.channel,
-        bitrate=args.bitrate,
-        zenoh_listen=listen,
-        zenoh_connect=args.zenoh_connect,
-        zenoh_config=args.zenoh_config,
-        options=opt,
-    )
+    import can
+
+    from swpc_hw.errors import SwpcError
+
+    try:
+        sim = _open(Simulator, truth, args, listen, opt)
+    except (OSError, can.CanError, ValueError) as exc:
+        code = exc.errno if isinstance(exc, OSError) else None
+        hint = {
+            errno.EAFNOSUPPORT: " (this kernel has no SocketCAN: see deploy/README.md, or run "
+            "`swpc serve` with no SWPC_CAN_INTERFACE, which embeds the simulator)",
+            errno.ENODEV: f" (no interface {args.channel}: deploy/vcan-up.sh {args.channel})",
+        }.get(code or 0, "")
+        detail = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise SwpcError(
+            f"cannot open CAN interface {args.interface!r} channel {args.channel!r}: "
+            f"{detail}{hint}"
+        ) from None
     done = threading.Event()
 
     def _stop(signum: int, frame: Any) -> None:
@@ -202,6 +211,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"swpc sim: simulation thread failed: {sim.error!r}")
         return 1
     return 0
+
+
+def _open(
+    simulator: Any, truth: Any, args: argparse.Namespace, listen: list[str], opt: Any
+) -> Any:
+    return simulator.open(
+        truth,
+        interface=args.interface,
+        channel=args.channel,
+        bitrate=args.bitrate,
+        zenoh_listen=listen,
+        zenoh_connect=args.zenoh_connect,
+        zenoh_config=args.zenoh_config,
+        options=opt,
+    )
 
 
 def format_stats(sim: Any) -> str:

@@ -66,8 +66,16 @@ def run(args: argparse.Namespace) -> int:
     params = result.params
     if args.robot:
         params = params.model_copy(update={"robot": args.robot})
+    from services.provenance import UNITS, dataset_sha256, provenance
+
     extra = {
-        "provenance": {"tool": "swpc solve", "method": result.method, "dataset": args.dataset},
+        "provenance": provenance(
+            "swpc solve",
+            method=result.method,
+            dataset=args.dataset,
+            dataset_sha256=dataset_sha256(args.dataset),
+            units=dict(UNITS),
+        ),
         "quality": result.quality_document(),
         "nominal": [
             {k: float(getattr(m, k)) for k in ("x_s", "y_s", "beta", "b", "r")} | {"id": m.id}

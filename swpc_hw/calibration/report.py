@@ -65,13 +65,22 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
         f"{q.increments_used} (rejected {q.increments_rejected}); time offset "
         f"{q.time_offset * 1e3:.2f} ms ({q.time_offset_mode}"
         + (f", std {q.time_offset_std * 1e3:.2f} ms" if q.time_offset_std else "")
-        + f"); reduced chi2 {q.reduced_chi2:.3g}"
+        + ")"
+        + (f"; reduced chi2 {q.reduced_chi2:.3g}" if math.isfinite(q.reduced_chi2) else "")
     )
+    if q.method == "paper":
+        lines.append("  (the paper's procedure computes no residual figures)")
     for s in q.segments:
-        lines.append(
-            f"  segment {s.row + 1}: module {s.static_module} at {math.degrees(s.angle):7.2f} deg: "
+        # the reported steering angle of the locked module, on one turn: [0, 360) deg
+        angle = math.degrees(s.angle) % 360.0
+        figures = (
             f"fixed-point RMS {s.fixed_point_rms * 1e3:.4f} mm, rolling RMS "
             f"{s.rolling_rms * 1e3:.4f} mm, settled RMS {s.settled_rms * 1e3:.4f} mm, "
-            f"poses {s.poses_used}/{s.poses_used + s.poses_rejected}"
+            if q.method != "paper" and math.isfinite(s.fixed_point_rms)
+            else ""
+        )
+        lines.append(
+            f"  segment {s.row + 1}: module {s.static_module} at {angle:7.2f} deg: "
+            f"{figures}poses {s.poses_used}/{s.poses_used + s.poses_rejected}"
         )
     return "\n".join(lines)

@@ -36,6 +36,7 @@ class DriverCommands:
     _bus: can.BusABC | None
     _kernel: KernelRefresh | None
     _recorder: Recorder | None
+    _logger: Recorder | None
     _sync_counter: int
 
     def _send_frames(self, frames: list[codec.Frame], best_effort: bool = False) -> None:
@@ -184,12 +185,19 @@ class DriverCommands:
         with self._lock:
             self._recorder = rec
 
-    def stop_recording(self) -> None:
-        """Stop the recording started by :meth:`start_recording` (idempotent)."""
+    def stop_recording(self) -> str | None:
+        """Stop the recording started by :meth:`start_recording` (idempotent); returns why
+        it stopped early (a failed write), if it did."""
         with self._lock:
             rec, self._recorder = self._recorder, None
-        if rec is not None:
-            rec.stop()
+        if rec is None:
+            return None
+        rec.stop()
+        return rec.error
+
+    def log_error(self) -> str | None:
+        """Why the log of ``CanConfig.log_path`` stopped (a failed write), if it did."""
+        return None if self._logger is None else self._logger.error
 
     def send_sync(self) -> int:
         """Broadcast a SYNC frame; returns its counter (the next samples carry it)."""

@@ -30,6 +30,9 @@ class CanConfig:
     heartbeat_loss_periods: int = 3
     history_len: int = 200_000
     log_path: str | None = None
+    log_total_bytes: int | None = None
+    """A rolling log at ``log_path`` within this many bytes over all its files (python-can's
+    sized rotating logger, :mod:`swpc_hw.can.recording`); None: one unbounded file."""
     max_torque: tuple[float, float] | None = None
     """(steer, wheel) torque limits in N.m sent at activation; None keeps the controllers'."""
     max_velocity: tuple[float, float] | None = None

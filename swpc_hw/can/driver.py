@@ -179,7 +179,7 @@ class CanDriver(DriverCommands, DriverObservation):
             if kernel:
                 self._kernel = KernelRefresh(self._bus, cfg.refresh_period_s, cfg.deadman_s)
             if cfg.log_path:
-                self._logger = Recorder(cfg.log_path)
+                self._logger = Recorder(cfg.log_path, total_bytes=cfg.log_total_bytes)
             self._configured_at = self.clock.now()
             self._state = Lifecycle.INACTIVE
             self._stop_io.clear()

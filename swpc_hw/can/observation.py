@@ -78,6 +78,18 @@ class DriverObservation:
         with self._lock:
             return nd.history.columns()
 
+    def history_since(
+        self, module: int, cursor: int, since: float = -np.inf
+    ) -> tuple[NDArray[np.float64], int]:
+        """Feedback rows ``(t, theta_hat, psi)`` appended after ``cursor`` (0: every row
+        kept) with ``t >= since``, and the new cursor: a reader that keeps the cursor
+        reads each sample once (a run records its feedback as it comes)."""
+        nd = self._node(module)
+        with self._lock:
+            rows, cursor = nd.history.since(cursor)
+        rows = rows[rows[:, 0] >= since] if since > -np.inf else rows
+        return np.ascontiguousarray(rows[:, [0, 4, 5]]), cursor
+
     def clear_history(self) -> None:
         with self._lock:
             for nd in self._nodes.values():

@@ -1,11 +1,22 @@
 """Recording CAN traffic (python-can's Logger, candump format for ``.log``) and the
-kernel receive buffer of socket buses."""
+kernel receive buffer of socket buses.
+
+A :class:`Recorder` with ``total_bytes`` is a bounded rolling log: python-can's
+:class:`can.SizedRotatingLogger` starts a new file every ``total_bytes / ROLLING_FILES``
+bytes, and its rotator deletes the oldest rotated files of the same base name so that all
+of them together stay within ``total_bytes`` (across restarts: the base file is appended
+to).  A write that fails (a full disk) stops the recorder and keeps the reason in
+:attr:`Recorder.error`; the traffic itself is never affected.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import socket
 import threading
+from pathlib import Path
 
 import can
 
@@ -14,24 +25,77 @@ log = logging.getLogger(__name__)
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux; not in Python's socket
 
 
-class Recorder:
-    """python-can's Logger shared by the receive path and the senders (thread-safe)."""
+ROLLING_FILES = 8
+"""A rolling log is kept in about this many files (the newest one being written)."""
 
-    def __init__(self, path: str, lock: threading.Lock | None = None) -> None:
-        self.logger = can.Logger(path)
+
+def rolling_files(base: str | os.PathLike[str]) -> list[Path]:
+    """The rotated files of the rolling log ``base`` (``<stem>_<time>_#<n><suffix>``),
+    oldest first."""
+    p = Path(base)
+    files = [f for f in p.parent.glob(f"{p.stem.split('.')[0]}_*{p.suffix}") if f.is_file()]
+    return sorted(files, key=lambda f: (f.stat().st_mtime, f.name))
+
+
+def rolling_logger(base: str, total_bytes: int) -> can.SizedRotatingLogger:
+    """python-can's sized rotating logger on ``base`` whose files stay within
+    ``total_bytes`` all together (module docstring)."""
+    per_file = max(64 << 10, total_bytes // ROLLING_FILES)
+    logger = can.SizedRotatingLogger(base, max_bytes=per_file, append=True)
+
+    def rotate(source: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
+        os.replace(source, dest)
+        budget = total_bytes - per_file  # room for the new base file
+        files = rolling_files(base)
+        sizes = [f.stat().st_size for f in files]
+        while files and sum(sizes) > budget:
+            with contextlib.suppress(FileNotFoundError):
+                files[0].unlink()
+            files.pop(0)
+            sizes.pop(0)
+
+    logger.rotator = rotate
+    return logger
+
+
+class Recorder:
+    """python-can's Logger shared by the receive path and the senders (thread-safe).
+
+    ``total_bytes``: a bounded rolling log (module docstring) instead of one file.
+    """
+
+    def __init__(
+        self, path: str, lock: threading.Lock | None = None, total_bytes: int | None = None
+    ) -> None:
+        self.path = path
+        self.logger: can.Listener = (
+            rolling_logger(path, total_bytes) if total_bytes else can.Logger(path)
+        )
         self.lock = lock or threading.Lock()
         self.closed = False
+        self.error: str | None = None
 
     def write(self, msg: can.Message) -> None:
         with self.lock:
-            if not self.closed:  # a frame racing with stop() is dropped, not an error
+            if self.closed:  # a frame racing with stop() is dropped, not an error
+                return
+            try:
                 self.logger.on_message_received(msg)
+            except (OSError, ValueError) as exc:
+                self.error = f"{self.path}: {getattr(exc, 'strerror', None) or exc}"
+                self.closed = True
+                log.error("CAN recording stopped: %s", self.error)
+                with contextlib.suppress(Exception):
+                    self.logger.stop()
 
     def stop(self) -> None:
         with self.lock:
             if not self.closed:
                 self.closed = True
-                self.logger.stop()
+                try:
+                    self.logger.stop()
+                except OSError as exc:
+                    self.error = f"{self.path}: {exc.strerror or exc}"
 
 
 def grow_receive_buffer(sock: socket.socket, size: int) -> int:

@@ -1,0 +1,119 @@
+"""``swpc serve``'s HTTP server: uvicorn with bounded connections.
+
+uvicorn closes a connection idle *between* requests (``timeout_keep_alive``) but not one
+that never completes a request: a client that opens connections and sends nothing (or
+a header a byte at a time) holds a file descriptor each, for ever, until the service runs
+out of them (with 256, it stopped answering ``/health`` for 50 s while asyncio logged
+every failed accept).  :class:`GuardedH11` adds:
+
+* a head timeout: a connection must send a complete request within ``header_timeout``
+  host seconds of connecting (or of its first byte after an idle keep-alive), else it is
+  closed;
+* a connection cap: beyond ``max_connections`` open connections, the one idle longest
+  (no request in progress) is closed to make room, so a new client (``/health``) is
+  served at once; with none idle, the new connection is closed.
+
+The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and files.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import time
+from typing import Any
+
+import h11
+import uvicorn
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+MAX_HEADER_BYTES = 16 << 10
+
+
+class GuardedH11(H11Protocol):
+    """H11Protocol with a head timeout and a connection cap (module docstring)."""
+
+    header_timeout = 10.0
+    max_connections = 128
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        self._head: asyncio.TimerHandle | None = None
+        self._idle_since: float | None = time.monotonic()
+        super().connection_made(transport)
+        if len(self.connections) > self.max_connections:
+            idle = [
+                c
+                for c in self.connections
+                if isinstance(c, GuardedH11) and c is not self and c._idle_since is not None
+            ]
+            if idle:
+                oldest = min(idle, key=lambda c: c._idle_since or 0.0)
+                oldest.transport.close()
+                self.connections.discard(oldest)
+            else:
+                self.transport.close()
+                return
+        self._arm()
+
+    def _arm(self) -> None:
+        if self._head is None:
+            self._head = self.loop.call_later(self.header_timeout, self._expire)
+
+    def _disarm(self) -> None:
+        if self._head is not None:
+            self._head.cancel()
+            self._head = None
+
+    def _expire(self) -> None:
+        self._head = None
+        if not self.transport.is_closing() and self.conn.their_state is not h11.DONE:
+            self.transport.close()
+
+    def data_received(self, data: bytes) -> None:
+        self._arm()
+        super().data_received(data)
+        if self.conn.their_state in (h11.DONE, h11.MUST_CLOSE, h11.CLOSED, h11.ERROR):
+            self._disarm()
+            self._idle_since = None
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._idle_since = time.monotonic()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+
+class Server(uvicorn.Server):
+    """uvicorn's server that tells the app which signal stopped it (a run in progress
+    then ends "stopped (SIGTERM)", not "aborted by the operator")."""
+
+    def handle_exit(self, sig: int, frame: Any) -> None:
+        app = getattr(self.config, "app", None)
+        state = getattr(app, "state", None)
+        if state is not None:
+            state.stop_signal = signal.Signals(sig).name
+        super().handle_exit(sig, frame)
+
+
+def server(app: Any, *, host: str, port: int, header_timeout: float, max_connections: int,
+           log_level: str = "info") -> Server:
+    """The configured server (``.run()`` serves until SIGTERM/SIGINT)."""
+    protocol = type(
+        "GuardedH11",
+        (GuardedH11,),
+        {"header_timeout": header_timeout, "max_connections": max_connections},
+    )
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        http=protocol,
+        log_level=log_level,
+        timeout_keep_alive=min(5, max(1, int(header_timeout))),
+        h11_max_incomplete_event_size=MAX_HEADER_BYTES,
+        server_header=False,
+        backlog=max_connections,
+    )
+    return Server(config)

@@ -1,0 +1,271 @@
+"""A run's machinery: its thread, states, checks, waits on robot time, and its end.
+
+:class:`RunMachine` is what every step of a calibration (:mod:`services.calibration_run`,
+which subclasses it with the protocol's steps in :meth:`RunMachine._protocol`) relies on:
+
+* :meth:`~RunMachine._enter` a state: only along :data:`~services.run_state.TRANSITIONS`,
+  saved by the owner (``on_change``: a state that cannot be saved fails the run), logged;
+* :meth:`~RunMachine._check`, at every poll of every step: an abort, a shutdown, a robot
+  fault, a stale motion capture during motion, a step over ``limits.step_timeout``; the
+  recordings are written from here too (:class:`~services.run_journal.RunJournal`);
+* :meth:`~RunMachine._end`: ``stop_all()`` first (its latency measured for an abort), then
+  release, FAILED or ABORTED with the reason (and the state it happened in), the last
+  samples recorded and the recordings closed.
+
+An operator's :meth:`~RunMachine.abort` ends ABORTED; a stopping service's
+:meth:`~RunMachine.shutdown` ends FAILED with its reason (SIGTERM is no operator's abort).
+Every duration is robot time on the injected clock; against the in-process simulator the
+run's thread is a participant of the simulated clock (lockstep).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+import traceback
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from services.mocap_ingest import MocapIngest
+from services.robot_config import RobotConfig
+from services.robot_io import RobotIO
+from services.run_journal import RunJournal
+from services.run_recording import RecordingError
+from services.run_state import (
+    TERMINAL,
+    TRANSITIONS,
+    PersistError,
+    RunAbortedError,
+    RunFailedError,
+    RunStatus,
+    State,
+    now_iso,
+)
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+
+
+class RunMachine:
+    """A run's thread, states, checks and end (module docstring); the subclass sets
+    :attr:`journal` and implements :meth:`_protocol`."""
+
+    journal: RunJournal
+
+    def __init__(
+        self,
+        robot: RobotIO,
+        mocap: MocapIngest,
+        config: RobotConfig,
+        *,
+        clock: Clock = SYSTEM_CLOCK,
+        on_change: Callable[[Any], None] | None = None,
+        poll: float = 0.02,
+    ) -> None:
+        self.robot = robot
+        self.mocap = mocap
+        self.config = config
+        self.clock = clock
+        self.status = RunStatus(id=uuid.uuid4().hex[:12], created=now_iso())
+        self.result_doc: dict[str, Any] | None = None
+        self.abort_latency: float | None = None
+        self.persist_error: str | None = None
+        self._on_change = on_change
+        self._poll = poll
+        self._abort = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._t0 = 0.0
+        self._stop_reason: str | None = None
+
+    # ------------------------------------------------------------------ control
+    @property
+    def id(self) -> str:
+        return self.status.id
+
+    @property
+    def finished(self) -> bool:
+        return self.status.state in TERMINAL
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._main, name=f"calib-{self.id}", daemon=True)
+        self._thread.start()
+
+    def abort(self) -> None:
+        """Stop motion at once (``stop_all()`` from the caller's thread) and end ABORTED."""
+        if self.finished:
+            return
+        self._abort.set()
+        self.robot.stop_all()
+
+    def shutdown(self, reason: str = "the service was stopped during the run") -> None:
+        """Stop motion at once and end FAILED with ``reason`` (the service is stopping:
+        SIGTERM is no operator's abort)."""
+        if self.finished:
+            return
+        self._stop_reason = reason
+        self._abort.set()
+        self.robot.stop_all()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ---------------------------------------------------------------- internals
+    def _enter(self, state: State, step: str) -> None:
+        cur = self.status.state
+        if state not in TERMINAL and state not in TRANSITIONS.get(cur, frozenset()):
+            raise RuntimeError(f"illegal transition {cur} -> {state}")
+        with self._lock:
+            self.status.state = state
+            self.status.step = step
+        self._event(
+            logging.INFO, "run.state", state=str(state), step=step, module=self.status.module
+        )
+        self._changed()
+        if state not in TERMINAL:
+            # an abort or a fault since the last check ends the run before this state's
+            # first command
+            self._check(False, None)
+
+    def _changed(self) -> None:
+        """Tell the owner (the service saves the state); a failure to save fails a run
+        still going (robot stopped first), and is kept in :attr:`persist_error`."""
+        if self._on_change is None:
+            return
+        try:
+            self._on_change(self)
+        except Exception as exc:
+            self.persist_error = f"{type(exc).__name__}: {exc}"
+            self._event(logging.ERROR, "run.persist_failed", error=self.persist_error)
+            if self.status.state not in TERMINAL:
+                raise PersistError(f"cannot save the run's state: {self.persist_error}") from exc
+
+    def _event(self, level: int, name: str, **fields: Any) -> None:
+        self.journal.event(level, name, **fields)
+
+    def _record(self, force: bool = False) -> None:
+        """The samples since the last batch to the run's recordings (every half second of
+        robot time, or now)."""
+        counts = self.journal.record(self.mocap, self.robot, force)
+        if counts is not None:
+            with self._lock:
+                self.status.poses, self.status.encoder_samples = counts
+
+    def _check(self, motion: bool, deadline: float | None) -> None:
+        if self._abort.is_set():
+            if self._stop_reason is not None:
+                raise RunFailedError(self._stop_reason)
+            raise RunAbortedError("aborted by the operator")
+        self._record()
+        faults = self.robot.take_faults()
+        if faults:
+            raise RunFailedError(f"robot fault: {faults[0]}")
+        if motion and self.mocap.is_stale():
+            raise RunFailedError(
+                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
+                f"(limit {self.mocap.stale_after:.3f} s)"
+            )
+        if deadline is not None and self.clock.now() > deadline:
+            raise RunFailedError(
+                f"step timeout: {self.status.step} took longer than "
+                f"{self.config.limits.step_timeout:g} s"
+            )
+
+    def _deadline(self) -> float:
+        return self.clock.now() + self.config.limits.step_timeout
+
+    def _wait(self, seconds: float, motion: bool = True) -> None:
+        """Wait ``seconds`` of robot time, checking for faults and abort."""
+        end = self.clock.now() + seconds
+        deadline = self._deadline()
+        while True:
+            self._check(motion, deadline)
+            left = end - self.clock.now()
+            if left <= 0:
+                return
+            self.clock.sleep(min(self._poll, left))
+
+    def _wait_until(self, cond: Callable[[], bool], motion: bool) -> None:
+        deadline = self._deadline()
+        while not cond():
+            self._check(motion, deadline)
+            self.clock.sleep(self._poll)
+
+    @contextlib.contextmanager
+    def _in_step(self) -> Iterator[None]:
+        """Lockstep: the run's thread is a participant of the simulated clock."""
+        if isinstance(self.clock, SimClock):
+            with self.clock.participant():
+                yield
+        else:
+            yield
+
+    def _main(self) -> None:
+        with self._in_step():
+            self._run()
+
+    def _run(self) -> None:
+        self.status.started = now_iso()
+        self._t0 = self.clock.now()
+        self._event(logging.INFO, "run.start", **self._start_fields())
+        try:
+            self._protocol()
+        except RunAbortedError as exc:
+            self._end(State.ABORTED, str(exc))
+        except (RunFailedError, RecordingError) as exc:
+            self._end(State.FAILED, str(exc))
+        except Exception as exc:  # a bug or an I/O error: still stop the robot first
+            error = f"{type(exc).__name__}: {exc}"
+            # a command refused because the driver had just stopped on a fault: the fault is
+            # the reason, the refusal only its consequence
+            faults: list[str] = []
+            with contextlib.suppress(Exception):
+                faults = self.robot.take_faults()
+            if faults:
+                self._end(State.FAILED, f"robot fault: {faults[0]}", f"then {error}")
+            else:
+                self._end(State.FAILED, error, traceback.format_exc())
+        finally:
+            with contextlib.suppress(Exception):
+                self.robot.close()
+
+    def _end(self, state: State, reason: str, detail: str | None = None) -> None:
+        t = time.perf_counter()  # a measurement of the host, not a judgement of time
+        try:
+            self.robot.stop_all()
+        except Exception as exc:
+            self.status.errors.append(f"stop_all failed: {exc}")
+        if state is State.ABORTED and self.abort_latency is None:
+            self.abort_latency = time.perf_counter() - t
+        try:
+            self.robot.release()
+        except Exception as exc:
+            self.status.errors.append(f"release failed: {exc}")
+        if self.status.state not in TERMINAL and self.status.state is not State.PENDING:
+            reason = f"{reason} (during {self.status.state}: {self.status.step})"
+        with self._lock:
+            self.status.reason = reason
+            self.status.errors.append(reason)
+            if detail:
+                self.status.errors.append(detail.strip().splitlines()[-1])
+            self.status.finished = now_iso()
+            self.status.state = state
+            self.status.step = "stopped"
+        level = logging.WARNING if state is State.ABORTED else logging.ERROR
+        self._event(level, "run.end", state=str(state), reason=reason)
+        with contextlib.suppress(Exception):  # best effort: the end is decided
+            self._record(force=True)
+        with contextlib.suppress(Exception):
+            self.journal.finish({"state": str(state), "reason": reason}, self.result_doc)
+        self._changed()
+
+    # ---------------------------------------------------------------- the protocol's
+    def _start_fields(self) -> dict[str, Any]:
+        """The ``run.start`` log line's fields."""
+        return {}
+
+    def _protocol(self) -> None:
+        """The run's steps, from PENDING to DONE (the subclass's)."""
+        raise NotImplementedError

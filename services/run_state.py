@@ -1,0 +1,95 @@
+"""A calibration run's vocabulary: its states and their transitions, what an operator
+sees of a run (:class:`RunStatus`) and the errors that end one.
+
+The protocol that walks these states is :mod:`services.calibration_run`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from enum import StrEnum
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+
+class State(StrEnum):
+    PENDING = "PENDING"
+    CONNECT = "CONNECT"
+    PRECHECK = "PRECHECK"
+    REST = "REST"
+    LOCK = "LOCK"
+    ALIGN = "ALIGN"
+    FREE = "FREE"
+    SPIN = "SPIN"
+    STOP = "STOP"
+    RESTEER = "RESTEER"
+    RELEASE = "RELEASE"
+    SOLVE = "SOLVE"
+    WRITE = "WRITE"
+    DONE = "DONE"
+    FAILED = "FAILED"
+    ABORTED = "ABORTED"
+
+
+TERMINAL = frozenset({State.DONE, State.FAILED, State.ABORTED})
+MOTION = frozenset({State.REST, State.ALIGN, State.FREE, State.SPIN, State.STOP, State.RESTEER})
+
+TRANSITIONS: dict[State, frozenset[State]] = {
+    State.PENDING: frozenset({State.CONNECT}),
+    State.CONNECT: frozenset({State.PRECHECK}),
+    State.PRECHECK: frozenset({State.REST}),
+    State.REST: frozenset({State.LOCK}),
+    State.LOCK: frozenset({State.ALIGN}),
+    State.ALIGN: frozenset({State.FREE}),
+    State.FREE: frozenset({State.SPIN}),
+    State.SPIN: frozenset({State.STOP}),
+    State.STOP: frozenset({State.RESTEER, State.RELEASE}),
+    State.RESTEER: frozenset({State.SPIN}),
+    State.RELEASE: frozenset({State.LOCK, State.SOLVE}),
+    State.SOLVE: frozenset({State.WRITE}),
+    State.WRITE: frozenset({State.DONE}),
+}
+
+
+class RunFailedError(Exception):
+    """A fault: the run ends FAILED with this reason."""
+
+
+class RunAbortedError(Exception):
+    """The operator aborted: the run ends ABORTED."""
+
+
+class PersistError(RunFailedError):
+    """The run's state could not be saved (the run store): the run ends FAILED."""
+
+
+class RunStatus(BaseModel):
+    """What an operator sees of a run (``GET /calibrations/{id}``)."""
+
+    id: str
+    created: str
+    state: State = State.PENDING
+    step: str = "waiting to start"
+    module: int | None = None
+    module_index: int = 0
+    modules_total: int = 0
+    progress: float = 0.0
+    sweep_deg: float = 0.0
+    poses: int = 0
+    encoder_samples: int = 0
+    segments: int = 0
+    errors: list[str] = Field(default_factory=list)
+    reason: str | None = None
+    started: str | None = None
+    finished: str | None = None
+    installed: bool | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+
+def now_iso() -> str:
+    """The host's UTC time, ISO 8601 to the millisecond (a run's created/started/finished:
+    for people, never judged)."""
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
