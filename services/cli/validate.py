@@ -166,6 +166,7 @@ def run_in_process(
             zenoh_endpoints=[ep],
             clock=clock,
             seed=seed,
+            physics_dt=st.sim_physics_dt,
             feedback_rate_hz=st.feedback_rate_hz,
         )
         sim.start()
