@@ -125,6 +125,24 @@ def wait_until(
 # --------------------------------------------------------------------------- real time
 
 
+def wall_minus_monotonic(tries: int = 3) -> float:
+    """``time.time() - time.monotonic()``, read so that a preemption between the two reads
+    does not shift it: the wall clock is read between two monotonic reads and the tightest
+    of ``tries`` brackets wins (a thread switched out between two bare reads on a busy host
+    mapped a frame's stamp 12 ms early, and the driver's history ran backwards)."""
+    best_width = math.inf
+    best = 0.0
+    for _ in range(tries):
+        m0 = time.monotonic()
+        w = time.time()
+        m1 = time.monotonic()
+        if m1 - m0 < best_width:
+            best_width, best = m1 - m0, w - 0.5 * (m0 + m1)
+            if best_width < 20e-6:
+                break
+    return best
+
+
 class SystemClock:
     """The host's monotonic clock, optionally scaled to an external simulator's rate."""
 
@@ -144,7 +162,7 @@ class SystemClock:
         return time.time()
 
     def from_wall(self, t_wall: float) -> float:
-        return self._rate * (t_wall - (time.time() - time.monotonic()))
+        return self._rate * (t_wall - wall_minus_monotonic())
 
     def sleep_until(self, t: float) -> None:
         dt = (t - self.now()) / self._rate

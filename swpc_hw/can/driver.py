@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import queue
 import socket
 import threading
@@ -98,6 +99,7 @@ class CanDriver(DriverCommands, DriverObservation):
             self._nodes[module] = nd
             self._by_node[node] = nd
         self._stats = DriverStats()
+        self._last_arrival = -math.inf  # the latest frame arrival on the clock (_handle)
         self._events: queue.Queue[DriverEvent] = queue.Queue(maxsize=10_000)
         self._event_callbacks: list[Callable[[DriverEvent], None]] = []
         if on_event is not None:
@@ -370,6 +372,8 @@ class CanDriver(DriverCommands, DriverObservation):
         handled = clock.now()
         stamp = float(msg.timestamp or 0.0)
         t = frame_time(stamp, handled, clock.from_wall(stamp)) if stamp else handled
+        # frames leave one queue in order: their arrivals never go back in time
+        t = self._last_arrival = max(t, self._last_arrival)
         for rec in (self._logger, self._recorder):
             if rec is not None:
                 rec.write(msg)
