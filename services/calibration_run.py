@@ -136,6 +136,7 @@ class CalibrationRun(RunMachine):
         modules = config.protocol.modules or config.nominal.ids
         self.modules = [m for m in config.nominal.ids if m in modules]
         self.status.modules_total = len(self.modules)
+        self.status.angles_total = len(config.protocol.angles_deg)
         self.journal = RunJournal(
             self.id,
             self.run_dir,
@@ -185,13 +186,16 @@ class CalibrationRun(RunMachine):
         for mi, k in enumerate(self.modules):
             ki = ids.index(k)
             dyn = [m for m in ids if m != k]
-            self.status.module, self.status.module_index = k, mi + 1
+            self.status.module, self.status.module_index, self.status.sweep_deg = k, mi + 1, 0.0
+            self.status.angle_index, self.status.angle_deg = 1, cfg.protocol.angles_deg[0]
             self._enter(State.LOCK, f"locking module {k} at {cfg.protocol.angles_deg[0]:g} deg")
             for m in dyn:
                 self.robot.wheel_hold(m)
             self.robot.lock(k, angles[0])
             self._settle_steering(k, angles[0])
             for ai, a in enumerate(angles):
+                self.status.angle_index, self.status.angle_deg = ai + 1, cfg.protocol.angles_deg[ai]
+                self.status.sweep_deg = 0.0
                 if ai > 0:
                     self._enter(
                         State.RESTEER,

@@ -85,6 +85,11 @@ class RunMachine:
         return self.status.id
 
     @property
+    def clock_start(self) -> float:
+        """The run's start on its clock (robot time; 0 before it starts)."""
+        return self._t0
+
+    @property
     def finished(self) -> bool:
         return self.status.state in TERMINAL
 
@@ -207,8 +212,8 @@ class RunMachine:
             self._run()
 
     def _run(self) -> None:
+        self._t0 = self.clock.now()  # before `started`: who sees that sees this
         self.status.started = now_iso()
-        self._t0 = self.clock.now()
         self._event(logging.INFO, "run.start", **self._start_fields())
         try:
             self._protocol()

@@ -74,6 +74,9 @@ class RunStatus(BaseModel):
     module: int | None = None
     module_index: int = 0
     modules_total: int = 0
+    angle_deg: float | None = None
+    angle_index: int = 0
+    angles_total: int = 0
     progress: float = 0.0
     sweep_deg: float = 0.0
     poses: int = 0

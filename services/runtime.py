@@ -34,6 +34,7 @@ from typing import Any
 
 from services.calibration_run import TERMINAL, CalibrationRun, State
 from services.disk import make_room, run_reserve
+from services.events import EventBus
 from services.in_process_simulator import in_process_simulator
 from services.locks import ChannelLock, DataDirLock
 from services.logs import event
@@ -99,6 +100,7 @@ class Runtime:
         self._plot_lock = threading.Lock()
         self.runs: dict[str, CalibrationRun] = {}
         self.current: CalibrationRun | None = None
+        self.events = EventBus()  # every run change, for the console's event stream
         self._lock = threading.Lock()
         self.simulator: Simulator | None = None
         self.can_channel = settings.can_channel
@@ -318,6 +320,8 @@ class Runtime:
                 event(log, logging.ERROR, "store.write_failed", run=run.id, error=str(exc))
             self.store_error = f"{type(exc).__name__}: {exc}"
             raise
+        finally:  # the console's event stream: saved or not, as the runs list shows it
+            self.events.publish({"type": "run", "run": run.status.to_dict()})
         self._unsaved.discard(run.id)
 
     def _save_unsaved(self) -> None:
