@@ -39,7 +39,9 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.calibration_run import RunStatus
+from services.console import console_router
 from services.http_guard import RequestGuard
+from services.kinematics_api import kinematics_router
 from services.provenance import tool_version
 from services.robot_config import ConfigOverrides, OverrideError, RobotConfig
 from services.runtime import DiskSpaceError, NoResultError, RunConflictError, Runtime
@@ -361,4 +363,6 @@ def create_app(
 
     # Routers of other parts of the service (e.g. the operator console) go here, one
     # line each: app.include_router(<module>.router)
+    app.include_router(kinematics_router(auth))  # the kinematic files: install, roll back
+    app.include_router(console_router())  # GET /, its event stream, a run's geometry, files
     return app

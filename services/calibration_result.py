@@ -52,23 +52,35 @@ def within_tolerance(result: CalibrationResult, tol: Tolerances) -> bool:
     )
 
 
+BACKUP_STAMP = "%Y%m%dT%H%M%S%fZ"
+"""UTC time in a backup's name: ``<stem>.<stamp><suffix>`` beside the file in force."""
+
+
+def backup_kinematics(path: Path) -> Path | None:
+    """Keep a copy of the kinematic file in force at ``path`` beside it, as
+    ``<stem>.<UTC time><suffix>``; its path (None when there is no file in force).
+    :class:`KinematicFileError` if it cannot (the file in force untouched)."""
+    if not path.exists():
+        return None
+    stamp = _dt.datetime.now(_dt.UTC).strftime(BACKUP_STAMP)
+    backup = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
+    try:
+        shutil.copy2(path, backup)
+    except OSError as exc:  # a full disk: no half backup left behind, nothing replaced
+        with contextlib.suppress(OSError):
+            backup.unlink()
+        raise KinematicFileError(
+            f"{backup}: cannot keep the kinematic file in force as a backup: "
+            f"{exc.strerror or exc} (the file in force is untouched)"
+        ) from exc
+    return backup
+
+
 def install_kinematics(path: Path, result: CalibrationResult, extra: dict[str, Any]) -> Path | None:
     """Install the result as the kinematic file in force at ``path`` (atomic replace); the
-    file it replaces is kept beside it as ``<stem>.<UTC time><suffix>``, whose path is
+    file it replaces is kept beside it (:func:`backup_kinematics`), whose path is
     returned (None when there was none)."""
-    backup = None
-    if path.exists():
-        stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
-        backup = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
-        try:
-            shutil.copy2(path, backup)
-        except OSError as exc:  # a full disk: no half backup left behind, nothing replaced
-            with contextlib.suppress(OSError):
-                backup.unlink()
-            raise KinematicFileError(
-                f"{backup}: cannot keep the kinematic file in force as a backup: "
-                f"{exc.strerror or exc} (the file in force is untouched)"
-            ) from exc
+    backup = backup_kinematics(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     save_kinematics(path, result.params, extra=extra)
     return backup
@@ -105,6 +117,7 @@ def result_document(
         "quality": result.quality_document(),
         "table": [dict(zip(header, row, strict=True)) for row in result_rows(result)],
         "within_tolerance": within,
+        "tolerances": config.tolerances.model_dump(),
         "installed": installed,
         "kinematics_path": str(kinematics_path) if installed else None,
         "run_kinematics_path": str(run_dir / "kinematics.yaml"),

@@ -1,0 +1,372 @@
+"""The operator console's routes: the page, its event stream, a run's geometry and files.
+
+* ``GET /`` the page (``static/``: hand-written HTML, CSS and JavaScript, no build step and
+  nothing fetched from elsewhere).
+* ``GET /events`` server-sent events: ``hello`` (the robot's nominal geometry and the
+  protocol defaults), ``run`` (a run's status on every change of state, pushed by the
+  state machine through :class:`services.events.EventBus`) and ``live`` (nodes, mocap age,
+  the robot's pose, its trajectory since the last one, the fixed point of every spin done)
+  every :data:`LIVE_PERIOD` s of host time while the stream is open.  ``?run=<id>``
+  follows one run and ends after its final state.
+* ``GET /calibrations/{id}/geometry`` a finished run's spins for the top-down view.
+* ``GET /calibrations/{id}/files`` and ``.../files/{name}`` its files for download.
+
+The live period is host time on purpose: it is how often a person is shown the robot, not
+a duration of the protocol (robot time runs faster than the host's against the in-process
+simulator, slower under load).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import math
+import zipfile
+from collections import OrderedDict
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi.responses import FileResponse, Response, StreamingResponse
+from pydantic import BaseModel
+
+from services.calibration_run import TERMINAL, CalibrationRun
+from services.runtime import Runtime
+from swpc_hw.calibration import geometry as geo
+from swpc_hw.dataset import load_dataset
+from swpc_hw.errors import SwpcError
+
+STATIC = Path(__file__).parent / "static"
+_ASSETS = {
+    "console.css": "text/css; charset=utf-8",
+    "console.js": "text/javascript; charset=utf-8",
+}
+LIVE_PERIOD = 0.25
+"""s of host time between two ``live`` events of one stream."""
+TRAIL_POINTS = 60
+"""Most trajectory points in one ``live`` event (decimated evenly beyond)."""
+FILES: dict[str, tuple[str, str]] = {
+    "run.mcap": ("run.mcap", "application/octet-stream"),
+    "can.log": ("dataset/can.log", "text/plain; charset=utf-8"),
+    "kinematics.yaml": ("kinematics.yaml", "application/yaml"),
+    "dataset.zip": ("dataset", "application/zip"),
+}
+"""Downloadable files of a run: name -> (path in the run's directory, media type)."""
+FileName = Literal["run.mcap", "can.log", "kinematics.yaml", "dataset.zip"]
+
+
+class Problem(BaseModel):
+    detail: str
+
+
+class Spin(BaseModel):
+    """One spin: the fixed point ``C_R`` (robot frame), where it stayed ``C_W`` (world),
+    the radius of the circle the robot's origin drew about it, the origin's path."""
+
+    module: int
+    start: float
+    end: float
+    c_r: tuple[float, float]
+    c_w: tuple[float, float]
+    radius: float
+    path: list[tuple[float, float]] = []
+
+
+class ModuleGeometry(BaseModel):
+    id: int
+    x_s: float
+    y_s: float
+    beta: float
+    b: float
+    r: float
+
+
+class RunGeometry(BaseModel):
+    run: str
+    nominal: list[ModuleGeometry]
+    calibrated: list[ModuleGeometry]
+    spins: list[Spin]
+
+
+class RunFile(BaseModel):
+    name: str
+    size: int
+    url: str
+
+
+def _runtime(request: Request) -> Runtime:
+    rt: Runtime = request.app.state.runtime
+    return rt
+
+
+Rt = Annotated[Runtime, Depends(_runtime)]
+
+
+def spin_of(module: int, start: float, end: float, poses: np.ndarray[Any, Any]) -> Spin | None:
+    """The spin in ``poses`` (rows t, x, y, yaw) within ``[start, end]``; None if fewer
+    than 3 poses."""
+    sel = (poses[:, 0] >= start) & (poses[:, 0] <= end)
+    p = poses[sel, 1:4].copy()
+    if p.shape[0] < 3:
+        return None
+    p[:, 2] = np.unwrap(p[:, 2])
+    c_r, c_w = geo.fixed_point(p)
+    path = p[:: max(1, math.ceil(p.shape[0] / 300)), :2]
+    return Spin(
+        module=module,
+        start=start,
+        end=end,
+        c_r=(float(c_r[0]), float(c_r[1])),
+        c_w=(float(c_w[0]), float(c_w[1])),
+        radius=float(np.hypot(c_r[0], c_r[1])),
+        path=[(float(x), float(y)) for x, y in path],
+    )
+
+
+def _sse(event: str, data: Any) -> str:
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+_NO_ROWS = np.zeros((0, 6))
+
+
+class _LiveCursor:
+    """What one stream has sent of the current run's trajectory and spins."""
+
+    def __init__(self) -> None:
+        self.run: str | None = None
+        self.last_t = -math.inf
+        self.spins: dict[tuple[str, int], dict[str, Any]] = {}
+
+
+def _nodes(rt: Runtime) -> list[dict[str, Any]]:
+    d = rt.driver
+    if d is None:
+        return []
+    out = []
+    for m in d.modules():
+        st = d.module_state(m)
+        th = st.theta_hat
+        out.append(
+            {
+                "module": m,
+                "node": st.node,
+                "alive": st.alive,
+                "errors": [int(e) for e in st.errors],
+                "homed": st.homed,
+                "steer_deg": _finite(math.degrees(th)),
+                "modes": [str(getattr(x, "name", x)).lower() for x in st.modes],
+            }
+        )
+    return out
+
+
+def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
+    """The ``live`` event: what changes continuously (see the module docstring)."""
+    latest = rt.mocap.latest()
+    age = rt.mocap.age()
+    run: CalibrationRun | None = rt.current
+    out: dict[str, Any] = {
+        "can": None if rt.driver is None else rt.driver.state.name.lower(),
+        "nodes": _nodes(rt),
+        "mocap": {
+            "age_s": _finite(age),
+            "stale": rt.mocap.is_stale(),
+            "pose": None if latest is None else [latest.x, latest.y, latest.yaw],
+        },
+        "run": None if run is None else run.status.to_dict(),
+    }
+    if run is None:
+        return out
+    reset = cur.run != run.id and run.status.started is not None
+    if reset:  # from the run's start (on its clock) on
+        cur.run, cur.last_t = run.id, run.clock_start
+    trail: list[list[float]] = []
+    rows = rt.mocap.samples(since_host=cur.last_t) if cur.run == run.id else _NO_ROWS
+    if rows.shape[0]:
+        cur.last_t = float(rows[-1, 2]) + 1e-9
+        step = max(1, math.ceil(rows.shape[0] / TRAIL_POINTS))
+        picked = rows[::step]
+        if (rows.shape[0] - 1) % step:
+            picked = np.vstack([picked, rows[-1:]])
+        trail = [[round(float(x), 5), round(float(y), 5)] for x, y in picked[:, 3:5]]
+    spins = []
+    for i, sg in enumerate(list(run.segments)):
+        key = (run.id, i)
+        if key not in cur.spins:
+            p = rt.mocap.samples(since_host=sg.start)
+            s = spin_of(sg.static_module, sg.start, sg.end, p[:, 2:6])
+            cur.spins[key] = {} if s is None else s.model_dump(exclude={"path"})
+        if cur.spins[key]:
+            spins.append(cur.spins[key])
+    out["trail"] = {"run": run.id, "reset": reset, "points": trail}
+    out["spins"] = spins
+    return out
+
+
+def hello(rt: Runtime) -> dict[str, Any]:
+    cfg = rt.config
+    return {
+        "robot": cfg.robot,
+        "modules": [
+            {k: getattr(m, k) for k in ("id", "x_s", "y_s", "beta", "b", "r")}
+            for m in cfg.nominal.modules
+        ],
+        "protocol": cfg.protocol.model_dump(),
+        "in_process_simulator": rt.simulator is not None,
+        "kinematics_path": str(rt.settings.kinematics_file),
+    }
+
+
+def console_router() -> APIRouter:
+    router = APIRouter()
+    geometry_cache: OrderedDict[str, RunGeometry] = OrderedDict()
+
+    @router.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+    @router.get("/console/{name}", include_in_schema=False)
+    def asset(name: str) -> FileResponse:
+        if name not in _ASSETS:
+            raise HTTPException(404, f"no console asset {name}")
+        return FileResponse(
+            STATIC / name, media_type=_ASSETS[name], headers={"Cache-Control": "no-cache"}
+        )
+
+    @router.get("/events", include_in_schema=False)
+    async def events(request: Request, rt: Rt, run: str | None = None) -> StreamingResponse:
+        if run is not None and rt.status(run) is None:
+            raise HTTPException(404, f"no calibration {run}")
+        return StreamingResponse(
+            _stream(request, rt, run),
+            media_type="text/event-stream",
+            headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+        )
+
+    async def _stream(request: Request, rt: Runtime, only: str | None) -> AsyncIterator[str]:
+        loop = asyncio.get_running_loop()
+        cur = _LiveCursor()
+        with rt.events.subscribe() as sub:
+            yield "retry: 1000\n\n"
+            yield _sse("hello", hello(rt))
+            first = (
+                rt.status(only)
+                if only
+                else (None if rt.current is None else rt.current.status.to_dict())
+            )
+            if first is not None:
+                yield _sse("run", first)
+                if only and first["state"] in TERMINAL:
+                    return
+            next_live = loop.time()
+            while True:
+                ev = await sub.get(timeout=max(0.0, next_live - loop.time()))
+                if ev is not None:
+                    st = ev["run"]
+                    if only is None or st["id"] == only:
+                        yield _sse("run", st)
+                        if only and st["state"] in TERMINAL:
+                            return
+                if loop.time() >= next_live:
+                    if only is not None and sub.queue.empty():  # its end, even if missed
+                        st = rt.status(only)
+                        if st is not None and st["state"] in TERMINAL:
+                            yield _sse("run", st)
+                            return
+                    yield _sse("live", live_snapshot(rt, cur))
+                    next_live = loop.time() + LIVE_PERIOD
+                    if await request.is_disconnected():
+                        return
+
+    @router.get(
+        "/calibrations/{run_id}/geometry",
+        response_model=RunGeometry,
+        responses={404: {"model": Problem}, 409: {"model": Problem}},
+    )
+    def geometry(run_id: str, rt: Rt) -> RunGeometry:
+        if run_id in geometry_cache:
+            return geometry_cache[run_id]
+        got = rt.result(run_id)
+        if got is None:
+            raise HTTPException(404, f"no calibration {run_id}")
+        state, doc = got
+        if state != "DONE" or doc is None:
+            raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+        try:
+            ds = load_dataset(Path(rt.settings.data_dir) / "runs" / run_id / "dataset")
+        except SwpcError as exc:
+            raise HTTPException(409, f"calibration {run_id}: dataset unreadable: {exc}") from exc
+        spins = [spin_of(s.static_module, s.start, s.end, ds.poses) for s in ds.segments]
+        keys = ("id", "x_s", "y_s", "beta", "b", "r")
+        out = RunGeometry(
+            run=run_id,
+            nominal=[ModuleGeometry(**{k: getattr(m, k) for k in keys}) for m in ds.robot.modules],
+            calibrated=[ModuleGeometry(**{k: m[k] for k in keys}) for m in doc["modules"]],
+            spins=[s for s in spins if s is not None],
+        )
+        geometry_cache[run_id] = out
+        while len(geometry_cache) > 16:
+            geometry_cache.popitem(last=False)
+        return out
+
+    def run_dir(rt: Runtime, run_id: str) -> Path:
+        if rt.status(run_id) is None:
+            raise HTTPException(404, f"no calibration {run_id}")
+        return Path(rt.settings.data_dir) / "runs" / run_id
+
+    @router.get(
+        "/calibrations/{run_id}/files",
+        response_model=list[RunFile],
+        responses={404: {"model": Problem}},
+    )
+    def list_files(run_id: str, rt: Rt) -> list[RunFile]:
+        d = run_dir(rt, run_id)
+        out = []
+        for name, (rel, _) in FILES.items():
+            p = d / rel
+            if name == "dataset.zip":
+                if not (p / "poses.csv").is_file():
+                    continue
+                size = sum(f.stat().st_size for f in p.iterdir() if f.is_file())
+            elif p.is_file():
+                size = p.stat().st_size
+            else:
+                continue
+            out.append(RunFile(name=name, size=size, url=f"/calibrations/{run_id}/files/{name}"))
+        return out
+
+    @router.get(
+        "/calibrations/{run_id}/files/{name}",
+        response_class=Response,
+        responses={
+            200: {"content": {media: {} for _, media in FILES.values()}},
+            404: {"model": Problem},
+        },
+    )
+    def download(run_id: str, name: FileName, rt: Rt) -> Response:
+        d = run_dir(rt, run_id)
+        rel, media = FILES[name]
+        p = d / rel
+        disposition = {"Content-Disposition": f'attachment; filename="{run_id}-{name}"'}
+        if name == "dataset.zip":
+            if not p.is_dir():
+                raise HTTPException(404, f"calibration {run_id} has no dataset")
+            buf = io.BytesIO()
+            with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+                for f in sorted(p.iterdir()):
+                    if f.is_file():
+                        z.write(f, f"{run_id}/dataset/{f.name}")
+            return Response(buf.getvalue(), media_type=media, headers=disposition)
+        if not p.is_file():
+            raise HTTPException(404, f"calibration {run_id} has no {name}")
+        return FileResponse(p, media_type=media, headers=disposition)
+
+    return router

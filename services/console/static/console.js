@@ -1,0 +1,503 @@
+// swpc operator console: plain JavaScript, no framework, no build step.
+// Live data comes pushed by the service (server-sent events at /events); the page only
+// fetches when the operator opens a view or acts.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const SVG_NS = "http://www.w3.org/2000/svg";
+const COLORS = ["#0b4fa8", "#b3001b", "#0a6b2d", "#6a1b9a", "#8a4b00", "#00607a"];
+const TERMINAL = new Set(["DONE", "FAILED", "ABORTED"]);
+const TOKEN_KEY = "swpc-token";
+
+const app = {
+  hello: null,          // robot geometry and protocol defaults (the "hello" event)
+  current: null,        // status of the run shown live
+  live: null,           // last "live" event
+  trail: { run: null, chunks: [] },   // [{module, points: [[x, y], ...]}]
+  spins: [],
+  seenRuns: new Set(),
+  startClick: null,     // performance.now() of the last Start, until its first update
+  metrics: { firstLiveUpdateMs: null, statesSeen: [] },
+  resultRun: null,
+};
+window.swpc = app;      // for the browser test (and a curious operator's console)
+
+// ------------------------------------------------------------------ helpers
+function el(tag, attrs = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "class") e.className = v;
+    else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else e.setAttribute(k, v);
+  }
+  for (const c of children) e.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  return e;
+}
+function svg(tag, attrs = {}) {
+  const e = document.createElementNS(SVG_NS, tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  return e;
+}
+const fmt = (x, d = 3) => (x === null || x === undefined || !isFinite(x) ? "–" : x.toFixed(d));
+const signed = (x, d) => (x > 0 ? "+" : "") + fmt(x, d);
+const colorOf = (module) => COLORS[(module - 1 + COLORS.length) % COLORS.length];
+
+async function api(method, path, body) {
+  const headers = {};
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  if (method !== "GET") {
+    const token = await ensureToken();
+    if (!token) throw new Error("no token given");
+    headers.Authorization = "Bearer " + token;
+  }
+  const r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  if (r.status === 401) {
+    sessionStorage.removeItem(TOKEN_KEY);
+    updateTokenButton();
+    throw new Error("the token was refused: enter it again");
+  }
+  const data = r.headers.get("content-type")?.includes("json") ? await r.json() : null;
+  if (!r.ok) {
+    const d = data?.detail;
+    throw new Error(Array.isArray(d) ? d.map((e) => e.msg).join("; ") : d || r.statusText);
+  }
+  return data;
+}
+
+// ------------------------------------------------------------------ dialogs
+function tokenDialog(why) {
+  const dlg = $("token-dialog");
+  $("token-why").textContent = why || "Starting, aborting and installing need the service's " +
+    "bearer token. It is kept for this browser tab only.";
+  $("token-input").value = "";
+  return new Promise((resolve) => {
+    const done = (value) => { dlg.close(); resolve(value); };
+    $("token-form").onsubmit = (ev) => {
+      ev.preventDefault();
+      const t = $("token-input").value.trim();
+      if (t) { sessionStorage.setItem(TOKEN_KEY, t); updateTokenButton(); done(t); }
+    };
+    $("token-cancel").onclick = () => done(null);
+    dlg.oncancel = () => resolve(null);
+    dlg.showModal();
+    $("token-input").focus();
+  });
+}
+async function ensureToken() {
+  return sessionStorage.getItem(TOKEN_KEY) || tokenDialog();
+}
+function updateTokenButton() {
+  $("token-button").textContent = sessionStorage.getItem(TOKEN_KEY) ? "Token set ✓" : "Enter token";
+}
+function confirmDialog(title, text, okLabel) {
+  const dlg = $("confirm-dialog");
+  $("confirm-title").textContent = title;
+  $("confirm-text").textContent = text;
+  $("confirm-ok").textContent = okLabel;
+  return new Promise((resolve) => {
+    dlg.onclose = () => resolve(dlg.returnValue === "ok");
+    dlg.returnValue = "cancel";
+    dlg.showModal();
+    $("confirm-cancel").focus();
+  });
+}
+
+// ------------------------------------------------------------------ routing
+function route() {
+  const [view, arg] = (location.hash.slice(1) || "run").split("/");
+  const known = ["run", "result", "history", "files", "foxglove"];
+  const v = known.includes(view) ? view : "run";
+  for (const k of known) $("view-" + k).hidden = k !== v;
+  for (const a of document.querySelectorAll("nav a")) {
+    if (a.dataset.view === v) a.setAttribute("aria-current", "page");
+    else a.removeAttribute("aria-current");
+  }
+  if (v === "result") showResult(arg || app.resultRun);
+  if (v === "history") showHistory();
+  if (v === "files") showFiles();
+}
+
+// ------------------------------------------------------------------ start / abort
+function fillDefaults(p) {
+  $("f-angles").value = p.angles_deg.join(", ");
+  $("f-sweep").value = p.sweep_deg;
+  $("f-settle").value = p.settle_time;
+  $("f-stop").value = p.stop_time;
+  $("f-align").value = p.align_time;
+  $("f-resteer").value = p.resteer_time;
+  $("f-modules").value = p.modules ? p.modules.join(", ") : "";
+}
+function overrides() {
+  const p = app.hello.protocol;
+  const protocol = {};
+  const angles = $("f-angles").value.split(/[,\s]+/).filter(Boolean).map(Number);
+  if (angles.join() !== p.angles_deg.join()) protocol.angles_deg = angles;
+  const nums = { sweep_deg: "f-sweep", settle_time: "f-settle", stop_time: "f-stop",
+    align_time: "f-align", resteer_time: "f-resteer" };
+  for (const [k, id] of Object.entries(nums)) {
+    const v = Number($(id).value);
+    if ($(id).value !== "" && v !== p[k]) protocol[k] = v;
+  }
+  const mods = $("f-modules").value.split(/[,\s]+/).filter(Boolean).map(Number);
+  if (mods.length) protocol.modules = mods;
+  return Object.keys(protocol).length ? { protocol } : {};
+}
+async function start(ev) {
+  ev.preventDefault();
+  $("start-error").textContent = "";
+  const body = { overrides: overrides(), install: $("f-install").value };
+  if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
+  $("start").disabled = true;
+  app.startClick = performance.now();
+  app.metrics.firstLiveUpdateMs = null;
+  app.startSeen = new Set(app.seenRuns);
+  try {
+    const st = await api("POST", "/calibrations", body);
+    onRun(st, false);
+  } catch (e) {
+    app.startClick = null;
+    $("start-error").textContent = "Not started: " + e.message;
+  } finally {
+    $("start").disabled = false;
+  }
+}
+async function abortRun() {
+  const run = app.current;
+  if (!run || TERMINAL.has(run.state)) return;
+  $("abort").disabled = true;
+  try {
+    onRun(await api("POST", `/calibrations/${run.id}/abort`), false);
+  } catch (e) {
+    $("abort-text").textContent = "Abort failed: " + e.message;
+  } finally {
+    $("abort").disabled = false;
+  }
+}
+
+// ------------------------------------------------------------------ live
+function onRun(st, pushed) {
+  if (pushed && app.startClick !== null && !app.startSeen.has(st.id)) {
+    app.metrics.firstLiveUpdateMs = performance.now() - app.startClick;
+    app.startClick = null;
+    $("metric").textContent = `First live update ${app.metrics.firstLiveUpdateMs.toFixed(0)} ms after Start.`;
+  }
+  app.seenRuns.add(st.id);
+  if (pushed) app.metrics.statesSeen.push([st.id, st.state, st.module_index]);
+  if (app.current && app.current.id !== st.id && !TERMINAL.has(app.current.state) && TERMINAL.has(st.state)) {
+    return;  // an old run's late news does not replace the running one
+  }
+  if (!app.current || app.current.id !== st.id) {
+    app.trail = { run: st.id, chunks: [] };
+    app.spins = [];
+  }
+  app.current = st;
+  renderRun();
+  if (st.state === "DONE" && !location.hash.startsWith("#result")) {
+    app.resultRun = st.id;
+  }
+  if (TERMINAL.has(st.state)) {
+    if (!$("view-history").hidden) showHistory();
+  }
+}
+function renderRun() {
+  const st = app.current;
+  const active = st && !TERMINAL.has(st.state);
+  $("abort-bar").hidden = !active;
+  if (!st) return;
+  $("abort-text").textContent = `Calibration ${st.id}: ${st.state}`;
+  $("run-id").textContent = st.id;
+  const s = $("run-state");
+  s.textContent = st.state;
+  s.className = "state " + st.state;
+  $("run-step").textContent = st.step;
+  $("run-module").textContent = st.module_index ? `${st.module_index} of ${st.modules_total} (module ${st.module})` : `– of ${st.modules_total}`;
+  $("run-angle").textContent = st.angle_index ? `${st.angle_index} of ${st.angles_total}: ${fmt(st.angle_deg, 1)}°` : "–";
+  const target = app.hello ? Number($("f-sweep").value) || app.hello.protocol.sweep_deg : null;
+  $("run-sweep").textContent = `${fmt(st.sweep_deg, 1)}°` + (st.state === "SPIN" && target ? ` of ${target}°` : "");
+  $("run-segments").textContent = String(st.segments);
+  $("run-progress").value = st.progress;
+  $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
+  const link = $("run-result-link");
+  link.hidden = st.state !== "DONE";
+  link.href = "#result/" + st.id;
+}
+function onLive(ev) {
+  app.live = ev;
+  const rows = ev.nodes.map((n) => el("tr", {},
+    el("td", {}, n.module), el("td", {}, n.node),
+    el("td", { class: n.alive ? "yes" : "no" }, n.alive ? "yes" : "no"),
+    el("td", { class: n.homed ? "yes" : "no" }, n.homed ? "yes" : "no"),
+    el("td", { class: n.errors.some((e) => e) ? "no" : "" }, n.errors.some((e) => e) ? n.errors.map((e) => "0x" + e.toString(16)).join(" / ") : "none"),
+    el("td", { class: "num" }, n.steer_deg === null ? "–" : `${fmt(n.steer_deg, 1)}°`)));
+  $("node-rows").replaceChildren(...rows);
+  $("can-state").textContent = ev.can || "–";
+  const m = ev.mocap;
+  const age = m.age_s === null ? "no pose yet" : `last pose ${(m.age_s * 1000).toFixed(0)} ms ago`;
+  $("mocap-age").textContent = (m.stale ? "STALE, " : "live, ") + age;
+  $("mocap-age").className = m.stale ? "no" : "yes";
+  if (ev.run && !app.current) onRun(ev.run, false);
+  else if (ev.run && ev.run.id === app.current.id) {
+    // sweep and progress move between state changes: the live event carries them
+    if (ev.run.state === app.current.state) { app.current = ev.run; renderRun(); }
+  }
+  if (ev.trail && app.current && ev.trail.run === app.current.id) {
+    if (ev.trail.reset || app.trail.run !== ev.trail.run) app.trail = { run: ev.trail.run, chunks: [] };
+    const module = app.current.module || 0;
+    let chunk = app.trail.chunks[app.trail.chunks.length - 1];
+    if (!chunk || chunk.module !== module) {
+      chunk = { module, points: chunk ? [chunk.points[chunk.points.length - 1]] : [] };
+      app.trail.chunks.push(chunk);
+    }
+    chunk.points.push(...ev.trail.points);
+    app.spins = ev.spins || [];
+  }
+  drawLive();
+}
+
+// ------------------------------------------------------------------ drawing
+// World coordinates (m, y up) into an SVG whose viewBox is fitted to what is drawn.
+function fitView(el, pts, pad, minW = 0.2) {
+  let [x0, y0, x1, y1] = [Infinity, Infinity, -Infinity, -Infinity];
+  for (const [x, y] of pts) { x0 = Math.min(x0, x); y0 = Math.min(y0, y); x1 = Math.max(x1, x); y1 = Math.max(y1, y); }
+  if (!isFinite(x0)) [x0, y0, x1, y1] = [-1, -1, 1, 1];
+  const cx = (x0 + x1) / 2, cy = (y0 + y1) / 2;
+  let w = Math.max(x1 - x0 + 2 * pad, minW), h = Math.max(y1 - y0 + 2 * pad, minW * 0.75);
+  if (w / h > 4 / 3) h = w * 3 / 4; else w = h * 4 / 3;
+  el.setAttribute("viewBox", `${cx - w / 2} ${-cy - h / 2} ${w} ${h}`);
+  el.replaceChildren();
+  const g = svg("g", { transform: "scale(1,-1)" });
+  el.append(g);
+  return { g, w };
+}
+function scaleBar(el, w) {
+  const vb = el.viewBox.baseVal;
+  const len = Math.pow(10, Math.floor(Math.log10(w / 4)));
+  const x = vb.x + w * 0.04, y = vb.y + vb.height * 0.95;
+  el.append(svg("line", { x1: x, y1: y, x2: x + len, y2: y, stroke: "#111", "stroke-width": w / 250 }));
+  const t = svg("text", { x, y: y - w / 100, "font-size": w / 32, fill: "#111" });
+  t.textContent = len >= 1 ? `${len} m` : `${Math.round(len * 1000)} mm`;
+  el.append(t);
+}
+const rotate = (x, y, yaw) => [x * Math.cos(yaw) - y * Math.sin(yaw), x * Math.sin(yaw) + y * Math.cos(yaw)];
+function robotShapes(g, pose, w, locked) {
+  const mods = app.hello.modules;
+  const [px, py, yaw] = pose;
+  const world = (x, y) => { const [a, b] = rotate(x, y, yaw); return [px + a, py + b]; };
+  const xs = mods.map((m) => m.x_s), ys = mods.map((m) => m.y_s);
+  const m = Math.max(...mods.map((q) => q.b + q.r)) + 0.02;
+  const corners = [[Math.min(...xs) - m, Math.min(...ys) - m], [Math.max(...xs) + m, Math.min(...ys) - m],
+    [Math.max(...xs) + m, Math.max(...ys) + m], [Math.min(...xs) - m, Math.max(...ys) + m]];
+  g.append(svg("polygon", { points: corners.map((c) => world(...c).join(",")).join(" "),
+    fill: "rgba(16,24,32,0.06)", stroke: "#111", "stroke-width": w / 300 }));
+  const [hx, hy] = world(Math.max(...xs) + m, 0);  // heading mark at the front
+  const [ox, oy] = world(0, 0);
+  g.append(svg("line", { x1: ox, y1: oy, x2: hx, y2: hy, stroke: "#111", "stroke-width": w / 400, "stroke-dasharray": `${w / 100}` }));
+  const nodes = app.live ? app.live.nodes : [];
+  for (const q of mods) {
+    const n = nodes.find((n) => n.module === q.id);
+    const th = (n && n.steer_deg !== null ? n.steer_deg * Math.PI / 180 : 0) + q.beta;
+    const [sx, sy] = world(q.x_s, q.y_s);
+    const [cx, cy] = world(q.x_s + q.b * Math.cos(th), q.y_s + q.b * Math.sin(th));
+    const [dx, dy] = rotate(Math.cos(th), Math.sin(th), yaw);
+    const c = colorOf(q.id);
+    g.append(svg("line", { x1: cx - dx * q.r, y1: cy - dy * q.r, x2: cx + dx * q.r, y2: cy + dy * q.r,
+      stroke: c, "stroke-width": w / 90, "stroke-linecap": "round" }));
+    g.append(svg("circle", { cx: sx, cy: sy, r: w / 120, fill: q.id === locked ? "#b3001b" : "#fff",
+      stroke: c, "stroke-width": w / 300 }));
+  }
+}
+function drawLive() {
+  const el = $("live-view");
+  if (!app.hello) return;
+  const pose = app.live && app.live.mocap.pose;
+  const pts = [];
+  for (const c of app.trail.chunks) pts.push(...c.points);
+  for (const s of app.spins) pts.push([s.c_w[0] - s.radius, s.c_w[1] - s.radius], [s.c_w[0] + s.radius, s.c_w[1] + s.radius]);
+  if (pose) pts.push([pose[0] - 0.35, pose[1] - 0.35], [pose[0] + 0.35, pose[1] + 0.35]);
+  const { g, w } = fitView(el, pts, 0.1);
+  for (const c of app.trail.chunks) {
+    if (c.points.length < 2) continue;
+    g.append(svg("polyline", { points: c.points.map((p) => p.join(",")).join(" "), fill: "none",
+      stroke: colorOf(c.module || 1), "stroke-width": w / 250, "stroke-linejoin": "round" }));
+  }
+  drawSpins(g, app.spins, w);
+  if (pose) robotShapes(g, pose, w, app.current && !TERMINAL.has(app.current.state) ? app.current.module : null);
+  scaleBar(el, w);
+}
+function drawSpins(g, spins, w) {
+  for (const s of spins) {
+    const c = colorOf(s.module);
+    g.append(svg("circle", { cx: s.c_w[0], cy: s.c_w[1], r: s.radius, fill: "none", stroke: c,
+      "stroke-width": w / 400, "stroke-dasharray": `${w / 80} ${w / 120}` }));
+    const k = w / 60;
+    g.append(svg("path", { d: `M${s.c_w[0] - k},${s.c_w[1]}h${2 * k}M${s.c_w[0]},${s.c_w[1] - k}v${2 * k}`,
+      stroke: c, "stroke-width": w / 200 }));
+  }
+}
+
+// ------------------------------------------------------------------ result
+async function showResult(id) {
+  $("res-empty").hidden = !!id;
+  $("res-body").hidden = !id;
+  if (!id) return;
+  app.resultRun = id;
+  $("res-id").textContent = id;
+  try {
+    const [cmp, files] = await Promise.all([api("GET", `/calibrations/${id}/comparison`), api("GET", `/calibrations/${id}/files`)]);
+    renderComparison(cmp);
+    $("res-files").replaceChildren(...files.map((f) => el("li", {},
+      el("a", { href: f.url, download: `${id}-${f.name}` }, f.name), ` (${(f.size / 1024).toFixed(0)} KiB)`)));
+    $("res-plot").src = `/calibrations/${id}/plot.png`;
+    renderGeometry(await api("GET", `/calibrations/${id}/geometry`));
+  } catch (e) {
+    $("res-summary").textContent = `No result for ${id}: ${e.message}`;
+    $("res-rows").replaceChildren();
+  }
+}
+function chip(value, yes, no, goodWhenTrue) {
+  if (value === null) return el("span", { class: "chip none" }, "unknown");
+  const good = value === goodWhenTrue;
+  return el("span", { class: "chip " + (value && !goodWhenTrue ? "sig" : good ? "ok" : "bad") }, value ? yes : no);
+}
+function renderComparison(cmp) {
+  const inForce = cmp.in_force;
+  const ref = cmp.reference === "nominal" ? "no file in force: change from nominal" :
+    `file in force ${inForce.name}` + (inForce.run ? ` (from run ${inForce.run})` : " (not from a run)");
+  $("res-summary").replaceChildren(
+    el("b", { class: cmp.within_tolerance ? "yes" : "no" }, cmp.within_tolerance ? "Within tolerance" : "Over tolerance"),
+    " · ", cmp.is_in_force ? el("b", { class: "yes" }, "this result is in force") :
+      (cmp.installed ? "installed at the run's end, since replaced" : "not installed"),
+    " · compared with the " + ref + `; significant = change over ${cmp.significance_k} std devs.`);
+  $("res-ref-head").textContent = cmp.reference === "nominal" ? "In force (none)" : "In force";
+  $("res-install").disabled = cmp.is_in_force;
+  $("res-install-note").textContent = cmp.is_in_force ? "already the file in force" : "";
+  const d = (r) => (r.unit === "deg" ? 4 : 3);
+  $("res-rows").replaceChildren(...cmp.rows.map((r) => el("tr", { "data-param": `${r.module}.${r.param}` },
+    el("th", { scope: "row" }, `${r.module} ${r.param} `, el("span", { class: "muted" }, `(${r.unit})`)),
+    el("td", { class: "num" }, fmt(r.nominal, d(r))), el("td", { class: "num" }, fmt(r.calibrated, d(r))),
+    el("td", { class: "num" }, fmt(r.stddev, d(r) + 1)), el("td", { class: "num" }, fmt(r.in_force, d(r))),
+    el("td", { class: "num" }, signed(r.change, d(r))),
+    el("td", { title: `|change| > ${cmp.significance_k} std devs` }, chip(r.significant, "yes", "no", false)),
+    el("td", { title: `std dev <= ${fmt(r.tolerance, d(r) + 1)} ${r.unit}` }, chip(r.within_tolerance, "yes", "NO", true)))));
+}
+async function installResult() {
+  const id = app.resultRun;
+  if (!id) return;
+  const ok = await confirmDialog("Install this result?",
+    `The calibration ${id} becomes the kinematic file in force; the file it replaces is kept as a backup and can be rolled back.`,
+    "Install");
+  if (!ok) return;
+  try {
+    const r = await api("POST", `/calibrations/${id}/install`);
+    $("res-install-note").textContent = `installed${r.backup ? `; previous file kept as ${r.backup}` : ""}`;
+    await showResult(id);
+  } catch (e) {
+    $("res-install-note").textContent = "Not installed: " + e.message;
+  }
+}
+function renderGeometry(geo) {
+  const world = $("res-world");
+  const pts = [];
+  for (const s of geo.spins) pts.push([s.c_w[0] - s.radius, s.c_w[1] - s.radius], [s.c_w[0] + s.radius, s.c_w[1] + s.radius]);
+  const { g, w } = fitView(world, pts, 0.08);
+  for (const s of geo.spins) {
+    g.append(svg("polyline", { points: s.path.map((p) => p.join(",")).join(" "), fill: "none",
+      stroke: colorOf(s.module), "stroke-width": w / 300 }));
+  }
+  drawSpins(g, geo.spins, w);
+  scaleBar(world, w);
+  const panels = geo.calibrated.map((cal) => {
+    const nom = geo.nominal.find((n) => n.id === cal.id);
+    const el2 = svg("svg", { role: "img", "aria-label": `module ${cal.id} in the robot frame` });
+    const span = nom.b + 0.006;
+    const { g: gg, w: ww } = fitView(el2, [[nom.x_s - span, nom.y_s - span], [nom.x_s + span, nom.y_s + span]], 0, 0.01);
+    const c = colorOf(cal.id);
+    gg.append(svg("circle", { cx: nom.x_s, cy: nom.y_s, r: nom.b, fill: "none", stroke: "#777",
+      "stroke-width": ww / 250, "stroke-dasharray": `${ww / 60}` }));
+    const q = ww / 70;
+    gg.append(svg("rect", { x: nom.x_s - q / 2, y: nom.y_s - q / 2, width: q, height: q, fill: "none",
+      stroke: "#555", "stroke-width": ww / 250 }));
+    gg.append(svg("circle", { cx: cal.x_s, cy: cal.y_s, r: cal.b, fill: "none", stroke: c, "stroke-width": ww / 160 }));
+    gg.append(svg("circle", { cx: cal.x_s, cy: cal.y_s, r: ww / 120, fill: c }));
+    for (const s of geo.spins.filter((s) => s.module === cal.id)) {
+      const k = ww / 45;
+      gg.append(svg("path", { d: `M${s.c_r[0] - k},${s.c_r[1] - k}l${2 * k},${2 * k}M${s.c_r[0] - k},${s.c_r[1] + k}l${2 * k},${-2 * k}`,
+        stroke: "#111", "stroke-width": ww / 150 }));
+    }
+    const t = svg("text", { x: el2.viewBox.baseVal.x + ww * 0.04, y: el2.viewBox.baseVal.y + ww * 0.1, "font-size": ww / 12, fill: c });
+    t.textContent = `module ${cal.id}`;
+    el2.append(t);
+    scaleBar(el2, ww);
+    return el2;
+  });
+  $("res-modules").replaceChildren(...panels);
+}
+
+// ------------------------------------------------------------------ history and files
+async function showHistory() {
+  const runs = await api("GET", "/calibrations");
+  runs.reverse();
+  $("history-rows").replaceChildren(...runs.map((r) => el("tr", { "data-run": r.id },
+    el("td", {}, (r.created || "").replace("T", " ").replace("Z", "")),
+    el("td", { class: "mono" }, r.id),
+    el("td", {}, el("span", { class: "state " + r.state }, r.state)),
+    el("td", {}, r.reason || ""),
+    el("td", {}, r.installed === null ? "–" : r.installed ? "yes" : "no"),
+    el("td", {}, r.state === "DONE" ? el("a", { href: "#result/" + r.id }, "result, plots, files") :
+      el("a", { href: `/calibrations/${r.id}/files/can.log`, download: `${r.id}-can.log` }, "CAN log")))));
+}
+async function showFiles() {
+  $("kin-error").textContent = "";
+  const k = await api("GET", "/kinematics/files");
+  $("kin-path").textContent = k.path;
+  const f = k.in_force;
+  $("kin-in-force").replaceChildren(f ? el("p", {}, el("b", {}, "In force: "), el("span", { class: "mono", id: "kin-in-force-name" }, f.name),
+    ` · created ${f.created || "?"} · ` + (f.run ? `from run ${f.run}` : "not from a calibration run") + (f.valid ? "" : ` · INVALID: ${f.error}`))
+    : el("p", {}, "No kinematic file installed yet."));
+  $("backup-rows").replaceChildren(...k.backups.map((b) => el("tr", { "data-backup": b.name },
+    el("td", {}, (b.backup_time || "").replace("T", " ").replace("Z", "")),
+    el("td", { class: "mono" }, b.name),
+    el("td", {}, b.run ? el("a", { href: "#result/" + b.run }, b.run) : "–"),
+    el("td", {}, b.created || "?"),
+    el("td", {}, el("button", { type: "button", class: "secondary", onclick: () => rollback(b) }, "Roll back to this")))));
+  if (!k.backups.length) $("backup-rows").replaceChildren(el("tr", {}, el("td", { colspan: 5 }, "none yet")));
+}
+async function rollback(b) {
+  const ok = await confirmDialog("Roll back the kinematic file?",
+    `${b.name} (${b.run ? "from run " + b.run : "not from a run"}) becomes the file in force again; the current file is kept as a backup.`,
+    "Roll back");
+  if (!ok) return;
+  try {
+    await api("POST", "/kinematics/rollback", { backup: b.name });
+    await showFiles();
+  } catch (e) {
+    $("kin-error").textContent = "Not rolled back: " + e.message;
+  }
+}
+
+// ------------------------------------------------------------------ event stream
+function connect() {
+  const es = new EventSource("/events");
+  const state = $("link-state");
+  es.onopen = () => { state.textContent = "live"; state.className = "pill ok"; };
+  es.onerror = () => { state.textContent = "reconnecting…"; state.className = "pill bad"; };
+  es.addEventListener("hello", (ev) => {
+    const first = !app.hello;
+    app.hello = JSON.parse(ev.data);
+    $("robot-name").textContent = "· robot " + app.hello.robot + (app.hello.in_process_simulator ? " (simulator)" : "");
+    if (first) fillDefaults(app.hello.protocol);
+  });
+  es.addEventListener("run", (ev) => onRun(JSON.parse(ev.data), true));
+  es.addEventListener("live", (ev) => onLive(JSON.parse(ev.data)));
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  $("start-form").addEventListener("submit", start);
+  $("abort").addEventListener("click", abortRun);
+  $("res-install").addEventListener("click", installResult);
+  $("token-button").addEventListener("click", () => tokenDialog("Enter the service's bearer token (kept for this tab)."));
+  window.addEventListener("hashchange", route);
+  updateTokenButton();
+  route();
+  connect();
+});

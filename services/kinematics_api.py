@@ -1,0 +1,320 @@
+"""The kinematic file in force, its dated backups, install and roll back (HTTP).
+
+* ``GET /kinematics/files``: the file in force and every backup kept beside it
+  (``<stem>.<UTC time><suffix>``, :func:`services.calibration_result.backup_kinematics`),
+  newest first, each with the run it came from (its ``provenance.run``).
+* ``POST /calibrations/{id}/install``: installs a finished run's own result file.
+* ``POST /kinematics/rollback``: installs one of the backups again.
+* ``GET /calibrations/{id}/comparison``: a run's result against the file in force, one
+  verdict per parameter.
+
+Both writes need the bearer token, are refused while a calibration runs (409), check the
+file they install (a corrupt one is 422, shaped as FastAPI's own, and installs nothing)
+and keep the file they replace as a new backup: a roll-back can itself be rolled back.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import math
+import re
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.calibration_result import BACKUP_STAMP, PARAMS, backup_kinematics
+from services.robot_config import Tolerances
+from services.runtime import Runtime
+from swpc_hw.errors import KinematicFileError
+from swpc_hw.kinematic_file import KinematicFile, atomic_write_text, load_kinematics
+
+SIGNIFICANCE_K = 3.0
+"""A change is significant when it exceeds this many standard deviations of the change."""
+
+UNITS: dict[str, tuple[str, float]] = {
+    "x_s": ("mm", 1e3),
+    "y_s": ("mm", 1e3),
+    "beta": ("deg", 180.0 / math.pi),
+    "b": ("mm", 1e3),
+    "r": ("mm", 1e3),
+}
+"""Display unit and scale from SI of each parameter."""
+
+_TOLERANCE_OF = {
+    "x_s": "position",
+    "y_s": "position",
+    "b": "position",
+    "beta": "beta",
+    "r": "radius",
+}
+
+
+class FileInfo(BaseModel):
+    """One kinematic file: the one in force or a backup."""
+
+    name: str
+    backup_time: str | None = Field(None, description="when it was replaced (backups), UTC")
+    created: str | None = None
+    robot: str | None = None
+    run: str | None = Field(None, description="the calibration run it came from, if any")
+    method: str | None = None
+    sha256: str = Field(description="first 16 hex digits of the file's sha256")
+    valid: bool
+    error: str | None = None
+
+
+class KinematicFiles(BaseModel):
+    path: str
+    in_force: FileInfo | None
+    backups: list[FileInfo]
+
+
+class RollbackRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    backup: str = Field(description="a backup's name, as GET /kinematics/files lists it")
+
+
+class InstallResult(BaseModel):
+    in_force: FileInfo
+    backup: str | None = Field(None, description="the backup kept of the file it replaced")
+
+
+class ComparisonRow(BaseModel):
+    module: int
+    param: str
+    unit: str
+    nominal: float
+    calibrated: float
+    stddev: float | None
+    in_force: float | None = Field(description="the file in force's value (None: no file)")
+    change: float = Field(description="calibrated - reference (the file in force, else nominal)")
+    significant: bool | None = Field(
+        description=f"|change| > {SIGNIFICANCE_K:g} std devs of the change (None: unknown)"
+    )
+    tolerance: float
+    within_tolerance: bool | None
+
+
+class Comparison(BaseModel):
+    run: str
+    reference: str = Field(description="'file in force' or 'nominal' (no file in force)")
+    in_force: FileInfo | None
+    is_in_force: bool = Field(description="the file in force is this run's result")
+    significance_k: float
+    within_tolerance: bool
+    installed: bool
+    rows: list[ComparisonRow]
+
+
+class Problem(BaseModel):
+    detail: str
+
+
+def _backup_pattern(path: Path) -> re.Pattern[str]:
+    return re.compile(rf"^{re.escape(path.stem)}\.(\d{{8}}T\d{{12}}Z){re.escape(path.suffix)}$")
+
+
+def backups(path: Path) -> list[Path]:
+    """The backups kept beside the kinematic file ``path``, newest first."""
+    pat = _backup_pattern(path)
+    if not path.parent.is_dir():
+        return []
+    found = [p for p in path.parent.iterdir() if pat.match(p.name) and p.is_file()]
+    return sorted(found, key=lambda p: p.name, reverse=True)
+
+
+def describe(path: Path, backup: bool = False) -> FileInfo:
+    """What a kinematic file says of itself (a corrupt one: ``valid`` false, the error)."""
+    data = path.read_bytes()
+    info: dict[str, Any] = {
+        "name": path.name,
+        "sha256": hashlib.sha256(data).hexdigest()[:16],
+        "valid": True,
+    }
+    if backup:
+        m = re.search(r"\.(\d{8}T\d{12}Z)\.[^.]*$", path.name)
+        if m is not None:
+            t = _dt.datetime.strptime(m.group(1), BACKUP_STAMP).replace(tzinfo=_dt.UTC)
+            info["backup_time"] = t.isoformat(timespec="seconds").replace("+00:00", "Z")
+    try:
+        k = load_kinematics(path)
+    except (KinematicFileError, OSError, UnicodeDecodeError) as exc:
+        info.update(valid=False, error=str(exc))
+        return FileInfo(**info)
+    prov = k.extra.get("provenance")
+    prov = prov if isinstance(prov, dict) else {}
+    info.update(
+        created=str(k.created) if k.created else None,
+        robot=k.params.robot,
+        run=str(prov["run"]) if prov.get("run") else None,
+        method=str(prov["method"]) if prov.get("method") else None,
+    )
+    return FileInfo(**info)
+
+
+def install_file(target: Path, source: Path) -> Path | None:
+    """Install the kinematic file ``source`` at ``target`` (checked first, atomic replace,
+    the file replaced kept as a backup, whose path is returned)."""
+    load_kinematics(source)  # KinematicFileError: nothing is touched
+    text = source.read_text(encoding="utf-8")
+    backup = backup_kinematics(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(target, text)
+    return backup
+
+
+def compare(
+    run_id: str, doc: dict[str, Any], in_force: KinematicFile | None, tol: Tolerances
+) -> list[ComparisonRow]:
+    """One row per module and parameter (display units, :data:`UNITS`)."""
+    rows = []
+    for m in doc["modules"]:
+        ref = None
+        if in_force is not None:
+            try:
+                ref = in_force.params.module(int(m["id"]))
+            except (KeyError, ValueError):
+                ref = None
+        for p in PARAMS:
+            unit, f = UNITS[p]
+            sd = (m.get("stddev") or {}).get(p)
+            sd = None if sd is None or not math.isfinite(sd) else float(sd)
+            ref_v = None if ref is None else float(getattr(ref, p))
+            base = ref_v if ref_v is not None else float(m["nominal"][p])
+            change = float(m[p]) - base
+            ref_sd = None
+            if ref is not None and ref.stddev is not None:
+                ref_sd = float(getattr(ref.stddev, p))
+            significant = None
+            if sd is not None:
+                sigma = math.hypot(sd, ref_sd or 0.0)
+                significant = abs(change) > SIGNIFICANCE_K * sigma
+            t = float(getattr(tol, _TOLERANCE_OF[p]))
+            rows.append(
+                ComparisonRow(
+                    module=int(m["id"]),
+                    param=p,
+                    unit=unit,
+                    nominal=float(m["nominal"][p]) * f,
+                    calibrated=float(m[p]) * f,
+                    stddev=None if sd is None else sd * f,
+                    in_force=None if ref_v is None else ref_v * f,
+                    change=change * f,
+                    significant=significant,
+                    tolerance=t * f,
+                    within_tolerance=None if sd is None else sd <= t,
+                )
+            )
+    return rows
+
+
+def _runtime(request: Request) -> Runtime:
+    rt: Runtime = request.app.state.runtime
+    return rt
+
+
+Rt = Annotated[Runtime, Depends(_runtime)]
+
+
+def kinematics_router(auth: Callable[..., None]) -> APIRouter:
+    """The routes above; ``auth`` is the service's bearer-token dependency."""
+    router = APIRouter()
+    lock = threading.Lock()  # one install at a time
+    problems: dict[int | str, dict[str, Any]] = {
+        401: {"model": Problem},
+        404: {"model": Problem},
+        409: {"model": Problem},
+    }
+
+    def files(rt: Runtime) -> KinematicFiles:
+        path = rt.settings.kinematics_file
+        return KinematicFiles(
+            path=str(path),
+            in_force=describe(path) if path.exists() else None,
+            backups=[describe(p, backup=True) for p in backups(path)],
+        )
+
+    def _install(rt: Runtime, source: Path) -> InstallResult:
+        with lock:
+            if rt.running():
+                raise HTTPException(409, "a calibration is running: the file is not changed")
+            path = rt.settings.kinematics_file
+            try:
+                backup = install_file(path, source)
+            except KinematicFileError as exc:
+                # the shape of FastAPI's own 422 (one schema for 422)
+                raise RequestValidationError(
+                    [{"loc": ["body"], "msg": f"not installed: {exc}", "type": "value_error"}]
+                ) from exc
+            return InstallResult(
+                in_force=describe(path), backup=None if backup is None else backup.name
+            )
+
+    @router.get("/kinematics/files", response_model=KinematicFiles)
+    def list_files(rt: Rt) -> KinematicFiles:
+        return files(rt)
+
+    @router.post(
+        "/kinematics/rollback",
+        response_model=InstallResult,
+        dependencies=[Depends(auth)],
+        responses=problems,
+    )
+    def rollback(body: RollbackRequest, rt: Rt) -> InstallResult:
+        path = rt.settings.kinematics_file
+        chosen = next((p for p in backups(path) if p.name == body.backup), None)
+        if chosen is None:
+            raise HTTPException(404, f"no backup {body.backup!r} beside {path}")
+        return _install(rt, chosen)
+
+    @router.post(
+        "/calibrations/{run_id}/install",
+        response_model=InstallResult,
+        dependencies=[Depends(auth)],
+        responses=problems,
+    )
+    def install(run_id: str, rt: Rt) -> InstallResult:
+        got = rt.result(run_id)
+        if got is None:
+            raise HTTPException(404, f"no calibration {run_id}")
+        state, doc = got
+        source = Path(rt.settings.data_dir) / "runs" / run_id / "kinematics.yaml"
+        if state != "DONE" or doc is None or not source.is_file():
+            raise HTTPException(409, f"calibration {run_id} is {state}: no result to install")
+        return _install(rt, source)
+
+    @router.get(
+        "/calibrations/{run_id}/comparison",
+        response_model=Comparison,
+        responses={404: {"model": Problem}, 409: {"model": Problem}},
+    )
+    def comparison(run_id: str, rt: Rt) -> Comparison:
+        got = rt.result(run_id)
+        if got is None:
+            raise HTTPException(404, f"no calibration {run_id}")
+        state, doc = got
+        if state != "DONE" or doc is None:
+            raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+        path = rt.settings.kinematics_file
+        info = describe(path) if path.exists() else None
+        in_force = load_kinematics(path) if info is not None and info.valid else None
+        tol = Tolerances.model_validate(doc.get("tolerances") or rt.config.tolerances.model_dump())
+        return Comparison(
+            run=run_id,
+            reference="file in force" if in_force is not None else "nominal",
+            in_force=info,
+            is_in_force=info is not None and info.run == run_id,
+            significance_k=SIGNIFICANCE_K,
+            within_tolerance=bool(doc.get("within_tolerance")),
+            installed=bool(doc.get("installed")),
+            rows=compare(run_id, doc, in_force, tol),
+        )
+
+    return router

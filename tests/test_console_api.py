@@ -1,0 +1,231 @@
+"""The console's endpoints through the real app (TestClient): event stream, install,
+roll back, the kinematic files, comparison, a run's geometry and files.
+
+The run behind them is a real one: the state machine on the fake robot of
+``tests/test_state_machine.py`` (a virtual clock: a whole run in about a second), started
+through the runtime's own ``on_change`` (the store, the event bus), while a client
+follows it on ``GET /events?run=<id>``.  The browser drives the same endpoints in
+``tests/browser`` (``make test-browser``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import threading
+import time
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import SecretStr
+
+from services.api import create_app
+from services.calibration_run import CalibrationRun
+from services.mocap_ingest import MocapIngest
+from services.robot_config import RobotConfig
+from services.runtime import Runtime
+from services.settings import ServiceSettings
+from swpc_hw.clock import VirtualClock
+from swpc_hw.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.model import RobotParams
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from tests.fake_robot import FakeRobot
+
+TOKEN = "console-token-for-tests"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+TRUTH = RobotParams(robot="swpc", modules=PAPER_CALIBRATED.modules[:3])
+NOMINAL = RobotParams(robot="swpc", modules=PAPER_NOMINAL.modules[:3])
+PROTOCOL = {"angles_deg": [30, 150], "sweep_deg": 90, "settle_time": 0.5, "stop_time": 0.3,
+            "align_time": 0.3, "resteer_time": 0.5}  # fmt: skip
+
+
+def parse_sse(text: str) -> list[tuple[str, Any]]:
+    """``(event, data)`` of every event in a text/event-stream body."""
+    out = []
+    for block in text.split("\n\n"):
+        fields = dict(line.split(": ", 1) for line in block.splitlines() if ": " in line)
+        if "event" in fields:
+            out.append((fields["event"], json.loads(fields["data"])))
+    return out
+
+
+def new_run(rt: Runtime, install: str = "never") -> CalibrationRun:
+    """A run of the fake robot as the runtime makes one (its store and event bus)."""
+    robot = FakeRobot(TRUTH, rt.clock, rt.mocap, dt=0.01, pose_every=1)  # type: ignore[arg-type]
+    run = CalibrationRun(
+        robot,
+        rt.mocap,
+        rt.config,
+        clock=rt.clock,
+        data_dir=rt.data_dir,
+        kinematics_path=rt.settings.kinematics_file,
+        install=install,
+        on_change=rt._persist,
+    )
+    rt.runs[run.id] = run
+    rt.current = run
+    rt._persist(run)
+    return run
+
+
+@pytest.fixture(scope="module")
+def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """The app on a runtime whose robot is the fake one; one run followed on the stream."""
+    data = tmp_path_factory.mktemp("console")
+    settings = ServiceSettings(data_dir=data, token=SecretStr(TOKEN), can_interface="virtual")
+    config = RobotConfig.model_validate({"nominal": NOMINAL.model_dump(), "protocol": PROTOCOL})
+    rt = Runtime(settings, config)  # not opened: no bus, no zenoh, no simulator
+    rt.clock = VirtualClock(start=1000.0)
+    rt.mocap = MocapIngest(clock=rt.clock, clock_mode="wall", stale_after=0.5)
+    save_kinematics(settings.kinematics_file, NOMINAL, created="2026-01-01T00:00:00Z")
+    app = create_app(settings, runtime_factory=lambda _: rt)
+    with TestClient(app) as client:
+        run = new_run(rt)
+
+        def start_when_listened_to() -> None:
+            deadline = time.monotonic() + 30
+            while rt.events.subscribers == 0 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            run.start()
+
+        # the run starts once the stream below listens; the stream ends with the run
+        threading.Thread(target=start_when_listened_to, daemon=True).start()
+        body = client.get(f"/events?run={run.id}").text
+        run.join(30)
+        yield {"client": client, "rt": rt, "run": run, "events": parse_sse(body)}
+
+
+def test_the_event_stream_pushes_every_state_of_a_run_and_ends_with_it(
+    svc: dict[str, Any],
+) -> None:
+    events, run = svc["events"], svc["run"]
+    assert run.status.state == "DONE", run.status.errors
+    kinds = [e for e, _ in events]
+    assert kinds[0] == "hello" and kinds[-1] == "run" and "live" in kinds
+    hello = events[0][1]
+    assert [m["id"] for m in hello["modules"]] == [1, 2, 3]
+    assert hello["protocol"]["angles_deg"] == [30, 150]
+    pushed = [d["state"] for e, d in events if e == "run"]
+    # every change the state machine made, in its order, nothing after the end
+    assert pushed[0] == "PENDING" and pushed[-1] == "DONE"
+    for a, b in [("CONNECT", "PRECHECK"), ("LOCK", "ALIGN"), ("SPIN", "STOP"),
+                 ("STOP", "RESTEER"), ("RELEASE", "SOLVE"), ("SOLVE", "WRITE")]:  # fmt: skip
+        assert pushed.index(a) < pushed.index(b), pushed
+    assert pushed.count("SPIN") == 6 and pushed.count("LOCK") == 3
+    spins = [d for e, d in events if e == "run" and d["state"] == "SPIN"]
+    assert [(d["module_index"], d["angle_index"], d["angle_deg"]) for d in spins] == [
+        (k, i, a) for k in (1, 2, 3) for i, a in ((1, 30.0), (2, 150.0))
+    ]
+    live = [d for e, d in events if e == "live"]
+    assert live[0]["nodes"] == [] and live[0]["can"] is None  # no bus: none shown
+    # a finished run's stream: its last state, then the end
+    again = parse_sse(svc["client"].get(f"/events?run={run.id}").text)
+    assert [e for e, _ in again] == ["hello", "run"] and again[1][1]["state"] == "DONE"
+    assert svc["client"].get("/events?run=nope").status_code == 404
+
+
+def test_install_and_roll_back_with_dated_backups(svc: dict[str, Any]) -> None:
+    client, rt, run = svc["client"], svc["rt"], svc["run"]
+    path: Path = rt.settings.kinematics_file
+    nominal_bytes = path.read_bytes()
+    files = client.get("/kinematics/files").json()
+    assert files["in_force"]["run"] is None and files["backups"] == []
+    # the comparison with the file in force (the nominal design): one verdict per parameter
+    cmp = client.get(f"/calibrations/{run.id}/comparison").json()
+    assert cmp["reference"] == "file in force" and not cmp["is_in_force"]
+    assert not cmp["installed"] and len(cmp["rows"]) == 15
+    rows = {(r["module"], r["param"]): r for r in cmp["rows"]}
+    x = rows[(1, "x_s")]
+    assert x["unit"] == "mm" and x["in_force"] == pytest.approx(215.0)
+    assert x["change"] == pytest.approx(x["calibrated"] - 215.0)
+    assert x["calibrated"] == pytest.approx(TRUTH.module(1).x_s * 1e3, abs=0.05)
+    assert x["significant"] is True and x["within_tolerance"] is True  # 1.3 mm, sd ~0.01
+    assert rows[(2, "beta")]["unit"] == "deg"
+    # install: the token, then the run's file in force, the nominal kept as a backup
+    assert client.post(f"/calibrations/{run.id}/install").status_code == 401
+    r = client.post(f"/calibrations/{run.id}/install", headers=AUTH)
+    assert r.status_code == 200, r.text
+    backup = r.json()["backup"]
+    assert r.json()["in_force"]["run"] == run.id
+    assert (path.parent / backup).read_bytes() == nominal_bytes
+    assert load_kinematics(path).extra["provenance"]["run"] == run.id
+    cmp = client.get(f"/calibrations/{run.id}/comparison").json()
+    assert cmp["is_in_force"] and all(
+        r["change"] == 0.0 and r["significant"] is False for r in cmp["rows"]
+    )
+    # roll back to the nominal design: the run's file kept as a backup in turn
+    assert client.post("/kinematics/rollback", json={"backup": backup}).status_code == 401
+    for bad in ("runs.sqlite", "../kinematics.yaml", "kinematics.yaml"):
+        r = client.post("/kinematics/rollback", json={"backup": bad}, headers=AUTH)
+        assert r.status_code == 404, (bad, r.text)
+    r = client.post("/kinematics/rollback", json={"backup": backup}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    assert path.read_bytes() == nominal_bytes
+    files = client.get("/kinematics/files").json()
+    assert [b["run"] for b in files["backups"]] == [run.id, None]  # newest first
+    assert files["backups"][0]["backup_time"].endswith("Z")
+    # a corrupt backup installs nothing
+    bad = path.with_name("kinematics.20200101T000000000000Z.yaml")
+    bad.write_text("format: nope\n")
+    r = client.post("/kinematics/rollback", json={"backup": bad.name}, headers=AUTH)
+    assert r.status_code == 422 and path.read_bytes() == nominal_bytes
+    listed = {b["name"]: b for b in client.get("/kinematics/files").json()["backups"]}
+    assert listed[bad.name]["valid"] is False
+    bad.unlink()
+
+
+def test_no_install_while_a_run_is_going_nor_of_an_unfinished_run(svc: dict[str, Any]) -> None:
+    client, rt, done = svc["client"], svc["rt"], svc["run"]
+    before = rt.settings.kinematics_file.read_bytes()
+    pending = new_run(rt)  # made, not started: running as far as anyone can tell
+    try:
+        r = client.post(f"/calibrations/{done.id}/install", headers=AUTH)
+        assert r.status_code == 409 and "running" in r.text
+        r = client.post(f"/calibrations/{pending.id}/install", headers=AUTH)
+        assert r.status_code == 409
+        assert client.get(f"/calibrations/{pending.id}/comparison").status_code == 409
+        assert client.post("/calibrations/nope/install", headers=AUTH).status_code == 404
+    finally:
+        rt.current = done
+    assert rt.settings.kinematics_file.read_bytes() == before
+
+
+def test_a_runs_geometry_and_files(svc: dict[str, Any]) -> None:
+    client, run = svc["client"], svc["run"]
+    geo = client.get(f"/calibrations/{run.id}/geometry").json()
+    assert [m["id"] for m in geo["nominal"]] == [1, 2, 3] and len(geo["spins"]) == 6
+    cal = {m["id"]: m for m in geo["calibrated"]}
+    for s in geo["spins"]:
+        m = cal[s["module"]]
+        # each fixed point is the locked module's contact point: on its caster circle
+        d = math.hypot(s["c_r"][0] - m["x_s"], s["c_r"][1] - m["y_s"])
+        assert d == pytest.approx(m["b"], abs=0.1e-3)
+        assert s["radius"] == pytest.approx(math.hypot(*s["c_r"]))
+        assert len(s["path"]) >= 10
+    listed = {f["name"]: f for f in client.get(f"/calibrations/{run.id}/files").json()}
+    assert {"run.mcap", "kinematics.yaml", "dataset.zip"} <= set(listed)
+    z = client.get(listed["dataset.zip"]["url"])
+    assert z.status_code == 200 and z.headers["content-type"] == "application/zip"
+    names = zipfile.ZipFile(io.BytesIO(z.content)).namelist()
+    assert f"{run.id}/dataset/poses.csv" in names
+    k = client.get(f"/calibrations/{run.id}/files/kinematics.yaml")
+    assert k.status_code == 200 and b"swpc-kinematics/1" in k.content
+    mcap = client.get(f"/calibrations/{run.id}/files/run.mcap")
+    assert mcap.status_code == 200 and mcap.content[:5] == b"\x89MCAP"
+    assert client.get(f"/calibrations/{run.id}/files/runs.sqlite").status_code == 422
+    assert client.get("/calibrations/nope/files").status_code == 404
+    assert client.get("/calibrations/nope/geometry").status_code == 404
+    # the console page itself, and only its own assets
+    page = client.get("/")
+    assert page.status_code == 200 and "/console/console.js" in page.text
+    assert "http" not in page.text.replace("http-equiv", "")  # nothing from elsewhere
+    assert client.get("/console/console.js").headers["content-type"].startswith("text/javascript")
+    assert client.get("/console/..%2Fapi.py").status_code == 404
+    # the endless stream stays out of the schema (a schema fuzzer would wait on it for ever)
+    paths = client.get("/openapi.json").json()["paths"]
+    assert "/events" not in paths and "/" not in paths and "/kinematics/rollback" in paths
