@@ -54,8 +54,17 @@ def parse_sse(text: str) -> list[tuple[str, Any]]:
     return out
 
 
-def new_run(rt: Runtime, install: str = "never") -> CalibrationRun:
-    """A run of the fake robot as the runtime makes one (its store and event bus)."""
+def new_run(
+    rt: Runtime, install: str = "never", seen: list[str] | None = None
+) -> CalibrationRun:
+    """A run of the fake robot as the runtime makes one (its store and event bus); every
+    state the runtime is told of goes to ``seen``."""
+
+    def on_change(run: CalibrationRun) -> None:
+        if seen is not None:
+            seen.append(run.status.state)
+        rt._persist(run)
+
     robot = FakeRobot(TRUTH, rt.clock, rt.mocap, dt=0.01, pose_every=1)  # type: ignore[arg-type]
     run = CalibrationRun(
         robot,
@@ -65,11 +74,11 @@ def new_run(rt: Runtime, install: str = "never") -> CalibrationRun:
         data_dir=rt.data_dir,
         kinematics_path=rt.settings.kinematics_file,
         install=install,
-        on_change=rt._persist,
+        on_change=on_change,
     )
     rt.runs[run.id] = run
     rt.current = run
-    rt._persist(run)
+    on_change(run)
     return run
 
 
@@ -85,7 +94,8 @@ def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     save_kinematics(settings.kinematics_file, NOMINAL, created="2026-01-01T00:00:00Z")
     app = create_app(settings, runtime_factory=lambda _: rt)
     with TestClient(app) as client:
-        run = new_run(rt)
+        seen: list[str] = []
+        run = new_run(rt, seen=seen)
 
         def start_when_listened_to() -> None:
             deadline = time.monotonic() + 30
@@ -97,7 +107,12 @@ def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         threading.Thread(target=start_when_listened_to, daemon=True).start()
         body = client.get(f"/events?run={run.id}").text
         run.join(30)
-        yield {"client": client, "rt": rt, "run": run, "events": parse_sse(body)}
+        yield {"client": client, "rt": rt, "run": run, "events": parse_sse(body), "seen": seen}
+
+
+def changes(states: list[str]) -> list[str]:
+    """``states`` without repeats in a row."""
+    return [s for i, s in enumerate(states) if i == 0 or states[i - 1] != s]
 
 
 def test_the_event_stream_pushes_every_state_of_a_run_and_ends_with_it(
@@ -111,8 +126,12 @@ def test_the_event_stream_pushes_every_state_of_a_run_and_ends_with_it(
     assert [m["id"] for m in hello["modules"]] == [1, 2, 3]
     assert hello["protocol"]["angles_deg"] == [30, 150]
     pushed = [d["state"] for e, d in events if e == "run"]
-    # every change the state machine made, in its order, nothing after the end
-    assert pushed[0] == "PENDING" and pushed[-1] == "DONE"
+    # the state when the stream began (the run starts once it listens), then every change
+    # the state machine made after it, in its order, nothing after the end
+    told = changes(svc["seen"])
+    assert told[0] == "PENDING" and told[-1] == "DONE"
+    assert changes(pushed) == told[len(told) - len(changes(pushed)) :], (pushed, told)
+    assert pushed[-1] == "DONE" and pushed.count("DONE") == 1
     for a, b in [("CONNECT", "PRECHECK"), ("LOCK", "ALIGN"), ("SPIN", "STOP"),
                  ("STOP", "RESTEER"), ("RELEASE", "SOLVE"), ("SOLVE", "WRITE")]:  # fmt: skip
         assert pushed.index(a) < pushed.index(b), pushed

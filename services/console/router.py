@@ -255,13 +255,15 @@ def console_router() -> APIRouter:
         loop = asyncio.get_running_loop()
         cur = _LiveCursor()
         with rt.events.subscribe() as sub:
-            yield "retry: 1000\n\n"
-            yield _sse("hello", hello(rt))
+            # the snapshot as the subscription starts (no await between): every change
+            # after it is in the queue
             first = (
                 rt.status(only)
                 if only
                 else (None if rt.current is None else rt.current.status.to_dict())
             )
+            yield "retry: 1000\n\n"
+            yield _sse("hello", hello(rt))
             if first is not None:
                 yield _sse("run", first)
                 if only and first["state"] in TERMINAL:
