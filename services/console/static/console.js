@@ -40,6 +40,7 @@ function svg(tag, attrs = {}) {
 }
 const fmt = (x, d = 3) => (x === null || x === undefined || !isFinite(x) ? "–" : x.toFixed(d));
 const signed = (x, d) => (x > 0 ? "+" : "") + fmt(x, d);
+const wrapDeg = (a) => ((((a + 180) % 360) + 360) % 360) - 180;
 const colorOf = (module) => COLORS[(module - 1 + COLORS.length) % COLORS.length];
 
 async function api(method, path, body) {
@@ -228,7 +229,7 @@ function onLive(ev) {
     el("td", { class: n.alive ? "yes" : "no" }, n.alive ? "yes" : "no"),
     el("td", { class: n.homed ? "yes" : "no" }, n.homed ? "yes" : "no"),
     el("td", { class: n.errors.some((e) => e) ? "no" : "" }, n.errors.some((e) => e) ? n.errors.map((e) => "0x" + e.toString(16)).join(" / ") : "none"),
-    el("td", { class: "num" }, n.steer_deg === null ? "–" : `${fmt(n.steer_deg, 1)}°`)));
+    el("td", { class: "num" }, n.steer_deg === null ? "–" : `${fmt(wrapDeg(n.steer_deg), 1)}°`)));
   $("node-rows").replaceChildren(...rows);
   $("can-state").textContent = ev.can || "–";
   const m = ev.mocap;
@@ -435,14 +436,16 @@ function renderGeometry(geo) {
 
 // ------------------------------------------------------------------ history and files
 async function showHistory() {
-  const runs = await api("GET", "/calibrations");
+  const [runs, files] = await Promise.all([api("GET", "/calibrations"), api("GET", "/kinematics/files")]);
+  const inForce = files.in_force && files.in_force.run;
   runs.reverse();
   $("history-rows").replaceChildren(...runs.map((r) => el("tr", { "data-run": r.id },
     el("td", {}, (r.created || "").replace("T", " ").replace("Z", "")),
     el("td", { class: "mono" }, r.id),
     el("td", {}, el("span", { class: "state " + r.state }, r.state)),
     el("td", {}, r.reason || ""),
-    el("td", {}, r.installed === null ? "–" : r.installed ? "yes" : "no"),
+    el("td", {}, r.installed === null ? "–" : r.installed ? "yes" : "no",
+      r.id === inForce ? el("span", { class: "chip ok in-force" }, "in force") : ""),
     el("td", {}, r.state === "DONE" ? el("a", { href: "#result/" + r.id }, "result, plots, files") :
       el("a", { href: `/calibrations/${r.id}/files/can.log`, download: `${r.id}-can.log` }, "CAN log")))));
 }
@@ -456,11 +459,11 @@ async function showFiles() {
     : el("p", {}, "No kinematic file installed yet."));
   $("backup-rows").replaceChildren(...k.backups.map((b) => el("tr", { "data-backup": b.name },
     el("td", {}, (b.backup_time || "").replace("T", " ").replace("Z", "")),
-    el("td", { class: "mono" }, b.name),
+    el("td", {}, el("span", { class: "mono name" }, b.name), el("br"),
+      el("span", { class: "muted" }, "created " + (b.created || "?") + (b.valid ? "" : " · INVALID"))),
     el("td", {}, b.run ? el("a", { href: "#result/" + b.run }, b.run) : "–"),
-    el("td", {}, b.created || "?"),
     el("td", {}, el("button", { type: "button", class: "secondary", onclick: () => rollback(b) }, "Roll back to this")))));
-  if (!k.backups.length) $("backup-rows").replaceChildren(el("tr", {}, el("td", { colspan: 5 }, "none yet")));
+  if (!k.backups.length) $("backup-rows").replaceChildren(el("tr", {}, el("td", { colspan: 4 }, "none yet")));
 }
 async function rollback(b) {
   const ok = await confirmDialog("Roll back the kinematic file?",
