@@ -22,10 +22,13 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from mcap.exceptions import McapError
+from mcap.writer import Writer
 from pydantic import SecretStr
 
 from services.api import create_app
 from services.calibration_run import CalibrationRun
+from services.console.router import mcap_summary
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig
 from services.runtime import Runtime
@@ -54,9 +57,7 @@ def parse_sse(text: str) -> list[tuple[str, Any]]:
     return out
 
 
-def new_run(
-    rt: Runtime, install: str = "never", seen: list[str] | None = None
-) -> CalibrationRun:
+def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) -> CalibrationRun:
     """A run of the fake robot as the runtime makes one (its store and event bus); every
     state the runtime is told of goes to ``seen``."""
 
@@ -248,3 +249,43 @@ def test_a_runs_geometry_and_files(svc: dict[str, Any]) -> None:
     # the endless stream stays out of the schema (a schema fuzzer would wait on it for ever)
     paths = client.get("/openapi.json").json()["paths"]
     assert "/events" not in paths and "/" not in paths and "/kinematics/rollback" in paths
+
+
+def test_what_a_runs_mcap_holds(svc: dict[str, Any], tmp_path: Path) -> None:
+    client, rt, run = svc["client"], svc["rt"], svc["run"]
+    s = client.get(f"/calibrations/{run.id}/mcap").json()
+    assert s["indexed"] and s["size"] > 1000
+    chans = {c["topic"]: c for c in s["channels"]}
+    poses = (rt.data_dir / "runs" / run.id / "dataset" / "poses.csv").read_text().splitlines()
+    assert chans["/mocap/pose"]["messages"] == len(poses) - 1  # the file's header line
+    assert sum(c["messages"] for c in s["channels"]) > len(poses)
+    assert s["start_ns"] <= s["end_ns"]
+    assert client.get("/calibrations/nope/mcap").status_code == 404
+    # what Foxglove knows, the time base, metadata and attachments, from a file's summary
+    path = tmp_path / "x.mcap"
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start()
+        t0 = 1_764_000_000 * 10**9
+        for i, name in enumerate(["foxglove.PoseInFrame", "geometry_msgs/msg/PoseStamped",
+                                  "swpc.Segment"]):  # fmt: skip
+            sid = w.register_schema(name=name, encoding="jsonschema", data=b"{}")
+            ch = w.register_channel(topic=f"/c{i}", message_encoding="json", schema_id=sid)
+            for k in range(i + 1):
+                w.add_message(channel_id=ch, log_time=t0 + k, publish_time=t0 + k, data=b"{}")
+        w.add_metadata("robot-config", {"robot": "swpc"})
+        w.add_attachment(0, 0, "result.json", "application/json", b"{}")
+        w.finish()  # type: ignore[no-untyped-call]  # mcap: untyped
+    got = mcap_summary("x", path)
+    assert [(c.topic, c.messages, c.native) for c in got.channels] == [
+        ("/c0", 1, True), ("/c1", 2, True), ("/c2", 3, False)
+    ]  # fmt: skip
+    assert got.epoch_times and got.start_ns == t0 and got.end_ns == t0 + 2
+    assert got.metadata == ["robot-config"] and got.attachments == ["result.json"]
+    # a recording cut short (no summary) says so; what is not an MCAP is an error
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    assert mcap_summary("x", path).indexed is False
+    path.write_bytes(b"not an mcap file at all")
+    with pytest.raises(McapError):
+        mcap_summary("x", path)

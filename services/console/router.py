@@ -10,6 +10,9 @@
   follows one run and ends after its final state.
 * ``GET /calibrations/{id}/geometry`` a finished run's spins for the top-down view.
 * ``GET /calibrations/{id}/files`` and ``.../files/{name}`` its files for download.
+* ``GET /calibrations/{id}/mcap`` what its ``run.mcap`` holds, read from the file's own
+  summary (channels and schemas, metadata, attachments, the time base), for the page's
+  Foxglove view.
 
 The live period is host time on purpose: it is how often a person is shown the robot, not
 a duration of the protocol (robot time runs faster than the host's against the in-process
@@ -22,6 +25,7 @@ import asyncio
 import io
 import json
 import math
+import re
 import zipfile
 from collections import OrderedDict
 from collections.abc import AsyncIterator
@@ -31,7 +35,9 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
-from pydantic import BaseModel
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from pydantic import BaseModel, Field
 
 from services.calibration_run import TERMINAL, CalibrationRun
 from services.runtime import Runtime
@@ -95,6 +101,78 @@ class RunFile(BaseModel):
     name: str
     size: int
     url: str
+
+
+class McapChannel(BaseModel):
+    topic: str
+    schema_name: str
+    encoding: str
+    messages: int
+    native: bool = Field(description="a schema Foxglove shows natively (foxglove.*, ROS 2)")
+
+
+class McapSummary(BaseModel):
+    """What a run's MCAP holds, from the file's summary section."""
+
+    run: str
+    size: int
+    indexed: bool = Field(description="the file has a summary (False: cut short, unindexed)")
+    channels: list[McapChannel] = []
+    metadata: list[str] = []
+    attachments: list[str] = []
+    start_ns: int | None = None
+    end_ns: int | None = None
+    epoch_times: bool = Field(False, description="log times are Unix epoch nanoseconds")
+
+
+EPOCH_2000_NS = 946_684_800 * 10**9
+"""Log times from here on are taken for epoch times (2000-01-01T00:00:00Z)."""
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_ROS2_TYPE = re.compile(r"^\w+/msg/\w+$")
+
+
+def mcap_summary(run_id: str, path: Path) -> McapSummary:
+    """The summary of the MCAP at ``path`` (``indexed`` False if it has none)."""
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        try:
+            summary = make_reader(fh).get_summary()
+        except McapError:  # no footer: a recording cut short, if it starts as an MCAP does
+            fh.seek(0)
+            if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                raise
+            summary = None
+    if summary is None:
+        return McapSummary(run=run_id, size=size, indexed=False)
+    stats = summary.statistics
+    counts = {} if stats is None else stats.channel_message_counts
+    channels = []
+    for cid, ch in sorted(summary.channels.items()):
+        schema = summary.schemas.get(ch.schema_id)
+        name = "" if schema is None else schema.name
+        native = name.startswith("foxglove.") or bool(_ROS2_TYPE.match(name))
+        channels.append(
+            McapChannel(
+                topic=ch.topic,
+                schema_name=name,
+                encoding=ch.message_encoding,
+                messages=counts.get(cid, 0),
+                native=native,
+            )
+        )
+    start = None if stats is None or not stats.message_count else stats.message_start_time
+    end = None if stats is None or not stats.message_count else stats.message_end_time
+    return McapSummary(
+        run=run_id,
+        size=size,
+        indexed=True,
+        channels=channels,
+        metadata=[m.name for m in summary.metadata_indexes],
+        attachments=[a.name for a in summary.attachment_indexes],
+        start_ns=start,
+        end_ns=end,
+        epoch_times=start is not None and start >= EPOCH_2000_NS,
+    )
 
 
 def _runtime(request: Request) -> Runtime:
@@ -370,5 +448,19 @@ def console_router() -> APIRouter:
         if not p.is_file():
             raise HTTPException(404, f"calibration {run_id} has no {name}")
         return FileResponse(p, media_type=media, headers=disposition)
+
+    @router.get(
+        "/calibrations/{run_id}/mcap",
+        response_model=McapSummary,
+        responses={404: {"model": Problem}, 409: {"model": Problem}},
+    )
+    def mcap(run_id: str, rt: Rt) -> McapSummary:
+        p = run_dir(rt, run_id) / FILES["run.mcap"][0]
+        if not p.is_file():
+            raise HTTPException(404, f"calibration {run_id} has no run.mcap")
+        try:
+            return mcap_summary(run_id, p)
+        except (McapError, OSError, ValueError) as exc:
+            raise HTTPException(409, f"calibration {run_id}: run.mcap unreadable: {exc}") from exc
 
     return router

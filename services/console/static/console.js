@@ -116,6 +116,7 @@ function route() {
   if (v === "result") showResult(arg || app.resultRun);
   if (v === "history") showHistory();
   if (v === "files") showFiles();
+  if (v === "foxglove") showFoxglove(arg || app.resultRun);
 }
 
 // ------------------------------------------------------------------ start / abort
@@ -349,6 +350,7 @@ async function showResult(id) {
     $("res-files").replaceChildren(...files.map((f) => el("li", {},
       el("a", { href: f.url, download: `${id}-${f.name}` }, f.name), ` (${(f.size / 1024).toFixed(0)} KiB)`)));
     $("res-plot").src = `/calibrations/${id}/plot.png`;
+    $("res-foxglove").href = "#foxglove/" + id;
     renderGeometry(await api("GET", `/calibrations/${id}/geometry`));
   } catch (e) {
     $("res-summary").textContent = `No result for ${id}: ${e.message}`;
@@ -476,6 +478,41 @@ async function rollback(b) {
   } catch (e) {
     $("kin-error").textContent = "Not rolled back: " + e.message;
   }
+}
+
+// ------------------------------------------------------------------ foxglove
+const isoNs = (ns) => new Date(ns / 1e6).toISOString().replace("T", " ").replace(/\.\d+Z$/, " UTC");
+async function showFoxglove(id) {
+  if (!id) {
+    const done = (await api("GET", "/calibrations")).filter((r) => r.state === "DONE");
+    if (!done.length) return;
+    id = done[done.length - 1].id;
+  }
+  $("fox-run").textContent = `${id}'s`;
+  let s;
+  try {
+    s = await api("GET", `/calibrations/${id}/mcap`);
+  } catch (e) {
+    $("fox-summary").textContent = `No MCAP for ${id}: ${e.message}`;
+    $("fox-table").hidden = true;
+    return;
+  }
+  const native = s.channels.filter((c) => c.native).length;
+  $("fox-summary").replaceChildren(
+    el("a", { href: `/calibrations/${id}/files/run.mcap`, download: `${id}-run.mcap` }, "run.mcap"),
+    ` (${(s.size / 1024).toFixed(0)} KiB): ` + (s.indexed
+      ? `${s.channels.length} channels, ${native} of them in a schema Foxglove shows natively.`
+      : "no summary: the recording was cut short (mcap recover rewrites its index)."));
+  $("fox-table").hidden = !s.indexed;
+  $("fox-rows").replaceChildren(...s.channels.map((c) => el("tr", { "data-topic": c.topic },
+    el("td", { class: "mono" }, c.topic), el("td", { class: "mono" }, c.schema_name || "–"),
+    el("td", { class: "num" }, c.messages),
+    el("td", {}, c.native ? el("span", { class: "chip ok" }, "yes") : el("span", { class: "chip none" }, "no")))));
+  const times = s.start_ns === null ? "no messages" : s.epoch_times
+    ? `log times in epoch time, ${isoNs(s.start_ns)} to ${isoNs(s.end_ns)}`
+    : `log times on the run's clock (${(s.start_ns / 1e9).toFixed(1)} s to ${(s.end_ns / 1e9).toFixed(1)} s), not epoch time`;
+  $("fox-extra").textContent = s.indexed ? `${times[0].toUpperCase()}${times.slice(1)}; metadata: ` +
+    (s.metadata.join(", ") || "none") + "; attachments: " + (s.attachments.join(", ") || "none") + "." : "";
 }
 
 // ------------------------------------------------------------------ event stream
