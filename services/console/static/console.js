@@ -16,8 +16,10 @@ const app = {
   trail: { run: null, chunks: [] },   // [{module, points: [[x, y], ...]}]
   spins: [],
   seenRuns: new Set(),
-  startClick: null,     // performance.now() of the last Start, until its first update
-  metrics: { firstLiveUpdateMs: null, statesSeen: [] },
+  startAt: null,        // performance.now() of the last Start, until its run is under way
+  startSeen: new Set(), // the runs known at that Start
+  // Start -> the new run's first update pushed by the service / its first change of state
+  metrics: { firstLiveUpdateMs: null, firstChangeMs: null, statesSeen: [] },
   resultRun: null,
 };
 window.swpc = app;      // for the browser test (and a curious operator's console)
@@ -150,14 +152,14 @@ async function start(ev) {
   const body = { overrides: overrides(), install: $("f-install").value };
   if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
   $("start").disabled = true;
-  app.startClick = performance.now();
-  app.metrics.firstLiveUpdateMs = null;
+  app.startAt = performance.now();
+  app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
   app.startSeen = new Set(app.seenRuns);
   try {
     const st = await api("POST", "/calibrations", body);
     onRun(st, false);
   } catch (e) {
-    app.startClick = null;
+    app.startAt = null;
     $("start-error").textContent = "Not started: " + e.message;
   } finally {
     $("start").disabled = false;
@@ -178,10 +180,12 @@ async function abortRun() {
 
 // ------------------------------------------------------------------ live
 function onRun(st, pushed) {
-  if (pushed && app.startClick !== null && !app.startSeen.has(st.id)) {
-    app.metrics.firstLiveUpdateMs = performance.now() - app.startClick;
-    app.startClick = null;
-    $("metric").textContent = `First live update ${app.metrics.firstLiveUpdateMs.toFixed(0)} ms after Start.`;
+  if (pushed && app.startAt !== null && !app.startSeen.has(st.id)) {
+    const m = app.metrics, dt = performance.now() - app.startAt;
+    if (m.firstLiveUpdateMs === null) m.firstLiveUpdateMs = dt;
+    if (st.state !== "PENDING") { m.firstChangeMs = dt; app.startAt = null; }
+    $("metric").textContent = `Start to the first update pushed: ${m.firstLiveUpdateMs.toFixed(0)} ms` +
+      (m.firstChangeMs === null ? "." : `; to the run under way (${st.state}): ${m.firstChangeMs.toFixed(0)} ms.`);
   }
   app.seenRuns.add(st.id);
   if (pushed) app.metrics.statesSeen.push([st.id, st.state, st.module_index]);

@@ -1,0 +1,491 @@
+"""The operator console in a real browser: Debian's Chromium, headless, through Selenium.
+
+``make test-browser`` (not part of ``make test``).  Against ``swpc serve`` on the
+in-process simulator (a separate process on a free loopback port), as an operator would:
+open the page, enter the token from the keyboard, start a run and watch it advance,
+abort one, run one to DONE, read the result table, install it, roll back, open the
+history and the files.  A screenshot of every view goes to ``$SWPC_SCREENSHOTS``
+(default ``.cache/browser``; ``make console-screenshots`` writes ``docs/console``), and the
+time from Start to the page's first live update to ``metrics.json`` beside them.
+
+Every view is also checked at that width for what a tablet in a bright lab needs: no
+sideways scrolling, and every piece of text at a WCAG contrast of 4.5:1 at least (the
+lowest found goes to ``metrics.json``).
+
+No browser here (``/usr/bin/chromium`` and ``/usr/bin/chromedriver``, Debian's
+``chromium`` and ``chromium-driver``): skipped with a message, except where one is
+required (``SWPC_BROWSER_REQUIRED=1``, as ``.ci/run`` sets, or ``CI`` set): a failure.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from swpc_hw.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.zenoh_session import free_tcp_endpoint
+
+CHROMIUM = Path(os.environ.get("SWPC_CHROMIUM", "/usr/bin/chromium"))
+CHROMEDRIVER = Path(os.environ.get("SWPC_CHROMEDRIVER", "/usr/bin/chromedriver"))
+TOKEN = "browser-token-4711"
+SHOTS = Path(os.environ.get("SWPC_SCREENSHOTS", ".cache/browser"))
+TABLET = (820, 1180)  # CSS px: a tablet in portrait
+# the whole protocol, short spins: a real result in well under a minute
+QUICK = {"sweep": "45", "settle": "1", "stop": "0.5", "align": "0.5", "resteer": "1.5"}
+FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--disable-dev-shm-usage",
+]  # fmt: skip
+
+if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
+    why = (
+        f"no browser: {CHROMIUM} and {CHROMEDRIVER} are needed "
+        "(Debian: apt-get install chromium chromium-driver)"
+    )
+    if os.environ.get("SWPC_BROWSER_REQUIRED") == "1" or os.environ.get("CI"):
+        pytest.fail(f"{why}; required here (SWPC_BROWSER_REQUIRED or CI)", pytrace=False)
+    pytest.skip(why, allow_module_level=True)
+
+from selenium import webdriver  # noqa: E402 - only with a browser at hand
+from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
+from selenium.webdriver.chrome.service import Service  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
+from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
+
+state: dict[str, Any] = {}  # what one step leaves for the next (the tests run in order)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """``swpc serve`` with a kinematic file in force: the nominal design."""
+    data: Path = tmp_path_factory.mktemp("console")
+    kin = data / "kinematics.yaml"
+    save_kinematics(kin, PAPER_NOMINAL, created="2026-01-01T00:00:00Z")
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    env = dict(os.environ, SWPC_TOKEN=TOKEN, SWPC_DATA_DIR=str(data), SWPC_PORT=str(port))
+    for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
+        env.pop(key, None)
+    log = (data / "service.log").open("w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "serve", "--log-level", "warning"],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if not httpx.get(f"{url}/health", timeout=2).json()["mocap_stale"]:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None, (data / "service.log").read_text()
+            assert time.monotonic() < deadline, "service did not start"
+            time.sleep(0.2)
+        yield {"url": url, "data": data, "kin": kin}
+    finally:
+        proc.terminate()  # by its PID
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser(service: dict[str, Any]) -> Iterator[WebDriver]:
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for flag in FLAGS:
+        opts.add_argument(flag)
+    profile = tempfile.mkdtemp(prefix="swpc-chromium-")
+    opts.add_argument(f"--user-data-dir={profile}")
+    opts.add_argument(f"--window-size={TABLET[0]},{TABLET[1]}")
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    svc = Service(str(CHROMEDRIVER))
+    driver = webdriver.Chrome(options=opts, service=svc)
+    try:
+        driver.set_window_size(*TABLET)
+        yield driver
+    finally:
+        driver.quit()
+        proc = svc.process
+        if proc is not None and proc.poll() is None:  # chromedriver, by its PID
+            proc.kill()
+            proc.wait()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+# ------------------------------------------------------------------------- helpers
+
+
+def wait_for(what: str, cond: Callable[[], Any], timeout: float = 60.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            got = cond()
+        except StaleElementReferenceException:
+            got = None
+        if got:
+            return got
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def text(d: WebDriver, elem_id: str) -> str:
+    return str(d.find_element(By.ID, elem_id).text)
+
+
+def shot(d: WebDriver, name: str) -> Path:
+    """A screenshot of the whole page (not only the window) as ``<SHOTS>/<name>.png``."""
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    m = d.execute_cdp_cmd("Page.getLayoutMetrics", {})
+    size = m["cssContentSize"]
+    clip = {"x": 0, "y": 0, "width": size["width"], "height": min(size["height"], 5000), "scale": 1}
+    png = d.execute_cdp_cmd(
+        "Page.captureScreenshot", {"format": "png", "captureBeyondViewport": True, "clip": clip}
+    )
+    path = SHOTS / f"{name}.png"
+    path.write_bytes(base64.b64decode(png["data"]))
+    return path
+
+
+def css(d: WebDriver, selector: str) -> list[Any]:
+    return list(d.find_elements(By.CSS_SELECTOR, selector))
+
+
+def dialog_open(d: WebDriver, elem_id: str) -> bool:
+    return d.find_element(By.ID, elem_id).get_attribute("open") is not None
+
+
+def go(d: WebDriver, view: str) -> None:
+    d.find_element(By.CSS_SELECTOR, f'nav a[data-view="{view}"]').click()
+    wait_for(f"view {view}", lambda: d.find_element(By.ID, f"view-{view}").is_displayed())
+
+
+def set_field(d: WebDriver, elem_id: str, value: str) -> None:
+    e = d.find_element(By.ID, elem_id)
+    e.clear()
+    e.send_keys(value)
+
+
+def start_run(d: WebDriver, **fields: str) -> str:
+    """Fill the start form and press Start; returns the new run's id (from the page)."""
+    go(d, "run")
+    details = d.find_element(By.CSS_SELECTOR, "#start-form details")
+    if not details.get_attribute("open"):
+        details.find_element(By.TAG_NAME, "summary").click()
+    ids = {
+        "sweep": "f-sweep",
+        "settle": "f-settle",
+        "stop": "f-stop",
+        "align": "f-align",
+        "resteer": "f-resteer",
+        "angles": "f-angles",
+    }
+    for k, v in fields.items():
+        if k == "install":
+            d.find_element(By.CSS_SELECTOR, f'#f-install option[value="{v}"]').click()
+        else:
+            set_field(d, ids[k], v)
+    before = text(d, "run-id")
+    d.find_element(By.ID, "start").click()
+    run_id = wait_for("the new run on the page", lambda: (t := text(d, "run-id")) != before and t)
+    assert text(d, "start-error") == ""
+    return str(run_id)
+
+
+def wait_state(d: WebDriver, states: set[str], timeout: float = 180.0) -> str:
+    return str(
+        wait_for(f"state in {states}", lambda: (s := text(d, "run-state")) in states and s, timeout)
+    )
+
+
+def severe_logs(d: WebDriver) -> list[str]:
+    return [e["message"] for e in d.get_log("browser") if e["level"] == "SEVERE"]
+
+
+# WCAG 2 contrast of every visible piece of text against the background it is drawn on
+# (background colours composited up the tree; disabled controls are exempt, as in WCAG)
+CONTRAST_JS = """
+const lin = (v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4; };
+const lum = (c) => 0.2126 * lin(c[0]) + 0.7152 * lin(c[1]) + 0.0722 * lin(c[2]);
+const rgba = (s) => {
+  const p = s.match(/[\\d.]+/g).map(Number);
+  return [p[0], p[1], p[2], p.length > 3 ? p[3] : 1];
+};
+const over = (top, under) => under.map((u, i) => top[i] * top[3] + u * (1 - top[3]));
+function background(el) {
+  const layers = [];
+  for (let e = el; e; e = e.parentElement) {
+    const c = rgba(getComputedStyle(e).backgroundColor);
+    if (c[3] > 0) { layers.push(c); if (c[3] >= 1) break; }
+  }
+  return layers.reverse().reduce((under, top) => over(top, under), [255, 255, 255]);
+}
+const out = [];
+for (const el of document.querySelectorAll("body *")) {
+  if (el.closest("svg, [disabled], dialog:not([open])")) continue;
+  const own = [...el.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim());
+  const shown = el.getClientRects().length && getComputedStyle(el).visibility === "visible";
+  if (!own || !shown) continue;
+  const bg = background(el), fg = over(rgba(getComputedStyle(el).color), bg);
+  const [a, b] = [lum(fg), lum(bg)].sort((x, y) => y - x);
+  const what = el.tagName + (el.id ? "#" + el.id : "") + " " + el.textContent.trim().slice(0, 30);
+  out.push([(a + 0.05) / (b + 0.05), what]);
+}
+return out;
+"""
+
+
+def check_tablet_view(d: WebDriver, view: str) -> None:
+    """No sideways scrolling at the tablet's width; every text's contrast >= 4.5:1."""
+    width = d.execute_script("return [document.documentElement.scrollWidth, innerWidth]")
+    assert width[0] <= width[1], f"{view}: {width[0]} px wide in a {width[1]} px window"
+    cut = d.execute_script(
+        "return [...document.querySelectorAll('.table-wrap')].filter((e) => e.offsetParent"
+        " && e.scrollWidth > e.clientWidth).map((e) => e.firstElementChild.className)"
+    )
+    assert not cut, f"{view}: tables scrolling sideways: {cut}"
+    found = d.execute_script(CONTRAST_JS)
+    assert found, view
+    worst = min(found)
+    state["contrast"] = min(state.get("contrast", (99.0, ""))[0], worst[0]), worst[1]
+    low = [f"{r:.2f} {what}" for r, what in found if r < 4.5]
+    assert not low, f"{view}: text under 4.5:1: {low}"
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def test_page_loads_offline_and_the_token_is_asked_once(
+    service: dict[str, Any], browser: WebDriver
+) -> None:
+    d = browser
+    d.get(service["url"] + "/")
+    assert d.title == "swpc console"
+    wait_for("the event stream", lambda: text(d, "link-state") == "live")
+    wait_for("the node table", lambda: len(d.find_elements(By.CSS_SELECTOR, "#node-rows tr")) == 4)
+    # every resource the page loaded came from the service itself
+    urls = d.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
+    assert urls and all(u.startswith(service["url"]) for u in urls), urls
+    assert d.find_element(By.ID, "f-angles").get_attribute("value") == "45, 165"
+    assert not d.find_element(By.ID, "abort-bar").is_displayed()
+    check_tablet_view(d, "run, idle")
+    shot(d, "01-idle")
+    # Start without a token asks for it; typed and Enter'd from the keyboard
+    d.find_element(By.ID, "start").click()
+    wait_for("the token dialog", lambda: dialog_open(d, "token-dialog"))
+    active = d.switch_to.active_element
+    assert active.get_attribute("id") == "token-input"
+    shot(d, "02-token")
+    active.send_keys(TOKEN + Keys.ENTER)
+    run_id = wait_for("a run", lambda: text(d, "run-id"))
+    state["abort_run"] = run_id
+    assert d.execute_script("return sessionStorage.getItem('swpc-token')") == TOKEN
+    assert text(d, "token-button") == "Token set ✓"
+
+
+def test_live_view_advances_and_abort_ends_aborted(
+    service: dict[str, Any], browser: WebDriver
+) -> None:
+    d = browser
+    run_id = state["abort_run"]
+    metrics = wait_for(
+        "the first-update metrics",
+        lambda: (m := d.execute_script("return swpc.metrics")) and m["firstChangeMs"] and m,
+    )
+    state["first_live_ms"] = [float(metrics["firstLiveUpdateMs"])]
+    state["first_change_ms"] = [float(metrics["firstChangeMs"])]
+    assert d.find_element(By.ID, "abort-bar").is_displayed()
+    wait_for(
+        "a spin under way",
+        lambda: text(d, "run-state") == "SPIN" and float(text(d, "run-sweep").split("°")[0]) > 20.0,
+        timeout=120,
+    )
+    assert text(d, "run-module").startswith("1 of 4")
+    assert text(d, "run-angle").startswith("1 of 2: 45.0")
+    # the top-down view draws the robot and the trajectory so far
+    wait_for("a trajectory", lambda: d.find_elements(By.CSS_SELECTOR, "#live-view polyline"))
+    assert len(d.find_elements(By.CSS_SELECTOR, "#live-view polygon")) == 1  # the outline
+    check_tablet_view(d, "run, live")
+    shot(d, "03-live-spin")
+    # Abort from the keyboard: from the first link of the page, Tab reaches it right after
+    # the header's controls (the views' links and the token), then Enter
+    d.find_element(By.CSS_SELECTOR, "nav a").send_keys("")  # focus, as a Tab would
+    tabs = 0
+    while d.switch_to.active_element.get_attribute("id") != "abort" and tabs < 7:
+        d.switch_to.active_element.send_keys(Keys.TAB)
+        tabs += 1
+    assert d.switch_to.active_element.get_attribute("id") == "abort", tabs
+    t = time.monotonic()
+    d.switch_to.active_element.send_keys(Keys.ENTER)
+    assert wait_state(d, {"ABORTED", "FAILED", "DONE"}, timeout=30) == "ABORTED"
+    state["abort_s"] = time.monotonic() - t
+    assert "aborted by the operator" in text(d, "run-reason")
+    wait_for("the abort bar gone", lambda: not d.find_element(By.ID, "abort-bar").is_displayed())
+    assert httpx.get(f"{service['url']}/calibrations/{run_id}").json()["state"] == "ABORTED"
+    shot(d, "04-aborted")
+
+
+def test_a_run_to_done_through_every_module(service: dict[str, Any], browser: WebDriver) -> None:
+    d = browser
+    run_id = start_run(d, install="never", **QUICK)
+    state["done_run"] = run_id
+    metrics = wait_for(
+        "the first-update metrics",
+        lambda: (m := d.execute_script("return swpc.metrics")) and m["firstChangeMs"] and m,
+    )
+    state["first_live_ms"].append(float(metrics["firstLiveUpdateMs"]))
+    state["first_change_ms"].append(float(metrics["firstChangeMs"]))
+    modules_seen: list[str] = []
+    t0 = time.monotonic()
+    while (s := text(d, "run-state")) not in ("DONE", "FAILED", "ABORTED"):
+        m = text(d, "run-module").split(" (")[0]
+        if m and (not modules_seen or modules_seen[-1] != m):
+            modules_seen.append(m)
+        if s == "SPIN" and "spin" not in state and m.startswith("3"):
+            wait_for(
+                "spins drawn",
+                lambda: (
+                    len(d.find_elements(By.CSS_SELECTOR, "#live-view circle[stroke-dasharray]"))
+                    >= 2
+                ),
+            )
+            shot(d, "05-live-fixed-points")
+            state["spin"] = True
+        assert time.monotonic() - t0 < 240, f"run {run_id} stuck in {s}"
+        time.sleep(0.05)
+    state["done_s"] = time.monotonic() - t0
+    assert s == "DONE", text(d, "run-reason")
+    assert [x for x in modules_seen if x[0] != "–"] == ["1 of 4", "2 of 4", "3 of 4", "4 of 4"]
+    # every state change was pushed to the page, in the protocol's order
+    seen = [
+        (st, k)
+        for rid, st, k in d.execute_script("return swpc.metrics.statesSeen")
+        if rid == run_id
+    ]
+    states = [st for st, _ in seen]
+    for a, b in [
+        ("CONNECT", "PRECHECK"),
+        ("LOCK", "SPIN"),
+        ("SPIN", "RESTEER"),
+        ("RELEASE", "SOLVE"),
+        ("SOLVE", "WRITE"),
+        ("WRITE", "DONE"),
+    ]:
+        assert a in states and b in states and states.index(a) < states.index(b), states
+    assert sorted({k for st, k in seen if st == "SPIN"}) == [1, 2, 3, 4]
+    assert states.count("SPIN") == 8, states
+
+
+def test_result_table_install_and_roll_back(service: dict[str, Any], browser: WebDriver) -> None:
+    d = browser
+    run_id = state["done_run"]
+    d.find_element(By.ID, "run-result-link").click()
+    wait_for("the result rows", lambda: len(d.find_elements(By.CSS_SELECTOR, "#res-rows tr")) == 20)
+    # the nominal file is in force: every row compares with it
+    row = d.find_element(By.CSS_SELECTOR, '#res-rows tr[data-param="1.x_s"]')
+    cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
+    assert cells[0] == "1 x_s (mm)" and cells[1] == "215.000" and cells[4] == "215.000"
+    assert float(cells[5]) == pytest.approx(float(cells[2]) - 215.0, abs=2e-3)
+    assert cells[6] == "yes" and cells[7] == "yes"  # significant (truth: Table 4), within
+    assert "not installed" in text(d, "res-summary")
+    wait_for("the module panels", lambda: len(css(d, "#res-modules svg")) == 4)
+    wait_for("the spins", lambda: len(css(d, "#res-world polyline")) == 8)
+    files = [e.text for e in d.find_elements(By.CSS_SELECTOR, "#res-files a")]
+    assert {"run.mcap", "can.log", "kinematics.yaml", "dataset.zip"} <= set(files), files
+    check_tablet_view(d, "result")
+    shot(d, "06-result")
+    # install, confirmed from the keyboard (Cancel has the focus first)
+    d.find_element(By.ID, "res-install").click()
+    wait_for("the confirmation", lambda: dialog_open(d, "confirm-dialog"))
+    assert d.switch_to.active_element.get_attribute("id") == "confirm-cancel"
+    shot(d, "07-install-confirm")
+    d.switch_to.active_element.send_keys(Keys.TAB)
+    assert d.switch_to.active_element.get_attribute("id") == "confirm-ok"
+    d.switch_to.active_element.send_keys(Keys.ENTER)
+    wait_for("installed", lambda: "this result is in force" in text(d, "res-summary"))
+    assert load_kinematics(service["kin"]).extra["provenance"]["run"] == run_id
+    assert d.find_element(By.ID, "res-install").get_attribute("disabled") is not None
+    row = d.find_element(By.CSS_SELECTOR, '#res-rows tr[data-param="1.x_s"]')
+    cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
+    assert cells[4] == cells[2] and cells[5] in ("0.000", "+0.000") and cells[6] == "no"
+    # the kinematic files: the run's in force, the nominal design kept as a backup
+    go(d, "files")
+    wait_for("the file in force", lambda: run_id in text(d, "kin-in-force"))
+    rows = d.find_elements(By.CSS_SELECTOR, "#backup-rows tr[data-backup]")
+    assert len(rows) == 1 and "–" in rows[0].text  # the nominal file: from no run
+    nominal_backup = rows[0].get_attribute("data-backup")
+    check_tablet_view(d, "kinematic files")
+    shot(d, "08-kinematic-files")
+    rows[0].find_element(By.TAG_NAME, "button").click()
+    wait_for("the confirmation", lambda: dialog_open(d, "confirm-dialog"))
+    d.find_element(By.ID, "confirm-ok").click()
+    wait_for("rolled back", lambda: "not from a calibration run" in text(d, "kin-in-force"))
+    k = load_kinematics(service["kin"])
+    assert "provenance" not in k.extra and k.created.startswith("2026-01-01")
+    backups = [
+        e.get_attribute("data-backup")
+        for e in d.find_elements(By.CSS_SELECTOR, "#backup-rows tr[data-backup]")
+    ]
+    assert len(backups) == 2 and nominal_backup in backups  # the run's file kept in turn
+    assert run_id in d.find_element(By.ID, "backup-rows").text
+    shot(d, "09-rolled-back")
+
+
+def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
+    d = browser
+    go(d, "history")
+    rows = wait_for("the history", lambda: css(d, "#history-rows tr"))
+    by_id = {r.get_attribute("data-run"): r.text for r in rows}
+    aborted = by_id[state["abort_run"]]
+    assert "ABORTED" in aborted and "aborted by the operator" in aborted
+    assert "DONE" in by_id[state["done_run"]]
+    assert not css(d, "#history-rows .in-force")  # rolled back: the nominal file is in force
+    check_tablet_view(d, "history")
+    shot(d, "10-history")
+    # every file of the finished run downloads from the service
+    for f in ("run.mcap", "can.log", "kinematics.yaml", "dataset.zip"):
+        r = httpx.get(f"{service['url']}/calibrations/{state['done_run']}/files/{f}", timeout=30)
+        assert r.status_code == 200 and len(r.content) > 100, (f, r.status_code)
+    # the Foxglove view: what the finished run's MCAP holds, read from the file
+    go(d, "foxglove")
+    rows = wait_for("the MCAP's channels", lambda: css(d, "#fox-rows tr[data-topic]"))
+    summary = httpx.get(f"{service['url']}/calibrations/{state['done_run']}/mcap").json()
+    assert [r.get_attribute("data-topic") for r in rows] == [
+        c["topic"] for c in summary["channels"]
+    ]
+    assert "/mocap/pose" in text(d, "fox-rows") and state["done_run"] in text(d, "fox-run")
+    assert ("in epoch time" in text(d, "fox-extra")) == summary["epoch_times"]
+    check_tablet_view(d, "foxglove")
+    shot(d, "11-foxglove")
+    assert severe_logs(d) == []
+    metrics = {
+        "first_live_update_ms": [round(x, 1) for x in state["first_live_ms"]],
+        "first_state_change_ms": [round(x, 1) for x in state["first_change_ms"]],
+        "abort_to_aborted_s": round(state["abort_s"], 2),
+        "run_to_done_s": round(state["done_s"], 1),
+        "lowest_text_contrast": [round(state["contrast"][0], 2), state["contrast"][1]],
+    }
+    (SHOTS / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    print(f"\nconsole: {metrics}")
