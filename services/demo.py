@@ -6,7 +6,8 @@
    in simulated time (as fast as the host allows; ``--sim-speed`` caps it);
 2. starts a calibration through the HTTP API with the bearer token (what ``curl -X POST
    -H 'Authorization: Bearer ...' http://127.0.0.1:PORT/calibrations`` does);
-3. shows the progress, then prints the nominal / calibrated / true table, where the
+3. shows the progress (the operator console at ``/`` shows it too: its address and the
+   token are printed first), then prints the nominal / calibrated / true table, where the
    kinematic file was written, and a digest of the calibrated parameters: the same seed
    gives the same digest, bit for bit, on any host and at any load;
 4. stops the service (by its PID).
@@ -17,6 +18,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import math
 import os
@@ -79,7 +81,9 @@ def parameters_digest(result: dict[str, Any]) -> str:
     return hashlib.sha256(" ".join(values).encode()).hexdigest()[:16]
 
 
-def run_service_demo(data_dir: Path, sim_speed: float, seed: int) -> int:
+def run_service_demo(
+    data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False
+) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     token = secrets.token_urlsafe(16)
@@ -105,6 +109,7 @@ def run_service_demo(data_dir: Path, sim_speed: float, seed: int) -> int:
     base = f"http://127.0.0.1:{port}"
     speed = "as fast as the host allows" if sim_speed <= 0 else f"at most {sim_speed:g}x"
     print(f"swpc serve started (pid {proc.pid}) on {base}, in-process simulator ({speed})")
+    print(f"operator console: {base}/ (token {token})")
     try:
         with httpx.Client(base_url=base, timeout=10.0) as http:
             deadline = time.monotonic() + 60
@@ -151,6 +156,10 @@ def run_service_demo(data_dir: Path, sim_speed: float, seed: int) -> int:
             print(f"run dataset (solve offline with `swpc solve`): {res['dataset_dir']}")
             print(f"calibrated parameters digest (seed {seed}): {parameters_digest(res)}")
             print(f"demo wall time: {time.monotonic() - t0:.1f} s")
+            if keep_serving:
+                print(f"the console stays at {base}/ (token {token}); Ctrl-C stops the service")
+                with contextlib.suppress(KeyboardInterrupt):
+                    proc.wait()
             return 0
     finally:
         proc.send_signal(signal.SIGINT)
@@ -198,13 +207,17 @@ def main(argv: list[str] | None = None) -> int:
         help="most simulated s per wall s (default 0: as fast as the host allows)",
     )
     parser.add_argument("--offline", action="store_true", help="dataset + swpc solve only")
+    parser.add_argument(
+        "--keep-serving", action="store_true",
+        help="after the run, keep the service (and its console at /) up until Ctrl-C",
+    )
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.offline:
         return run_offline_demo(out, args.seed)
-    return run_service_demo(out.resolve(), args.sim_speed, args.seed)
+    return run_service_demo(out.resolve(), args.sim_speed, args.seed, args.keep_serving)
 
 
 if __name__ == "__main__":
