@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 CAN_DOC = DOCS / "can-protocol.md"
 DOC_FILES = ("README.md", "model-and-frames.md", "dataset-format.md", "kinematic-file.md",
-             "can-protocol.md")
+             "can-protocol.md", "console.md")
 
 
 def checked_files() -> list[Path]:
