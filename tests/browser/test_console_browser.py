@@ -489,3 +489,30 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     }
     (SHOTS / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     print(f"\nconsole: {metrics}")
+
+
+def test_a_module_with_no_path_yet_then_the_next(
+    service: dict[str, Any], browser: WebDriver
+) -> None:
+    """The page drew nothing more, for the rest of a run, once a module ended before any
+    of its path had reached the page (a busy host): the next one began from a point that
+    was not there.  Fed the same two ``live`` events, it now draws the second path."""
+    d = browser
+    d.get(service["url"] + "/#run")
+    wait_for("the event stream", lambda: text(d, "link-state") == "live")
+    drawn = d.execute_script(
+        """
+        const live = (points) => ({ nodes: [], can: null, run: null, spins: [],
+          mocap: { age_s: 0.01, stale: false, pose: [0, 0, 0] },
+          trail: { run: "synthetic", reset: false, points } });
+        swpc.current = { id: "synthetic", state: "SPIN", module: 1, modules_total: 4 };
+        swpc.trail = { run: "synthetic", chunks: [] };
+        onLive(live([]));
+        swpc.current.module = 2;
+        onLive(live([[0, 0], [0.1, 0], [0.1, 0.1]]));
+        return [swpc.trail.chunks.map((c) => c.points.length),
+                document.querySelectorAll("#live-view polyline").length];
+        """
+    )
+    assert drawn == [[0, 3], 1]
+    assert severe_logs(d) == []

@@ -251,7 +251,8 @@ function onLive(ev) {
     const module = app.current.module || 0;
     let chunk = app.trail.chunks[app.trail.chunks.length - 1];
     if (!chunk || chunk.module !== module) {
-      chunk = { module, points: chunk ? [chunk.points[chunk.points.length - 1]] : [] };
+      // the next module's path starts where the last one ended, if that one drew any
+      chunk = { module, points: chunk ? chunk.points.slice(-1) : [] };
       app.trail.chunks.push(chunk);
     }
     chunk.points.push(...ev.trail.points);
