@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import signal
 import threading
 import time
 import zipfile
@@ -20,6 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from mcap.exceptions import McapError
@@ -29,6 +31,7 @@ from pydantic import SecretStr
 from services.api import create_app
 from services.calibration_run import CalibrationRun
 from services.console.router import mcap_summary
+from services.http_server import server as http_server
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig
 from services.runtime import Runtime
@@ -37,6 +40,7 @@ from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.zenoh_session import free_tcp_endpoint
 from tests.fake_robot import FakeRobot
 
 TOKEN = "console-token-for-tests"
@@ -55,6 +59,16 @@ def parse_sse(text: str) -> list[tuple[str, Any]]:
         if "event" in fields:
             out.append((fields["event"], json.loads(fields["data"])))
     return out
+
+
+def bare_runtime(data: Path) -> Runtime:
+    """A runtime not opened (no bus, no zenoh, no simulator) on a virtual clock."""
+    settings = ServiceSettings(data_dir=data, token=SecretStr(TOKEN), can_interface="virtual")
+    config = RobotConfig.model_validate({"nominal": NOMINAL.model_dump(), "protocol": PROTOCOL})
+    rt = Runtime(settings, config)
+    rt.clock = VirtualClock(start=1000.0)
+    rt.mocap = MocapIngest(clock=rt.clock, clock_mode="wall", stale_after=0.5)
+    return rt
 
 
 def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) -> CalibrationRun:
@@ -86,12 +100,8 @@ def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) 
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     """The app on a runtime whose robot is the fake one; one run followed on the stream."""
-    data = tmp_path_factory.mktemp("console")
-    settings = ServiceSettings(data_dir=data, token=SecretStr(TOKEN), can_interface="virtual")
-    config = RobotConfig.model_validate({"nominal": NOMINAL.model_dump(), "protocol": PROTOCOL})
-    rt = Runtime(settings, config)  # not opened: no bus, no zenoh, no simulator
-    rt.clock = VirtualClock(start=1000.0)
-    rt.mocap = MocapIngest(clock=rt.clock, clock_mode="wall", stale_after=0.5)
+    rt = bare_runtime(tmp_path_factory.mktemp("console"))
+    settings = rt.settings
     save_kinematics(settings.kinematics_file, NOMINAL, created="2026-01-01T00:00:00Z")
     app = create_app(settings, runtime_factory=lambda _: rt)
     with TestClient(app) as client:
@@ -289,3 +299,43 @@ def test_what_a_runs_mcap_holds(svc: dict[str, Any], tmp_path: Path) -> None:
     path.write_bytes(b"not an mcap file at all")
     with pytest.raises(McapError):
         mcap_summary("x", path)
+
+
+def test_an_open_event_stream_does_not_hold_up_a_sigterm(tmp_path: Path) -> None:
+    """The server waits for every open response before it stops the runtime, and with it
+    a run in progress: a console left open kept ``swpc serve`` up after SIGTERM for as
+    long as it stayed open.  Its stream now ends when the service stops."""
+    rt = bare_runtime(tmp_path)
+    app = create_app(rt.settings, runtime_factory=lambda _: rt)
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    srv = http_server(
+        app, host="127.0.0.1", port=port, header_timeout=5, max_connections=8,
+        log_level="warning",
+    )  # fmt: skip
+    serving = threading.Thread(target=srv.run, daemon=True)
+    serving.start()
+    lines: list[str] = []
+
+    def listen() -> None:
+        with httpx.stream("GET", f"http://127.0.0.1:{port}/events", timeout=30) as r:
+            lines.extend(r.iter_lines())
+
+    listening = threading.Thread(target=listen, daemon=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not srv.started:
+            assert serving.is_alive() and time.monotonic() < deadline, "server did not start"
+            time.sleep(0.01)
+        listening.start()
+        while "event: live" not in lines:
+            assert listening.is_alive() and time.monotonic() < deadline, lines
+            time.sleep(0.01)
+        srv.handle_exit(signal.SIGTERM, None)  # what the signal handler calls
+        serving.join(10)
+        listening.join(10)
+        assert not serving.is_alive(), "the server still waits for the open stream"
+        assert not listening.is_alive() and app.state.stop_signal == "SIGTERM"
+    finally:
+        srv.force_exit = True
+        serving.join(10)
+

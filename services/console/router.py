@@ -289,6 +289,13 @@ def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
     return out
 
 
+def _stopping(request: Request) -> bool:
+    """The service is stopping (SIGTERM, SIGINT): an open stream then ends within
+    :data:`LIVE_PERIOD`, since the server waits for every open response before it stops
+    the runtime, and with it a run in progress."""
+    return getattr(request.app.state, "stop_signal", None) is not None
+
+
 def hello(rt: Runtime) -> dict[str, Any]:
     cfg = rt.config
     return {
@@ -347,7 +354,7 @@ def console_router() -> APIRouter:
                 if only and first["state"] in TERMINAL:
                     return
             next_live = loop.time()
-            while True:
+            while not _stopping(request):
                 ev = await sub.get(timeout=max(0.0, next_live - loop.time()))
                 if ev is not None:
                     st = ev["run"]
