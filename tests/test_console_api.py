@@ -268,6 +268,8 @@ def test_what_a_runs_mcap_holds(svc: dict[str, Any], tmp_path: Path) -> None:
     chans = {c["topic"]: c for c in s["channels"]}
     poses = (rt.data_dir / "runs" / run.id / "dataset" / "poses.csv").read_text().splitlines()
     assert chans["/mocap/pose"]["messages"] == len(poses) - 1  # the file's header line
+    assert chans["/mocap/pose"]["schema_name"] == "foxglove.PoseInFrame"
+    assert chans["/mocap/pose"]["native"] and not chans["/calibration/segments"]["native"]
     assert sum(c["messages"] for c in s["channels"]) > len(poses)
     assert s["start_ns"] <= s["end_ns"]
     assert client.get("/calibrations/nope/mcap").status_code == 404

@@ -477,6 +477,10 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     ]
     assert "/mocap/pose" in text(d, "fox-rows") and state["done_run"] in text(d, "fox-run")
     assert ("in epoch time" in text(d, "fox-extra")) == summary["epoch_times"]
+    # what Foxglove shows natively: the pose, in epoch time, the config as metadata
+    pose = d.find_element(By.CSS_SELECTOR, '#fox-rows tr[data-topic="/mocap/pose"]')
+    assert "foxglove.PoseInFrame" in pose.text and pose.text.endswith("yes")
+    assert summary["epoch_times"] and "robot-config" in text(d, "fox-extra")
     check_tablet_view(d, "foxglove")
     shot(d, "11-foxglove")
     assert severe_logs(d) == []
