@@ -61,6 +61,8 @@ def wait_healthy(url: str, timeout: float, service_log: str | None) -> dict[str,
     while time.monotonic() - t0 < timeout:
         try:
             last = _request(f"{url}/health", None, timeout=10.0)
+        except urllib.error.HTTPError as exc:  # 503 "failing": not ready yet; keep its body
+            last = f"HTTP {exc.code}: {exc.read().decode(errors='replace')[:500]}"
         except (urllib.error.URLError, ConnectionError, TimeoutError, OSError) as exc:
             last = f"{type(exc).__name__}: {exc}"
         else:
