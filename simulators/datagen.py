@@ -29,6 +29,11 @@ there is no step error and no Python loop over time steps (a default run takes ~
 :func:`simulators.physics.rk4_step` integrates the same dynamics numerically and the tests
 check both agree.  ``integration_dt`` is the time grid on which the settle is searched.
 
+Mocap noise: Gaussian, white by default; ``pose_noise_rho > 0`` makes it AR(1) from frame
+to frame (``n_k = rho n_k-1 + sqrt(1 - rho^2) w_k``, as a filtered mocap stream is) with
+the same marginal std devs.  Slip: random short bursts (``slip_burst_rate``) and/or
+explicit slow slips over part of a segment (``partial_slips``).
+
 Outputs: poses (t, x, y, yaw) at ``pose_rate`` with **yaw wrapped to (-pi, pi]**;
 encoders at ``encoder_rate`` for every module with reported steering
 ``theta_hat = theta - beta`` **wrapped to (-pi, pi]** (the static module reports its held
@@ -49,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.signal import lfilter
 
 from simulators.physics import (
     FloatArray,
@@ -64,6 +70,23 @@ from swpc_hw.model import RobotParams, rot, steering_direction, wrap_angle
 from swpc_hw.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True)
+class PartialSlip:
+    """Slow slip of one wheel over part of one segment's window.
+
+    Between ``start`` and ``end`` (fractions of the window of segment number ``segment``,
+    0-based in time order) the wheel encoder of module ``module`` (id) turns ``factor``
+    times its rolling rotation more than rolling without slip would turn it (0.004: a
+    0.4 % slip).
+    """
+
+    module: int
+    segment: int
+    start: float = 0.0
+    end: float = 1.0
+    factor: float = 0.004
 
 
 @dataclass(frozen=True)
@@ -84,12 +107,14 @@ class ExperimentOptions:
     counts_per_rev: int | None = 2**17  # encoder quantization (both axes); None = off
     pose_sigma_xy: float = 0.0  # m
     pose_sigma_yaw: float = 0.0  # rad
+    pose_noise_rho: float = 0.0  # AR(1) coefficient of the pose noise per frame (0: white)
     dropout_fraction: float = 0.0  # fraction of pose rows removed
     outlier_fraction: float = 0.0  # fraction of (kept) pose rows made outliers
     outlier_magnitude: float = 0.05  # m jump (random direction); yaw jumps magnitude/0.25 rad
     slip_burst_rate: float = 0.0  # bursts per second per dynamic wheel
     slip_duration: tuple[float, float] = (0.2, 0.5)  # s, uniform
     slip_factor: tuple[float, float] = (0.3, 1.0)  # extra wheel rotation / rolling rotation
+    partial_slips: tuple[PartialSlip, ...] = ()  # slow slips over part of a segment
     clock_offset: float = 0.0  # s, encoder clock - pose clock
     integration_dt: float = 1e-3  # s, time grid of the settle search
     seed: int = 0
@@ -217,6 +242,23 @@ def _evaluate(
 
 
 # --------------------------------------------------------------------------- generator
+
+
+def ar1_noise(white: FloatArray, rho: float) -> FloatArray:
+    """AR(1) noise along axis 0 with the marginal std dev of ``white``::
+
+        n_0 = w_0,   n_k = rho n_k-1 + sqrt(1 - rho^2) w_k
+
+    ``rho = 0`` returns ``white`` itself (the same draws: white-noise runs keep their seeds).
+    """
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"pose_noise_rho must be in [0, 1) (got {rho})")
+    if rho == 0.0:
+        return white
+    c = math.sqrt(1.0 - rho * rho)
+    zi = ((1.0 - c) * white[0])[None, ...]  # n_0 = c w_0 + zi = w_0: stationary start
+    out, _ = lfilter([c], [1.0, -rho], white, axis=0, zi=zi)
+    return np.asarray(out, dtype=float)
 
 
 def default_nominal(truth: RobotParams) -> RobotParams:
@@ -364,6 +406,18 @@ def generate_experiment(
     # slip bursts on rolling wheels: extra rotation factor x rolling rotation
     bursts: list[SlipBurst] = []
     psi_meas = psi_e.copy()
+
+    def slip(j: int, ts: float, te: float, f: float) -> None:
+        """Encoder j turns ``f`` x its rolling rotation extra in [ts, te] (kept after)."""
+        _, _, ps = _evaluate(phases, np.array([ts, te]), P_s, b, r)
+        if abs(ps[1, j] - ps[0, j]) < 1e-12:
+            return  # wheel not rolling (static or still): nothing to slip
+        inside = (t_enc > ts) & (t_enc < te)
+        after = t_enc >= te
+        psi_meas[inside, j] += f * (psi_e[inside, j] - ps[0, j])
+        psi_meas[after, j] += f * (ps[1, j] - ps[0, j])
+        bursts.append(SlipBurst(int(A.ids[j]), float(ts), float(te), float(f)))
+
     if opt.slip_burst_rate > 0.0:
         for j in range(n):
             n_b = rng.poisson(opt.slip_burst_rate * t_end)
@@ -371,15 +425,17 @@ def generate_experiment(
             durs = rng.uniform(*opt.slip_duration, n_b)
             facs = rng.uniform(*opt.slip_factor, n_b)
             for ts, du, f in zip(starts, durs, facs, strict=True):
-                te = min(ts + du, t_end)
-                _, _, ps = _evaluate(phases, np.array([ts, te]), P_s, b, r)
-                if abs(ps[1, j] - ps[0, j]) < 1e-12:
-                    continue  # wheel not rolling (static or still): nothing to slip
-                inside = (t_enc > ts) & (t_enc < te)
-                after = t_enc >= te
-                psi_meas[inside, j] += f * (psi_e[inside, j] - ps[0, j])
-                psi_meas[after, j] += f * (ps[1, j] - ps[0, j])
-                bursts.append(SlipBurst(int(A.ids[j]), float(ts), float(te), float(f)))
+                slip(j, float(ts), float(min(ts + du, t_end)), float(f))
+    for ps_ in opt.partial_slips:
+        if ps_.module not in A.ids.tolist():
+            raise ValueError(f"partial slip: no module {ps_.module}")
+        if not 0 <= ps_.segment < len(seg_info):
+            raise ValueError(f"partial slip: no segment {ps_.segment} (run has {len(seg_info)})")
+        if not 0.0 <= ps_.start < ps_.end <= 1.0:
+            raise ValueError("partial slip: need 0 <= start < end <= 1 (fractions of the window)")
+        s0, s1 = seg_info[ps_.segment][3], seg_info[ps_.segment][4]
+        j = A.ids.tolist().index(ps_.module)
+        slip(j, s0 + ps_.start * (s1 - s0), s0 + ps_.end * (s1 - s0), ps_.factor)
 
     # encoders: reported steering (held angle for the static module) and wheel
     steer = np.asarray(wrap_angle(theta_e - beta), dtype=float)
@@ -393,9 +449,9 @@ def generate_experiment(
     # poses: noise, dropout, outliers
     meas = poses_true.copy()
     if opt.pose_sigma_xy > 0:
-        meas[:, :2] += rng.normal(0.0, opt.pose_sigma_xy, (n_p, 2))
+        meas[:, :2] += ar1_noise(rng.normal(0.0, opt.pose_sigma_xy, (n_p, 2)), opt.pose_noise_rho)
     if opt.pose_sigma_yaw > 0:
-        meas[:, 2] += rng.normal(0.0, opt.pose_sigma_yaw, n_p)
+        meas[:, 2] += ar1_noise(rng.normal(0.0, opt.pose_sigma_yaw, n_p), opt.pose_noise_rho)
     keep = np.ones(n_p, dtype=bool)
     if opt.dropout_fraction > 0:
         drop = rng.choice(n_p, round(opt.dropout_fraction * n_p), replace=False)

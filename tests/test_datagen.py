@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
+from simulators.datagen import Experiment, ExperimentOptions, PartialSlip, generate_experiment
 from simulators.random_robots import batch_experiment, random_robots
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_robot
@@ -285,3 +286,40 @@ def test_simulate_command_writes_a_loadable_dataset(tmp_path: Path) -> None:
     enc = ds.encoders[seg.static_module]
     held = enc[(enc[:, 0] >= seg.start) & (enc[:, 0] <= seg.end), 1]
     assert np.allclose(held, wrap_angle(math.radians(200)), atol=1e-4)
+
+
+def test_ar1_pose_noise_keeps_its_size_and_is_correlated_frame_to_frame() -> None:
+    sig_xy, sig_yaw = 0.5e-3, math.radians(0.05)
+    base = ExperimentOptions(pose_sigma_xy=sig_xy, pose_sigma_yaw=sig_yaw, spin_duration=3.0)
+    for rho in (0.0, 0.8):
+        e = generate_experiment(PAPER_CALIBRATED, dataclasses.replace(base, pose_noise_rho=rho))
+        n = e.dataset.poses[:, 1:3] - e.true_poses[:, 1:3]
+        n_yaw = wrap_angle(e.dataset.poses[:, 3] - e.true_poses[:, 3])
+        assert n.std() == pytest.approx(sig_xy, rel=0.08)
+        assert n_yaw.std() == pytest.approx(sig_yaw, rel=0.08)
+        for x in (n[:, 0], n[:, 1], n_yaw):
+            assert np.corrcoef(x[1:], x[:-1])[0, 1] == pytest.approx(rho, abs=0.05)
+    with pytest.raises(ValueError, match="pose_noise_rho"):
+        generate_experiment(PAPER_CALIBRATED, dataclasses.replace(base, pose_noise_rho=1.0))
+
+
+def test_partial_slip_turns_one_wheel_more_over_part_of_one_window(clean: Experiment) -> None:
+    slip = PartialSlip(module=2, segment=4, start=0.25, end=0.75, factor=0.004)
+    e = generate_experiment(
+        PAPER_CALIBRATED, dataclasses.replace(NOISELESS, partial_slips=(slip,))
+    )
+    s = e.segments[4]
+    (burst,) = e.slip_bursts
+    w = s.end - s.start
+    assert (burst.module, burst.start, burst.end) == (2, s.start + 0.25 * w, s.start + 0.75 * w)
+    j = PAPER_CALIBRATED.ids.index(2)
+    psi = e.dataset.encoders[2][:, 2]
+    extra = psi - e.true_psi[:, j]  # wheel angle beyond rolling
+    t = e.encoder_stamps
+    inside = (t > burst.start) & (t < burst.end)
+    rolled = e.true_psi[inside, j] - np.interp(burst.start, t, e.true_psi[:, j])
+    np.testing.assert_allclose(extra[inside], 0.004 * rolled, atol=1e-12)
+    assert np.all(extra[t < burst.start] == 0.0)
+    for mid, rows in e.dataset.encoders.items():  # the other wheels are untouched
+        if mid != 2:
+            np.testing.assert_array_equal(rows, clean.dataset.encoders[mid])
