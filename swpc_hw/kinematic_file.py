@@ -9,13 +9,17 @@ Schema (CONVENTIONS.md)::
     units: {length: m, angle: rad}    # optional on load; always written
     modules:
       - {id, x_s, y_s, beta, b, r, stddev: {x_s, y_s, beta, b, r}}   # stddev optional
+    covariance:                                  # optional: all parameters' covariance
+      order: [x_s, y_s, beta, b, r]              # within a module; modules in file order
+      matrix: [[...], ...]                       # (5N, 5N), SI units (m, rad)
 
 Unknown keys are ignored on load (and preserved in ``extra`` of :class:`KinematicFile`);
 missing required keys, non-finite values, ``b <= 0``, ``r <= 0``, duplicate ids, N < 2,
 a ``units`` other than SI and a ``provenance`` that is not a mapping raise
-:class:`~swpc_hw.errors.KinematicFileError` naming the key.  Files are written with the
-mode a new file gets (``0666`` less the umask), not the temporary file's ``0600``: the
-robot's odometry, another user, reads them.
+:class:`~swpc_hw.errors.KinematicFileError` naming the key.  A ``covariance`` must be
+square of size 5N, symmetric, positive semi-definite and agree with the modules'
+``stddev``.  Files are written with the mode a new file gets (``0666`` less the umask),
+not the temporary file's ``0600``: the robot's odometry, another user, reads them.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from swpc_hw.errors import KinematicFileError
@@ -38,6 +43,7 @@ FORMAT = "swpc-kinematics/1"
 PARAM_KEYS = ("x_s", "y_s", "beta", "b", "r")
 UNITS = {"length": "m", "angle": "rad"}
 """The format's units (SI); a file may say so in ``units:``, never anything else."""
+COVARIANCE_KEY = "covariance"
 
 
 @dataclass
@@ -47,6 +53,8 @@ class KinematicFile:
     params: RobotParams
     created: str
     extra: dict[str, Any] = field(default_factory=dict)
+    covariance: list[list[float]] | None = None
+    """(5N, 5N) covariance of the parameters (order: modules, then x_s, y_s, beta, b, r)."""
 
 
 def _now_iso() -> str:
@@ -123,10 +131,57 @@ def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
                     raise KinematicFileError(f"{where}: {loc}.stddev.{key}: must be >= 0")
             std = ModuleStddev(**sdv)
         modules.append(ModuleParams(id=mid, stddev=std, **vals))
-    known = {"format", "robot", "frame", "created", "units", "modules"}
+    known = {"format", "robot", "frame", "created", "units", "modules", COVARIANCE_KEY}
     extra = {k: v for k, v in doc.items() if k not in known}
     params = RobotParams(robot=str(doc["robot"]), frame=str(doc["frame"]), modules=modules)
-    return KinematicFile(params=params, created=str(doc.get("created", "")), extra=extra)
+    cov = None
+    if doc.get(COVARIANCE_KEY) is not None:
+        cov = parse_covariance(doc[COVARIANCE_KEY], modules, where)
+    return KinematicFile(
+        params=params, created=str(doc.get("created", "")), extra=extra, covariance=cov
+    )
+
+
+def parse_covariance(doc: Any, modules: list[ModuleParams], where: str) -> list[list[float]]:
+    """Validate a ``covariance`` document against the modules; returns the matrix."""
+    key = COVARIANCE_KEY
+    if not isinstance(doc, dict):
+        raise KinematicFileError(f"{where}: {key}: must be a mapping with order and matrix")
+    if doc.get("order") != list(PARAM_KEYS):
+        raise KinematicFileError(
+            f"{where}: {key}.order: expected {list(PARAM_KEYS)} (got {doc.get('order')!r})"
+        )
+    size = len(PARAM_KEYS) * len(modules)
+    rows = doc.get("matrix")
+    if not isinstance(rows, list) or len(rows) != size:
+        raise KinematicFileError(f"{where}: {key}.matrix: must be {size} rows of {size} numbers")
+    matrix: list[list[float]] = []
+    for i, row in enumerate(rows):
+        if not isinstance(row, list) or len(row) != size:
+            raise KinematicFileError(f"{where}: {key}.matrix[{i}]: must be {size} numbers")
+        matrix.append([_number(v, f"{key}.matrix[{i}][{j}]", where) for j, v in enumerate(row)])
+    a = np.array(matrix)
+    diag = np.diag(a)
+    if np.any(diag < 0):
+        raise KinematicFileError(f"{where}: {key}.matrix: negative variance on the diagonal")
+    scale = np.sqrt(np.outer(diag, diag))
+    if np.any(np.abs(a - a.T) > 1e-9 * scale + 1e-300):
+        raise KinematicFileError(f"{where}: {key}.matrix: not symmetric")
+    d = np.where(diag > 0, np.sqrt(diag), 1.0)
+    if np.linalg.eigvalsh(a / np.outer(d, d)).min() < -1e-8:
+        raise KinematicFileError(f"{where}: {key}.matrix: not positive semi-definite")
+    for i, m in enumerate(modules):
+        if m.stddev is None:
+            continue
+        for k, name in enumerate(PARAM_KEYS):
+            std = float(getattr(m.stddev, name))
+            got = math.sqrt(diag[len(PARAM_KEYS) * i + k])
+            if abs(got - std) > 1e-6 * std + 1e-15:
+                raise KinematicFileError(
+                    f"{where}: {key}.matrix: variance of module {m.id} {name} gives a std dev "
+                    f"of {got!r}, its stddev.{name} says {std!r}"
+                )
+    return matrix
 
 
 def load_kinematics(path: str | os.PathLike[str]) -> KinematicFile:
@@ -154,9 +209,16 @@ def load_robot(path: str | os.PathLike[str]) -> RobotParams:
 
 
 def kinematics_document(
-    params: RobotParams, *, created: str | None = None, extra: dict[str, Any] | None = None
+    params: RobotParams,
+    *,
+    created: str | None = None,
+    extra: dict[str, Any] | None = None,
+    covariance: Any = None,
 ) -> dict[str, Any]:
-    """The YAML document for ``params`` (plain Python types only)."""
+    """The YAML document for ``params`` (plain Python types only).
+
+    ``covariance``: optional (5N, 5N) array-like, written under ``covariance``.
+    """
     modules = []
     for m in params.modules:
         d: dict[str, Any] = {"id": m.id}
@@ -172,6 +234,11 @@ def kinematics_document(
         "units": dict(UNITS),
         "modules": modules,
     }
+    if covariance is not None:
+        doc[COVARIANCE_KEY] = {
+            "order": list(PARAM_KEYS),
+            "matrix": [[float(v) for v in row] for row in np.asarray(covariance, dtype=float)],
+        }
     for k, v in (extra or {}).items():
         if k not in doc:
             doc[k] = v
@@ -232,9 +299,10 @@ def save_kinematics(
     *,
     created: str | None = None,
     extra: dict[str, Any] | None = None,
+    covariance: Any = None,
 ) -> None:
-    """Save ``params`` as a kinematic file, atomically."""
-    doc = kinematics_document(params, created=created, extra=extra)
+    """Save ``params`` (with their (5N, 5N) ``covariance`` if given), atomically."""
+    doc = kinematics_document(params, created=created, extra=extra, covariance=covariance)
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)
     parse_kinematics(yaml.safe_load(text), str(path))  # never write what we cannot load
     try:

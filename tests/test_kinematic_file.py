@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 
@@ -107,3 +108,46 @@ def test_save_is_atomic_and_never_leaves_a_partial_file(
 def test_save_into_missing_directory_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(KinematicFileError, match="cannot write"):
         save_kinematics(tmp_path / "no" / "k.yaml", PAPER_CALIBRATED)
+
+
+def _with_covariance() -> tuple[RobotParams, np.ndarray]:
+    """The paper robot with a covariance whose betas move together, and matching stddevs."""
+    n = len(PAPER_CALIBRATED.modules)
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(5 * n, 5 * n)) * 1e-5
+    cov = A @ A.T
+    beta = [5 * i + 2 for i in range(n)]
+    cov[np.ix_(beta, beta)] += 1e-8  # a common homing error: beta correlation ~1
+    a = PAPER_CALIBRATED.arrays()
+    params = RobotParams.from_arrays(
+        a.ids, a.P_s, a.beta, a.b, a.r, stddev=np.sqrt(np.diag(cov)).reshape(n, 5)
+    )
+    return params, cov
+
+
+def test_covariance_round_trip_and_validation(tmp_path: Path) -> None:
+    params, cov = _with_covariance()
+    path = tmp_path / "k.yaml"
+    save_kinematics(path, params, covariance=cov)
+    loaded = load_kinematics(path)
+    np.testing.assert_array_equal(np.array(loaded.covariance), cov)
+    assert "covariance" not in loaded.extra
+    assert load_kinematics(path).params == params
+    d = kinematics_document(params, covariance=cov)
+    bad = {
+        "not symmetric": lambda m: m[0].__setitem__(1, m[0][1] * 2 + 1e-9),
+        "not positive semi-definite": lambda m: m[7].__setitem__(2, 10.0)
+        or m[2].__setitem__(7, 10.0),
+        "must be 20 rows": lambda m: m.pop(),
+        "must be finite": lambda m: m[3].__setitem__(3, float("nan")),
+        r"module 1 y_s gives a std dev": lambda m: m[1].__setitem__(1, m[1][1] * 4),
+    }
+    for message, mutate in bad.items():
+        dd = yaml.safe_load(yaml.safe_dump(d))
+        mutate(dd["covariance"]["matrix"])
+        with pytest.raises(KinematicFileError, match=message):
+            parse_kinematics(dd, "k.yaml")
+    dd = yaml.safe_load(yaml.safe_dump(d))
+    dd["covariance"]["order"] = ["r", "b", "beta", "y_s", "x_s"]
+    with pytest.raises(KinematicFileError, match=r"covariance.order: expected"):
+        parse_kinematics(dd, "k.yaml")
