@@ -76,12 +76,12 @@ def _read_csv(path: Path, columns: tuple[str, ...]) -> FloatArray:
     if missing:
         raise DatasetError(f"{path}: missing column(s) {', '.join(missing)} (header: {header!r})")
     idx = [names.index(c) for c in columns]
+    if not _has_data_rows(path):  # before numpy, which warns about an empty file
+        raise DatasetError(f"{path}: no data rows (only the header)")
     try:
         data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=float)
     except ValueError as exc:
         raise DatasetError(f"{path}: unreadable row: {str(exc).splitlines()[0]}") from exc
-    if data.shape[0] == 0:
-        raise DatasetError(f"{path}: no data rows")
     if data.shape[1] != len(names):
         raise DatasetError(f"{path}: rows have {data.shape[1]} fields, header has {len(names)}")
     out = data[:, idx]
@@ -91,6 +91,38 @@ def _read_csv(path: Path, columns: tuple[str, ...]) -> FloatArray:
         col = columns[int(np.argwhere(bad)[0, 1])]
         raise DatasetError(f"{path}: non-finite value in column {col} at data row {row + 1}")
     return np.asarray(out, dtype=float)
+
+
+def _has_data_rows(path: Path) -> bool:
+    with path.open(encoding="utf-8") as fh:
+        fh.readline()
+        return any(line.strip() for line in fh)
+
+
+def check_one_clock(t: FloatArray, path: Path, what: str) -> None:
+    """Refuse a time column (in file order) whose clock jumped back into recorded times.
+
+    Rows need not be sorted, so a backward step alone is no error: shuffled rows have
+    many, chunks written out of order have steps that land before everything already
+    written.  A clock that jumps back has few backward steps, each landing *inside* the
+    time span already recorded (by more than 10 sample periods): the rows after it
+    overlap earlier ones, and no sorting can separate the two.
+    """
+    if t.size < 3:
+        return
+    dt = np.diff(t)
+    back = np.flatnonzero(dt < 0)
+    if back.size == 0 or back.size > max(3, 0.01 * t.size):
+        return
+    period = float(np.median(np.abs(dt[dt != 0]))) if np.any(dt != 0) else 0.0
+    low = np.minimum.accumulate(t)
+    for i in back.tolist():
+        if -dt[i] > 10 * period and t[i + 1] > low[i] + 10 * period:
+            raise DatasetError(
+                f"{path}: {what}: the clock jumps back {-dt[i]:.3f} s at data row {i + 2} "
+                f"({t[i + 1]:.6f} s after {t[i]:.6f} s) into times already recorded: "
+                "not one monotonic clock"
+            )
 
 
 def load_dataset(directory: str | os.PathLike[str]) -> Dataset:
@@ -103,6 +135,7 @@ def load_dataset(directory: str | os.PathLike[str]) -> Dataset:
     except KinematicFileError as exc:
         raise DatasetError(str(exc)) from exc
     poses = _read_csv(d / "poses.csv", POSES_COLUMNS)
+    check_one_clock(poses[:, 0], d / "poses.csv", "t")
     poses = poses[np.argsort(poses[:, 0], kind="stable")]
     enc = _read_csv(d / "encoders.csv", ENCODERS_COLUMNS)
     seg = _read_csv(d / "segments.csv", SEGMENTS_COLUMNS)
@@ -118,6 +151,7 @@ def load_dataset(directory: str | os.PathLike[str]) -> Dataset:
         rows = enc[mod_col == mid]
         if rows.shape[0] == 0:
             raise DatasetError(f"{d / 'encoders.csv'}: no rows for module {mid}")
+        check_one_clock(rows[:, 0], d / "encoders.csv", f"t of module {mid}")
         rows = rows[np.argsort(rows[:, 0], kind="stable")]
         encoders[mid] = np.ascontiguousarray(rows[:, [0, 2, 3]])
     segments: list[Segment] = []
