@@ -23,3 +23,15 @@ class DatasetError(SwpcError, ValueError):
 
 class CalibrationError(SwpcError):
     """The solver cannot produce a result from the data it was given."""
+
+
+class ImplausibleDataError(CalibrationError):
+    """The data cannot be what they claim to be (units, clocks, magnitudes against the
+    nominal robot): refused before a result exists.  The message names the likely cause.
+    """
+
+
+class ImplausibleResultError(CalibrationError):
+    """A solution that fails the plausibility gates after solving (unphysical values,
+    magnitudes far from the nominal robot): refused, never installed.
+    """

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import sys
 from typing import Any
 
 
@@ -54,13 +56,18 @@ def run(args: argparse.Namespace) -> int:
     from swpc_hw.calibration.report import format_table
     from swpc_hw.calibration.solver import SolverOptions, solve
     from swpc_hw.dataset import load_dataset
+    from swpc_hw.errors import CalibrationError
     from swpc_hw.kinematic_file import load_robot, save_kinematics
 
+    if args.method == "paper" and args.time_offset == "auto":
+        raise CalibrationError(
+            "--time-offset auto is not available with --method paper (the paper's procedure "
+            "cannot estimate a clock offset): give it in seconds, or use --method joint"
+        )
     truth = load_robot(args.truth) if args.truth else None
     ds = load_dataset(args.dataset)
     if args.method == "paper":
-        offset = 0.0 if args.time_offset == "auto" else float(args.time_offset)
-        result = solve_paper(ds, offset, source=args.dataset)
+        result = solve_paper(ds, float(args.time_offset), source=args.dataset)
     else:
         result = solve(ds, SolverOptions(time_offset=args.time_offset), source=args.dataset)
     params = result.params
@@ -82,7 +89,17 @@ def run(args: argparse.Namespace) -> int:
             for m in ds.robot.modules
         ],
     }
-    save_kinematics(args.output, params, extra=extra)
-    print(format_table(result, truth))
-    print(f"\nwrote {args.output}")
+    save_kinematics(args.output, params, extra=extra, covariance=result.covariance)
+    return _print(format_table(result, truth) + f"\n\nwrote {args.output}")
+
+
+def _print(text: str) -> int:
+    """Print to stdout; a reader that stops early (``| head``) is no error: the file is written."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        # stdout's buffer would fail again at exit: point it at /dev/null
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
     return 0

@@ -6,7 +6,8 @@ about the locked module k the body point ``C_R`` (the contact point, in R) stays
 ``C_W`` in the world::
 
     p_i + R(yaw_i) C_R = C_W                      (fixed point, every pose i)
-    C_R = P_s,k + b_k u(a + beta_k)               (contact point of the locked module)
+    C_R = P_s,k + b_k u(a + beta_k)               (contact point of the locked module:
+                                                   :func:`swpc_hw.model.contact_point`)
     (P_w,j - C_R) . u(theta_j) = 0                 (settled free caster j)
     r_j dpsi_j = ((P_w,j - C_R) x u(theta_j)) dyaw  (rolling of free caster j)
 """
@@ -203,12 +204,3 @@ def settled_residual(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike, C: ArrayLik
     u = steering_direction(theta)
     d = np.asarray(P_s, dtype=float) - np.asarray(C, dtype=float)
     return np.asarray(np.sum(d * u, axis=-1) + np.asarray(b), dtype=float)
-
-
-def contact_point_of(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike) -> FloatArray:
-    """``C = P_s + b u(theta)`` (batched): the locked module's contact point in R."""
-    return np.asarray(
-        np.asarray(P_s, dtype=float)
-        + np.asarray(b, dtype=float)[..., None] * steering_direction(theta),
-        dtype=float,
-    )

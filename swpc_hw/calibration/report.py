@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from swpc_hw.calibration.solver import CalibrationResult
+from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.model import ModuleParams, RobotParams
 
 #: name, attribute, factor to display unit, unit
@@ -60,27 +60,43 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
             lines.append("  ".join("-" * w for w in widths))
     q = result
     lines.append("")
+    chi2 = "n/a (no noise model)" if q.reduced_chi2 is None else f"{q.reduced_chi2:.3g}"
     lines.append(
         f"poses used {q.poses_used} (rejected {q.poses_rejected}); wheel increments used "
-        f"{q.increments_used} (rejected {q.increments_rejected}); time offset "
-        f"{q.time_offset * 1e3:.2f} ms ({q.time_offset_mode}"
-        + (f", std {q.time_offset_std * 1e3:.2f} ms" if q.time_offset_std else "")
-        + ")"
-        + (f"; reduced chi2 {q.reduced_chi2:.3g}" if math.isfinite(q.reduced_chi2) else "")
+        f"{q.increments_used} (rejected {q.increments_rejected}); {offset_text(q)}; "
+        f"reduced chi2 {chi2}"
     )
     if q.method == "paper":
-        lines.append("  (the paper's procedure computes no residual figures)")
+        lines.append("  (the paper's procedure computes no rolling or settled residuals)")
     for s in q.segments:
         # the reported steering angle of the locked module, on one turn: [0, 360) deg
         angle = math.degrees(s.angle) % 360.0
-        figures = (
-            f"fixed-point RMS {s.fixed_point_rms * 1e3:.4f} mm, rolling RMS "
-            f"{s.rolling_rms * 1e3:.4f} mm, settled RMS {s.settled_rms * 1e3:.4f} mm, "
-            if q.method != "paper" and math.isfinite(s.fixed_point_rms)
-            else ""
-        )
-        lines.append(
+        text = (
             f"  segment {s.row + 1}: module {s.static_module} at {angle:7.2f} deg: "
-            f"{figures}poses {s.poses_used}/{s.poses_used + s.poses_rejected}"
+            f"fixed-point RMS {s.fixed_point_rms * 1e3:.4f} mm"
+        )
+        if s.rolling_rms is not None:
+            text += f", rolling RMS {s.rolling_rms * 1e3:.4f} mm"
+        if s.settled_rms is not None:
+            text += f", settled RMS {s.settled_rms * 1e3:.4f} mm"
+        if s.noise_inflation is not None:
+            text += f", noise correlation x{s.noise_inflation:.2f}"
+        lines.append(text + f", poses {s.poses_used}/{s.poses_used + s.poses_rejected}")
+    inflation = [s.noise_inflation for s in q.segments if s.noise_inflation is not None]
+    if inflation and max(inflation) > 1.2:
+        lines.append(
+            f"  the pose noise is correlated from frame to frame: std devs are up to "
+            f"{max(inflation):.2f}x what white noise of its size would give (included above)"
         )
     return "\n".join(lines)
+
+
+def offset_text(q: CalibrationResult) -> str:
+    """The clock offset in words: value, how it was obtained, std dev."""
+    if q.time_offset_mode == "not observable":
+        return (
+            "time offset not observable from these data (no acceleration in the "
+            f"recorded spins): {q.time_offset * 1e3:.2f} ms assumed, harmless for that reason"
+        )
+    std = f", std {q.time_offset_std * 1e3:.3f} ms" if q.time_offset_std is not None else ""
+    return f"time offset {q.time_offset * 1e3:.3f} ms ({q.time_offset_mode}{std})"

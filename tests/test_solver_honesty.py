@@ -1,0 +1,274 @@
+"""The solver tells the truth about itself: correlated noise, clock offset, slow slip, bad data.
+
+One run each (statistics over many seeds are in ``python -m benchmarks solver``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.cli import main as swpc_main
+from simulators.datagen import ExperimentOptions, PartialSlip, generate_experiment
+from swpc_hw.calibration.baseline import solve_paper, widest_pair
+from swpc_hw.calibration.fixed_point import fit_fixed_point
+from swpc_hw.calibration.plausibility import check_dataset, jitter_sigma
+from swpc_hw.calibration.prepare import prepare_segments
+from swpc_hw.calibration.solver import SolverOptions, solve
+from swpc_hw.calibration.uncertainty import long_run_covariance
+from swpc_hw.dataset import Dataset, save_dataset
+from swpc_hw.errors import ImplausibleDataError
+from swpc_hw.model import RobotParams
+from swpc_hw.paper_robot import PAPER_CALIBRATED
+
+NAMES = ("x_s", "y_s", "beta", "b", "r")
+MOCAP = ExperimentOptions(
+    pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05), spin_duration=6.0, seed=21
+)
+
+
+def as_array(p: RobotParams) -> np.ndarray:
+    return np.array([[getattr(m, k) for k in NAMES] for m in p.modules])
+
+
+def z_scores(res: object) -> np.ndarray:
+    r = res
+    return (as_array(r.params) - as_array(PAPER_CALIBRATED)) / r.stddev_array()  # type: ignore[attr-defined]
+
+
+# ------------------------------------------------------------------ correlated noise
+
+
+def test_long_run_variance_of_ar1_noise_with_gaps() -> None:
+    """Var(sum) of AR(1) noise is (1 + rho) / (1 - rho) times the white value; 20 % gaps."""
+    rng = np.random.default_rng(1)
+    rho, T = 0.8, 40_000
+    w = rng.normal(size=T)
+    x = np.empty(T)
+    x[0] = w[0]
+    for t in range(1, T):
+        x[t] = rho * x[t - 1] + math.sqrt(1 - rho * rho) * w[t]
+    present = rng.uniform(size=T) > 0.2
+    S = np.where(present, x, 0.0)[:, None]
+    omega, rho_hat, _ = long_run_covariance(S, present)
+    assert rho_hat == pytest.approx(rho, abs=0.02)
+    # Var(sum of the present samples) = sum_{i,j present} rho^|i-j| = sum_k c_k rho^|k|
+    p = present.astype(float)
+    pairs = [float(p[: T - k] @ p[k:]) for k in range(150)]
+    expected = pairs[0] + 2 * sum(c * rho**k for k, c in enumerate(pairs) if k > 0)
+    assert expected < 0.85 * present.sum() * (1 + rho) / (1 - rho)  # the gaps matter
+    assert omega[0, 0] == pytest.approx(expected, rel=0.1)
+    white, rho_w, _ = long_run_covariance(w[:, None], np.ones(T, dtype=bool))
+    assert white[0, 0] == pytest.approx(T, rel=0.05)
+    assert abs(rho_w) < 0.02
+
+
+def test_correlated_mocap_noise_inflates_the_std_devs_and_says_so() -> None:
+    white = solve(generate_experiment(PAPER_CALIBRATED, MOCAP).dataset)
+    ar1 = solve(
+        generate_experiment(
+            PAPER_CALIBRATED, dataclasses.replace(MOCAP, pose_noise_rho=0.8)
+        ).dataset
+    )
+    ratio = ar1.stddev_array() / white.stddev_array()
+    # AR(1) with rho 0.8: sqrt((1 + rho) / (1 - rho)) = 3 on what the poses determine
+    assert np.median(ratio[:, [0, 1, 4]]) == pytest.approx(3.0, rel=0.25)
+    assert all(2.3 < s.noise_inflation < 3.6 for s in ar1.segments)  # type: ignore[operator]
+    assert all(0.85 < s.noise_inflation < 1.15 for s in white.segments)  # type: ignore[operator]
+    for res in (white, ar1):
+        assert np.abs(z_scores(res)).max() < 4.0
+
+
+# ------------------------------------------------------------------ clock offset
+
+
+def test_clock_offset_estimate_and_its_std_dev_with_mocap_noise() -> None:
+    ds = generate_experiment(PAPER_CALIBRATED, dataclasses.replace(MOCAP, clock_offset=0.2)).dataset
+    res = solve(ds, SolverOptions(time_offset="auto"))
+    assert res.time_offset_mode == "estimated"
+    assert res.time_offset_std is not None and 2e-5 < res.time_offset_std < 1e-3
+    err = res.time_offset - 0.2
+    assert abs(err) < 1e-3
+    assert abs(err) < 3.0 * res.time_offset_std
+    assert np.abs(z_scores(res)).max() < 4.0
+
+
+def test_a_clock_offset_steady_spins_cannot_show_is_reported_not_observable() -> None:
+    """Poses and encoders only inside the segments (steady spins): no information."""
+    exp = generate_experiment(PAPER_CALIBRATED, dataclasses.replace(MOCAP, clock_offset=-0.1))
+    ds = exp.dataset
+
+    def inside(t: np.ndarray) -> np.ndarray:
+        return np.any([(t >= s.start) & (t <= s.end) for s in ds.segments], axis=0)
+
+    only = Dataset(
+        ds.robot,
+        ds.poses[inside(ds.poses[:, 0])],
+        {m: e[inside(e[:, 0] + 0.1)] for m, e in ds.encoders.items()},
+        ds.segments,
+    )
+    res = solve(only, SolverOptions(time_offset="auto"))
+    assert res.time_offset_mode == "not observable"
+    assert (res.time_offset, res.time_offset_std) == (0.0, None)
+    assert np.abs(z_scores(res)).max() < 4.0  # and harmless: the parameters are right
+
+
+# ------------------------------------------------------------------ slow slip
+
+
+def test_a_wheel_slipping_0_4_percent_over_part_of_two_segments_is_cut_out() -> None:
+    slips = (PartialSlip(2, 0, 0.5, 1.0, 0.004), PartialSlip(2, 4, 0.0, 0.5, 0.004))
+    opts = dataclasses.replace(MOCAP, partial_slips=slips, spin_duration=8.0, seed=3001)
+    res = solve(generate_experiment(PAPER_CALIBRATED, opts).dataset)
+    rejected = {q.row: q.increments_rejected for q in res.segments}
+    assert rejected[0] >= 15 and rejected[4] >= 15  # ~2 s and more of each 4 s slip
+    assert sum(rejected.values()) - rejected[0] - rejected[4] <= 10
+    assert np.abs(z_scores(res)).max() < 3.5
+
+
+# ------------------------------------------------------------------ bad data
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("run")
+    generate_experiment(PAPER_CALIBRATED, MOCAP).save(d)
+    return d
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.mkdir()
+    for f in src.iterdir():
+        (dst / f.name).write_bytes(f.read_bytes())
+    return dst
+
+
+def _map_poses(path: Path, f: object) -> None:
+    lines = path.read_text().splitlines()
+    rows = [[float(v) for v in ln.split(",")] for ln in lines[1:]]
+    rows = [f(r) for r in rows]  # type: ignore[operator]
+    path.write_text("\n".join([lines[0], *(",".join(f"{v:.9f}" for v in r) for r in rows)]) + "\n")
+
+
+def _jump_back(path: Path) -> None:
+    lines = path.read_text().splitlines()
+    half = len(lines) // 2
+    moved = [f"{float(ln.split(',', 1)[0]) - 5.0:.6f},{ln.split(',', 1)[1]}" for ln in lines[half:]]
+    path.write_text("\n".join(lines[:half] + moved) + "\n")
+
+
+BAD_DATA = {
+    "poses in millimetres": (
+        lambda d: _map_poses(d / "poses.csv", lambda r: [r[0], r[1] * 1e3, r[2] * 1e3, r[3]]),
+        ["poses look like millimetres"],
+    ),
+    "yaw in degrees": (
+        lambda d: _map_poses(d / "poses.csv", lambda r: [*r[:3], math.degrees(r[3])]),
+        ["yaw looks like degrees"],
+    ),
+    "pose clock jumps back 5 s": (
+        lambda d: _jump_back(d / "poses.csv"),
+        ["poses.csv: t: the clock jumps back 4.990 s", "not one monotonic clock"],
+    ),
+    "header-only poses": (
+        lambda d: (d / "poses.csv").write_text("t,x,y,yaw\n"),
+        ["poses.csv: no data rows"],
+    ),
+    "paper method with an automatic clock offset": (
+        lambda d: None,
+        ["--time-offset auto is not available with --method paper"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_DATA))
+def test_bad_data_is_refused_with_a_one_line_reason(
+    case: str, run_dir: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    mutate, messages = BAD_DATA[case]
+    d = _copy(run_dir, tmp_path / "ds")
+    mutate(d)
+    out = tmp_path / "k.yaml"
+    extra = ["--method", "paper", "--time-offset", "auto"] if "paper" in case else []
+    assert swpc_main(["solve", str(d), "-o", str(out), *extra]) == 2
+    captured = capfd.readouterr()
+    err = captured.err.strip()
+    assert "\n" not in err and "Warning" not in err  # one line, no numpy warnings
+    for m in messages:
+        assert m in err
+    assert not out.exists()
+
+
+def test_a_sorted_file_of_a_jumped_clock_is_refused_by_its_fixed_points(run_dir: Path) -> None:
+    """Sorted, the two overlapping streams interleave: their segments are no fixed point."""
+    from swpc_hw.dataset import load_dataset
+
+    ds = load_dataset(run_dir)
+    half = ds.poses.shape[0] // 2
+    jumped = ds.poses.copy()
+    jumped[half:, 0] -= 5.003
+    jumped = jumped[np.argsort(jumped[:, 0], kind="stable")]
+    with pytest.raises(ImplausibleDataError, match="did not turn about one point"):
+        solve(Dataset(ds.robot, jumped, ds.encoders, ds.segments))
+    dup = ds.poses.copy()
+    dup[half:, 0] -= 5.0  # on the same 100 Hz grid: timestamps carry two poses
+    dup = dup[np.argsort(dup[:, 0], kind="stable")]
+    with pytest.raises(ImplausibleDataError, match="carry two different poses"):
+        check_dataset(Dataset(ds.robot, dup, ds.encoders, ds.segments))
+
+
+def test_jitter_measures_the_white_pose_noise(run_dir: Path) -> None:
+    from swpc_hw.dataset import load_dataset
+
+    sd = prepare_segments(load_dataset(run_dir))[0]
+    assert jitter_sigma(sd.poses[:, 0], sd.poses[:, 1]) == pytest.approx(0.5e-3, rel=0.15)
+    assert fit_fixed_point(sd.poses).rms == pytest.approx(
+        math.sqrt(2 * 0.5e-3**2 + 0.3**2 * math.radians(0.05) ** 2), rel=0.15
+    )
+
+
+def test_piping_into_a_reader_that_stops_is_not_an_error(run_dir: Path, tmp_path: Path) -> None:
+    """``swpc solve ... | head -1``: the reader is gone before the table is printed."""
+    out = tmp_path / "k.yaml"
+    cmd = [sys.executable, "-m", "services.cli", "solve", str(run_dir), "-o", str(out)]
+    proc = subprocess.Popen(
+        [*cmd, "--method", "paper"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # before the child has solved anything
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 0, err
+    assert "Traceback" not in err and "BrokenPipe" not in err
+    assert out.exists()
+
+
+# ------------------------------------------------------------------ the paper's baseline
+
+
+def test_the_paper_takes_the_widest_pair_of_angles() -> None:
+    rad = [math.radians(a) for a in (30.0, 90.0, 250.0)]
+    assert widest_pair(rad) == (rad[1], rad[2])  # 160 deg apart, the others 60 and 140
+    assert widest_pair(rad[:2]) == (rad[0], rad[1])
+
+
+def test_the_paper_report_has_no_nan_and_refuses_short_spins(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "k.yaml"
+    assert swpc_main(["solve", str(run_dir), "-o", str(out), "--method", "paper"]) == 0
+    text = capsys.readouterr().out
+    assert "nan" not in text.lower() and "reduced chi2 n/a" in text
+    short = dataclasses.replace(MOCAP, spin_duration=0.7)  # 20 deg per segment
+    ds = generate_experiment(PAPER_CALIBRATED, short).dataset
+    refused = r"turned (19|20)\.\d deg: the paper.s circle fit"
+    with pytest.raises(ImplausibleDataError, match=refused):
+        solve_paper(ds)
+    res = solve(ds)  # the joint solver says what such data are worth
+    assert np.abs(z_scores(res)).max() < 4.0
+    save_dataset(tmp_path / "short", ds)
