@@ -10,6 +10,15 @@
 3. The same with 20 % pose dropouts, 1 % outlier poses (5 cm) and wheel slip bursts on
    the dynamic wheels: growth of the joint solver's RMSE versus the clean case.
 4. Wall time of one full run (4 modules, 2 angles, 12 s per spin).
+5. Honesty of the std devs: z = error / reported std dev of every parameter kind (and of
+   the clock offset, estimated in these runs) over the seeds, with white and with AR(1)
+   (rho 0.8) mocap noise: RMS z (1 when the std devs are right) and the share with
+   |z| <= 1.96 (0.95 when right).  Truth: Table 4 perturbed per seed (P_s +-5 %, beta
+   +-3 deg, b and r +-2 %), so that the encoders' quantization errors differ between
+   seeds as between real runs; a true clock offset uniform in +-100 ms per seed.
+6. The clock offset alone, default noise: true offsets 0, 30 and 200 ms; and a dataset of
+   steady spins only (poses and encoders inside the segments), where it is not
+   observable.
 
 ``SWPC_BENCH_SEEDS`` and ``SWPC_BENCH_TRIALS`` shrink the run for a quick look.
 """
@@ -27,9 +36,10 @@ from simulators.datagen import ExperimentOptions, generate_experiment
 from simulators.random_robots import batch_experiment, random_robots
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.baseline import solve_paper
-from swpc_hw.calibration.solver import CalibrationResult, solve
+from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
+from swpc_hw.dataset import Dataset
 from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 DISPLAY = np.array([1e3, 1e3, 180.0 / math.pi, 1e3, 1e3])  # mm, mm, deg, mm, mm
@@ -128,6 +138,87 @@ def accuracy(seeds: int, robust: bool) -> tuple[np.ndarray, np.ndarray, float]:
     return rmse_p, rmse_j, float(np.median(times))
 
 
+MOCAP = ExperimentOptions(pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05))
+
+
+def z_statistics(seeds: int, rho: float) -> np.ndarray:
+    """(seeds * N, 6) z of x_s, y_s, beta, b, r, offset (offset repeated per module)."""
+    robots = random_robots(
+        seeds, np.random.default_rng(22), PAPER_CALIBRATED,
+        pos_frac=0.05, beta_max=math.radians(3.0), br_frac=0.02,
+    )
+    offsets = np.random.default_rng(23).uniform(-0.1, 0.1, seeds)
+    rows = []
+    for i in range(seeds):
+        truth = robots.robot(i, PAPER_CALIBRATED.ids)
+        opts = dataclasses.replace(
+            MOCAP, pose_noise_rho=rho, clock_offset=float(offsets[i]), seed=4000 + i
+        )
+        ds = generate_experiment(truth, opts, PAPER_NOMINAL).dataset
+        res = solve(ds, SolverOptions(time_offset="auto"))
+        z = (result_array(res) - params_array(truth)) / res.stddev_array()
+        std = res.time_offset_std if res.time_offset_std is not None else math.nan
+        z_off = (res.time_offset - offsets[i]) / std
+        rows.append(np.column_stack([z, np.full(z.shape[0], z_off)]))
+    return np.vstack(rows)
+
+
+def honesty(seeds: int) -> None:
+    print(
+        f"\n[z] z = error / reported std dev, {seeds} seeds x 4 modules, mocap 0.5 mm / "
+        "0.05 deg, clock offset estimated (true: uniform +-100 ms)"
+    )
+    print(
+        f"[z] {'param':<7} {'white RMS z':>11} {'cover95':>8} "
+        f"{'AR(1) 0.8 RMS z':>16} {'cover95':>8}"
+    )
+    t0 = time.perf_counter()
+    Zw, Za = z_statistics(seeds, 0.0), z_statistics(seeds, 0.8)
+    for i, k in enumerate((*NAMES, "offset")):
+        w, a = Zw[:, i], Za[:, i]
+        if k == "offset":  # one value per run
+            w, a = w[::4], a[::4]
+        print(
+            f"[z] {k:<7} {np.sqrt(np.mean(w**2)):11.2f} {np.mean(np.abs(w) <= 1.96):8.3f} "
+            f"{np.sqrt(np.mean(a**2)):16.2f} {np.mean(np.abs(a) <= 1.96):8.3f}"
+        )
+    print("[z] goal: RMS z within 0.7-1.5 and cover95 >= 0.9 for every kind, both noises")
+    print(f"[z] ({time.perf_counter() - t0:.1f} s)")
+
+
+def clock_offset(seeds: int) -> None:
+    print(f"\n[offset] --time-offset auto, mocap 0.5 mm / 0.05 deg, {seeds} seeds per offset")
+    print(f"[offset] {'true':>7} {'max |err|':>10} {'mean std':>9} {'max |z|':>8}")
+    for true in (0.0, 0.03, 0.2):
+        err, std = [], []
+        for seed in range(seeds):
+            opts = dataclasses.replace(MOCAP, clock_offset=true, seed=5000 + seed)
+            res = solve(generate_experiment(PAPER_CALIBRATED, opts).dataset,
+                        SolverOptions(time_offset="auto"))
+            err.append(res.time_offset - true)
+            std.append(res.time_offset_std if res.time_offset_std is not None else math.nan)
+        e, s = np.array(err), np.array(std)
+        print(
+            f"[offset] {true * 1e3:5.0f}ms {np.abs(e).max() * 1e3:8.3f}ms {s.mean() * 1e3:7.3f}ms "
+            f"{np.abs(e / s).max():8.2f}"
+        )
+    print("[offset] goal: error <= 1 ms, |z| <= 3")
+    ds = generate_experiment(PAPER_CALIBRATED, dataclasses.replace(MOCAP, clock_offset=0.2)).dataset
+
+    def inside(t: np.ndarray) -> np.ndarray:
+        return np.any([(t >= s.start) & (t <= s.end) for s in ds.segments], axis=0)
+
+    only = Dataset(
+        ds.robot, ds.poses[inside(ds.poses[:, 0])],
+        {m: e[inside(e[:, 0] - 0.2)] for m, e in ds.encoders.items()}, ds.segments,
+    )
+    res = solve(only, SolverOptions(time_offset="auto"))
+    print(
+        f"[offset] steady spins only (true 200 ms): {res.time_offset_mode}, "
+        f"{res.time_offset * 1e3:.1f} ms assumed"
+    )
+
+
 def main() -> None:
     trials = int(os.environ.get("SWPC_BENCH_TRIALS", "10000"))
     seeds = int(os.environ.get("SWPC_BENCH_SEEDS", "20"))
@@ -162,6 +253,9 @@ def main() -> None:
         f"\n[timing] one full run (4 modules, 2 angles, 12 s spins): median solve "
         f"{t_clean:.3f} s clean, {t_rob:.3f} s robust (goal <= 1 s)"
     )
+
+    honesty(seeds)
+    clock_offset(max(3, seeds // 4))
 
 
 if __name__ == "__main__":
