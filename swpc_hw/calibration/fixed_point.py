@@ -5,9 +5,10 @@ During a spin about the locked module every pose satisfies ``p_i + R(yaw_i) C_R 
 Eliminating ``C_W`` leaves ``C_R = -I^-1 sum_i A_i^T (p_i - p_bar)`` with
 ``A_i = R(yaw_i) - R_bar``, ``A_i^T A_i = a_i identity`` and ``I = sum_i a_i``
 (isotropic), so the error of ``C_R`` is ``-I^-1 sum_i s_i`` with the scores
-``s_i = A_i^T e_i`` of the residuals ``e_i``.  White noise of std dev ``sigma`` per coordinate gives ``Cov(C_R) = sigma^2 / I``
-(``I`` = :func:`~swpc_hw.calibration.geometry.fixed_point_information`); correlated noise
-gives ``Omega / I^2`` with ``Omega`` the long-run covariance of the scores
+``s_i = A_i^T e_i`` of the residuals ``e_i``.  White noise of std dev ``sigma`` per
+coordinate gives ``Cov(C_R) = sigma^2 / I`` (``I`` =
+:func:`~swpc_hw.calibration.geometry.fixed_point_information`); correlated noise gives
+``Omega / I^2`` with ``Omega`` the long-run covariance of the scores
 (:func:`swpc_hw.calibration.uncertainty.long_run_covariance`).
 """
 

@@ -87,12 +87,16 @@ def encoder_tracks(ds: Dataset) -> dict[int, EncoderTrack]:
 
 
 def decimate(t: FloatArray, interval: float) -> IntArray:
-    """Indices of samples ~``interval`` apart: every ``round(interval / median dt)``-th."""
+    """Indices of the samples nearest to the grid ``t_0 + k interval`` (each once).
+
+    By time, not by count: dropped samples do not stretch the spacing.
+    """
     if t.size < 2:
         return np.arange(t.size, dtype=np.int64)
-    dt = float(np.median(np.diff(t)))
-    step = max(1, round(interval / max(dt, 1e-9)))
-    return np.arange(0, t.size, step, dtype=np.int64)
+    grid = np.arange(float(t[0]), float(t[-1]) + 0.5 * interval, interval)
+    right = np.clip(np.searchsorted(t, grid), 1, t.size - 1)
+    nearest = np.where(grid - t[right - 1] <= t[right] - grid, right - 1, right)
+    return np.asarray(np.unique(nearest), dtype=np.int64)
 
 
 @dataclass

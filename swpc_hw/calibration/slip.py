@@ -121,9 +121,9 @@ def drift_slip(
     1. The whole series against the model: its slope, with the lever's uncertainty added
        to the slope's std dev.
     2. Within the series, its own slope removed (insensitive to the model): windows of 1,
-       2 and 4 ``chunk`` lengths, half a chunk apart, smallest first; increments of a
-       flagged window are left out of the larger ones, so a large window is cut only for
-       a drift the small ones could not localise.
+       2 and 4 ``chunk`` lengths, half a chunk apart, smallest first; increments of the
+       windows flagged at one length are left out of the larger ones, so a large window
+       is cut only for a drift the small ones could not localise.
     """
     out = np.zeros(inc_res.size, dtype=bool)
     for k in np.unique(ser):
@@ -147,13 +147,55 @@ def drift_slip(
         flagged = np.zeros(idx.size, dtype=bool)
         for scale in DRIFT_SCALES:
             width = scale * chunk
-            for a in np.arange(0.0, max(float(tr[-1]) - 0.5 * width, 0.0) + 1e-9, 0.5 * chunk):
-                win = (tr >= a) & (tr < a + width)
-                sel = win & ok & ~flagged
-                if abs(drift_slope(d, g, sel, sig_inc, var_factor)[1]) > drift_sigmas:
-                    flagged |= win
+            a = np.arange(0.0, max(float(tr[-1]) - 0.5 * width, 0.0) + 1e-9, 0.5 * chunk)
+            i0 = np.searchsorted(tr, a, side="left")
+            i1 = np.searchsorted(tr, a + width, side="left")
+            usable = ok & ~flagged
+            left_out = np.concatenate([[0], np.cumsum(~usable)])
+            whole = left_out[i1] - left_out[i0] == 0
+            zw = np.zeros(a.size)
+            zw[whole] = window_z(d, g, i0[whole], i1[whole], sig_inc, var_factor)
+            for w in np.flatnonzero(~whole).tolist():
+                sel = usable.copy()
+                sel[: i0[w]] = False
+                sel[i1[w] :] = False
+                zw[w] = drift_slope(d, g, sel, sig_inc, var_factor)[1]
+            for w in np.flatnonzero(np.abs(zw) > drift_sigmas).tolist():
+                flagged[i0[w] : i1[w]] = True
         out[idx] = flagged
     return out
+
+
+def window_z(
+    d: FloatArray, g: FloatArray, i0: IntArray, i1: IntArray, sig_inc: float, var_factor: float
+) -> FloatArray:
+    """:func:`drift_slope`'s z of many windows ``[i0, i1)`` of consecutive increments at once.
+
+    With prefix sums ``P_d[k] = sum_{l<k} d_l`` (likewise ``P_g``) the window's cumulative
+    values are ``P[k] - P[i0]``, ``k = i0+1..i1``, plus the window's first node (0, 0);
+    the regression sums follow from prefix sums of ``P_g``, ``P_d``, ``P_g^2``,
+    ``P_g P_d``.  Windows of fewer than 4 increments get 0.
+    """
+    Pd = np.concatenate([[0.0], np.cumsum(d)])
+    Pg = np.concatenate([[0.0], np.cumsum(g)])
+
+    def span(v: FloatArray) -> FloatArray:  # sum of v[k] for k = i0+1 .. i1
+        c = np.concatenate([[0.0], np.cumsum(v)])
+        return np.asarray(c[i1 + 1] - c[i0 + 1], dtype=float)
+
+    n = (i1 - i0).astype(float)
+    g0, d0 = Pg[i0], Pd[i0]
+    sg, sd = span(Pg) - n * g0, span(Pd) - n * d0
+    sgg = span(Pg * Pg) - 2.0 * g0 * span(Pg) + n * g0 * g0
+    sgd = span(Pg * Pd) - d0 * span(Pg) - g0 * span(Pd) + n * g0 * d0
+    m = n + 1.0
+    sxx = sgg - sg * sg / m
+    sxy = sgd - sg * sd / m
+    ok = (n >= 4) & (sxx > 0)
+    z = np.zeros(n.size)
+    slope = sxy[ok] / sxx[ok]
+    z[ok] = slope / np.sqrt(sig_inc**2 * var_factor / sxx[ok])
+    return z
 
 
 def drift_slope(
@@ -173,17 +215,19 @@ def drift_slope(
     ``std^2 = sig_inc^2 var_factor / S_GG + model_std^2``.  ``(0, 0)`` for fewer than 4
     increments.
     """
-    if int(sel.sum()) < 4:
-        return 0.0, 0.0
     idx = np.flatnonzero(sel)
+    if idx.size < 4:
+        return 0.0, 0.0
     breaks = np.flatnonzero(np.diff(idx) > 1) + 1
     sxy = sxx = 0.0
-    for run in np.split(idx, breaks):
-        e = np.concatenate([[0.0], np.cumsum(d[run])])
-        G = np.concatenate([[0.0], np.cumsum(g[run])])
-        Gc = G - G.mean()
-        sxx += float(Gc @ Gc)
-        sxy += float(Gc @ (e - e.mean()))
+    for run in np.split(idx, breaks) if breaks.size else (idx,):
+        e = np.cumsum(d[run])
+        G = np.cumsum(g[run])
+        # with the run's first node (0, 0) prepended: n + 1 points
+        m = run.size + 1
+        Gm, em = G.sum() / m, e.sum() / m
+        sxx += float(G @ G) - m * Gm * Gm
+        sxy += float(G @ e) - m * Gm * em
     if sxx <= 0:
         return 0.0, 0.0
     slope = sxy / sxx

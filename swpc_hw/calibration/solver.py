@@ -106,6 +106,8 @@ class SolverOptions:
     """A clock offset with a larger std dev (s) is reported as not observable."""
     increment_interval: float = 0.1
     """Spacing (s) of the pose nodes of the rolling block."""
+    node_half_width: float = 0.025
+    """A rolling node is the mean of the inlier poses within this (s) of its grid time."""
     steer_sigma_floor: float | None = None
     """Floor of a settled steering angle's std dev (rad); None: the encoders' quantization
     step over sqrt(12) (:func:`encoder_resolution`)."""
@@ -178,12 +180,27 @@ def settled_steering(
     )
 
 
-def rolling_nodes(segs: list[SegmentData], interval: float) -> list[FloatArray]:
-    """Pose nodes of every segment: its inlier poses, ~``interval`` apart."""
+def rolling_nodes(
+    segs: list[SegmentData], interval: float, half_width: float
+) -> list[FloatArray]:
+    """Pose nodes of every segment, ~``interval`` apart: each the mean (time and pose) of
+    the inlier poses within ``half_width`` of a grid time.
+
+    In a steady spin the yaw is linear in time, so the mean pose is a pose of the motion
+    at the mean time, with the noise of several.
+    """
     out = []
     for sd in segs:
         inl = sd.poses[sd.inliers]
-        out.append(inl[decimate(inl[:, 0], interval)])
+        t = inl[:, 0]
+        rows = []
+        for i in decimate(t, interval).tolist():
+            a, b = np.searchsorted(t, [t[i] - half_width, t[i] + half_width], side="left")
+            b = max(b, i + 1)
+            if b < t.size and t[b] <= t[i] + half_width:
+                b += 1
+            rows.append(inl[a:b].mean(axis=0))
+        out.append(np.array(rows).reshape(-1, 4))
     return out
 
 
@@ -217,7 +234,7 @@ def build_problem(
         tracks,
         ds.robot.ids,
         [s.static for s in segs],
-        rolling_nodes(segs, opts.increment_interval),
+        rolling_nodes(segs, opts.increment_interval, opts.node_half_width),
         offset,
     )
     prob = JointProblem(n, fixed, SettledObservations(seg, mod, theta, sig_theta), series)
