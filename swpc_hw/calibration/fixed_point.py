@@ -15,7 +15,7 @@ coordinate gives ``Cov(C_R) = sigma^2 / I`` (``I`` =
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +52,10 @@ class FixedPointFit:
     inflation: float
     rho: float
     bandwidth: int
+    grid: tuple[float, float] = (0.0, 1.0)
+    """``(t_0, dt)`` of the pose grid the scores live on."""
+    scores: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    """(T, 2) scores ``A_i^T e_i / I`` on that grid: ``C_R``'s error is minus their sum."""
 
     @property
     def std(self) -> float:
@@ -126,4 +130,6 @@ def fit_fixed_point(poses_t: FloatArray, outlier_sigmas: float = 4.0) -> FixedPo
     cov = omega * dof_factor / max(info, 1e-30) ** 2 + floor * np.eye(2)
     white = max(sigma, SIGMA_FLOOR) ** 2 / max(info, 1e-30)
     inflation = math.sqrt(0.5 * float(np.trace(cov)) / white)
-    return FixedPointFit(C_R, C_W, mask, sigma, cov, white, inflation, rho, L)
+    grid = (float(inl[0, 0]), max(dt, 1e-9))
+    per_pose = scores / max(info, 1e-30)
+    return FixedPointFit(C_R, C_W, mask, sigma, cov, white, inflation, rho, L, grid, per_pose)

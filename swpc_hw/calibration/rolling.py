@@ -7,8 +7,9 @@ While the robot spins about the locked contact point ``C`` (in R), a free caster
 
     r_j psi_j(t_l) - G_j(t_l) = c_run,     G_j(t_l) = sum_m (g_m + g_m+1) / 2 (yaw_m+1 - yaw_m)
 
-The nodes are **pose samples** (inliers of the segment's fixed-point fit, ~``interval``
-apart): their yaw is used as measured, never interpolated.  The encoders are smooth
+The nodes are **poses** (inliers of the segment's fixed-point fit, ~``interval`` apart;
+the joint solve takes each as the mean of the inlier poses within a few frames): their
+yaw is used as measured, never interpolated between poses.  The encoders are smooth
 functions of time (:class:`EncoderTrack`, cubic splines through the samples), evaluated
 at the node times shifted by the clock offset.  So a change of the clock offset moves
 the encoder values smoothly and never re-selects a sample: the cost is smooth in it.

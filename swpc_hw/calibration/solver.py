@@ -379,13 +379,61 @@ def rolling_long_run(prob: JointProblem, J_C: FloatArray, f_C: FloatArray) -> Fl
     return M
 
 
-def joint_covariance(prob: JointProblem, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+def cross_long_run(
+    prob: JointProblem, J_A: FloatArray, J_C: FloatArray, f_C: FloatArray,
+    fits: list[FixedPointFit],
+) -> FloatArray:
+    """``M_AC + M_AC^T``: the fixed-point and rolling blocks share the poses' noise.
+
+    Per segment, on its pose grid: the fixed-point block's per-pose scores
+    ``q_i = J_s^T W_s s_i / I`` (``s_i`` of :func:`~.fixed_point.fit_fixed_point`) and the
+    rolling scores ``c_l = J_l^T f_l`` at their nodes' grid index;
+    ``M_AC = sum_{|k| <= L} (1 - |k| / (L + 1)) sum_t q_t c_t+k^T`` with ``L`` six
+    integrated autocorrelation times of AR(1) scores (``rho`` of the fit) plus the
+    nodes' half width.
+    """
+    fx, series = prob.fixed, prob.rolling
+    p = J_A.shape[1]
+    M = np.zeros((p, p))
+    clean = series.clean
+    seg_c, t_c = series.seg[clean], series.t[clean]
+    c_scores = J_C * f_C[:, None]
+    for s, fit in enumerate(fits):
+        sel = seg_c == s
+        if not sel.any() or fit.scores.shape[0] == 0:
+            continue
+        Js = J_A[2 * s : 2 * s + 2]
+        Q = fit.scores @ (Js.T @ fx.whiten[s]).T  # (T, p): per pose J_s^T W_s s_i / I
+        t0, dt = fit.grid
+        k = np.rint((t_c[sel] - t0) / dt).astype(np.int64)
+        inside = (k >= 0) & (k < Q.shape[0])
+        Cq = np.zeros_like(Q)
+        np.add.at(Cq, k[inside], c_scores[sel][inside])
+        rho = min(max(fit.rho, 0.0), 0.97)
+        L = min(math.ceil(6.0 * (1.0 + rho) / (1.0 - rho)) + 3, Q.shape[0] - 1)
+        cross = Q.T @ Cq
+        for lag in range(1, L + 1):
+            w = 1.0 - lag / (L + 1.0)
+            cross += w * (Q[:-lag].T @ Cq[lag:] + Q[lag:].T @ Cq[:-lag])
+        M += cross + cross.T
+    return M
+
+
+def joint_covariance(
+    prob: JointProblem, x: FloatArray, fits: list[FixedPointFit]
+) -> tuple[FloatArray, FloatArray]:
     """``(Cov, f)``: the sandwich covariance (5N, 5N) at ``x`` and the weighted residuals."""
     J = numeric_jacobian(prob.residuals, x)
     f = prob.residuals(x)
     nA, nB, _ = prob.block_sizes()
     J_A, J_B, J_C = J[:nA], J[nA : nA + nB], J[nA + nB :]
-    M = fixed_point_long_run(prob, J_A) + J_B.T @ J_B + rolling_long_run(prob, J_C, f[nA + nB :])
+    f_C = f[nA + nB :]
+    M = (
+        fixed_point_long_run(prob, J_A)
+        + J_B.T @ J_B
+        + rolling_long_run(prob, J_C, f_C)
+        + cross_long_run(prob, J_A, J_C, f_C, fits)
+    )
     return sandwich_covariance(J, M), f
 
 
@@ -425,7 +473,7 @@ def solve(
     x, slip = fit_joint(prob, X0, opts, fits, encoder_resolution(ds, 2))
     X = as_matrix(x, n)
     plausibility.check_result(X, ds.robot)
-    cov, f = joint_covariance(prob, x)
+    cov, f = joint_covariance(prob, x, fits)
     std = as_matrix(stddev_of(cov), n)
     dof = max(f.size - x.size, 1)
     params = RobotParams.from_arrays(
