@@ -87,6 +87,20 @@ def encoder_tracks(ds: Dataset) -> dict[int, EncoderTrack]:
     }
 
 
+def encoder_resolution(ds: Dataset, column: int = 1) -> float:
+    """Quantization step of the encoders (rad; column 1 steering, 2 wheel): the smallest
+    step between the distinct reported values of a module, the median over modules
+    (1e-9 at least)."""
+    steps = []
+    for rows in ds.encoders.values():
+        u = np.unique(rows[:, column])
+        d = np.diff(u)
+        d = d[d > 0]
+        if d.size:
+            steps.append(float(d.min()))
+    return max(float(np.median(steps)) if steps else 0.0, 1e-9)
+
+
 def decimate(t: FloatArray, interval: float) -> IntArray:
     """Indices of the samples nearest to the grid ``t_0 + k interval`` (each once).
 

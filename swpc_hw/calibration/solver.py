@@ -58,6 +58,7 @@ from swpc_hw.calibration.rolling import (
     build_rolling_series,
     cut_runs,
     decimate,
+    encoder_resolution,
     encoder_tracks,
     profiled_series_radius,
     rolling_increments,
@@ -137,20 +138,6 @@ def closed_form_geometry(fits: list[FixedPointFit], segs: list[SegmentData], n: 
         P_s, b, beta = geo.steering_circle_fit(pts, angles)
         X[i, P_S], X[i, BETA], X[i, B_COL] = P_s, beta, b
     return X
-
-
-def encoder_resolution(ds: Dataset, column: int = 1) -> float:
-    """Quantization step of the encoders (rad; column 1 steering, 2 wheel): the smallest
-    step between the distinct reported values of a module, the median over modules
-    (1e-9 at least)."""
-    steps = []
-    for rows in ds.encoders.values():
-        u = np.unique(rows[:, column])
-        d = np.diff(u)
-        d = d[d > 0]
-        if d.size:
-            steps.append(float(d.min()))
-    return max(float(np.median(steps)) if steps else 0.0, 1e-9)
 
 
 def settled_steering(
@@ -473,6 +460,9 @@ def solve(
     x, slip = fit_joint(prob, X0, opts, fits, encoder_resolution(ds, 2))
     X = as_matrix(x, n)
     plausibility.check_result(X, ds.robot)
+    if clock.mode == "estimated":  # refined with the solution's levers
+        C = prob.contact_points(X)
+        clock = estimate_clock_offset(ds, segs, X, C, tracks, opts, around=clock.value)
     cov, f = joint_covariance(prob, x, fits)
     std = as_matrix(stddev_of(cov), n)
     dof = max(f.size - x.size, 1)
@@ -497,7 +487,7 @@ def solve(
         params=params,
         nominal=ds.robot,
         segments=segment_quality(prob, segs, fits, x, ids, slip),
-        time_offset=offset,
+        time_offset=clock.value if clock.mode == "estimated" else offset,
         time_offset_std=clock.std,
         time_offset_mode=clock.mode,
         poses_used=int(sum(int(s.inliers.sum()) for s in segs)),
