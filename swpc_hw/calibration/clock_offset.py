@@ -63,6 +63,8 @@ if TYPE_CHECKING:
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+REFINE_HALF_WIDTH = 0.002
+"""Half width (s) of the refinement's search around a previous estimate."""
 HOLD_TOLERANCE = math.radians(0.02)
 """The locked module is holding its angle while within this of it (rad), or within three
 encoder counts if those are coarser.  Tight: as the locked module starts to re-steer the
@@ -173,7 +175,7 @@ def estimate_clock_offset(
     """Estimate the clock offset (module docstring).  ``C``: (S, 2) contact points of ``segs``.
 
     ``around``: a previous estimate (with cruder parameters ``X``): the coarse grid is
-    skipped and the fine search spans one grid step either side of it.
+    skipped and the fine search spans :data:`REFINE_HALF_WIDTH` either side of it.
     """
     ids = ds.robot.ids
     lo, hi = opts.offset_bounds
@@ -221,11 +223,12 @@ def estimate_clock_offset(
         s.run = runs
         return profiled_rolling_residuals(X, C_kept, s) / sigma[s.ser[runs >= 0]]
 
+    half = step if around is None else REFINE_HALF_WIDTH
     res = minimize_scalar(
         lambda d: float(np.sum(residuals(d) ** 2)),
-        bounds=(max(lo, best - step), min(hi, best + step)),
+        bounds=(max(lo, best - half), min(hi, best + half)),
         method="bounded",
-        options={"xatol": 1e-7},
+        options={"xatol": 1e-6},
     )
     value = float(res.x)
     std = _sandwich_std(residuals, value, s_best, runs)

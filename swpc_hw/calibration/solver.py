@@ -66,6 +66,7 @@ from swpc_hw.calibration.rolling import (
 )
 from swpc_hw.calibration.slip import detect_slip, mad_sigma
 from swpc_hw.calibration.uncertainty import (
+    bartlett_smooth,
     dense_rows,
     long_run_covariance,
     numeric_jacobian,
@@ -99,8 +100,9 @@ class SolverOptions:
     """Encoder clock minus pose clock (s), or ``"auto"`` to estimate it."""
     offset_bounds: tuple[float, float] = (-0.25, 0.25)
     """Search range of the clock offset (s)."""
-    offset_grid_step: float = 0.005
-    """Coarse grid step of the clock-offset search (s)."""
+    offset_grid_step: float = 0.01
+    """Coarse grid step of the clock-offset search (s); the cost is smooth, its basin
+    tens of milliseconds wide (the ramps last a second)."""
     offset_node_interval: float = 0.02
     """Spacing of the pose nodes of the clock-offset cost (s)."""
     offset_max_std: float = 0.005
@@ -398,10 +400,7 @@ def cross_long_run(
         np.add.at(Cq, k[inside], c_scores[sel][inside])
         rho = min(max(fit.rho, 0.0), 0.97)
         L = min(math.ceil(6.0 * (1.0 + rho) / (1.0 - rho)) + 3, Q.shape[0] - 1)
-        cross = Q.T @ Cq
-        for lag in range(1, L + 1):
-            w = 1.0 - lag / (L + 1.0)
-            cross += w * (Q[:-lag].T @ Cq[lag:] + Q[lag:].T @ Cq[:-lag])
+        cross = bartlett_smooth(Q, L).T @ Cq
         M += cross + cross.T
     return M
 

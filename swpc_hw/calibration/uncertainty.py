@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import lfilter
+from scipy.signal import fftconvolve, lfilter
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -67,18 +67,30 @@ def lag1_autocorrelation(e: FloatArray, present: BoolArray) -> float:
     return float(np.sum(a * b)) / den if den > 0 else 0.0
 
 
+def bartlett_weights(bandwidth: int) -> FloatArray:
+    """``w_k = 1 - |k| / (L + 1)`` for ``k = -L..L``."""
+    k = np.arange(-bandwidth, bandwidth + 1, dtype=float)
+    return np.asarray(1.0 - np.abs(k) / (bandwidth + 1.0), dtype=float)
+
+
+def bartlett_smooth(S: FloatArray, bandwidth: int) -> FloatArray:
+    """``sum_{|k| <= L} w_k s_t+k`` for every t (zero beyond the ends), (T, p)."""
+    if bandwidth <= 0 or S.shape[0] == 0:
+        return S.copy()
+    w = bartlett_weights(bandwidth)
+    return np.asarray(fftconvolve(S, w[:, None], mode="same", axes=0), dtype=float)
+
+
 def bartlett_covariance(S: FloatArray, bandwidth: int) -> FloatArray:
     """``Gamma_0 + sum_{k=1..L} (1 - k / (L + 1)) (Gamma_k + Gamma_k^T)`` of ``S`` (T, p).
 
+    ``= sum_t s_t (sum_{|k| <= L} w_k s_t+k)^T`` (:func:`bartlett_smooth`, by FFT).
     Positive semi-definite by construction (the Bartlett window has a non-negative
     spectrum).
     """
-    T = S.shape[0]
-    omega = S.T @ S
-    for k in range(1, min(bandwidth, T - 1) + 1):
-        gamma = S[:-k].T @ S[k:]
-        omega += (1.0 - k / (bandwidth + 1.0)) * (gamma + gamma.T)
-    return np.asarray(omega, dtype=float)
+    L = min(bandwidth, max(S.shape[0] - 1, 0))
+    omega = S.T @ bartlett_smooth(S, L)
+    return np.asarray(0.5 * (omega + omega.T), dtype=float)
 
 
 def ar1_innovations(S: FloatArray, present: BoolArray, rho: float) -> FloatArray:
