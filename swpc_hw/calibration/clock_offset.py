@@ -34,13 +34,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize_scalar
 
 from swpc_hw.calibration.fixed_point import robust_fixed_point
+from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.prepare import SegmentData
 from swpc_hw.calibration.rolling import (
     EncoderTrack,
@@ -56,9 +56,6 @@ from swpc_hw.calibration.slip import burst_slip, mad_sigma
 from swpc_hw.calibration.uncertainty import dense_rows, long_run_covariance
 from swpc_hw.dataset import Dataset
 from swpc_hw.errors import ImplausibleDataError
-
-if TYPE_CHECKING:
-    from swpc_hw.calibration.solver import SolverOptions
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

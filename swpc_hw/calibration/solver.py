@@ -15,18 +15,17 @@ Unknowns: for every module i, ``x_s, y_s, beta, b, r`` (5N, :mod:`.parameters`).
    blocks) with :func:`scipy.optimize.least_squares` in an IRLS loop that finds slip
    (:mod:`.slip`: bursts and slow drifts, cut out of the rolling runs) and re-estimates
    each block's noise scale.
-6. **Covariance**: the sandwich ``H^-1 M H^-1`` (:mod:`.uncertainty`), ``M`` from the
-   whitened fixed-point and settled-caster blocks and the HAC long-run covariance of the
-   rolling scores (modules of one segment share the yaw noise of each node).
+6. **Covariance** (:mod:`.covariance`): the sandwich ``H^-1 M H^-1``, ``M`` from the
+   fixed points' HAC covariances, the settled-caster block and the HAC long-run
+   covariance of the rolling scores (modules of one segment share the yaw noise of each
+   node).
 7. **Plausibility after solving**: physical values, magnitudes against the nominal robot.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,7 +34,9 @@ from scipy.optimize import least_squares
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration import plausibility
 from swpc_hw.calibration.clock_offset import ClockOffset, estimate_clock_offset
+from swpc_hw.calibration.covariance import joint_covariance
 from swpc_hw.calibration.fixed_point import FixedPointFit, fit_fixed_point
+from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import (
     BETA,
     P_S,
@@ -65,14 +66,7 @@ from swpc_hw.calibration.rolling import (
     rolling_levers,
 )
 from swpc_hw.calibration.slip import detect_slip, mad_sigma
-from swpc_hw.calibration.uncertainty import (
-    bartlett_smooth,
-    dense_rows,
-    long_run_covariance,
-    numeric_jacobian,
-    sandwich_covariance,
-    stddev_of,
-)
+from swpc_hw.calibration.uncertainty import stddev_of
 from swpc_hw.dataset import Dataset, load_dataset
 from swpc_hw.errors import CalibrationError
 from swpc_hw.model import ModuleStddev, RobotParams, contact_point, wrap_angle
@@ -90,41 +84,6 @@ __all__ = [
     "solve",
     "solve_directory",
 ]
-
-
-@dataclass
-class SolverOptions:
-    """Tuning of the joint solver (defaults suit 100 Hz mocap and 200 Hz encoders)."""
-
-    time_offset: float | Literal["auto"] = 0.0
-    """Encoder clock minus pose clock (s), or ``"auto"`` to estimate it."""
-    offset_bounds: tuple[float, float] = (-0.25, 0.25)
-    """Search range of the clock offset (s)."""
-    offset_grid_step: float = 0.01
-    """Coarse grid step of the clock-offset search (s); the cost is smooth, its basin
-    tens of milliseconds wide (the ramps last a second)."""
-    offset_node_interval: float = 0.02
-    """Spacing of the pose nodes of the clock-offset cost (s)."""
-    offset_max_std: float = 0.005
-    """A clock offset with a larger std dev (s) is reported as not observable."""
-    increment_interval: float = 0.1
-    """Spacing (s) of the pose nodes of the rolling block."""
-    node_half_width: float = 0.025
-    """A rolling node is the mean of the inlier poses within this (s) of its grid time."""
-    steer_sigma_floor: float | None = None
-    """Floor of a settled steering angle's std dev (rad); None: the encoders' quantization
-    step over sqrt(12) (:func:`encoder_resolution`)."""
-    outlier_sigmas: float = 4.0
-    """Poses whose fixed-point residual exceeds this many sigmas are rejected."""
-    cauchy_c: float = 2.385
-    """Cauchy constant (in sigmas) of the coarse clock-offset search."""
-    slip_sigmas: float = 4.0
-    """Wheel increments beyond this many robust sigmas are a slip burst."""
-    drift_chunk: float = 2.0
-    """Length (s) of the chunks of a rolling series tested for a slow slip drift."""
-    drift_sigmas: float = 5.0
-    """A chunk whose cumulative rolling residual drifts beyond this many sigmas slips."""
-    irls_iterations: int = 4
 
 
 # ------------------------------------------------------------------ building the problem
@@ -330,97 +289,6 @@ def fit_joint(
         if rms_b > 1.0:  # settled block noisier than its prior: inflate (never deflate)
             prob.settled.sigma = prob.settled.sigma * rms_b
     return x, slip
-
-
-def fixed_point_long_run(prob: JointProblem, J_A: FloatArray) -> FloatArray:
-    """``M`` of the fixed-point block: ``sum_s J_s^T W_s Cov_s W_s^T J_s``.
-
-    ``J_s``: the segment's two weighted rows, ``Cov_s`` its HAC covariance
-    (:func:`~swpc_hw.calibration.fixed_point.fit_fixed_point`).
-    """
-    fx = prob.fixed
-    M = np.zeros((J_A.shape[1], J_A.shape[1]))
-    for s in range(fx.C_hat.shape[0]):
-        Js = J_A[2 * s : 2 * s + 2]
-        M += Js.T @ (fx.whiten[s] @ fx.covariance[s] @ fx.whiten[s].T) @ Js
-    return M
-
-
-def rolling_long_run(prob: JointProblem, J_C: FloatArray, f_C: FloatArray) -> FloatArray:
-    """``M`` of the rolling block: HAC long-run covariance of its scores, per segment.
-
-    The scores ``J_l^T f_l`` of all modules at one pose node are summed (they share its
-    yaw noise); the sequence over the nodes of a segment gets the prewhitened Bartlett
-    estimate (:func:`~swpc_hw.calibration.uncertainty.long_run_covariance`).
-    """
-    series = prob.rolling
-    clean = series.clean
-    bins, seg = series.bin[clean], series.seg[clean]
-    scores = J_C * f_C[:, None]
-    M = np.zeros((J_C.shape[1], J_C.shape[1]))
-    for s in np.unique(seg):
-        sel = seg == s
-        k = bins[sel] - int(bins[sel].min())
-        S = dense_rows(k, scores[sel])
-        present = np.zeros(S.shape[0], dtype=bool)
-        present[k] = True
-        M += long_run_covariance(S, present)[0]
-    return M
-
-
-def cross_long_run(
-    prob: JointProblem, J_A: FloatArray, J_C: FloatArray, f_C: FloatArray,
-    fits: list[FixedPointFit],
-) -> FloatArray:
-    """``M_AC + M_AC^T``: the fixed-point and rolling blocks share the poses' noise.
-
-    Per segment, on its pose grid: the fixed-point block's per-pose scores
-    ``q_i = J_s^T W_s s_i / I`` (``s_i`` of :func:`~.fixed_point.fit_fixed_point`) and the
-    rolling scores ``c_l = J_l^T f_l`` at their nodes' grid index;
-    ``M_AC = sum_{|k| <= L} (1 - |k| / (L + 1)) sum_t q_t c_t+k^T`` with ``L`` six
-    integrated autocorrelation times of AR(1) scores (``rho`` of the fit) plus the
-    nodes' half width.
-    """
-    fx, series = prob.fixed, prob.rolling
-    p = J_A.shape[1]
-    M = np.zeros((p, p))
-    clean = series.clean
-    seg_c, t_c = series.seg[clean], series.t[clean]
-    c_scores = J_C * f_C[:, None]
-    for s, fit in enumerate(fits):
-        sel = seg_c == s
-        if not sel.any() or fit.scores.shape[0] == 0:
-            continue
-        Js = J_A[2 * s : 2 * s + 2]
-        Q = fit.scores @ (Js.T @ fx.whiten[s]).T  # (T, p): per pose J_s^T W_s s_i / I
-        t0, dt = fit.grid
-        k = np.rint((t_c[sel] - t0) / dt).astype(np.int64)
-        inside = (k >= 0) & (k < Q.shape[0])
-        Cq = np.zeros_like(Q)
-        np.add.at(Cq, k[inside], c_scores[sel][inside])
-        rho = min(max(fit.rho, 0.0), 0.97)
-        L = min(math.ceil(6.0 * (1.0 + rho) / (1.0 - rho)) + 3, Q.shape[0] - 1)
-        cross = bartlett_smooth(Q, L).T @ Cq
-        M += cross + cross.T
-    return M
-
-
-def joint_covariance(
-    prob: JointProblem, x: FloatArray, fits: list[FixedPointFit]
-) -> tuple[FloatArray, FloatArray]:
-    """``(Cov, f)``: the sandwich covariance (5N, 5N) at ``x`` and the weighted residuals."""
-    J = numeric_jacobian(prob.residuals, x)
-    f = prob.residuals(x)
-    nA, nB, _ = prob.block_sizes()
-    J_A, J_B, J_C = J[:nA], J[nA : nA + nB], J[nA + nB :]
-    f_C = f[nA + nB :]
-    M = (
-        fixed_point_long_run(prob, J_A)
-        + J_B.T @ J_B
-        + rolling_long_run(prob, J_C, f_C)
-        + cross_long_run(prob, J_A, J_C, f_C, fits)
-    )
-    return sandwich_covariance(J, M), f
 
 
 # ------------------------------------------------------------------ the solve
