@@ -77,12 +77,12 @@ def backup_kinematics(path: Path) -> Path | None:
 
 
 def install_kinematics(path: Path, result: CalibrationResult, extra: dict[str, Any]) -> Path | None:
-    """Install the result as the kinematic file in force at ``path`` (atomic replace); the
-    file it replaces is kept beside it (:func:`backup_kinematics`), whose path is
-    returned (None when there was none)."""
+    """Install the result (with its parameters' covariance) as the kinematic file in force
+    at ``path`` (atomic replace); the file it replaces is kept beside it
+    (:func:`backup_kinematics`), whose path is returned (None when there was none)."""
     backup = backup_kinematics(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    save_kinematics(path, result.params, extra=extra)
+    save_kinematics(path, result.params, extra=extra, covariance=result.covariance)
     return backup
 
 
@@ -152,7 +152,9 @@ def write_result(
     ok = within_tolerance(result, config.tolerances)
     installed = install == "always" or (install == "if-within-tolerance" and ok)
     extra = {"provenance": provenance, "quality": result.quality_document()}
-    save_kinematics(run_dir / "kinematics.yaml", result.params, extra=extra)
+    save_kinematics(
+        run_dir / "kinematics.yaml", result.params, extra=extra, covariance=result.covariance
+    )
     backup = install_kinematics(kinematics_path, result, extra) if installed else None
     document = result_document(
         run_id,

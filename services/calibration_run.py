@@ -26,7 +26,8 @@ One place to read it — :data:`TRANSITIONS`::
 * RELEASE: k released; next module.
 * SOLVE: the recorded poses, encoder feedback and segment windows are written as an
   offline dataset (CONVENTIONS.md) and solved by :func:`swpc_hw.calibration.solve` —
-  exactly what ``swpc solve`` does offline.
+  exactly what ``swpc solve`` does offline.  Data or a result the solver's plausibility
+  gates refuse end the run FAILED with the solver's reason; nothing is installed.
 * WRITE: the kinematic file is installed atomically (previous one kept as a timestamped
   backup) unless the std devs exceed the configured tolerances (then reported only,
   unless the request said ``install: always``).
@@ -91,6 +92,7 @@ from services.run_state import (
 from swpc_hw.calibration.solver import CalibrationResult
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.dataset import Dataset, Segment, load_dataset
+from swpc_hw.errors import CalibrationError
 from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
 
 __all__ = [  # the run's vocabulary, importable from here as before the split
@@ -354,7 +356,11 @@ class CalibrationRun(RunMachine):
         return load_dataset(self.run_dir / "dataset")
 
     def _solve(self) -> None:
-        self.result = solve_run(self.journal.close_dataset(self.mocap, self.robot))
+        run_dir = self.journal.close_dataset(self.mocap, self.robot)
+        try:
+            self.result = solve_run(run_dir)
+        except CalibrationError as exc:  # data or result refused: a reason, not a bug
+            raise RunFailedError(f"calibration refused: {exc}") from exc
 
     def within_tolerance(self) -> bool:
         assert self.result is not None

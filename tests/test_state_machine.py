@@ -114,7 +114,15 @@ def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Pa
                     for m in res.params.modules])  # fmt: skip
     assert np.all(np.abs(err[:, [0, 1, 3, 4]]) < 0.05e-3), err
     assert np.all(np.abs(err[:, 2]) < math.radians(0.01)), err
-    assert load_kinematics(rig.kinematics).params.ids == [1, 2, 3]
+    k = load_kinematics(rig.kinematics)
+    assert k.params.ids == [1, 2, 3]
+    # the parameters' full covariance goes with them, its diagonal the std devs
+    assert k.covariance is not None
+    cov = np.array(k.covariance)
+    std = np.array([[getattr(m.stddev, n) for n in NAMES] for m in k.params.modules])
+    assert cov.shape == (15, 15)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), std.ravel(), rtol=1e-9)
+    assert load_kinematics(run.run_dir / "kinematics.yaml").covariance == k.covariance
 
 
 def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
@@ -309,6 +317,34 @@ def test_install_policies(tmp_path: Path) -> None:
     assert run.status.state is State.DONE and run.status.installed is True
     assert run.result_doc is not None and run.result_doc["within_tolerance"] is True
     assert rig.kinematics.exists()
+
+
+def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path) -> None:
+    """robot.yaml with modules 1 and 3 on each other's corners: every fixed point is far
+    from where that robot puts it.  FAILED with the solver's one-line reason; the file in
+    force is untouched, even with ``install: always``."""
+    kinematics = tmp_path / "kinematics.yaml"
+    save_kinematics(kinematics, NOMINAL, created="2026-01-01T00:00:00Z")
+    before = kinematics.read_bytes()
+    m1, m2, m3 = NOMINAL.modules
+    swapped = [
+        m1.model_copy(update={"x_s": m3.x_s, "y_s": m3.y_s}),
+        m2,
+        m3.model_copy(update={"x_s": m1.x_s, "y_s": m1.y_s}),
+    ]
+    rig = Rig(tmp_path, {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}})
+    rig.config = rig.config.model_copy(
+        update={"nominal": NOMINAL.model_copy(update={"modules": swapped})}
+    )
+    rig.kinematics, rig.install = kinematics, "always"
+    run = rig.run()
+    assert run.status.state is State.FAILED and State.SOLVE in rig.states
+    reason = run.status.reason or ""
+    assert reason.startswith("calibration refused: ") and "\n" not in reason
+    assert "robot.yaml describes another robot" in reason
+    assert kinematics.read_bytes() == before and run.result is None
+    assert not (run.run_dir / "kinematics.yaml").exists()
+    assert (run.run_dir / "dataset" / "poses.csv").exists()  # the data is kept
 
 
 def test_terminal_states_have_no_way_out() -> None:
