@@ -24,7 +24,7 @@ from swpc_hw.calibration.solver import SolverOptions, solve
 from swpc_hw.calibration.uncertainty import long_run_covariance
 from swpc_hw.dataset import Dataset, save_dataset
 from swpc_hw.errors import ImplausibleDataError
-from swpc_hw.model import RobotParams
+from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
@@ -257,6 +257,24 @@ def test_the_paper_takes_the_widest_pair_of_angles() -> None:
     rad = [math.radians(a) for a in (30.0, 90.0, 250.0)]
     assert widest_pair(rad) == (rad[1], rad[2])  # 160 deg apart, the others 60 and 140
     assert widest_pair(rad[:2]) == (rad[0], rad[1])
+    # on a run with the three angles: exactly what the widest pair's segments alone give
+    opts = dataclasses.replace(MOCAP, angles=tuple(rad), spin_duration=3.5)
+    ds = generate_experiment(PAPER_CALIBRATED, opts).dataset
+    angle = [sd.angle for sd in prepare_segments(ds)]
+
+    def only(keep: tuple[float, float]) -> Dataset:
+        segs = [
+            s
+            for s, a in zip(ds.segments, angle, strict=True)
+            if min(abs(float(wrap_angle(a - k))) for k in keep) < 1e-3
+        ]
+        assert len(segs) == 8
+        return Dataset(ds.robot, ds.poses, ds.encoders, segs)
+
+    full = as_array(solve_paper(ds).params)
+    np.testing.assert_array_equal(full, as_array(solve_paper(only((rad[1], rad[2]))).params))
+    first_two = as_array(solve_paper(only((rad[0], rad[1]))).params)
+    assert np.all(full != first_two)
 
 
 def test_the_paper_report_has_no_nan_and_refuses_short_spins(
