@@ -15,13 +15,15 @@ import numpy as np
 import pytest
 
 from services.cli import main as swpc_main
-from simulators.datagen import ExperimentOptions, PartialSlip, generate_experiment
+from simulators.datagen import ExperimentOptions, PartialSlip, ar1_noise, generate_experiment
 from swpc_hw.calibration.baseline import solve_paper, widest_pair
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.calibration.plausibility import check_dataset, jitter_sigma
 from swpc_hw.calibration.prepare import prepare_segments
+from swpc_hw.calibration.rolling import RollingSeries
 from swpc_hw.calibration.solver import SolverOptions, solve
-from swpc_hw.calibration.uncertainty import long_run_covariance
+from swpc_hw.calibration.uncertainty import ar1_quadratic_form, long_run_covariance
+from swpc_hw.calibration.yaw_noise import score_variance
 from swpc_hw.dataset import Dataset, save_dataset
 from swpc_hw.errors import ImplausibleDataError
 from swpc_hw.model import RobotParams, wrap_angle
@@ -98,6 +100,46 @@ def test_clock_offset_estimate_and_its_std_dev_with_mocap_noise() -> None:
     assert abs(err) < 1e-3
     assert abs(err) < 3.0 * res.time_offset_std
     assert np.abs(z_scores(res)).max() < 4.0
+
+
+def test_ar1_quadratic_form_is_the_matrix_product() -> None:
+    rng = np.random.default_rng(4)
+    c = rng.normal(size=40)
+    present = rng.uniform(size=40) > 0.3
+    k = np.arange(40)
+    R = 0.7 ** np.abs(k[:, None] - k[None, :])
+    x = np.where(present, c, 0.0)
+    assert ar1_quadratic_form(c, present, 0.7) == pytest.approx(float(x @ R @ x), rel=1e-12)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.64])
+def test_the_variance_of_a_score_sum_while_the_casters_swing_round(rho: float) -> None:
+    """Three casters turning round one after the other while the yaw noise is summed into
+    the cumulative residual: the variance of ``sum a e`` over 200 noise draws against
+    what :func:`score_variance` says from each draw's residuals.  Scores per node with a
+    Bartlett sum (what the clock offset used) read half of it."""
+    K, M = 600, 3
+    t = np.arange(K) * 0.02
+    swing = [np.tanh((t - 0.8 * (i + 1)) / 0.3) for i in range(M)]
+    g = np.concatenate([0.3 * (1 + 0.3 * i) * swing[i] for i in range(M)])
+    ramp = np.exp(-(((t - 1.0) / 0.5) ** 2)) - np.exp(-(((t - 10.0) / 0.5) ** 2))
+    a = np.concatenate([(1 + 0.5 * i) * (ramp - ramp.mean()) for i in range(M)])
+    i0 = np.zeros(K * M, dtype=np.int64)
+    z = np.zeros(K * M)
+    mod = np.repeat(np.arange(M), K)
+    series = RollingSeries(i0, mod, mod, np.tile(np.arange(K), M), np.tile(t, M), z, z, z, run=mod)
+    rng = np.random.default_rng(3)
+    sums, said, per_node = [], [], []
+    for _ in range(200):
+        n = ar1_noise(rng.normal(size=K), rho)
+        G = [np.cumsum(np.r_[0.0, 0.5 * (gi[1:] + gi[:-1]) * np.diff(n)]) for gi in np.split(g, M)]
+        e = -np.concatenate([Gi - Gi.mean() for Gi in G])  # the run's intercept profiled
+        sums.append(float(a @ e))
+        said.append(score_variance(series, g, a, e))
+        per_node.append(long_run_covariance((a * e).reshape(M, K).sum(0)[:, None], t >= 0)[0])
+    var = float(np.var(sums))
+    assert float(np.mean(said)) == pytest.approx(var, rel=0.2)
+    assert float(np.mean(per_node)) < 0.7 * var
 
 
 def test_a_clock_offset_steady_spins_cannot_show_is_reported_not_observable() -> None:

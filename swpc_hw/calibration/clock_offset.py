@@ -20,8 +20,10 @@ the radius and per clean run the intercept are profiled out by linear least squa
    with its parameters (the closed-form start's levers are cruder: their error during
    the ramps, where the casters turn, does not scale out with the radius);
 4. std dev: the HAC sandwich ``sqrt(Omega) / H`` with ``H = sum j_l^2``,
-   ``j = de/d delta`` and ``Omega`` the Bartlett long-run variance of the scores
-   ``j_l e_l`` summed over the modules at each node (they share its yaw noise).
+   ``j = de/d delta`` and ``Omega`` the variance of the score sum ``sum j_l e_l`` from
+   the yaw noise it carries, node by node, AR(1) measured from the data
+   (:mod:`swpc_hw.calibration.yaw_noise`: while the casters swing round at the start of
+   a hold window one node's noise is carried into every later cumulative residual).
 
 A std dev above ``offset_max_std`` (or no information at all, as in a dataset of steady
 spins only) is reported as **not observable**: 0 is assumed, harmless because then the
@@ -53,7 +55,7 @@ from swpc_hw.calibration.rolling import (
     rolling_levers,
 )
 from swpc_hw.calibration.slip import burst_slip, mad_sigma
-from swpc_hw.calibration.uncertainty import dense_rows, long_run_covariance
+from swpc_hw.calibration.yaw_noise import score_variance
 from swpc_hw.dataset import Dataset
 from swpc_hw.errors import ImplausibleDataError
 
@@ -228,7 +230,9 @@ def estimate_clock_offset(
         options={"xatol": 1e-6},
     )
     value = float(res.x)
-    std = _sandwich_std(residuals, value, s_best, runs)
+    s_val = build(value)
+    s_val.run = runs
+    std = _sandwich_std(residuals, value, s_val, rolling_levers(X, C_kept, s_val), sigma)
     if not math.isfinite(std) or std > opts.offset_max_std:
         return ClockOffset(0.0, None, "not observable", std)
     if value - lo < step or hi - value < step:
@@ -244,23 +248,20 @@ def _sandwich_std(
     residuals: Callable[[float], FloatArray],
     value: float,
     series: RollingSeries,
-    runs: IntArray,
+    levers: FloatArray,
+    sigma: FloatArray,
     h: float = 1e-4,
 ) -> float:
-    """``sqrt(sum_seg Omega_seg) / H`` (module docstring, step 4)."""
+    """``sqrt(Var(sum_l j_l e_l)) / H`` (module docstring, step 4).
+
+    ``series``: the nodes at ``value`` with their clean runs; ``levers``: ``g`` of every
+    node; ``sigma``: the weight (m) of every series.  The score sum's variance is that of
+    the yaw noise it carries (:func:`swpc_hw.calibration.yaw_noise.score_variance`).
+    """
     e = residuals(value)
     j = (residuals(value + h) - residuals(value - h)) / (2 * h)
     H = float(j @ j)
     if H <= 0:
         return math.inf
-    clean = runs >= 0
-    bins, seg = series.bin[clean], series.seg[clean]
-    omega = 0.0
-    for s in np.unique(seg):
-        sel = seg == s
-        k = bins[sel] - int(bins[sel].min())
-        S = dense_rows(k, (j[sel] * e[sel])[:, None])
-        present = np.zeros(S.shape[0], dtype=bool)
-        present[k] = True
-        omega += float(long_run_covariance(S, present)[0][0, 0])
-    return math.sqrt(omega) / H
+    sig = sigma[series.ser[series.clean]]
+    return math.sqrt(score_variance(series, levers, j / sig, e * sig)) / H

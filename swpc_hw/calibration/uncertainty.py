@@ -137,6 +137,18 @@ def long_run_covariance(S: FloatArray, present: BoolArray) -> tuple[FloatArray, 
     return bartlett_covariance(V, L), rho, L
 
 
+def ar1_quadratic_form(c: FloatArray, present: BoolArray, rho: float) -> float:
+    """``c^T R c`` with ``R_tu = rho^|t - u|`` between the present rows of a grid.
+
+    ``sum_t c_t sum_k rho^|k| c_t+k`` by a forward and a backward AR(1) filter (absent rows
+    count as zero; the correlation spans them as the grid distance says).
+    """
+    x = np.where(present, c, 0.0)
+    fwd = lfilter([1.0], [1.0, -rho], x)
+    bwd = lfilter([1.0], [1.0, -rho], x[::-1])[::-1]
+    return float(x @ (fwd + bwd - x))
+
+
 def autocorrelation(V: FloatArray, max_lag: int) -> FloatArray:
     """Autocorrelation of every column, ``r_k = sum_t v_t v_t+k / sum_t v_t^2``: (K + 1, p)."""
     T = V.shape[0]
