@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import TypeGuard
 
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.model import ModuleParams, RobotParams
@@ -60,7 +61,7 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
             lines.append("  ".join("-" * w for w in widths))
     q = result
     lines.append("")
-    chi2 = "n/a (no noise model)" if q.reduced_chi2 is None else f"{q.reduced_chi2:.3g}"
+    chi2 = f"{q.reduced_chi2:.3g}" if _known(q.reduced_chi2) else "n/a (no noise model)"
     lines.append(
         f"poses used {q.poses_used} (rejected {q.poses_rejected}); wheel increments used "
         f"{q.increments_used} (rejected {q.increments_rejected}); {offset_text(q)}; "
@@ -71,24 +72,34 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
     for s in q.segments:
         # the reported steering angle of the locked module, on one turn: [0, 360) deg
         angle = math.degrees(s.angle) % 360.0
-        text = (
+        figures = [
+            f"{name} {value * 1e3:.4f} mm"
+            for name, value in (
+                ("fixed-point RMS", s.fixed_point_rms),
+                ("rolling RMS", s.rolling_rms),
+                ("settled RMS", s.settled_rms),
+            )
+            if _known(value)
+        ]
+        if _known(s.noise_inflation):
+            figures.append(f"noise correlation x{s.noise_inflation:.2f}")
+        figures.append(f"poses {s.poses_used}/{s.poses_used + s.poses_rejected}")
+        lines.append(
             f"  segment {s.row + 1}: module {s.static_module} at {angle:7.2f} deg: "
-            f"fixed-point RMS {s.fixed_point_rms * 1e3:.4f} mm"
+            + ", ".join(figures)
         )
-        if s.rolling_rms is not None:
-            text += f", rolling RMS {s.rolling_rms * 1e3:.4f} mm"
-        if s.settled_rms is not None:
-            text += f", settled RMS {s.settled_rms * 1e3:.4f} mm"
-        if s.noise_inflation is not None:
-            text += f", noise correlation x{s.noise_inflation:.2f}"
-        lines.append(text + f", poses {s.poses_used}/{s.poses_used + s.poses_rejected}")
-    inflation = [s.noise_inflation for s in q.segments if s.noise_inflation is not None]
+    inflation = [f for f in (s.noise_inflation for s in q.segments) if _known(f)]
     if inflation and max(inflation) > 1.2:
         lines.append(
             f"  the pose noise is correlated from frame to frame: std devs are up to "
             f"{max(inflation):.2f}x what white noise of its size would give (included above)"
         )
     return "\n".join(lines)
+
+
+def _known(value: float | None) -> TypeGuard[float]:
+    """A figure the method computed: not None and finite (never printed as ``nan``)."""
+    return value is not None and math.isfinite(value)
 
 
 def offset_text(q: CalibrationResult) -> str:
