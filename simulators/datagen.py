@@ -66,7 +66,7 @@ from simulators.physics import (
 )
 from swpc_hw.dataset import Dataset, Segment, save_dataset
 from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import RobotParams, rot, steering_direction, wrap_angle
+from swpc_hw.model import RobotParams, contact_point, rot, wrap_angle
 from swpc_hw.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
@@ -367,7 +367,7 @@ def generate_experiment(
                         profile=("resteer", -d, opt.resteer_time, 0.0),
                     )
                 )
-            C = P_s[k] + b[k] * steering_direction(a + beta[k])
+            C = contact_point(P_s[k], b[k], a + beta[k])
             gc = G - C
             uc = -np.sign(w) * np.array([-gc[1], gc[0]])
             target = np.full(n, math.atan2(uc[1], uc[0]))

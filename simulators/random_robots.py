@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from simulators.physics import FloatArray, settled_trailing
-from swpc_hw.model import RobotParams, steering_direction, wrap_angle
+from swpc_hw.model import RobotParams, contact_point, wrap_angle
 from swpc_hw.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
@@ -128,7 +128,7 @@ def batch_experiment(
 
     # fixed points (T, N, M, 2)
     th_static = ang[None, None, :] + be[:, :, None]  # (T, N, M)
-    C = P[:, :, None, :] + bb[:, :, None, None] * steering_direction(th_static)
+    C = contact_point(P[:, :, None, :], bb[:, :, None], th_static)
 
     # settled casters (T, N, M, N)
     theta, D = settled_trailing(

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from swpc_hw.model import cross2, rot, steering_direction, wrap_angle
+from swpc_hw.model import contact_point, cross2, rot, steering_direction, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -194,9 +194,8 @@ def rolling_lever(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike, C: ArrayLike) 
     For a settled caster ``|g| = D`` (the paper's distance); the sign is the rolling
     direction.
     """
-    u = steering_direction(theta)
-    P_w = np.asarray(P_s, dtype=float) + np.asarray(b, dtype=float)[..., None] * u
-    return cross2(P_w - np.asarray(C, dtype=float), u)
+    P_w = contact_point(P_s, b, theta)
+    return cross2(P_w - np.asarray(C, dtype=float), steering_direction(theta))
 
 
 def settled_residual(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike, C: ArrayLike) -> FloatArray:
