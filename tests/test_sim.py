@@ -488,7 +488,9 @@ def test_simulator_lifecycle() -> None:
         sim.start()
         sim.start()
     assert sim.running
-    time.sleep(0.1)
+    deadline = time.monotonic() + 10.0  # it ticks (how fast is the host's business)
+    while sim.stats().ticks <= 10 and time.monotonic() < deadline:
+        time.sleep(0.02)
     sim.stop()
     sim.stop()
     assert not sim.running and sim.error is None
