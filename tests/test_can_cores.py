@@ -291,13 +291,22 @@ def test_kernel_refresh_cycles_a_nodes_axes_and_updates_in_place() -> None:
         ref = KernelRefresh(tx, period=0.01, deadman=2.0)
         hold = codec.make_set_control(1, Axis.WHEEL, ControlMode.HOLD)
         free = codec.make_set_control(1, Axis.STEER, ControlMode.FREE)
+        seen: list[bytes] = []
+
+        def read_until(data: bytes) -> None:  # a starved sender thread is late, not wrong
+            deadline = time.monotonic() + 10.0
+            while data not in seen and time.monotonic() < deadline:
+                m = rx.recv(0.05)
+                if m is not None:
+                    seen.append(bytes(m.data))
+
         ref.set_node(1, [hold, free])
-        time.sleep(0.15)
+        read_until(hold.data)
+        read_until(free.data)
         torque = codec.make_set_control(1, Axis.WHEEL, ControlMode.TORQUE, -0.5)
         ref.set_node(1, [torque, free])  # same count: data modified in place
-        time.sleep(0.15)
+        read_until(torque.data)
         ref.stop_all()
-        seen = []
         while (m := rx.recv(0)) is not None:
             seen.append(bytes(m.data))
         assert hold.data in seen and free.data in seen and torque.data in seen
