@@ -214,6 +214,7 @@ calibration_through_simulator() {
     SWPC_TIME_SCALE="$ts" SWPC_SIM_HOST_WINDOW_S="$window" \
     SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
     SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
+    SWPC_DISK_BUDGET=256MiB SWPC_MIN_FREE=32MiB \
         swpc serve > "$OUT/service.log" 2>&1 &
     svc_pid=$!
     echo "simulator pid $sim_pid, service pid $svc_pid, time scale $ts," \
