@@ -25,8 +25,9 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
+# One pytest worker per core, a test module's tests on one worker (module fixtures).
 test: lint typecheck
-	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/browser
+	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/browser -n auto --dist loadfile
 
 # The operator console in headless Chromium (Debian's chromium + chromium-driver; skipped
 # with a message when absent, a failure under CI).  Screenshots: $(SWPC_SCREENSHOTS).
