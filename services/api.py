@@ -96,8 +96,9 @@ class FiniteJSONResponse(JSONResponse):
         ).encode("utf-8")
 
 
-def runtime(request: Request) -> Runtime:
-    """The runtime opened in the lifespan (dependency)."""
+async def runtime(request: Request) -> Runtime:
+    """The runtime opened in the lifespan (dependency; async: no threadpool hand-off for
+    what is an attribute read, which an abort would wait behind)."""
     rt: Runtime = request.app.state.runtime
     return rt
 
@@ -106,12 +107,13 @@ Rt = Annotated[Runtime, Depends(runtime)]
 _bearer = HTTPBearer(auto_error=False)
 
 
-def auth(
+async def auth(
     request: Request,
     creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
     """Motion and write endpoints: the bearer token of the settings, else 401 (the guard
-    has already refused such requests before reading their body; this documents it)."""
+    has already refused such requests before reading their body; this documents it).
+    Async: a constant-time compare needs no threadpool hand-off (an abort's path)."""
     token: str = request.app.state.token
     if creds is None or not secrets.compare_digest(creds.credentials.encode(), token.encode()):
         raise HTTPException(

@@ -20,7 +20,7 @@ import hashlib
 import math
 import re
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -223,7 +223,7 @@ def _runtime(request: Request) -> Runtime:
 Rt = Annotated[Runtime, Depends(_runtime)]
 
 
-def kinematics_router(auth: Callable[..., None]) -> APIRouter:
+def kinematics_router(auth: Callable[..., Awaitable[None]]) -> APIRouter:
     """The routes above; ``auth`` is the service's bearer-token dependency."""
     router = APIRouter()
     lock = threading.Lock()  # one install at a time
