@@ -1,7 +1,8 @@
 """What the service holds while it runs: clock, bus, driver, zenoh session, mocap, runs.
 
-Opened in the FastAPI lifespan (or by tests) and injected into the app, so tests run
-the real app against the in-process simulator.  With no CAN interface configured
+Opened by ``swpc serve`` before its HTTP server starts (so that an error opening it is
+one line on stderr), else in the FastAPI lifespan, and injected into the app, so tests
+run the real app against the in-process simulator.  With no CAN interface configured
 (``SWPC_CAN_INTERFACE`` unset) it runs on the *in-process simulator*: the virtual robot in
 this process on a python-can ``virtual`` bus and zenoh on a loopback endpoint, in
 simulated time (one :class:`swpc_hw.clock.SimClock` shared by the simulator, the driver,
@@ -81,6 +82,20 @@ class Runtime:
                 f"SWPC_CAN_LOG_BYTES ({settings.can_log_bytes}) must be at most half of "
                 f"SWPC_DISK_BUDGET ({settings.disk_budget})"
             )
+        # what the settings alone decide first: an error here leaves nothing to undo
+        self.timing: TimingBudget = timing_budget(settings, self.config)
+        self.clock: Clock = (
+            SimClock(max_speed=settings.sim_speed)
+            if settings.in_process
+            else SystemClock(rate=settings.external_time_scale)
+        )
+        self.mocap = MocapIngest(
+            clock=self.clock,
+            encoding=settings.pose_encoding,
+            stale_after=self.timing.mocap_stale,
+            # the in-process simulator stamps its simulated wall time: exact
+            clock_mode="wall" if settings.in_process else settings.mocap_clock,
+        )
         self.data_dir = Path(settings.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         # before anything in the data dir is touched: a second service stops here
@@ -107,20 +122,8 @@ class Runtime:
         self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
         self.driver: CanDriver | None = None
-        self.timing: TimingBudget = timing_budget(settings, self.config)
-        self.clock: Clock = (
-            SimClock(max_speed=settings.sim_speed)
-            if settings.in_process
-            else SystemClock(rate=settings.external_time_scale)
-        )
-        self.mocap = MocapIngest(
-            clock=self.clock,
-            encoding=settings.pose_encoding,
-            stale_after=self.timing.mocap_stale,
-            # the in-process simulator stamps its simulated wall time: exact
-            clock_mode="wall" if settings.in_process else settings.mocap_clock,
-        )
         self.started = time.time()
+        self._opened = False
         self._closed = False
 
     def _apply_file_group(self) -> None:
@@ -157,6 +160,17 @@ class Runtime:
 
     # ---------------------------------------------------------------- lifecycle
     def open(self) -> Runtime:
+        """Open the CAN channel (its lock first), zenoh, the driver and, with no CAN
+        interface, the in-process simulator.  On an error what was opened is closed again
+        (the data dir's lock too) and the error raised: ``swpc serve`` calls this before
+        the HTTP server starts, so that it is one line on stderr."""
+        try:
+            return self._open()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> Runtime:
         # An optimisation, not a correctness condition: safety paths (abort, driver
         # faults) hand off between threads sooner than the default 5 ms switch interval.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
@@ -216,6 +230,7 @@ class Runtime:
                 feedback_rate_hz=s.feedback_rate_hz,
             )
             self.simulator.start()
+        self._opened = True
         return self
 
     def close(self, reason: str = "the service was stopped during the run") -> None:
@@ -244,7 +259,8 @@ class Runtime:
         if self.channel_lock is not None:
             self.channel_lock.release()
         self.dir_lock.release()
-        event(log, logging.INFO, "service.close")
+        if self._opened:
+            event(log, logging.INFO, "service.close")
 
     # --------------------------------------------------------------------- runs
     def start_run(self, config: RobotConfig, install: str) -> CalibrationRun:
