@@ -176,7 +176,9 @@ def create_app(
     settings: ServiceSettings | None = None,
     runtime_factory: Callable[[ServiceSettings], Runtime] | None = None,
 ) -> FastAPI:
-    """The app; the runtime is opened in the lifespan (``runtime_factory`` for tests)."""
+    """The app; the runtime is ``runtime_factory(settings)`` in the lifespan (``swpc serve``
+    and tests: one already open), else a new :class:`Runtime` opened there; it is closed
+    when the lifespan ends."""
     cfg = settings or ServiceSettings()
     token = cfg.ensure_token()
 
