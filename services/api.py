@@ -44,7 +44,13 @@ from services.http_guard import RequestGuard
 from services.kinematics_api import kinematics_router
 from services.provenance import tool_version
 from services.robot_config import ConfigOverrides, OverrideError, RobotConfig
-from services.runtime import DiskSpaceError, NoResultError, RunConflictError, Runtime
+from services.runtime import (
+    DiskSpaceError,
+    NoResultError,
+    RunConflictError,
+    Runtime,
+    StoreError,
+)
 from services.settings import ServiceSettings
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.heap_freeze import freeze_startup_heap
@@ -224,6 +230,7 @@ def create_app(
         responses={
             **guarded,
             409: {"model": Problem},
+            503: {"model": Problem, "description": "the run store cannot be written"},
             507: {"model": Problem, "description": "no room on disk for a run"},
         },
     )
@@ -261,6 +268,8 @@ def create_app(
             raise HTTPException(409, str(exc)) from exc
         except DiskSpaceError as exc:
             raise HTTPException(507, str(exc)) from exc
+        except StoreError as exc:
+            raise HTTPException(503, str(exc)) from exc
         response.headers["Location"] = f"/calibrations/{run.id}"
         return run.status.to_dict()
 

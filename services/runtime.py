@@ -71,6 +71,10 @@ class NoResultError(SwpcError):
     """The run has no result to plot (not DONE)."""
 
 
+class StoreError(SwpcError):
+    """The run store cannot be written: no run starts (HTTP 503)."""
+
+
 class Runtime:
     """Owns every long-lived resource of the service; :meth:`close` is idempotent."""
 
@@ -268,7 +272,8 @@ class Runtime:
 
         Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
         disk budget (after pruning the oldest runs' recordings) or the file system's free
-        space leaves no room for it.
+        space leaves no room for it, :class:`StoreError` when its first state cannot be
+        saved (nothing has moved; the service takes the next start once the store does).
         """
         assert self.driver is not None
         s = self.settings
@@ -310,9 +315,17 @@ class Runtime:
                 space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
                 robot_config_path=None if s.robot_config is None else str(s.robot_config),
             )
+            previous, self.current = self.current, run
             self.runs[run.id] = run
-            self.current = run
-        self._persist(run)
+        try:
+            self._persist(run)
+        except Exception as exc:  # a run that was never saved would block every next one
+            with self._lock:
+                self.runs.pop(run.id, None)
+                self.current = previous
+            raise StoreError(
+                f"run store not writable: {self.store_error}: no run started"
+            ) from exc
         # raw CAN traffic of the run, beside its dataset (candump format, our DBC decodes it)
         (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
         self.driver.start_recording(str(run.run_dir / "dataset" / "can.log"))
