@@ -84,22 +84,23 @@ def test_every_safety_limit_in_an_override_can_only_tighten(group: str, name: st
         assert getattr(getattr(run, group), name) == tighter < value
 
 
-@pytest.mark.parametrize(
-    ("doc", "why"),
-    [
-        ({"protocol": {"modules": [1]}}, "modules [2, 3, 4] are never locked"),
-        ({"protocol": {"angles_deg": [0, 360]}}, "modulo 360"),
-        ({"protocol": {"angles_deg": [1e300, -1e300]}}, "within +-360 deg"),
-        (
-            {"protocol": {"sweep_deg": 1440}, "limits": {"max_yaw_rate": 0.3}},
-            "takes at least 86.8 s at limits.max_yaw_rate 0.3 rad/s",
-        ),
-        ({"protocol": {"settle_time": 61}}, "settle_time: 61 s is not shorter"),
-        ({"limits": {"step_timeout": 2}}, "resteer_time: 2.5 s is not shorter"),
-        ({"robot": "other"}, "not this service's robot"),
-        ({"nodes": {1: 4, 2: 3, 3: 2, 4: 1}}, "CAN node map"),
-    ],
-)
+#: overrides that cannot succeed, each with the words of its refusal (before any motion)
+PRE_MOTION_REFUSALS: list[tuple[dict[str, Any], str]] = [
+    ({"protocol": {"modules": [1]}}, "modules [2, 3, 4] are never locked"),
+    ({"protocol": {"angles_deg": [0, 360]}}, "modulo 360"),
+    ({"protocol": {"angles_deg": [1e300, -1e300]}}, "within +-360 deg"),
+    (
+        {"protocol": {"sweep_deg": 1440}, "limits": {"max_yaw_rate": 0.3}},
+        "takes at least 86.8 s at limits.max_yaw_rate 0.3 rad/s",
+    ),
+    ({"protocol": {"settle_time": 61}}, "settle_time: 61 s is not shorter"),
+    ({"limits": {"step_timeout": 2}}, "resteer_time: 2.5 s is not shorter"),
+    ({"robot": "other"}, "not this service's robot"),
+    ({"nodes": {1: 4, 2: 3, 3: 2, 4: 1}}, "CAN node map"),
+]
+
+
+@pytest.mark.parametrize(("doc", "why"), PRE_MOTION_REFUSALS)
 def test_each_pre_motion_check_refuses_the_run(doc: dict[str, Any], why: str) -> None:
     from services.robot_config import OverrideError
 
