@@ -3,10 +3,15 @@
 Each test here is one row of the issue "An always-on robot service" and fails on the code
 before it.  Fast: the state machine on the fake robot (``tests/fake_robot.py``), the real
 app and runtime not connected to a robot (no simulator), the real filesystem, SQLite and
-python-can's virtual bus; the two tests that need a process killed or a full file system
-run a child process (``kill -9``; a user + mount namespace with a small tmpfs).
-The paths through the real driver and simulator are in ``tests/test_service.py`` and the
-real server (uvicorn, idle connections, fuzzing) in ``tests/test_api_schema.py``.
+python-can's virtual bus; the tests that need another process run a child one (one that
+holds the data dir's lock; one killed with ``kill -9``; one in a user + mount namespace
+with a small tmpfs: a full file system).
+The rows that need an open runtime (health, metrics, refusals before any CAN frame, the
+disk budget, an unwritable run store on the in-process simulator) or the real server
+(uvicorn, idle connections, non-standard JSON on every endpoint) are in
+``tests/test_hardening_server.py``; schemathesis fuzzes the real ``swpc serve`` in
+``tests/test_api_schema.py``, and the paths through the real driver and simulator are in
+``tests/test_service.py``.
 """
 
 from __future__ import annotations
