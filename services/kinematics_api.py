@@ -25,6 +25,7 @@ import errno
 import hashlib
 import logging
 import math
+import os
 import re
 import threading
 from collections.abc import Callable
@@ -74,7 +75,9 @@ class FileInfo(BaseModel):
     robot: str | None = None
     run: str | None = Field(None, description="the calibration run it came from, if any")
     method: str | None = None
-    sha256: str = Field(description="first 16 hex digits of the file's sha256")
+    sha256: str | None = Field(
+        description="first 16 hex digits of the file's sha256 (None: it cannot be read)"
+    )
     valid: bool
     error: str | None = None
 
@@ -127,6 +130,40 @@ class Problem(BaseModel):
     detail: str
 
 
+class UnreadableFileProblem(Problem):
+    """``GET /kinematics`` when the file in force is on disk but does not load (500)."""
+
+    path: str
+    reason: str = Field(description="why it does not load (the loader's message)")
+    backups: list[str] = Field(
+        description="the backups beside it that do load, newest first: what "
+        "POST /kinematics/rollback can install"
+    )
+
+
+def unreadable_problem(path: Path, exc: Exception) -> UnreadableFileProblem:
+    """The answer to a read of the file in force ``path`` that failed with ``exc``:
+    what is wrong and what to do (roll back to the newest backup that loads)."""
+    good = [b.name for b in backups(path) if describe(b, backup=True).valid]
+    if good:
+        fix = f'roll back to a backup: POST /kinematics/rollback {{"backup": "{good[0]}"}}'
+    else:
+        fix = "no backup beside it loads: install a run's result (POST /calibrations/<id>/install)"
+    return UnreadableFileProblem(
+        detail=f"the kinematic file in force cannot be loaded: {exc}; {fix} "
+        "(GET /kinematics/files lists them)",
+        path=str(path),
+        reason=str(exc),
+        backups=good,
+    )
+
+
+def present(path: Path) -> bool:
+    """Something is at ``path``: a file, or anything else that then fails to load (a
+    directory, a dangling symbolic link) rather than reading as "none installed"."""
+    return os.path.lexists(path)
+
+
 def _backup_pattern(path: Path) -> re.Pattern[str]:
     return re.compile(rf"^{re.escape(path.stem)}\.(\d{{8}}T\d{{12}}Z){re.escape(path.suffix)}$")
 
@@ -142,12 +179,11 @@ def backups(path: Path) -> list[Path]:
 
 def describe(path: Path, backup: bool = False) -> FileInfo:
     """What a kinematic file says of itself (a corrupt one: ``valid`` false, the error)."""
-    data = path.read_bytes()
-    info: dict[str, Any] = {
-        "name": path.name,
-        "sha256": hashlib.sha256(data).hexdigest()[:16],
-        "valid": True,
-    }
+    try:
+        digest: str | None = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    except OSError:
+        digest = None  # load_kinematics below says why
+    info: dict[str, Any] = {"name": path.name, "sha256": digest, "valid": True}
     if backup:
         m = re.search(r"\.(\d{8}T\d{12}Z)\.[^.]*$", path.name)
         if m is not None:
@@ -276,7 +312,7 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         path = rt.settings.kinematics_file
         return KinematicFiles(
             path=str(path),
-            in_force=describe(path) if path.exists() else None,
+            in_force=describe(path) if present(path) else None,
             backups=[describe(p, backup=True) for p in backups(path)],
         )
 
@@ -365,7 +401,7 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         if state != "DONE" or doc is None:
             raise HTTPException(409, f"calibration {run_id} is {state}: no result")
         path = rt.settings.kinematics_file
-        info = describe(path) if path.exists() else None
+        info = describe(path) if present(path) else None
         in_force = load_kinematics(path) if info is not None and info.valid else None
         tol = Tolerances.model_validate(doc.get("tolerances") or rt.config.tolerances.model_dump())
         return Comparison(

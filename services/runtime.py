@@ -444,7 +444,7 @@ class Runtime:
         """The kinematic file in force as a document (``None``: none installed); a file
         that does not load raises :class:`KinematicFileError` naming the problem."""
         path = self.settings.kinematics_file
-        if not path.exists():
+        if not os.path.lexists(path):  # a dangling link is there, and unreadable
             return None
         k = load_kinematics(path)
         from swpc_hw.kinematic_file import kinematics_document
