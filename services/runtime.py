@@ -11,11 +11,12 @@ the mocap ingest and the calibration runs).  Otherwise the clock is the host's, 
 
 Long-running resources are bounded: one service per data dir and per CAN channel
 (:mod:`services.locks`, taken before anything is touched); the CAN traffic goes to a
-rolling log of at most ``SWPC_CAN_LOG_BYTES`` in ``<data dir>/can/`` plus one recording
-per run; a run starts only within the disk budget (:mod:`services.disk`) and fails when
-the disk fills.  A run's state that cannot be saved (the store unwritable) ends the run
-FAILED; what the API lists is then the in-memory state, saved again once the store
-takes writes.
+rolling log of at most ``SWPC_CAN_LOG_BYTES`` in ``<data dir>/can/`` (every frame during
+a run; between runs, the periodic frames once per ``SWPC_CAN_LOG_IDLE_PERIOD`` per CAN id
+and every event) plus one recording per run; a run starts only within the disk budget
+(:mod:`services.disk`) and fails when the disk fills.  A run's state that cannot be
+saved (the store unwritable) ends the run FAILED; what the API lists is then the
+in-memory state, saved again once the store takes writes.
 """
 
 from __future__ import annotations
@@ -219,6 +220,7 @@ class Runtime:
             in_process_simulator=s.in_process,
             can_log=None if can_log is None else str(can_log),
             can_log_bytes=int(s.can_log_bytes),
+            can_log_idle_period=s.can_log_idle_period,
             disk_budget=int(s.disk_budget),
         )
         if s.in_process:
