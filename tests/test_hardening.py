@@ -770,6 +770,7 @@ def test_a_full_disk_fails_the_run_cleanly_and_keeps_the_kinematic_file(tmp_path
     )
     assert p.returncode == 0, p.stderr.decode()[-3000:]
     out = json.loads(p.stdout.decode().strip().splitlines()[-1])
+    print(f"\ndisk-full run: {out}")  # the figure docs/history/ records (pytest -s)
     assert out["state"] == "FAILED" and "disk full" in out["reason"], out
     assert "No space left on device" in out["reason"]
     assert out["same"] and out["stopped"], out
