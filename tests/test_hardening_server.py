@@ -238,7 +238,7 @@ def test_every_refused_override_is_a_422_before_any_can_frame(sim: Sim) -> None:
     sim.host_frames()
     cases = [(json.dumps(doc), "if-within-tolerance", why) for doc, why in PRE_MOTION_REFUSALS]
     cases += loosened()
-    assert len(cases) > 60
+    assert len(cases) == 8 + 12 * 5  # 9 limits and 3 tolerances, 5 ways each
     for overrides, install, words in cases:
         r = send(client, overrides, install)
         assert r.status_code == 422, (overrides, r.status_code, r.text)
@@ -427,7 +427,7 @@ def test_every_endpoint_answers_non_standard_json_below_500(tmp_path: Path, meth
         spec = client.get("/openapi.json").json()
         paths = [p.replace("{run_id}", "abc123") for p in spec["paths"]]
         paths += ["/docs", "/redoc", "/metrics", "/health", "/openapi.json", "/nope"]
-        statuses = set()
+        statuses: dict[int, int] = {}
         for path in paths:
             for headers in (AUTH, {}):
                 for body in NON_STANDARD:
@@ -438,9 +438,12 @@ def test_every_endpoint_answers_non_standard_json_below_500(tmp_path: Path, meth
                         headers={**headers, "content-type": "application/json"},
                     )
                     assert r.status_code < 500, (method, path, body[:40], r.status_code, r.text)
-                    statuses.add(r.status_code)
+                    statuses[r.status_code] = statuses.get(r.status_code, 0) + 1
+    # the figure docs/history/ records (pytest -s)
+    codes = dict(sorted(statuses.items()))
+    print(f"\nnon-standard JSON, {method}: {sum(statuses.values())} calls, status codes {codes}")
     if method == "POST":
-        assert {401, 422} <= statuses, statuses  # refused, named, never parsed into a 500
+        assert {401, 422} <= statuses.keys(), statuses  # refused, named, never a 500
 
 
 # ------------------------------------------------------------ the real server
