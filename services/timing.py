@@ -153,4 +153,5 @@ def driver_config(
         deadman_s=b.deadman,
         log_path=None if log_path is None else str(log_path),
         log_total_bytes=log_total_bytes,
+        log_idle_period_s=settings.can_log_idle_period,
     )
