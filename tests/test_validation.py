@@ -145,6 +145,58 @@ def test_report_means_reduction_and_table() -> None:
     )
 
 
+def test_report_of_three_files_gives_each_its_reduction_against_the_first() -> None:
+    """nominal, mocap-calibrated, mocap-free-calibrated (issue 20): one reduction each."""
+    opt = SquareOptions(runs=1, directions=("ccw",))
+    res = [
+        _result("nominal", "ccw", 0, 0.20, math.radians(4.0)),
+        _result("mocap", "ccw", 0, 0.01, math.radians(0.1)),
+        _result("mocap-free", "ccw", 0, 0.02, math.radians(0.2)),
+    ]
+    rep = ValidationReport(["nominal", "mocap", "mocap-free"], res, opt)
+    reds = rep.reductions()
+    assert list(reds) == ["mocap", "mocap-free"]
+    assert reds["mocap"]["position"] == pytest.approx(0.95)
+    assert reds["mocap-free"]["position"] == pytest.approx(0.90)
+    assert reds["mocap-free"]["heading"] == pytest.approx(0.95)
+    assert rep.reduction() == reds["mocap-free"]  # the last file, as before
+    table = rep.table()
+    assert "mocap vs nominal" in table and "mocap-free vs nominal" in table
+    assert rep.to_document()["reductions"] == reds
+
+
+def test_validate_names_the_files_and_refuses_what_it_cannot_do(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Several --kinematics files: named after their files unless --label says; a label
+    count that does not match, two files of one name, or --truth on a robot: one line,
+    exit 2, before anything moves."""
+    import argparse
+
+    from services.cli import main
+    from services.cli.validate import _labels
+    from swpc_hw.kinematic_file import save_kinematics
+
+    def args(**kw: object) -> argparse.Namespace:
+        base: dict[str, object] = {"label": None, "compare": "nominal", "compare_label": "nominal"}
+        return argparse.Namespace(**{**base, **kw})
+
+    assert _labels(args(kinematics=["a/k.yaml"])) == ["calibrated"]
+    assert _labels(args(kinematics=["a/mocap.yaml", "b/imu.yaml"])) == ["mocap", "imu"]
+    assert _labels(args(kinematics=["x.yaml", "y.yaml"], label=["m", "i"])) == ["m", "i"]
+    f = tmp_path / "k.yaml"
+    save_kinematics(f, PAPER_CALIBRATED)
+    for argv, message in (
+        ([str(f), str(f), "--label", "one"], "--label: 1 name(s) for 2 --kinematics file(s)"),
+        ([str(f), str(tmp_path / "k.yaml")], "the files need distinct names"),
+        ([str(f), "--truth", str(f), "--can-interface", "socketcan"], "--truth is for the"),
+    ):
+        assert main(["validate", "--kinematics", *argv, "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and message in err, err
+    assert not (tmp_path / "o").exists()
+
+
 def test_start_frame_moves_the_start_pose_to_the_origin_heading_x() -> None:
     start = (2.0, 1.0, math.pi / 2)
     pts = np.array([[2.0, 1.0], [2.0, 3.0], [1.0, 1.0]])

@@ -1,10 +1,18 @@
-"""``swpc validate --kinematics FILE [--compare NOMINAL_FILE]``: the square-path odometry test.
+"""``swpc validate --kinematics FILE [FILE ...] [--compare NOMINAL_FILE]``: the square-path
+odometry test.
 
 Drives the seed's validation (:mod:`swpc_hw.validation`): a 2.5 m square with a 90 deg turn
 at each corner, CW and CCW, 4 runs each, ~0.2 m/s, once with the reference file (default:
-the robot config's nominal, i.e. the paper's design) and once with ``--kinematics``, each
-used for both control and odometry; prints the Table-5-like comparison and writes
-``validation.txt``, ``validation.json`` and ``validation.png`` (Figure-13-like paths).
+the robot config's nominal, i.e. the paper's design) and once with each ``--kinematics``
+file (e.g. a mocap-calibrated and a mocap-free-calibrated one), each used for both control
+and odometry; prints the Table-5-like comparison, each file's error reduction against the
+reference, and writes ``validation.txt``, ``validation.json`` and ``validation.png``
+(Figure-13-like paths).
+
+A file in another frame than the motion capture's body frame (``design-fit``, from a
+calibration without motion capture) needs no conversion: the squares close in the frame
+of the file that drives them, and the end-pose errors of a closed path do not depend on
+the body frame to first order (docs/mocap-free.md).
 
 With no CAN interface it runs on the in-process simulator (like ``swpc serve``: a
 python-can ``virtual`` bus, zenoh on loopback, simulated time in lockstep; truth = paper
@@ -34,8 +42,8 @@ if TYPE_CHECKING:
 DESCRIPTION = (
     "Drive the paper's validation: a 2.5 m square with a 90 deg turn at each corner, CW and "
     "CCW, 4 runs each, ~0.2 m/s, once with the reference file (default: the robot config's "
-    "nominal, i.e. the paper's design) and once with --kinematics, each used for both "
-    "control and odometry. Prints the comparison of the end-pose errors and writes "
+    "nominal, i.e. the paper's design) and once with each --kinematics file, each used for "
+    "both control and odometry. Prints the comparison of the end-pose errors and writes "
     "validation.txt, validation.json and validation.png (the paths). With no "
     "--can-interface it runs on the in-process simulator."
 )
@@ -47,13 +55,20 @@ def register(sub: Any) -> None:
         help="square-path odometry validation: nominal vs calibrated kinematics",
         description=DESCRIPTION,
     )
-    p.add_argument("--kinematics", required=True, help="kinematic file under test")
+    p.add_argument(
+        "--kinematics", required=True, nargs="+", metavar="FILE",
+        help="kinematic file(s) under test, e.g. a mocap-calibrated and a mocap-free one",
+    )
     p.add_argument(
         "--compare", default="nominal",
         help="reference kinematic file ('nominal': the robot config's nominal, default; "
         "'none': only --kinematics)",
     )
-    p.add_argument("--label", default="calibrated", help="name of --kinematics in the report")
+    p.add_argument(
+        "--label", nargs="+", metavar="NAME",
+        help="name of each --kinematics file in the report (default: 'calibrated' for one "
+        "file, else each file's name without its extension)",
+    )
     p.add_argument("--compare-label", default="nominal", help="name of the reference")
     p.add_argument("--runs", type=int, default=4, help="squares per direction and file (4)")
     p.add_argument("--side", type=float, default=2.5, help="square side, m (2.5)")
@@ -63,6 +78,11 @@ def register(sub: Any) -> None:
     p.add_argument("--out", default="swpc-validation", help="output directory")
     p.add_argument("--robot-config", help="robot config YAML (default: the paper's robot)")
     p.add_argument("--seed", type=int, default=1, help="in-process simulator seed")
+    p.add_argument(
+        "--truth",
+        help="in-process simulator: kinematic file of the hidden true robot (default: the "
+        "paper's Table 4 for the paper's robot, else the robot config's nominal)",
+    )
     p.add_argument("--can-interface", help="python-can interface (unset: in-process simulator)")
     p.add_argument("--can-channel", default="vcan0")
     p.add_argument("--can-bitrate", type=int, default=1_000_000)
@@ -133,12 +153,13 @@ def run_in_process(
     options: SquareOptions,
     *,
     seed: int = 1,
+    truth: RobotParams | None = None,
     config: RobotConfig | None = None,
     settings: ServiceSettings | None = None,
     log: Callable[[str], None] | None = None,
 ) -> ValidationReport:
-    """The drive against the in-process simulator in lockstep (truth: paper Table 4,
-    default noise); a busy host slows it down, never changes it."""
+    """The drive against the in-process simulator in lockstep (``truth`` hidden in it:
+    default paper Table 4; default noise); a busy host slows it down, never changes it."""
     from services.in_process_simulator import in_process_simulator
     from services.robot_config import RobotConfig
     from services.timing import driver_config
@@ -166,6 +187,7 @@ def run_in_process(
             zenoh_endpoints=[ep],
             clock=clock,
             seed=seed,
+            truth=truth,
             physics_dt=st.sim_physics_dt,
             feedback_rate_hz=st.feedback_rate_hz,
         )
@@ -190,16 +212,43 @@ def run_in_process(
 # --------------------------------------------------------------------------- command
 
 
-def _files(args: argparse.Namespace, config: RobotConfig) -> list[tuple[str, RobotParams]]:
+def _labels(args: argparse.Namespace) -> list[str]:
+    """A name for each ``--kinematics`` file (one-line error if they do not match)."""
+    from swpc_hw.validation.options import ValidationError
+
+    paths: list[str] = args.kinematics
+    if args.label is not None:
+        labels = list(args.label)
+        if len(labels) != len(paths):
+            raise ValidationError(
+                f"--label: {len(labels)} name(s) for {len(paths)} --kinematics file(s)"
+            )
+    else:
+        labels = ["calibrated"] if len(paths) == 1 else [Path(p).stem for p in paths]
+    names = [args.compare_label, *labels] if args.compare != "none" else labels
+    if len(set(names)) != len(names):
+        raise ValidationError(f"the files need distinct names in the report, got {names}")
+    return labels
+
+
+def _files(
+    args: argparse.Namespace, config: RobotConfig
+) -> tuple[list[tuple[str, RobotParams]], dict[str, str]]:
+    """The files in report order (the reference first) and where each came from."""
     from swpc_hw.kinematic_file import load_robot
 
     files: list[tuple[str, RobotParams]] = []
+    where: dict[str, str] = {}
     if args.compare == "nominal":
         files.append((args.compare_label, config.nominal))
+        where[args.compare_label] = "robot config nominal"
     elif args.compare != "none":
         files.append((args.compare_label, load_robot(args.compare)))
-    files.append((args.label, load_robot(args.kinematics)))
-    return files
+        where[args.compare_label] = str(args.compare)
+    for label, path in zip(_labels(args), args.kinematics, strict=True):
+        files.append((label, load_robot(path)))
+        where[label] = str(path)
+    return files, where
 
 
 def run(args: argparse.Namespace) -> int:
@@ -209,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
     from swpc_hw.validation import SquareOptions
 
     config = load_robot_config(args.robot_config)
-    files = _files(args, config)
+    files, where = _files(args, config)
     lim = config.limits
     options = SquareOptions(
         side=args.side, speed=args.speed, yaw_rate=args.yaw_rate, runs=args.runs,
@@ -224,8 +273,20 @@ def run(args: argparse.Namespace) -> int:
     if args.can_interface is None:
         log(f"swpc validate: in-process simulator (seed {args.seed}); "
             f"files: {', '.join(lab for lab, _ in files)}")
-        report = run_in_process(files, options, seed=args.seed, config=config, log=log)
+        truth = None
+        if args.truth is not None:
+            from swpc_hw.kinematic_file import load_robot
+
+            truth = load_robot(args.truth)
+        report = run_in_process(
+            files, options, seed=args.seed, truth=truth, config=config, log=log
+        )
     else:
+        if args.truth is not None:
+            from swpc_hw.validation.options import ValidationError
+
+            raise ValidationError("--truth is for the in-process simulator: a robot's truth "
+                                  "is its motion capture")
         from services.timing import driver_config
         from swpc_hw.can.driver import CanDriver
         from swpc_hw.clock import SystemClock
@@ -254,9 +315,7 @@ def run(args: argparse.Namespace) -> int:
             driver.shutdown()
             with contextlib.suppress(Exception):
                 session.close()
-    report.files = {
-        lab: (args.kinematics if lab == args.label else str(args.compare)) for lab, _ in files
-    }
+    report.files = where
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     table = report.table()

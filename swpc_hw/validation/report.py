@@ -86,14 +86,24 @@ class ValidationReport:
             }
         return out
 
-    def reduction(self) -> dict[str, float] | None:
-        """``1 - mean error(last label) / mean error(first label)`` for position and heading."""
+    def reduction(self, label: str | None = None) -> dict[str, float] | None:
+        """``1 - mean error(label) / mean error(first label)`` for position and heading
+        (``label``: the last file by default); None with a single file."""
         if len(self.labels) < 2:
             return None
         s = self.summary()
-        ref, new = s[self.labels[0]]["all"], s[self.labels[-1]]["all"]
+        ref, new = s[self.labels[0]]["all"], s[label or self.labels[-1]]["all"]
         return {k: 1.0 - new[k] / ref[k] if ref[k] > 0 else math.nan
                 for k in ("position", "heading")}
+
+    def reductions(self) -> dict[str, dict[str, float]]:
+        """:meth:`reduction` of every file but the reference (the first)."""
+        out: dict[str, dict[str, float]] = {}
+        for label in self.labels[1:]:
+            red = self.reduction(label)
+            if red is not None:
+                out[label] = red
+        return out
 
     def table(self) -> str:
         """The Table-5-like comparison (mm and degrees)."""
@@ -109,11 +119,12 @@ class ValidationReport:
                     f"{label:<12}{g.upper() if g != 'all' else 'mean':<11}{int(v['runs']):>5}"
                     f"{v['position'] * 1e3:>14.2f} mm{math.degrees(v['heading']):>12.3f} deg"
                 )
-        red = self.reduction()
-        if red is not None:
+        reds = self.reductions()
+        if reds:
             lines.append("-" * len(head))
+        for label, red in reds.items():
             lines.append(
-                f"{'reduction':<12}{self.labels[-1] + ' vs ' + self.labels[0]:<16}"
+                f"{'reduction':<12}{label + ' vs ' + self.labels[0]:<16}"
                 f"{red['position'] * 100:>12.1f} %{red['heading'] * 100:>14.1f} %"
             )
         return "\n".join(lines)
@@ -125,6 +136,7 @@ class ValidationReport:
             "options": asdict(self.options),
             "summary": self.summary(),
             "reduction": self.reduction(),
+            "reductions": self.reductions(),
             "runs": [r.to_dict() for r in self.results],
         }
 
