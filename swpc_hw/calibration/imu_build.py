@@ -63,6 +63,8 @@ class ImuRun:
     noise: NoiseLevels
     tracks: dict[int, EncoderTrack]
     drive_refs: list[StraightDrive]
+    theta_sigma: FloatArray
+    """Std dev (rad) of every settled steering reading (its spread, floored)."""
 
 
 def node_times(rows: FloatArray, start: float, end: float, interval: float) -> FloatArray:
@@ -206,7 +208,7 @@ def build_imu_problem(
         ids=ids,
         P_nom=ds.robot.arrays().P_s,
     )
-    return ImuRun(prob, knots, nl, tracks, drive_refs)
+    return ImuRun(prob, knots, nl, tracks, drive_refs, sig.copy())
 
 
 def drive_set(
