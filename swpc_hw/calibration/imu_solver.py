@@ -229,7 +229,7 @@ def fit_imu(
             update_scales(prob, x, floor)
         set_gyro_sigma(prob, run, x)
         sol = least_squares(
-            prob.residuals, x, jac=prob.jacobian, method="trf", x_scale="jac",
+            prob.residuals, x, jac=prob.jacobian, method="lm", x_scale="jac",
             xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100,
         )
         x = sol.x.copy()
@@ -251,7 +251,7 @@ def coarse_fit(run: ImuRun, x0: FloatArray) -> FloatArray:
     n = prob.layout.n
     initial_weights(run, x0)
     sol = least_squares(
-        prob.residuals, x0, jac=prob.jacobian, method="trf", x_scale="jac",
+        prob.residuals, x0, jac=prob.jacobian, method="lm", x_scale="jac",
         xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=100,
     )
     x = np.asarray(sol.x, dtype=float).copy()
