@@ -138,10 +138,12 @@ def analyse(
     tol: float = NULL_TOL,
 ) -> Identifiability:
     """Rank, null space, condition number and derived std devs of ``F`` (default: the
-    information of ``prob`` at ``x``).  Unknowns without information and those in
-    ``known`` (indices, e.g. the gyro scale taken as known) are left out.
+    information of the data blocks of ``prob`` at ``x``, the ``gauge`` block left out: it
+    is no measurement).  Unknowns without information and those in ``known`` (indices,
+    e.g. the gyro scale taken as known) are left out.
     """
-    F = fisher_information(prob, x) if F is None else F
+    if F is None:
+        F = fisher_information(prob.with_blocks(prob.active - {"gauge"}), x)
     d = np.diag(F).copy()
     keep = d > 0
     keep[list(known)] = False

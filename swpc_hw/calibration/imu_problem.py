@@ -60,6 +60,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
 
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.parameters import BETA, N_PARAMS, P_S, R
@@ -139,20 +140,34 @@ def profiled_rolling(
     gP = np.where(present, np.broadcast_to(g, shape), 0.0)
     nrm = np.sum(gP * gP, axis=-1)
     inv = np.where(nrm > 0, 1.0 / np.where(nrm > 0, nrm, 1.0), 0.0)
-    root = np.sqrt(inv)
     zp = np.where(present, z, 0.0)
     rows, cols = np.nonzero(present)
     runs = run[rows, cols]
     n_run = int(runs.max()) + 1 if runs.size else 0
-    batch = z.shape[:-2]
-    Q = np.zeros((*batch, z.shape[-2], n_run))
-    Q[..., rows, runs] = gP[..., rows, cols] * root[..., rows]
-    one_hot = np.zeros((runs.size, n_run))
-    one_hot[np.arange(runs.size), runs] = 1.0
-    QT = np.swapaxes(Q, -1, -2)
-    A = np.diag(one_hot.sum(axis=0)) - QT @ Q
-    gz = np.sum(gP * zp, axis=-1)
-    rhs = zp[..., rows, cols] @ one_hot - (QT @ (gz * root)[..., None])[..., 0]
+    batch = shape[:-2]
+    flat = int(np.prod(batch, dtype=np.int64))
+    # Q^T Q from the pairs of present samples of every node (sparse: a node has m)
+    pr, pi, pj = [], [], []
+    for i in range(present.shape[1]):
+        for j in range(present.shape[1]):
+            sel = np.flatnonzero(present[:, i] & present[:, j])
+            pr.append(sel)
+            pi.append(np.full(sel.size, i))
+            pj.append(np.full(sel.size, j))
+    l_, i_, j_ = np.concatenate(pr), np.concatenate(pi), np.concatenate(pj)
+    pairs = sparse.csr_matrix(
+        (np.ones(l_.size), (np.arange(l_.size), run[l_, i_] * n_run + run[l_, j_])),
+        shape=(l_.size, n_run * n_run),
+    )
+    outer = gP[..., l_, i_] * gP[..., l_, j_] * inv[..., l_]
+    QtQ = np.asarray(pairs.T @ outer.reshape(flat, l_.size).T).T.reshape(*batch, n_run, n_run)
+    A = np.diag(np.bincount(runs, minlength=n_run).astype(float)) - QtQ
+    samples = sparse.csr_matrix(
+        (np.ones(runs.size), (np.arange(runs.size), runs)), shape=(runs.size, n_run)
+    )
+    gz = np.sum(gP * zp, axis=-1) * inv
+    Pz = zp[..., rows, cols] - gP[..., rows, cols] * gz[..., rows]
+    rhs = np.asarray(samples.T @ Pz.reshape(flat, runs.size).T).T.reshape(*batch, n_run)
     c = (np.linalg.pinv(A, rcond=1e-12) @ rhs[..., None])[..., 0]
     e = zp.copy()
     e[..., rows, cols] -= c[..., runs]

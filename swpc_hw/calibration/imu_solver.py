@@ -48,10 +48,10 @@ from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import N_PARAMS, P_S, R, canonical_parameters
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.calibration.result import CalibrationResult
-from swpc_hw.calibration.slip import detect_slip
+from swpc_hw.calibration.slip import detect_slip, mad_sigma
 from swpc_hw.calibration.uncertainty import dense_rows, long_run_covariance
 from swpc_hw.dataset import Dataset, load_dataset
-from swpc_hw.errors import CalibrationError
+from swpc_hw.errors import CalibrationError, ImplausibleDataError
 from swpc_hw.frames import (
     design_fit_constraint_jacobian,
     design_fit_transform,
@@ -63,6 +63,8 @@ BoolArray = NDArray[np.bool_]
 
 COARSE_INTERVAL = 1.0
 """Node spacing (s) of the first, coarse solve."""
+MAX_SLIP_FRACTION = 0.1
+"""More wheel increments than this fraction disagreeing with the gyro is no slip: refused."""
 
 
 # ------------------------------------------------------------------ weights
@@ -121,54 +123,105 @@ def update_scales(prob: ImuProblem, x: FloatArray, floor: float) -> None:
 # ------------------------------------------------------------------ slip
 
 
-def gyro_increments(
+def wheel_increments(
     prob: ImuProblem, x: FloatArray
 ) -> tuple[list[FloatArray], list[FloatArray]]:
-    """Per segment, ``(r dpsi - g dyaw, g dyaw)`` (L-1, m) of every wheel increment, with
-    ``dyaw`` the gyro's (:meth:`RollingSet.gyro_yaw`)."""
+    """Every rolling set's wheel increments against a reference, ``(d - k ref, ref)``
+    (L-1, m).
+
+    A segment's wheels against the gyro: ``d = r dpsi``, ``ref = g dyaw`` with the gyro's
+    yaw (:meth:`RollingSet.gyro_yaw`).  A straight drive's (no rotation for the gyro to
+    see) against each other: ``d = r cos(theta - phi) dpsi``, the distance each wheel says
+    the robot moved, and ``ref`` the median of the wheels' at that increment.  ``k`` per
+    wheel is the median of ``d / ref`` where the reference moves: a radius or lever still
+    off (a slipping drive's start) scales a wheel's increments, a slip burst does not
+    follow the reference.  Spins first, then drives.
+    """
     X, s, knots = prob.layout.split(x)
-    inc, dG = [], []
+    inc, ref = [], []
     for rs, g in zip(prob.spins, spin_levers(prob, x), strict=True):
         L = rs.t.size
         dyaw = rs.gyro_yaw(s, knots, np.arange(L - 1), np.arange(1, L))
         d = g[None, :] * dyaw[:, None]
-        inc.append(X[rs.mods, R][None, :] * np.diff(rs.psi, axis=0) - d)
-        dG.append(d)
-    return inc, dG
+        inc.append(scaled_residual(X[rs.mods, R][None, :] * np.diff(rs.psi, axis=0), d))
+        ref.append(d)
+    for rs in prob.drives:
+        d = (X[rs.mods, R] * prob.drive_levers(X, rs))[None, :] * np.diff(rs.psi, axis=0)
+        med = np.median(d, axis=1, keepdims=True)
+        # the wheels scaled to agree first: one far off (a radius not yet fitted, a
+        # slipping start) no longer moves the median when it slips
+        med = np.median(d / wheel_scales(d, med), axis=1, keepdims=True)
+        med = np.broadcast_to(med, d.shape)
+        inc.append(scaled_residual(d, med))
+        ref.append(med)
+    return inc, ref
+
+
+def wheel_scales(d: FloatArray, ref: FloatArray) -> FloatArray:
+    """``k`` (m,) per column: the median of ``d / ref`` where ``|ref|`` is over a tenth of
+    its largest (1 without such rows)."""
+    r = np.broadcast_to(ref, d.shape)
+    k = np.ones(d.shape[1])
+    for c in range(d.shape[1]):
+        moving = np.abs(r[:, c]) > 0.1 * np.abs(r[:, c]).max()
+        if moving.any():
+            k[c] = float(np.median(d[moving, c] / r[moving, c]))
+    return k
+
+
+def scaled_residual(d: FloatArray, ref: FloatArray) -> FloatArray:
+    """``d - k ref`` per column with ``k`` of :func:`wheel_scales`."""
+    return np.asarray(d - wheel_scales(d, ref)[None, :] * ref, dtype=float)
 
 
 def cut_slip(
-    prob: ImuProblem, valid: list[BoolArray], x: FloatArray, opts: SolverOptions, floor: float
+    prob: ImuProblem,
+    valid: list[BoolArray],
+    x: FloatArray,
+    opts: SolverOptions,
+    floor: float,
+    pooled: bool = False,
 ) -> int:
-    """Find slip bursts, re-cut every segment's runs; returns the increments cut.
+    """Find slip bursts, re-cut every rolling set's runs; returns the increments cut.
 
-    A wheel's increment whose residual against the gyro is beyond ``slip_sigmas`` robust
-    sigmas of its series (and one either side) slips (:func:`.slip.detect_slip`, bursts
-    only: see docs/mocap-free.md).  A slip starts a new run of that wheel (its constant
-    jumps); runs of one node are dropped.
+    A wheel's increment whose residual against its reference (:func:`wheel_increments`)
+    is beyond ``slip_sigmas`` robust sigmas of its series (and one either side) slips
+    (:func:`.slip.detect_slip`, bursts only: see docs/mocap-free.md).  A slip starts a
+    new run of that wheel (its constant jumps); runs of one node are dropped.  A straight
+    drive must stay one connected run of nodes (its length is end minus start).
+    ``pooled``: one robust sigma for all increments (the coarse problem's series are too
+    short for their own).
     """
-    inc, dG = gyro_increments(prob, x)
-    flat_inc, flat_dG, ser, t, where = [], [], [], [], []
+    sets = [*prob.spins, *prob.drives]
+    inc, ref = wheel_increments(prob, x)
+    flat_inc, flat_ref, ser, t, where = [], [], [], [], []
     k = 0
-    for si, (rs, v) in enumerate(zip(prob.spins, valid, strict=True)):
+    for si, (rs, v) in enumerate(zip(sets, valid, strict=True)):
         ok = v[1:] & v[:-1]
         for c in range(rs.mods.size):
             sel = np.flatnonzero(ok[:, c])
             flat_inc.append(inc[si][sel, c])
-            flat_dG.append(dG[si][sel, c])
+            flat_ref.append(ref[si][sel, c])
             ser.append(np.full(sel.size, k))
             t.append(rs.t[sel])
             where += [(si, c, int(i)) for i in sel]
             k += 1
-    slip = detect_slip(
-        np.concatenate(flat_inc), np.concatenate(flat_dG), np.concatenate(ser).astype(np.int64),
-        np.concatenate(t), opts.slip_sigmas, opts.drift_chunk, math.inf,
-        np.full(k, 1e-3), floor,
-    )
-    cut = [np.zeros((rs.t.size - 1, rs.mods.size), dtype=bool) for rs in prob.spins]
+    all_inc, all_ser = np.concatenate(flat_inc), np.concatenate(ser).astype(np.int64)
+    if pooled:  # few increments per series: one robust scale for all
+        bad = np.abs(all_inc) > opts.slip_sigmas * max(mad_sigma(all_inc), floor)
+        slip = bad.copy()
+        same = all_ser[1:] == all_ser[:-1]
+        slip[1:] |= bad[:-1] & same
+        slip[:-1] |= bad[1:] & same
+    else:
+        slip = detect_slip(
+            all_inc, np.concatenate(flat_ref), all_ser, np.concatenate(t),
+            opts.slip_sigmas, opts.drift_chunk, math.inf, np.full(k, 1e-3), floor,
+        )
+    cut = [np.zeros((rs.t.size - 1, rs.mods.size), dtype=bool) for rs in sets]
     for (si, c, i), bad in zip(where, slip.tolist(), strict=True):
         cut[si][i, c] = bad
-    for rs, v, cu in zip(prob.spins, valid, cut, strict=True):
+    for rs, v, cu in zip(sets, valid, cut, strict=True):
         brk = np.vstack([np.zeros((1, rs.mods.size), dtype=np.int64), np.cumsum(cu, axis=0)])
         key = brk * rs.mods.size + np.arange(rs.mods.size)[None, :]
         present = v.copy()
@@ -181,6 +234,12 @@ def cut_slip(
         run[present] = dense
         rs.present, rs.run = present, run
         rs.chunks = connected_chunks(present, run)
+    for rs in prob.drives:
+        if rs.chunks != [(0, rs.t.size - 1)]:
+            raise CalibrationError(
+                f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s: every wheel slipped at once, or "
+                "a wheel's samples are missing: its length cannot be followed"
+            )
     prob.restack()
     return int(slip.sum())
 
@@ -218,13 +277,20 @@ def fit_imu(
     prob = run.problem
     n = prob.layout.n
     floor = initial_weights(run, x0)
-    valid = [rs.present.copy() for rs in prob.spins]
+    valid = [rs.present.copy() for rs in [*prob.spins, *prob.drives]]
     st = prob.settled
     x = x0.copy()
     cut = 0
     for it in range(max(2, opts.irls_iterations)):
         r_mean = float(np.mean(x[R : N_PARAMS * n : N_PARAMS]))
         cut = cut_slip(prob, valid, x, opts, r_mean * floor * math.sqrt(2.0))
+        total = sum(int(np.sum(v[1:] & v[:-1])) for v in valid)
+        if cut > MAX_SLIP_FRACTION * total:
+            raise ImplausibleDataError(
+                f"{cut} of {total} wheel increments disagree with the gyro: not slip but "
+                "data that do not fit the robot (robot.yaml, the segments' windows, the "
+                "gyro's axis or units)"
+            )
         if it > 0:
             update_scales(prob, x, floor)
         set_gyro_sigma(prob, run, x)
@@ -244,12 +310,17 @@ def fit_imu(
     return x, cut
 
 
-def coarse_fit(run: ImuRun, x0: FloatArray) -> FloatArray:
+def coarse_fit(run: ImuRun, x0: FloatArray, opts: SolverOptions) -> FloatArray:
     """One solve of a problem with sparse nodes, from the nominal start: it brings a far
-    start (a robot 30 % off its design) near the optimum at a tenth of the cost."""
+    start (a robot 30 % off its design) near the optimum at a tenth of the cost.  Slip
+    bursts are cut first (against the gyro with the start's levers, each wheel's scale
+    fitted: :func:`wheel_increments`): least squares would bend everything to them."""
     prob = run.problem
     n = prob.layout.n
-    initial_weights(run, x0)
+    floor = initial_weights(run, x0)
+    valid = [rs.present.copy() for rs in [*prob.spins, *prob.drives]]
+    r_mean = float(np.mean(x0[R : N_PARAMS * n : N_PARAMS]))
+    cut_slip(prob, valid, x0, opts, r_mean * floor * math.sqrt(2.0), pooled=True)
     sol = least_squares(
         prob.residuals, x0, jac=prob.jacobian, method="lm", x_scale="jac",
         xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=100,
@@ -374,7 +445,7 @@ def solve_mocap_free(
     )
     x0 = initial_parameters(coarse, ds)
     plausibility.check_gyro_ratio(gyro_ratio(coarse.problem, x0), source)
-    x0 = coarse_fit(coarse, x0)
+    x0 = coarse_fit(coarse, x0, opts)
     run = build_imu_problem(ds, segs, opts, source, noise)
     x, cut = fit_imu(run, x0, opts)
     x = align_design_fit(run.problem, x)
