@@ -22,6 +22,14 @@ angle ``a_m`` of ``options.angles``:
    ``settle_tol`` of its settled angle (computed from the exact solution); the segment
    window is ``[start, start + spin_duration]`` after the settle (pose clock).
 
+With ``rest_time > 0`` the robot also rests (body, wheels and steering still) for that
+long at the start and between each alignment and its spin; with ``drive_length > 0`` the
+run ends with a **straight drive**: every wheel steered to the true angle
+``drive_direction``, a rest, a pure translation along ``-u(drive_direction)`` of
+``drive_length`` metres (speed ramps of ``ramp_time``, cruise ``drive_speed``) and a rest
+(without a drive, a final rest).  The rests are where a gyro's bias is seen
+(:mod:`simulators.datagen_imu`).
+
 Integration: every motion above is a rotation about a body point fixed in the world, for
 which the free-caster dynamics have the closed-form solution of
 :func:`simulators.physics.trailing_about_pivot`; it is evaluated at every sample time, so
@@ -117,6 +125,10 @@ class ExperimentOptions:
     partial_slips: tuple[PartialSlip, ...] = ()  # slow slips over part of a segment
     clock_offset: float = 0.0  # s, encoder clock - pose clock
     integration_dt: float = 1e-3  # s, time grid of the settle search
+    rest_time: float = 0.0  # s of stillness at the start, before each spin and around the drive
+    drive_length: float = 0.0  # m, straight drive at the end (0: none)
+    drive_speed: float = 0.4  # m/s, cruise speed of the straight drive
+    drive_direction: float = math.pi  # rad, true steering of every wheel while driving
     seed: int = 0
 
 
@@ -163,6 +175,16 @@ class Experiment:
     outlier_times: FloatArray = field(default_factory=lambda: np.zeros(0))
     duration: float = 0.0
     generation_seconds: float = 0.0
+    rests: list[tuple[float, float]] = field(default_factory=list)
+    """Windows (s, pose clock) in which body, wheels and steering are still."""
+    drive: tuple[float, float] | None = None
+    """The straight drive's motion (s, pose clock), None without one."""
+    phases: list[_Phase] = field(default_factory=list, repr=False)
+
+    def poses_at(self, t: FloatArray) -> FloatArray:
+        """True poses (K, 3) ``x, y, yaw`` (yaw not wrapped) at pose-clock times ``t``."""
+        a = self.truth.arrays()
+        return _evaluate(self.phases, np.asarray(t, dtype=float), a.P_s, a.b, a.r)[0]
 
     def save(self, directory: str | os.PathLike[str]) -> None:
         """Write the dataset directory plus ``truth.yaml`` (kinematic file of the truth)."""
@@ -183,8 +205,8 @@ class _Phase:
     pose0: FloatArray
     theta0: FloatArray
     psi0: FloatArray
-    kind: str  # "rotate" | "align"
-    pivot: FloatArray = field(default_factory=lambda: np.zeros(2))
+    kind: str  # "rotate" | "align" | "translate"
+    pivot: FloatArray = field(default_factory=lambda: np.zeros(2))  # translate: direction
     free: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
     fork: int = -1  # index of a module whose fork keeps its world orientation
     profile: tuple[str, float, float, float] = ("spin", 0.0, 0.0, 0.0)
@@ -210,6 +232,11 @@ class _Phase:
             pose = np.broadcast_to(self.pose0, (K, 3)).copy()
             return pose, theta, psi
         ph = self.phi(tau)
+        if self.kind == "translate":  # distance ph along the body direction self.pivot
+            pose = np.broadcast_to(self.pose0, (K, 3)).copy()
+            pose[:, :2] += ph[:, None] * (rot(self.pose0[2]) @ self.pivot)[None, :]
+            along = np.cos(self.theta0) * self.pivot[0] + np.sin(self.theta0) * self.pivot[1]
+            return pose, theta, psi + ph[:, None] * (along / r)[None, :]
         pose = pose_about_pivot(self.pose0, self.pivot, ph)
         idx = np.flatnonzero(self.free)
         if idx.size:
@@ -348,12 +375,20 @@ def generate_experiment(
     phases: list[_Phase] = []
     seg_info: list[tuple[int, int, float, float, float, FloatArray, FloatArray]] = []
 
+    rests: list[tuple[float, float]] = []
+
     def close(ph: _Phase) -> None:
         nonlocal t, pose, theta, psi
         phases.append(ph)
         pe, te, se = ph.evaluate(np.array([ph.t1]), P_s, b, r)
         t, pose, theta, psi = ph.t1, pe[0], te[0], se[0]
 
+    def rest() -> None:
+        if opt.rest_time > 0:
+            rests.append((t, round(t + opt.rest_time, 9)))
+            close(_Phase(t, rests[-1][1], pose, theta, psi, "align", theta1=theta))
+
+    rest()
     for k in range(n):
         dyn = np.ones(n, dtype=bool)
         dyn[k] = False
@@ -374,6 +409,7 @@ def generate_experiment(
             target[k] = a + beta[k]
             theta1 = theta + wrap_angle(target - theta)
             close(_Phase(t, round(t + opt.align_time, 9), pose, theta, psi, "align", theta1=theta1))
+            rest()
             settle = _settle_time(theta, P_s, b, r, C, opt, dyn)
             settle = math.ceil(settle / opt.integration_dt - 1e-9) * opt.integration_dt
             steady = settle + opt.spin_duration
@@ -388,6 +424,23 @@ def generate_experiment(
             w0 = t0 + opt.ramp_time + settle
             C_W = pose0[:2] + rot(pose0[2]) @ C
             seg_info.append((k, m, float(a), w0, w0 + opt.spin_duration, C, C_W))
+    drive = None
+    if opt.drive_length > 0:
+        theta1 = theta + wrap_angle(opt.drive_direction - theta)
+        close(_Phase(t, round(t + opt.align_time, 9), pose, theta, psi, "align", theta1=theta1))
+        rest()
+        steady = opt.drive_length / opt.drive_speed - opt.ramp_time
+        if steady < 0:
+            raise ValueError("drive_length too short for drive_speed and ramp_time")
+        direction = -np.array([math.cos(opt.drive_direction), math.sin(opt.drive_direction)])
+        drive = (t, round(t + 2.0 * opt.ramp_time + steady, 9))
+        close(
+            _Phase(
+                t, drive[1], pose, theta, psi, "translate", pivot=direction,
+                profile=("spin", opt.drive_speed, opt.ramp_time, steady),
+            )
+        )
+    rest()
     t_end = t
 
     # ---------------------------------------------------------------- sampling
@@ -499,4 +552,7 @@ def generate_experiment(
         outlier_times=t_pose[out_idx],
         duration=t_end,
         generation_seconds=time.perf_counter() - t_start,
+        rests=rests,
+        drive=drive,
+        phases=phases,
     )

@@ -7,14 +7,20 @@
     encoders.csv    t,module,steer,wheel       reported theta_hat and psi (s, id, rad, rad)
     segments.csv    static_module,start,end    windows (s) of steady spinning
 
-Rows need not be sorted (they are sorted on load); poses may have gaps.  Every problem
-raises :class:`~swpc_hw.errors.DatasetError` with a one-line message naming the file.
+A dataset without motion capture has no ``poses.csv`` but (docs/dataset-format.md)::
+
+    imu.csv         t,wz                       yaw rate of a gyro fixed to R (s, rad/s)
+    references.yaml references: [...]          known quantities (:mod:`swpc_hw.references`)
+
+``poses.csv`` may be absent only when ``imu.csv`` is present.  Rows need not be sorted
+(they are sorted on load); poses may have gaps.  Every problem raises
+:class:`~swpc_hw.errors.DatasetError` with a one-line message naming the file.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +29,12 @@ from numpy.typing import NDArray
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.kinematic_file import atomic_write_text, load_robot, save_kinematics
 from swpc_hw.model import RobotParams
+from swpc_hw.references import Reference, load_references, save_references
 
 FloatArray = NDArray[np.float64]
 
 POSES_COLUMNS = ("t", "x", "y", "yaw")
+IMU_COLUMNS = ("t", "wz")
 ENCODERS_COLUMNS = ("t", "module", "steer", "wheel")
 SEGMENTS_COLUMNS = ("static_module", "start", "end")
 
@@ -44,14 +52,28 @@ class Segment:
 class Dataset:
     """One calibration run, in memory.
 
-    ``poses``: (M, 4) rows ``t, x, y, yaw`` sorted by t.
+    ``poses``: (M, 4) rows ``t, x, y, yaw`` sorted by t; (0, 4) without motion capture.
     ``encoders``: dict module id -> (K, 3) rows ``t, steer, wheel`` sorted by t.
+    ``imu``: (K, 2) rows ``t, wz`` sorted by t, or None (no ``imu.csv``).
+    ``references``: the entries of ``references.yaml`` (empty without the file).
     """
 
     robot: RobotParams
     poses: FloatArray
     encoders: dict[int, FloatArray]
     segments: list[Segment]
+    imu: FloatArray | None = None
+    references: list[Reference] = field(default_factory=list)
+
+    @property
+    def has_poses(self) -> bool:
+        """Motion capture present (the mocap solver's dataset)."""
+        return bool(self.poses.shape[0] > 0)
+
+    @property
+    def mocap_free(self) -> bool:
+        """No poses, a gyro: the mocap-free solver's dataset."""
+        return not self.has_poses and self.imu is not None
 
     def encoder_table(self) -> FloatArray:
         """All encoder rows as (K, 4) ``t, module, steer, wheel``."""
@@ -134,9 +156,22 @@ def load_dataset(directory: str | os.PathLike[str]) -> Dataset:
         robot = load_robot(d / "robot.yaml")
     except KinematicFileError as exc:
         raise DatasetError(str(exc)) from exc
-    poses = _read_csv(d / "poses.csv", POSES_COLUMNS)
-    check_one_clock(poses[:, 0], d / "poses.csv", "t")
-    poses = poses[np.argsort(poses[:, 0], kind="stable")]
+    imu = None
+    if (d / "imu.csv").exists():
+        imu = _read_csv(d / "imu.csv", IMU_COLUMNS)
+        check_one_clock(imu[:, 0], d / "imu.csv", "t")
+        imu = imu[np.argsort(imu[:, 0], kind="stable")]
+    if (d / "poses.csv").exists() or imu is None:
+        if not (d / "poses.csv").exists():
+            raise DatasetError(
+                f"{d / 'poses.csv'}: missing file (and no imu.csv: a dataset needs poses.csv "
+                "for the motion-capture solver or imu.csv and references.yaml without it)"
+            )
+        poses = _read_csv(d / "poses.csv", POSES_COLUMNS)
+        check_one_clock(poses[:, 0], d / "poses.csv", "t")
+        poses = poses[np.argsort(poses[:, 0], kind="stable")]
+    else:
+        poses = np.zeros((0, 4))
     enc = _read_csv(d / "encoders.csv", ENCODERS_COLUMNS)
     seg = _read_csv(d / "segments.csv", SEGMENTS_COLUMNS)
     ids = set(robot.ids)
@@ -164,7 +199,10 @@ def load_dataset(directory: str | os.PathLike[str]) -> Dataset:
             raise DatasetError(f"{d / 'segments.csv'}: row {i + 1}: end {e} <= start {s}")
         segments.append(Segment(int(m), float(s), float(e)))
     segments.sort(key=lambda g: (g.static_module, g.start))
-    return Dataset(robot=robot, poses=poses, encoders=encoders, segments=segments)
+    refs = load_references(d / "references.yaml", ids) if (d / "references.yaml").exists() else []
+    return Dataset(
+        robot=robot, poses=poses, encoders=encoders, segments=segments, imu=imu, references=refs
+    )
 
 
 def _csv_text(header: tuple[str, ...], rows: FloatArray, fmts: list[str]) -> str:
@@ -175,13 +213,25 @@ def _csv_text(header: tuple[str, ...], rows: FloatArray, fmts: list[str]) -> str
 
 
 def save_dataset(directory: str | os.PathLike[str], ds: Dataset) -> None:
-    """Write ``ds`` as a dataset directory (each file written atomically)."""
+    """Write ``ds`` as a dataset directory (each file written atomically).
+
+    ``poses.csv`` is written when there are poses or no gyro; a mocap-free dataset
+    removes a stale ``poses.csv`` (it would make the directory a motion-capture dataset).
+    ``imu.csv`` when there is a gyro, ``references.yaml`` when there are references.
+    """
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     save_kinematics(d / "robot.yaml", ds.robot)
-    atomic_write_text(
-        d / "poses.csv", _csv_text(POSES_COLUMNS, ds.poses, ["%.6f", "%.9f", "%.9f", "%.9f"])
-    )
+    if ds.has_poses or ds.imu is None:
+        atomic_write_text(
+            d / "poses.csv", _csv_text(POSES_COLUMNS, ds.poses, ["%.6f", "%.9f", "%.9f", "%.9f"])
+        )
+    else:
+        (d / "poses.csv").unlink(missing_ok=True)
+    if ds.imu is not None:
+        atomic_write_text(d / "imu.csv", _csv_text(IMU_COLUMNS, ds.imu, ["%.6f", "%.10f"]))
+    if ds.references:
+        save_references(d / "references.yaml", ds.references)
     atomic_write_text(
         d / "encoders.csv",
         _csv_text(ENCODERS_COLUMNS, ds.encoder_table(), ["%.6f", "%d", "%.10f", "%.10f"]),

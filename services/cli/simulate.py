@@ -1,7 +1,8 @@
 """``swpc simulate OUT_DIR``: write a simulated calibration run as a dataset directory.
 
 Register by listing ``services.cli.simulate`` in ``services.cli.SUBCOMMANDS``.  The
-directory gets the dataset files of CONVENTIONS.md plus ``truth.yaml`` (the hidden truth).
+directory gets the dataset files of CONVENTIONS.md plus ``truth.yaml`` (the hidden truth);
+with ``--mocap-free``, ``imu.csv`` and ``references.yaml`` instead of ``poses.csv``.
 Human-facing options are in degrees and millimetres; everything written is SI.
 """
 
@@ -39,6 +40,26 @@ def register(sub: Any) -> None:
         "--counts-per-rev", type=int, default=2**17, help="encoder resolution, 0 = exact"
     )
     p.add_argument("--seed", type=int, default=0)
+    g = p.add_argument_group(
+        "without motion capture",
+        "--mocap-free writes imu.csv and references.yaml instead of poses.csv, from a run "
+        "with rests and a straight drive (docs/mocap-free.md)",
+    )
+    g.add_argument("--mocap-free", action="store_true", help="write a mocap-free dataset")
+    g.add_argument("--rest-time", type=float, default=2.0, help="s of stillness per rest (2)")
+    g.add_argument("--drive-length", type=float, default=4.0, help="straight drive, m (4)")
+    g.add_argument("--gyro-rate", type=float, default=200.0, help="gyro samples /s (200)")
+    g.add_argument(
+        "--gyro-noise", type=float, default=0.005, help="white noise, deg/s/sqrt(Hz) (0.005)"
+    )
+    g.add_argument("--gyro-bias", type=float, default=0.1, help="bias, deg/s (0.1)")
+    g.add_argument(
+        "--gyro-bias-walk", type=float, default=1e-4, help="bias walk, deg/s/sqrt(s) (1e-4)"
+    )
+    g.add_argument("--gyro-scale-error", type=float, default=0.3, help="scale error, %% (0.3)")
+    g.add_argument(
+        "--reference-stddev", type=float, default=0.5, help="tape-measure std dev, mm (0.5)"
+    )
     p.set_defaults(func=run)
 
 
@@ -65,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
         counts_per_rev=args.counts_per_rev or None,
         seed=args.seed,
     )
+    if args.mocap_free:
+        return run_mocap_free(args, truth, nominal, opt)
     exp = generate_experiment(truth, opt, nominal)
     exp.save(args.output)
     ds = exp.dataset
@@ -72,5 +95,36 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"wrote {args.output}: {exp.duration:.1f} s, {len(ds.poses)} poses, {n_enc} encoder "
         f"rows, {len(ds.segments)} segments ({exp.generation_seconds * 1e3:.0f} ms)"
+    )
+    return 0
+
+
+def run_mocap_free(args: argparse.Namespace, truth: Any, nominal: Any, opt: Any) -> int:
+    """``--mocap-free``: the run with rests and a drive, written without poses.csv."""
+    import dataclasses
+
+    from simulators.datagen_imu import GyroOptions, ReferenceOptions, generate_mocap_free_experiment
+
+    deg = math.pi / 180.0
+    opt = dataclasses.replace(opt, rest_time=args.rest_time, drive_length=args.drive_length)
+    gyro = GyroOptions(
+        rate=args.gyro_rate,
+        noise_density=args.gyro_noise * deg,
+        bias=args.gyro_bias * deg,
+        bias_walk=args.gyro_bias_walk * deg,
+        scale_error=args.gyro_scale_error / 100.0,
+    )
+    refs = ReferenceOptions(
+        stddev=args.reference_stddev * 1e-3, straight_drive=args.drive_length > 0
+    )
+    exp = generate_mocap_free_experiment(truth, opt, gyro, refs, nominal)
+    exp.save(args.output)
+    ds = exp.dataset
+    n_enc = sum(len(e) for e in ds.encoders.values())
+    n_imu = 0 if ds.imu is None else len(ds.imu)
+    print(
+        f"wrote {args.output} (no poses.csv): {exp.experiment.duration:.1f} s, {n_imu} gyro "
+        f"samples, {n_enc} encoder rows, {len(ds.segments)} segments, "
+        f"{len(ds.references)} references"
     )
     return 0

@@ -27,8 +27,9 @@ def register(sub: Any) -> None:
         help="calibrate from an offline dataset directory and write the kinematic file",
         description=(
             "Solve a dataset directory (robot.yaml, poses.csv, encoders.csv, segments.csv; "
-            "see docs/dataset-format.md) and write the kinematic file. Bad data: one-line error, "
-            "exit status 2, no output file."
+            "see docs/dataset-format.md) and write the kinematic file. Without poses.csv "
+            "(imu.csv and references.yaml instead) the mocap-free solver runs and writes the "
+            "design-fit frame. Bad data: one-line error, exit status 2, no output file."
         ),
     )
     p.add_argument("dataset", help="dataset directory")
@@ -46,13 +47,18 @@ def register(sub: Any) -> None:
         default="joint",
         help="joint robust solver (default) or the paper's literal two-angle procedure",
     )
-    p.add_argument("--truth", help="kinematic file of the true parameters (adds an error column)")
+    p.add_argument(
+        "--truth",
+        help="kinematic file of the true parameters (adds an error column; re-expressed in "
+        "the design-fit frame for a mocap-free result)",
+    )
     p.add_argument("--robot", help="robot id written to the file (default: robot.yaml's)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from swpc_hw.calibration.baseline import solve_paper
+    from swpc_hw.calibration.imu_solver import solve_mocap_free
     from swpc_hw.calibration.report import format_table
     from swpc_hw.calibration.solver import SolverOptions, solve
     from swpc_hw.dataset import load_dataset
@@ -66,10 +72,23 @@ def run(args: argparse.Namespace) -> int:
         )
     truth = load_robot(args.truth) if args.truth else None
     ds = load_dataset(args.dataset)
-    if args.method == "paper":
+    if not ds.has_poses:  # no poses.csv: the loader wants imu.csv then
+        if args.method == "paper":
+            raise CalibrationError(
+                f"{args.dataset}: no poses.csv: the paper's procedure needs motion capture "
+                "(this dataset is for the mocap-free solver: leave out --method paper)"
+            )
+        opts = SolverOptions(time_offset=args.time_offset)
+        result = solve_mocap_free(ds, opts, source=args.dataset)
+    elif args.method == "paper":
         result = solve_paper(ds, float(args.time_offset), source=args.dataset)
     else:
         result = solve(ds, SolverOptions(time_offset=args.time_offset), source=args.dataset)
+    if truth is not None and result.params.frame != truth.frame:
+        from swpc_hw.frames import design_fit_transform, transform_robot
+
+        phi, t = design_fit_transform(truth.arrays().P_s, ds.robot.arrays().P_s)
+        truth = transform_robot(truth, phi, t, result.params.frame)
     params = result.params
     if args.robot:
         params = params.model_copy(update={"robot": args.robot})

@@ -86,6 +86,8 @@ def solve_paper(
     """Calibrate with the paper's literal two-angle geometry (module docstring)."""
     if not math.isfinite(time_offset):
         raise CalibrationError(f"time offset must be a finite number of seconds ({time_offset})")
+    if not ds.has_poses:
+        raise CalibrationError(f"{source}: no poses: the paper's procedure needs poses.csv")
     plausibility.check_dataset(ds, source)
     segs = prepare_segments(ds, time_offset, source)
     plausibility.check_fixed_points(

@@ -198,6 +198,25 @@ def rolling_lever(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike, C: ArrayLike) 
     return cross2(P_w - np.asarray(C, dtype=float), steering_direction(theta))
 
 
+def settled_angle(P_s: ArrayLike, b: ArrayLike, C: ArrayLike, omega_sign: ArrayLike) -> FloatArray:
+    """True steering angle at which a free caster settles while the body spins about ``C``.
+
+    With ``q = P_s - C = |q| (cos alpha, sin alpha)`` the caster trails where
+    ``(P_w - C) . u(theta) = 0`` on the stable side, ``omega sin(theta - alpha) < 0``::
+
+        cos x* = -b / |q|,  sin x* = -sign(omega) sqrt(1 - b^2 / |q|^2),  theta* = alpha + x*
+
+    (the generator's physics, :func:`simulators.physics.settled_trailing`, by the same
+    equations).  Wrapped to (-pi, pi].
+    """
+    q = np.asarray(P_s, dtype=float) - np.asarray(C, dtype=float)
+    bb = np.asarray(b, dtype=float)
+    dist = np.hypot(q[..., 0], q[..., 1])
+    sgn = np.where(np.asarray(omega_sign, dtype=float) < 0.0, -1.0, 1.0)
+    D = np.sqrt(np.maximum(dist * dist - bb * bb, 0.0))
+    return wrap_angle(np.arctan2(q[..., 1], q[..., 0]) + np.arctan2(-sgn * D, -bb))
+
+
 def settled_residual(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike, C: ArrayLike) -> FloatArray:
     """``(P_w - C) . u(theta) = (P_s - C) . u(theta) + b``: zero for a settled caster."""
     u = steering_direction(theta)

@@ -66,8 +66,12 @@ def robot_size(nominal: RobotParams) -> float:
 
 
 def check_dataset(ds: Dataset, source: str = "dataset") -> None:
-    """Clocks: sorted times, no timestamp with two different samples."""
-    _check_clock(ds.poses, f"{source}/poses.csv", "poses")
+    """Clocks: sorted times, no timestamp with two different samples (poses, encoders and
+    the gyro, those present)."""
+    if ds.has_poses:
+        _check_clock(ds.poses, f"{source}/poses.csv", "poses")
+    if ds.imu is not None:
+        _check_clock(ds.imu, f"{source}/imu.csv", "gyro samples")
     for mid, rows in ds.encoders.items():
         _check_clock(rows, f"{source}/encoders.csv", f"module {mid}'s encoders")
 
@@ -213,3 +217,49 @@ def check_result(X: FloatArray, nominal: RobotParams) -> None:
             "implausible result, far from the nominal robot: " + "; ".join(far) + f" ({cause})"
         )
 
+
+
+# ------------------------------------------------------------------ without motion capture
+
+GYRO_RATIO = (0.5, 2.0)
+"""The gyro's turn over the wheels' (nominal robot) must lie in this range."""
+MAX_GYRO_SCALE_ERROR = 0.05
+"""A calibrated gyro scale error beyond this is refused."""
+
+
+def check_gyro_ratio(ratio: float, source: str = "dataset") -> None:
+    """Units and axis of the gyro: its turn over each segment against the wheels'.
+
+    ``ratio``: the median over the segments of the gyro's yaw (bias removed) over the
+    yaw the wheels imply with the starting geometry; 1 when ``imu.csv`` is the yaw rate
+    of R in rad/s.  57 (= 180 / pi): degrees per second; negative: the gyro's z axis
+    points down (or clockwise is positive).
+    """
+    where = f"{source}/imu.csv"
+    deg = 180.0 / math.pi
+    if ratio < 0:
+        raise ImplausibleDataError(
+            f"{where}: wz turns the other way than the wheels (ratio {ratio:.3g}): the gyro's "
+            "z axis points down, or clockwise is positive; wz must be counter-clockwise "
+            "positive about R's z (up)"
+        )
+    if GYRO_RATIO[0] * deg < ratio < GYRO_RATIO[1] * deg:
+        raise ImplausibleDataError(
+            f"{where}: wz looks like deg/s (it reads {ratio:.3g} times the yaw rate the "
+            "wheels show; imu.csv needs rad/s)"
+        )
+    if not GYRO_RATIO[0] < ratio < GYRO_RATIO[1]:
+        raise ImplausibleDataError(
+            f"{where}: wz reads {ratio:.3g} times the yaw rate the wheels show: not the yaw "
+            "rate of R in rad/s (another axis or sensor, or robot.yaml is another robot)"
+        )
+
+
+def check_gyro_scale(eps: float) -> None:
+    """Refuse a calibrated gyro scale error ``eps`` beyond :data:`MAX_GYRO_SCALE_ERROR`."""
+    if not math.isfinite(eps) or abs(eps) > MAX_GYRO_SCALE_ERROR:
+        raise ImplausibleResultError(
+            f"implausible result: the gyro's scale is off by {eps * 100:.3g} % "
+            f"(more than {MAX_GYRO_SCALE_ERROR * 100:g} %): a wrong unit or sample time in "
+            "imu.csv, or references that contradict the encoders"
+        )

@@ -1,6 +1,7 @@
 """Cut a dataset into the per-segment arrays the solvers consume, and check it.
 
-All checks raise :class:`~swpc_hw.errors.DatasetError` with a one-line message naming
+Without motion capture (no poses) a segment's rotation is the gyro's and its poses are
+empty.  All checks raise :class:`~swpc_hw.errors.DatasetError` with a one-line message naming
 the file and the problem: a module never locked, fewer than two steering angles for a
 module, a segment with no rotation, too few samples.
 """
@@ -80,15 +81,19 @@ def prepare_segments(
             f"{seg_file}: segment {row + 1} "
             f"(module {seg.static_module}, {seg.start:g}-{seg.end:g} s)"
         )
-        sel = (t_all >= seg.start) & (t_all <= seg.end)
-        poses = ds.poses[sel].copy()
-        if poses.shape[0] < MIN_POSES:
-            raise DatasetError(
-                f"{where}: too few pose samples "
-                f"({poses.shape[0]} in poses.csv, need >= {MIN_POSES})"
-            )
-        poses[:, 3] = np.unwrap(poses[:, 3])
-        rotation = abs(poses[-1, 3] - poses[0, 3])
+        if ds.has_poses:
+            sel = (t_all >= seg.start) & (t_all <= seg.end)
+            poses = ds.poses[sel].copy()
+            if poses.shape[0] < MIN_POSES:
+                raise DatasetError(
+                    f"{where}: too few pose samples "
+                    f"({poses.shape[0]} in poses.csv, need >= {MIN_POSES})"
+                )
+            poses[:, 3] = np.unwrap(poses[:, 3])
+            rotation = abs(poses[-1, 3] - poses[0, 3])
+        else:  # no motion capture: the gyro's turn (bias and scale errors are small)
+            poses = np.zeros((0, 4))
+            rotation = gyro_rotation(ds, seg, where)
         if rotation < MIN_ROTATION:
             raise DatasetError(
                 f"{where}: no rotation (robot turned {np.rad2deg(rotation):.2f} deg, "
@@ -124,6 +129,18 @@ def prepare_segments(
                 f"({', '.join(f'{np.rad2deg(a):.1f}' for a in angles)} deg); need >= 2"
             )
     return out
+
+
+def gyro_rotation(ds: Dataset, seg: Segment, where: str) -> float:
+    """``|int wz dt|`` over a segment's window (rad): how far the gyro says it turned."""
+    imu = ds.imu if ds.imu is not None else np.zeros((0, 2))
+    sel = (imu[:, 0] >= seg.start) & (imu[:, 0] <= seg.end)
+    if int(sel.sum()) < MIN_POSES:
+        raise DatasetError(
+            f"{where}: too few gyro samples ({int(sel.sum())} in imu.csv, need >= {MIN_POSES})"
+        )
+    t, w = imu[sel, 0], imu[sel, 1]
+    return abs(float(np.sum(0.5 * (w[1:] + w[:-1]) * np.diff(t))))
 
 
 def distinct_angles(angles: list[float], tol: float = float(ANGLE_CLUSTER_TOL)) -> list[float]:

@@ -62,11 +62,18 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
     q = result
     lines.append("")
     chi2 = f"{q.reduced_chi2:.3g}" if _known(q.reduced_chi2) else "n/a (no noise model)"
-    lines.append(
-        f"poses used {q.poses_used} (rejected {q.poses_rejected}); wheel increments used "
-        f"{q.increments_used} (rejected {q.increments_rejected}); {offset_text(q)}; "
-        f"reduced chi2 {chi2}"
-    )
+    if q.mocap_free is not None:
+        lines += mocap_free_lines(q)
+        lines.append(
+            f"wheel increments used {q.increments_used} (rejected as slip "
+            f"{q.increments_rejected}); reduced chi2 {chi2}"
+        )
+    else:
+        lines.append(
+            f"poses used {q.poses_used} (rejected {q.poses_rejected}); wheel increments used "
+            f"{q.increments_used} (rejected {q.increments_rejected}); {offset_text(q)}; "
+            f"reduced chi2 {chi2}"
+        )
     if q.method == "paper":
         lines.append("  (the paper's procedure computes no rolling or settled residuals)")
     for s in q.segments:
@@ -83,7 +90,8 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
         ]
         if _known(s.noise_inflation):
             figures.append(f"noise correlation x{s.noise_inflation:.2f}")
-        figures.append(f"poses {s.poses_used}/{s.poses_used + s.poses_rejected}")
+        if q.mocap_free is None:
+            figures.append(f"poses {s.poses_used}/{s.poses_used + s.poses_rejected}")
         lines.append(
             f"  segment {s.row + 1}: module {s.static_module} at {angle:7.2f} deg: "
             + ", ".join(figures)
@@ -95,6 +103,38 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
             f"{max(inflation):.2f}x what white noise of its size would give (included above)"
         )
     return "\n".join(lines)
+
+
+def mocap_free_lines(q: CalibrationResult) -> list[str]:
+    """The mode, the gyro's estimates and every reference's residual (mm, deg/s, %)."""
+    m = q.mocap_free
+    if m is None:
+        return []
+    deg = 180.0 / math.pi
+    eps_std = m.gyro_scale_error_std
+    lines = [
+        f"mode: mocap-free (encoders, gyro and references; frame {q.params.frame}: the rigid "
+        "transform that best aligns the steering axes with robot.yaml's)",
+        f"gyro: scale error {m.gyro_scale_error * 100:+.4f} %"
+        + (f" (std {eps_std * 100:.4f} %)" if eps_std is not None else "")
+        + f", white noise {m.gyro_noise_density * deg:.4g} deg/s/sqrt(Hz), bias walk "
+        f"{m.bias_walk * deg:.3g} deg/s/sqrt(s)",
+        "gyro bias at the rest windows (deg/s): "
+        + ", ".join(
+            f"{k.t:.1f} s {k.bias * deg:+.5f}" + (f" ({k.std * deg:.5f})" if k.std else "")
+            for k in m.bias
+        ),
+        "references (value, calibrated, residual, residual / stddev):",
+    ]
+    for r in m.references:
+        f, unit = (1e3, "mm")
+        std = f" (std {r.predicted_std * f:.4f})" if r.predicted_std is not None else ""
+        lines.append(
+            f"  {r.label}: {r.value * f:.4f} {unit}, {r.predicted * f:.4f}{std}, "
+            f"{r.residual * f:+.4f} {unit}, {r.residual / r.stddev:+.2f}"
+        )
+    lines += [f"  note: {n}" for n in m.notes]
+    return lines
 
 
 def _known(value: float | None) -> TypeGuard[float]:

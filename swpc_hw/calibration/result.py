@@ -43,6 +43,73 @@ class SegmentQuality:
 
 
 @dataclass
+class ReferenceResidual:
+    """One reference at the solution: what it says, what the calibration gives."""
+
+    label: str
+    kind: str
+    value: float
+    stddev: float
+    predicted: float
+    predicted_std: float | None = None
+    """Std dev of ``predicted`` from the calibration's covariance (the reference included)."""
+
+    @property
+    def residual(self) -> float:
+        return self.predicted - self.value
+
+
+@dataclass
+class BiasKnot:
+    """The gyro's bias at a rest window: time (s), value and std dev (rad/s)."""
+
+    t: float
+    bias: float
+    std: float | None
+
+
+@dataclass
+class MocapFreeQuality:
+    """What a calibration without motion capture adds to the quality figures."""
+
+    gyro_scale_error: float
+    """``eps`` of ``wz = (1 + eps) omega + bias``."""
+    gyro_scale_error_std: float | None
+    bias: list[BiasKnot]
+    gyro_noise_density: float
+    """White noise of the gyro, rad/s/sqrt(Hz), from the rests' scatter."""
+    bias_walk: float
+    """Random walk of the bias, rad/s/sqrt(s), from the knots (0: not seen)."""
+    references: list[ReferenceResidual]
+    block_chi2: dict[str, float] = field(default_factory=dict)
+    """Reduced chi^2 of every residual block (1 when its noise model is right)."""
+    notes: list[str] = field(default_factory=list)
+    """Warnings for the reader (a reference that pins something only weakly)."""
+
+    def document(self) -> dict[str, object]:
+        return {
+            "gyro_scale_error": float(self.gyro_scale_error),
+            "gyro_scale_error_std": _opt(self.gyro_scale_error_std),
+            "gyro_noise_density": float(self.gyro_noise_density),
+            "bias_walk": float(self.bias_walk),
+            "bias": [{"t": k.t, "bias": k.bias, "std": _opt(k.std)} for k in self.bias],
+            "references": [
+                {
+                    "reference": r.label,
+                    "value": r.value,
+                    "stddev": r.stddev,
+                    "predicted": r.predicted,
+                    "predicted_std": _opt(r.predicted_std),
+                    "residual": r.residual,
+                }
+                for r in self.references
+            ],
+            "block_chi2": {k: float(v) for k, v in self.block_chi2.items()},
+            "notes": list(self.notes),
+        }
+
+
+@dataclass
 class CalibrationResult:
     """Calibrated parameters (with std devs in ``params``) and quality figures.
 
@@ -50,7 +117,8 @@ class CalibrationResult:
     ``x_s, y_s, beta, b, r`` within a module (SI units), or None when unknown.
     ``time_offset_mode``: ``given``, ``estimated`` or ``not observable`` (then
     ``time_offset`` is the value assumed, 0).  ``reduced_chi2`` is None for a method
-    without a noise model.
+    without a noise model.  ``mode``: ``mocap`` (poses) or ``mocap-free`` (gyro and
+    references, ``mocap_free`` set, parameters in the design-fit frame).
     """
 
     params: RobotParams
@@ -67,6 +135,8 @@ class CalibrationResult:
     method: str = "joint"
     covariance: FloatArray | None = None
     extra: dict[str, float] = field(default_factory=dict)
+    mode: str = "mocap"
+    mocap_free: MocapFreeQuality | None = None
 
     def stddev_array(self) -> FloatArray:
         """(N, 5) standard deviations in the order x_s, y_s, beta, b, r."""
@@ -78,8 +148,9 @@ class CalibrationResult:
 
     def quality_document(self) -> dict[str, object]:
         """Plain-data quality figures (for the kinematic file's provenance and the API)."""
-        return {
+        doc: dict[str, object] = {
             "method": self.method,
+            "mode": self.mode,
             "time_offset": float(self.time_offset),
             "time_offset_std": _opt(self.time_offset_std),
             "time_offset_mode": self.time_offset_mode,
@@ -106,6 +177,9 @@ class CalibrationResult:
                 for q in self.segments
             ],
         }
+        if self.mocap_free is not None:
+            doc["mocap_free"] = self.mocap_free.document()
+        return doc
 
 
 def _opt(value: float | None) -> float | None:

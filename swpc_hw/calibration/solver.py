@@ -301,6 +301,11 @@ def solve(
     opts = options or SolverOptions()
     ids = ds.robot.ids
     n = len(ids)
+    if not ds.has_poses:
+        raise CalibrationError(
+            f"{source}: no poses: the motion-capture solver needs poses.csv "
+            "(imu.csv: use the mocap-free solver, imu_solver.solve_mocap_free)"
+        )
     plausibility.check_dataset(ds, source)
     auto = opts.time_offset == "auto"
     offset = 0.0 if auto else float(opts.time_offset)
