@@ -25,8 +25,12 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
+# One pytest worker per core, a test module's tests on one worker (module fixtures).  Only
+# the plugins the suite uses: hypothesis's and schemathesis's pytest plugins cost every
+# worker ~3 s of imports, and the suite uses both as libraries.
+PYTEST := PYTEST_DISABLE_PLUGIN_AUTOLOAD=1 $(BIN)/python -m pytest -p xdist -p pytest_timeout
 test: lint typecheck
-	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/browser
+	$(PYTEST) -q -p no:cacheprovider --ignore=tests/browser -n auto --dist loadfile
 
 # The operator console in headless Chromium (Debian's chromium + chromium-driver; skipped
 # with a message when absent, a failure under CI).  Screenshots: $(SWPC_SCREENSHOTS).

@@ -8,10 +8,13 @@ in simulated time:
    every file of the data dir gained (the rolling CAN log, the run store) and the bytes
    the process wrote (``wchar`` of ``/proc/self/io``: every ``write``), scaled to an hour.
    The rolling log never holds more than ``SWPC_CAN_LOG_BYTES`` (64 MiB) on disk: the
-   figure per hour is the write rate, the bound is what stays.
+   figure per hour is the write rate, the bound is what stays.  Between runs it keeps the
+   periodic frames once per ``SWPC_CAN_LOG_IDLE_PERIOD`` (1 s) per CAN id; set it to 0 for
+   every frame (the service before it).
 2. One calibration with the default protocol (4 modules x 2 angles, 360 deg spins): the
    run's directory file by file (dataset CSVs, raw ``can.log``, ``run.mcap``, kinematic
-   file), the rolling log's growth over the run, and the process's writes.
+   file), the rolling log's growth over the run (every frame during a run), and the
+   process's writes.
 
 ``python -m benchmarks disk`` (skip the run: ``SWPC_BENCH_DISK_RUN=0``).
 """
@@ -35,12 +38,16 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 MB = 1e6
 
 
-def written() -> int:
-    """Bytes this process has passed to ``write`` so far (``/proc/self/io`` ``wchar``)."""
-    for line in Path("/proc/self/io").read_text().splitlines():
-        if line.startswith("wchar:"):
-            return int(line.split()[1])
-    raise RuntimeError("no wchar in /proc/self/io")
+def written() -> tuple[int, int]:
+    """Bytes this process has passed to ``write`` so far (``wchar`` of ``/proc/self/io``:
+    files, pipes, the terminal) and sent to storage (``write_bytes``: what the disk gets)."""
+    io = dict(line.split(": ") for line in Path("/proc/self/io").read_text().splitlines())
+    return int(io["wchar"]), int(io["write_bytes"])
+
+
+def rates(w0: tuple[int, int], w1: tuple[int, int], per: float, unit: str) -> str:
+    calls, disk = ((b - a) / per / MB for a, b in zip(w0, w1, strict=True))
+    return f"process write() {calls:.1f} {unit}, to storage {disk:.1f} {unit}"
 
 
 def sizes(root: Path) -> dict[str, int]:
@@ -65,11 +72,12 @@ def main() -> None:
             grown = sum(after.values()) - sum(before.values())
             can_log = sum(v for k, v in after.items() if k.startswith("can/"))
             print(
-                f"[idle] {dt:.0f} s of robot time, feedback 200 Hz: "
+                f"[idle] {dt:.0f} s of robot time, feedback 200 Hz, SWPC_CAN_LOG_IDLE_PERIOD "
+                f"{settings.can_log_idle_period:g} s: "
                 f"data dir +{grown / dt / 1e3:.1f} "
                 f"kB/s = {grown / dt * 3600 / MB:.0f} MB/hour written (rolling CAN log; "
                 f"on disk at most {int(settings.can_log_bytes) / MB:.0f} MB: "
-                f"SWPC_CAN_LOG_BYTES); process writes {(w1 - w0) / dt * 3600 / MB:.0f} MB/hour; "
+                f"SWPC_CAN_LOG_BYTES); {rates(w0, w1, dt / 3600, 'MB/hour')}; "
                 f"rolling log now {can_log / MB:.1f} MB in "
                 f"{sum(k.startswith('can/') for k in after)} file(s)"
             )
@@ -97,8 +105,7 @@ def main() -> None:
             print(
                 f"[run] default protocol: {st['state']}, {t1 - t0:.0f} s of robot time "
                 f"({wall:.0f} s wall); run dir {sum(run.values()) / MB:.1f} MB ({parts} MB); "
-                f"rolling CAN log +{rolling / MB:.1f} MB; process writes "
-                f"{(w1 - w0) / MB:.1f} MB"
+                f"rolling CAN log +{rolling / MB:.1f} MB; {rates(w0, w1, 1.0, 'MB')}"
             )
 
 

@@ -41,10 +41,16 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from services.calibration_run import RunStatus
 from services.console import console_router
 from services.http_guard import RequestGuard
-from services.kinematics_api import kinematics_router
+from services.kinematics_api import UnreadableFileProblem, kinematics_router, unreadable_problem
 from services.provenance import tool_version
 from services.robot_config import ConfigOverrides, OverrideError, RobotConfig
-from services.runtime import DiskSpaceError, NoResultError, RunConflictError, Runtime
+from services.runtime import (
+    DiskSpaceError,
+    NoResultError,
+    RunConflictError,
+    Runtime,
+    StoreError,
+)
 from services.settings import ServiceSettings
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.heap_freeze import freeze_startup_heap
@@ -96,8 +102,9 @@ class FiniteJSONResponse(JSONResponse):
         ).encode("utf-8")
 
 
-def runtime(request: Request) -> Runtime:
-    """The runtime opened in the lifespan (dependency)."""
+async def runtime(request: Request) -> Runtime:
+    """The runtime opened in the lifespan (dependency; async: no threadpool hand-off for
+    what is an attribute read, which an abort would wait behind)."""
     rt: Runtime = request.app.state.runtime
     return rt
 
@@ -106,12 +113,13 @@ Rt = Annotated[Runtime, Depends(runtime)]
 _bearer = HTTPBearer(auto_error=False)
 
 
-def auth(
+async def auth(
     request: Request,
     creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
     """Motion and write endpoints: the bearer token of the settings, else 401 (the guard
-    has already refused such requests before reading their body; this documents it)."""
+    has already refused such requests before reading their body; this documents it).
+    Async: a constant-time compare needs no threadpool hand-off (an abort's path)."""
     token: str = request.app.state.token
     if creds is None or not secrets.compare_digest(creds.credentials.encode(), token.encode()):
         raise HTTPException(
@@ -176,7 +184,9 @@ def create_app(
     settings: ServiceSettings | None = None,
     runtime_factory: Callable[[ServiceSettings], Runtime] | None = None,
 ) -> FastAPI:
-    """The app; the runtime is opened in the lifespan (``runtime_factory`` for tests)."""
+    """The app; the runtime is ``runtime_factory(settings)`` in the lifespan (``swpc serve``
+    and tests: one already open), else a new :class:`Runtime` opened there; it is closed
+    when the lifespan ends."""
     cfg = settings or ServiceSettings()
     token = cfg.ensure_token()
 
@@ -222,6 +232,7 @@ def create_app(
         responses={
             **guarded,
             409: {"model": Problem},
+            503: {"model": Problem, "description": "the run store cannot be written"},
             507: {"model": Problem, "description": "no room on disk for a run"},
         },
     )
@@ -259,6 +270,8 @@ def create_app(
             raise HTTPException(409, str(exc)) from exc
         except DiskSpaceError as exc:
             raise HTTPException(507, str(exc)) from exc
+        except StoreError as exc:
+            raise HTTPException(503, str(exc)) from exc
         response.headers["Location"] = f"/calibrations/{run.id}"
         return run.status.to_dict()
 
@@ -325,16 +338,26 @@ def create_app(
             raise HTTPException(404, f"no calibration {run_id}")
         return FileResponse(path, media_type="image/png")
 
-    @app.get("/kinematics", responses={404: {"model": Problem}, 500: {"model": Problem}})
-    def kinematics(rt: Rt) -> dict[str, Any]:
+    @app.get(
+        "/kinematics",
+        responses={
+            404: {"model": Problem, "description": "no kinematic file installed"},
+            500: {
+                "model": UnreadableFileProblem,
+                "description": "the file in force is on disk but does not load (damaged, "
+                "not UTF-8, not a file): a fault of the server's data that lasts until a "
+                "file is installed or rolled back, named with the backups that load; "
+                "GET /health is then degraded",
+            },
+        },
+    )
+    def kinematics(rt: Rt) -> Any:
+        """The kinematic file in force (docs/kinematic-file.md)."""
         try:
             doc = rt.kinematics_document()
         except KinematicFileError as exc:
-            raise HTTPException(
-                500,
-                f"the kinematic file in force cannot be loaded: {exc} (its backups "
-                "kinematics.<UTC time>.yaml are beside it)",
-            ) from exc
+            problem = unreadable_problem(rt.settings.kinematics_file, exc)
+            return FiniteJSONResponse(problem.model_dump(), status_code=500)
         if doc is None:
             where = rt.settings.kinematics_file
             raise HTTPException(404, f"no kinematic file installed at {where}")

@@ -14,12 +14,17 @@ every failed accept).  :class:`GuardedH11` adds:
   served at once; with none idle, the new connection is closed.
 
 The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and files.
+
+``swpc serve`` binds the listening socket itself (:func:`listen_socket`) before the
+service opens anything, so that a port in use is one line on stderr, not uvicorn's
+start-up and shut-down log and exit status 3.
 """
 
 from __future__ import annotations
 
 import asyncio
 import signal
+import socket
 import time
 from typing import Any
 
@@ -27,7 +32,35 @@ import h11
 import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from swpc_hw.errors import SwpcError
+
 MAX_HEADER_BYTES = 16 << 10
+
+
+class ListenError(SwpcError):
+    """The HTTP address cannot be listened on (the port in use, an address that is not
+    this host's, a port below 1024 without the capability)."""
+
+
+def listen_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host``:``port`` (as uvicorn binds it: ``SO_REUSEADDR``,
+    the first address ``host`` resolves to); the server listens on it."""
+    sock: socket.socket | None = None
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+        sock = socket.socket(family, kind, proto)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+    except OSError as exc:
+        if sock is not None:
+            sock.close()
+        raise ListenError(
+            f"cannot listen on {host}:{port}: {exc.strerror or exc} "
+            "(--host/--port, SWPC_HOST/SWPC_PORT)"
+        ) from None
+    return sock
 
 
 class GuardedH11(H11Protocol):

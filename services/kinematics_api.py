@@ -11,16 +11,24 @@
 Both writes need the bearer token, are refused while a calibration runs (409), check the
 file they install (a corrupt one is 422, shaped as FastAPI's own, and installs nothing)
 and keep the file they replace as a new backup: a roll-back can itself be rolled back.
+A write that fails (a full disk: 507, else 500) leaves the file in force untouched.
+Each outcome is a structured log line on ``swpc.service`` (:mod:`services.logs`):
+``kinematics.install`` / ``kinematics.rollback`` (INFO: the file installed, its sha256,
+the backup kept, the client), ``kinematics.install_refused`` (WARNING: 409, 422) and
+``kinematics.install_failed`` (ERROR).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import hashlib
+import logging
 import math
+import os
 import re
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -29,10 +37,13 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.calibration_result import BACKUP_STAMP, PARAMS, backup_kinematics
+from services.logs import event
 from services.robot_config import Tolerances
 from services.runtime import Runtime
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.kinematic_file import KinematicFile, atomic_write_text, load_kinematics
+
+log = logging.getLogger("swpc.service")
 
 SIGNIFICANCE_K = 3.0
 """A change is significant when it exceeds this many standard deviations of the change."""
@@ -64,7 +75,9 @@ class FileInfo(BaseModel):
     robot: str | None = None
     run: str | None = Field(None, description="the calibration run it came from, if any")
     method: str | None = None
-    sha256: str = Field(description="first 16 hex digits of the file's sha256")
+    sha256: str | None = Field(
+        description="first 16 hex digits of the file's sha256 (None: it cannot be read)"
+    )
     valid: bool
     error: str | None = None
 
@@ -117,6 +130,40 @@ class Problem(BaseModel):
     detail: str
 
 
+class UnreadableFileProblem(Problem):
+    """``GET /kinematics`` when the file in force is on disk but does not load (500)."""
+
+    path: str
+    reason: str = Field(description="why it does not load (the loader's message)")
+    backups: list[str] = Field(
+        description="the backups beside it that do load, newest first: what "
+        "POST /kinematics/rollback can install"
+    )
+
+
+def unreadable_problem(path: Path, exc: Exception) -> UnreadableFileProblem:
+    """The answer to a read of the file in force ``path`` that failed with ``exc``:
+    what is wrong and what to do (roll back to the newest backup that loads)."""
+    good = [b.name for b in backups(path) if describe(b, backup=True).valid]
+    if good:
+        fix = f'roll back to a backup: POST /kinematics/rollback {{"backup": "{good[0]}"}}'
+    else:
+        fix = "no backup beside it loads: install a run's result (POST /calibrations/<id>/install)"
+    return UnreadableFileProblem(
+        detail=f"the kinematic file in force cannot be loaded: {exc}; {fix} "
+        "(GET /kinematics/files lists them)",
+        path=str(path),
+        reason=str(exc),
+        backups=good,
+    )
+
+
+def present(path: Path) -> bool:
+    """Something is at ``path``: a file, or anything else that then fails to load (a
+    directory, a dangling symbolic link) rather than reading as "none installed"."""
+    return os.path.lexists(path)
+
+
 def _backup_pattern(path: Path) -> re.Pattern[str]:
     return re.compile(rf"^{re.escape(path.stem)}\.(\d{{8}}T\d{{12}}Z){re.escape(path.suffix)}$")
 
@@ -132,12 +179,11 @@ def backups(path: Path) -> list[Path]:
 
 def describe(path: Path, backup: bool = False) -> FileInfo:
     """What a kinematic file says of itself (a corrupt one: ``valid`` false, the error)."""
-    data = path.read_bytes()
-    info: dict[str, Any] = {
-        "name": path.name,
-        "sha256": hashlib.sha256(data).hexdigest()[:16],
-        "valid": True,
-    }
+    try:
+        digest: str | None = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    except OSError:
+        digest = None  # load_kinematics below says why
+    info: dict[str, Any] = {"name": path.name, "sha256": digest, "valid": True}
     if backup:
         m = re.search(r"\.(\d{8}T\d{12}Z)\.[^.]*$", path.name)
         if m is not None:
@@ -159,15 +205,42 @@ def describe(path: Path, backup: bool = False) -> FileInfo:
     return FileInfo(**info)
 
 
-def install_file(target: Path, source: Path) -> Path | None:
-    """Install the kinematic file ``source`` at ``target`` (checked first, atomic replace,
-    the file replaced kept as a backup, whose path is returned)."""
-    load_kinematics(source)  # KinematicFileError: nothing is touched
-    text = source.read_text(encoding="utf-8")
+def checked_text(source: Path) -> str:
+    """The text of the kinematic file ``source`` once it loads (:class:`KinematicFileError`
+    naming the problem otherwise)."""
+    load_kinematics(source)
+    try:
+        return source.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:  # changed since it was loaded
+        raise KinematicFileError(f"{source}: {exc}") from exc
+
+
+def install_text(target: Path, text: str) -> Path | None:
+    """Install ``text`` at ``target`` (atomic replace, the file replaced kept as a backup,
+    whose path is returned).  ``OSError`` or :class:`KinematicFileError` (no room for the
+    backup): the file in force is untouched."""
     backup = backup_kinematics(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(target, text)
     return backup
+
+
+def install_file(target: Path, source: Path) -> Path | None:
+    """Install the kinematic file ``source`` at ``target`` (checked first: nothing is
+    touched when it does not load)."""
+    return install_text(target, checked_text(source))
+
+
+def _write_failure(exc: Exception) -> HTTPException:
+    """A failed write of the file in force: 507 when the disk (or a quota) is full."""
+    cause = exc if isinstance(exc, OSError) else exc.__cause__
+    full = isinstance(cause, OSError) and cause.errno in (errno.ENOSPC, errno.EDQUOT)
+    reason = cause.strerror if isinstance(cause, OSError) and cause.strerror else str(exc)
+    return HTTPException(
+        507 if full else 500,
+        f"not installed: cannot write the kinematic file: {reason} (the file in force is "
+        "untouched)",
+    )
 
 
 def compare(
@@ -223,7 +296,7 @@ def _runtime(request: Request) -> Runtime:
 Rt = Annotated[Runtime, Depends(_runtime)]
 
 
-def kinematics_router(auth: Callable[..., None]) -> APIRouter:
+def kinematics_router(auth: Callable[..., Awaitable[None]]) -> APIRouter:
     """The routes above; ``auth`` is the service's bearer-token dependency."""
     router = APIRouter()
     lock = threading.Lock()  # one install at a time
@@ -231,31 +304,56 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         401: {"model": Problem},
         404: {"model": Problem},
         409: {"model": Problem},
+        500: {"model": Problem, "description": "the file could not be written (untouched)"},
+        507: {"model": Problem, "description": "no room on disk for the file (untouched)"},
     }
 
     def files(rt: Runtime) -> KinematicFiles:
         path = rt.settings.kinematics_file
         return KinematicFiles(
             path=str(path),
-            in_force=describe(path) if path.exists() else None,
+            in_force=describe(path) if present(path) else None,
             backups=[describe(p, backup=True) for p in backups(path)],
         )
 
-    def _install(rt: Runtime, source: Path) -> InstallResult:
+    def _install(rt: Runtime, source: Path, request: Request, **what: Any) -> InstallResult:
+        """Install ``source``; ``what`` names it in the log lines (``run=`` for a run's
+        result, ``restored=`` for a backup rolled back to)."""
+        action = "rollback" if "restored" in what else "install"
+        client = request.client.host if request.client is not None else None
+        fields: dict[str, Any] = {"action": action, **what, "client": client}
         with lock:
             if rt.running():
-                raise HTTPException(409, "a calibration is running: the file is not changed")
+                why = "a calibration is running: the file is not changed"
+                event(log, logging.WARNING, "kinematics.install_refused", **fields, reason=why)
+                raise HTTPException(409, why)
             path = rt.settings.kinematics_file
             try:
-                backup = install_file(path, source)
+                text = checked_text(source)
             except KinematicFileError as exc:
+                event(
+                    log, logging.WARNING, "kinematics.install_refused", **fields, reason=str(exc)
+                )
                 # the shape of FastAPI's own 422 (one schema for 422)
                 raise RequestValidationError(
                     [{"loc": ["body"], "msg": f"not installed: {exc}", "type": "value_error"}]
                 ) from exc
-            return InstallResult(
-                in_force=describe(path), backup=None if backup is None else backup.name
-            )
+            try:
+                backup = install_text(path, text)
+            except (OSError, KinematicFileError) as exc:
+                failure = _write_failure(exc)
+                event(
+                    log, logging.ERROR, "kinematics.install_failed", **fields,
+                    path=str(path), status=failure.status_code, error=str(exc),
+                )  # fmt: skip
+                raise failure from exc
+            info = describe(path)
+            event(
+                log, logging.INFO, f"kinematics.{action}", **what, path=str(path),
+                sha256=info.sha256, source_run=info.run,
+                backup=None if backup is None else backup.name, client=client,
+            )  # fmt: skip
+            return InstallResult(in_force=info, backup=None if backup is None else backup.name)
 
     @router.get("/kinematics/files", response_model=KinematicFiles)
     def list_files(rt: Rt) -> KinematicFiles:
@@ -267,12 +365,12 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         dependencies=[Depends(auth)],
         responses=problems,
     )
-    def rollback(body: RollbackRequest, rt: Rt) -> InstallResult:
+    def rollback(body: RollbackRequest, rt: Rt, request: Request) -> InstallResult:
         path = rt.settings.kinematics_file
         chosen = next((p for p in backups(path) if p.name == body.backup), None)
         if chosen is None:
             raise HTTPException(404, f"no backup {body.backup!r} beside {path}")
-        return _install(rt, chosen)
+        return _install(rt, chosen, request, restored=chosen.name)
 
     @router.post(
         "/calibrations/{run_id}/install",
@@ -280,7 +378,7 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         dependencies=[Depends(auth)],
         responses=problems,
     )
-    def install(run_id: str, rt: Rt) -> InstallResult:
+    def install(run_id: str, rt: Rt, request: Request) -> InstallResult:
         got = rt.result(run_id)
         if got is None:
             raise HTTPException(404, f"no calibration {run_id}")
@@ -288,7 +386,7 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         source = Path(rt.settings.data_dir) / "runs" / run_id / "kinematics.yaml"
         if state != "DONE" or doc is None or not source.is_file():
             raise HTTPException(409, f"calibration {run_id} is {state}: no result to install")
-        return _install(rt, source)
+        return _install(rt, source, request, run=run_id)
 
     @router.get(
         "/calibrations/{run_id}/comparison",
@@ -303,7 +401,7 @@ def kinematics_router(auth: Callable[..., None]) -> APIRouter:
         if state != "DONE" or doc is None:
             raise HTTPException(409, f"calibration {run_id} is {state}: no result")
         path = rt.settings.kinematics_file
-        info = describe(path) if path.exists() else None
+        info = describe(path) if present(path) else None
         in_force = load_kinematics(path) if info is not None and info.valid else None
         tol = Tolerances.model_validate(doc.get("tolerances") or rt.config.tolerances.model_dump())
         return Comparison(

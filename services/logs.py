@@ -1,7 +1,8 @@
 """Structured log lines: ``logfmt`` (``key=value``, values quoted when they need it).
 
 Every run event goes to the ``swpc.run`` logger as ``event=<name> run=<id> ...``; the
-service's own (start-up, locks, disk, the store) to ``swpc.service``.  ``swpc serve`` sends
+service's own (start-up, locks, disk, the store, installs and roll-backs of the kinematic
+file through the API) to ``swpc.service``.  ``swpc serve`` sends
 them to stderr (the journal under systemd) with :func:`configure`.
 """
 

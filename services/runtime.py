@@ -1,7 +1,8 @@
 """What the service holds while it runs: clock, bus, driver, zenoh session, mocap, runs.
 
-Opened in the FastAPI lifespan (or by tests) and injected into the app, so tests run
-the real app against the in-process simulator.  With no CAN interface configured
+Opened by ``swpc serve`` before its HTTP server starts (so that an error opening it is
+one line on stderr), else in the FastAPI lifespan, and injected into the app, so tests
+run the real app against the in-process simulator.  With no CAN interface configured
 (``SWPC_CAN_INTERFACE`` unset) it runs on the *in-process simulator*: the virtual robot in
 this process on a python-can ``virtual`` bus and zenoh on a loopback endpoint, in
 simulated time (one :class:`swpc_hw.clock.SimClock` shared by the simulator, the driver,
@@ -10,11 +11,12 @@ the mocap ingest and the calibration runs).  Otherwise the clock is the host's, 
 
 Long-running resources are bounded: one service per data dir and per CAN channel
 (:mod:`services.locks`, taken before anything is touched); the CAN traffic goes to a
-rolling log of at most ``SWPC_CAN_LOG_BYTES`` in ``<data dir>/can/`` plus one recording
-per run; a run starts only within the disk budget (:mod:`services.disk`) and fails when
-the disk fills.  A run's state that cannot be saved (the store unwritable) ends the run
-FAILED; what the API lists is then the in-memory state, saved again once the store
-takes writes.
+rolling log of at most ``SWPC_CAN_LOG_BYTES`` in ``<data dir>/can/`` (every frame during
+a run; between runs, the periodic frames once per ``SWPC_CAN_LOG_IDLE_PERIOD`` per CAN id
+and every event) plus one recording per run; a run starts only within the disk budget
+(:mod:`services.disk`) and fails when the disk fills.  A run's state that cannot be
+saved (the store unwritable) ends the run FAILED; what the API lists is then the
+in-memory state, saved again once the store takes writes.
 """
 
 from __future__ import annotations
@@ -70,6 +72,10 @@ class NoResultError(SwpcError):
     """The run has no result to plot (not DONE)."""
 
 
+class StoreError(SwpcError):
+    """The run store cannot be written: no run starts (HTTP 503)."""
+
+
 class Runtime:
     """Owns every long-lived resource of the service; :meth:`close` is idempotent."""
 
@@ -81,6 +87,20 @@ class Runtime:
                 f"SWPC_CAN_LOG_BYTES ({settings.can_log_bytes}) must be at most half of "
                 f"SWPC_DISK_BUDGET ({settings.disk_budget})"
             )
+        # what the settings alone decide first: an error here leaves nothing to undo
+        self.timing: TimingBudget = timing_budget(settings, self.config)
+        self.clock: Clock = (
+            SimClock(max_speed=settings.sim_speed)
+            if settings.in_process
+            else SystemClock(rate=settings.external_time_scale)
+        )
+        self.mocap = MocapIngest(
+            clock=self.clock,
+            encoding=settings.pose_encoding,
+            stale_after=self.timing.mocap_stale,
+            # the in-process simulator stamps its simulated wall time: exact
+            clock_mode="wall" if settings.in_process else settings.mocap_clock,
+        )
         self.data_dir = Path(settings.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         # before anything in the data dir is touched: a second service stops here
@@ -107,20 +127,8 @@ class Runtime:
         self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
         self.driver: CanDriver | None = None
-        self.timing: TimingBudget = timing_budget(settings, self.config)
-        self.clock: Clock = (
-            SimClock(max_speed=settings.sim_speed)
-            if settings.in_process
-            else SystemClock(rate=settings.external_time_scale)
-        )
-        self.mocap = MocapIngest(
-            clock=self.clock,
-            encoding=settings.pose_encoding,
-            stale_after=self.timing.mocap_stale,
-            # the in-process simulator stamps its simulated wall time: exact
-            clock_mode="wall" if settings.in_process else settings.mocap_clock,
-        )
         self.started = time.time()
+        self._opened = False
         self._closed = False
 
     def _apply_file_group(self) -> None:
@@ -157,6 +165,17 @@ class Runtime:
 
     # ---------------------------------------------------------------- lifecycle
     def open(self) -> Runtime:
+        """Open the CAN channel (its lock first), zenoh, the driver and, with no CAN
+        interface, the in-process simulator.  On an error what was opened is closed again
+        (the data dir's lock too) and the error raised: ``swpc serve`` calls this before
+        the HTTP server starts, so that it is one line on stderr."""
+        try:
+            return self._open()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> Runtime:
         # An optimisation, not a correctness condition: safety paths (abort, driver
         # faults) hand off between threads sooner than the default 5 ms switch interval.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
@@ -201,6 +220,7 @@ class Runtime:
             in_process_simulator=s.in_process,
             can_log=None if can_log is None else str(can_log),
             can_log_bytes=int(s.can_log_bytes),
+            can_log_idle_period=s.can_log_idle_period,
             disk_budget=int(s.disk_budget),
         )
         if s.in_process:
@@ -216,6 +236,7 @@ class Runtime:
                 feedback_rate_hz=s.feedback_rate_hz,
             )
             self.simulator.start()
+        self._opened = True
         return self
 
     def close(self, reason: str = "the service was stopped during the run") -> None:
@@ -244,7 +265,8 @@ class Runtime:
         if self.channel_lock is not None:
             self.channel_lock.release()
         self.dir_lock.release()
-        event(log, logging.INFO, "service.close")
+        if self._opened:
+            event(log, logging.INFO, "service.close")
 
     # --------------------------------------------------------------------- runs
     def start_run(self, config: RobotConfig, install: str) -> CalibrationRun:
@@ -252,7 +274,8 @@ class Runtime:
 
         Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
         disk budget (after pruning the oldest runs' recordings) or the file system's free
-        space leaves no room for it.
+        space leaves no room for it, :class:`StoreError` when its first state cannot be
+        saved (nothing has moved; the service takes the next start once the store does).
         """
         assert self.driver is not None
         s = self.settings
@@ -294,9 +317,17 @@ class Runtime:
                 space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
                 robot_config_path=None if s.robot_config is None else str(s.robot_config),
             )
+            previous, self.current = self.current, run
             self.runs[run.id] = run
-            self.current = run
-        self._persist(run)
+        try:
+            self._persist(run)
+        except Exception as exc:  # a run that was never saved would block every next one
+            with self._lock:
+                self.runs.pop(run.id, None)
+                self.current = previous
+            raise StoreError(
+                f"run store not writable: {self.store_error}: no run started"
+            ) from exc
         # raw CAN traffic of the run, beside its dataset (candump format, our DBC decodes it)
         (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
         self.driver.start_recording(str(run.run_dir / "dataset" / "can.log"))
@@ -415,7 +446,7 @@ class Runtime:
         """The kinematic file in force as a document (``None``: none installed); a file
         that does not load raises :class:`KinematicFileError` naming the problem."""
         path = self.settings.kinematics_file
-        if not path.exists():
+        if not os.path.lexists(path):  # a dangling link is there, and unreadable
             return None
         k = load_kinematics(path)
         from swpc_hw.kinematic_file import kinematics_document

@@ -11,7 +11,7 @@ robot time:
 
 The budget (robot defaults in brackets; ``W`` comes from the robot config)::
 
-    T_fb  = 1 / feedback_rate                 encoder feedback period     [5 ms; 10 ms in-process]
+    T_fb  = 1 / feedback_rate                 encoder feedback period     [5 ms; 20 ms in-process]
     T_hb  = 0.1                               controller heartbeat period (firmware)
     W     = limits.watchdog_ms / 1000         controller command watchdog       [0.2 s]
     T_ref = min(0.02 max(1, k), W / 4)        driver re-sends the last command  [20 ms]
@@ -153,4 +153,5 @@ def driver_config(
         deadman_s=b.deadman,
         log_path=None if log_path is None else str(log_path),
         log_total_bytes=log_total_bytes,
+        log_idle_period_s=settings.can_log_idle_period,
     )

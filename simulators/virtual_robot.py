@@ -95,7 +95,7 @@ from simulators.robot_sim import (
 )
 from simulators.sim_options import SimOptions, SimStats
 from simulators.virtual_controller import VirtualController
-from swpc_hw.clock import SimClock, next_instant
+from swpc_hw.clock import SimClock, SystemClock, next_instant
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -160,9 +160,11 @@ class Simulator:
         self._stopped = False
         self._stats = SimStats()
         self._sent: Counter[int] = Counter()
-        self._wall0 = 0.0
+        # real time: the host's clock at the simulator's rate, and the host-clock time of
+        # robot time 0 (moved on when the host cannot keep up)
+        self._host = SystemClock(rate=opt.time_scale)
+        self._origin = 0.0
         self._cpu = 0.0
-        self._epoch_offset = 0.0
         self._pending: deque[tuple[float, can.Message]] = deque()
         self._next_bus_error = 0.0
         self._rng = rng
@@ -254,8 +256,7 @@ class Simulator:
                 self._t_exact = self.start_time
             else:
                 self.start_time = time.time() if opt.start_time is None else opt.start_time
-            self._wall0 = time.monotonic()
-            self._epoch_offset = time.time() - time.monotonic()
+            self._origin = self._host.now()
             self._write_encoders()
             for c in self.controllers:
                 self._transmit(c.step(self.now))  # first call initialises its clocks
@@ -323,7 +324,8 @@ class Simulator:
         with self._lock:
             st = self._stats
             st.sim_time = self.robot.t
-            st.wall_time = (time.monotonic() - self._wall0) if self._started else 0.0
+            elapsed = self._host.now() - self._origin if self._started else 0.0
+            st.wall_time = self._host_seconds(elapsed)
             st.cpu_time = self._cpu
             st.poses_published = self.mocap.counters.published
             st.truth_published = self.truth_pub.published
@@ -377,8 +379,7 @@ class Simulator:
         """Simulated time follows the wall clock times ``time_scale`` (module docstring)."""
         while not self._stop.is_set():
             dt = self.tick_dt()
-            scale = self.options.time_scale
-            target = scale * (time.monotonic() - self._wall0)  # robot time due now
+            target = self._host.now() - self._origin  # robot time due now
             with self._lock:
                 n = 0
                 while self.robot.t + dt <= target + 1e-12 and not self._stop.is_set():
@@ -388,13 +389,12 @@ class Simulator:
                     if n >= 64:
                         break
                 lag = target - self.robot.t
-                if lag > self.options.max_lag * scale:
+                if lag > self.options.max_lag * self.options.time_scale:
                     # cannot keep up: slow the simulated clock down instead of bursting
-                    self._wall0 += (lag - dt) / scale
+                    self._origin += lag - dt
                     self._stats.overruns += 1
                 self._cpu = time.thread_time() - cpu0
-            next_wall = self._wall0 + (self.robot.t + dt) / scale
-            timeout = next_wall - time.monotonic()
+            timeout = self._host_seconds(self._origin + self.robot.t + dt - self._host.now())
             msg = self.bus.recv(timeout=max(timeout, 0.0)) if timeout > 0 else self.bus.recv(0)
             if msg is not None:
                 self._queue_frame(msg)
@@ -433,17 +433,21 @@ class Simulator:
     def _queue_frame(self, msg: can.Message) -> None:
         """Queue a received frame for the simulated time of its arrival.
 
-        ``t_sim = scale * (arrival - wall0)`` with the arrival taken from the frame's bus
-        time stamp (wall clock) when it is plausible, else now.
+        The arrival is the frame's bus time stamp (wall clock) on the host clock
+        (:meth:`~swpc_hw.clock.Clock.from_wall`, the one mapping) when it is plausible (at
+        most one host second old), else now; ``t_sim = arrival - origin``.
         """
-        now = time.monotonic()
+        now = self._host.now()
         arrival = now
         if msg.timestamp:
-            stamped = msg.timestamp - self._epoch_offset
-            if now - 1.0 < stamped <= now:
+            stamped = self._host.from_wall(msg.timestamp)
+            if now - self.options.time_scale < stamped <= now:
                 arrival = stamped
-        due = self.options.time_scale * (arrival - self._wall0)
-        self._pending.append((due, msg))
+        self._pending.append((arrival - self._origin, msg))
+
+    def _host_seconds(self, robot_seconds: float) -> float:
+        """Host seconds of a span of robot time (real time at ``time_scale``)."""
+        return robot_seconds / self.options.time_scale
 
     def _receive_pending(self) -> None:
         """Read what the bus holds, then handle every frame whose arrival time has been

@@ -9,9 +9,17 @@ itself: the endpoints are exactly the ones configured.
 from __future__ import annotations
 
 import json
+import re
 import socket
 from collections.abc import Sequence
 from typing import Any
+
+from swpc_hw.errors import SwpcError
+
+
+class ZenohSessionError(SwpcError):
+    """A zenoh session cannot be opened (an endpoint in use or malformed, a bad config
+    file); the message names the endpoints and zenoh's reason."""
 
 
 def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
@@ -54,9 +62,20 @@ def open_session(
     connect: Sequence[str] = (),
     config_file: str | None = None,
 ) -> Any:
-    """Open a zenoh session with :func:`zenoh_config`."""
+    """Open a zenoh session with :func:`zenoh_config`; :class:`ZenohSessionError` when
+    it cannot be opened."""
     import zenoh
 
-    return zenoh.open(
-        zenoh_config(mode=mode, listen=listen, connect=connect, config_file=config_file)
-    )
+    try:
+        return zenoh.open(
+            zenoh_config(mode=mode, listen=listen, connect=connect, config_file=config_file)
+        )
+    except zenoh.ZError as exc:
+        # zenoh's messages end with the Rust source file and line of each cause: not ours
+        reason = re.sub(r" at \S+\.rs:\d+\.?", "", str(exc)).strip(" .")
+        where = [f"{k}={list(v)}" for k, v in (("listen", listen), ("connect", connect)) if v]
+        if config_file:
+            where.append(f"config {config_file}")
+        raise ZenohSessionError(
+            f"cannot open the zenoh session ({', '.join(where) or 'no endpoints'}): {reason}"
+        ) from exc

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import math
 import signal
 import threading
@@ -207,6 +208,89 @@ def test_install_and_roll_back_with_dated_backups(svc: dict[str, Any]) -> None:
     listed = {b["name"]: b for b in client.get("/kinematics/files").json()["backups"]}
     assert listed[bad.name]["valid"] is False
     bad.unlink()
+
+
+def kinematics_lines(caplog: pytest.LogCaptureFixture) -> list[tuple[str, str]]:
+    """``(level, message)`` of every ``kinematics.*`` log line captured."""
+    return [
+        (r.levelname, r.getMessage())
+        for r in caplog.records
+        if r.name == "swpc.service" and r.getMessage().startswith("event=kinematics.")
+    ]
+
+
+def test_install_and_roll_back_are_structured_log_lines(
+    svc: dict[str, Any], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Every change of the file in force, and every refusal, is in the journal: which
+    file, from which run or backup, the backup kept, who asked (it logged nothing)."""
+    import hashlib
+    import resource
+
+    client, rt, run = svc["client"], svc["rt"], svc["run"]
+    path: Path = rt.settings.kinematics_file
+    caplog.set_level(logging.INFO, logger="swpc.service")
+    r = client.post(f"/calibrations/{run.id}/install", headers=AUTH)
+    assert r.status_code == 200, r.text
+    kept = r.json()["backup"]
+    sha = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    assert kinematics_lines(caplog) == [
+        ("INFO", f"event=kinematics.install run={run.id} path={path} sha256={sha} "
+                 f"source_run={run.id} backup={kept} client=testclient"),
+    ]  # fmt: skip
+    caplog.clear()
+    r = client.post("/kinematics/rollback", json={"backup": kept}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    sha = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    assert kinematics_lines(caplog) == [
+        ("INFO", f"event=kinematics.rollback restored={kept} path={path} sha256={sha} "
+                 f"backup={r.json()['backup']} client=testclient"),
+    ]  # fmt: skip
+    # refused: a corrupt backup (422), a run going on (409); nothing changed
+    before = path.read_bytes()
+    bad = path.with_name("kinematics.20200101T000000000000Z.yaml")
+    bad.write_text("format: nope\n")
+    caplog.clear()
+    try:
+        assert client.post("/kinematics/rollback", json={"backup": bad.name},
+                           headers=AUTH).status_code == 422  # fmt: skip
+    finally:
+        bad.unlink()
+    pending = new_run(rt)
+    try:
+        assert client.post(f"/calibrations/{run.id}/install", headers=AUTH).status_code == 409
+    finally:
+        rt.current = run
+        del rt.runs[pending.id]
+    (refused_bad, refused_running) = kinematics_lines(caplog)
+    assert refused_bad[0] == "WARNING" and refused_bad[1].startswith(
+        f"event=kinematics.install_refused action=rollback restored={bad.name} "
+        'client=testclient reason="'
+    ) and f"{bad}: missing key 'robot'" in refused_bad[1], refused_bad
+    assert refused_running == (
+        "WARNING",
+        f"event=kinematics.install_refused action=install run={run.id} client=testclient "
+        'reason="a calibration is running: the file is not changed"',
+    )
+    # a write that fails (here: a file-size limit of 512 bytes, EFBIG): a JSON 500 that
+    # says the file in force is untouched, and an ERROR line
+    caplog.clear()
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (512, hard))
+    try:
+        r = client.post(f"/calibrations/{run.id}/install", headers=AUTH)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert r.status_code == 500 and r.headers["content-type"] == "application/json"
+    assert r.json()["detail"].startswith("not installed: cannot write the kinematic file: ")
+    assert r.json()["detail"].endswith("(the file in force is untouched)")
+    assert path.read_bytes() == before
+    ((level, line),) = kinematics_lines(caplog)
+    assert level == "ERROR" and line.startswith(
+        f"event=kinematics.install_failed action=install run={run.id} client=testclient "
+        f"path={path} status=500 error="
+    ), line
+    assert "File too large" in line
 
 
 def test_no_install_while_a_run_is_going_nor_of_an_unfinished_run(svc: dict[str, Any]) -> None:

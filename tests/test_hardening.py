@@ -3,10 +3,15 @@
 Each test here is one row of the issue "An always-on robot service" and fails on the code
 before it.  Fast: the state machine on the fake robot (``tests/fake_robot.py``), the real
 app and runtime not connected to a robot (no simulator), the real filesystem, SQLite and
-python-can's virtual bus; the two tests that need a process killed or a full file system
-run a child process (``kill -9``; a user + mount namespace with a small tmpfs).
-The paths through the real driver and simulator are in ``tests/test_service.py`` and the
-real server (uvicorn, idle connections, fuzzing) in ``tests/test_api_schema.py``.
+python-can's virtual bus; the tests that need another process run a child one (one that
+holds the data dir's lock; one killed with ``kill -9``; one in a user + mount namespace
+with a small tmpfs: a full file system).
+The rows that need an open runtime (health, metrics, refusals before any CAN frame, the
+disk budget, an unwritable run store on the in-process simulator) or the real server
+(uvicorn, idle connections, non-standard JSON on every endpoint) are in
+``tests/test_hardening_server.py``; schemathesis fuzzes the real ``swpc serve`` in
+``tests/test_api_schema.py``, and the paths through the real driver and simulator are in
+``tests/test_service.py``.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import stat
 import subprocess
 import sys
 import textwrap
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -83,22 +89,23 @@ def test_every_safety_limit_in_an_override_can_only_tighten(group: str, name: st
         assert getattr(getattr(run, group), name) == tighter < value
 
 
-@pytest.mark.parametrize(
-    ("doc", "why"),
-    [
-        ({"protocol": {"modules": [1]}}, "modules [2, 3, 4] are never locked"),
-        ({"protocol": {"angles_deg": [0, 360]}}, "modulo 360"),
-        ({"protocol": {"angles_deg": [1e300, -1e300]}}, "within +-360 deg"),
-        (
-            {"protocol": {"sweep_deg": 1440}, "limits": {"max_yaw_rate": 0.3}},
-            "takes at least 86.8 s at limits.max_yaw_rate 0.3 rad/s",
-        ),
-        ({"protocol": {"settle_time": 61}}, "settle_time: 61 s is not shorter"),
-        ({"limits": {"step_timeout": 2}}, "resteer_time: 2.5 s is not shorter"),
-        ({"robot": "other"}, "not this service's robot"),
-        ({"nodes": {1: 4, 2: 3, 3: 2, 4: 1}}, "CAN node map"),
-    ],
-)
+#: overrides that cannot succeed, each with the words of its refusal (before any motion)
+PRE_MOTION_REFUSALS: list[tuple[dict[str, Any], str]] = [
+    ({"protocol": {"modules": [1]}}, "modules [2, 3, 4] are never locked"),
+    ({"protocol": {"angles_deg": [0, 360]}}, "modulo 360"),
+    ({"protocol": {"angles_deg": [1e300, -1e300]}}, "within +-360 deg"),
+    (
+        {"protocol": {"sweep_deg": 1440}, "limits": {"max_yaw_rate": 0.3}},
+        "takes at least 86.8 s at limits.max_yaw_rate 0.3 rad/s",
+    ),
+    ({"protocol": {"settle_time": 61}}, "settle_time: 61 s is not shorter"),
+    ({"limits": {"step_timeout": 2}}, "resteer_time: 2.5 s is not shorter"),
+    ({"robot": "other"}, "not this service's robot"),
+    ({"nodes": {1: 4, 2: 3, 3: 2, 4: 1}}, "CAN node map"),
+]
+
+
+@pytest.mark.parametrize(("doc", "why"), PRE_MOTION_REFUSALS)
 def test_each_pre_motion_check_refuses_the_run(doc: dict[str, Any], why: str) -> None:
     from services.robot_config import OverrideError
 
@@ -298,6 +305,124 @@ def test_the_rolling_can_log_stays_within_its_bytes_across_restarts(tmp_path: Pa
     assert 0 < lines < frames
     # python-can reads every file back
     assert sum(1 for f in files for _ in can.LogReader(str(f))) == lines
+
+
+def frame(f: Any, t: float) -> can.Message:
+    return can.Message(
+        arbitration_id=f.arbitration_id, data=f.data, timestamp=t, is_extended_id=False
+    )
+
+
+def idle_bus(seconds: int) -> list[can.Message]:
+    """What an idle 4-module robot sends (heartbeats 10 Hz, encoder feedback 200 Hz, one
+    other device at 100 Hz), with node 2 reporting an error from 3.5 s to 6 s, a fault
+    report at 5 s, a host command at 6.5 s and an error frame at 7 s."""
+    from firmware_protocol import codec
+    from firmware_protocol.codec import AxisState, ControlMode
+
+    out = []
+    for k in range(seconds * 200):
+        t = k / 200
+        for n in (1, 2, 3, 4):
+            if k % 20 == 0:
+                errors = (0, 4) if n == 2 and 3.5 <= t < 6.0 else (0, 0)
+                states = (AxisState.DISABLED, AxisState.DISABLED)
+                modes = (ControlMode.FREE, ControlMode.FREE)
+                hb = codec.make_heartbeat(n, states, modes, errors, True, False, k // 20 % 256)
+                out.append(frame(hb, t))
+            out.append(frame(codec.make_feedback_position(n, 0.1, 0.2, k % 256), t))
+            vt = codec.make_feedback_velocity_torque(n, 0.0, 0.0, 0.0, 0.0, k % 256)
+            out.append(frame(vt, t))
+        if k % 2 == 0:
+            out.append(can.Message(arbitration_id=0x18FF0001, data=b"\x01", timestamp=t))
+        if k == 1000:
+            fault = codec.make_fault_report(2, codec.Axis.WHEEL, 4, 4, AxisState.FAULT)
+            out.append(frame(fault, t))
+        if k == 1300:
+            cmd = codec.make_set_control(1, codec.Axis.WHEEL, ControlMode.FREE)
+            out.append(frame(cmd, t))
+        if k == 1400:
+            out.append(can.Message(is_error_frame=True, arbitration_id=0x040, timestamp=t))
+    return out
+
+
+def test_between_runs_the_rolling_log_keeps_a_sample_and_every_event(tmp_path: Path) -> None:
+    """An idle robot's traffic, 10 s: once a second per CAN id, and every event at once
+    (it was every frame: 100 kB/s, 360 MB an hour of writes for a log that forgets)."""
+    from firmware_protocol.codec import Command, frame_id
+
+    frames = idle_bus(10)
+    assert len(frames) == 17_403
+    rec = Recorder(str(tmp_path / "idle.log"), sample_period_s=1.0)
+    for msg in frames:
+        rec.write(msg, sample=True)
+    rec.stop()
+    kept = list(can.LogReader(str(tmp_path / "idle.log")))
+    by_id: dict[int, list[float]] = {}
+    for msg in kept:
+        by_id.setdefault(msg.arbitration_id, []).append(round(msg.timestamp, 3))
+    seconds = [float(t) for t in range(10)]
+    for n in (1, 3, 4):
+        assert by_id[frame_id(n, Command.HEARTBEAT)] == seconds  # heartbeat: one a second
+    # node 2's heartbeat also when its errors come (3.5 s) and go (6 s)
+    changes = [0.0, 1.0, 2.0, 3.0, 3.5, 4.5, 5.5, 6.0, 7.0, 8.0, 9.0]
+    assert by_id[frame_id(2, Command.HEARTBEAT)] == changes
+    feedback = (Command.FEEDBACK_POSITION, Command.FEEDBACK_VELOCITY_TORQUE)
+    for n in (1, 2, 3, 4):
+        assert [by_id[frame_id(n, c)] for c in feedback] == [seconds, seconds]
+    assert by_id[0x18FF0001] == seconds  # another device's frames: sampled too
+    # events: every one
+    assert by_id[frame_id(2, Command.FAULT_REPORT)] == [5.0]
+    assert by_id[frame_id(1, Command.SET_CONTROL)] == [6.5]
+    assert [m.timestamp for m in kept if m.is_error_frame] == [7.0]
+    assert len(kept) == 41 + 80 + 10 + 3
+    # written without sampling (a run's recording, or the setting 0): every frame
+    every = Recorder(str(tmp_path / "all.log"), sample_period_s=0.0)
+    for msg in frames[:5000]:
+        every.write(msg, sample=True)
+    every.stop()
+    assert sum(1 for _ in can.LogReader(str(tmp_path / "all.log"))) == 5000
+
+
+def test_the_driver_logs_every_frame_only_while_it_records_a_run(tmp_path: Path) -> None:
+    import time
+    import uuid
+
+    from firmware_protocol import codec
+    from firmware_protocol.codec import AxisState, ControlMode
+    from swpc_hw.can import CanConfig, CanDriver
+
+    channel = f"swpc-idle-{uuid.uuid4().hex[:8]}"
+    rolling = tmp_path / "can.log"
+    driver = CanDriver(
+        CanConfig(channel=channel, log_path=str(rolling), log_total_bytes=1 << 20,
+                  log_idle_period_s=1.0)
+    )  # fmt: skip
+    driver.configure()
+    t0 = time.time()
+    off = (AxisState.DISABLED, AxisState.DISABLED), (ControlMode.FREE, ControlMode.FREE)
+
+    def burst(bus: can.BusABC, start: float, sent: int) -> int:
+        """50 heartbeats of node 1, 10 ms apart from ``start`` (their own stamps)."""
+        for k in range(50):
+            hb = codec.make_heartbeat(1, *off, (0, 0), True, False, k)
+            bus.send(frame(hb, t0 + start + k * 0.01))
+        deadline = time.monotonic() + 30  # a guard: the driver's thread takes them in
+        while driver.stats().rx_frames < sent + 50:
+            assert time.monotonic() < deadline, driver.stats()
+            time.sleep(0.005)
+        return sent + 50
+
+    with can.Bus(interface="virtual", channel=channel, preserve_timestamps=True) as bus:
+        sent = burst(bus, 0.0, 0)  # idle: one kept
+        driver.start_recording(str(tmp_path / "run.log"))
+        sent = burst(bus, 0.5, sent)  # a run: every one
+        assert driver.stop_recording() is None
+        sent = burst(bus, 1.2, sent)  # idle again: one
+    driver.shutdown()
+    stamps = [round(m.timestamp - t0, 2) for m in can.LogReader(str(rolling))]
+    assert stamps == [0.0] + [round(0.5 + k * 0.01, 2) for k in range(50)] + [1.2]
+    assert sum(1 for _ in can.LogReader(str(tmp_path / "run.log"))) == 50
 
 
 def test_a_can_log_that_cannot_write_stops_and_says_why(tmp_path: Path) -> None:
@@ -645,6 +770,7 @@ def test_a_full_disk_fails_the_run_cleanly_and_keeps_the_kinematic_file(tmp_path
     )
     assert p.returncode == 0, p.stderr.decode()[-3000:]
     out = json.loads(p.stdout.decode().strip().splitlines()[-1])
+    print(f"\ndisk-full run: {out}")  # the figure docs/history/ records (pytest -s)
     assert out["state"] == "FAILED" and "disk full" in out["reason"], out
     assert "No space left on device" in out["reason"]
     assert out["same"] and out["stopped"], out
@@ -654,13 +780,48 @@ def test_a_full_disk_fails_the_run_cleanly_and_keeps_the_kinematic_file(tmp_path
 
 
 def test_corrupt_kinematic_file_is_a_clear_error_and_degraded_health(tmp_path: Path) -> None:
-    (tmp_path / "kinematics.yaml").write_bytes(b"format: swpc-kinematics/1\nrobot: \xff\xfe\n")
+    """A file in force that does not load is a fault of the server's data, not of the
+    request: a JSON 500 (not 503, which /health keeps for "cannot calibrate") that says
+    why and which backup to roll back to; /health names it (degraded on a service that
+    can calibrate: tests/test_hardening_server.py).  It was a bare 500."""
+    kin = tmp_path / "kinematics.yaml"
+    good = tmp_path / "kinematics.20260101T000000000000Z.yaml"
+    save_kinematics(good, PAPER_NOMINAL, created="2026-01-01T00:00:00Z")
+    (tmp_path / "kinematics.20260201T000000000000Z.yaml").write_text("format: nope\n")
+    kin.write_bytes(b"format: swpc-kinematics/1\nrobot: \xff\xfe\n")
     with TestClient(app_without_robot(tmp_path)) as client:
         r = client.get("/kinematics")
         health = client.get("/health").json()
-    assert r.status_code == 500 and r.headers["content-type"] == "application/json"
-    assert "not UTF-8 text (byte 0xff at offset 33)" in r.json()["detail"]
-    assert any("kinematic file in force unreadable" in p for p in health["problems"])
+        files = client.get("/kinematics/files").json()
+        assert r.status_code == 500 and r.headers["content-type"] == "application/json"
+        body = r.json()
+        reason = f"{kin}: not UTF-8 text (byte 0xff at offset 33): a damaged or foreign file"
+        assert body == {
+            "detail": f"the kinematic file in force cannot be loaded: {reason}; roll back to "
+            f'a backup: POST /kinematics/rollback {{"backup": "{good.name}"}} '
+            "(GET /kinematics/files lists them)",
+            "path": str(kin),
+            "reason": reason,
+            "backups": [good.name],  # the newer backup does not load: not offered
+        }
+        assert f"kinematic file in force unreadable: {reason}" in health["problems"]
+        assert files["in_force"]["valid"] is False and files["in_force"]["error"] == reason
+        # what it says to do works
+        r = client.post("/kinematics/rollback", json={"backup": good.name}, headers=AUTH)
+        assert r.status_code == 200, r.text
+        assert client.get("/kinematics").json()["modules"][0]["id"] == 1
+        # a directory or a dangling link where the file should be: the same, not a 404
+        # "none installed" (and /kinematics/files was a bare 500 on the directory)
+        kin.unlink()
+        kin.mkdir()
+        r = client.get("/kinematics")
+        assert r.status_code == 500 and r.json()["reason"] == f"{kin}: cannot read: Is a directory"
+        assert client.get("/kinematics/files").json()["in_force"]["sha256"] is None
+        kin.rmdir()
+        kin.symlink_to(tmp_path / "gone.yaml")
+        r = client.get("/kinematics")
+        assert r.status_code == 500 and r.json()["reason"].endswith("No such file or directory")
+        assert client.get("/kinematics/files").json()["in_force"]["valid"] is False
 
 
 def test_the_plot_after_a_restart_is_rendered_once_and_served_from_disk(
@@ -726,6 +887,109 @@ def test_cli_errors_are_one_line_with_a_nonzero_exit(
         main(["validate", "--help"])
     text = capsys.readouterr().out
     assert "``" not in text and ":mod:" not in text and "square" in text
+
+
+HOLD_LOCK = textwrap.dedent(
+    """
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, {root!r})
+    from services.locks import DataDirLock
+
+    DataDirLock(Path(sys.argv[1])).acquire()
+    print("held", flush=True)
+    sys.stdin.read()  # until the test closes our stdin
+    """
+)
+
+
+@pytest.fixture()
+def swpc_log_state() -> Any:
+    """``swpc serve`` configures the ``swpc`` logger (a stderr handler, no propagation):
+    put it back as it was for the tests after this one."""
+    lg = logging.getLogger("swpc")
+    saved = (list(lg.handlers), lg.propagate, lg.level)
+    yield
+    lg.handlers[:], lg.propagate, lg.level = saved[0], saved[1], saved[2]
+
+
+def serve_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """Run ``swpc serve`` in this process: it must return 2 with one line on stderr, the
+    error (it was uvicorn's 29-50 line traceback and exit status 3)."""
+    from services.cli import main
+
+    assert main(["serve", "--port", "0", "--log-level", "warning", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("swpc serve: error: "), err
+    return err[0]
+
+
+@pytest.mark.usefixtures("swpc_log_state")
+def test_serve_on_a_data_dir_held_by_another_process_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SWPC_TOKEN", TOKEN)
+    monkeypatch.delenv("SWPC_CAN_INTERFACE", raising=False)
+    data = tmp_path / "data"
+    script = tmp_path / "hold.py"
+    script.write_text(HOLD_LOCK.format(root=str(ROOT)))
+    holder = subprocess.Popen(
+        [sys.executable, str(script), str(data)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        line = serve_error(["--data-dir", str(data)], capsys)
+        assert f"{data}: the data dir is in use by swpc serve pid {holder.pid}" in line
+        # it stopped before writing anything there: no store, no token, no CAN log
+        assert sorted(p.name for p in data.iterdir()) == [".lock"]
+    finally:
+        assert holder.stdin is not None
+        holder.stdin.close()
+        holder.wait(10)
+
+
+@pytest.mark.usefixtures("swpc_log_state")
+def test_serve_with_a_can_interface_that_cannot_be_opened_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from services.locks import ChannelLock, DataDirLock
+
+    channel = f"swpc{uuid.uuid4().hex[:8]}"  # no such interface (its lock is host-wide)
+    monkeypatch.setenv("SWPC_TOKEN", TOKEN)
+    monkeypatch.setenv("SWPC_CAN_INTERFACE", "socketcan")
+    monkeypatch.setenv("SWPC_CAN_CHANNEL", channel)
+    line = serve_error(["--data-dir", str(tmp_path)], capsys)
+    # no such interface here (or no CAN in the kernel): python-can's reason, on one line
+    assert f"cannot open CAN bus interface='socketcan' channel='{channel}': " in line
+    # what it had taken is given back: the data dir's lock and the channel's
+    DataDirLock(tmp_path).acquire().release()
+    ChannelLock("socketcan", channel).acquire().release()
+
+
+@pytest.mark.usefixtures("swpc_log_state")
+def test_serve_on_a_port_or_zenoh_endpoint_in_use_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import socket
+
+    monkeypatch.setenv("SWPC_TOKEN", TOKEN)
+    monkeypatch.delenv("SWPC_CAN_INTERFACE", raising=False)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        line = serve_error(["--data-dir", str(tmp_path / "a"), "--port", str(port)], capsys)
+        assert f"cannot listen on 127.0.0.1:{port}: Address already in use" in line
+        monkeypatch.setenv("SWPC_ZENOH_LISTEN", f'["tcp/127.0.0.1:{port}"]')
+        line = serve_error(["--data-dir", str(tmp_path / "b")], capsys)
+        assert f"cannot open the zenoh session (listen=['tcp/127.0.0.1:{port}']): " in line
+        assert "Address already in use" in line and ".rs:" not in line
+    from services.locks import DataDirLock
+
+    DataDirLock(tmp_path / "b").acquire().release()
 
 
 def test_the_paper_method_table_has_no_nan_and_one_turn_angles() -> None:

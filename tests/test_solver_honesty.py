@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,16 +19,16 @@ from services.cli import main as swpc_main
 from simulators.datagen import ExperimentOptions, PartialSlip, ar1_noise, generate_experiment
 from swpc_hw.calibration.baseline import solve_paper, widest_pair
 from swpc_hw.calibration.fixed_point import fit_fixed_point
-from swpc_hw.calibration.plausibility import check_dataset, jitter_sigma
+from swpc_hw.calibration.plausibility import check_dataset, check_result, jitter_sigma
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.calibration.rolling import RollingSeries
 from swpc_hw.calibration.solver import SolverOptions, solve
 from swpc_hw.calibration.uncertainty import ar1_quadratic_form, long_run_covariance
 from swpc_hw.calibration.yaw_noise import score_variance
 from swpc_hw.dataset import Dataset, save_dataset
-from swpc_hw.errors import ImplausibleDataError
+from swpc_hw.errors import ImplausibleDataError, ImplausibleResultError
 from swpc_hw.model import RobotParams, wrap_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 MOCAP = ExperimentOptions(
@@ -91,12 +92,16 @@ def test_correlated_mocap_noise_inflates_the_std_devs_and_says_so() -> None:
 # ------------------------------------------------------------------ clock offset
 
 
-def test_clock_offset_estimate_and_its_std_dev_with_mocap_noise() -> None:
-    ds = generate_experiment(PAPER_CALIBRATED, dataclasses.replace(MOCAP, clock_offset=0.2)).dataset
+@pytest.mark.parametrize("offset", [0.0, 0.03, 0.2])
+def test_clock_offset_estimate_and_its_std_dev_with_mocap_noise(offset: float) -> None:
+    """No offset, a small one and a large one (the old estimate stuck at
+    +-15 ms, a multiple of half the encoder period, on 0 and -30 ms)."""
+    opts = dataclasses.replace(MOCAP, clock_offset=offset)
+    ds = generate_experiment(PAPER_CALIBRATED, opts).dataset
     res = solve(ds, SolverOptions(time_offset="auto"))
     assert res.time_offset_mode == "estimated"
     assert res.time_offset_std is not None and 2e-5 < res.time_offset_std < 1e-3
-    err = res.time_offset - 0.2
+    err = res.time_offset - offset
     assert abs(err) < 1e-3
     assert abs(err) < 3.0 * res.time_offset_std
     assert np.abs(z_scores(res)).max() < 4.0
@@ -334,3 +339,30 @@ def test_the_paper_report_has_no_nan_and_refuses_short_spins(
     res = solve(ds)  # the joint solver says what such data are worth
     assert np.abs(z_scores(res)).max() < 4.0
     save_dataset(tmp_path / "short", ds)
+    capsys.readouterr()
+    out = tmp_path / "short.yaml"
+    assert swpc_main(["solve", str(tmp_path / "short"), "-o", str(out), "--method", "paper"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and re.search(refused, err), err
+    assert not out.exists()
+
+
+def test_a_result_no_robot_can_have_or_far_from_nominal_is_refused() -> None:
+    """The gate after solving, on the nominal robot's own parameters, one fault at a time."""
+    X = as_array(PAPER_NOMINAL)
+    check_result(X, PAPER_NOMINAL)  # the nominal robot itself passes
+    cases = {
+        "nan": ((1, 0), math.nan, "did not converge to a physical solution: module 2 x_s = nan"),
+        "b <= 0": ((2, 3), -0.002, "module 3 b = -0.002 m, r = 0.055 m"),
+        "r <= 0": ((0, 4), 0.0, "module 1 b = 0.02 m, r = 0 m"),
+        "moved": ((3, 1), X[3, 1] + 0.3, "module 4 P_s 0.3 m from nominal"),
+        "radius": ((1, 4), 0.2, "module 2 r = 0.2 m against 0.055 m nominal"),
+        "mm": ((slice(None), 4), 55.0, "(poses look like millimetres)"),
+    }
+    for name, (where, value, message) in cases.items():
+        Y = X.copy()
+        Y[where] = value
+        with pytest.raises(ImplausibleResultError) as exc:
+            check_result(Y, PAPER_NOMINAL)
+        assert message in str(exc.value), (name, str(exc.value))
+        assert "\n" not in str(exc.value)

@@ -41,6 +41,8 @@ PROTOCOL = {
     "resteer_time": 0.5,
 }
 FAULT = "module 2 (node 2): no heartbeat for 0.300 s"
+QUICK = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}}
+"""Two angles, short spins: every state still, a quarter of the data to solve."""
 
 
 class Rig:
@@ -140,16 +142,15 @@ def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
 
 # --------------------------------------------------------------------------- faults, aborts
 
-WAITING = [State.CONNECT, State.REST, State.LOCK, State.ALIGN, State.SPIN, State.STOP,
-           State.RESTEER]  # fmt: skip
-"""States that wait for the robot (and check for faults and aborts while they wait)."""
+STARTED = [s for s in TRANSITIONS if s is not State.PENDING]
+"""Every state a started run passes through: each checks for faults and aborts on entry."""
 
 
-@pytest.mark.parametrize("state", WAITING, ids=str)
-def test_a_fault_in_any_waiting_state_stops_the_robot_and_fails_the_run(
+@pytest.mark.parametrize("state", STARTED, ids=str)
+def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, homed=False)
+    rig = Rig(tmp_path, QUICK, homed=False)
     rig.hooks[state] = lambda run: rig.robot.faults.append(FAULT)
     run = rig.run()
     assert run.status.state is State.FAILED
@@ -159,11 +160,11 @@ def test_a_fault_in_any_waiting_state_stops_the_robot_and_fails_the_run(
     assert not rig.kinematics.exists()
 
 
-@pytest.mark.parametrize("state", [*WAITING, State.PRECHECK, State.FREE, State.SOLVE], ids=str)
+@pytest.mark.parametrize("state", STARTED, ids=str)
 def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, homed=False)
+    rig = Rig(tmp_path, QUICK, homed=False)
     t_abort: list[float] = []
 
     def abort(run: CalibrationRun) -> None:
@@ -180,6 +181,22 @@ def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
     assert not rig.kinematics.exists()  # an abort during SOLVE installs nothing either
     # abort came at a state's entry: the run ended before robot time moved on much
     assert rig.clock.now() - t_abort[0] < 0.05
+
+
+def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
+    """PENDING: aborted before its thread ran.  The first state's entry check ends it
+    ABORTED before that state's first command: nothing is activated or moved."""
+    rig = Rig(tmp_path)
+    run = CalibrationRun(
+        rig.robot, rig.mocap, rig.config, clock=rig.clock, data_dir=tmp_path,
+        kinematics_path=rig.kinematics, on_change=rig._changed, mcap=False,
+    )  # fmt: skip
+    run.abort()
+    run._main()
+    assert run.status.state is State.ABORTED
+    assert rig.states == [State.PENDING, State.CONNECT, State.ABORTED]
+    assert {c[1] for c in rig.robot.log} <= {"stop_all", "release"}, rig.robot.log
+    assert not rig.kinematics.exists()
 
 
 def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) -> None:
@@ -208,13 +225,16 @@ def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) ->
         (State.REST, {"drift": 0.3}),  # someone keeps turning the robot
         (State.LOCK, {"stuck": {1}}),  # the locked module's steering does not move
         (State.SPIN, {"spin_rate": 0.02}),  # 90 deg at 0.02 rad/s: 79 s
+        (State.RESTEER, {}),  # the locked module sticks once re-steering begins (hook)
     ],
-    ids=["homing", "rest", "lock", "spin"],
+    ids=["homing", "rest", "lock", "spin", "resteer"],
 )
 def test_a_step_that_outlasts_step_timeout_fails_the_run(
     tmp_path: Path, state: State, knob: dict[str, Any]
 ) -> None:
     rig = Rig(tmp_path, {"limits": {"step_timeout": 5.0}}, **knob)
+    if state is State.RESTEER:
+        rig.hooks[state] = lambda run: rig.robot.stuck.add(1)
     run = rig.run()
     assert run.status.state is State.FAILED
     assert run.status.reason is not None
@@ -297,7 +317,7 @@ def test_install_policies(tmp_path: Path) -> None:
     before = tmp_path / "kinematics.yaml"
     save_kinematics(before, NOMINAL, created="2026-01-01T00:00:00Z")
     original = before.read_bytes()
-    quick = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}}
+    quick = QUICK
     strict = {**quick, "tolerances": {"position": 1e-9}}  # no real result is this good
     for install, want in (("if-within-tolerance", False), ("never", False), ("always", True)):
         rig = Rig(tmp_path / install, strict)
@@ -332,7 +352,7 @@ def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path
         m2,
         m3.model_copy(update={"x_s": m1.x_s, "y_s": m1.y_s}),
     ]
-    rig = Rig(tmp_path, {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}})
+    rig = Rig(tmp_path, QUICK)
     rig.config = rig.config.model_copy(
         update={"nominal": NOMINAL.model_copy(update={"modules": swapped})}
     )

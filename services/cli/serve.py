@@ -11,6 +11,7 @@ printed.
 from __future__ import annotations
 
 import argparse
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +40,9 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from services.api import create_app
-    from services.http_server import server
+    from services.http_server import listen_socket, server
     from services.logs import configure, event
+    from services.runtime import Runtime
     from services.settings import ServiceSettings, SettingsError
 
     if args.env_file is not None and not Path(args.env_file).is_file():
@@ -57,17 +59,33 @@ def run(args: argparse.Namespace) -> int:
         where = ".".join(str(x) for x in first["loc"])
         raise SettingsError(f"setting {where}: {first['msg']}") from None
     configure(args.log_level)
+    settings.check_token()  # a weak token, or none beyond loopback: before anything else
     generated = settings.token is None
-    app = create_app(settings)
-    log = logging.getLogger("swpc.service")
-    if generated:
-        event(log, logging.WARNING, "service.token_generated", file=str(settings.token_file))
-    server(
-        app,
-        host=settings.host,
-        port=settings.port,
-        header_timeout=settings.header_timeout,
-        max_connections=settings.max_connections,
-        log_level=args.log_level,
-    ).run()
+    # The runtime is opened here, not in uvicorn's lifespan: an error (the data dir or the
+    # CAN channel in use, an interface that cannot be opened, a zenoh endpoint taken) then
+    # reaches the command's one-line handler, not a traceback and uvicorn's exit status 3.
+    # The data dir's lock comes first: a second service stops before writing anything.
+    runtime = Runtime(settings)
+    sock: socket.socket | None = None
+    try:
+        app = create_app(settings, runtime_factory=lambda _s: runtime)
+        log = logging.getLogger("swpc.service")
+        if generated:
+            event(log, logging.WARNING, "service.token_generated", file=str(settings.token_file))
+        sock = listen_socket(settings.host, settings.port)
+        runtime.open()
+        host, port = sock.getsockname()[:2]
+        event(log, logging.INFO, "service.listen", host=host, port=port)
+        server(
+            app,
+            host=settings.host,
+            port=settings.port,
+            header_timeout=settings.header_timeout,
+            max_connections=settings.max_connections,
+            log_level=args.log_level,
+        ).run(sockets=[sock])
+    finally:
+        runtime.close()  # idempotent: the lifespan has closed it, unless it never ran
+        if sock is not None:
+            sock.close()
     return 0

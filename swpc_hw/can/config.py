@@ -33,6 +33,10 @@ class CanConfig:
     log_total_bytes: int | None = None
     """A rolling log at ``log_path`` within this many bytes over all its files (python-can's
     sized rotating logger, :mod:`swpc_hw.can.recording`); None: one unbounded file."""
+    log_idle_period_s: float = 0.0
+    """While no recording (:meth:`CanDriver.start_recording`) is on, the log at
+    ``log_path`` keeps each periodic frame once per this many seconds per CAN id and every
+    event at once (:class:`swpc_hw.can.recording.IdleSampler`); 0: every frame."""
     max_torque: tuple[float, float] | None = None
     """(steer, wheel) torque limits in N.m sent at activation; None keeps the controllers'."""
     max_velocity: tuple[float, float] | None = None
@@ -83,6 +87,10 @@ class CanConfig:
             )
         if self.heartbeat_loss_periods < 1:
             raise CanConfigError("heartbeat_loss_periods must be >= 1")
+        if not 0 <= self.log_idle_period_s <= 3600:
+            raise CanConfigError(
+                f"log_idle_period_s: {self.log_idle_period_s} outside 0..3600 s"
+            )
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any]) -> CanConfig:

@@ -181,7 +181,11 @@ class CanDriver(DriverCommands, DriverObservation):
             if kernel:
                 self._kernel = KernelRefresh(self._bus, cfg.refresh_period_s, cfg.deadman_s)
             if cfg.log_path:
-                self._logger = Recorder(cfg.log_path, total_bytes=cfg.log_total_bytes)
+                self._logger = Recorder(
+                    cfg.log_path,
+                    total_bytes=cfg.log_total_bytes,
+                    sample_period_s=cfg.log_idle_period_s,
+                )
             self._configured_at = self.clock.now()
             self._state = Lifecycle.INACTIVE
             self._stop_io.clear()
@@ -303,9 +307,7 @@ class CanDriver(DriverCommands, DriverObservation):
                     if not best_effort:
                         break
                     continue
-                for rec in (self._logger, self._recorder):
-                    if rec is not None:
-                        rec.write(msg)
+                self._log(msg)
                 with self._lock:
                     self._stats.tx_frames += 1
                     nd = self._by_node.get(f.arbitration_id >> codec.NODE_SHIFT)
@@ -314,6 +316,15 @@ class CanDriver(DriverCommands, DriverObservation):
         if failure is not None:
             self._emit(EventKind.SEND_ERROR, Severity.WARNING, str(failure))
             raise failure
+
+    def _log(self, msg: can.Message) -> None:
+        """A frame in or out to the recording, if one is on, and to the rolling log: every
+        frame while recording, else as ``CanConfig.log_idle_period_s`` samples them."""
+        recorder = self._recorder
+        if recorder is not None:
+            recorder.write(msg)
+        if self._logger is not None:
+            self._logger.write(msg, sample=recorder is None)
 
     # ================================================================ receive + supervise
     def _io_loop(self) -> None:
@@ -374,9 +385,7 @@ class CanDriver(DriverCommands, DriverObservation):
         t = frame_time(stamp, handled, clock.from_wall(stamp)) if stamp else handled
         # frames leave one queue in order: their arrivals never go back in time
         t = self._last_arrival = max(t, self._last_arrival)
-        for rec in (self._logger, self._recorder):
-            if rec is not None:
-                rec.write(msg)
+        self._log(msg)
         try:
             with self._changed:
                 applied = apply_frame(self._by_node, msg, t, self._stats)
