@@ -179,6 +179,11 @@ class RobotConfig(BaseModel):
     def pose_key(self) -> str:
         return f"mocap/{self.robot}/pose"
 
+    @property
+    def imu_key(self) -> str:
+        """The robot's gyro: ``sensor_msgs/msg/Imu`` (CDR) on ``imu/<robot>/data``."""
+        return f"imu/{self.robot}/data"
+
     def to_document(self) -> dict[str, Any]:
         doc = self.model_dump(mode="json", exclude={"nominal"})
         doc["nominal"] = {"modules": kinematics_document(self.nominal)["modules"]}

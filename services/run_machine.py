@@ -52,6 +52,8 @@ class RunMachine:
     :attr:`journal` and implements :meth:`_protocol`."""
 
     journal: RunJournal
+    metrology: str = "mocap"
+    """What measures the robot's motion: ``mocap`` or ``imu`` (the gyro, no mocap)."""
 
     def __init__(
         self,
