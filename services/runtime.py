@@ -31,6 +31,7 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ from services.calibration_run import TERMINAL, CalibrationRun, State
 from services.disk import make_room, run_reserve
 from services.events import EventBus
 from services.imu_ingest import ImuIngest
+from services.imu_run import ImuCalibrationRun
 from services.in_process_simulator import in_process_simulator
 from services.locks import ChannelLock, DataDirLock
 from services.logs import event
@@ -54,6 +56,7 @@ from swpc_hw.can.driver import CanDriver
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
+from swpc_hw.references import Reference
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 SWITCH_INTERVAL_S = 0.001
@@ -281,8 +284,16 @@ class Runtime:
             event(log, logging.INFO, "service.close")
 
     # --------------------------------------------------------------------- runs
-    def start_run(self, config: RobotConfig, install: str) -> CalibrationRun:
-        """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`).
+    def start_run(
+        self,
+        config: RobotConfig,
+        install: str,
+        metrology: str = "mocap",
+        references: Sequence[Reference] = (),
+    ) -> CalibrationRun:
+        """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`) with
+        ``metrology`` (``imu``: without motion capture, with ``references``, checked:
+        :func:`services.imu_run.reference_problems`).
 
         Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
         disk budget (after pruning the oldest runs' recordings) or the file system's free
@@ -311,23 +322,25 @@ class Runtime:
                     f"{int(s.min_free) / MIB:.1f} MiB"
                 )
             lim = config.limits
-            run = CalibrationRun(
-                DriverRobotIO(
-                    self.driver,
-                    limits=(
-                        lim.max_wheel_torque,
-                        (lim.max_steer_velocity, lim.max_wheel_velocity),
-                    ),
-                ),
-                self.mocap,
-                config,
-                clock=self.clock,
-                data_dir=self.data_dir,
-                kinematics_path=s.kinematics_file,
-                install=install,
-                on_change=self._persist,
-                space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
-                robot_config_path=None if s.robot_config is None else str(s.robot_config),
+            io = DriverRobotIO(
+                self.driver,
+                limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
+            )
+            kwargs: dict[str, Any] = {
+                "clock": self.clock,
+                "data_dir": self.data_dir,
+                "kinematics_path": s.kinematics_file,
+                "install": install,
+                "on_change": self._persist,
+                "space": SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
+                "robot_config_path": None if s.robot_config is None else str(s.robot_config),
+            }
+            run = (
+                ImuCalibrationRun(
+                    io, self.mocap, self.imu, config, references=references, **kwargs
+                )
+                if metrology == "imu"
+                else CalibrationRun(io, self.mocap, config, **kwargs)
             )
             previous, self.current = self.current, run
             self.runs[run.id] = run
