@@ -40,7 +40,12 @@ import numpy as np
 
 from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
 from simulators.physics import FloatArray
+from swpc_hw.calibration.imu_build import ImuRun, NoiseLevels, build_imu_problem
+from swpc_hw.calibration.imu_solver import initial_weights
+from swpc_hw.calibration.options import SolverOptions
+from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.dataset import Dataset, save_dataset
+from swpc_hw.frames import design_fit_transform, transform_parameters
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, rot
 from swpc_hw.references import AxisDistance, Reference, StraightDrive, WheelRadius
@@ -196,3 +201,51 @@ def generate_mocap_free_experiment(
     refs = draw_references(exp, ref, rng, opt.clock_offset)
     exp.dataset = dataclasses.replace(exp.dataset, imu=imu, references=refs)
     return MocapFreeExperiment(exp, g, bias)
+
+
+def fisher_setup(
+    truth: RobotParams,
+    options: ExperimentOptions | None = None,
+    gyro: GyroOptions | None = None,
+    references: ReferenceOptions | None = None,
+    nominal: RobotParams | None = None,
+) -> tuple[ImuRun, FloatArray]:
+    """The mocap-free problem of an experiment at its truth, weighted for its noise.
+
+    The run of ``options`` (default :data:`MOCAP_FREE_PROTOCOL`) without noise
+    (encoders unquantized, gyro without noise or walk, exact references), built with the
+    noise levels of the sensors as simulated (encoders of ``counts_per_rev`` counts, the
+    ``gyro``'s white noise and walk, the references' std dev): the Jacobian at the truth,
+    in the design-fit frame, is the experiment's (:mod:`swpc_hw.calibration.identifiability`).
+    Returns the built problem (weights set) and the true unknowns.
+    """
+    opt = options or MOCAP_FREE_PROTOCOL
+    g = gyro or GyroOptions()
+    ref = references or ReferenceOptions()
+    exact = dataclasses.replace(opt, counts_per_rev=None)
+    mf = generate_mocap_free_experiment(
+        truth, exact, dataclasses.replace(g, noise_density=0.0, bias_walk=0.0),
+        dataclasses.replace(ref, stddev=1e-12), nominal,
+    )
+    ds = mf.mocap_free_dataset
+    ds.references = [dataclasses.replace(r, stddev=ref.stddev) for r in ds.references]
+    q = 2.0 * math.pi / (opt.counts_per_rev or 2**40)
+    noise = NoiseLevels(
+        steer=q / math.sqrt(12.0),
+        wheel=q / math.sqrt(12.0),
+        gyro_var=g.noise_density**2 * g.rate,
+        gyro_dt=1.0 / g.rate,
+        walk_q2=g.bias_walk**2,
+    )
+    segs = prepare_segments(ds)
+    run = build_imu_problem(ds, segs, SolverOptions(), noise=noise)
+    prob = run.problem
+    a = truth.arrays()
+    X = np.column_stack([a.P_s, a.beta, a.b, a.r])
+    phi, t = design_fit_transform(a.P_s, ds.robot.arrays().P_s)
+    x = np.zeros(prob.layout.size)
+    x[: X.size] = transform_parameters(X, phi, t).ravel()
+    x[prob.layout.scale] = 1.0 + g.scale_error
+    x[prob.layout.knots] = g.bias
+    initial_weights(run, x)
+    return run, x

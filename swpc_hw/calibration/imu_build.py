@@ -63,6 +63,8 @@ class ImuRun:
     noise: NoiseLevels
     tracks: dict[int, EncoderTrack]
     drive_refs: list[StraightDrive]
+    theta_sigma: FloatArray
+    """Std dev (rad) of every settled steering reading (its spread, floored)."""
 
 
 def node_times(rows: FloatArray, start: float, end: float, interval: float) -> FloatArray:
@@ -196,7 +198,7 @@ def build_imu_problem(
         settled=SettledObservations(seg, mod, theta, sig),
         seg_static=np.array([s.static for s in segs], dtype=np.int64),
         seg_angle=np.array([s.angle for s in segs]),
-        seg_sign=np.array([1.0 if rs.I_wz[-1] >= rs.I_wz[0] else -1.0 for rs in spins]),
+        seg_sign=spin_directions(ds, segs, mod, seg, theta),
         angle_sigma=nl.steer,
         spins=spins,
         drives=drives,
@@ -206,7 +208,31 @@ def build_imu_problem(
         ids=ids,
         P_nom=ds.robot.arrays().P_s,
     )
-    return ImuRun(prob, knots, nl, tracks, drive_refs)
+    return ImuRun(prob, knots, nl, tracks, drive_refs, sig.copy())
+
+
+def spin_directions(
+    ds: Dataset, segs: list[SegmentData], mod: IntArray, seg: IntArray, theta: FloatArray
+) -> FloatArray:
+    """The sign of every segment's yaw rate, from the settled steering (not the gyro: its
+    sign is what :func:`.plausibility.check_gyro_ratio` checks; nor the wheels: a trailing
+    wheel turns backwards either way).  A caster settles on one side or the other of the
+    line from the pivot: of the angles the nominal robot (beta 0) would settle at for
+    either sign, the one nearer the reported steering wins (they are ~170 deg apart)."""
+    a = ds.robot.arrays()
+    out = np.ones(len(segs))
+    for si, sd in enumerate(segs):
+        k = sd.static
+        C = contact_point(a.P_s[k], a.b[k], sd.angle)
+        sel = seg == si
+        cost = [
+            float(np.sum(1.0 - np.cos(
+                geo.settled_angle(a.P_s[mod[sel]], a.b[mod[sel]], C, sign) - theta[sel]
+            )))
+            for sign in (1.0, -1.0)
+        ]
+        out[si] = 1.0 if cost[0] <= cost[1] else -1.0
+    return out
 
 
 def drive_set(
@@ -260,13 +286,27 @@ def initial_parameters(run: ImuRun, ds: Dataset, iterations: int = 8) -> FloatAr
         if isinstance(ref, WheelRadius):
             X[prob.ids.index(ref.module), R] = ref.value
     for ref, rs in zip(run.drive_refs, prob.drives, strict=True):
-        dpsi = np.abs(rs.psi[-1] - rs.psi[0])
-        X[rs.mods, R] = np.where(dpsi > 0, ref.value / np.where(dpsi > 0, dpsi, 1.0), X[rs.mods, R])
+        X[rs.mods, R] = drive_radii(rs.psi, ref.value)
     x = np.zeros(prob.layout.size)
     x[: X.size] = X.ravel()
     x[prob.layout.scale] = 1.0
     x[prob.layout.knots] = run.knots.mean
     return x
+
+
+def drive_radii(psi: FloatArray, length: float) -> FloatArray:
+    """Radii from a straight drive's wheel angles ``psi`` (L, m), robust to slip bursts.
+
+    Per increment the wheels' rotations against their median, ``rho_j = median_l(dpsi_jl /
+    median_k dpsi_kl)`` over the increments that move; the median wheel turned
+    ``Psi = sum_l median_k dpsi_kl``; so ``r_j = length / |rho_j Psi|`` (a burst in one
+    wheel moves neither median).
+    """
+    d = np.diff(psi, axis=0)
+    med = np.median(d, axis=1)
+    moving = np.abs(med) > 0.1 * np.abs(med).max()
+    rho = np.median(d[moving] / med[moving, None], axis=0)
+    return np.asarray(length / np.abs(rho * med.sum()), dtype=float)
 
 
 def axis_distance_refs(prob: ImuProblem) -> list[AxisDistance]:

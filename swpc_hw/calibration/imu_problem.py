@@ -12,8 +12,9 @@ steering.  For every segment (a spin about the locked module k at reported steer
     ``((P_s,j - C) . u(theta_hat_j + beta_j) + b_j) / sigma`` per segment and free caster
     (:func:`swpc_hw.calibration.geometry.settled_residual`), as with motion capture.
 ``spin``
-    The wheels of one segment at its nodes ``t_l``: ``z_jl = r_j psi_j(t_l)`` rolls as
-    ``z_jl = c_j + g_j Y_l`` with the lever of a settled caster
+    The wheels of one segment at its nodes ``t_l``: ``psi_jl = psi_j(t_l)`` rolls as
+    ``psi_jl = c_j + (g_j / r_j) Y_l`` (``r dpsi = g dyaw``) with the lever of a settled
+    caster
     ``g_j = (P_w,j - C) x u(theta_j) = -sign(omega) D_j``,
     ``D_j = sqrt(|P_s,j - C|^2 - b_j^2)`` (the settled right angle at ``P_w``: the
     paper's distance), and the yaw ``Y_l``, common to the modules.  The lever is the
@@ -21,9 +22,11 @@ steering.  For every segment (a spin about the locked module k at reported steer
     error that is constant over the segment, which the wheels' precise ratios would
     otherwise take for a lever (``dg = -b dtheta``).  ``Y_l`` and the constants ``c``
     (one per clean run of a wheel) are profiled out (:func:`profiled_rolling`): what is
-    left is the part of every node's vector ``z_l - c`` across ``g``, white encoder
+    left is the part of every node's vector ``psi_l - c`` across ``g / r``, white encoder
     noise.  Neither the gyro nor its noise enters: these residuals hold the ratios
-    ``r_j / g_j``.
+    ``r_j / g_j``.  In wheel angles (rad), not distances ``r psi``: scaling the radii or
+    the layout then leaves them unchanged (in distances a smaller ``r`` shrinks every
+    residual, a pull on the radii that cost a quarter of the straight drive's std dev).
 ``gyro``
     Per chunk of connected nodes ``[l_a, l_b]`` of a segment: the yaw the wheels turned,
     ``Y_lb - Y_la``, against the gyro's::
@@ -57,6 +60,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
 
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.parameters import BETA, N_PARAMS, P_S, R
@@ -118,8 +122,8 @@ def profiled_rolling(
 ) -> tuple[FloatArray, FloatArray]:
     """Residuals of ``z_jl = c_run(j,l) + g_j Y_l`` with ``Y`` and ``c`` profiled out.
 
-    ``z`` (..., L, m) the rolled distances (any leading batch dimensions), ``g``
-    broadcastable to it the levers, ``present`` (L, m) the samples used, ``run`` (L, m)
+    ``z`` (..., L, m) the wheels' readings and ``g`` their levers, broadcast together (any
+    leading batch dimensions), ``present`` (L, m) the samples used, ``run`` (L, m)
     the constant's index of each (dense, any value where absent).  Per node the
     least-squares ``Y_l = g_l^T (z_l - c) / |g_l|^2`` (``g_l``: ``g`` on the present
     modules) leaves ``P_l (z_l - c)`` with the projector ``P_l = I_l - g_l g_l^T / |g_l|^2``;
@@ -131,23 +135,39 @@ def profiled_rolling(
     (minimum norm: ``c`` along ``g`` is a shift of ``Y``).  Returns ``(residual (..., L, m),
     Y (..., L))``; the residual is 0 where absent.
     """
-    gP = np.where(present, np.broadcast_to(g, z.shape), 0.0)
+    shape = np.broadcast_shapes(np.shape(z), np.shape(g))
+    z = np.broadcast_to(z, shape)
+    gP = np.where(present, np.broadcast_to(g, shape), 0.0)
     nrm = np.sum(gP * gP, axis=-1)
     inv = np.where(nrm > 0, 1.0 / np.where(nrm > 0, nrm, 1.0), 0.0)
-    root = np.sqrt(inv)
     zp = np.where(present, z, 0.0)
     rows, cols = np.nonzero(present)
     runs = run[rows, cols]
     n_run = int(runs.max()) + 1 if runs.size else 0
-    batch = z.shape[:-2]
-    Q = np.zeros((*batch, z.shape[-2], n_run))
-    Q[..., rows, runs] = gP[..., rows, cols] * root[..., rows]
-    one_hot = np.zeros((runs.size, n_run))
-    one_hot[np.arange(runs.size), runs] = 1.0
-    QT = np.swapaxes(Q, -1, -2)
-    A = np.diag(one_hot.sum(axis=0)) - QT @ Q
-    gz = np.sum(gP * zp, axis=-1)
-    rhs = zp[..., rows, cols] @ one_hot - (QT @ (gz * root)[..., None])[..., 0]
+    batch = shape[:-2]
+    flat = int(np.prod(batch, dtype=np.int64))
+    # Q^T Q from the pairs of present samples of every node (sparse: a node has m)
+    pr, pi, pj = [], [], []
+    for i in range(present.shape[1]):
+        for j in range(present.shape[1]):
+            sel = np.flatnonzero(present[:, i] & present[:, j])
+            pr.append(sel)
+            pi.append(np.full(sel.size, i))
+            pj.append(np.full(sel.size, j))
+    l_, i_, j_ = np.concatenate(pr), np.concatenate(pi), np.concatenate(pj)
+    pairs = sparse.csr_matrix(
+        (np.ones(l_.size), (np.arange(l_.size), run[l_, i_] * n_run + run[l_, j_])),
+        shape=(l_.size, n_run * n_run),
+    )
+    outer = gP[..., l_, i_] * gP[..., l_, j_] * inv[..., l_]
+    QtQ = np.asarray(pairs.T @ outer.reshape(flat, l_.size).T).T.reshape(*batch, n_run, n_run)
+    A = np.diag(np.bincount(runs, minlength=n_run).astype(float)) - QtQ
+    samples = sparse.csr_matrix(
+        (np.ones(runs.size), (np.arange(runs.size), runs)), shape=(runs.size, n_run)
+    )
+    gz = np.sum(gP * zp, axis=-1) * inv
+    Pz = zp[..., rows, cols] - gP[..., rows, cols] * gz[..., rows]
+    rhs = np.asarray(samples.T @ Pz.reshape(flat, runs.size).T).T.reshape(*batch, n_run)
     c = (np.linalg.pinv(A, rcond=1e-12) @ rhs[..., None])[..., 0]
     e = zp.copy()
     e[..., rows, cols] -= c[..., runs]
@@ -338,8 +358,9 @@ class ImuProblem:
         return np.asarray(np.cos(th - phi), dtype=float)
 
     def rolled(self, X: FloatArray, rs: RollingSet, g: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """:func:`profiled_rolling` of ``z = r psi``: ``(residual (L, m), Y (L,))``."""
-        return profiled_rolling(X[rs.mods, R][None, :] * rs.psi, g, rs.present, rs.run)
+        """:func:`profiled_rolling` of ``psi`` with the levers ``g / r``: ``(residual (L, m)
+        in rad, Y (L,))``."""
+        return profiled_rolling(rs.psi, g / X[rs.mods, R], rs.present, rs.run)
 
     def blocks(self, x: FloatArray) -> dict[str, FloatArray]:
         """Weighted residuals of every active block (dimensionless).
@@ -378,8 +399,8 @@ class ImuProblem:
                 mask = st.set_mask[d]
                 phi = np.arctan2(np.sin(th[:, mask]).sum(axis=-1), np.cos(th[:, mask]).sum(axis=-1))
                 G[:, d] = np.where(mask, np.cos(th - phi[:, None]), 0.0)
-            z = X[:, st.mods, R] * st.psi
-            resid, Y = profiled_rolling(z, G[:, st.row_set], st.present, st.run)
+            H = G / X[:, st.set_mods, R]
+            resid, Y = profiled_rolling(st.psi, H[:, st.row_set], st.present, st.run)
             w = resid / st.row_sigma[:, None]
             if "spin" in act:
                 out["spin"].append(w[:, st.present & st.spin_rows[:, None]])
@@ -472,6 +493,15 @@ class ImuProblem:
         for b, v in self.blocks(x).items():
             out[b] = slice(i, i + v.shape[-1])
             i += v.shape[-1]
+        return out
+
+    def with_refs(self, refs: list[AxisDistance | WheelRadius | StraightDrive]) -> ImuProblem:
+        """The same problem with other axis_distance / wheel_radius references (the
+        straight drives are tied to their wheels' sets and stay)."""
+        drives = [r for r in self.refs if isinstance(r, StraightDrive)]
+        kept = [r for r in refs if not isinstance(r, StraightDrive)]
+        out = self.with_blocks(self.active)
+        out.refs = kept + drives
         return out
 
     def with_blocks(self, active: set[str] | frozenset[str]) -> ImuProblem:
