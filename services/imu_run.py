@@ -206,13 +206,18 @@ class ImuCalibrationRun(CalibrationRun):
     def mark_done(self) -> None:
         """The operator has marked the floor (MARK); ValueError in another state."""
         if self.waits_for != "continue":
-            raise ValueError(f"calibration {self.id} is {self.status.state}: nothing to continue")
+            done = " (already continued)" if self._marked.is_set() else ""
+            raise ValueError(
+                f"calibration {self.id} is {self.status.state}{done}: nothing to continue"
+            )
         self._marked.set()
 
     def add_references(self, entries: Sequence[dict[str, Any]]) -> list[Reference]:
         """The operator's measurements (MEASURE): parsed with the drive's times, at least
         the straight drive.  ValueError in another state, DatasetError for an entry."""
         if self.waits_for != "references":
+            if self._measured.is_set():
+                raise ValueError(f"calibration {self.id} already has the drive's measurement")
             raise ValueError(
                 f"calibration {self.id} is {self.status.state}: it takes references in MEASURE"
             )
@@ -486,6 +491,7 @@ class ImuCalibrationRun(CalibrationRun):
     def _close_dataset(self) -> None:
         """The recorded samples closed, with the references known so far (a run that
         ends later keeps a dataset that ``swpc solve`` reads and judges)."""
+        self._record(force=True)  # the last samples, counted in the status
         self.journal.close_dataset(self.sensor, self.robot)
         self.journal.save_references(self.references)
 

@@ -442,6 +442,8 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
                                  "stddev": 1e-4}])  # fmt: skip
         assert run.waits_for == "references"
         rig.play_operator(run)
+        with pytest.raises(ValueError, match="already has the drive's measurement"):
+            run.add_references([{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
         seen.append("measure")
 
     rig.hooks[State.MARK] = at_mark
