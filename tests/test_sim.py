@@ -554,6 +554,10 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
             "ros2-cdr",
             "--pose-rate",
             "50",
+            "--gyro-rate",
+            "100",
+            "--gyro-bias",
+            "2.0",
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -561,7 +565,9 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
     )
     client = open_session(connect=[ep])
     log = PoseLog()
+    gyro = GyroLog()
     sub = client.declare_subscriber("mocap/swpc/pose", log.on_sample)
+    gyro_sub = client.declare_subscriber("imu/swpc/data", gyro.on_sample)
     try:
         log.wait_until(-1e18, timeout=20.0)
         t0 = log.last_t()
@@ -572,9 +578,15 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
         if proc.poll() is None:
             proc.kill()
         sub.undeclare()
+        gyro_sub.undeclare()
         client.close()
     assert proc.returncode == 0, out
     assert "swpc sim: robot 'swpc'" in out and "overruns" in out
+    # its gyro too (a robot at rest: the bias, 2 deg/s), stamped with the host's wall clock
+    G = np.array(gyro.rows)
+    assert G.shape[0] > 20 and "gyro 100 Hz on imu/swpc/data" in out
+    assert float(np.mean(G[:, 1])) == pytest.approx(math.radians(2.0), abs=2e-3)
+    assert abs(float(G[-1, 0]) - time.time()) < 30.0
 
 
 def test_custom_nodes_encoder_quantisation_and_bus_errors() -> None:
