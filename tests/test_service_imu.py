@@ -161,6 +161,9 @@ def test_a_calibration_without_motion_capture_through_http(
     by_topic = {summary.channels[c].topic: n for c, n in counts.items()}
     assert by_topic.get("/imu/gyro", 0) == st["gyro_samples"]
     assert by_topic.get("/mocap/pose", 0) == 0
+    # the console offers the dataset with the gyro and the references
+    files = {f["name"] for f in client.get(f"/calibrations/{run_id}/files").json()}
+    assert {"dataset.zip", "run.mcap", "kinematics.yaml"} <= files
     # the service's view of the gyro
     h = client.get("/health").json()
     assert h["gyro_age_s"] is not None and h["sensors"] == ["mocap"]
