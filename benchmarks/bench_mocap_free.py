@@ -13,7 +13,7 @@
    axes, r): worst and RMS error; z = error / std dev of those and of x_s, y_s, beta in
    the design-fit frame against the truth expressed in it, and of the gyro's scale.
 3. The motion-capture solver on the mocap dataset of the same runs (poses 0.5 mm /
-   0.05 deg at 100 Hz): the same frame-free errors.
+   0.05 deg at 100 Hz), truth Table 4: the same frame-free errors.
 
 ``SWPC_BENCH_SEEDS`` sets the seeds per family (default 20).  Figures in
 ``docs/mocap-free.md``; ``python -m benchmarks mocap_free`` reproduces them.
@@ -233,7 +233,7 @@ def main() -> None:
     )
     family("table4", [PAPER_CALIBRATED] * seeds, gyro, mocap=True)
     robots = random_robots(seeds, np.random.default_rng(2020), PAPER_NOMINAL)
-    family("random", [robots.robot(i, PAPER_NOMINAL.ids) for i in range(seeds)], gyro, True)
+    family("random", [robots.robot(i, PAPER_NOMINAL.ids) for i in range(seeds)], gyro, False)
     print(
         "\n[runs] Table 4: one truth, so the encoders' quantization errors repeat in every "
         "seed; the random robots' z are the independent ones."

@@ -117,57 +117,87 @@ class ImuLayout:
         )
 
 
+@dataclass(frozen=True)
+class ProfileStructure:
+    """Which samples :func:`profiled_rolling` uses, prepared once per ``present``/``run``:
+    the present samples ``(rows, cols)`` and their runs, every pair of present samples of
+    a node (``l, i, j``) and the sparse maps summing pairs and samples into runs."""
+
+    rows: IntArray
+    cols: IntArray
+    runs: IntArray
+    n_run: int
+    pl: IntArray
+    pi: IntArray
+    pj: IntArray
+    pairs: sparse.csr_matrix
+    samples: sparse.csr_matrix
+    counts: FloatArray
+
+    @classmethod
+    def of(cls, present: BoolArray, run: IntArray) -> ProfileStructure:
+        rows, cols = np.nonzero(present)
+        runs = run[rows, cols]
+        n_run = int(runs.max()) + 1 if runs.size else 0
+        pr, pi, pj = [], [], []
+        for i in range(present.shape[1]):
+            for j in range(present.shape[1]):
+                sel = np.flatnonzero(present[:, i] & present[:, j])
+                pr.append(sel)
+                pi.append(np.full(sel.size, i))
+                pj.append(np.full(sel.size, j))
+        l_, i_, j_ = np.concatenate(pr), np.concatenate(pi), np.concatenate(pj)
+        pairs = sparse.csr_matrix(
+            (np.ones(l_.size), (np.arange(l_.size), run[l_, i_] * n_run + run[l_, j_])),
+            shape=(l_.size, n_run * n_run),
+        )
+        samples = sparse.csr_matrix(
+            (np.ones(runs.size), (np.arange(runs.size), runs)), shape=(runs.size, n_run)
+        )
+        counts = np.bincount(runs, minlength=n_run).astype(float)
+        return cls(rows, cols, runs, n_run, l_, i_, j_, pairs, samples, counts)
+
+
 def profiled_rolling(
-    z: FloatArray, g: FloatArray, present: BoolArray, run: IntArray
+    z: FloatArray,
+    g: FloatArray,
+    present: BoolArray,
+    run: IntArray,
+    structure: ProfileStructure | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Residuals of ``z_jl = c_run(j,l) + g_j Y_l`` with ``Y`` and ``c`` profiled out.
 
     ``z`` (..., L, m) the wheels' readings and ``g`` their levers, broadcast together (any
-    leading batch dimensions), ``present`` (L, m) the samples used, ``run`` (L, m)
-    the constant's index of each (dense, any value where absent).  Per node the
-    least-squares ``Y_l = g_l^T (z_l - c) / |g_l|^2`` (``g_l``: ``g`` on the present
-    modules) leaves ``P_l (z_l - c)`` with the projector ``P_l = I_l - g_l g_l^T / |g_l|^2``;
-    ``c`` minimises ``sum_l |P_l (z_l - C_l c)|^2``::
+    leading batch dimensions), ``present`` (L, m) the samples used, ``run`` (L, m) the
+    constant's index of each (dense, any value where absent; ``structure``: the two
+    prepared, :class:`ProfileStructure`).  Per node the least-squares
+    ``Y_l = g_l^T (z_l - c) / |g_l|^2`` (``g_l``: ``g`` on the present modules) leaves
+    ``P_l (z_l - c)`` with the projector ``P_l = I_l - g_l g_l^T / |g_l|^2``; ``c``
+    minimises ``sum_l |P_l (z_l - C_l c)|^2``::
 
         (sum_l C_l^T P_l C_l) c = sum_l C_l^T P_l z_l,
         sum_l C_l^T P_l C_l = diag(samples per run) - Q^T Q,   Q_l,run(l,j) = g_lj / |g_l|
 
-    (minimum norm: ``c`` along ``g`` is a shift of ``Y``).  Returns ``(residual (..., L, m),
-    Y (..., L))``; the residual is 0 where absent.
+    (minimum norm: ``c`` along ``g`` is a shift of ``Y``); ``Q^T Q`` from the pairs of
+    present samples of every node (a node has m: sparse).  Returns ``(residual (..., L,
+    m), Y (..., L))``; the residual is 0 where absent.
     """
+    st = structure or ProfileStructure.of(present, run)
     shape = np.broadcast_shapes(np.shape(z), np.shape(g))
     z = np.broadcast_to(z, shape)
     gP = np.where(present, np.broadcast_to(g, shape), 0.0)
     nrm = np.sum(gP * gP, axis=-1)
     inv = np.where(nrm > 0, 1.0 / np.where(nrm > 0, nrm, 1.0), 0.0)
     zp = np.where(present, z, 0.0)
-    rows, cols = np.nonzero(present)
-    runs = run[rows, cols]
-    n_run = int(runs.max()) + 1 if runs.size else 0
+    rows, cols, runs, n = st.rows, st.cols, st.runs, st.n_run
     batch = shape[:-2]
     flat = int(np.prod(batch, dtype=np.int64))
-    # Q^T Q from the pairs of present samples of every node (sparse: a node has m)
-    pr, pi, pj = [], [], []
-    for i in range(present.shape[1]):
-        for j in range(present.shape[1]):
-            sel = np.flatnonzero(present[:, i] & present[:, j])
-            pr.append(sel)
-            pi.append(np.full(sel.size, i))
-            pj.append(np.full(sel.size, j))
-    l_, i_, j_ = np.concatenate(pr), np.concatenate(pi), np.concatenate(pj)
-    pairs = sparse.csr_matrix(
-        (np.ones(l_.size), (np.arange(l_.size), run[l_, i_] * n_run + run[l_, j_])),
-        shape=(l_.size, n_run * n_run),
-    )
-    outer = gP[..., l_, i_] * gP[..., l_, j_] * inv[..., l_]
-    QtQ = np.asarray(pairs.T @ outer.reshape(flat, l_.size).T).T.reshape(*batch, n_run, n_run)
-    A = np.diag(np.bincount(runs, minlength=n_run).astype(float)) - QtQ
-    samples = sparse.csr_matrix(
-        (np.ones(runs.size), (np.arange(runs.size), runs)), shape=(runs.size, n_run)
-    )
+    outer = gP[..., st.pl, st.pi] * gP[..., st.pl, st.pj] * inv[..., st.pl]
+    QtQ = np.asarray(st.pairs.T @ outer.reshape(flat, st.pl.size).T).T.reshape(*batch, n, n)
+    A = np.diag(st.counts) - QtQ
     gz = np.sum(gP * zp, axis=-1) * inv
     Pz = zp[..., rows, cols] - gP[..., rows, cols] * gz[..., rows]
-    rhs = np.asarray(samples.T @ Pz.reshape(flat, runs.size).T).T.reshape(*batch, n_run)
+    rhs = np.asarray(st.samples.T @ Pz.reshape(flat, runs.size).T).T.reshape(*batch, n)
     c = (np.linalg.pinv(A, rcond=1e-12) @ rhs[..., None])[..., 0]
     e = zp.copy()
     e[..., rows, cols] -= c[..., runs]
@@ -239,6 +269,7 @@ class RollingStack:
     chunk_a: IntArray
     chunk_b: IntArray
     chunk_sigma: FloatArray
+    structure: ProfileStructure
 
 
 def stack_sets(spins: list[RollingSet], drives: list[RollingSet], n_knots: int) -> RollingStack:
@@ -279,6 +310,7 @@ def stack_sets(spins: list[RollingSet], drives: list[RollingSet], n_knots: int) 
         psi, present, run, mods, row_set, row_sigma, spin_rows, I_wz, W_bias,
         set_mods, theta, set_mask, np.array(first, np.int64), np.array(last, np.int64),
         len(spins), np.array(ca, np.int64), np.array(cb, np.int64), np.array(csig),
+        ProfileStructure.of(present, run),
     )
 
 
@@ -400,7 +432,9 @@ class ImuProblem:
                 phi = np.arctan2(np.sin(th[:, mask]).sum(axis=-1), np.cos(th[:, mask]).sum(axis=-1))
                 G[:, d] = np.where(mask, np.cos(th - phi[:, None]), 0.0)
             H = G / X[:, st.set_mods, R]
-            resid, Y = profiled_rolling(st.psi, H[:, st.row_set], st.present, st.run)
+            resid, Y = profiled_rolling(
+                st.psi, H[:, st.row_set], st.present, st.run, st.structure
+            )
             w = resid / st.row_sigma[:, None]
             if "spin" in act:
                 out["spin"].append(w[:, st.present & st.spin_rows[:, None]])

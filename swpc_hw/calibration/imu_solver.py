@@ -272,8 +272,10 @@ def initial_weights(run: ImuRun, x: FloatArray) -> float:
 def fit_imu(
     run: ImuRun, x0: FloatArray, opts: SolverOptions
 ) -> tuple[FloatArray, int]:
-    """IRLS: slip and noise scales alternate with the trust-region solve; at least two
-    iterations.  Returns the solution and the wheel increments cut as slip."""
+    """IRLS: slip and noise scales alternate with the least-squares solve; at least two
+    iterations, at most ``opts.irls_iterations``, done when the cuts are the same as the
+    last iteration's and no noise scale moved by 1 %.  Returns the solution and the wheel
+    increments cut as slip."""
     prob = run.problem
     n = prob.layout.n
     floor = initial_weights(run, x0)
@@ -281,6 +283,7 @@ def fit_imu(
     st = prob.settled
     x = x0.copy()
     cut = 0
+    before: list[BoolArray] = []
     for it in range(max(2, opts.irls_iterations)):
         r_mean = float(np.mean(x[R : N_PARAMS * n : N_PARAMS]))
         cut = cut_slip(prob, valid, x, opts, r_mean * floor * math.sqrt(2.0))
@@ -291,8 +294,19 @@ def fit_imu(
                 "data that do not fit the robot (robot.yaml, the segments' windows, the "
                 "gyro's axis or units)"
             )
+        scales = np.array([rs.sigma for rs in [*prob.spins, *prob.drives]])
+        masks = [rs.present.copy() for rs in [*prob.spins, *prob.drives]]
         if it > 0:
             update_scales(prob, x, floor)
+            moved = np.abs(np.array([rs.sigma for rs in [*prob.spins, *prob.drives]]) / scales - 1)
+            same = all(
+                np.array_equal(m, rs.present) for m, rs in zip(
+                    before, [*prob.spins, *prob.drives], strict=True
+                )
+            )
+            if it > 1 and same and float(moved.max(initial=0.0)) < 0.01:
+                break
+        before = masks
         set_gyro_sigma(prob, run, x)
         sol = least_squares(
             prob.residuals, x, jac=prob.jacobian, method="lm", x_scale="jac",
