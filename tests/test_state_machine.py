@@ -262,15 +262,25 @@ STARTED = [s for s in TRANSITIONS if s is not State.PENDING]
 (the states of a run without motion capture in such a run, the others with mocap)."""
 
 
+FAST = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 15, "settle_time": 0.2,
+                     "stop_time": 0.2, "align_time": 0.2, "resteer_time": 0.3}}  # fmt: skip
+"""Spins only to get past them (no solve): the states of a run without motion capture."""
+
+
 def metrology(state: State) -> str:
     return "imu" if state in IMU_ONLY else "mocap"
+
+
+def quick(state: State) -> dict[str, Any]:
+    """The overrides of the fault and abort tests: fast spins before the drive's states."""
+    return FAST if state in IMU_ONLY else QUICK
 
 
 @pytest.mark.parametrize("state", STARTED, ids=str)
 def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, QUICK, metrology(state), homed=False)
+    rig = Rig(tmp_path, quick(state), metrology(state), homed=False)
     rig.hooks[state] = lambda run: rig.robot.faults.append(FAULT)
     run = rig.run()
     assert run.status.state is State.FAILED
@@ -284,7 +294,7 @@ def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
 def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, QUICK, metrology(state), homed=False)
+    rig = Rig(tmp_path, quick(state), metrology(state), homed=False)
     t_abort: list[float] = []
 
     def abort(run: CalibrationRun) -> None:
@@ -356,7 +366,8 @@ def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) ->
 def test_a_step_that_outlasts_step_timeout_fails_the_run(
     tmp_path: Path, state: State, knob: dict[str, Any], how: str
 ) -> None:
-    rig = Rig(tmp_path, {"limits": {"step_timeout": 5.0}}, how, **knob)
+    fast = FAST if how == "imu" else {}
+    rig = Rig(tmp_path, {**fast, "limits": {"step_timeout": 5.0}}, how, **knob)
     if state is State.RESTEER:
         rig.hooks[state] = lambda run: rig.robot.stuck.add(1)
     if state is State.STEER:
@@ -376,7 +387,7 @@ def test_a_step_that_outlasts_step_timeout_fails_the_run(
 
 def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Path) -> None:
     """1 m at 0.05 m/s: the drive itself (after its rest) times out 5 s after its torque."""
-    rig = Rig(tmp_path, {"limits": {"step_timeout": 5.0}}, "imu", drive_speed=0.05)
+    rig = Rig(tmp_path, {**FAST, "limits": {"step_timeout": 5.0}}, "imu", drive_speed=0.05)
     run = rig.run()
     reason = run.status.reason or ""
     assert run.status.state is State.FAILED
@@ -393,7 +404,7 @@ def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Pat
 def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, {"protocol": {"operator_timeout": 3.0, **QUICK["protocol"]}}, "imu")
+    rig = Rig(tmp_path, {"protocol": {"operator_timeout": 3.0, **FAST["protocol"]}}, "imu")
     if state is State.MEASURE:
         rig.hooks[State.MARK] = lambda run: run.mark_done()  # the floor marked, then silence
     rig.operator = False
@@ -414,7 +425,7 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     and with its measurement; a wrong answer leaves the run waiting for the right one."""
     from swpc_hw.errors import DatasetError
 
-    rig = Rig(tmp_path, QUICK, "imu")
+    rig = Rig(tmp_path, FAST, "imu")
     rig.operator = False
     seen: list[str] = []
 
@@ -459,7 +470,7 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
 
 
 def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path: Path) -> None:
-    rig = Rig(tmp_path, QUICK, "imu", mocap_on=False)
+    rig = Rig(tmp_path, FAST, "imu", mocap_on=False)
     rig.hooks[State.SPIN] = lambda run: setattr(rig.robot, "gyro_on", False)
     run = rig.run()
     reason = run.status.reason or ""
@@ -476,7 +487,7 @@ def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_spe
     assert (run.status.reason or "").startswith(
         "yaw rate 0.50 rad/s exceeds the limit 0.4 (during SPIN"
     ), run.status.reason
-    rig = Rig(tmp_path / "fast", QUICK, "imu", drive_speed=0.8)
+    rig = Rig(tmp_path / "fast", FAST, "imu", drive_speed=0.8)
     run = rig.run()
     reason = run.status.reason or ""
     assert re.match(r"drive speed 0\.\d\d m/s exceeds limits.max_drive_speed 0.5 \(during DRIVE",
