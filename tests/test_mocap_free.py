@@ -266,3 +266,19 @@ def test_profiled_rolling_leaves_white_noise_with_its_degrees_of_freedom() -> No
         chi2.append(float(np.sum(resid**2)) / 1e-6)
     dof = int(present.sum()) - L - (4 - 1)  # one yaw per node, one constant per run less one
     assert np.mean(chi2) == pytest.approx(dof, rel=0.05)
+
+
+def test_a_straight_drive_during_which_the_robot_turned_is_refused(
+    light: tuple[MocapFreeExperiment, Path],
+) -> None:
+    run, _ = light
+    ds = run.mocap_free_dataset
+    assert ds.imu is not None and run.experiment.drive is not None
+    t0, t1 = run.experiment.drive  # the motion, between the rests
+    imu = ds.imu.copy()
+    inside = (imu[:, 0] > t0) & (imu[:, 0] < t1)
+    imu[inside, 1] += math.radians(0.5) / (t1 - t0)  # half a degree
+    with pytest.raises(ImplausibleDataError, match="deg: not a pure translation") as exc:
+        solve_mocap_free(dataclasses.replace(ds, imu=imu), source="ds")
+    turned = float(str(exc.value).split("turned ")[1].split(" deg")[0])
+    assert turned == pytest.approx(0.5, abs=0.05)

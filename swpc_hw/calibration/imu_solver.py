@@ -20,7 +20,8 @@ scale ``s = 1 + eps`` and its bias at every rest window (:mod:`.imu_problem`).  
    the conditions leave, ``Z (Z^T H Z)^-1 Z^T M Z (Z^T H Z)^-1 Z^T``; the wheels' blocks
    with a HAC middle over their nodes.  Data that leave more than the frame free are
    refused, naming the directions.
-7. **Plausibility after solving**: physical values near nominal, the gyro's scale.
+7. **Plausibility after solving**: physical values near nominal, the gyro's scale, no
+   turn during a straight drive (:func:`check_drives_straight`).
 """
 
 from __future__ import annotations
@@ -466,8 +467,33 @@ def solve_mocap_free(
     X = x[: N_PARAMS * run.problem.layout.n].reshape(-1, N_PARAMS)
     plausibility.check_result(X, ds.robot)
     plausibility.check_gyro_scale(float(x[run.problem.layout.scale]) - 1.0)
+    check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)
     cov, J, f = imu_covariance(run.problem, x)
     return mocap_free_result(run, ds, segs, x, cov, J, f, cut)
+
+
+def check_drives_straight(run: ImuRun, x: FloatArray, size: float, source: str) -> None:
+    """Refuse a straight drive during which the gyro saw the robot turn: a turn ``dyaw``
+    moves points of a robot of ``size`` by up to ``size dyaw`` more or less than the
+    translation the reference assumes.  Refused beyond the reference's std dev and four
+    std devs of the gyro's yaw over the drive (white noise ``v dt T``, the knots' bias
+    error ``sigma_b T``)."""
+    prob = run.problem
+    _, s, knots = prob.layout.split(x)
+    nl = run.noise
+    sigma_b = float(np.mean(prob.knot_sigma))
+    for ref, rs in zip(run.drive_refs, prob.drives, strict=True):
+        L = rs.t.size - 1
+        T = float(rs.t[-1] - rs.t[0])
+        dyaw = float(rs.gyro_yaw(s, knots, np.array([0]), np.array([L]))[0])
+        sigma = math.sqrt(nl.gyro_var * nl.gyro_dt * T + (sigma_b * T) ** 2) / s
+        if size * abs(dyaw) > max(ref.stddev, 4.0 * size * sigma):
+            raise ImplausibleDataError(
+                f"{source}/references.yaml: straight_drive {ref.start:g}-{ref.end:g} s: the "
+                f"gyro says the robot turned {math.degrees(dyaw):.3f} deg: not a pure "
+                f"translation (points {size * abs(dyaw) * 1e3:.2f} mm apart, the reference's "
+                f"std dev {ref.stddev * 1e3:.2f} mm)"
+            )
 
 
 def gyro_ratio(prob: ImuProblem, x: FloatArray) -> float:
