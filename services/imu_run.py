@@ -156,6 +156,8 @@ class ImuCalibrationRun(CalibrationRun):
         self._bias = 0.0
         self._marked = threading.Event()
         self._measured = threading.Event()
+        self._measured_refs: list[Reference] = []
+        self._answers = threading.Lock()  # one operator answer at a time
         ids = config.nominal.ids
         keep = max(config.protocol.rest_time, REST_WINDOW) + 2.0
         self._gyro = RecentRows(2, keep)
@@ -204,34 +206,35 @@ class ImuCalibrationRun(CalibrationRun):
         return None
 
     def mark_done(self) -> None:
-        """The operator has marked the floor (MARK); ValueError in another state."""
-        if self.waits_for != "continue":
-            done = " (already continued)" if self._marked.is_set() else ""
-            raise ValueError(
-                f"calibration {self.id} is {self.status.state}{done}: nothing to continue"
-            )
-        self._marked.set()
+        """The operator has marked the floor (MARK); ValueError in another state.  Called
+        from another thread (an HTTP request): the run's thread logs and acts on it."""
+        with self._answers:
+            if self.waits_for != "continue":
+                done = " (already continued)" if self._marked.is_set() else ""
+                raise ValueError(
+                    f"calibration {self.id} is {self.status.state}{done}: nothing to continue"
+                )
+            self._marked.set()
 
     def add_references(self, entries: Sequence[dict[str, Any]]) -> list[Reference]:
         """The operator's measurements (MEASURE): parsed with the drive's times, at least
-        the straight drive.  ValueError in another state, DatasetError for an entry."""
-        if self.waits_for != "references":
-            if self._measured.is_set():
-                raise ValueError(f"calibration {self.id} already has the drive's measurement")
-            raise ValueError(
-                f"calibration {self.id} is {self.status.state}: it takes references in MEASURE"
-            )
-        refs = parse_references(entries, self.config.nominal.ids, self.drive)
-        if not any(isinstance(r, StraightDrive) for r in refs):
-            raise DatasetError("references: the straight_drive's measurement is missing")
-        with self._lock:
-            self.references += refs
-        self._event(
-            logging.INFO,
-            "run.references",
-            references=",".join(f"{reference_label(r)}={r.value:.6f}" for r in refs),
-        )
-        self._measured.set()
+        the straight drive.  ValueError in another state, DatasetError for an entry.
+        Called from another thread (an HTTP request), as :meth:`mark_done`."""
+        with self._answers:
+            if self.waits_for != "references":
+                if self._measured.is_set():
+                    raise ValueError(
+                        f"calibration {self.id} already has the drive's measurement"
+                    )
+                raise ValueError(
+                    f"calibration {self.id} is {self.status.state}: it takes references in "
+                    "MEASURE"
+                )
+            refs = parse_references(entries, self.config.nominal.ids, self.drive)
+            if not any(isinstance(r, StraightDrive) for r in refs):
+                raise DatasetError("references: the straight_drive's measurement is missing")
+            self._measured_refs = refs
+            self._measured.set()
         return refs
 
     def _wait_operator(self, done: threading.Event, what: str) -> None:
@@ -402,6 +405,7 @@ class ImuCalibrationRun(CalibrationRun):
             "and drives off once you continue",
         )
         self._wait_operator(self._marked, "floor mark before the straight drive")
+        self._event(logging.INFO, "run.marked")
 
     def _drive(self) -> None:
         p, lim = self.config.protocol, self.config.limits
@@ -486,6 +490,14 @@ class ImuCalibrationRun(CalibrationRun):
             f"its std dev to /calibrations/{self.id}/references",
         )
         self._wait_operator(self._measured, "tape measurement of the straight drive")
+        self.references += self._measured_refs
+        self._event(
+            logging.INFO,
+            "run.references",
+            references=",".join(
+                f"{reference_label(r)}={r.value:.6f}" for r in self._measured_refs
+            ),
+        )
         self.journal.save_references(self.references)
 
     def _close_dataset(self) -> None:
