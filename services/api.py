@@ -41,6 +41,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from services.calibration_run import RunStatus
 from services.console import console_router
 from services.http_guard import RequestGuard
+from services.imu_api import ReferenceIn, entries, imu_router, refused
+from services.imu_run import parse_references, reference_problems
 from services.kinematics_api import UnreadableFileProblem, kinematics_router, unreadable_problem
 from services.provenance import tool_version
 from services.robot_config import ConfigOverrides, OverrideError, RobotConfig
@@ -52,18 +54,24 @@ from services.runtime import (
     StoreError,
 )
 from services.settings import ServiceSettings
-from swpc_hw.errors import KinematicFileError
+from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.heap_freeze import freeze_startup_heap
+from swpc_hw.references import Reference
 
 
 class StartRequest(BaseModel):
     """Start a calibration; ``overrides`` are deep-merged into the robot config (limits and
-    tolerances may only be tightened)."""
+    tolerances may only be tightened).  ``metrology``: ``mocap`` (motion capture) or
+    ``imu`` (none: the robot's gyro, with ``references`` measured by tape; the straight
+    drive's comes during the run); default ``imu`` when the service is set up without
+    motion capture (``SWPC_METROLOGY=imu``), else ``mocap``."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     overrides: ConfigOverrides = Field(default_factory=ConfigOverrides)
     install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
+    metrology: Literal["mocap", "imu"] | None = None
+    references: list[ReferenceIn] = Field(default_factory=list)
 
 
 class Problem(BaseModel):
@@ -127,6 +135,33 @@ async def auth(
             "missing or invalid bearer token",
             headers={"WWW-Authenticate": "Bearer"},
         )
+
+
+def start_references(
+    config: RobotConfig, metrology: str, given: list[ReferenceIn]
+) -> list[Reference]:
+    """The references of a run to start, checked before any motion (422 otherwise)."""
+    if metrology != "imu":
+        if given:
+            raise refused("references", ValueError("references are for metrology imu"))
+        return []
+    try:
+        refs = parse_references(entries(given), config.nominal.ids)
+    except DatasetError as exc:
+        raise refused("references", ValueError(f"refused before any motion: {exc}")) from exc
+    problems = reference_problems(config, refs)
+    if problems:
+        raise RequestValidationError(
+            [
+                {
+                    "loc": ["body", "references"],
+                    "msg": f"refused before any motion: {p}",
+                    "type": "value_error",
+                }
+                for p in problems
+            ]
+        )
+    return refs
 
 
 def _offline_docs(app: FastAPI) -> None:
@@ -240,8 +275,9 @@ def create_app(
         """Start a run.  Overrides may only tighten the robot config's limits and
         tolerances, and everything that can be checked before motion is: 422 otherwise,
         before any CAN frame."""
+        metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
         try:
-            config: RobotConfig = rt.config.for_run(body.overrides.document())
+            config: RobotConfig = rt.config.for_run(body.overrides.document(), metrology)
         except OverrideError as exc:
             raise RequestValidationError(
                 [
@@ -264,8 +300,9 @@ def create_app(
                     }
                 ]
             ) from exc
+        refs = start_references(config, metrology, body.references)
         try:
-            run = rt.start_run(config, body.install)
+            run = rt.start_run(config, body.install, metrology, refs)
         except RunConflictError as exc:
             raise HTTPException(409, str(exc)) from exc
         except DiskSpaceError as exc:
@@ -387,5 +424,7 @@ def create_app(
     # Routers of other parts of the service (e.g. the operator console) go here, one
     # line each: app.include_router(<module>.router)
     app.include_router(kinematics_router(auth))  # the kinematic files: install, roll back
+    # without motion capture: the operator's floor mark and tape (and the simulator's tape)
+    app.include_router(imu_router(auth, in_process=cfg.in_process))
     app.include_router(console_router())  # GET /, its event stream, a run's geometry, files
     return app

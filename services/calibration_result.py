@@ -29,11 +29,17 @@ PARAMS = ("x_s", "y_s", "beta", "b", "r")
 
 
 def solve_run(run_dir: Path) -> CalibrationResult:
-    """Solve the dataset the run wrote under ``run_dir``.  A solver failure names the kept
-    dataset and the command that reproduces it."""
+    """Solve the dataset the run wrote under ``run_dir`` with the solver its files call
+    for, as ``swpc solve`` does (no ``poses.csv`` but ``imu.csv``: the mocap-free solver).
+    A solver failure names the kept dataset and the command that reproduces it."""
+    from swpc_hw.calibration.imu_solver import solve_mocap_free
+
     directory = run_dir / "dataset"
     try:
-        return solve(load_dataset(directory), SolverOptions(time_offset=0.0), source=str(directory))
+        ds = load_dataset(directory)
+        if ds.mocap_free:
+            return solve_mocap_free(ds, SolverOptions(time_offset=0.0), source=str(directory))
+        return solve(ds, SolverOptions(time_offset=0.0), source=str(directory))
     except CalibrationError as exc:
         raise CalibrationError(
             f"{exc} (the run's data is kept: `swpc solve {directory}` reproduces this)"

@@ -130,6 +130,7 @@ class CalibrationRun(RunMachine):
         mcap: bool = True,
     ) -> None:
         super().__init__(robot, mocap, config, clock=clock, on_change=on_change, poll=poll)
+        self.status.metrology = self.metrology
         self.install = install
         self.run_dir = Path(data_dir) / "runs" / self.status.id
         self.kinematics_path = Path(kinematics_path)
@@ -147,11 +148,13 @@ class CalibrationRun(RunMachine):
             space=space,
             mcap=mcap,
             robot_config_path=robot_config_path,
+            metrology=self.metrology,
         )
         self.backup: Path | None = None
 
     def _start_fields(self) -> dict[str, Any]:
         return {
+            "metrology": self.metrology,
             "install": self.install,
             "modules": ",".join(map(str, self.modules)),
             "angles_deg": ",".join(f"{a:g}" for a in self.config.protocol.angles_deg),
@@ -162,7 +165,7 @@ class CalibrationRun(RunMachine):
     # ------------------------------------------------------------------ protocol
     def _protocol(self) -> None:
         cfg = self.config
-        problems = cfg.run_problems()
+        problems = self._run_problems()
         if problems:  # the service refuses these with 422: never reached through it
             raise RunFailedError("refused before any motion: " + "; ".join(problems))
         self.journal.open(t0=self._t0, install=self.install, created=self.status.created)
@@ -177,7 +180,7 @@ class CalibrationRun(RunMachine):
             for m in unhomed:
                 self.robot.start_homing(m)
             self._wait_until(lambda: not self.robot.unhomed(), motion=False)
-        self._enter(State.PRECHECK, "checking nodes, errors, homing and mocap")
+        self._enter(State.PRECHECK, f"checking nodes, errors, homing and {self.sensor_name}")
         self._precheck()
         self._come_to_rest()
         nominal = cfg.nominal.arrays()
@@ -224,6 +227,7 @@ class CalibrationRun(RunMachine):
                     self._enter(State.FREE, "releasing the dynamic steering")
                     for m in dyn:
                         self.robot.free_steer(m)
+                self._before_spin(k, dyn)
                 self._enter(State.SPIN, f"spinning about module {k} ({ai + 1}/{len(angles)})")
                 for m in dyn:
                     # trailing wheels roll backwards for a CCW spin (r dpsi = -D dyaw)
@@ -237,6 +241,7 @@ class CalibrationRun(RunMachine):
             self._enter(State.RELEASE, f"releasing module {k}")
             self.robot.free_steer(k)
             self.robot.wheel_hold(k)
+        self._after_spins()
         self.robot.stop_all()
         self.robot.release()
         self._enter(State.SOLVE, "solving")
@@ -255,15 +260,34 @@ class CalibrationRun(RunMachine):
         )
         self._enter(State.DONE, "done")
 
+    # ------------------------------------------------------- what the metrology changes
+    sensor_name = "mocap"
+
+    def _run_problems(self) -> list[str]:
+        """What makes the run impossible, found before any motion."""
+        return self.config.run_problems()
+
+    def _sensor_precheck(self) -> list[str]:
+        """Why the motion sensor is not ready (PRECHECK)."""
+        problems = []
+        if self.mocap.is_stale():
+            problems.append(f"motion capture not live (last pose {self.mocap.age():.2f} s ago)")
+        clock = self.mocap.clock_problem()
+        if clock is not None:
+            problems.append(clock)
+        return problems
+
+    def _before_spin(self, k: int, dyn: list[int]) -> None:
+        """Between the alignment (or re-steering) and a spin about module ``k``."""
+
+    def _after_spins(self) -> None:
+        """After the last spin's RELEASE, before SOLVE."""
+
+    # ------------------------------------------------------------------ the steps
     def _precheck(self) -> None:
         deadline = self.clock.now() + min(5.0, self.config.limits.step_timeout)
         while True:
-            problems = self.robot.problems()
-            if self.mocap.is_stale():
-                problems.append(f"motion capture not live (last pose {self.mocap.age():.2f} s ago)")
-            clock = self.mocap.clock_problem()
-            if clock is not None:
-                problems.append(clock)
+            problems = self.robot.problems() + self._sensor_precheck()
             if not problems:
                 return
             if self.clock.now() > deadline:
@@ -356,7 +380,7 @@ class CalibrationRun(RunMachine):
         return load_dataset(self.run_dir / "dataset")
 
     def _solve(self) -> None:
-        run_dir = self.journal.close_dataset(self.mocap, self.robot)
+        run_dir = self.journal.close_dataset(self.sensor, self.robot)
         try:
             self.result = solve_run(run_dir)
         except CalibrationError as exc:  # data or result refused: a reason, not a bug

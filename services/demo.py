@@ -32,6 +32,7 @@ from typing import Any
 
 import httpx
 
+from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.zenoh_session import free_tcp_endpoint
 
@@ -40,8 +41,8 @@ def _free_port() -> int:
     return int(free_tcp_endpoint().rsplit(":", 1)[1])
 
 
-def _table(result: dict[str, Any]) -> str:
-    truth = {m.id: m for m in PAPER_CALIBRATED.modules}
+def _table(result: dict[str, Any], truth_robot: RobotParams = PAPER_CALIBRATED) -> str:
+    truth = {m.id: m for m in truth_robot.modules}
     rows = [["module", "param", "unit", "nominal", "calibrated", "std dev", "true", "error"]]
     units = {
         "x_s": ("mm", 1e3),
@@ -81,8 +82,60 @@ def parameters_digest(result: dict[str, Any]) -> str:
     return hashlib.sha256(" ".join(values).encode()).hexdigest()[:16]
 
 
+def tape_references(seed: int, stddev: float = 0.5e-3) -> list[dict[str, Any]]:
+    """What the operator measures with a tape before a run without motion capture: the
+    distances between the steering axes of every pair of modules (the simulator's truth,
+    with the tape's error)."""
+    import itertools
+
+    import numpy as np
+
+    rng = np.random.default_rng([seed, 20])
+    a = PAPER_CALIBRATED.arrays()
+    ids = PAPER_CALIBRATED.ids
+    return [
+        {
+            "kind": "axis_distance",
+            "modules": [ids[i], ids[j]],
+            "value": float(np.linalg.norm(a.P_s[i] - a.P_s[j])) + float(rng.normal(0, stddev)),
+            "stddev": stddev,
+        }
+        for i, j in itertools.combinations(range(len(ids)), 2)
+    ]
+
+
+def operator_step(
+    http: httpx.Client, run_id: str, st: dict[str, Any], auth: dict[str, str]
+) -> None:
+    """Play the operator of a run without motion capture: mark the floor (MARK), measure
+    the drive with the simulator's tape (MEASURE)."""
+    if st["state"] == "MARK":
+        http.post(f"/calibrations/{run_id}/continue", headers=auth)
+        print(f"\nMARK: {st['step']}\n  -> POST /calibrations/{run_id}/continue")
+    elif st["state"] == "MEASURE":
+        tape = http.get("/simulator/tape-measure", params={"run": run_id}).json()
+        ref = {k: tape[k] for k in ("kind", "value", "stddev")}
+        r = http.post(f"/calibrations/{run_id}/references", json={"references": [ref]},
+                      headers=auth)  # fmt: skip
+        if r.status_code == 200:
+            sd = ref["stddev"] * 1e3
+            print(f"\nMEASURE: the simulator's tape reads {ref['value']:.4f} m (std {sd:g} mm)"
+                  f" -> POST /calibrations/{run_id}/references")  # fmt: skip
+
+
+def design_fit_truth(result: dict[str, Any]) -> RobotParams:
+    """The simulator's truth in the design-fit frame of a result without motion capture
+    (as ``swpc solve --truth`` re-expresses it)."""
+    from swpc_hw.frames import design_fit_transform, transform_robot
+    from swpc_hw.paper_robot import PAPER_NOMINAL
+
+    phi, t = design_fit_transform(PAPER_CALIBRATED.arrays().P_s, PAPER_NOMINAL.arrays().P_s)
+    return transform_robot(PAPER_CALIBRATED, phi, t, result.get("frame", "design-fit"))
+
+
 def run_service_demo(
-    data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False
+    data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False,
+    mocap_free: bool = False,
 ) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -126,7 +179,12 @@ def run_service_demo(
                     return 1
                 time.sleep(0.2)
             auth = {"Authorization": f"Bearer {token}"}
-            r = http.post("/calibrations", json={}, headers=auth)
+            body: dict[str, Any] = {}
+            if mocap_free:
+                body = {"metrology": "imu", "references": tape_references(seed)}
+                print("without motion capture: the tape-measured distances between the steering "
+                      "axes go with the request")  # fmt: skip
+            r = http.post("/calibrations", json=body, headers=auth)
             r.raise_for_status()
             run_id = r.json()["id"]
             print(f"POST /calibrations -> {r.status_code}, Location: {r.headers['location']}")
@@ -143,15 +201,21 @@ def run_service_demo(
                     bar.update(task, completed=st["progress"], description=desc)
                     if st["state"] in ("DONE", "FAILED", "ABORTED"):
                         break
+                    operator_step(http, run_id, st, auth)
                     time.sleep(0.25)
             if st["state"] != "DONE":
                 print(f"calibration {st['state']}: {st['reason']}", file=sys.stderr)
                 return 1
             res = http.get(f"/calibrations/{run_id}/result").json()
             print()
-            print(_table(res))
+            if mocap_free:
+                print("frame design-fit: the truth re-expressed in it")
+                print(_table(res, design_fit_truth(res)))
+            else:
+                print(_table(res))
             q = res["quality"]
-            print(f"\nposes used {q['poses_used']}, wheel increments used {q['increments_used']}")
+            print(f"\nposes used {q.get('poses_used', 0)}, wheel increments used "
+                  f"{q['increments_used']}")  # fmt: skip
             print(f"kinematic file written: {res['kinematics_path']}")
             print(f"run dataset (solve offline with `swpc solve`): {res['dataset_dir']}")
             print(f"calibrated parameters digest (seed {seed}): {parameters_digest(res)}")
@@ -211,13 +275,19 @@ def main(argv: list[str] | None = None) -> int:
         "--keep-serving", action="store_true",
         help="after the run, keep the service (and its console at /) up until Ctrl-C",
     )
+    parser.add_argument(
+        "--mocap-free", action="store_true",
+        help="calibrate without motion capture (gyro, encoders, the simulator's tape)",
+    )
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.offline:
         return run_offline_demo(out, args.seed)
-    return run_service_demo(out.resolve(), args.sim_speed, args.seed, args.keep_serving)
+    return run_service_demo(
+        out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.mocap_free
+    )
 
 
 if __name__ == "__main__":

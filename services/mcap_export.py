@@ -19,6 +19,9 @@ topic                        schema                      what
 ``/calibration/segments``    ``swpc.Segment``            one message per spin window
 ``/calibration/events``      ``foxglove.Log``            the run's events (state changes,
                                                          faults, the result)
+``/imu/gyro``                ``swpc.Gyro``               without motion capture: the
+                                                         gyro's yaw rate (instead of the
+                                                         poses)
 ===========================  ==========================  =================================
 
 Log and publish times are epoch nanoseconds (the dataset's clock times plus the clock's
@@ -122,6 +125,14 @@ SEGMENT = {
         "end": {"type": "number", "description": "window end, dataset clock s"},
     },
 }
+GYRO = {
+    "title": "swpc.Gyro",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "wz": {"type": "number", "description": "yaw rate of R from its gyro, rad/s"},
+    },
+}
 LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
 WORLD, ROBOT = "W", "R"
 
@@ -161,6 +172,7 @@ class McapRecorder:
         self._enc = {m: self._channel(f"/module{m}/encoders", ENCODERS) for m in module_ids}
         self._seg = self._channel("/calibration/segments", SEGMENT)
         self._log = self._channel("/calibration/events", LOG)
+        self._gyro: int | None = None  # registered with the first gyro sample
         self._finished = False
 
     def _channel(self, topic: str, schema: Mapping[str, object]) -> int:
@@ -199,6 +211,21 @@ class McapRecorder:
                 ns,
                 f'{{"timestamp":{stamp},"parent_frame_id":"{WORLD}","child_frame_id":"{ROBOT}",'
                 f'"translation":{p},"rotation":{q}}}',
+            )
+
+    def gyro(self, rows: FloatArray) -> None:
+        """Rows ``t, wz`` (clock s, rad/s) of the gyro."""
+        if not rows.shape[0]:
+            return
+        if self._gyro is None:
+            self._gyro = self._channel("/imu/gyro", GYRO)
+        for t, wz in rows.tolist():
+            ns = self.ns(t)
+            self._raw(
+                self._gyro,
+                ns,
+                f'{{"timestamp":{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}},'
+                f'"wz":{_num(wz)}}}',
             )
 
     def encoders(self, module: int, rows: FloatArray) -> None:

@@ -46,6 +46,16 @@ POSE_OUTCOMES = (
     "out_of_order",
     "clock_resets",
 )
+GYRO_OUTCOMES = (
+    "received",
+    "accepted",
+    "dropped",
+    "decode_errors",
+    "non_finite",
+    "duplicates",
+    "out_of_order",
+    "clock_resets",
+)
 RUN_DURATION_BUCKETS = (30.0, 60.0, 120.0, 300.0, 600.0, 1200.0, 1800.0, 3600.0)
 HEALTH = {"ok": 0.0, "degraded": 1.0, "failing": 2.0}
 TERMINAL = ("DONE", "FAILED", "ABORTED")
@@ -94,6 +104,16 @@ class RuntimeCollector:
             buckets=[(("+Inf" if b == float("inf") else repr(b)), n) for b, n in buckets],
             sum_value=total,
         )
+        gy = rt.imu.stats()
+        yield GaugeMetricFamily(
+            "swpc_gyro_rate_hz", "accepted gyro samples per second", gy["rate_hz"]
+        )
+        gyro = CounterMetricFamily(
+            "swpc_gyro_samples", "gyro samples (imu/<robot>/data) by outcome", labels=["outcome"]
+        )
+        for k in GYRO_OUTCOMES:
+            gyro.add_metric([k], gy[k])
+        yield gyro
         runs = rt.list_runs()
         by_state = GaugeMetricFamily("swpc_runs", "calibration runs by state", labels=["state"])
         counts = {state: 0 for state in rt.run_states()}

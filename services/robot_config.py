@@ -72,11 +72,21 @@ class MotionLimits(BaseModel):
     )
     step_timeout: float = Field(60.0, gt=0, description="any single step longer than this fails, s")
     watchdog_ms: int = Field(200, ge=20, le=60000, description="controller command timeout, ms")
+    drive_torque: float = Field(
+        0.6, gt=0, description="wheel torque of every wheel in the straight drive, N.m"
+    )
+    max_drive_speed: float = Field(
+        0.5,
+        gt=0,
+        description="the straight drive fails above this speed (wheel encoders, nominal r), m/s",
+    )
 
     @model_validator(mode="after")
     def _torque_within_limit(self) -> MotionLimits:
         if self.spin_torque > self.max_wheel_torque:
             raise ValueError("spin_torque must not exceed max_wheel_torque")
+        if self.drive_torque > self.max_wheel_torque:
+            raise ValueError("drive_torque must not exceed max_wheel_torque")
         return self
 
 
@@ -86,6 +96,11 @@ is sent at activation and the driver's refresh period and the timing budget
 (:mod:`services.timing`) are derived from it."""
 
 MAX_ANGLE_DEG = 360.0
+MAX_DRIVE_LENGTH = 20.0
+"""m: the longest straight drive a run may ask for (the floor space it needs)."""
+MIN_REST_TIME = 1.0
+"""s: the shortest rest the mocap-free solver finds (0.5 s still, trimmed 0.1 s at both
+ends, swpc_hw.calibration.gyro) with a margin."""
 MIN_ANGLE_SEPARATION_DEG = 10.0
 
 
@@ -109,6 +124,33 @@ class ProtocolConfig(BaseModel):
     align_time: float = Field(1.0, ge=0, description="time to align the dynamic modules, s")
     resteer_time: float = Field(2.5, gt=0, description="time to re-steer the locked module, s")
     modules: list[int] | None = Field(None, description="modules to lock (default all)")
+    rest_time: float = Field(
+        2.0,
+        ge=0,
+        description="without motion capture: the robot held still before every spin, "
+        "around the straight drive and at the end (the gyro's bias), s",
+    )
+    drive_length: float = Field(
+        4.0,
+        ge=0,
+        le=MAX_DRIVE_LENGTH,
+        description="without motion capture: the straight drive at the end, m (0: none; "
+        "a wheel_radius reference is then needed)",
+    )
+    drive_heading_deg: float = Field(
+        0.0,
+        ge=-360,
+        le=360,
+        description="without motion capture: the straight drive's direction in R, deg "
+        "(0: along x)",
+    )
+    operator_timeout: float = Field(
+        900.0,
+        gt=0,
+        le=86400,
+        description="without motion capture: how long a run waits for the operator's floor "
+        "mark and tape measurement of the drive, s",
+    )
 
     @field_validator("angles_deg")
     @classmethod
@@ -179,6 +221,11 @@ class RobotConfig(BaseModel):
     def pose_key(self) -> str:
         return f"mocap/{self.robot}/pose"
 
+    @property
+    def imu_key(self) -> str:
+        """The robot's gyro: ``sensor_msgs/msg/Imu`` (CDR) on ``imu/<robot>/data``."""
+        return f"imu/{self.robot}/data"
+
     def to_document(self) -> dict[str, Any]:
         doc = self.model_dump(mode="json", exclude={"nominal"})
         doc["nominal"] = {"modules": kinematics_document(self.nominal)["modules"]}
@@ -188,7 +235,7 @@ class RobotConfig(BaseModel):
         """A new config with ``overrides`` deep-merged (validated like the file)."""
         return RobotConfig.model_validate(_deep_merge(self.to_document(), overrides))
 
-    def for_run(self, overrides: dict[str, Any]) -> RobotConfig:
+    def for_run(self, overrides: dict[str, Any], metrology: str = "mocap") -> RobotConfig:
         """The config of one run: ``overrides`` deep-merged, then checked against this
         (the service's) config.  Raises :class:`OverrideError` listing every problem:
 
@@ -196,7 +243,7 @@ class RobotConfig(BaseModel):
           or remove, them), or a limit that is not per run (:data:`RUN_FIXED_LIMITS`);
         * another robot id, CAN node map or set of module ids (the service's driver and
           motion-capture subscription are this config's);
-        * anything :meth:`run_problems` finds.
+        * anything :meth:`run_problems` finds for ``metrology``.
 
         Pydantic's ``ValidationError`` (a ``ValueError``) for an invalid merged config.
         """
@@ -227,17 +274,21 @@ class RobotConfig(BaseModel):
             problems.append(
                 f"nominal: module ids {run.nominal.ids} are not the robot's {self.nominal.ids}"
             )
-        problems += run.run_problems()
+        problems += run.run_problems(metrology)
         if problems:
             raise OverrideError(problems)
         return run
 
-    def run_problems(self) -> list[str]:
+    def run_problems(self, metrology: str = "mocap") -> list[str]:
         """Why a run with this config could not succeed, found before any motion (empty
         when none): every module locked (the solver needs spins about each), and every
-        step of the protocol possible within ``limits.step_timeout``."""
+        step of the protocol possible within ``limits.step_timeout``; without motion
+        capture (``metrology="imu"``) rests long enough for the solver and a straight drive
+        that fits the step timeout and the speed limit."""
         p, lim = self.protocol, self.limits
         problems: list[str] = []
+        if metrology == "imu":
+            problems += self._imu_problems()
         ids = self.nominal.ids
         if p.modules is not None:
             missing = [m for m in ids if m not in p.modules]
@@ -261,6 +312,30 @@ class RobotConfig(BaseModel):
                 f"rad/s, not shorter than limits.step_timeout {lim.step_timeout:g} s"
             )
         return problems
+
+
+    def _imu_problems(self) -> list[str]:
+        p, lim = self.protocol, self.limits
+        out = []
+        if p.rest_time < MIN_REST_TIME:
+            out.append(
+                f"protocol.rest_time: {p.rest_time:g} s is shorter than {MIN_REST_TIME:g} s: "
+                "the solver needs the robot still that long to measure the gyro's bias"
+            )
+        if p.rest_time >= lim.step_timeout:
+            out.append(
+                f"protocol.rest_time: {p.rest_time:g} s is not shorter than "
+                f"limits.step_timeout {lim.step_timeout:g} s (the step would time out)"
+            )
+        drive = 2 * p.rest_time + p.drive_length / lim.max_drive_speed
+        if p.drive_length > 0 and drive >= lim.step_timeout:
+            out.append(
+                f"protocol.drive_length: {p.drive_length:g} m between two rests of "
+                f"{p.rest_time:g} s takes at least {drive:.1f} s at limits.max_drive_speed "
+                f"{lim.max_drive_speed:g} m/s, not shorter than limits.step_timeout "
+                f"{lim.step_timeout:g} s"
+            )
+        return out
 
 
 def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

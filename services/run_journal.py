@@ -5,10 +5,11 @@
 * every run event (state, segment, fault, result) is a structured log line on the
   ``swpc.run`` logger (:mod:`services.logs`: ``event=<name> run=<id> ...``) and, once the
   recordings are open, a ``foxglove.Log`` message in the run's MCAP;
-* the poses and encoder samples are streamed to the run's dataset directory and MCAP file
-  (:mod:`services.run_recording`) every :data:`RECORD_PERIOD` of robot time, read from
-  the mocap ingest and the robot by cursor (each sample once); a service killed mid-run
-  keeps everything up to the last batch;
+* the poses (or, without motion capture, the gyro's samples) and encoder samples are
+  streamed to the run's dataset directory and MCAP file (:mod:`services.run_recording`)
+  every :data:`RECORD_PERIOD` of robot time, read from the sensor's ingest and the robot
+  by cursor (each sample once); a service killed mid-run keeps everything up to the last
+  batch;
 * the provenance of what the run writes (tool version and commit, the robot config's and
   the dataset's hashes, units: :mod:`services.provenance`).
 
@@ -31,6 +32,7 @@ from services.run_recording import RunRecording, SpaceGuard, json_bytes
 from swpc_hw.clock import Clock
 from swpc_hw.dataset import Segment
 from swpc_hw.model import FloatArray
+from swpc_hw.references import Reference
 
 log = logging.getLogger("swpc.run")
 
@@ -38,8 +40,13 @@ RECORD_PERIOD = 0.5
 """s of robot time between two writes of the run's recordings (what a kill may lose)."""
 
 
-class PoseSource(Protocol):
+class SampleSource(Protocol):
+    """The motion sensor's ingest (:class:`~services.mocap_ingest.MocapIngest` rows
+    ``t_source, t_recv, t_host, x, y, yaw``, :class:`~services.imu_ingest.ImuIngest` rows
+    ``t_source, t_recv, t_host, wz``)."""
+
     def samples_since(self, cursor: int, since: float) -> tuple[FloatArray, int]: ...
+
 
 
 class EncoderSource(Protocol):
@@ -59,8 +66,10 @@ class RunJournal:
         space: SpaceGuard | None = None,
         mcap: bool = True,
         robot_config_path: str | None = None,
+        metrology: str = "mocap",
     ) -> None:
         self.run_id = run_id
+        self.metrology = metrology
         self.run_dir = run_dir
         self.config = config
         self.clock = clock
@@ -100,6 +109,7 @@ class RunJournal:
             wall_offset=self.clock.wall() - self.clock.now(),
             guard=self.space,
             mcap=self.mcap,
+            metrology=self.metrology,
         )
         rec.open(
             {
@@ -111,12 +121,13 @@ class RunJournal:
         self.recording = rec
 
     def record(
-        self, poses: PoseSource, encoders: EncoderSource, force: bool = False
+        self, sensor: SampleSource, encoders: EncoderSource, force: bool = False
     ) -> tuple[int, int] | None:
-        """Every :data:`RECORD_PERIOD` of robot time (or now, ``force``): the poses and
-        encoder samples since the last call to the dataset and MCAP, then the disk checks.
-        Returns ``(poses, encoder samples)`` recorded so far, or ``None`` when nothing was
-        written.  Raises :class:`~services.run_recording.RecordingError`."""
+        """Every :data:`RECORD_PERIOD` of robot time (or now, ``force``): the motion
+        sensor's samples (the poses, or the gyro's without motion capture) and the encoder
+        samples since the last call to the dataset and MCAP, then the disk checks.
+        Returns ``(sensor samples, encoder samples)`` recorded so far, or ``None`` when
+        nothing was written.  Raises :class:`~services.run_recording.RecordingError`."""
         rec = self.recording
         if rec is None or not rec.dataset_open:
             return None
@@ -124,27 +135,35 @@ class RunJournal:
         if not force and now < self._next_record:
             return None
         self._next_record = now + RECORD_PERIOD
-        rows, self._pose_cursor = poses.samples_since(self._pose_cursor, self._since)
+        rows, self._pose_cursor = sensor.samples_since(self._pose_cursor, self._since)
         enc = {}
         for m in self.config.nominal.ids:
             enc[m], self._enc_cursors[m] = encoders.encoder_rows(
                 m, self._enc_cursors[m], self._since
             )
-        rec.add(np.ascontiguousarray(rows[:, [2, 3, 4, 5]]), enc)
+        cols = [2, 3] if self.metrology == "imu" else [2, 3, 4, 5]  # t_host and the values
+        rec.add(np.ascontiguousarray(rows[:, cols]), enc)
         rec.flush()
-        return rec.poses, rec.encoder_samples
+        return rec.samples, rec.encoder_samples
 
     def add_segment(self, seg: Segment) -> None:
         if self.recording is not None:
             self.recording.add_segment(seg)
 
-    def close_dataset(self, poses: PoseSource, encoders: EncoderSource) -> Path:
+    def close_dataset(self, sensor: SampleSource, encoders: EncoderSource) -> Path:
         """The last samples, then the dataset's files flushed, synced and closed (to be
-        solved); returns the run's directory."""
+        solved); returns the run's directory.  Idempotent."""
         assert self.recording is not None
-        self.record(poses, encoders, force=True)
-        self.recording.close_dataset()
+        if self.recording.dataset_open:
+            self.record(sensor, encoders, force=True)
+            self.recording.close_dataset()
         return self.run_dir
+
+    def save_references(self, refs: list[Reference]) -> None:
+        """The run's references as the dataset's ``references.yaml`` (without motion
+        capture)."""
+        assert self.recording is not None
+        self.recording.save_references(refs)
 
     def finish(self, outcome: dict[str, Any], result_doc: dict[str, Any] | None = None) -> None:
         """Close the recordings with the run's ``outcome``; the result and, when DONE, the

@@ -6,7 +6,7 @@ which subclasses it with the protocol's steps in :meth:`RunMachine._protocol`) r
 * :meth:`~RunMachine._enter` a state: only along :data:`~services.run_state.TRANSITIONS`,
   saved by the owner (``on_change``: a state that cannot be saved fails the run), logged;
 * :meth:`~RunMachine._check`, at every poll of every step: an abort, a shutdown, a robot
-  fault, a stale motion capture during motion, a step over ``limits.step_timeout``; the
+  fault, a stale motion sensor during motion, a step over ``limits.step_timeout``; the
   recordings are written from here too (:class:`~services.run_journal.RunJournal`);
 * :meth:`~RunMachine._end`: ``stop_all()`` first (its latency measured for an abort), then
   release, FAILED or ABORTED with the reason (and the state it happened in), the last
@@ -32,7 +32,7 @@ from typing import Any
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig
 from services.robot_io import RobotIO
-from services.run_journal import RunJournal
+from services.run_journal import RunJournal, SampleSource
 from services.run_recording import RecordingError
 from services.run_state import (
     TERMINAL,
@@ -52,6 +52,8 @@ class RunMachine:
     :attr:`journal` and implements :meth:`_protocol`."""
 
     journal: RunJournal
+    metrology: str = "mocap"
+    """What measures the robot's motion: ``mocap`` or ``imu`` (the gyro, no mocap)."""
 
     def __init__(
         self,
@@ -153,10 +155,27 @@ class RunMachine:
     def _record(self, force: bool = False) -> None:
         """The samples since the last batch to the run's recordings (every half second of
         robot time, or now)."""
-        counts = self.journal.record(self.mocap, self.robot, force)
+        counts = self.journal.record(self.sensor, self.robot, force)
         if counts is not None:
             with self._lock:
-                self.status.poses, self.status.encoder_samples = counts
+                if self.metrology == "imu":
+                    self.status.gyro_samples, self.status.encoder_samples = counts
+                else:
+                    self.status.poses, self.status.encoder_samples = counts
+
+    @property
+    def sensor(self) -> SampleSource:
+        """The ingest of what measures the robot's motion (recorded with the encoders)."""
+        return self.mocap
+
+    def _sensor_problem(self) -> str | None:
+        """Why the motion sensor cannot be trusted now (checked during motion)."""
+        if self.mocap.is_stale():
+            return (
+                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
+                f"(limit {self.mocap.stale_after:.3f} s)"
+            )
+        return None
 
     def _check(self, motion: bool, deadline: float | None) -> None:
         if self._abort.is_set():
@@ -167,11 +186,9 @@ class RunMachine:
         faults = self.robot.take_faults()
         if faults:
             raise RunFailedError(f"robot fault: {faults[0]}")
-        if motion and self.mocap.is_stale():
-            raise RunFailedError(
-                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
-                f"(limit {self.mocap.stale_after:.3f} s)"
-            )
+        problem = self._sensor_problem() if motion else None
+        if problem is not None:
+            raise RunFailedError(problem)
         if deadline is not None and self.clock.now() > deadline:
             raise RunFailedError(
                 f"step timeout: {self.status.step} took longer than "

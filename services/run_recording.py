@@ -2,9 +2,11 @@
 
 The poses and encoder samples of a run go to its dataset directory (the offline dataset
 format of ``docs/dataset-format.md``: ``robot.yaml``, ``poses.csv``, ``encoders.csv``,
-``segments.csv``) and to its MCAP file (:mod:`services.mcap_export`) while the run goes on,
-in batches (:meth:`RunRecording.flush`, every half second of robot time), each handed to
-the OS in one write: a service killed mid-run keeps everything up to its last flush, and
+``segments.csv``; without motion capture ``imu.csv`` instead of ``poses.csv``, and
+``references.yaml`` once the references are known) and to its MCAP file
+(:mod:`services.mcap_export`) while the run goes on, in batches
+(:meth:`RunRecording.flush`, every half second of robot time), each handed to the OS in
+one write: a service killed mid-run keeps everything up to its last flush, and
 ``swpc solve <run>/dataset`` reads it.  The rows are formatted exactly as
 :func:`swpc_hw.dataset.save_dataset` formats them, so what the run solves (it loads the
 directory) is what a later ``swpc solve`` solves.
@@ -29,12 +31,20 @@ from typing import IO, Any
 import numpy as np
 
 from services.mcap_export import McapRecorder
-from swpc_hw.dataset import ENCODERS_COLUMNS, POSES_COLUMNS, SEGMENTS_COLUMNS, Segment
+from swpc_hw.dataset import (
+    ENCODERS_COLUMNS,
+    IMU_COLUMNS,
+    POSES_COLUMNS,
+    SEGMENTS_COLUMNS,
+    Segment,
+)
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import FloatArray, RobotParams
+from swpc_hw.references import Reference, save_references
 
 POSE_FORMAT = "%.6f,%.9f,%.9f,%.9f\n"
+GYRO_FORMAT = "%.6f,%.10f\n"
 ENCODER_FORMAT = "%.6f,%d,%.10f,%.10f\n"
 SEGMENT_FORMAT = "%d,%.6f,%.6f\n"
 MIB = 1 << 20
@@ -122,15 +132,18 @@ class RunRecording:
         wall_offset: float,
         guard: SpaceGuard | None = None,
         mcap: bool = True,
+        metrology: str = "mocap",
     ) -> None:
         self.run_dir = Path(run_dir)
+        self.metrology = metrology
         self.with_mcap = mcap
         self.dataset_dir = self.run_dir / "dataset"
         self.robot = robot
         self.wall_offset = wall_offset
         self.guard = guard
         self.written = 0
-        self.poses = 0
+        self.samples = 0
+        """The motion sensor's samples: poses, or gyro samples without motion capture."""
         self.encoder_samples = 0
         self.segments: list[Segment] = []
         self.mcap: McapRecorder | None = None
@@ -151,8 +164,13 @@ class RunRecording:
         try:
             self.dataset_dir.mkdir(parents=True, exist_ok=True)
             save_kinematics(self.dataset_dir / "robot.yaml", self.robot)
+            sensor = (
+                _Appender(self.dataset_dir / "imu.csv", IMU_COLUMNS)
+                if self.metrology == "imu"
+                else _Appender(self.dataset_dir / "poses.csv", POSES_COLUMNS)
+            )
             self._files = {
-                "poses": _Appender(self.dataset_dir / "poses.csv", POSES_COLUMNS),
+                "sensor": sensor,
                 "encoders": _Appender(self.dataset_dir / "encoders.csv", ENCODERS_COLUMNS),
                 "segments": _Appender(self.dataset_dir / "segments.csv", SEGMENTS_COLUMNS),
             }
@@ -170,13 +188,16 @@ class RunRecording:
             raise RecordingError(f"cannot start the run's recordings: {exc}") from exc
 
     # ---------------------------------------------------------------- data
-    def add(self, poses: FloatArray, encoders: dict[int, FloatArray]) -> None:
-        """New pose rows ``t, x, y, yaw`` and per-module encoder rows ``t, theta_hat,
-        psi``: written to the dataset (the OS has them on return) and the MCAP buffer."""
-        if poses.shape[0]:
-            text = "".join(POSE_FORMAT % tuple(r) for r in poses.tolist())
-            self.written += self._files["poses"].write(text.encode())
-            self.poses += poses.shape[0]
+    def add(self, sensor: FloatArray, encoders: dict[int, FloatArray]) -> None:
+        """New pose rows ``t, x, y, yaw`` (gyro rows ``t, wz`` without motion capture) and
+        per-module encoder rows ``t, theta_hat, psi``: written to the dataset (the OS has
+        them on return) and the MCAP buffer."""
+        imu = self.metrology == "imu"
+        if sensor.shape[0]:
+            fmt = GYRO_FORMAT if imu else POSE_FORMAT
+            text = "".join(fmt % tuple(r) for r in sensor.tolist())
+            self.written += self._files["sensor"].write(text.encode())
+            self.samples += sensor.shape[0]
         parts = []
         for m, rows in encoders.items():
             if rows.shape[0]:
@@ -186,7 +207,10 @@ class RunRecording:
         if parts:
             self.written += self._files["encoders"].write("".join(parts).encode())
         if self.mcap is not None:
-            self._mcap(lambda rec: rec.poses(poses))
+            if imu:
+                self._mcap(lambda rec: rec.gyro(sensor))
+            else:
+                self._mcap(lambda rec: rec.poses(sensor))
             for m, rows in encoders.items():
                 self._mcap(lambda rec, m=m, rows=rows: rec.encoders(m, rows))
 
@@ -195,6 +219,15 @@ class RunRecording:
         line = SEGMENT_FORMAT % (seg.static_module, seg.start, seg.end)
         self.written += self._files["segments"].write(line.encode())
         self._mcap(lambda rec: rec.segment(seg.static_module, seg.start, seg.end))
+
+    def save_references(self, refs: list[Reference]) -> None:
+        """``references.yaml`` in the dataset (atomic), counted against the disk."""
+        path = self.dataset_dir / "references.yaml"
+        try:
+            save_references(path, refs)
+            self.written += path.stat().st_size
+        except OSError as exc:
+            raise RecordingError(_io_reason(path, exc)) from exc
 
     def event(self, t: float, level: str, message: str) -> None:
         """A run event in the MCAP's ``/calibration/events`` (never fails the run: the

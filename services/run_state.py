@@ -1,7 +1,9 @@
 """A calibration run's vocabulary: its states and their transitions, what an operator
 sees of a run (:class:`RunStatus`) and the errors that end one.
 
-The protocol that walks these states is :mod:`services.calibration_run`.
+The protocol that walks these states is :mod:`services.calibration_run` (with motion
+capture) and :mod:`services.imu_run` (without: the states STILL, STEER, MARK, DRIVE and
+MEASURE are its own).
 """
 
 from __future__ import annotations
@@ -25,6 +27,11 @@ class State(StrEnum):
     STOP = "STOP"
     RESTEER = "RESTEER"
     RELEASE = "RELEASE"
+    STILL = "STILL"
+    STEER = "STEER"
+    MARK = "MARK"
+    DRIVE = "DRIVE"
+    MEASURE = "MEASURE"
     SOLVE = "SOLVE"
     WRITE = "WRITE"
     DONE = "DONE"
@@ -33,7 +40,22 @@ class State(StrEnum):
 
 
 TERMINAL = frozenset({State.DONE, State.FAILED, State.ABORTED})
-MOTION = frozenset({State.REST, State.ALIGN, State.FREE, State.SPIN, State.STOP, State.RESTEER})
+MOTION = frozenset(
+    {
+        State.REST,
+        State.ALIGN,
+        State.FREE,
+        State.SPIN,
+        State.STOP,
+        State.RESTEER,
+        State.STILL,
+        State.STEER,
+        State.DRIVE,
+    }
+)
+OPERATOR = frozenset({State.MARK, State.MEASURE})
+"""States that wait for the operator (without motion capture: the floor marks of the
+straight drive)."""
 
 TRANSITIONS: dict[State, frozenset[State]] = {
     State.PENDING: frozenset({State.CONNECT}),
@@ -42,11 +64,16 @@ TRANSITIONS: dict[State, frozenset[State]] = {
     State.REST: frozenset({State.LOCK}),
     State.LOCK: frozenset({State.ALIGN}),
     State.ALIGN: frozenset({State.FREE}),
-    State.FREE: frozenset({State.SPIN}),
+    State.FREE: frozenset({State.SPIN, State.STILL}),
+    State.STILL: frozenset({State.SPIN, State.SOLVE}),
     State.SPIN: frozenset({State.STOP}),
     State.STOP: frozenset({State.RESTEER, State.RELEASE}),
-    State.RESTEER: frozenset({State.SPIN}),
-    State.RELEASE: frozenset({State.LOCK, State.SOLVE}),
+    State.RESTEER: frozenset({State.SPIN, State.STILL}),
+    State.RELEASE: frozenset({State.LOCK, State.SOLVE, State.STEER, State.STILL}),
+    State.STEER: frozenset({State.MARK}),
+    State.MARK: frozenset({State.DRIVE}),
+    State.DRIVE: frozenset({State.MEASURE}),
+    State.MEASURE: frozenset({State.SOLVE}),
     State.SOLVE: frozenset({State.WRITE}),
     State.WRITE: frozenset({State.DONE}),
 }
@@ -70,6 +97,7 @@ class RunStatus(BaseModel):
     id: str
     created: str
     state: State = State.PENDING
+    metrology: str = "mocap"
     step: str = "waiting to start"
     module: int | None = None
     module_index: int = 0
@@ -80,6 +108,7 @@ class RunStatus(BaseModel):
     progress: float = 0.0
     sweep_deg: float = 0.0
     poses: int = 0
+    gyro_samples: int = 0
     encoder_samples: int = 0
     segments: int = 0
     errors: list[str] = Field(default_factory=list)
@@ -87,6 +116,8 @@ class RunStatus(BaseModel):
     started: str | None = None
     finished: str | None = None
     installed: bool | None = None
+    drive_m: float | None = None
+    """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(mode="json")

@@ -31,12 +31,15 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from services.calibration_run import TERMINAL, CalibrationRun, State
 from services.disk import make_room, run_reserve
 from services.events import EventBus
+from services.imu_ingest import ImuIngest
+from services.imu_run import ImuCalibrationRun
 from services.in_process_simulator import in_process_simulator
 from services.locks import ChannelLock, DataDirLock
 from services.logs import event
@@ -47,12 +50,13 @@ from services.run_recording import SpaceGuard
 from services.settings import ServiceSettings, SettingsError
 from services.store import RunStore
 from services.timing import TimingBudget, driver_config, timing_budget
+from simulators.datagen_imu import GyroOptions
 from simulators.virtual_robot import Simulator
 from swpc_hw.can.driver import CanDriver
-from swpc_hw.can.types import Lifecycle
 from swpc_hw.clock import Clock, SimClock, SystemClock
-from swpc_hw.errors import KinematicFileError, SwpcError
+from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
+from swpc_hw.references import Reference
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 SWITCH_INTERVAL_S = 0.001
@@ -101,6 +105,8 @@ class Runtime:
             # the in-process simulator stamps its simulated wall time: exact
             clock_mode="wall" if settings.in_process else settings.mocap_clock,
         )
+        # the robot's gyro (a run without motion capture), stamped with wall time
+        self.imu = ImuIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
         self.data_dir = Path(settings.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         # before anything in the data dir is touched: a second service stops here
@@ -199,6 +205,7 @@ class Runtime:
             mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
         )
         self.mocap.subscribe(self.session, self.config.pose_key)
+        self.imu.subscribe(self.session, self.config.imu_key)
         self.driver = CanDriver(
             driver_config(
                 s,
@@ -234,6 +241,13 @@ class Runtime:
                 physics_dt=s.sim_physics_dt,
                 mocap_latency=s.sim_mocap_latency,
                 feedback_rate_hz=s.feedback_rate_hz,
+                gyro=GyroOptions(
+                    rate=s.sim_gyro_rate,
+                    noise_density=math.radians(s.sim_gyro_noise),
+                    bias=math.radians(s.sim_gyro_bias),
+                    bias_walk=math.radians(s.sim_gyro_bias_walk),
+                    scale_error=s.sim_gyro_scale_error / 100.0,
+                ),
             )
             self.simulator.start()
         self._opened = True
@@ -253,6 +267,7 @@ class Runtime:
                 self.driver.stop_all()
             self.driver.shutdown()
         self.mocap.close()
+        self.imu.close()
         if self.simulator is not None:
             self.simulator.stop()
         if isinstance(self.clock, SimClock):
@@ -269,8 +284,16 @@ class Runtime:
             event(log, logging.INFO, "service.close")
 
     # --------------------------------------------------------------------- runs
-    def start_run(self, config: RobotConfig, install: str) -> CalibrationRun:
-        """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`).
+    def start_run(
+        self,
+        config: RobotConfig,
+        install: str,
+        metrology: str = "mocap",
+        references: Sequence[Reference] = (),
+    ) -> CalibrationRun:
+        """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`) with
+        ``metrology`` (``imu``: without motion capture, with ``references``, checked:
+        :func:`services.imu_run.reference_problems`).
 
         Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
         disk budget (after pruning the oldest runs' recordings) or the file system's free
@@ -299,23 +322,25 @@ class Runtime:
                     f"{int(s.min_free) / MIB:.1f} MiB"
                 )
             lim = config.limits
-            run = CalibrationRun(
-                DriverRobotIO(
-                    self.driver,
-                    limits=(
-                        lim.max_wheel_torque,
-                        (lim.max_steer_velocity, lim.max_wheel_velocity),
-                    ),
-                ),
-                self.mocap,
-                config,
-                clock=self.clock,
-                data_dir=self.data_dir,
-                kinematics_path=s.kinematics_file,
-                install=install,
-                on_change=self._persist,
-                space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
-                robot_config_path=None if s.robot_config is None else str(s.robot_config),
+            io = DriverRobotIO(
+                self.driver,
+                limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
+            )
+            kwargs: dict[str, Any] = {
+                "clock": self.clock,
+                "data_dir": self.data_dir,
+                "kinematics_path": s.kinematics_file,
+                "install": install,
+                "on_change": self._persist,
+                "space": SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
+                "robot_config_path": None if s.robot_config is None else str(s.robot_config),
+            }
+            run = (
+                ImuCalibrationRun(
+                    io, self.mocap, self.imu, config, references=references, **kwargs
+                )
+                if metrology == "imu"
+                else CalibrationRun(io, self.mocap, config, **kwargs)
             )
             previous, self.current = self.current, run
             self.runs[run.id] = run
@@ -457,79 +482,10 @@ class Runtime:
 
     # ------------------------------------------------------------------ health
     def health(self) -> tuple[str, dict[str, Any]]:
-        """``(status, document)``: ``failing`` when a calibration cannot start or go on
-        (CAN not open or faulted, a node lost, no live motion capture, its clock off, the
-        disk full, the store unwritable), ``degraded`` when it can but something needs
-        attention (node errors, a CAN log stopped, the kinematic file in force unreadable,
-        the disk budget nearly used), else ``ok``.  The in-process simulator's nodes and
-        poses are not judged between runs: its time stands still then."""
-        failing: list[str] = []
-        degraded: list[str] = []
-        d = self.driver
-        nodes: dict[str, Any] = {}
-        # the in-process simulator between runs: simulated time stands still (it flows
-        # only while someone waits on it, docs/time.md), so no heartbeat or pose is late;
-        # the run's PRECHECK judges them once time flows
-        still = self.simulator is not None and not self.running()
-        if d is None or d.state in (Lifecycle.UNCONFIGURED, Lifecycle.FINALIZED):
-            failing.append("CAN driver not open")
-        else:
-            if d.fault_cause is not None:
-                failing.append(f"CAN driver stopped on a fault: {d.fault_cause}")
-            for m in d.modules():
-                st = d.module_state(m)
-                nodes[str(m)] = {"alive": st.alive, "errors": list(st.errors), "homed": st.homed}
-                if not st.alive and not still:
-                    failing.append(f"module {m} (node {st.node}): no heartbeat")
-                elif any(st.errors):
-                    degraded.append(f"module {m} (node {st.node}): active errors {st.errors}")
-            err = d.log_error()
-            if err is not None:
-                degraded.append(f"CAN log stopped: {err}")
-        age = self.mocap.age()
-        if self.mocap.is_stale() and not still:
-            failing.append(
-                "motion capture stale: "
-                + ("no pose yet" if not math.isfinite(age) else f"no pose for {age:.2f} s")
-            )
-        clock = self.mocap.clock_problem()
-        if clock is not None:
-            failing.append(clock)
-        if self._unsaved:
-            self._save_unsaved()
-        if self.store_error is not None:
-            failing.append(f"run store not writable: {self.store_error}")
-        disk: dict[str, Any] = {}
-        try:
-            import shutil
+        """``(status, document)``: :func:`services.health.service_health`."""
+        from services.health import service_health
 
-            free = shutil.disk_usage(self.data_dir).free
-            disk = {"free_bytes": free, "budget_bytes": int(self.settings.disk_budget)}
-            if free < int(self.settings.min_free):
-                failing.append(
-                    f"disk nearly full: {free / MIB:.1f} MiB free, below SWPC_MIN_FREE "
-                    f"{int(self.settings.min_free) / MIB:.1f} MiB"
-                )
-        except OSError as exc:
-            failing.append(f"data dir: {exc}")
-        try:
-            self.kinematics_document()
-        except KinematicFileError as exc:
-            degraded.append(f"kinematic file in force unreadable: {exc}")
-        status = "failing" if failing else ("degraded" if degraded else "ok")
-        doc = {
-            "status": status,
-            "problems": failing + degraded,
-            "can": None if d is None else d.state.name.lower(),
-            "nodes": nodes,
-            "mocap_age_s": age if math.isfinite(age) else None,
-            "mocap_stale": self.mocap.is_stale(),
-            "running": self.running(),
-            "in_process_simulator": self.simulator is not None,
-            "simulated_time_still": still,
-            "disk": disk,
-        }
-        return status, doc
+        return service_health(self)
 
     def running(self) -> bool:
         return self.current is not None and self.current.status.state not in TERMINAL

@@ -99,6 +99,14 @@ class ServiceSettings(BaseSettings):
         "receive time: transport jitter)",
     )
 
+    metrology: Literal["mocap", "imu", "both"] = Field(
+        "mocap",
+        description="what this lab measures the robot's motion with: 'mocap' (motion "
+        "capture), 'imu' (no motion capture: the robot's gyro and a tape measure) or 'both'. "
+        "GET /health requires these sensors live; a run's metrology defaults to 'imu' with "
+        "'imu', else to 'mocap'",
+    )
+
     robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")
     data_dir: Path = Path("swpc-data")
     kinematics_path: Path | None = Field(None, description="default: <data_dir>/kinematics.yaml")
@@ -171,6 +179,24 @@ class ServiceSettings(BaseSettings):
     )
     sim_mocap_latency: float = Field(
         0.0, ge=0, le=5.0, description="in-process simulator: pose publication delay, robot s"
+    )
+    sim_gyro_rate: float = Field(
+        200.0, gt=0, le=2000, description="in-process simulator: gyro samples per robot s, Hz"
+    )
+    sim_gyro_noise: float = Field(
+        0.005, ge=0, le=10, description="in-process simulator: gyro white noise, deg/s/sqrt(Hz)"
+    )
+    sim_gyro_bias: float = Field(
+        0.1, ge=-100, le=100, description="in-process simulator: gyro bias at start, deg/s"
+    )
+    sim_gyro_bias_walk: float = Field(
+        1e-4,
+        ge=0,
+        le=10,
+        description="in-process simulator: random walk of the gyro bias, deg/s/sqrt(s)",
+    )
+    sim_gyro_scale_error: float = Field(
+        0.3, gt=-50, lt=50, description="in-process simulator: gyro scale error, %"
     )
 
     @property

@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from typing import Any
 
+from firmware_protocol import codec
+from simulators.datagen_imu import GyroOptions
+from simulators.imu_sim import check_gyro
 from simulators.mocap_sim import MocapOptions
 from simulators.robot_sim import PhysicsOptions
+from swpc_hw.kinematic_file import kinematics_document
+from swpc_hw.model import RobotParams
 
 
 @dataclass(frozen=True)
@@ -36,6 +42,8 @@ class SimOptions:
     """Initial true steering angles (default: seeded random)."""
     physics: PhysicsOptions = field(default_factory=PhysicsOptions)
     mocap: MocapOptions = field(default_factory=MocapOptions)
+    gyro: GyroOptions = field(default_factory=GyroOptions)
+    """The z gyro fixed to R (:mod:`simulators.imu_sim`), published on ``imu/<robot>/data``."""
     truth_rate: float = 50.0
     bus_error_rate: float = 0.0
     max_lag: float = 0.05
@@ -51,6 +59,7 @@ class SimOptions:
             raise ValueError(f"mocap_clock must be 'host' or 'sim', not {self.mocap_clock!r}")
         if not 0.0 < self.physics_dt <= 0.01:
             raise ValueError("physics_dt must be in (0, 0.01] s")
+        check_gyro(self.gyro)
 
 
 @dataclass
@@ -69,6 +78,7 @@ class SimStats:
     feedback_frames: dict[int, int] = field(default_factory=dict)
     heartbeats: dict[int, int] = field(default_factory=dict)
     poses_published: int = 0
+    gyro_published: int = 0
     truth_published: int = 0
 
     @property
@@ -89,3 +99,33 @@ class SimStats:
         for node, n in sorted(self.heartbeats.items()):
             out[f"node{node}_heartbeat_hz"] = n / t
         return out
+
+
+def _signal_scale(name: str) -> float:
+    msg = codec.message_for(1, codec.Command.FEEDBACK_POSITION)
+    return float(msg.get_signal_by_name(name).scale)
+
+
+def params_document(
+    truth: RobotParams, nodes: Mapping[int, int], opt: SimOptions, sensors: Sequence[float]
+) -> dict[str, Any]:
+    """The ``sim/<robot>/truth/params`` document: the true robot as a kinematic file, the
+    CAN nodes and the simulator's settings (``sensors``: the homing sensors' power-up
+    steering coordinates)."""
+    doc = kinematics_document(
+        truth, extra={"note": "simulator ground truth (tests and validation only)"}
+    )
+    doc["nodes"] = {str(m): n for m, n in nodes.items()}
+    doc["simulator"] = {
+        "time_scale": opt.time_scale,
+        "physics_dt": opt.physics_dt,
+        "steer_counts": opt.steer_counts,
+        "wheel_counts": opt.wheel_counts,
+        "frame_steer_counts": round(2 * math.pi / _signal_scale("SteerPosition")),
+        "frame_wheel_counts": round(2 * math.pi / _signal_scale("WheelPosition")),
+        "sensor_positions": list(sensors),
+        "physics": asdict(opt.physics),
+        "mocap": asdict(opt.mocap),
+        "gyro": asdict(opt.gyro),
+    }
+    return doc

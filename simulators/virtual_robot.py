@@ -76,7 +76,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import replace
 from typing import Any
 
 import can
@@ -85,6 +85,7 @@ import numpy as np
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ErrorFlag, Frame
 from simulators.axis_drives import axis_drive, module_drive, quantize
+from simulators.imu_sim import GyroSim, PoseHistory, axis_travel, tape_measure
 from simulators.mocap_sim import MocapSim, TruthPublisher
 from simulators.physics import FloatArray, se2_step
 from simulators.robot_sim import (
@@ -93,10 +94,9 @@ from simulators.robot_sim import (
     SteerDrive,
     WheelDrive,
 )
-from simulators.sim_options import SimOptions, SimStats
+from simulators.sim_options import SimOptions, SimStats, params_document
 from simulators.virtual_controller import VirtualController
 from swpc_hw.clock import SimClock, SystemClock, next_instant
-from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.zenoh_session import open_session
@@ -149,6 +149,8 @@ class Simulator:
         ]
         self._by_node = {c.node: c for c in self.controllers}
         self.mocap = MocapSim(opt.robot, opt.mocap, session, clock=clock)
+        self.gyro = GyroSim(opt.robot, opt.gyro, session, seed=opt.seed, clock=clock)
+        self.history = PoseHistory()  # the true poses, for the tape measure
         self.truth_pub = TruthPublisher(
             opt.robot, self._params_doc(), session, rate=opt.truth_rate, clock=clock
         )
@@ -218,23 +220,8 @@ class Simulator:
         )
 
     def _params_doc(self) -> dict[str, Any]:
-        doc = kinematics_document(
-            self.truth, extra={"note": "simulator ground truth (tests and validation only)"}
-        )
-        doc["nodes"] = {str(m): n for m, n in self.nodes.items()}
-        opt = self.options
-        doc["simulator"] = {
-            "time_scale": opt.time_scale,
-            "physics_dt": opt.physics_dt,
-            "steer_counts": opt.steer_counts,
-            "wheel_counts": opt.wheel_counts,
-            "frame_steer_counts": round(2 * math.pi / _signal_scale("SteerPosition")),
-            "frame_wheel_counts": round(2 * math.pi / _signal_scale("WheelPosition")),
-            "sensor_positions": [c.sensor_position for c in self.controllers],
-            "physics": asdict(opt.physics),
-            "mocap": asdict(opt.mocap),
-        }
-        return doc
+        sensors = [c.sensor_position for c in self.controllers]
+        return params_document(self.truth, self.nodes, self.options, sensors)
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> Simulator:
@@ -275,6 +262,7 @@ class Simulator:
             self._thread.join(timeout=5.0)
             self._thread = None
         self.mocap.close()
+        self.gyro.close()
         self.truth_pub.close()
         if self._own_bus:
             with contextlib.suppress(Exception):
@@ -328,6 +316,7 @@ class Simulator:
             st.wall_time = self._host_seconds(elapsed)
             st.cpu_time = self._cpu
             st.poses_published = self.mocap.counters.published
+            st.gyro_published = self.gyro.counters.published
             st.truth_published = self.truth_pub.published
             fb = codec.Command.FEEDBACK_POSITION
             hb = codec.Command.HEARTBEAT
@@ -541,15 +530,31 @@ class Simulator:
             s.torque = s.friction * s.velocity if d.steer is SteerDrive.RATE else 0.0
 
     def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
+        """The poses and gyro samples due in ``(t0, t1]``, stamped like the tick's frames
+        (the twist is constant within the tick); the true pose to the history."""
         host = self.options.mocap_clock == "host"
         wall = self._stamp(t1)  # this tick's moment: its feedback frames go out right after
         scale = 1.0 if self.clock is not None else self.options.time_scale
+
+        def stamp(tp: float) -> float:
+            st = self._stamp(tp) if self.clock is not None else wall - (t1 - tp) / scale
+            return st if host else tp
+
         for tp in self.mocap.due_times(t0, t1):
             pose = se2_step(pose0, twist[:2], float(twist[2]), tp - t0) if tp > t0 else pose0
-            stamp = self._stamp(tp) if self.clock is not None else wall - (t1 - tp) / scale
-            stamp = stamp if host else tp
-            self.mocap.sample(tp, pose, stamp=stamp)
+            self.mocap.sample(tp, pose, stamp=stamp(tp))
         self.mocap.flush(t1)
+        for tg in self.gyro.due_times(t0, t1):
+            self.gyro.sample(float(twist[2]), stamp(tg))
+        self.history.add(t1, self.robot.pose)
+
+    def tape_measure(self, start: float, end: float, stddev: float, seed: int = 0) -> float:
+        """What a tape measures (m, error ``N(0, stddev^2)``, seeded) between floor marks at
+        the first module's steering axis at simulated times ``start`` and ``end``."""
+        with self._lock:
+            p0, p1 = self.history.at(start), self.history.at(end)
+        travel = axis_travel(p0, p1, self.robot.arrays.P_s[0])
+        return tape_measure(travel, stddev, np.random.default_rng([self.options.seed, seed]))
 
     def _transmit(self, frames: Iterable[Frame]) -> None:
         stamp = self.clock.to_wall(self.now) if self.clock is not None else 0.0
@@ -579,7 +584,3 @@ class Simulator:
         with contextlib.suppress(can.CanError, OSError):  # unknown id instead
             self.bus.send(can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False))
 
-
-def _signal_scale(name: str) -> float:
-    msg = codec.message_for(1, codec.Command.FEEDBACK_POSITION)
-    return float(msg.get_signal_by_name(name).scale)

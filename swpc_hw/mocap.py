@@ -112,13 +112,17 @@ def decode_native(payload: bytes) -> PoseSample:
 _TYPESTORE: Any = None
 
 
-def _typestore() -> Any:
+def ros2_typestore() -> Any:
+    """rosbags' ROS 2 Humble type store (built once): every CDR message of swpc."""
     global _TYPESTORE
     if _TYPESTORE is None:
         from rosbags.typesys import Stores, get_typestore
 
         _TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
     return _TYPESTORE
+
+
+_typestore = ros2_typestore
 
 
 def encode_cdr(p: PoseSample, frame_id: str = "world") -> bytes:

@@ -11,8 +11,14 @@ that moves only when the state machine sleeps on its :class:`swpc_hw.clock.Virtu
 * every free caster trails exactly (:func:`swpc_hw.model.trailing_steering_angle`) and
   every rolling wheel turns ``dpsi = (v + omega x P_w) . u / r dt``;
 * a position-held steering moves to its target at ``steer_rate``;
+* the encoders report the angles quantised to ``counts`` per turn (2**17, the simulator's);
 * poses (seeded noise) go to a real :class:`services.mocap_ingest.MocapIngest` every
-  ``pose_every`` steps, stamped with the clock's wall time (clock mode ``wall``).
+  ``pose_every`` steps, stamped with the clock's wall time (clock mode ``wall``);
+* with every steering position-held and every wheel under torque (the straight drive of
+  a run without motion capture) the body translates at ``drive_speed`` along the wheels'
+  mean direction, and every wheel rolls;
+* a gyro (``imu``: a real :class:`services.imu_ingest.ImuIngest`) reads the yaw rate
+  every step with a scale error, a bias and seeded white noise.
 
 So the real solver recovers the fake robot's true parameters from a run.  Faults, stuck
 axes, a silent mocap, a drifting robot and homing are knobs of the world; every command
@@ -27,9 +33,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.imu_ingest import ImuIngest
 from services.mocap_ingest import MocapIngest
 from simulators.physics import se2_step
 from swpc_hw.clock import VirtualClock
+from swpc_hw.imu import GyroSample, encode_imu
 from swpc_hw.mocap import PoseSample, encode_native
 from swpc_hw.model import FloatArray, RobotParams, nearest_turn, trailing_steering_angle
 
@@ -72,6 +80,18 @@ class FakeRobot:
     """added to every pose's stamp (a mocap clock off this host's)"""
     pose_latency: float = 0.0
     """poses arrive this long after they were sampled (a slow mocap network)"""
+    imu: ImuIngest | None = None
+    """the robot's gyro goes here every step (rad/s: scale, bias and noise below)"""
+    gyro_bias: float = 0.002
+    gyro_scale_error: float = 0.003
+    gyro_sigma: float = 1e-4
+    gyro_on: bool = True
+    drive_speed: float = 0.4
+    """m/s of a straight drive: every wheel under torque, every steering held"""
+    counts: int = 2**17
+    """encoder counts per turn of the reported angles (0: exact)"""
+    ramp_time: float = 0.2
+    """s: a spin or a drive reaches its rate linearly over this long"""
     # what happened
     log: list[tuple[float, str, int | None]] = field(default_factory=list)
     stop_all_times: list[float] = field(default_factory=list)
@@ -88,6 +108,8 @@ class FakeRobot:
         self.rows: dict[int, list[tuple[float, float, float]]] = {m: [] for m in self.ids}
         self.pose = np.zeros(3)
         self.t = self.clock.now()
+        self.pose_log: list[tuple[float, float, float, float]] = [(self.t, 0.0, 0.0, 0.0)]
+        self._moving_since: float | None = None
         self._steps = 0
         self._trail: dict[tuple[float, float, float], FloatArray] = {}
         self._in_flight: deque[tuple[float, bytes]] = deque()
@@ -115,20 +137,37 @@ class FakeRobot:
         locked = [m for m, md in self.mods.items() if md.steer == "position" and md.wheel == "hold"]
         driving = [md for md in self.mods.values() if md.wheel == "torque" and md.torque != 0.0]
         omega, v = self.drift, np.zeros(2)
+        held = all(md.steer == "position" for md in self.mods.values())
         if len(locked) == 1 and driving:
             k = self._index(locked[0])
             theta_k = self.mods[locked[0]].theta_hat + A.beta[k]
             C = A.P_s[k] + A.b[k] * np.array([math.cos(theta_k), math.sin(theta_k)])
             omega = self.spin_rate * (1.0 if driving[0].torque < 0 else -1.0) + self.drift
             v = omega * np.array([C[1], -C[0]])  # v = -omega x C: C stays put
-        if omega != 0.0:
-            key = (float(v[0]), float(v[1]), omega)
+        elif not locked and held and len(driving) == len(self.mods):
+            # the straight drive: a translation along the wheels' mean direction, away from
+            # it for a negative torque (the wheels roll backwards)
+            th = np.array([md.theta_hat for md in self.mods.values()]) + A.beta
+            u = np.array([np.cos(th).sum(), np.sin(th).sum()])
+            sign = -1.0 if driving[0].torque < 0 else 1.0
+            v = sign * self.drive_speed * u / np.linalg.norm(u)
+        moving = omega != 0.0 or bool(v.any())
+        if moving and self._moving_since is None:
+            self._moving_since = t - dt
+        elif not moving:
+            self._moving_since = None
+        if moving and self.ramp_time > 0:
+            assert self._moving_since is not None
+            f = min(1.0, (t - self._moving_since) / self.ramp_time)
+            omega, v = omega * f, v * f
+        if moving:
+            key = (float(v[0]) / (omega or 1.0), float(v[1]) / (omega or 1.0), float(v.any()))
             trail = self._trail.get(key)
-            if trail is None:  # constant for a whole spin
+            if trail is None and not held:  # constant for a whole spin
                 trail = self._trail[key] = trailing_steering_angle(A, v, omega)
             for i, m in enumerate(self.ids):
                 md = self.mods[m]
-                if md.steer in ("free", "disabled") and m not in locked:
+                if md.steer in ("free", "disabled") and m not in locked and trail is not None:
                     md.theta_hat = float(nearest_turn(md.theta_hat, trail[i]))
                 th = md.theta_hat + A.beta[i]
                 u = np.array([math.cos(th), math.sin(th)])
@@ -138,8 +177,17 @@ class FakeRobot:
                     md.psi += float(vel @ u) / A.r[i] * dt
             self.pose = se2_step(self.pose, v, omega, dt)
         self.t = t
+        self.pose_log.append((t, *self.pose.tolist()))
+        if self.imu is not None and self.gyro_on:
+            wz = (1 + self.gyro_scale_error) * omega + self.gyro_bias
+            wz += float(self._rng.normal(0.0, self.gyro_sigma))
+            self.imu.feed(encode_imu(GyroSample(self.clock.to_wall(t), wz)), t_recv=t)
+        q = 2 * math.pi / self.counts if self.counts else 0.0
         for m, md in self.mods.items():
-            self.rows[m].append((t, md.theta_hat, md.psi))
+            th, psi = md.theta_hat, md.psi
+            if q:
+                th, psi = round(th / q) * q, round(psi / q) * q
+            self.rows[m].append((t, th, psi))
         self._steps += 1
         if self._steps % self.pose_every == 0:
             self._feed_pose()
@@ -232,6 +280,11 @@ class FakeRobot:
         rows = self.rows[module]
         a = np.array(rows[cursor:], dtype=float).reshape(-1, 3)
         return a[a[:, 0] >= since], len(rows)
+
+    def pose_at(self, t: float) -> FloatArray:
+        """The true pose ``(x, y, yaw)`` at the step nearest ``t``."""
+        k = min(range(len(self.pose_log)), key=lambda i: abs(self.pose_log[i][0] - t))
+        return np.array(self.pose_log[k][1:])
 
     def take_faults(self) -> list[str]:
         out, self.faults = self.faults, []

@@ -85,6 +85,19 @@ def test_health_is_failing_with_every_node_lost_and_no_motion_capture(
     assert doc["nodes"]["1"]["alive"] is False and doc["mocap_stale"] is True
     # and no run starts: PRECHECK would refuse it after 5 s; the service says so at once
     assert not doc["running"]
+    # a lab without motion capture (SWPC_METROLOGY): the gyro is judged instead, or both
+    rt = lost[1]
+    try:
+        for metrology, stale in (
+            ("imu", {"gyro stale: no sample yet"}),
+            ("both", {"gyro stale: no sample yet", "motion capture stale: no pose yet"}),
+        ):
+            rt.settings.metrology = metrology  # type: ignore[assignment]
+            doc = client.get("/health").json()
+            assert {p for p in doc["problems"] if " stale: " in p} == stale, doc["problems"]
+            assert doc["gyro_age_s"] is None and doc["gyro_stale"] is True
+    finally:
+        rt.settings.metrology = "mocap"  # type: ignore[assignment]
 
 
 def families(text: str) -> dict[str, Any]:
@@ -238,7 +251,7 @@ def test_every_refused_override_is_a_422_before_any_can_frame(sim: Sim) -> None:
     sim.host_frames()
     cases = [(json.dumps(doc), "if-within-tolerance", why) for doc, why in PRE_MOTION_REFUSALS]
     cases += loosened()
-    assert len(cases) == 8 + 12 * 5  # 9 limits and 3 tolerances, 5 ways each
+    assert len(cases) == 8 + 14 * 5  # 11 limits and 3 tolerances, 5 ways each
     for overrides, install, words in cases:
         r = send(client, overrides, install)
         assert r.status_code == 422, (overrides, r.status_code, r.text)
@@ -252,6 +265,103 @@ def test_every_refused_override_is_a_422_before_any_can_frame(sim: Sim) -> None:
     client.post(f"/calibrations/{r.json()['id']}/abort", headers=AUTH)
     assert sim.wait(r.json()["id"], {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
     assert len(sim.host_frames()) > 0
+
+
+AXES = [{"kind": "axis_distance", "modules": [1, 2], "value": 0.25, "stddev": 5e-4}]
+#: ``(request body, words of the refusal)``: runs without motion capture refused before
+#: any motion
+DRIVE = {"kind": "straight_drive", "value": 4.0, "stddev": 5e-4}
+TWO_KEYS = {"kind": "wheel_radius", "module": 1, "value": 0.05, "stddev": 1e-4, "modules": [1]}
+LONG = {"protocol": {"drive_length": 15}, "limits": {"step_timeout": 30}}
+IMU_REFUSALS: list[tuple[dict[str, Any], str]] = [
+    ({"metrology": "imu"}, "no axis_distance: nothing fixes the length scale"),
+    (
+        {"metrology": "imu", "references": AXES, "overrides": {"protocol": {"drive_length": 0}}},
+        "protocol.drive_length is 0 and no wheel_radius",
+    ),
+    (
+        {"metrology": "imu", "references": [{**AXES[0], "modules": [1, 9]}]},
+        "module 9 is not in robot.yaml",
+    ),
+    ({"metrology": "imu", "references": [{**AXES[0], "stddev": 0}]}, "must be > 0"),
+    ({"metrology": "imu", "references": [DRIVE]}, "the run has not driven yet"),
+    ({"metrology": "imu", "references": [TWO_KEYS]}, "unknown key(s) modules"),
+    (
+        {"metrology": "imu", "references": AXES, "overrides": {"protocol": {"rest_time": 0.2}}},
+        "protocol.rest_time: 0.2 s is shorter than 1 s",
+    ),
+    (
+        {"metrology": "imu", "references": AXES, "overrides": {"protocol": {"drive_length": 25}}},
+        "less than or equal to 20",
+    ),
+    (
+        {"metrology": "imu", "references": AXES, "overrides": LONG},
+        "takes at least 34.0 s at limits.max_drive_speed 0.5 m/s",
+    ),
+    ({"metrology": "mocap", "references": AXES}, "references are for metrology imu"),
+    ({"metrology": "gps"}, "metrology"),
+]
+
+
+def test_every_refused_run_without_motion_capture_is_a_422_before_any_can_frame(
+    sim: Sim,
+) -> None:
+    """References that cannot fix the scale or the radii, malformed ones, a drive that
+    cannot fit the floor or the step timeout: 422 naming it, not one frame, no run."""
+    client = sim.client
+    runs_before = len(client.get("/calibrations").json())
+    sim.host_frames()
+    for body, words in IMU_REFUSALS:
+        r = client.post("/calibrations", json=body, headers=AUTH)
+        assert r.status_code == 422, (body, r.status_code, r.text)
+        said = " ".join(f"{'.'.join(map(str, d['loc']))}: {d['msg']}" for d in r.json()["detail"])
+        assert words in said, (body, said)
+        assert sim.host_frames() == [], body
+    assert len(client.get("/calibrations").json()) == runs_before
+
+
+def test_the_operator_routes_answer_only_a_run_that_waits(sim: Sim) -> None:
+    """continue and references: 401 without the token, 404 for no such run, 409 for a run
+    with motion capture or one that does not wait, 422 for a malformed measurement; the
+    simulator's tape: 404 / 409 unless the run drove.  Nothing reaches the bus."""
+    client = sim.client
+    ref = {"references": [{"kind": "straight_drive", "value": 4.0, "stddev": 5e-4}]}
+    assert client.post("/calibrations/nope/continue").status_code == 401
+    assert client.post("/calibrations/nope/references", json=ref).status_code == 401
+    assert client.post("/calibrations/nope/continue", headers=AUTH).status_code == 404
+    assert client.post("/calibrations/nope/references", json=ref, headers=AUTH).status_code == 404
+    bad = {"references": [{"kind": "straight_drive", "value": 4.0}]}  # no stddev
+    assert client.post("/calibrations/nope/references", json=bad, headers=AUTH).status_code == 422
+    empty = {"references": []}
+    r = client.post("/calibrations/nope/references", json=empty, headers=AUTH)
+    assert r.status_code == 422
+    r = send(client, json.dumps(QUICK))
+    assert r.status_code == 202, r.text
+    run_id = r.json()["id"]
+    try:
+        r = client.post(f"/calibrations/{run_id}/continue", headers=AUTH)
+        assert r.status_code == 409 and "measures with motion capture" in r.text
+        r = client.post(f"/calibrations/{run_id}/references", json=ref, headers=AUTH)
+        assert r.status_code == 409
+        tape = client.get("/simulator/tape-measure", params={"run": run_id})
+        assert tape.status_code == 409 and "has not driven straight" in tape.text
+    finally:
+        client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
+    assert sim.wait(run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
+    assert client.get("/simulator/tape-measure", params={"run": "nope"}).status_code == 404
+    assert client.get("/simulator/tape-measure").status_code == 422  # which run?
+
+
+def test_the_simulators_tape_does_not_exist_against_a_robot(tmp_path: Path) -> None:
+    """With a CAN interface (a robot, or an external simulator) there is no tape route."""
+    app = app_without_robot(tmp_path, can_interface="socketcan", can_channel="vcan9")
+    with TestClient(app) as client:
+        assert "/simulator/tape-measure" not in client.get("/openapi.json").json()["paths"]
+        r = client.get("/simulator/tape-measure", params={"run": "x"})
+        assert r.status_code == 404 and r.json() == {"detail": "Not Found"}
+    app = app_without_robot(tmp_path / "in-process")
+    with TestClient(app) as client:
+        assert "/simulator/tape-measure" in client.get("/openapi.json").json()["paths"]
 
 
 def read_only(rt: Runtime, on: bool) -> None:

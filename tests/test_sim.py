@@ -32,11 +32,14 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
+from simulators.datagen_imu import GyroOptions
+from simulators.imu_sim import imu_key
 from simulators.mocap_sim import MocapOptions, pose_key, truth_params_key, truth_pose_key
 from simulators.sim_options import SimOptions
 from simulators.virtual_robot import Simulator
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
+from swpc_hw.imu import decode_imu
 from swpc_hw.mocap import PoseEncoding, decode_pose
 from swpc_hw.model import RobotParams, rot
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
@@ -100,12 +103,32 @@ class PoseLog:
 
 
 @dataclass
+class GyroLog:
+    """Gyro samples received over zenoh ``(t_source, wz)``; lockstep as :class:`PoseLog`."""
+
+    rows: list[tuple[float, float]] = field(default_factory=list)
+    clock: SimClock | None = None
+    key: str = ""
+
+    def on_sample(self, sample: Any) -> None:
+        g = decode_imu(sample.payload.to_bytes())
+        self.rows.append((g.t, g.wz))
+        if self.clock is not None:
+            self.clock.arrived(self.key)
+
+    def array(self, t0: float, t1: float) -> np.ndarray:
+        a = np.array(self.rows)
+        return a[(a[:, 0] >= t0) & (a[:, 0] <= t1)]
+
+
+@dataclass
 class Rig:
     sim: Simulator
     channel: str
     session: Any
     poses: PoseLog
     clock: SimClock | None = None
+    gyro: GyroLog = field(default_factory=GyroLog)
 
     def truth_params(self) -> dict[str, Any]:
         replies = list(self.session.get(truth_params_key(self.sim.options.robot), timeout=5.0))
@@ -131,20 +154,24 @@ def rig(lockstep: bool = False, **opts: Any) -> Iterator[Rig]:
     sim = Simulator(bus=bus, session=sim_session, options=SimOptions(**opts), clock=clock)
     log = PoseLog(clock=clock, key=pose_key(sim.options.robot))
     sub = client.declare_subscriber(log.key, log.on_sample)
+    gyro = GyroLog(clock=clock, key=imu_key(sim.options.robot))
+    gyro_sub = client.declare_subscriber(gyro.key, gyro.on_sample)
     participant = clock.participant() if clock is not None else contextlib.nullcontext()
     try:
         if clock is not None:
             clock.subscribe(log.key)
+            clock.subscribe(gyro.key)
         with participant:
             sim.start()
             log.wait_until(0.0, timeout=10.0)
-            yield Rig(sim, channel, client, log, clock)
+            yield Rig(sim, channel, client, log, clock, gyro)
     finally:
         sim.stop()
         sim.stop()  # idempotent
         if clock is not None:
             clock.close()
         sub.undeclare()
+        gyro_sub.undeclare()
         client.close()
         sim_session.close()
         bus.shutdown()
@@ -206,13 +233,17 @@ def test_host_mocap_clock_stamps_the_wall_time_of_sampling() -> None:
 
 
 def test_lock_spin_resteer_spin_through_can_and_zenoh_gives_the_true_contact_points() -> None:
-    """What it must show 1 and 2, driven only through the CAN driver, poses only from zenoh."""
+    """What it must show 1 and 2, driven only through the CAN driver, poses only from zenoh;
+    and the gyro reads the poses' yaw rate with its bias and scale error (a steady spin:
+    the mean over 3 s, 600 samples, is within 1e-4 rad/s of ``(1 + eps) omega + bias``)."""
+    gyro_opt = GyroOptions(bias=math.radians(0.5), scale_error=0.01, bias_walk=0.0)
     with rig(
         lockstep=True,
         physics_dt=0.004,
         feedback_rate_hz=50,
         watchdog_ms=1000,
         mocap=MocapOptions(rate=100),
+        gyro=gyro_opt,
         seed=7,
     ) as r:
         truth = RobotParams.model_validate(r.truth_params())  # the ground-truth channel
@@ -267,6 +298,10 @@ def test_lock_spin_resteer_spin_through_can_and_zenoh_gives_the_true_contact_poi
                 # their source time; feedback samples come every 1/50 s, numbered by `seq`.
                 yaw_rate = slope(P[:, 0], np.unwrap(P[:, 3]))
                 assert 0.3 < abs(yaw_rate) < 1.0
+                G = r.gyro.array(t0, t0 + 3.0)
+                assert G.shape[0] == 601  # 200 Hz on the simulated clock, stamped with it
+                want = (1 + gyro_opt.scale_error) * yaw_rate + gyro_opt.bias
+                assert float(np.mean(G[:, 1])) == pytest.approx(want, abs=1e-4)
                 for m in others:
                     j = truth.index(m)
                     h = drv.history_arrays(m)
@@ -519,6 +554,10 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
             "ros2-cdr",
             "--pose-rate",
             "50",
+            "--gyro-rate",
+            "100",
+            "--gyro-bias",
+            "2.0",
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -526,7 +565,9 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
     )
     client = open_session(connect=[ep])
     log = PoseLog()
+    gyro = GyroLog()
     sub = client.declare_subscriber("mocap/swpc/pose", log.on_sample)
+    gyro_sub = client.declare_subscriber("imu/swpc/data", gyro.on_sample)
     try:
         log.wait_until(-1e18, timeout=20.0)
         t0 = log.last_t()
@@ -537,9 +578,15 @@ def test_swpc_sim_runs_as_a_separate_process() -> None:
         if proc.poll() is None:
             proc.kill()
         sub.undeclare()
+        gyro_sub.undeclare()
         client.close()
     assert proc.returncode == 0, out
     assert "swpc sim: robot 'swpc'" in out and "overruns" in out
+    # its gyro too (a robot at rest: the bias, 2 deg/s), stamped with the host's wall clock
+    G = np.array(gyro.rows)
+    assert G.shape[0] > 20 and "gyro 100 Hz on imu/swpc/data" in out
+    assert float(np.mean(G[:, 1])) == pytest.approx(math.radians(2.0), abs=2e-3)
+    assert abs(float(G[-1, 0]) - time.time()) < 30.0
 
 
 def test_custom_nodes_encoder_quantisation_and_bus_errors() -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -20,13 +21,18 @@ import numpy as np
 import pytest
 
 from services.calibration_run import TERMINAL, TRANSITIONS, CalibrationRun, State
+from services.imu_ingest import ImuIngest
+from services.imu_run import ImuCalibrationRun
 from services.mocap_ingest import MocapIngest
 from services.robot_config import RobotConfig
+from simulators.imu_sim import axis_travel
 from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.references import AxisDistance, Reference, WheelRadius
 from tests.fake_robot import FakeRobot
+from tests.frame_free import frame_free
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 # three modules (N >= 2 is allowed) and three angles: every edge of TRANSITIONS, quickly
@@ -45,15 +51,47 @@ QUICK = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}}
 """Two angles, short spins: every state still, a quarter of the data to solve."""
 
 
-class Rig:
-    """One run on a fresh fake robot; ``hooks[state]`` run as the run enters ``state``."""
+IMU_PROTOCOL = {"rest_time": 1.0, "drive_length": 1.0, "operator_timeout": 30.0}
+"""Without motion capture: 1 s rests, a 1 m drive (2.5 s on the fake robot)."""
+IMU_ONLY = frozenset({State.STILL, State.STEER, State.MARK, State.DRIVE, State.MEASURE})
 
-    def __init__(self, tmp: Path, overrides: dict[str, Any] | None = None, **robot: Any) -> None:
+
+def axis_distances(truth: RobotParams, stddev: float = 0.5e-3) -> list[Reference]:
+    """Every distance between two steering axes of ``truth``, exact, with ``stddev``."""
+    a = truth.arrays()
+    return [
+        AxisDistance((i, j), float(np.linalg.norm(a.P_s[truth.index(i)] - a.P_s[truth.index(j)])),
+                     stddev)
+        for i, j in itertools.combinations(truth.ids, 2)
+    ]  # fmt: skip
+
+
+class Rig:
+    """One run on a fresh fake robot; ``hooks[state]`` run as the run enters ``state``.
+
+    ``metrology="imu"``: the run without motion capture (the fake robot's gyro, the
+    exact axis distances) whose operator (``operator``) marks the floor at MARK and
+    measures the drive exactly at MEASURE."""
+
+    def __init__(
+        self,
+        tmp: Path,
+        overrides: dict[str, Any] | None = None,
+        metrology: str = "mocap",
+        **robot: Any,
+    ) -> None:
         self.clock = VirtualClock(start=1000.0)
         self.mocap = MocapIngest(clock=self.clock, clock_mode="wall", stale_after=0.5)
-        self.robot = FakeRobot(TRUTH, self.clock, self.mocap, dt=0.01, pose_every=1, **robot)
-        doc = {"nominal": NOMINAL.model_dump(), "protocol": PROTOCOL}
+        self.imu = ImuIngest(clock=self.clock, stale_after=0.5)
+        self.robot = FakeRobot(
+            TRUTH, self.clock, self.mocap, dt=0.01, pose_every=1,
+            imu=self.imu if metrology == "imu" else None, **robot,
+        )
+        doc = {"nominal": NOMINAL.model_dump(), "protocol": {**PROTOCOL, **IMU_PROTOCOL}}
         self.config = RobotConfig.model_validate(doc).with_overrides(overrides or {})
+        self.metrology = metrology
+        self.references = axis_distances(TRUTH)
+        self.operator = True
         self.kinematics = tmp / "kinematics.yaml"
         self.states: list[State] = [State.PENDING]
         self.entered_at: dict[State, float] = {}
@@ -74,19 +112,37 @@ class Rig:
             hook = self.hooks.pop(st, None)
             if hook is not None:
                 hook(run)
+            if self.operator and isinstance(run, ImuCalibrationRun):
+                self.play_operator(run)
+
+    def play_operator(self, run: ImuCalibrationRun) -> None:
+        """Mark the floor (MARK) and measure the drive exactly (MEASURE), at once."""
+        if run.waits_for == "continue":
+            run.mark_done()
+        elif run.waits_for == "references":
+            assert run.drive is not None
+            start, end = (self.robot.pose_at(t) for t in run.drive)
+            travel = axis_travel(start, end, TRUTH.arrays().P_s[0])
+            run.add_references([{"kind": "straight_drive", "value": travel, "stddev": 0.5e-3}])
+
+    def make_run(self) -> CalibrationRun:
+        kwargs: dict[str, Any] = {
+            "clock": self.clock,
+            "data_dir": self.tmp,
+            "kinematics_path": self.kinematics,
+            "install": self.install,
+            "on_change": self._changed,
+            **self.run_kwargs,
+        }
+        if self.metrology == "imu":
+            return ImuCalibrationRun(
+                self.robot, self.mocap, self.imu, self.config, references=self.references,
+                **kwargs,
+            )  # fmt: skip
+        return CalibrationRun(self.robot, self.mocap, self.config, **kwargs)
 
     def run(self) -> CalibrationRun:
-        run = CalibrationRun(
-            self.robot,
-            self.mocap,
-            self.config,
-            clock=self.clock,
-            data_dir=self.tmp,
-            kinematics_path=self.kinematics,
-            install=self.install,
-            on_change=self._changed,
-            **self.run_kwargs,
-        )
+        run = self.make_run()
         run._main()  # the run's thread body, here on the test's thread
         assert run.finished and self.robot.closed
         return run
@@ -100,14 +156,22 @@ def stopped_after(rig: Rig, t: float) -> bool:
 # --------------------------------------------------------------------------- the path
 
 
+EDGES = {(a, b) for a, targets in TRANSITIONS.items() for b in targets} | {
+    (State.WRITE, State.DONE)  # DONE, terminal, may follow any state
+}
+TAKEN: dict[str, set[tuple[State, State]]] = {}
+"""The edges each run of the path tests took (every edge of the table, over all)."""
+
+
 def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Path) -> None:
     rig = Rig(tmp_path, homed=False)  # unhomed: CONNECT homes the steering
     run = rig.run()
     assert run.status.state is State.DONE, run.status.errors
-    taken = set(itertools.pairwise(rig.states))
-    edges = {(a, b) for a, targets in TRANSITIONS.items() for b in targets}
-    # every edge of the table and nothing else (DONE, terminal, may follow any state)
-    assert taken == edges | {(State.WRITE, State.DONE)}
+    taken = TAKEN["mocap"] = set(itertools.pairwise(rig.states))
+    # every edge of the table but those of the run without motion capture, nothing else
+    imu_edges = {(a, b) for a, b in EDGES if {a, b} & IMU_ONLY}
+    assert taken == EDGES - imu_edges
+    assert run.status.metrology == "mocap" and run.status.gyro_samples == 0
     assert [c[1] for c in rig.robot.log[:4]] == ["activate", *["start_homing"] * 3]
     # the real solver on the fake robot's data: its true parameters
     res = run.result
@@ -127,6 +191,57 @@ def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Pa
     assert load_kinematics(run.run_dir / "kinematics.yaml").covariance == k.covariance
 
 
+def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) -> None:
+    """The gyro, the encoders and the tape only (the motion capture silent all along):
+    REST, a STILL before every spin, STEER, MARK, DRIVE, MEASURE; DONE in the design-fit
+    frame, every frame-free figure within 3 std devs of the truth and near it."""
+    rig = Rig(tmp_path, metrology="imu", homed=False, mocap_on=False)
+    run = rig.run()
+    assert run.status.state is State.DONE, run.status.errors
+    assert isinstance(run, ImuCalibrationRun)
+    taken = TAKEN["imu"] = set(itertools.pairwise(rig.states))
+    assert taken <= EDGES
+    path = [st for st in rig.states if st in IMU_ONLY]
+    assert path == [State.STILL] * 9 + [State.STEER, State.MARK, State.DRIVE, State.MEASURE]
+    assert run.status.poses == 0 and run.status.gyro_samples > 5000
+    # the drive: 1 m by the nominal radii, a 1 s rest either side, between the two rests
+    assert run.drive is not None and len(run.rests) == 9 + 2
+    (a0, b0), (a1, b1) = run.rests[-2:]
+    assert run.drive == (pytest.approx((a0 + b0) / 2), pytest.approx((a1 + b1) / 2))
+    assert run.status.drive_m == pytest.approx(1.0, abs=0.02)
+    ds = run.dataset()
+    assert ds.mocap_free and not (run.run_dir / "dataset" / "poses.csv").exists()
+    assert [r.kind for r in ds.references] == ["axis_distance"] * 3 + ["straight_drive"]
+    res = run.result
+    assert res is not None and res.params.frame == "design-fit" and res.covariance is not None
+    k = load_kinematics(rig.kinematics)
+    assert k.params.frame == "design-fit" and run.status.installed
+    figures = frame_free(res.params, np.array(res.covariance), TRUTH)
+    for f in figures:
+        assert abs(f.z) < 3.0, str(f)
+        assert abs(f.error) < (math.radians(0.02) if f.unit == "deg" else 0.05e-3), str(f)
+
+
+def test_a_run_without_a_drive_rests_after_the_last_spin(tmp_path: Path) -> None:
+    """``protocol.drive_length: 0`` with wheel_radius references: RELEASE -> STILL ->
+    SOLVE (the gyro's bias after the last spin), no operator step."""
+    rig = Rig(tmp_path, {"protocol": {"drive_length": 0.0, **QUICK["protocol"]}}, "imu")
+    a = TRUTH.arrays()
+    rig.references += [WheelRadius(m, float(a.r[i]), 0.02e-3) for i, m in enumerate(TRUTH.ids)]
+    run = rig.run()
+    assert run.status.state is State.DONE, run.status.errors
+    taken = TAKEN["imu without a drive"] = set(itertools.pairwise(rig.states))
+    assert (State.RELEASE, State.STILL) in taken and (State.STILL, State.SOLVE) in taken
+    assert not {State.STEER, State.MARK, State.DRIVE, State.MEASURE} & set(rig.states)
+
+
+def test_the_path_tests_took_every_edge_of_the_table() -> None:
+    """Both metrologies together: every edge of TRANSITIONS (run after the path tests)."""
+    if len(TAKEN) < 3:
+        pytest.skip("needs the three path tests of this module in the same session")
+    assert set().union(*TAKEN.values()) == EDGES
+
+
 def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
     run = CalibrationRun(
@@ -143,14 +258,29 @@ def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- faults, aborts
 
 STARTED = [s for s in TRANSITIONS if s is not State.PENDING]
-"""Every state a started run passes through: each checks for faults and aborts on entry."""
+"""Every state a started run passes through: each checks for faults and aborts on entry
+(the states of a run without motion capture in such a run, the others with mocap)."""
+
+
+FAST = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 15, "settle_time": 0.2,
+                     "stop_time": 0.2, "align_time": 0.2, "resteer_time": 0.3}}  # fmt: skip
+"""Spins only to get past them (no solve): the states of a run without motion capture."""
+
+
+def metrology(state: State) -> str:
+    return "imu" if state in IMU_ONLY else "mocap"
+
+
+def quick(state: State) -> dict[str, Any]:
+    """The overrides of the fault and abort tests: fast spins before the drive's states."""
+    return FAST if state in IMU_ONLY else QUICK
 
 
 @pytest.mark.parametrize("state", STARTED, ids=str)
 def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, QUICK, homed=False)
+    rig = Rig(tmp_path, quick(state), metrology(state), homed=False)
     rig.hooks[state] = lambda run: rig.robot.faults.append(FAULT)
     run = rig.run()
     assert run.status.state is State.FAILED
@@ -164,7 +294,7 @@ def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
 def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
     tmp_path: Path, state: State
 ) -> None:
-    rig = Rig(tmp_path, QUICK, homed=False)
+    rig = Rig(tmp_path, quick(state), metrology(state), homed=False)
     t_abort: list[float] = []
 
     def abort(run: CalibrationRun) -> None:
@@ -219,22 +349,31 @@ def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) ->
 
 
 @pytest.mark.parametrize(
-    ("state", "knob"),
+    ("state", "knob", "how"),
     [
-        (State.CONNECT, {"homed": False, "homing_time": 1e9}),  # homing never ends
-        (State.REST, {"drift": 0.3}),  # someone keeps turning the robot
-        (State.LOCK, {"stuck": {1}}),  # the locked module's steering does not move
-        (State.SPIN, {"spin_rate": 0.02}),  # 90 deg at 0.02 rad/s: 79 s
-        (State.RESTEER, {}),  # the locked module sticks once re-steering begins (hook)
+        (State.CONNECT, {"homed": False, "homing_time": 1e9}, "mocap"),  # homing never ends
+        (State.REST, {"drift": 0.3}, "mocap"),  # someone keeps turning the robot
+        (State.REST, {"drift": 0.3}, "imu"),  # ... and without mocap the gyro says so
+        (State.LOCK, {"stuck": {1}}, "mocap"),  # the locked module's steering does not move
+        (State.SPIN, {"spin_rate": 0.02}, "mocap"),  # 90 deg at 0.02 rad/s: 79 s
+        (State.SPIN, {"spin_rate": 0.02}, "imu"),  # the gyro's sweep: as slow
+        (State.RESTEER, {}, "mocap"),  # the locked module sticks once re-steering begins
+        (State.STILL, {}, "imu"),  # turned from STILL on: the gyro never shows it still
+        (State.STEER, {}, "imu"),  # a steering that never reaches the drive's angle
     ],
-    ids=["homing", "rest", "lock", "spin", "resteer"],
+    ids=["homing", "rest", "rest-imu", "lock", "spin", "spin-imu", "resteer", "still", "steer"],
 )
 def test_a_step_that_outlasts_step_timeout_fails_the_run(
-    tmp_path: Path, state: State, knob: dict[str, Any]
+    tmp_path: Path, state: State, knob: dict[str, Any], how: str
 ) -> None:
-    rig = Rig(tmp_path, {"limits": {"step_timeout": 5.0}}, **knob)
+    fast = FAST if how == "imu" else {}
+    rig = Rig(tmp_path, {**fast, "limits": {"step_timeout": 5.0}}, how, **knob)
     if state is State.RESTEER:
         rig.hooks[state] = lambda run: rig.robot.stuck.add(1)
+    if state is State.STEER:
+        rig.hooks[state] = lambda run: rig.robot.stuck.add(2)
+    if state is State.STILL:
+        rig.hooks[state] = lambda run: setattr(rig.robot, "drift", 0.3)
     run = rig.run()
     assert run.status.state is State.FAILED
     assert run.status.reason is not None
@@ -244,6 +383,134 @@ def test_a_step_that_outlasts_step_timeout_fails_the_run(
     # it fails after 5 s of the step's robot time, not before, and not much later
     assert 5.0 <= rig.clock.now() - rig.entered_at[state] < 5.2
     assert stopped_after(rig, rig.entered_at[state])
+
+
+def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Path) -> None:
+    """1 m at 0.05 m/s: the drive itself (after its rest) times out 5 s after its torque."""
+    rig = Rig(tmp_path, {**FAST, "limits": {"step_timeout": 5.0}}, "imu", drive_speed=0.05)
+    run = rig.run()
+    reason = run.status.reason or ""
+    assert run.status.state is State.FAILED
+    assert reason.startswith("step timeout: driving 1 m straight took longer than 5 s")
+    t_torque = max(t for t, what, _ in rig.robot.log if what == "wheel_torque")
+    assert 5.0 <= rig.clock.now() - t_torque < 5.05
+    assert stopped_after(rig, t_torque)
+
+
+# --------------------------------------------------------------------------- without mocap
+
+
+@pytest.mark.parametrize("state", [State.MARK, State.MEASURE], ids=str)
+def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
+    tmp_path: Path, state: State
+) -> None:
+    rig = Rig(tmp_path, {"protocol": {"operator_timeout": 3.0, **FAST["protocol"]}}, "imu")
+    if state is State.MEASURE:
+        rig.hooks[State.MARK] = lambda run: run.mark_done()  # the floor marked, then silence
+    rig.operator = False
+    run = rig.run()
+    reason = run.status.reason or ""
+    what = "floor mark before the straight drive" if state is State.MARK else "tape measurement"
+    assert run.status.state is State.FAILED and reason.startswith(
+        f"operator timeout: no {what}"
+    ), reason
+    assert "within 3 s" in reason and f"(during {state}:" in reason
+    assert 3.0 < rig.clock.now() - rig.entered_at[state] < 3.05
+    assert stopped_after(rig, rig.entered_at[state])
+    assert not rig.kinematics.exists()
+
+
+def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
+    """continue only in MARK, references only in MEASURE, a straight drive without times
+    and with its measurement; a wrong answer leaves the run waiting for the right one."""
+    from swpc_hw.errors import DatasetError
+
+    rig = Rig(tmp_path, FAST, "imu")
+    rig.operator = False
+    seen: list[str] = []
+
+    def at_mark(run: CalibrationRun) -> None:
+        assert isinstance(run, ImuCalibrationRun) and run.waits_for == "continue"
+        with pytest.raises(ValueError, match="it takes references in MEASURE"):
+            run.add_references([{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
+        run.mark_done()
+        with pytest.raises(ValueError, match="nothing to continue"):
+            run.mark_done()
+        seen.append("mark")
+
+    def at_measure(run: CalibrationRun) -> None:
+        assert isinstance(run, ImuCalibrationRun) and run.waits_for == "references"
+        with pytest.raises(ValueError, match="nothing to continue"):
+            run.mark_done()
+        bad = {"kind": "straight_drive", "value": 1.0, "stddev": 1e-3, "start": 0, "end": 1}
+        with pytest.raises(DatasetError, match="no start or end: the run knows when it drove"):
+            run.add_references([bad])
+        with pytest.raises(DatasetError, match="straight_drive's measurement is missing"):
+            run.add_references([{"kind": "wheel_radius", "module": 1, "value": 0.05,
+                                 "stddev": 1e-4}])  # fmt: skip
+        with pytest.raises(DatasetError, match=r"module 9 is not in robot\.yaml"):
+            run.add_references([{"kind": "wheel_radius", "module": 9, "value": 0.05,
+                                 "stddev": 1e-4}])  # fmt: skip
+        assert run.waits_for == "references"
+        rig.play_operator(run)
+        with pytest.raises(ValueError, match="already has the drive's measurement"):
+            run.add_references([{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
+        seen.append("measure")
+
+    rig.hooks[State.MARK] = at_mark
+    rig.hooks[State.MEASURE] = at_measure
+    rig.hooks[State.SOLVE] = lambda run: run.abort()  # measured: the rest is tested above
+    run = rig.run()
+    assert seen == ["mark", "measure"] and run.status.state is State.ABORTED, run.status.errors
+    refs = run.dataset().references  # the drive's reference with the run's times
+    assert isinstance(run, ImuCalibrationRun) and run.drive is not None
+    assert [(r.kind, getattr(r, "start", None)) for r in refs][-1] == (
+        "straight_drive", run.drive[0]
+    )
+
+
+def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, FAST, "imu", mocap_on=False)
+    rig.hooks[State.SPIN] = lambda run: setattr(rig.robot, "gyro_on", False)
+    run = rig.run()
+    reason = run.status.reason or ""
+    assert run.status.state is State.FAILED and reason.startswith("gyro stale: no sample for")
+    assert "(limit 0.500 s)" in reason and "(during SPIN" in reason
+    assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
+
+
+def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_speed(
+    tmp_path: Path,
+) -> None:
+    rig = Rig(tmp_path, {**QUICK, "limits": {"max_yaw_rate": 0.4}}, "imu", spin_rate=0.5)
+    run = rig.run()
+    assert (run.status.reason or "").startswith(
+        "yaw rate 0.50 rad/s exceeds the limit 0.4 (during SPIN"
+    ), run.status.reason
+    rig = Rig(tmp_path / "fast", FAST, "imu", drive_speed=0.8)
+    run = rig.run()
+    reason = run.status.reason or ""
+    assert re.match(r"drive speed 0\.\d\d m/s exceeds limits.max_drive_speed 0.5 \(during DRIVE",
+                    reason), reason  # fmt: skip
+    assert stopped_after(rig, rig.entered_at[State.DRIVE])
+
+
+def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_path: Path) -> None:
+    """Defence in depth (the API refuses these with 422): FAILED before CONNECT, nothing
+    sent to the robot."""
+    from services.imu_run import reference_problems
+
+    rig = Rig(tmp_path, {"protocol": {"drive_length": 0.0}}, "imu")
+    rig.references = []
+    run = rig.run()
+    reason = run.status.reason or ""
+    assert run.status.state is State.FAILED and reason.startswith("refused before any motion: ")
+    assert "no axis_distance" in reason and "no wheel_radius" in reason
+    assert [c[1] for c in rig.robot.log if c[1] not in ("stop_all", "release")] == []
+    assert reference_problems(rig.config, axis_distances(TRUTH)) == [
+        "protocol.drive_length is 0 and no wheel_radius: nothing fixes the wheels' radius "
+        "(drive straight, or give a wheel_radius)"
+    ]
 
 
 # --------------------------------------------------------------------------- mocap

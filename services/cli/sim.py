@@ -31,9 +31,9 @@ def register(sub: Any) -> None:
         help="run the virtual robot: controllers on CAN, physics, mocap poses over zenoh",
         description=(
             "Simulate the robot's four (N) motor controllers on a CAN bus with the DBC's "
-            "frames, the robot's motion (hidden true parameters) and the motion-capture "
-            "system (poses over zenoh on mocap/<robot>/pose; ground truth on "
-            "sim/<robot>/truth/{pose,params})."
+            "frames, the robot's motion (hidden true parameters), the motion-capture "
+            "system (poses over zenoh on mocap/<robot>/pose), its gyro (imu/<robot>/data) "
+            "and the ground truth (sim/<robot>/truth/{pose,params})."
         ),
     )
     p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan)")
@@ -100,6 +100,16 @@ def register(sub: Any) -> None:
         metavar="MODULE",
         help="start with this module's controller silent (heartbeat loss; repeatable)",
     )
+    g = p.add_argument_group("gyro (imu/<robot>/data, sensor_msgs/msg/Imu in CDR)")
+    g.add_argument("--gyro-rate", type=float, default=200.0, help="gyro samples /s (200)")
+    g.add_argument(
+        "--gyro-noise", type=float, default=0.005, help="white noise, deg/s/sqrt(Hz) (0.005)"
+    )
+    g.add_argument("--gyro-bias", type=float, default=0.1, help="bias, deg/s (0.1)")
+    g.add_argument(
+        "--gyro-bias-walk", type=float, default=1e-4, help="bias walk, deg/s/sqrt(s) (1e-4)"
+    )
+    g.add_argument("--gyro-scale-error", type=float, default=0.3, help="scale error, %% (0.3)")
     p.add_argument("--truth-rate", type=float, default=50.0, help="truth pose Hz (50)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=0.0, help="wall s to run (0: until ^C)")
@@ -119,6 +129,7 @@ def parse_nodes(text: str | None) -> dict[int, int] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from simulators.datagen_imu import GyroOptions
     from simulators.mocap_sim import MocapOptions
     from simulators.robot_sim import PhysicsOptions
     from simulators.sim_options import SimOptions
@@ -149,6 +160,13 @@ def run(args: argparse.Namespace) -> int:
             latency=args.latency * 1e-3,
             clock_offset=args.clock_offset,
             seed=args.seed,
+        ),
+        gyro=GyroOptions(
+            rate=args.gyro_rate,
+            noise_density=math.radians(args.gyro_noise),
+            bias=math.radians(args.gyro_bias),
+            bias_walk=math.radians(args.gyro_bias_walk),
+            scale_error=args.gyro_scale_error / 100.0,
         ),
         truth_rate=args.truth_rate,
         bus_error_rate=args.bus_error_rate,
@@ -189,8 +207,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
         f"{args.interface}:{args.channel} (nodes {sim.nodes}), mocap {args.pose_rate:g} Hz "
-        f"{args.pose_encoding} on mocap/{args.robot}/pose via {listen or args.zenoh_connect}, "
-        f"time scale {args.time_scale:g}",
+        f"{args.pose_encoding} on mocap/{args.robot}/pose, gyro {args.gyro_rate:g} Hz on "
+        f"imu/{args.robot}/data via {listen or args.zenoh_connect}, time scale {args.time_scale:g}",
         flush=True,
     )
     t_end = time.monotonic() + args.duration if args.duration > 0 else math.inf

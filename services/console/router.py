@@ -420,8 +420,8 @@ def console_router() -> APIRouter:
         for name, (rel, _) in FILES.items():
             p = d / rel
             if name == "dataset.zip":
-                if not (p / "poses.csv").is_file():
-                    continue
+                if not any((p / f).is_file() for f in ("poses.csv", "imu.csv")):
+                    continue  # no motion recorded (with or without motion capture)
                 size = sum(f.stat().st_size for f in p.iterdir() if f.is_file())
             elif p.is_file():
                 size = p.stat().st_size

@@ -1,0 +1,127 @@
+"""``GET /health``: can a calibration start, or go on, now?
+
+:func:`service_health` judges the service's runtime (:class:`services.runtime.Runtime`):
+``failing`` when a calibration cannot start or go on (CAN not open or faulted, a node
+lost, a sensor the calibration needs not live or its clock off, the disk full, the store
+unwritable), ``degraded`` when it can but something needs attention (node errors, a CAN
+log stopped, the kinematic file in force unreadable), else ``ok``.
+
+The sensors judged: while a run goes, those of its metrology (motion capture, or the
+gyro without motion capture); between runs, those of ``SWPC_METROLOGY`` (``mocap``,
+``imu`` or ``both``).  Both sensors' ages are in the document either way.  The in-process
+simulator's nodes and sensors are not judged between runs: its time stands still then.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from typing import TYPE_CHECKING, Any
+
+from swpc_hw.can.types import Lifecycle
+from swpc_hw.errors import KinematicFileError
+
+if TYPE_CHECKING:
+    from services.runtime import Runtime
+
+MIB = 1 << 20
+
+
+def judged_sensors(rt: Runtime) -> set[str]:
+    """``{"mocap"}``, ``{"imu"}`` or both: the running run's metrology, else the setting's."""
+    run = rt.current
+    if run is not None and rt.running():
+        return {run.metrology}
+    m = rt.settings.metrology
+    return {"mocap", "imu"} if m == "both" else {m}
+
+
+def _age(age: float) -> float | None:
+    return age if math.isfinite(age) else None
+
+
+def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
+    """``(status, document)`` (module docstring)."""
+    failing: list[str] = []
+    degraded: list[str] = []
+    d = rt.driver
+    nodes: dict[str, Any] = {}
+    # the in-process simulator between runs: simulated time stands still (it flows only
+    # while someone waits on it, docs/time.md), so no heartbeat, pose or gyro sample is
+    # late; the run's PRECHECK judges them once time flows
+    still = rt.simulator is not None and not rt.running()
+    if d is None or d.state in (Lifecycle.UNCONFIGURED, Lifecycle.FINALIZED):
+        failing.append("CAN driver not open")
+    else:
+        if d.fault_cause is not None:
+            failing.append(f"CAN driver stopped on a fault: {d.fault_cause}")
+        for m in d.modules():
+            st = d.module_state(m)
+            nodes[str(m)] = {"alive": st.alive, "errors": list(st.errors), "homed": st.homed}
+            if not st.alive and not still:
+                failing.append(f"module {m} (node {st.node}): no heartbeat")
+            elif any(st.errors):
+                degraded.append(f"module {m} (node {st.node}): active errors {st.errors}")
+        err = d.log_error()
+        if err is not None:
+            degraded.append(f"CAN log stopped: {err}")
+    sensors = judged_sensors(rt)
+    age, gyro_age = rt.mocap.age(), rt.imu.age()
+    if "mocap" in sensors:
+        if rt.mocap.is_stale() and not still:
+            failing.append(
+                "motion capture stale: "
+                + ("no pose yet" if not math.isfinite(age) else f"no pose for {age:.2f} s")
+            )
+        clock = rt.mocap.clock_problem()
+        if clock is not None:
+            failing.append(clock)
+    if "imu" in sensors:
+        if rt.imu.is_stale() and not still:
+            failing.append(
+                "gyro stale: "
+                + (
+                    "no sample yet"
+                    if not math.isfinite(gyro_age)
+                    else f"no sample for {gyro_age:.2f} s"
+                )
+            )
+        clock = rt.imu.clock_problem()
+        if clock is not None:
+            failing.append(clock)
+    if rt._unsaved:
+        rt._save_unsaved()
+    if rt.store_error is not None:
+        failing.append(f"run store not writable: {rt.store_error}")
+    disk: dict[str, Any] = {}
+    try:
+        free = shutil.disk_usage(rt.data_dir).free
+        disk = {"free_bytes": free, "budget_bytes": int(rt.settings.disk_budget)}
+        if free < int(rt.settings.min_free):
+            failing.append(
+                f"disk nearly full: {free / MIB:.1f} MiB free, below SWPC_MIN_FREE "
+                f"{int(rt.settings.min_free) / MIB:.1f} MiB"
+            )
+    except OSError as exc:
+        failing.append(f"data dir: {exc}")
+    try:
+        rt.kinematics_document()
+    except KinematicFileError as exc:
+        degraded.append(f"kinematic file in force unreadable: {exc}")
+    status = "failing" if failing else ("degraded" if degraded else "ok")
+    doc = {
+        "status": status,
+        "problems": failing + degraded,
+        "can": None if d is None else d.state.name.lower(),
+        "nodes": nodes,
+        "mocap_age_s": _age(age),
+        "mocap_stale": rt.mocap.is_stale(),
+        "gyro_age_s": _age(gyro_age),
+        "gyro_stale": rt.imu.is_stale(),
+        "sensors": sorted(sensors),
+        "running": rt.running(),
+        "in_process_simulator": rt.simulator is not None,
+        "simulated_time_still": still,
+        "disk": disk,
+    }
+    return status, doc
