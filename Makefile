@@ -3,6 +3,10 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# One BLAS thread in every process a target starts (swpc_hw/blas_threads.py: the swpc
+# command, the demo and the benchmarks set it themselves; pytest gets it from here).
+export OPENBLAS_NUM_THREADS := 1
+export OMP_NUM_THREADS := 1
 
 .PHONY: all install test lint typecheck bench demo demo-offline clean test-browser console-screenshots
 

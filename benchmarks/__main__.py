@@ -11,9 +11,11 @@ import sys
 import time
 
 import benchmarks
+from swpc_hw.blas_threads import single_blas_thread
 
 
 def main(argv: list[str]) -> int:
+    single_blas_thread()  # as every swpc process (swpc_hw/blas_threads.py)
     names = sorted(
         m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_")
     )

@@ -32,6 +32,7 @@ from typing import Any
 
 import httpx
 
+from swpc_hw.blas_threads import single_blas_thread
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.zenoh_session import free_tcp_endpoint
@@ -264,6 +265,7 @@ def run_offline_demo(out: Path, seed: int) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    single_blas_thread()
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--out", default="out/demo", help="data directory (default out/demo)")
     parser.add_argument(

@@ -20,6 +20,7 @@ import sys
 from collections.abc import Sequence
 
 from firmware_protocol.errors import FirmwareProtocolError
+from swpc_hw.blas_threads import single_blas_thread
 from swpc_hw.errors import SwpcError
 
 
@@ -46,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    single_blas_thread()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
