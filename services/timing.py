@@ -14,7 +14,8 @@ The budget (robot defaults in brackets; ``W`` comes from the robot config)::
     T_fb  = 1 / feedback_rate                 encoder feedback period     [5 ms; 20 ms in-process]
     T_hb  = 0.1                               controller heartbeat period (firmware)
     W     = limits.watchdog_ms / 1000         controller command watchdog       [0.2 s]
-    T_ref = min(0.02 max(1, k), W / 4)        driver re-sends the last command  [20 ms]
+    T_ref = min(0.02 max(1, k), W / 4)        driver re-sends the last command  [20 ms;
+                                              W / 4 = 50 ms in-process (lockstep: no jitter)]
     L     = heartbeat_timeout                 node lost without a heartbeat     [0.3 s]
     S     = mocap_stale_after                 motion capture stale              [0.5 s]
     D     = deadman                           kernel refresh ends unless renewed [0.5 s]
@@ -112,6 +113,11 @@ def timing_budget(settings: ServiceSettings, config: RobotConfig) -> TimingBudge
     if settings.mocap_stale_after is None:
         stale = max(stale, floor)
     refresh = min(HOST_REFRESH_FLOOR_S * max(1.0, k), watchdog / 4)
+    if settings.in_process:
+        # lockstep: every refresh goes out exactly on time, so the longest period the
+        # invariant allows (a quarter of the watchdog) loses nothing and halves the
+        # frames the driver and the simulated controllers handle
+        refresh = watchdog / 4
     return TimingBudget(
         feedback_period=1.0 / settings.feedback_rate_hz,
         heartbeat_period=HEARTBEAT_PERIOD_S,

@@ -19,9 +19,10 @@ def test_the_in_process_simulator_gets_the_robots_own_windows() -> None:
     cfg = RobotConfig()
     b = timing_budget(settings(), cfg)
     assert (b.watchdog, b.heartbeat_loss, b.mocap_stale) == (0.2, 0.3, 0.5)
-    assert b.refresh == 0.02 and b.deadman == 0.5 and b.stop_bound == pytest.approx(0.7)
+    # refreshed exactly on time in lockstep: the longest period the budget allows, W / 4
+    assert b.refresh == 0.05 and b.deadman == 0.5 and b.stop_bound == pytest.approx(0.7)
     c = driver_config(settings(), cfg, interface="virtual", channel="x")
-    assert (c.watchdog_timeout_ms, c.refresh_period_s, c.heartbeat_loss_periods) == (200, 0.02, 3)
+    assert (c.watchdog_timeout_ms, c.refresh_period_s, c.heartbeat_loss_periods) == (200, 0.05, 3)
     assert c.activate_timeout_s == 1.0 and c.feedback_rate_hz == 50  # the simulator's CPU
     assert c.modules == {1: 1, 2: 2, 3: 3, 4: 4}
     assert c.max_torque == (2.0, 2.0) and c.max_velocity == (3.0, 20.0)
