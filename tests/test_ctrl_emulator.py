@@ -47,12 +47,12 @@ def fmt(t: str, f: Frame) -> str:
     return f"{t} {f.arbitration_id:03X}#{f.data.hex().upper()}"
 
 
-def run_c(exe: Path, nodes: list[int], events: list[Event]) -> list[str]:
+def run_c(exe: Path, nodes: list[int], events: list[Event], rate: int = 200) -> list[str]:
     lines = []
     for t, f in events:
         lines.append(f"{t!r} step" if f is None else fmt(repr(t), f))
     out = subprocess.run(
-        [str(exe), "--trace", "--nodes", ",".join(map(str, nodes))],
+        [str(exe), "--trace", "--nodes", ",".join(map(str, nodes)), "--rate", str(rate)],
         input="\n".join(lines) + "\n",
         capture_output=True,
         text=True,
@@ -61,8 +61,8 @@ def run_c(exe: Path, nodes: list[int], events: list[Event]) -> list[str]:
     return out.splitlines()
 
 
-def run_python(nodes: list[int], events: list[Event]) -> list[str]:
-    ctrls = [VirtualController(n) for n in nodes]
+def run_python(nodes: list[int], events: list[Event], rate: int = 200) -> list[str]:
+    ctrls = [VirtualController(n, rate_hz=rate) for n in nodes]
     out = []
     for t, f in events:
         for c in ctrls:
@@ -173,15 +173,17 @@ def random_events(seed: int, nodes: list[int], n: int = 600) -> list[Event]:
 def test_random_traces_match_python(emulator: Path, seed: int) -> None:
     nodes = [1, 2, 3, 4]
     ev = random_events(seed, nodes)
-    c_out = run_c(emulator, nodes, ev)
-    py_out = run_python(nodes, ev)
+    rate = (200, 0, 50)[seed % 3]  # the power-on feedback rate (--rate)
+    c_out = run_c(emulator, nodes, ev, rate)
+    py_out = run_python(nodes, ev, rate)
     assert len(c_out) > 100
     assert c_out == py_out
 
 
 def test_cli_errors(emulator: Path) -> None:
     assert subprocess.run([str(emulator)], capture_output=True).returncode == 2
-    assert subprocess.run([str(emulator), "--nodes", "0", "--trace"], capture_output=True,
-                          ).returncode == 2  # fmt: skip
+    for bad_args in (["--nodes", "0"], ["--rate", "501"], ["--rate", "x"]):
+        run = subprocess.run([str(emulator), *bad_args, "--trace"], capture_output=True)
+        assert run.returncode == 2, bad_args
     bad = subprocess.run([str(emulator), "--can", "no-such-can0"], capture_output=True)
     assert bad.returncode == 1  # no such interface (or no SocketCAN at all)

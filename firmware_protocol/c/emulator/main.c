@@ -2,18 +2,21 @@
  * swpc-ctrl-emu: SWPC module controllers emulated in C (controller.c), as firmware would
  * run them: on a SocketCAN interface, or on a trace for the host tests.
  *
- *   swpc-ctrl-emu [--nodes 1,2,3,4] --can IFACE
+ *   swpc-ctrl-emu [--nodes 1,2,3,4] [--rate HZ] --can IFACE
  *       One raw CAN socket for every node (kernel filters: Sync and the host commands);
  *       frames are handled as they arrive (the watchdog judges a command by its kernel
  *       receive stamp), heartbeats and feedback go out when due.  Prints "EMULATING" once
  *       bound, runs until SIGTERM/SIGINT, then prints its counts to stderr.  Run it at
  *       real-time priority (chrt -f) to stand for firmware next to a loaded computer.
  *
- *   swpc-ctrl-emu [--nodes 1,2,3,4] --trace
+ *   swpc-ctrl-emu [--nodes 1,2,3,4] [--rate HZ] --trace
  *       Reads events from stdin, one a line: "T step" (advance every controller to T) or
  *       "T ID#HEX" (a frame seen at T, hex id and data as candump -L writes them); writes
  *       every frame sent as "T ID#HEX".  The same as VirtualController.handle / .step in
  *       Python (tests/test_ctrl_emulator.py compares them).
+ *
+ * --rate: the feedback rate at power-on (VirtualController's rate_hz, default 200 Hz;
+ * SetFeedback changes it).
  *
  * Build: make ctrl-emu (build/swpc-ctrl-emu); deploy/vm/setup.sh builds it for the VM.
  */
@@ -42,7 +45,7 @@
 static struct ctrl ctrls[MAX_NODES];
 static int n_ctrls;
 
-static int parse_nodes(const char *text)
+static int parse_nodes(const char *text, int rate_hz)
 {
     char *copy = strdup(text), *save = NULL;
     n_ctrls = 0;
@@ -52,7 +55,8 @@ static int parse_nodes(const char *text)
             free(copy);
             return -1;
         }
-        ctrl_init(&ctrls[n_ctrls++], node);
+        ctrl_init(&ctrls[n_ctrls], node);
+        ctrls[n_ctrls++].rate_hz = rate_hz;
     }
     free(copy);
     return n_ctrls > 0 ? 0 : -1;
@@ -286,20 +290,29 @@ static int run_can(const char *iface)
 int main(int argc, char **argv)
 {
     const char *nodes = "1,2,3,4", *iface = NULL;
-    int trace = 0;
+    int trace = 0, rate_hz = 200;
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--nodes") == 0 && i + 1 < argc) {
             nodes = argv[++i];
+        } else if (strcmp(argv[i], "--rate") == 0 && i + 1 < argc) {
+            char *end;
+            long r = strtol(argv[++i], &end, 10);
+            if (*end || r < 0 || r > 500) {
+                fprintf(stderr, "--rate: 0..500 Hz\n");
+                return 2;
+            }
+            rate_hz = (int)r;
         } else if (strcmp(argv[i], "--can") == 0 && i + 1 < argc) {
             iface = argv[++i];
         } else if (strcmp(argv[i], "--trace") == 0) {
             trace = 1;
         } else {
-            fprintf(stderr, "usage: %s [--nodes 1,2,3,4] (--can IFACE | --trace)\n", argv[0]);
+            fprintf(stderr, "usage: %s [--nodes 1,2,3,4] [--rate HZ] (--can IFACE | --trace)\n",
+                    argv[0]);
             return 2;
         }
     }
-    if (parse_nodes(nodes) != 0) {
+    if (parse_nodes(nodes, rate_hz) != 0) {
         fprintf(stderr, "--nodes: 1 to %d node ids in 1..63, comma-separated\n", MAX_NODES);
         return 2;
     }
