@@ -179,7 +179,7 @@ deadman() {
         --hold "${SWPC_VM_DEADMAN_HOLD:-60}" --contrast "${SWPC_VM_DEADMAN_CONTRAST:-20}" \
         --deadman "${SWPC_VM_DEADMAN_D:-${SPEED_DEADMAN_S:-0}}" --out "$OUT/deadman.json" \
         "$( ((${SWPC_VM_DEADMAN_SOFTIRQ_RT:-1})) && echo --softirq-rt || echo --no-softirq-rt)" \
-        --speed "LOOP_S=${SPEED_LOOP_S:-} SLOWNESS=${SPEED_SLOWNESS:-}"
+        --speed "LOOP_S=${SPEED_LOOP_S:-} SLOWNESS=${SPEED_SLOWNESS:-}" ${SWPC_VM_DEADMAN_ARGS:-}
 }
 step deadman deadman
 
