@@ -555,10 +555,13 @@ def set_softirq_priority(rt: bool) -> list[str]:
     """ksoftirqd/N at SCHED_FIFO 60 (``rt``) or back to SCHED_OTHER.
 
     The broadcast manager's timer is a soft hrtimer: its callback runs in the timer softirq,
-    on a real computer as an interrupt returns.  Under QEMU's emulation that softirq work
-    overruns the kernel's 2 ms budget and is handed to ksoftirqd, an ordinary thread, which
-    the busy loops then delay: refresh frames 0.2-0.7 s apart, the watchdog tripped.  At
-    real-time priority ksoftirqd runs that work ahead of every task, as the hardware would.
+    on a real computer as an interrupt returns.  Under QEMU's emulation softirq work that
+    overruns the kernel's budget is handed to ksoftirqd, an ordinary thread, which the busy
+    loops delay.  Once the refresh of every node stopped for 0.22-0.26 s while the
+    real-time emulator ran on, and the watchdog tripped; without this ksoftirqd waited
+    3.5 s for a CPU over a hold.  A precaution (the evidence is thin: see
+    docs/history/2026-11-25-deadman-vm.md): at real-time priority ksoftirqd runs that work
+    ahead of every task, as the hardware would.
     """
     done = []
     for pid in softirq_threads():

@@ -165,10 +165,10 @@ fi
 # deploy/vm/deadman.py: the service's CAN settings (200 ms watchdog, 20 ms refresh in the
 # kernel's broadcast manager, 0.3 s heartbeat loss) held ACTIVE for 10 s, then 60 s beside
 # two busy loops; the controllers emulated in C (build/swpc-ctrl-emu) at real-time priority
-# (firmware, not the robot computer), ksoftirqd too (the broadcast manager's timer runs in
-# it under emulation); then kill -STOP of the service: every axis must be free within
-# dead-man + watchdog.  The dead-man D is the robot's 0.5 s scaled with the emulation's
-# measured slowness (speed.py: D = 2 s x s; Python here is 20-50x slower than on the host,
+# (firmware, not the robot computer), ksoftirqd too (a precaution: under emulation the
+# broadcast manager's timer can end up there); then kill -STOP of the service: every axis
+# must be free within dead-man + watchdog.  The dead-man D is the robot's 0.5 s scaled with
+# the emulation's measured slowness (speed.py: D = 2 s x s; Python here is 20-50x slower than on the host,
 # and D / 2 is how late the driver's Python thread may renew it); SWPC_VM_DEADMAN_D fixes
 # it.  A 20 s hold with the refresh sent from Python instead is reported beside it.
 # OUT/deadman.json; docs/history/2026-11-25-deadman-vm.md has the figures.
