@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 
-.PHONY: all install test lint typecheck bench demo demo-offline clean test-browser console-screenshots
+.PHONY: all install test lint typecheck bench demo demo-offline clean test-browser console-screenshots ctrl-emu
 
 all: test
 
@@ -56,6 +56,17 @@ demo-offline: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info
+
+# The module controllers emulated in C on SocketCAN, as firmware (firmware_protocol/c/emulator/;
+# the VM's deadman step runs it; tests/test_ctrl_emulator.py checks it against Python's).
+CC ?= cc
+CTRL_EMU_SRC := firmware_protocol/c/swpc.c firmware_protocol/c/emulator/controller.c \
+	firmware_protocol/c/emulator/main.c
+build/swpc-ctrl-emu: $(CTRL_EMU_SRC) firmware_protocol/c/swpc.h firmware_protocol/c/emulator/controller.h
+	mkdir -p build
+	$(CC) -std=c99 -O2 -Wall -Wextra -Werror -I firmware_protocol/c $(CTRL_EMU_SRC) -o $@ -lm
+
+ctrl-emu: build/swpc-ctrl-emu
 
 # Real SocketCAN on a real kernel: boots a Debian kernel under QEMU (TCG) with virtme-ng and
 # runs deploy/vm/in-vm.sh inside (set-up cached in .cache/vm/). See deploy/README.md.

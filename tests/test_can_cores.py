@@ -340,3 +340,69 @@ def test_driver_drains_its_queue_before_judging_heartbeat_loss() -> None:
         assert not drv.module_state(1).alive
         [lost] = drv.events()
         assert lost.kind is EventKind.HEARTBEAT_LOST and lost.t == pytest.approx(1.201)
+
+
+def test_a_command_hands_its_setpoint_to_the_kernel_before_its_frame_goes_out() -> None:
+    """With the refresh in the kernel, the periodic task gets a command's setpoint before
+    the command's frame goes out, and a node's new task starts before its old one stops:
+    an axis is never enabled without a refresh, however long the commanding thread is then
+    held off the CPU.  A frame that cannot be sent gives the kernel its old setpoint back."""
+    from swpc_hw.can import CanBusError, CanConfig, CanDriver
+    from swpc_hw.can.types import Lifecycle
+
+    log: list[tuple[str, list[bytes]]] = []
+
+    class Task:
+        def __init__(self, msgs: list[can.Message]) -> None:
+            self.data = [bytes(m.data) for m in msgs]
+
+        def modify_data(self, msgs: list[can.Message]) -> None:
+            self.data = [bytes(m.data) for m in msgs]
+            log.append(("modify", self.data))
+
+        def stop(self) -> None:
+            log.append(("stop", self.data))
+
+    class Bus:
+        channel_info = "fake"
+        fail = False
+
+        def send(self, m: can.Message) -> None:
+            if self.fail:
+                raise can.CanError("no buffer space")
+            log.append(("send", [bytes(m.data)]))
+
+        def send_periodic(self, msgs: list[can.Message], period: float, duration: float) -> Task:
+            log.append(("periodic", [bytes(m.data) for m in msgs]))
+            return Task(msgs)
+
+    drv = CanDriver(CanConfig(modules={1: 1}))
+    bus = Bus()
+    drv._bus = bus  # type: ignore[assignment]
+    drv._kernel = KernelRefresh(bus, period=0.02, deadman=0.5)  # type: ignore[arg-type]
+    drv._state = Lifecycle.ACTIVE
+    free_steer = codec.make_set_control(1, Axis.STEER, ControlMode.FREE).data
+    free_wheel = codec.make_set_control(1, Axis.WHEEL, ControlMode.FREE).data
+    hold_wheel = codec.make_set_control(1, Axis.WHEEL, ControlMode.HOLD).data
+    enable_steer = codec.make_set_axis_state(1, Axis.STEER, True).data
+
+    drv.enable(1, Axis.STEER)
+    assert log == [("periodic", [free_steer]), ("send", [enable_steer])]
+    log.clear()
+    drv.enable(1, Axis.WHEEL)  # two frames now: a new task, then the old one stops
+    assert [k for k, _ in log] == ["periodic", "stop", "send"]
+    assert log[0][1] == [free_steer, free_wheel] and log[1][1] == [free_steer]
+    log.clear()
+    bus.fail = True
+    with pytest.raises(CanBusError, match="no buffer space"):
+        drv.hold(1, Axis.WHEEL)
+    assert log == [("modify", [free_steer, hold_wheel]), ("modify", [free_steer, free_wheel])]
+    assert drv._nodes[1].commanded == {
+        Axis.STEER: (ControlMode.FREE, 0.0),
+        Axis.WHEEL: (ControlMode.FREE, 0.0),
+    }
+    bus.fail = False
+    log.clear()
+    drv.disable(1, Axis.STEER)  # no longer refreshed: out of the task, then the frame
+    assert [k for k, _ in log] == ["periodic", "stop", "send"]
+    assert log[0][1] == [free_wheel]

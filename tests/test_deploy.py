@@ -363,24 +363,27 @@ def _vm_speed_module() -> Any:
 
 
 @pytest.mark.parametrize(
-    ("loop_s", "factor", "time_scale"),
+    ("loop_s", "factor", "time_scale", "deadman"),
     [
-        (0.5, 8.0, 0.3),  # the reference speed: the values that passed
-        (1.0, 16.0, 0.15),  # half as fast: twice the periods, half the simulated speed
-        (0.75, 12.0, 0.2),
-        (0.625, 10.0, 0.24),
-        (0.25, 8.0, 0.3),  # faster: never less margin than at the reference
-        (5.0, 24.0, 0.1),  # far too slow: clamped, the run then takes its time
+        (0.5, 8.0, 0.3, 2.0),  # the reference speed: the values that passed
+        (1.0, 16.0, 0.15, 4.0),  # half as fast: twice the periods, half the simulated speed
+        (0.75, 12.0, 0.2, 3.0),
+        (0.625, 10.0, 0.24, 2.5),
+        (0.25, 8.0, 0.3, 1.0),  # faster: never less margin than at the reference
+        (0.1, 8.0, 0.3, 0.5),  # the dead-man never below the robot's own
+        (5.0, 24.0, 0.1, 8.0),  # far too slow: clamped, the run then takes its time
     ],
 )
 def test_vm_speed_scales_time_factor_and_time_scale(
-    loop_s: float, factor: float, time_scale: float
+    loop_s: float, factor: float, time_scale: float, deadman: float
 ) -> None:
-    """deploy/vm/speed.py: F = 8 s and k = 0.3 / s with s = loop / 0.5 s, clamped."""
+    """deploy/vm/speed.py: F = 8 s, k = 0.3 / s and D = 2 s with s = loop / 0.5 s,
+    clamped."""
     sp = _vm_speed_module()
     s = sp.slowness(loop_s)
     assert sp.time_factor(s) == pytest.approx(factor)
     assert sp.sim_time_scale(s) == pytest.approx(time_scale)
+    assert sp.deadman(s) == pytest.approx(deadman)
     with pytest.raises(ValueError, match="must be > 0"):
         sp.slowness(0.0)
 
@@ -389,6 +392,7 @@ def test_vm_speed_prints_shell_assignments() -> None:
     r = run(sys.executable, "-S", DEPLOY / "vm/speed.py", "--repeat", "1", "--ref-loop", "1e-6")
     assert r.returncode == 0, r.stderr
     got = dict(kv.split("=") for kv in r.stdout.split())
-    assert set(got) == {"LOOP_S", "SLOWNESS", "TIME_FACTOR", "SIM_TIME_SCALE"}
+    assert set(got) == {"LOOP_S", "SLOWNESS", "TIME_FACTOR", "SIM_TIME_SCALE", "DEADMAN_S"}
     # any real loop is far slower than 1 us: the slowest settings
     assert float(got["TIME_FACTOR"]) == 24.0 and float(got["SIM_TIME_SCALE"]) == 0.1
+    assert float(got["DEADMAN_S"]) == 8.0

@@ -12,8 +12,8 @@
 #   python-can    deploy/vm/can_exchange.py: sync/feedback round trips on socketcan/vcan0
 #   driver-tests  tests/test_driver*.py with SWPC_TEST_CAN_INTERFACE=socketcan on vcan1..vcanN
 #                 (one interface per test), SWPC_TEST_TIME_FACTOR=8 (SWPC_VM_TIME_FACTOR)
-#   deadman       deploy/vm/deadman.py on vcan40: held ACTIVE at the robot's windows beside
-#                 busy loops (kernel refresh), then kill -STOP: every axis free in time
+#   deadman       deploy/vm/deadman.py on vcan40: held ACTIVE beside busy loops (kernel
+#                 refresh, C-emulated controllers), then kill -STOP: every axis free in time
 #   sim-calibration  `swpc sim` as a separate process on vcan0 + `swpc serve` calibrating
 #                 through it over HTTP (OUT/sim-calibration.json; compared by run-in-vm.sh
 #                 with an in-process run of the same configuration on the host)
@@ -162,16 +162,24 @@ else
 fi
 
 # --- the watchdog refresh in the kernel, and its dead-man ------------------------------------
-# deploy/vm/deadman.py: the service's CAN settings at the robot's own windows (200 ms
-# watchdog, 0.3 s heartbeat loss, 0.5 s dead-man; the refresh in the kernel's broadcast
-# manager) held ACTIVE for 60 s beside two busy loops, the emulated controllers at real-time
-# priority (firmware, not the robot computer); then kill -STOP of the service: every axis
-# must be free within dead-man + watchdog.  A 20 s hold with the refresh sent from Python
-# instead is reported beside it.  OUT/deadman.json.
+# deploy/vm/deadman.py: the service's CAN settings (200 ms watchdog, 20 ms refresh in the
+# kernel's broadcast manager, 0.3 s heartbeat loss) held ACTIVE for 10 s, then 60 s beside
+# two busy loops; the controllers emulated in C (build/swpc-ctrl-emu) at real-time priority
+# (firmware, not the robot computer), ksoftirqd too (a precaution: under emulation the
+# broadcast manager's timer can end up there); then kill -STOP of the service: every axis
+# must be free within dead-man + watchdog.  The dead-man D is the robot's 0.5 s scaled with
+# the emulation's measured slowness (speed.py: D = 2 s x s; Python here is 20-50x slower than on the host,
+# and D / 2 is how late the driver's Python thread may renew it); SWPC_VM_DEADMAN_D fixes
+# it.  A 20 s hold with the refresh sent from Python instead is reported beside it.
+# OUT/deadman.json; docs/history/2026-11-25-deadman-vm.md has the figures.
+measure_speed deadman "${SWPC_VM_DEADMAN_D:-}"
 deadman() {
     deploy/vcan-up.sh vcan40 >/dev/null || return 1
-    "$PY" deploy/vm/deadman.py run --channel vcan40 --hold "${SWPC_VM_DEADMAN_HOLD:-60}" \
-        --contrast "${SWPC_VM_DEADMAN_CONTRAST:-20}" --out "$OUT/deadman.json"
+    "$PY" deploy/vm/deadman.py run --channel vcan40 --idle "${SWPC_VM_DEADMAN_IDLE:-10}" \
+        --hold "${SWPC_VM_DEADMAN_HOLD:-60}" --contrast "${SWPC_VM_DEADMAN_CONTRAST:-20}" \
+        --deadman "${SWPC_VM_DEADMAN_D:-${SPEED_DEADMAN_S:-0}}" --out "$OUT/deadman.json" \
+        "$( ((${SWPC_VM_DEADMAN_SOFTIRQ_RT:-1})) && echo --softirq-rt || echo --no-softirq-rt)" \
+        --speed "LOOP_S=${SPEED_LOOP_S:-} SLOWNESS=${SPEED_SLOWNESS:-}" ${SWPC_VM_DEADMAN_ARGS:-}
 }
 step deadman deadman
 

@@ -46,9 +46,11 @@ if (($#)); then cmd="$*"; else cmd="deploy/vm/in-vm.sh $OUT"; fi
 : "${SWPC_VM_SIM_OVERRIDES:={\"protocol\": {\"sweep_deg\": 45, \"settle_time\": 1.0, \"stop_time\": 0.5, \"align_time\": 0.5, \"resteer_time\": 1.5\}\}}"
 # The in-VM script's knobs pass through: SWPC_VM_ONLY, SWPC_VM_TIME_FACTOR,
 # SWPC_VM_SIM_TIME_SCALE, SWPC_VM_SIM_OVERRIDES, SWPC_VM_SIM_SEED, SWPC_VM_FEEDBACK_RATE,
-# SWPC_VM_PHYSICS_DT, SWPC_VM_TEST_VCANS, SWPC_VM_DEADMAN_HOLD, SWPC_VM_DEADMAN_CONTRAST.
+# SWPC_VM_PHYSICS_DT, SWPC_VM_TEST_VCANS, SWPC_VM_DEADMAN_IDLE, SWPC_VM_DEADMAN_HOLD,
+# SWPC_VM_DEADMAN_CONTRAST, SWPC_VM_DEADMAN_D, SWPC_VM_DEADMAN_SOFTIRQ_RT,
+# SWPC_VM_DEADMAN_ARGS (more deploy/vm/deadman.py run options, e.g. --profile-io).
 for v in ONLY TIME_FACTOR SIM_TIME_SCALE SIM_OVERRIDES SIM_SEED FEEDBACK_RATE PHYSICS_DT TEST_VCANS \
-    DEADMAN_HOLD DEADMAN_CONTRAST; do
+    DEADMAN_IDLE DEADMAN_HOLD DEADMAN_CONTRAST DEADMAN_D DEADMAN_SOFTIRQ_RT DEADMAN_ARGS; do
     v="SWPC_VM_$v"
     [[ -n "${!v:-}" ]] && cmd="$v=$(printf '%q' "${!v}") $cmd"
 done

@@ -8,6 +8,7 @@
 #      trimmed to what the VM needs, decompressed, `depmod -b`.
 #   3. virtme-ng (pinned) in the project venv.
 #   4. A matplotlib font cache for the VM.
+#   5. The C controller emulator (make ctrl-emu), for the VM's deadman step.
 #
 # Everything is cached under $SWPC_VM_CACHE (default .cache/vm/); a second run only checks.
 # Prints, on the last line, the path of a file with the kernel variables for run-in-vm.sh.
@@ -141,6 +142,14 @@ fi
 #        the VM scans every font over 9p and takes ~30 s under TCG) -------------------------
 if ! ls "$CACHE/mpl"/fontlist-*.json >/dev/null 2>&1; then
     MPLCONFIGDIR="$CACHE/mpl" "$VENV/bin/python" -c 'import matplotlib.font_manager' >&2
+fi
+
+# --- 5. the module controllers emulated in C (build/swpc-ctrl-emu; the deadman step runs
+#        them in the VM as the controllers' firmware: Python there is ~50x slower) --------
+if make -s -C "$ROOT" ctrl-emu >&2; then
+    log "controller emulator: build/swpc-ctrl-emu"
+else
+    log "warning: make ctrl-emu failed (a C compiler is needed): the deadman step will fail"
 fi
 
 cat > "$ENVFILE" <<ENV

@@ -4,7 +4,8 @@ Standard library only (it runs inside the QEMU VM, started by ``deploy/vm/in-vm.
 
     speed.py [--repeat 8] [--procs CPUS] [--ref-loop 0.5] [--factor 8] [--time-scale 0.3]
 
-prints one shell line, e.g. ``LOOP_S=0.712 SLOWNESS=1.08 TIME_FACTOR=8.6 SIM_TIME_SCALE=0.28``.
+prints one shell line, e.g.
+``LOOP_S=0.712 SLOWNESS=1.43 TIME_FACTOR=11.4 SIM_TIME_SCALE=0.2 DEADMAN_S=2.9``.
 
 Why: under QEMU's software emulation (TCG) Python runs 12-25x slower than on the host,
 and the host's own speed varies about 2x over a day (other tenants).  The driver suite
@@ -19,8 +20,14 @@ and the CPU time of that work to the loop time ``LOOP_S``; so
     TIME_FACTOR     F = F_ref * s
     SIM_TIME_SCALE  k = k_ref / s
 
+    DEADMAN_S       D = D_ref * s
+
 where ``REF_LOOP_S`` is a loop time measured in VMs in which ``F_ref`` and ``k_ref``
-passed.  Both are clamped: F to [F_MIN, F_MAX], k to [K_MIN, K_MAX], and never beyond the
+passed.  ``D`` is the dead-man of the kernel's watchdog refresh for the ``deadman`` step
+(``deploy/vm/deadman.py``): the driver renews it every ``D / 2`` from its Python I/O
+thread, which beside two busy loops in the VM renewed it up to 0.5-1.1 s late (the same
+work takes that thread 1 % of a CPU on the host, 25-45 % in the VM, where it also waits
+for a CPU as long as it runs), where the robot's ``D`` of 0.5 s allows 0.25 s.  Both are clamped: F to [F_MIN, F_MAX], k to [K_MIN, K_MAX], and never beyond the
 reference values on a faster host.  The loop time is only a proxy of the load the
 simulator and the service put on the emulated CPUs: on a host whose loop ran 1.3x faster
 than the reference, k = 0.4 put the simulator at 1.4-2.2 of the 2 emulated CPUs (against
@@ -45,6 +52,12 @@ F_REF, K_REF = 8.0, 0.3
 """The time factor and time scale that passed with margin at ``REF_LOOP_S``."""
 F_MIN, F_MAX = F_REF, 24.0
 K_MIN, K_MAX = 0.1, K_REF
+D_REF = 2.0
+"""The dead-man (s) at the reference speed.  Its renewal, due every ``D / 2``, came up to
+0.12-0.58 s late at s ~ 2-3.3 and once 1.07 s late at s = 1.9 (2026-11-25): ``D / 2`` of
+``D_REF * s`` leaves about twice that."""
+D_MIN, D_MAX = 0.5, 8.0
+"""Never below the robot's own dead-man (services.timing.DEADMAN_S)."""
 
 
 def loop_seconds(n: int = 300_000) -> float:
@@ -96,6 +109,11 @@ def sim_time_scale(s: float, k_ref: float = K_REF) -> float:
     return min(K_MAX, max(K_MIN, int(k_ref / s * 100) / 100))
 
 
+def deadman(s: float, d_ref: float = D_REF) -> float:
+    """``D = clamp(d_ref * s, D_MIN, D_MAX)``, rounded up to 0.1."""
+    return min(D_MAX, max(D_MIN, _ceil1(d_ref * s)))
+
+
 def _ceil1(x: float) -> float:
     return -(-round(x * 1e6) // 100_000) / 10
 
@@ -114,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     s = slowness(loop, a.ref_loop)
     print(
         f"LOOP_S={loop:.3f} SLOWNESS={s:.2f} TIME_FACTOR={time_factor(s, a.factor):g}"
-        f" SIM_TIME_SCALE={sim_time_scale(s, a.time_scale):g}"
+        f" SIM_TIME_SCALE={sim_time_scale(s, a.time_scale):g} DEADMAN_S={deadman(s):g}"
     )
     return 0
 

@@ -70,7 +70,13 @@ class DriverCommands:
         """Send one command frame; ``commanded`` (if not False) becomes the axis's
         refreshed setpoint (None: no longer refreshed).  Serialised with stop_all() by
         the transmit lock: a command either goes before the stop frames, or after them to
-        a disabled axis (which ignores it)."""
+        a disabled axis (which ignores it).
+
+        With the refresh in the kernel, the kernel refreshes the new setpoint *before* the
+        frame goes out (and again the old one if it cannot be sent): an axis the command
+        enables is fed from its first instant, however long this thread is then held off
+        the CPU.  The other way round, a pause between the two (0.2-0.35 s in a VM on a
+        loaded host, as a GIL or GC pause would be) tripped the controller's watchdog."""
         nd = self._node(module)
         with self._tx_lock:
             self._require_active(what, nd, axis)
@@ -78,17 +84,29 @@ class DriverCommands:
                 frame = build(nd.node)
             except codec.ProtocolError as exc:
                 raise CanCommandError(f"{where(nd.module, nd.node, axis)}: {what}: {exc}") from exc
-            self._send_frames([frame])
-            if commanded is not False and axis is not None:
-                with self._lock:
-                    if commanded is None:
-                        nd.commanded.pop(axis, None)
-                    else:
-                        assert not isinstance(commanded, bool)
-                        nd.commanded[axis] = commanded
-                    frames = refresh_frames(nd)
-                if self._kernel is not None:
-                    self._kernel.set_node(nd.node, frames)
+            if commanded is False or axis is None:
+                self._send_frames([frame])
+                return nd
+            assert not isinstance(commanded, bool)
+            with self._lock:
+                new = dict(nd.commanded)
+                if commanded is None:
+                    new.pop(axis, None)
+                else:
+                    new[axis] = commanded
+            kernel = self._kernel
+            if kernel is None:
+                self._send_frames([frame])
+            else:
+                kernel.set_node(nd.node, refresh_frames(nd, new))
+                try:
+                    self._send_frames([frame])
+                except Exception:
+                    kernel.set_node(nd.node, refresh_frames(nd))
+                    raise
+            with self._lock:
+                nd.commanded.clear()
+                nd.commanded.update(new)
         return nd
 
     def enable(self, module: int, axis: Axis) -> None:

@@ -73,11 +73,15 @@ class KernelRefresh:
             cur.task.modify_data(msgs)  # type: ignore[attr-defined]
             cur.frames = new
             return
-        if cur is not None:
-            self._stop(node)
+        # the new task starts before the old one stops: the node's refresh has no gap, however
+        # long this thread is held off the CPU in between (both send for that moment)
+        task = None
         if new:
             msgs = [_message(f, self.bus.channel_info) for f in new]
             task = self.bus.send_periodic(msgs, self.period, duration=self.deadman)
+        if cur is not None:
+            self._stop(node)
+        if task is not None:
             self._tasks[node] = _Task(task, new)
 
     def renew(self) -> None:

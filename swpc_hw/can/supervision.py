@@ -16,10 +16,11 @@ thread got round to the check::
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 from firmware_protocol import codec
+from firmware_protocol.codec import Axis, ControlMode
 from swpc_hw.can.node_tracking import NodeTrack
 
 
@@ -30,11 +31,13 @@ class CheckResult:
     next_deadline: float = math.inf
 
 
-def refresh_frames(nd: NodeTrack) -> list[codec.Frame]:
-    """The node's last SetControl per commanded axis (what feeds its watchdog)."""
-    return [
-        codec.make_set_control(nd.node, axis, mode, sp) for axis, (mode, sp) in nd.commanded.items()
-    ]
+def refresh_frames(
+    nd: NodeTrack, commanded: Mapping[Axis, tuple[ControlMode, float]] | None = None
+) -> list[codec.Frame]:
+    """The node's last SetControl per commanded axis (what feeds its watchdog); of
+    ``commanded`` instead of the node's own, if given."""
+    cmds = nd.commanded if commanded is None else commanded
+    return [codec.make_set_control(nd.node, axis, mode, sp) for axis, (mode, sp) in cmds.items()]
 
 
 def check(
