@@ -62,7 +62,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import lfilter
 
 from simulators.physics import (
     FloatArray,
@@ -284,6 +283,8 @@ def ar1_noise(white: FloatArray, rho: float) -> FloatArray:
         return white
     c = math.sqrt(1.0 - rho * rho)
     zi = ((1.0 - c) * white[0])[None, ...]  # n_0 = c w_0 + zi = w_0: stationary start
+    from scipy.signal import lfilter  # on first use: it costs 0.8 s to import
+
     out, _ = lfilter([c], [1.0, -rho], white, axis=0, zi=zi)
     return np.asarray(out, dtype=float)
 

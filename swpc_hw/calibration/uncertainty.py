@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import fftconvolve, lfilter
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -36,6 +36,15 @@ BoolArray = NDArray[np.bool_]
 
 WINDOW_FACTOR = 6.0
 """Sokal's window: the lags summed span this many integrated autocorrelation times."""
+
+
+def _signal() -> Any:
+    """``scipy.signal``, imported when first used: it imports ``scipy.stats`` (0.8 s of
+    start-up for every process that imports the solver, e.g. ``swpc serve``, most of
+    which never compute a covariance)."""
+    import scipy.signal
+
+    return scipy.signal
 
 
 def grid_index(t: FloatArray, dt: float) -> IntArray:
@@ -78,7 +87,7 @@ def bartlett_smooth(S: FloatArray, bandwidth: int) -> FloatArray:
     if bandwidth <= 0 or S.shape[0] == 0:
         return S.copy()
     w = bartlett_weights(bandwidth)
-    return np.asarray(fftconvolve(S, w[:, None], mode="same", axes=0), dtype=float)
+    return np.asarray(_signal().fftconvolve(S, w[:, None], mode="same", axes=0), dtype=float)
 
 
 def bartlett_covariance(S: FloatArray, bandwidth: int) -> FloatArray:
@@ -113,7 +122,7 @@ def ar1_recolouring(present: BoolArray, rho: float) -> FloatArray:
     ``beta_t = p_t + rho beta_t+1``; ``1 / (1 - rho)`` away from the end without gaps).
     """
     p = present.astype(float)
-    return np.asarray(lfilter([1.0], [1.0, -rho], p[::-1])[::-1], dtype=float)
+    return np.asarray(_signal().lfilter([1.0], [1.0, -rho], p[::-1])[::-1], dtype=float)
 
 
 def long_run_covariance(S: FloatArray, present: BoolArray) -> tuple[FloatArray, float, int]:
@@ -144,6 +153,7 @@ def ar1_quadratic_form(c: FloatArray, present: BoolArray, rho: float) -> float:
     count as zero; the correlation spans them as the grid distance says).
     """
     x = np.where(present, c, 0.0)
+    lfilter = _signal().lfilter
     fwd = lfilter([1.0], [1.0, -rho], x)
     bwd = lfilter([1.0], [1.0, -rho], x[::-1])[::-1]
     return float(x @ (fwd + bwd - x))
