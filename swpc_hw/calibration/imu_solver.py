@@ -175,6 +175,11 @@ def scaled_residual(d: FloatArray, ref: FloatArray) -> FloatArray:
     return np.asarray(d - wheel_scales(d, ref)[None, :] * ref, dtype=float)
 
 
+MIN_JUDGED_INCREMENTS = 3
+"""A series (one wheel in one rolling set) needs this many increments to be judged for
+slip in the pooled screen."""
+
+
 def cut_slip(
     prob: ImuProblem,
     valid: list[BoolArray],
@@ -209,7 +214,12 @@ def cut_slip(
             k += 1
     all_inc, all_ser = np.concatenate(flat_inc), np.concatenate(ser).astype(np.int64)
     if pooled:  # few increments per series: one robust scale for all
-        bad = np.abs(all_inc) > opts.slip_sigmas * max(mad_sigma(all_inc), floor)
+        # a series' own scale k (wheel_increments) fits its only increment exactly: series
+        # of one or two increments say nothing of the noise and cannot show a burst (short
+        # sweeps: their zeros took the pooled sigma to 0 and cut a clean drive)
+        judged = np.bincount(all_ser, minlength=k)[all_ser] >= MIN_JUDGED_INCREMENTS
+        sigma = max(mad_sigma(all_inc[judged]), floor)
+        bad = judged & (np.abs(all_inc) > opts.slip_sigmas * sigma)
         slip = bad.copy()
         same = all_ser[1:] == all_ser[:-1]
         slip[1:] |= bad[:-1] & same
