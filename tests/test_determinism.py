@@ -21,9 +21,9 @@ from services.settings import ServiceSettings
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-# every module, two angles, short spins: the whole protocol, quickly
+# every module, two angles, the shortest spins the solver takes: the whole protocol
 PROTOCOL = {
-    "sweep_deg": 30, "settle_time": 0.5, "stop_time": 0.5, "align_time": 0.5, "resteer_time": 1.5
+    "sweep_deg": 15, "settle_time": 0.3, "stop_time": 0.3, "align_time": 0.3, "resteer_time": 1.0
 }  # fmt: skip
 
 
