@@ -8,7 +8,9 @@ log stopped, the kinematic file in force unreadable), else ``ok``.
 
 The sensors judged: while a run goes, those of its metrology (motion capture, or the
 gyro without motion capture); between runs, those of ``SWPC_METROLOGY`` (``mocap``,
-``imu`` or ``both``).  Both sensors' ages are in the document either way.  The in-process
+``imu`` or ``both``).  Both sensors' ages are in the document either way (the gyro's is
+null on a service set up for motion capture until its first run without it: only then does
+it subscribe to the gyro).  The in-process
 simulator's nodes and sensors are not judged between runs: its time stands still then.
 """
 

@@ -87,6 +87,10 @@ class ImuIngest:
         self._lockstep_key: str | None = None
 
     # ------------------------------------------------------------------ zenoh
+    @property
+    def subscribed(self) -> bool:
+        return self._subscriber is not None
+
     def subscribe(self, session: Any, key: str) -> None:
         """Declare the zenoh subscriber (its callback runs on zenoh's threads)."""
         clock = self.clock

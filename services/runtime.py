@@ -205,7 +205,8 @@ class Runtime:
             mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
         )
         self.mocap.subscribe(self.session, self.config.pose_key)
-        self.imu.subscribe(self.session, self.config.imu_key)
+        if s.metrology != "mocap":
+            self.imu.subscribe(self.session, self.config.imu_key)
         self.driver = CanDriver(
             driver_config(
                 s,
@@ -283,6 +284,14 @@ class Runtime:
         if self._opened:
             event(log, logging.INFO, "service.close")
 
+    def _listen_to_the_gyro(self) -> None:
+        """Subscribe to the gyro (from now on: its first run without motion capture on a
+        service set up for motion capture).  Until then nothing decodes 200 samples a
+        second that no one reads, and the in-process simulator does not even send them."""
+        assert self.session is not None
+        self.imu.subscribe(self.session, self.config.imu_key)
+        event(log, logging.INFO, "imu.subscribed", key=self.config.imu_key)
+
     # --------------------------------------------------------------------- runs
     def start_run(
         self,
@@ -321,6 +330,8 @@ class Runtime:
                     f"system; a run needs {reserve / MIB:.1f} MiB above SWPC_MIN_FREE "
                     f"{int(s.min_free) / MIB:.1f} MiB"
                 )
+            if metrology == "imu" and not self.imu.subscribed:
+                self._listen_to_the_gyro()
             lim = config.limits
             io = DriverRobotIO(
                 self.driver,

@@ -72,6 +72,7 @@ def gyro_reading(omega: float, bias: float, noise: float, scale_error: float) ->
 class GyroCounters:
     sampled: int = 0
     published: int = 0
+    unheard: int = 0  # sampled while no one subscribed: not sent
     put_errors: int = 0
 
 
@@ -144,12 +145,22 @@ class GyroSim:
     def _publish(self, g: GyroSample) -> None:
         if self.keep_sent:
             self.sent.append(g)
+        if self._pub is not None and not self._listened():
+            self.counters.unheard += 1  # no subscriber: not even encoded
+            return
         if self._pub is not None and not lockstep_put(
             self.clock, self.key, self._pub, encode_imu(g, self.frame_id)
         ):
             self.counters.put_errors += 1  # a closed session while stopping
             return
         self.counters.published += 1
+
+    def _listened(self) -> bool:
+        """Someone subscribes to the gyro (zenoh's matching status: under a microsecond)."""
+        try:
+            return bool(self._pub.matching_status.matching)
+        except Exception:  # a closed session while stopping
+            return False
 
     def close(self) -> None:
         pub, self._pub = self._pub, None
