@@ -49,6 +49,7 @@ sqrt(|q|^2 - b^2)``.  :func:`trailing_about_pivot` evaluates this exactly;
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -115,17 +116,19 @@ def se2_step(pose: ArrayLike, v: ArrayLike, omega: float, dt: float) -> FloatArr
     near ``a = 0``).  Yaw is not wrapped.
     """
     x, y, yaw = (float(c) for c in np.asarray(pose, dtype=float))
-    vv = np.asarray(v, dtype=float)
+    vx, vy = (float(c) for c in np.asarray(v, dtype=float))
     a = omega * dt
     if abs(a) < 1e-6:
         s_a = 1.0 - a * a / 6.0
         c_a = a / 2.0 - a**3 / 24.0
     else:
-        s_a = np.sin(a) / a
-        c_a = (1.0 - np.cos(a)) / a
-    d = np.array([s_a * vv[0] - c_a * vv[1], c_a * vv[0] + s_a * vv[1]]) * dt
-    dw = rot(yaw) @ d
-    return np.array([x + dw[0], y + dw[1], yaw + a])
+        s_a = math.sin(a) / a
+        c_a = (1.0 - math.cos(a)) / a
+    # scalars, not 2-vectors: this runs for every pose the simulator samples
+    d0 = (s_a * vx - c_a * vy) * dt
+    d1 = (c_a * vx + s_a * vy) * dt
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([x + (c * d0 - s * d1), y + (s * d0 + c * d1), yaw + a])
 
 
 def pose_about_pivot(pose0: ArrayLike, pivot: ArrayLike, phi: ArrayLike) -> FloatArray:
