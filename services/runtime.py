@@ -80,6 +80,18 @@ class StoreError(SwpcError):
     """The run store cannot be written: no run starts (HTTP 503)."""
 
 
+def give_group(path: Path, gid: int, bits: int) -> None:
+    """``path`` gets the group ``gid`` and the mode bits ``bits``, each only if it lacks
+    them: under the unit (``SystemCallFilter=~@privileged``) every chown is refused, even
+    one that changes nothing, and systemd's StateDirectory= already has the right owner."""
+    st = path.stat()
+    if st.st_gid != gid:
+        os.chown(path, -1, gid)
+    mode = stat.S_IMODE(st.st_mode)
+    if mode | bits != mode:
+        os.chmod(path, mode | bits)
+
+
 class Runtime:
     """Owns every long-lived resource of the service; :meth:`close` is idempotent."""
 
@@ -156,12 +168,10 @@ class Runtime:
         kin = self.settings.kinematics_file
         try:
             for d in targets:
-                os.chown(d, -1, gid)
-                os.chmod(d, stat.S_IMODE(d.stat().st_mode) | setgid | 0o050)
+                give_group(d, gid, setgid | 0o050)
             for f in kin.parent.glob(f"{kin.stem}*{kin.suffix}"):
                 if f.is_file():
-                    os.chown(f, -1, gid)
-                    os.chmod(f, stat.S_IMODE(f.stat().st_mode) | 0o040)
+                    give_group(f, gid, 0o040)
         except PermissionError as exc:
             raise SettingsError(
                 f"SWPC_FILE_GROUP={name}: cannot give {exc.filename} the group (the service "

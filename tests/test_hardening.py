@@ -517,6 +517,37 @@ def test_file_group_gives_the_data_dir_its_group(tmp_path: Path) -> None:
         Runtime(ServiceSettings(data_dir=tmp_path / "d2", file_group="no-such-group-xyz"))
 
 
+def test_file_group_already_right_makes_no_chown(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under the unit every chown fails (SystemCallFilter=~@privileged: EPERM, even one that
+    changes nothing; the VM's robot-install step runs the real filter): the service starts
+    when systemd's StateDirectory= and the unit's Group= already gave the data dir its group,
+    and says why when they did not."""
+    from services.settings import SettingsError
+
+    def refused(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted", str(args[0]))
+
+    data = tmp_path / "state"
+    data.mkdir(mode=0o750)
+    os.chmod(data, 0o750)
+    save_kinematics(data / "kinematics.yaml", PAPER_NOMINAL)
+    os.chmod(data / "kinematics.yaml", 0o640)
+    group = grp.getgrgid(os.getegid()).gr_name
+    monkeypatch.setattr(os, "chown", refused)
+    Runtime(ServiceSettings(data_dir=data, token=SecretStr(TOKEN), file_group=group)).close()
+    assert stat.S_IMODE(data.stat().st_mode) == 0o750
+    gid = other_group()
+    if gid is not None:  # a group it lacks: the chown is needed, refused, and said so
+        with pytest.raises(SettingsError, match=r"cannot give .*state the group"):
+            Runtime(
+                ServiceSettings(
+                    data_dir=data, token=SecretStr(TOKEN), file_group=grp.getgrgid(gid).gr_name
+                )
+            )
+
+
 # ------------------------------------------------------------ provenance, logs, state
 
 
