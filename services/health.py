@@ -20,6 +20,7 @@ import math
 import shutil
 from typing import TYPE_CHECKING, Any
 
+from services.disk import run_reserve
 from swpc_hw.can.types import Lifecycle
 from swpc_hw.errors import KinematicFileError
 
@@ -104,6 +105,16 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
                 f"disk nearly full: {free / MIB:.1f} MiB free, below SWPC_MIN_FREE "
                 f"{int(rt.settings.min_free) / MIB:.1f} MiB"
             )
+        elif not rt.running():
+            # what POST /calibrations asks of the file system (after pruning old runs'
+            # recordings, which may still make the room: degraded, not failing)
+            reserve = run_reserve(int(rt.settings.disk_budget))
+            if free < int(rt.settings.min_free) + reserve:
+                degraded.append(
+                    f"disk: {free / MIB:.1f} MiB free, a run needs {reserve / MIB:.1f} MiB "
+                    f"above SWPC_MIN_FREE {int(rt.settings.min_free) / MIB:.1f} MiB (507 "
+                    "unless pruning old recordings makes the room)"
+                )
     except OSError as exc:
         failing.append(f"data dir: {exc}")
     try:

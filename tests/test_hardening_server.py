@@ -500,6 +500,21 @@ def test_a_file_system_nearly_full_refuses_a_run_with_507(tmp_path: Path) -> Non
         assert h.status_code == 503 and h.json()["problems"][0].startswith("disk nearly full")
 
 
+def test_health_warns_when_a_run_would_not_find_its_room(tmp_path: Path) -> None:
+    """Free space above SWPC_MIN_FREE but below it plus a run's reserve: POST refuses the
+    run (507), so /health says so between runs (degraded: pruning may still make room)."""
+    free = os.statvfs(tmp_path)
+    below = free.f_bavail * free.f_frsize - 64 * MIB  # 64 MiB above the floor; reserve 256
+    with sim_service(tmp_path, can_log_bytes=0, min_free=below) as sim:
+        sim.host_frames()
+        h = sim.client.get("/health")
+        assert h.status_code == 200 and h.json()["status"] == "degraded", h.json()
+        assert any("a run needs 256.0 MiB above SWPC_MIN_FREE" in p for p in h.json()["problems"])
+        r = send(sim.client, json.dumps(QUICK))
+        assert r.status_code == 507 and r.json()["detail"].startswith("disk nearly full: ")
+        assert sim.host_frames() == []
+
+
 def test_a_second_runtime_on_the_can_channel_stops_and_lets_go(tmp_path: Path) -> None:
     """Two services, one bus: the second one's Runtime.open() stops at the channel's lock
     and gives back what it took (its data dir's lock)."""
