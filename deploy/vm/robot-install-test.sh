@@ -59,7 +59,9 @@ config() {
         install -m 0640 -o root -g swpc deploy/swpc.env.example /etc/swpc/swpc.env &&
         install -m 0640 -o root -g swpc deploy/robot.example.yaml /etc/swpc/robot.yaml || return 1
     # the edits the README asks for: token, bus, mocap endpoint (the simulator on this
-    # machine, wall-clock stamps); and the emulation's timing (a slow machine)
+    # machine, wall-clock stamps); the emulation's timing (a slow machine); and its disk:
+    # the container's /var has ~500 MB free, less than the defaults ask of a run (a
+    # 256 MiB reserve above SWPC_MIN_FREE 256 MiB: refused with 507 otherwise)
     local window; window=$(awk -v s="$TS" 'BEGIN {printf "%.2f", 1.5 / s}')
     sed -i -e "s|^SWPC_TOKEN=.*|SWPC_TOKEN=$TOKEN|" \
         -e 's|^SWPC_CAN_BITRATE=.*|SWPC_CAN_BITRATE=500000|' \
@@ -68,9 +70,12 @@ config() {
         -e "s|^#SWPC_HEARTBEAT_TIMEOUT=.*|SWPC_HEARTBEAT_TIMEOUT=$window|" \
         -e "s|^#SWPC_MOCAP_STALE_AFTER=.*|SWPC_MOCAP_STALE_AFTER=$window|" \
         -e 's|^#SWPC_FEEDBACK_RATE=.*|SWPC_FEEDBACK_RATE=50|' \
+        -e 's|^#SWPC_DISK_BUDGET=.*|SWPC_DISK_BUDGET=512MiB|' \
+        -e 's|^#SWPC_MIN_FREE=.*|SWPC_MIN_FREE=64MiB|' \
         /etc/swpc/swpc.env &&
         grep -q "^SWPC_TOKEN=$TOKEN" /etc/swpc/swpc.env &&
-        grep -q '^SWPC_ZENOH_CONNECT=' /etc/swpc/swpc.env || return 1
+        grep -q '^SWPC_ZENOH_CONNECT=' /etc/swpc/swpc.env &&
+        grep -q '^SWPC_MIN_FREE=64MiB' /etc/swpc/swpc.env || return 1
     # "Check the robot config loads", as the swpc user that will read it
     setpriv --reuid=swpc --regid=swpc --init-groups env "LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}" "$PY" -c \
         'from services.robot_config import load_robot_config as l; print(l("/etc/swpc/robot.yaml").robot)'
