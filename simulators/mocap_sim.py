@@ -74,6 +74,15 @@ def lockstep_put(clock: SimClock | None, key: str, pub: Any, payload: bytes) -> 
     return True
 
 
+def listened(pub: Any) -> bool:
+    """Someone subscribes to ``pub``'s key (zenoh's matching status: under a microsecond);
+    False once its session is closed."""
+    try:
+        return bool(pub.matching_status.matching)
+    except Exception:  # a closed session while stopping
+        return False
+
+
 @dataclass(frozen=True)
 class MocapOptions:
     """Simulated mocap stream (SI units; random draws seeded by ``seed``)."""
@@ -281,19 +290,13 @@ class TruthPublisher:
     def due(self, now: float) -> bool:
         """True when a truth pose is due at simulated time ``now`` (and schedules the next)
         and someone listens (the service never does: its document is not even built)."""
-        if self.rate <= 0.0 or (self._pub is not None and not self._listened()):
+        if self.rate <= 0.0 or (self._pub is not None and not listened(self._pub)):
             return False
         if self._next_pose is None or now >= self._next_pose - 1e-12:
             base = now if self._next_pose is None else self._next_pose
             self._next_pose = max(base + 1.0 / self.rate, now)
             return True
         return False
-
-    def _listened(self) -> bool:
-        try:
-            return bool(self._pub.matching_status.matching)
-        except Exception:  # a closed session while stopping
-            return False
 
     def publish_pose(self, doc: dict[str, Any]) -> None:
         if self._pub is not None and not lockstep_put(
