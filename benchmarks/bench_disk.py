@@ -29,9 +29,9 @@ from tempfile import TemporaryDirectory
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
-from services.api import create_app
-from services.runtime import Runtime
-from services.settings import ServiceSettings
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runtime.runtime import Runtime
 
 TOKEN = "bench-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

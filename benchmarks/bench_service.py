@@ -32,9 +32,9 @@ from pydantic import SecretStr
 
 from firmware_protocol import codec
 from firmware_protocol.codec import ControlMode
-from services.api import create_app
-from services.mocap_ingest import MocapIngest
-from services.settings import ServiceSettings
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.sensors.mocap import MocapIngest
 from swpc_hw.mocap import PoseEncoding, PoseSample, encode_pose
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 

@@ -57,7 +57,7 @@ Pose time stamps (``mocap_clock``): ``"host"`` (default) stamps each pose with t
 wall clock (``time.time()``) at the tick that samples it, ``t_wall_tick - (t_tick -
 t_sample) / s`` (plus the mocap clock offset): the CAN frames of that tick carry the same
 time in their bus time stamps, and to a client the simulated mocap is a real one, a clock
-at real rate with a transport delay (:class:`services.mocap_ingest.MocapIngest` in its
+at real rate with a transport delay (:class:`services.sensors.mocap.MocapIngest` in its
 ``source`` mode).  ``"sim"`` stamps the simulated time itself (deterministic; a client
 divides it by ``s``, and must take receive times when the simulator slows its clock).
 

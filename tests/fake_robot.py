@@ -1,6 +1,6 @@
 """A fake robot for the calibration state machine: kinematics on a virtual clock, no CAN.
 
-:class:`FakeRobot` implements :class:`services.robot_io.RobotIO` over a kinematic world
+:class:`FakeRobot` implements :class:`swpc_hw.drives.robot_io.RobotIO` over a kinematic world
 that moves only when the state machine sleeps on its :class:`swpc_hw.clock.VirtualClock`
 (``on_sleep``), in steps of ``dt``:
 
@@ -12,12 +12,12 @@ that moves only when the state machine sleeps on its :class:`swpc_hw.clock.Virtu
   every rolling wheel turns ``dpsi = (v + omega x P_w) . u / r dt``;
 * a position-held steering moves to its target at ``steer_rate``;
 * the encoders report the angles quantised to ``counts`` per turn (2**17, the simulator's);
-* poses (seeded noise) go to a real :class:`services.mocap_ingest.MocapIngest` every
+* poses (seeded noise) go to a real :class:`services.sensors.mocap.MocapIngest` every
   ``pose_every`` steps, stamped with the clock's wall time (clock mode ``wall``);
 * with every steering position-held and every wheel under torque (the straight drive of
   a run without motion capture) the body translates at ``drive_speed`` along the wheels'
   mean direction, and every wheel rolls;
-* a gyro (``imu``: a real :class:`services.imu_ingest.ImuIngest`) reads the yaw rate
+* a gyro (``imu``: a real :class:`services.sensors.gyro.ImuIngest`) reads the yaw rate
   every step with a scale error, a bias and seeded white noise.
 
 So the real solver recovers the fake robot's true parameters from a run.  Faults, stuck
@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.imu_ingest import ImuIngest
-from services.mocap_ingest import MocapIngest
+from services.sensors.gyro import ImuIngest
+from services.sensors.mocap import MocapIngest
 from simulators.physics import se2_step
 from swpc_hw.clock import VirtualClock
 from swpc_hw.imu import GyroSample, encode_imu
@@ -56,7 +56,7 @@ class FakeModule:
 
 @dataclass
 class FakeRobot:
-    """:class:`services.robot_io.RobotIO` on a kinematic world (module docstring)."""
+    """:class:`swpc_hw.drives.robot_io.RobotIO` on a kinematic world (module docstring)."""
 
     truth: RobotParams
     clock: VirtualClock

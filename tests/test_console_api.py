@@ -29,14 +29,14 @@ from mcap.exceptions import McapError
 from mcap.writer import Writer
 from pydantic import SecretStr
 
-from services.api import create_app
-from services.calibration_run import CalibrationRun
-from services.console.router import mcap_summary
-from services.http_server import server as http_server
-from services.mocap_ingest import MocapIngest
-from services.robot_config import RobotConfig
-from services.runtime import Runtime
-from services.settings import ServiceSettings
+from services.config.robot import RobotConfig
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.http.console.router import mcap_summary
+from services.http.server import server as http_server
+from services.runs.protocol import CalibrationRun
+from services.runtime.runtime import Runtime
+from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import RobotParams

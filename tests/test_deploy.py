@@ -174,7 +174,7 @@ def test_units_are_hardened(unit: str) -> None:
         # RestrictSUIDSGID=); file descriptors for every HTTP connection and more
         assert d["Group"] == ["swpc-data"] and d["UMask"] == ["0027"]
         assert d["RestrictSUIDSGID"] == ["yes"]
-        from services.settings import ServiceSettings
+        from services.config.settings import ServiceSettings
 
         assert int(d["LimitNOFILE"][0]) >= 4 * ServiceSettings().max_connections
     else:
@@ -186,7 +186,7 @@ def test_units_are_hardened(unit: str) -> None:
 
 # ---------------------------------------------------------------------------- env + config
 def test_env_example_loads_and_names_every_setting() -> None:
-    from services.settings import ServiceSettings
+    from services.config.settings import ServiceSettings
 
     path = DEPLOY / "swpc.env.example"
     text = path.read_text()
@@ -226,7 +226,7 @@ def test_sysctl_makes_room_for_the_drivers_receive_buffer() -> None:
 
 
 def test_robot_example_loads_and_documents_every_key() -> None:
-    from services.robot_config import RobotConfig, load_robot_config
+    from services.config.robot import RobotConfig, load_robot_config
     from swpc_hw.paper_robot import PAPER_NOMINAL
 
     path = DEPLOY / "robot.example.yaml"

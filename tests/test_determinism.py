@@ -15,9 +15,9 @@ from typing import Any
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
-from services.api import create_app
+from services.config.settings import ServiceSettings
 from services.demo import parameters_digest
-from services.settings import ServiceSettings
+from services.http.app import create_app
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

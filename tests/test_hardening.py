@@ -37,11 +37,11 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import SecretStr, ValidationError
 
-from services.api import create_app
-from services.calibration_run import State
-from services.robot_config import ConfigOverrides, MotionLimits, RobotConfig, Tolerances
-from services.runtime import Runtime
-from services.settings import ServiceSettings
+from services.config.robot import ConfigOverrides, MotionLimits, RobotConfig, Tolerances
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runs.protocol import State
+from services.runtime.runtime import Runtime
 from swpc_hw.can.recording import Recorder
 from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import KinematicFileError
@@ -67,7 +67,7 @@ def overrides(doc: dict[str, Any]) -> dict[str, Any]:
     + [("tolerances", n) for n in Tolerances.model_fields],
 )
 def test_every_safety_limit_in_an_override_can_only_tighten(group: str, name: str) -> None:
-    from services.robot_config import RUN_FIXED_LIMITS, OverrideError
+    from services.config.robot import RUN_FIXED_LIMITS, OverrideError
 
     base = RobotConfig()
     value = getattr(getattr(base, group), name)
@@ -107,7 +107,7 @@ PRE_MOTION_REFUSALS: list[tuple[dict[str, Any], str]] = [
 
 @pytest.mark.parametrize(("doc", "why"), PRE_MOTION_REFUSALS)
 def test_each_pre_motion_check_refuses_the_run(doc: dict[str, Any], why: str) -> None:
-    from services.robot_config import OverrideError
+    from services.config.robot import OverrideError
 
     with pytest.raises((OverrideError, ValidationError), match=re.escape(why)):
         RobotConfig().for_run(overrides(doc))
@@ -232,7 +232,7 @@ def test_a_validation_error_with_non_finite_input_renders(tmp_path: Path) -> Non
 def test_weak_or_missing_tokens_are_refused(
     tmp_path: Path, settings: dict[str, Any], message: str
 ) -> None:
-    from services.settings import SettingsError
+    from services.config.settings import SettingsError
 
     with pytest.raises(SettingsError, match=message):
         create_app(ServiceSettings(data_dir=tmp_path, **settings), runtime_factory=Runtime)
@@ -258,7 +258,7 @@ def test_a_generated_token_is_kept_private_and_never_printed(
 
 
 def test_a_second_service_on_the_data_dir_stops_before_touching_it(tmp_path: Path) -> None:
-    from services.locks import ChannelLock, LockedError
+    from services.store.locks import ChannelLock, LockedError
 
     first = Runtime(ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN)))
     try:
@@ -489,7 +489,7 @@ def other_group() -> int | None:
 
 
 def test_file_group_gives_the_data_dir_its_group(tmp_path: Path) -> None:
-    from services.settings import SettingsError
+    from services.config.settings import SettingsError
 
     def serve(data: Path, gid: int) -> os.stat_result:
         data.mkdir()
@@ -524,7 +524,7 @@ def test_file_group_already_right_makes_no_chown(
     changes nothing; the VM's robot-install step runs the real filter): the service starts
     when systemd's StateDirectory= and the unit's Group= already gave the data dir its group,
     and says why when they did not."""
-    from services.settings import SettingsError
+    from services.config.settings import SettingsError
 
     def refused(*args: object) -> None:
         raise PermissionError(1, "Operation not permitted", str(args[0]))
@@ -554,7 +554,7 @@ def test_file_group_already_right_makes_no_chown(
 def test_the_installed_file_says_where_it_came_from(
     done_run: tuple[Rig, Any, list[str]], tmp_path: Path
 ) -> None:
-    from services.provenance import config_sha256, dataset_sha256, git_commit, tool_version
+    from services.store.provenance import config_sha256, dataset_sha256, git_commit, tool_version
 
     rig, run, _ = done_run
     k = load_kinematics(rig.kinematics)
@@ -668,7 +668,7 @@ def test_a_stopping_service_fails_its_run_not_aborted_by_the_operator(tmp_path: 
 
 
 def test_a_run_that_outgrows_the_disk_budget_fails_cleanly(tmp_path: Path) -> None:
-    from services.run_recording import SpaceGuard
+    from services.runs.recording import SpaceGuard
 
     kin = tmp_path / "kinematics.yaml"
     save_kinematics(kin, PAPER_NOMINAL, created="2026-01-01T00:00:00Z")
@@ -691,7 +691,7 @@ KILLED = textwrap.dedent(
     from pathlib import Path
     sys.path.insert(0, {root!r})
     from tests.test_state_machine import Rig
-    from services.calibration_run import State
+    from services.runs.protocol import State
 
     rig = Rig(Path(sys.argv[1]))
     rig.run_kwargs["mcap"] = True
@@ -897,7 +897,7 @@ def test_cli_errors_are_one_line_with_a_nonzero_exit(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from services.cli import main
-    from services.provenance import tool_version
+    from services.store.provenance import tool_version
 
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
@@ -925,7 +925,7 @@ HOLD_LOCK = textwrap.dedent(
     import sys
     from pathlib import Path
     sys.path.insert(0, {root!r})
-    from services.locks import DataDirLock
+    from services.store.locks import DataDirLock
 
     DataDirLock(Path(sys.argv[1])).acquire()
     print("held", flush=True)
@@ -986,7 +986,7 @@ def test_serve_on_a_data_dir_held_by_another_process_is_one_line(
 def test_serve_with_a_can_interface_that_cannot_be_opened_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from services.locks import ChannelLock, DataDirLock
+    from services.store.locks import ChannelLock, DataDirLock
 
     channel = f"swpc{uuid.uuid4().hex[:8]}"  # no such interface (its lock is host-wide)
     monkeypatch.setenv("SWPC_TOKEN", TOKEN)
@@ -1018,7 +1018,7 @@ def test_serve_on_a_port_or_zenoh_endpoint_in_use_is_one_line(
         line = serve_error(["--data-dir", str(tmp_path / "b")], capsys)
         assert f"cannot open the zenoh session (listen=['tcp/127.0.0.1:{port}']): " in line
         assert "Address already in use" in line and ".rs:" not in line
-    from services.locks import DataDirLock
+    from services.store.locks import DataDirLock
 
     DataDirLock(tmp_path / "b").acquire().release()
 
@@ -1038,7 +1038,7 @@ def test_the_paper_method_table_has_no_nan_and_one_turn_angles() -> None:
 
 
 def test_dataset_hash_follows_every_file(tmp_path: Path) -> None:
-    from services.provenance import dataset_sha256
+    from services.store.provenance import dataset_sha256
 
     for name in ("robot.yaml", "poses.csv", "encoders.csv", "segments.csv"):
         (tmp_path / name).write_text("a\n")

@@ -6,7 +6,7 @@ in-process simulator (a robot that would move: a run it started would put the ho
 commands on the virtual bus, which a test bus on the same channel sees) for health
 ``ok`` / ``degraded``, refusals before any frame (422, 503, 507), the disk budget and an
 unwritable run store; idle connections against the real HTTP server (uvicorn with
-:class:`services.http_server.GuardedH11`, in a thread, on a free loopback port); every
+:class:`services.http.server.GuardedH11`, in a thread, on a free loopback port); every
 endpoint fed non-standard JSON.  The rest of the issue's rows are in
 ``tests/test_hardening.py``.
 """
@@ -35,10 +35,10 @@ from prometheus_client.parser import text_string_to_metric_families
 from pydantic import SecretStr
 
 from firmware_protocol import codec
-from services.api import create_app
-from services.robot_config import MotionLimits, RobotConfig, Tolerances
-from services.runtime import Runtime
-from services.settings import ServiceSettings
+from services.config.robot import MotionLimits, RobotConfig, Tolerances
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runtime.runtime import Runtime
 from swpc_hw.zenoh_session import free_tcp_endpoint
 from tests.test_hardening import AUTH, PRE_MOTION_REFUSALS, TOKEN, app_without_robot
 
@@ -446,7 +446,7 @@ def test_old_recordings_are_pruned_for_a_run_then_507_when_nothing_is_left(
     """Budget 8 MiB: a run needs 2 MiB of room (a quarter).  The oldest runs' raw
     recordings go first, their CSVs and results stay; with nothing left to prune, 507
     and not one frame."""
-    from services.disk import tree_bytes
+    from services.store.disk import tree_bytes
 
     caplog.set_level(logging.INFO, logger="swpc.service")
     data = tmp_path / "data"
@@ -518,7 +518,7 @@ def test_health_warns_when_a_run_would_not_find_its_room(tmp_path: Path) -> None
 def test_a_second_runtime_on_the_can_channel_stops_and_lets_go(tmp_path: Path) -> None:
     """Two services, one bus: the second one's Runtime.open() stops at the channel's lock
     and gives back what it took (its data dir's lock)."""
-    from services.locks import LockedError
+    from services.store.locks import LockedError
 
     channel = f"swpc-lock-{uuid.uuid4().hex[:8]}"
 
@@ -576,7 +576,7 @@ def test_every_endpoint_answers_non_standard_json_below_500(tmp_path: Path, meth
 
 @pytest.fixture()
 def server(tmp_path: Path) -> Iterator[tuple[str, int]]:
-    from services.http_server import server as make_server
+    from services.http.server import server as make_server
 
     app = create_app(
         ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN)), runtime_factory=Runtime

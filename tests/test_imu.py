@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from services.imu_ingest import ImuIngest
+from services.sensors.gyro import ImuIngest
 from simulators.datagen_imu import GyroOptions
 from simulators.imu_sim import (
     GyroSim,

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from services.mocap_ingest import MocapIngest
+from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
 from swpc_hw.mocap import PoseEncoding, PoseSample, encode_cdr, encode_native, encode_pose
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session

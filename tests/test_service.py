@@ -32,9 +32,9 @@ from pydantic import SecretStr
 
 from firmware_protocol import codec
 from firmware_protocol.codec import ControlMode
-from services.api import create_app
-from services.runtime import Runtime
-from services.settings import ServiceSettings
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runtime.runtime import Runtime
 from swpc_hw.calibration.solver import solve_directory
 from swpc_hw.clock import Clock
 from swpc_hw.dataset import load_dataset
@@ -286,7 +286,7 @@ def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed
 
 
 def test_motion_rates_are_least_squares_slopes() -> None:
-    from services.calibration_run import motion_rates
+    from services.runs.protocol import motion_rates
 
     rng = np.random.default_rng(3)
     t = np.sort(rng.uniform(10.0, 10.5, 60))
@@ -314,7 +314,7 @@ def yaw_rate(rt: Runtime, t0: float, t1: float) -> float:
 
 def home_and_release(rt: Runtime) -> None:
     """Home every steering not homed yet, then leave every axis free and disabled."""
-    from services.robot_io import DriverRobotIO
+    from swpc_hw.drives.robot_io import DriverRobotIO
 
     assert rt.driver is not None
     io = DriverRobotIO(rt.driver)
@@ -435,7 +435,7 @@ def test_second_start_conflicts_and_auth_and_bad_config(
 
 
 def test_restart_lists_past_runs_and_fails_interrupted_ones(tmp_path: Path) -> None:
-    from services.store import RunStore
+    from services.store.runs import RunStore
 
     store = RunStore(tmp_path / "runs.sqlite")
     store.upsert("a1", "2026-01-01T00:00:00Z", {"id": "a1", "state": "DONE", "created": "x"})

@@ -25,9 +25,9 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
-from services.api import create_app
-from services.runtime import Runtime
-from services.settings import ServiceSettings
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runtime.runtime import Runtime
 from swpc_hw.calibration.imu_solver import solve_mocap_free_directory
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics

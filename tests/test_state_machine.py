@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from services.calibration_run import TERMINAL, TRANSITIONS, CalibrationRun, State
-from services.imu_ingest import ImuIngest
-from services.imu_run import ImuCalibrationRun
-from services.mocap_ingest import MocapIngest
-from services.robot_config import RobotConfig
+from services.config.robot import RobotConfig
+from services.runs.imu import ImuCalibrationRun
+from services.runs.protocol import TERMINAL, TRANSITIONS, CalibrationRun, State
+from services.sensors.gyro import ImuIngest
+from services.sensors.mocap import MocapIngest
 from simulators.imu_sim import axis_travel
 from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
@@ -498,7 +498,7 @@ def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_spe
 def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_path: Path) -> None:
     """Defence in depth (the API refuses these with 422): FAILED before CONNECT, nothing
     sent to the robot."""
-    from services.imu_run import reference_problems
+    from services.runs.imu import reference_problems
 
     rig = Rig(tmp_path, {"protocol": {"drive_length": 0.0}}, "imu")
     rig.references = []
@@ -643,7 +643,7 @@ def test_terminal_states_have_no_way_out() -> None:
 def test_spin_window_unwraps_measures_its_rate_and_opens_once_settled() -> None:
     """The spin's pure core: fed 10 s of poses at 100 Hz turning at 0.5 rad/s through the
     +-pi wrap, its window opens at the first pose 1 s (settle_time) after the torque."""
-    from services.pose_motion import SpinWindow
+    from services.runs.pose_motion import SpinWindow
 
     w = SpinWindow(t_spin=10.0, settle_time=1.0, t0=10.0, yaw0=3.0)
     assert w.sweep == 0.0 and w.rate is None

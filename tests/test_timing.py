@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from pydantic import SecretStr
 
-from services.robot_config import RobotConfig
-from services.settings import ServiceSettings
-from services.timing import TimingError, driver_config, timing_budget
+from services.config.robot import RobotConfig
+from services.config.settings import ServiceSettings
+from services.config.timing import TimingError, driver_config, timing_budget
 
 
 def settings(**kw: object) -> ServiceSettings:

@@ -15,7 +15,7 @@ A hold (``one_hold``) starts, on ``--channel``:
   instead (``emulate``), which under QEMU's emulation takes most of an emulated CPU from
   the driver and falls behind on its own heartbeats;
 * ``hold``: the service side, at normal priority: a :class:`CanDriver` with the service's
-  own CAN settings at the robot's windows (:func:`services.timing.driver_config`: watchdog
+  own CAN settings at the robot's windows (:func:`services.config.timing.driver_config`: watchdog
   200 ms, refresh 20 ms, heartbeat loss 0.3 s, dead-man 0.5 s unless ``--deadman``; on
   SocketCAN the refresh goes through the kernel's broadcast manager), activated, every axis
   enabled and held.  Once held it prints ``HELD``; it holds on without load for ``--idle``
@@ -103,9 +103,9 @@ def hold(args: argparse.Namespace) -> int:
 
     from pydantic import SecretStr
 
-    from services.robot_config import RobotConfig
-    from services.settings import ServiceSettings
-    from services.timing import driver_config, timing_budget
+    from services.config.robot import RobotConfig
+    from services.config.settings import ServiceSettings
+    from services.config.timing import driver_config, timing_budget
     from swpc_hw.can import CanDriver, CanError, LifecycleError, Severity
 
     # SIGTERM/SIGINT end the hold through sigwait (an orderly shutdown: stop frames);
@@ -635,7 +635,7 @@ def main() -> int:
     r.add_argument("--busy", type=int, default=2, help="busy loops beside")
     r.add_argument(
         "--deadman", type=float, default=0.0,
-        help="dead-man D in s (0: the service's own, services.timing: 0.5 s)",
+        help="dead-man D in s (0: the service's own, services.config.timing: 0.5 s)",
     )
     r.add_argument(
         "--feedback-rate", type=int, default=0,

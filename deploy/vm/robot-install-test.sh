@@ -78,7 +78,7 @@ config() {
         grep -q '^SWPC_MIN_FREE=64MiB' /etc/swpc/swpc.env || return 1
     # "Check the robot config loads", as the swpc user that will read it
     setpriv --reuid=swpc --regid=swpc --init-groups env "LD_LIBRARY_PATH=${LD_LIBRARY_PATH:-}" "$PY" -c \
-        'from services.robot_config import load_robot_config as l; print(l("/etc/swpc/robot.yaml").robot)'
+        'from services.config.robot import load_robot_config as l; print(l("/etc/swpc/robot.yaml").robot)'
 }
 check config config || exit
 

@@ -57,7 +57,7 @@ D_REF = 2.0
 0.12-0.58 s late at s ~ 2-3.3 and once 1.07 s late at s = 1.9 (2026-11-25): ``D / 2`` of
 ``D_REF * s`` leaves about twice that."""
 D_MIN, D_MAX = 0.5, 8.0
-"""Never below the robot's own dead-man (services.timing.DEADMAN_S)."""
+"""Never below the robot's own dead-man (services.config.timing.DEADMAN_S)."""
 
 
 def loop_seconds(n: int = 300_000) -> float:

@@ -34,7 +34,7 @@ def subcommand_modules() -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from services.provenance import version_line
+    from services.store.provenance import version_line
 
     parser = argparse.ArgumentParser(
         prog="swpc", description="Calibration system for single-wheel powered caster robots."

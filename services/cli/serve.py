@@ -39,11 +39,11 @@ def run(args: argparse.Namespace) -> int:
 
     from pydantic import ValidationError
 
-    from services.api import create_app
-    from services.http_server import listen_socket, server
-    from services.logs import configure, event
-    from services.runtime import Runtime
-    from services.settings import ServiceSettings, SettingsError
+    from services.config.settings import ServiceSettings, SettingsError
+    from services.http.app import create_app
+    from services.http.server import listen_socket, server
+    from services.runtime.runtime import Runtime
+    from services.store.logs import configure, event
 
     if args.env_file is not None and not Path(args.env_file).is_file():
         raise SettingsError(f"--env-file {args.env_file}: no such file")

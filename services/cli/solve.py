@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     params = result.params
     if args.robot:
         params = params.model_copy(update={"robot": args.robot})
-    from services.provenance import UNITS, dataset_sha256, provenance
+    from services.store.provenance import UNITS, dataset_sha256, provenance
 
     extra = {
         "provenance": provenance(

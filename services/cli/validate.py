@@ -19,7 +19,7 @@ python-can ``virtual`` bus, zenoh on loopback, simulated time in lockstep; truth
 Table 4, default noise), truth from ``sim/<robot>/truth/pose``.  With ``--can-interface`` it
 drives the robot on that bus and takes the truth from the motion-capture pose key
 ``mocap/<robot>/pose`` over zenoh.  The CAN driver's settings come from
-:func:`services.timing.driver_config`, as the service's (``SWPC_*`` settings apply).
+:func:`services.config.timing.driver_config`, as the service's (``SWPC_*`` settings apply).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from services.robot_config import RobotConfig
-    from services.settings import ServiceSettings
+    from services.config.robot import RobotConfig
+    from services.config.settings import ServiceSettings
     from swpc_hw.can.driver import CanDriver
     from swpc_hw.model import RobotParams
     from swpc_hw.validation import SquareOptions, ValidationReport
@@ -103,7 +103,7 @@ def register(sub: Any) -> None:
 
 def validation_settings(**overrides: Any) -> ServiceSettings:
     """The service settings (``SWPC_*`` environment) with the command's flags on top."""
-    from services.settings import ServiceSettings
+    from services.config.settings import ServiceSettings
 
     return ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
 
@@ -160,9 +160,9 @@ def run_in_process(
 ) -> ValidationReport:
     """The drive against the in-process simulator in lockstep (``truth`` hidden in it:
     default paper Table 4; default noise); a busy host slows it down, never changes it."""
-    from services.in_process_simulator import in_process_simulator
-    from services.robot_config import RobotConfig
-    from services.timing import driver_config
+    from services.config.robot import RobotConfig
+    from services.config.timing import driver_config
+    from services.runtime.simulator import in_process_simulator
     from simulators.mocap_sim import truth_pose_key
     from swpc_hw.can.driver import CanDriver
     from swpc_hw.clock import SimClock
@@ -254,7 +254,7 @@ def _files(
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from services.robot_config import load_robot_config
+    from services.config.robot import load_robot_config
     from swpc_hw.validation import SquareOptions
 
     config = load_robot_config(args.robot_config)
@@ -287,7 +287,7 @@ def run(args: argparse.Namespace) -> int:
 
             raise ValidationError("--truth is for the in-process simulator: a robot's truth "
                                   "is its motion capture")
-        from services.timing import driver_config
+        from services.config.timing import driver_config
         from swpc_hw.can.driver import CanDriver
         from swpc_hw.clock import SystemClock
         from swpc_hw.zenoh_session import open_session

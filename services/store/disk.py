@@ -6,7 +6,7 @@ directory the raw recordings (``dataset/can.log``, ``run.mcap``) are most of its
 can be pruned: the dataset's CSVs, the run's ``kinematics.yaml`` and plot are what its
 result rests on and are never deleted.  Before a run starts, the recordings of the oldest
 runs are deleted until the data dir leaves :func:`run_reserve` bytes of the budget free;
-the run may then write what is left of the budget (:class:`services.run_recording.SpaceGuard`).
+the run may then write what is left of the budget (:class:`services.runs.recording.SpaceGuard`).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 With no CAN interface configured the service runs on the *in-process simulator* (the
 default of ``make demo``): the virtual robot in the service's own process, on a python-can
 ``virtual`` bus and zenoh on loopback, in simulated time (lockstep).  Durations are
-seconds of robot time; :mod:`services.timing` derives every window from them.
+seconds of robot time; :mod:`services.config.timing` derives every window from them.
 """
 
 from __future__ import annotations

@@ -93,7 +93,7 @@ class MotionLimits(BaseModel):
 RUN_FIXED_LIMITS = frozenset({"watchdog_ms"})
 """Limits set for the service in the robot config only: the controllers' command watchdog
 is sent at activation and the driver's refresh period and the timing budget
-(:mod:`services.timing`) are derived from it."""
+(:mod:`services.config.timing`) are derived from it."""
 
 MAX_ANGLE_DEG = 360.0
 MAX_DRIVE_LENGTH = 20.0

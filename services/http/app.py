@@ -1,10 +1,10 @@
 """The calibration service's HTTP API (FastAPI).
 
 Operators start a calibration, watch it and read the result; motion and write
-endpoints need the bearer token from the settings.  See :mod:`services.runtime` for what
-is opened in the lifespan and :mod:`services.calibration_run` for the protocol.
+endpoints need the bearer token from the settings.  See :mod:`services.runtime.runtime` for what
+is opened in the lifespan and :mod:`services.runs.protocol` for the protocol.
 
-Before a request reaches a route, :class:`services.http_guard.RequestGuard` checks the
+Before a request reaches a route, :class:`services.http.guard.RequestGuard` checks the
 token of every request that may change something (before its body is read), the body's
 size and that a JSON body is standard JSON.  Responses are standard JSON too: a
 non-finite number is written ``null`` (:class:`FiniteJSONResponse`), and a validation
@@ -38,22 +38,23 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from services.calibration_run import RunStatus
-from services.console import console_router
-from services.http_guard import RequestGuard
-from services.imu_api import ReferenceIn, entries, imu_router, refused
-from services.imu_run import parse_references, reference_problems
-from services.kinematics_api import UnreadableFileProblem, kinematics_router, unreadable_problem
-from services.provenance import tool_version
-from services.robot_config import ConfigOverrides, OverrideError, RobotConfig
-from services.runtime import (
+from services.config.robot import ConfigOverrides, OverrideError, RobotConfig
+from services.config.settings import ServiceSettings
+from services.http.console import console_router
+from services.http.guard import RequestGuard
+from services.http.imu import ReferenceIn, entries, imu_router, refused
+from services.http.kinematics import UnreadableFileProblem, kinematics_router, unreadable_problem
+from services.runs.imu import parse_references, reference_problems
+from services.runs.protocol import RunStatus
+from services.runtime.health import service_health
+from services.runtime.runtime import (
     DiskSpaceError,
     NoResultError,
     RunConflictError,
     Runtime,
     StoreError,
 )
-from services.settings import ServiceSettings
+from services.store.provenance import tool_version
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.heap_freeze import freeze_startup_heap
 from swpc_hw.references import Reference
@@ -406,12 +407,12 @@ def create_app(
     )
     def health(rt: Rt) -> FiniteJSONResponse:
         """``ok`` / ``degraded`` (200) or ``failing`` (503), with the problems."""
-        state, doc = rt.health()
+        state, doc = service_health(rt)
         return FiniteJSONResponse(doc, status_code=503 if state == "failing" else 200)
 
     @app.get("/metrics", response_class=PlainTextResponse)
     def metrics(rt: Rt) -> PlainTextResponse:
-        from services.metrics import render_metrics
+        from services.http.metrics import render_metrics
 
         body, content_type = render_metrics(rt)
         return PlainTextResponse(body, media_type=content_type)

@@ -1,10 +1,10 @@
 """What happens to a run's data after the motion: solve it, judge it, install it, report it.
 
-Kept apart from the state machine (:mod:`services.calibration_run`), which calls these in
+Kept apart from the state machine (:mod:`services.runs.protocol`), which calls these in
 its SOLVE and WRITE states.  Everything here is a plain function of the run's data and
 files: ``swpc solve <run>/dataset`` reproduces :func:`solve_run` exactly, because both
 solve what was written (the run streams its dataset to disk as it records it,
-:mod:`services.run_recording`).
+:mod:`services.runs.recording`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from services.robot_config import RobotConfig, Tolerances
+from services.config.robot import RobotConfig, Tolerances
 from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.dataset import load_dataset

@@ -3,17 +3,17 @@
 :class:`RunJournal` is a run's one writer:
 
 * every run event (state, segment, fault, result) is a structured log line on the
-  ``swpc.run`` logger (:mod:`services.logs`: ``event=<name> run=<id> ...``) and, once the
+  ``swpc.run`` logger (:mod:`services.store.logs`: ``event=<name> run=<id> ...``) and, once the
   recordings are open, a ``foxglove.Log`` message in the run's MCAP;
 * the poses (or, without motion capture, the gyro's samples) and encoder samples are
-  streamed to the run's dataset directory and MCAP file (:mod:`services.run_recording`)
+  streamed to the run's dataset directory and MCAP file (:mod:`services.runs.recording`)
   every :data:`RECORD_PERIOD` of robot time, read from the sensor's ingest and the robot
   by cursor (each sample once); a service killed mid-run keeps everything up to the last
   batch;
 * the provenance of what the run writes (tool version and commit, the robot config's and
-  the dataset's hashes, units: :mod:`services.provenance`).
+  the dataset's hashes, units: :mod:`services.store.provenance`).
 
-The run's protocol (:mod:`services.calibration_run`) calls it; it never moves anything.
+The run's protocol (:mod:`services.runs.protocol`) calls it; it never moves anything.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from services.logs import event
-from services.provenance import UNITS, config_sha256, provenance
-from services.robot_config import RobotConfig
-from services.run_recording import RunRecording, SpaceGuard, json_bytes
+from services.config.robot import RobotConfig
+from services.runs.recording import RunRecording, SpaceGuard, json_bytes
+from services.store.logs import event
+from services.store.provenance import UNITS, config_sha256, provenance
 from swpc_hw.clock import Clock
 from swpc_hw.dataset import Segment
 from swpc_hw.model import FloatArray
@@ -41,8 +41,8 @@ RECORD_PERIOD = 0.5
 
 
 class SampleSource(Protocol):
-    """The motion sensor's ingest (:class:`~services.mocap_ingest.MocapIngest` rows
-    ``t_source, t_recv, t_host, x, y, yaw``, :class:`~services.imu_ingest.ImuIngest` rows
+    """The motion sensor's ingest (:class:`~services.sensors.mocap.MocapIngest` rows
+    ``t_source, t_recv, t_host, x, y, yaw``, :class:`~services.sensors.gyro.ImuIngest` rows
     ``t_source, t_recv, t_host, wz``)."""
 
     def samples_since(self, cursor: int, since: float) -> tuple[FloatArray, int]: ...
@@ -101,7 +101,7 @@ class RunJournal:
     def open(self, *, t0: float, install: str, created: str) -> None:
         """Create the run's dataset and MCAP (with the robot config, the provenance and
         the run's request as metadata); samples from ``t0 - 1 s`` on are recorded.
-        Raises :class:`~services.run_recording.RecordingError`."""
+        Raises :class:`~services.runs.recording.RecordingError`."""
         self._since = t0 - 1.0
         rec = RunRecording(
             self.run_dir,
@@ -127,7 +127,7 @@ class RunJournal:
         sensor's samples (the poses, or the gyro's without motion capture) and the encoder
         samples since the last call to the dataset and MCAP, then the disk checks.
         Returns ``(sensor samples, encoder samples)`` recorded so far, or ``None`` when
-        nothing was written.  Raises :class:`~services.run_recording.RecordingError`."""
+        nothing was written.  Raises :class:`~services.runs.recording.RecordingError`."""
         rec = self.recording
         if rec is None or not rec.dataset_open:
             return None
@@ -183,7 +183,7 @@ class RunJournal:
     def provenance(
         self, dataset_hash: str | None = None, method: str | None = None
     ) -> dict[str, Any]:
-        """Where what the run writes comes from (:func:`services.provenance.provenance`);
+        """Where what the run writes comes from (:func:`services.store.provenance.provenance`);
         with the dataset's hash and the solver's method, as the kinematic file has it."""
         doc = provenance(
             "swpc service",

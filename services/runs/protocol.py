@@ -37,16 +37,16 @@ limit, a step longer than ``step_timeout``, a recording that cannot be written, 
 that cannot be saved) or an abort: ``stop_all()`` first, then FAILED or ABORTED with the
 reason.  A service that stops (SIGTERM) ends its run FAILED, not "aborted by the
 operator".  Before PENDING -> CONNECT, the config's
-:meth:`~services.robot_config.RobotConfig.run_problems` (the service refuses such a run
+:meth:`~services.config.robot.RobotConfig.run_problems` (the service refuses such a run
 with 422 before it gets here).
 
 This module is the protocol's steps.  The machinery under them (the run's thread, state
 entry, the checks at every poll, waits on robot time, the end that stops the robot
-first) is :class:`services.run_machine.RunMachine`; the states, the operator's view of a
-run and the errors that end one are :mod:`services.run_state`; the spin's yaw and the
-rest test are pure functions of the poses (:mod:`services.pose_motion`).  What a run
+first) is :class:`services.runs.machine.RunMachine`; the states, the operator's view of a
+run and the errors that end one are :mod:`services.runs.state`; the spin's yaw and the
+rest test are pure functions of the poses (:mod:`services.runs.pose_motion`).  What a run
 leaves behind is written by its
-:class:`~services.run_journal.RunJournal`: from the start it streams the poses and encoder
+:class:`~services.runs.journal.RunJournal`: from the start it streams the poses and encoder
 samples to the run's dataset directory and MCAP file every half second of robot time
 (SOLVE solves what is on disk), and every event (state, segment, fault, result) is a
 structured log line on the ``swpc.run`` logger and a ``foxglove.Log`` message in the
@@ -56,7 +56,7 @@ Time is an input: every duration is robot seconds on the injected clock
 (:mod:`swpc_hw.clock`): the host's on a robot, the simulated one in lockstep against the
 in-process simulator (the run's thread is then a participant: the simulation waits for it
 at every step), a scaled one against an external time-scaled simulator.  Solving and
-installing live in :mod:`services.calibration_result`.
+installing live in :mod:`services.runs.install`.
 """
 
 from __future__ import annotations
@@ -69,16 +69,13 @@ from typing import Any
 
 import numpy as np
 
-from services.calibration_result import solve_run, within_tolerance, write_result
-from services.mocap_ingest import MocapIngest
-from services.pose_motion import REST_WINDOW, SpinWindow, motion_rates
-from services.provenance import dataset_sha256
-from services.robot_config import RobotConfig
-from services.robot_io import RobotIO
-from services.run_journal import RECORD_PERIOD, RunJournal
-from services.run_machine import RunMachine
-from services.run_recording import SpaceGuard
-from services.run_state import (
+from services.config.robot import RobotConfig
+from services.runs.install import solve_run, within_tolerance, write_result
+from services.runs.journal import RECORD_PERIOD, RunJournal
+from services.runs.machine import RunMachine
+from services.runs.pose_motion import REST_WINDOW, SpinWindow, motion_rates
+from services.runs.recording import SpaceGuard
+from services.runs.state import (
     MOTION,
     TERMINAL,
     TRANSITIONS,
@@ -89,9 +86,12 @@ from services.run_state import (
     State,
     now_iso,
 )
+from services.sensors.mocap import MocapIngest
+from services.store.provenance import dataset_sha256
 from swpc_hw.calibration.solver import CalibrationResult
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.dataset import Dataset, Segment, load_dataset
+from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
 from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
 

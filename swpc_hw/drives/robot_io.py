@@ -95,7 +95,7 @@ class DriverRobotIO:
     """:class:`RobotIO` on a :class:`CanDriver` (which owns the bus and its lifecycle).
 
     ``limits``: ``(max torque, (steer, wheel) max velocity)`` sent to every controller at
-    activation, after the driver's own (a run's tightened limits, :mod:`services.robot_config`).
+    activation, after the driver's own (a run's tightened limits, :mod:`services.config.robot`).
     """
 
     def __init__(

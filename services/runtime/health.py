@@ -1,6 +1,6 @@
 """``GET /health``: can a calibration start, or go on, now?
 
-:func:`service_health` judges the service's runtime (:class:`services.runtime.Runtime`):
+:func:`service_health` judges the service's runtime (:class:`services.runtime.runtime.Runtime`):
 ``failing`` when a calibration cannot start or go on (CAN not open or faulted, a node
 lost, a sensor the calibration needs not live or its clock off, the disk full, the store
 unwritable), ``degraded`` when it can but something needs attention (node errors, a CAN
@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import math
 import shutil
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from services.disk import run_reserve
+from services.runtime.runtime import Runtime
+from services.store.disk import run_reserve
 from swpc_hw.can.types import Lifecycle
 from swpc_hw.errors import KinematicFileError
-
-if TYPE_CHECKING:
-    from services.runtime import Runtime
 
 MIB = 1 << 20
 

@@ -21,7 +21,8 @@ from prometheus_client.metrics_core import (
     Metric,
 )
 
-from services.runtime import Runtime
+from services.runtime.health import service_health
+from services.runtime.runtime import Runtime
 
 CAN_ERROR_KINDS = (
     "error_frames",
@@ -135,7 +136,7 @@ class RuntimeCollector:
             buckets=cum,
             sum_value=sum(durations),
         )
-        status, _doc = rt.health()
+        status, _doc = service_health(rt)
         yield GaugeMetricFamily(
             "swpc_health", "0 ok, 1 degraded, 2 failing (GET /health)", HEALTH[status]
         )

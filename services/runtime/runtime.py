@@ -7,14 +7,14 @@ run the real app against the in-process simulator.  With no CAN interface config
 this process on a python-can ``virtual`` bus and zenoh on a loopback endpoint, in
 simulated time (one :class:`swpc_hw.clock.SimClock` shared by the simulator, the driver,
 the mocap ingest and the calibration runs).  Otherwise the clock is the host's, scaled by
-``time_scale`` for an external simulator (:mod:`services.timing`).
+``time_scale`` for an external simulator (:mod:`services.config.timing`).
 
 Long-running resources are bounded: one service per data dir and per CAN channel
-(:mod:`services.locks`, taken before anything is touched); the CAN traffic goes to a
+(:mod:`services.store.locks`, taken before anything is touched); the CAN traffic goes to a
 rolling log of at most ``SWPC_CAN_LOG_BYTES`` in ``<data dir>/can/`` (every frame during
 a run; between runs, the periodic frames once per ``SWPC_CAN_LOG_IDLE_PERIOD`` per CAN id
 and every event) plus one recording per run; a run starts only within the disk budget
-(:mod:`services.disk`) and fails when the disk fills.  A run's state that cannot be
+(:mod:`services.store.disk`) and fails when the disk fills.  A run's state that cannot be
 saved (the store unwritable) ends the run FAILED; what the API lists is then the
 in-memory state, saved again once the store takes writes.
 """
@@ -35,25 +35,25 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from services.calibration_run import TERMINAL, CalibrationRun, State
-from services.disk import make_room, run_reserve
-from services.events import EventBus
-from services.imu_ingest import ImuIngest
-from services.imu_run import ImuCalibrationRun
-from services.in_process_simulator import in_process_simulator
-from services.locks import ChannelLock, DataDirLock
-from services.logs import event
-from services.mocap_ingest import MocapIngest
-from services.robot_config import RobotConfig, load_robot_config
-from services.robot_io import DriverRobotIO
-from services.run_recording import SpaceGuard
-from services.settings import ServiceSettings, SettingsError
-from services.store import RunStore
-from services.timing import TimingBudget, driver_config, timing_budget
+from services.config.robot import RobotConfig, load_robot_config
+from services.config.settings import ServiceSettings, SettingsError
+from services.config.timing import TimingBudget, driver_config, timing_budget
+from services.runs.imu import ImuCalibrationRun
+from services.runs.protocol import TERMINAL, CalibrationRun, State
+from services.runs.recording import SpaceGuard
+from services.runtime.events import EventBus
+from services.runtime.simulator import in_process_simulator
+from services.sensors.gyro import ImuIngest
+from services.sensors.mocap import MocapIngest
+from services.store.disk import make_room, run_reserve
+from services.store.locks import ChannelLock, DataDirLock
+from services.store.logs import event
+from services.store.runs import RunStore
 from simulators.datagen_imu import GyroOptions
 from simulators.virtual_robot import Simulator
 from swpc_hw.can.driver import CanDriver
 from swpc_hw.clock import Clock, SimClock, SystemClock
+from swpc_hw.drives.robot_io import DriverRobotIO
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
@@ -312,7 +312,7 @@ class Runtime:
     ) -> CalibrationRun:
         """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`) with
         ``metrology`` (``imu``: without motion capture, with ``references``, checked:
-        :func:`services.imu_run.reference_problems`).
+        :func:`services.runs.imu.reference_problems`).
 
         Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
         disk budget (after pruning the oldest runs' recordings) or the file system's free
@@ -475,8 +475,8 @@ class Runtime:
         with self._plot_lock:  # one rendering at a time; every later request reads the file
             if path.is_file():
                 return path
-            from services.calibration_result import solve_run
-            from services.plots import calibration_plot
+            from services.runs.install import solve_run
+            from services.runs.plots import calibration_plot
             from swpc_hw.dataset import load_dataset
             from swpc_hw.kinematic_file import atomic_write_bytes
 
@@ -502,11 +502,5 @@ class Runtime:
         return doc
 
     # ------------------------------------------------------------------ health
-    def health(self) -> tuple[str, dict[str, Any]]:
-        """``(status, document)``: :func:`services.health.service_health`."""
-        from services.health import service_health
-
-        return service_health(self)
-
     def running(self) -> bool:
         return self.current is not None and self.current.status.state not in TERMINAL

@@ -1,8 +1,8 @@
 """A calibration run's vocabulary: its states and their transitions, what an operator
 sees of a run (:class:`RunStatus`) and the errors that end one.
 
-The protocol that walks these states is :mod:`services.calibration_run` (with motion
-capture) and :mod:`services.imu_run` (without: the states STILL, STEER, MARK, DRIVE and
+The protocol that walks these states is :mod:`services.runs.protocol` (with motion
+capture) and :mod:`services.runs.imu` (without: the states STILL, STEER, MARK, DRIVE and
 MEASURE are its own).
 """
 

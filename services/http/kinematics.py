@@ -1,7 +1,7 @@
 """The kinematic file in force, its dated backups, install and roll back (HTTP).
 
 * ``GET /kinematics/files``: the file in force and every backup kept beside it
-  (``<stem>.<UTC time><suffix>``, :func:`services.calibration_result.backup_kinematics`),
+  (``<stem>.<UTC time><suffix>``, :func:`services.runs.install.backup_kinematics`),
   newest first, each with the run it came from (its ``provenance.run``).
 * ``POST /calibrations/{id}/install``: installs a finished run's own result file.
 * ``POST /kinematics/rollback``: installs one of the backups again.
@@ -12,7 +12,7 @@ Both writes need the bearer token, are refused while a calibration runs (409), c
 file they install (a corrupt one is 422, shaped as FastAPI's own, and installs nothing)
 and keep the file they replace as a new backup: a roll-back can itself be rolled back.
 A write that fails (a full disk: 507, else 500) leaves the file in force untouched.
-Each outcome is a structured log line on ``swpc.service`` (:mod:`services.logs`):
+Each outcome is a structured log line on ``swpc.service`` (:mod:`services.store.logs`):
 ``kinematics.install`` / ``kinematics.rollback`` (INFO: the file installed, its sha256,
 the backup kept, the client), ``kinematics.install_refused`` (WARNING: 409, 422) and
 ``kinematics.install_failed`` (ERROR).
@@ -36,10 +36,10 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.calibration_result import BACKUP_STAMP, PARAMS, backup_kinematics
-from services.logs import event
-from services.robot_config import Tolerances
-from services.runtime import Runtime
+from services.config.robot import Tolerances
+from services.runs.install import BACKUP_STAMP, PARAMS, backup_kinematics
+from services.runtime.runtime import Runtime
+from services.store.logs import event
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.kinematic_file import KinematicFile, atomic_write_text, load_kinematics
 

@@ -18,7 +18,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-from services.robot_config import RobotConfig
+from services.config.robot import RobotConfig
 from simulators.datagen_imu import GyroOptions
 from simulators.mocap_sim import MocapOptions
 from simulators.sim_options import SimOptions

@@ -4,7 +4,7 @@
   nothing fetched from elsewhere).
 * ``GET /events`` server-sent events: ``hello`` (the robot's nominal geometry and the
   protocol defaults), ``run`` (a run's status on every change of state, pushed by the
-  state machine through :class:`services.events.EventBus`) and ``live`` (nodes, mocap age,
+  state machine through :class:`services.runtime.events.EventBus`) and ``live`` (nodes, mocap age,
   the robot's pose, its trajectory since the last one, the fixed point of every spin done)
   every :data:`LIVE_PERIOD` s of host time while the stream is open.  ``?run=<id>``
   follows one run and ends after its final state.
@@ -39,8 +39,8 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from pydantic import BaseModel, Field
 
-from services.calibration_run import TERMINAL, CalibrationRun
-from services.runtime import Runtime
+from services.runs.protocol import TERMINAL, CalibrationRun
+from services.runtime.runtime import Runtime
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import SwpcError

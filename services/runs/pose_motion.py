@@ -1,7 +1,7 @@
 """What the motion capture says of the robot's motion: at rest, and how far a spin went.
 
 Pure functions of the poses (their sample times on the run's clock and their values):
-no clock, no I/O, so the calibration run (:mod:`services.calibration_run`) and the tests
+no clock, no I/O, so the calibration run (:mod:`services.runs.protocol`) and the tests
 feed them poses and get the same answer on any host.
 
 * :func:`motion_rates`: speed and yaw rate as least-squares slopes (the REST state waits

@@ -24,9 +24,9 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.imu_run import ImuCalibrationRun
-from services.run_state import RunStatus
-from services.runtime import Runtime
+from services.runs.imu import ImuCalibrationRun
+from services.runs.state import RunStatus
+from services.runtime.runtime import Runtime
 from swpc_hw.errors import DatasetError
 
 DEFAULT_TAPE_STDDEV = 0.5e-3

@@ -4,7 +4,7 @@ The poses and encoder samples of a run go to its dataset directory (the offline 
 format of ``docs/dataset-format.md``: ``robot.yaml``, ``poses.csv``, ``encoders.csv``,
 ``segments.csv``; without motion capture ``imu.csv`` instead of ``poses.csv``, and
 ``references.yaml`` once the references are known) and to its MCAP file
-(:mod:`services.mcap_export`) while the run goes on, in batches
+(:mod:`services.runs.mcap`) while the run goes on, in batches
 (:meth:`RunRecording.flush`, every half second of robot time), each handed to the OS in
 one write: a service killed mid-run keeps everything up to its last flush, and
 ``swpc solve <run>/dataset`` reads it.  The rows are formatted exactly as
@@ -30,7 +30,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from services.mcap_export import McapRecorder
+from services.runs.mcap import McapRecorder
 from swpc_hw.dataset import (
     ENCODERS_COLUMNS,
     IMU_COLUMNS,

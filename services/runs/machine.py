@@ -1,13 +1,13 @@
 """A run's machinery: its thread, states, checks, waits on robot time, and its end.
 
-:class:`RunMachine` is what every step of a calibration (:mod:`services.calibration_run`,
+:class:`RunMachine` is what every step of a calibration (:mod:`services.runs.protocol`,
 which subclasses it with the protocol's steps in :meth:`RunMachine._protocol`) relies on:
 
-* :meth:`~RunMachine._enter` a state: only along :data:`~services.run_state.TRANSITIONS`,
+* :meth:`~RunMachine._enter` a state: only along :data:`~services.runs.state.TRANSITIONS`,
   saved by the owner (``on_change``: a state that cannot be saved fails the run), logged;
 * :meth:`~RunMachine._check`, at every poll of every step: an abort, a shutdown, a robot
   fault, a stale motion sensor during motion, a step over ``limits.step_timeout``; the
-  recordings are written from here too (:class:`~services.run_journal.RunJournal`);
+  recordings are written from here too (:class:`~services.runs.journal.RunJournal`);
 * :meth:`~RunMachine._end`: ``stop_all()`` first (its latency measured for an abort), then
   release, FAILED or ABORTED with the reason (and the state it happened in), the last
   samples recorded and the recordings closed.
@@ -29,12 +29,10 @@ import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from services.mocap_ingest import MocapIngest
-from services.robot_config import RobotConfig
-from services.robot_io import RobotIO
-from services.run_journal import RunJournal, SampleSource
-from services.run_recording import RecordingError
-from services.run_state import (
+from services.config.robot import RobotConfig
+from services.runs.journal import RunJournal, SampleSource
+from services.runs.recording import RecordingError
+from services.runs.state import (
     TERMINAL,
     TRANSITIONS,
     PersistError,
@@ -44,7 +42,9 @@ from services.run_state import (
     State,
     now_iso,
 )
+from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.drives.robot_io import RobotIO
 
 
 class RunMachine:

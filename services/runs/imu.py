@@ -1,7 +1,7 @@
 """A calibration without motion capture: the robot's encoders, its gyro and a tape measure.
 
-:class:`ImuCalibrationRun` walks the protocol of :mod:`services.calibration_run` with the
-gyro (:mod:`services.imu_ingest`) where that one reads the poses, and adds what the
+:class:`ImuCalibrationRun` walks the protocol of :mod:`services.runs.protocol` with the
+gyro (:mod:`services.sensors.gyro`) where that one reads the poses, and adds what the
 mocap-free solver needs (docs/mocap-free.md, and the simulated protocol
 :data:`simulators.datagen_imu.MOCAP_FREE_PROTOCOL`)::
 
@@ -13,12 +13,12 @@ mocap-free solver needs (docs/mocap-free.md, and the simulated protocol
 
 * PRECHECK: nodes, errors, homing and a live gyro whose stamps are this host's time.
 * REST: every wheel braked until the gyro and the wheel encoders show the robot still
-  (over :data:`~services.pose_motion.REST_WINDOW`).
+  (over :data:`~services.runs.pose_motion.REST_WINDOW`).
 * STILL: the dynamic wheels braked and the robot held still for ``protocol.rest_time``
   (still by the gyro and the encoders, else longer): the gyro's bias before every spin,
   measured again by the solver from the encoders' stillness.
 * SPIN: as with motion capture; the sweep and the yaw-rate limit come from the gyro's
-  rate minus the bias of the STILL before (:class:`~services.imu_motion.GyroYaw`).
+  rate minus the bias of the STILL before (:class:`~services.runs.gyro_motion.GyroYaw`).
 * STEER: every module steered to the straight drive's direction (the wheel trailing its
   axis for a drive along ``protocol.drive_heading_deg`` in R, nominal ``beta``), wheels
   braked.
@@ -54,16 +54,16 @@ from typing import Any
 
 import numpy as np
 
-from services.calibration_run import CalibrationRun
-from services.imu_ingest import ImuIngest
-from services.imu_motion import GyroYaw, RecentRows, stillness, wheel_speed, wheel_travel
-from services.mocap_ingest import MocapIngest
-from services.pose_motion import REST_WINDOW, SpinWindow
-from services.robot_config import RobotConfig
-from services.robot_io import RobotIO
-from services.run_journal import SampleSource
-from services.run_state import RunFailedError, State
+from services.config.robot import RobotConfig
+from services.runs.gyro_motion import GyroYaw, RecentRows, stillness, wheel_speed, wheel_travel
+from services.runs.journal import SampleSource
+from services.runs.pose_motion import REST_WINDOW, SpinWindow
+from services.runs.protocol import CalibrationRun
+from services.runs.state import RunFailedError, State
+from services.sensors.gyro import ImuIngest
+from services.sensors.mocap import MocapIngest
 from swpc_hw.dataset import Segment
+from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import DatasetError
 from swpc_hw.model import wrap_angle
 from swpc_hw.references import (

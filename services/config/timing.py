@@ -43,8 +43,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.robot_config import RobotConfig
-from services.settings import ServiceSettings
+from services.config.robot import RobotConfig
+from services.config.settings import ServiceSettings
 from swpc_hw.can.config import CanConfig
 
 HEARTBEAT_PERIOD_S = 0.1
