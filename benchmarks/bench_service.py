@@ -90,8 +90,8 @@ def abort_latency(trials: int, sim_speed: float) -> None:
         app = create_app(settings)
         with TestClient(app) as client:
             rt = app.state.runtime
-            watch = StopWatch(rt.driver._bus)
-            nodes = set((rt.config.nodes or {}).values())
+            watch = StopWatch(rt.drives._bus)
+            nodes = set(rt.config.drives.node_map().values())
             lat: list[float] = []
             for _ in range(trials):
                 r = client.post("/calibrations", json={}, headers=AUTH)

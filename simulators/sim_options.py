@@ -12,6 +12,7 @@ from simulators.datagen_imu import GyroOptions
 from simulators.imu_sim import check_gyro
 from simulators.mocap_sim import MocapOptions
 from simulators.robot_sim import PhysicsOptions
+from swpc_hw.drives.config import DrivesConfig, SwpcDrives
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams
 
@@ -21,8 +22,9 @@ class SimOptions:
     """Settings of the virtual robot (SI units; simulated time)."""
 
     robot: str = "swpc"
-    nodes: Mapping[int, int] | None = None
-    """Module id -> CAN node id (default: 1..N in module order)."""
+    drives: DrivesConfig = field(default_factory=SwpcDrives)
+    """The drive kind and each module's CAN nodes (default: swpc's own, nodes 1..N in
+    module order), as in a robot config (:mod:`swpc_hw.drives.config`)."""
     time_scale: float = 1.0
     physics_dt: float = 0.005
     """Longest physics step (s); a tick is also no longer than the fastest feedback period."""
@@ -77,6 +79,7 @@ class SimStats:
     bus_errors_injected: int = 0
     feedback_frames: dict[int, int] = field(default_factory=dict)
     heartbeats: dict[int, int] = field(default_factory=dict)
+    """Per module id: the feedback frames and heartbeats its drives sent."""
     poses_published: int = 0
     gyro_published: int = 0
     truth_published: int = 0
@@ -91,13 +94,13 @@ class SimStats:
         return self.cpu_time / self.wall_time if self.wall_time > 0 else 0.0
 
     def rates(self) -> dict[str, float]:
-        """Per-node feedback samples/s and heartbeats/s, poses/s, in *simulated* time."""
+        """Per-module feedback frames/s and heartbeats/s, poses/s, in *simulated* time."""
         t = self.sim_time if self.sim_time > 0 else math.inf
         out: dict[str, float] = {"poses_hz": self.poses_published / t}
-        for node, n in sorted(self.feedback_frames.items()):
-            out[f"node{node}_feedback_hz"] = n / t
-        for node, n in sorted(self.heartbeats.items()):
-            out[f"node{node}_heartbeat_hz"] = n / t
+        for module, n in sorted(self.feedback_frames.items()):
+            out[f"module{module}_feedback_hz"] = n / t
+        for module, n in sorted(self.heartbeats.items()):
+            out[f"module{module}_heartbeat_hz"] = n / t
         return out
 
 
@@ -107,15 +110,18 @@ def _signal_scale(name: str) -> float:
 
 
 def params_document(
-    truth: RobotParams, nodes: Mapping[int, int], opt: SimOptions, sensors: Sequence[float]
+    truth: RobotParams,
+    drives: Mapping[int, Mapping[str, Any]],
+    opt: SimOptions,
+    sensors: Sequence[float],
 ) -> dict[str, Any]:
-    """The ``sim/<robot>/truth/params`` document: the true robot as a kinematic file, the
-    CAN nodes and the simulator's settings (``sensors``: the homing sensors' power-up
-    steering coordinates)."""
+    """The ``sim/<robot>/truth/params`` document: the true robot as a kinematic file, each
+    module's drives (kind, CAN nodes) and the simulator's settings (``sensors``: the homing
+    sensors' power-up steering coordinates)."""
     doc = kinematics_document(
         truth, extra={"note": "simulator ground truth (tests and validation only)"}
     )
-    doc["nodes"] = {str(m): n for m, n in nodes.items()}
+    doc["drives"] = {str(m): dict(d) for m, d in drives.items()}
     doc["simulator"] = {
         "time_scale": opt.time_scale,
         "physics_dt": opt.physics_dt,

@@ -74,7 +74,7 @@ import contextlib
 import math
 import threading
 import time
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from typing import Any
@@ -82,9 +82,8 @@ from typing import Any
 import can
 import numpy as np
 
-from firmware_protocol import codec
-from firmware_protocol.codec import Axis, ErrorFlag, Frame
-from simulators.axis_drives import axis_drive, module_drive, quantize
+from firmware_protocol.codec import Axis, ErrorFlag
+from simulators.axis_drives import module_drive, quantize
 from simulators.imu_sim import GyroSim, PoseHistory, axis_travel, tape_measure
 from simulators.mocap_sim import MocapSim, TruthPublisher
 from simulators.physics import FloatArray, se2_step
@@ -95,7 +94,7 @@ from simulators.robot_sim import (
     WheelDrive,
 )
 from simulators.sim_options import SimOptions, SimStats, params_document
-from simulators.virtual_controller import VirtualController
+from simulators.virtual_drives import VirtualDrive, virtual_drives
 from swpc_hw.clock import SimClock, SystemClock, next_instant
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -126,10 +125,6 @@ class Simulator:
         self._own_session = own_session
         n = len(truth.modules)
         rng = np.random.default_rng(opt.seed)
-        nodes = dict(opt.nodes) if opt.nodes else {m: i + 1 for i, m in enumerate(truth.ids)}
-        if sorted(nodes) != sorted(truth.ids):
-            raise ValueError(f"nodes must map exactly the module ids {truth.ids}")
-        self.nodes: dict[int, int] = nodes
         theta0 = opt.theta0 if opt.theta0 is not None else rng.uniform(-math.pi, math.pi, n)
         sensors = (
             list(opt.sensor_positions)
@@ -137,17 +132,14 @@ class Simulator:
             else list(rng.uniform(-math.pi, math.pi, n))
         )
         self.robot = RobotSim(truth, opt.physics, opt.pose0, list(theta0))
-        self.controllers: list[VirtualController] = [
-            VirtualController(
-                node=nodes[m],
-                rate_hz=opt.feedback_rate_hz,
-                watchdog_ms=opt.watchdog_ms,
-                homing_duration=opt.homing_duration,
-                sensor_position=float(sensors[i]),
-            )
-            for i, m in enumerate(truth.ids)
-        ]
-        self._by_node = {c.node: c for c in self.controllers}
+        self.drives: list[VirtualDrive] = virtual_drives(
+            opt.drives,
+            truth.ids,
+            feedback_rate_hz=opt.feedback_rate_hz,
+            watchdog_ms=opt.watchdog_ms,
+            homing_duration=opt.homing_duration,
+            sensor_positions=sensors,
+        )
         self.mocap = MocapSim(opt.robot, opt.mocap, session, clock=clock)
         self.gyro = GyroSim(opt.robot, opt.gyro, session, seed=opt.seed, clock=clock)
         self.history = PoseHistory()  # the true poses, for the tape measure
@@ -161,7 +153,6 @@ class Simulator:
         self._started = False
         self._stopped = False
         self._stats = SimStats()
-        self._sent: Counter[int] = Counter()
         # real time: the host's clock at the simulator's rate, and the host-clock time of
         # robot time 0 (moved on when the host cannot keep up)
         self._host = SystemClock(rate=opt.time_scale)
@@ -220,8 +211,9 @@ class Simulator:
         )
 
     def _params_doc(self) -> dict[str, Any]:
-        sensors = [c.sensor_position for c in self.controllers]
-        return params_document(self.truth, self.nodes, self.options, sensors)
+        drives = {m: d.params() for m, d in zip(self.truth.ids, self.drives, strict=True)}
+        sensors = [d.sensor_position for d in self.drives]
+        return params_document(self.truth, drives, self.options, sensors)
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> Simulator:
@@ -245,8 +237,8 @@ class Simulator:
                 self.start_time = time.time() if opt.start_time is None else opt.start_time
             self._origin = self._host.now()
             self._write_encoders()
-            for c in self.controllers:
-                self._transmit(c.step(self.now))  # first call initialises its clocks
+            for d in self.drives:
+                self._transmit(d.step(self.now))  # first call initialises its clocks
             self.truth_pub.maybe_publish_params(self.now)
             self._sample_mocap(self.now, self.now, self.robot.pose, np.zeros(3))
             self._thread = threading.Thread(target=self._run, name="swpc-sim", daemon=True)
@@ -285,15 +277,14 @@ class Simulator:
 
     # ------------------------------------------------------------------ injection
     def mute(self, module: int, muted: bool = True) -> None:
-        """Heartbeat loss: the module's controller sends nothing while muted."""
+        """Heartbeat loss: the module's drives send nothing while muted."""
         with self._lock:
-            self.controllers[self.truth.index(module)].muted = muted
+            self.drives[self.truth.index(module)].muted = muted
 
     def inject_fault(self, module: int, axis: Axis, error: ErrorFlag) -> None:
         """Latch a hardware error on an axis (it goes to FAULT and reports it)."""
         with self._lock:
-            c = self.controllers[self.truth.index(module)]
-            self._transmit(c.inject_error(axis, error))
+            self._transmit(self.drives[self.truth.index(module)].inject_fault(axis, error))
 
     def push(self, f_x: float = 0.0, f_y: float = 0.0, torque: float = 0.0) -> None:
         """Push the body with a constant wrench in R (N, N, N m about R's origin) until
@@ -318,14 +309,9 @@ class Simulator:
             st.poses_published = self.mocap.counters.published
             st.gyro_published = self.gyro.counters.published
             st.truth_published = self.truth_pub.published
-            fb = codec.Command.FEEDBACK_POSITION
-            hb = codec.Command.HEARTBEAT
-            st.feedback_frames = {
-                c.node: self._sent[codec.frame_id(c.node, fb)] for c in self.controllers
-            }
-            st.heartbeats = {
-                c.node: self._sent[codec.frame_id(c.node, hb)] for c in self.controllers
-            }
+            by_module = list(zip(self.truth.ids, self.drives, strict=True))
+            st.feedback_frames = {m: d.feedback_frames for m, d in by_module}
+            st.heartbeats = {m: d.heartbeats for m, d in by_module}
             return replace(st)
 
     def truth_snapshot(self) -> dict[str, Any]:
@@ -345,7 +331,7 @@ class Simulator:
             "psi": r.psi.tolist(),
             "psi_encoder": r.psi_encoder.tolist(),
             "contact_points": r.contact_points().tolist(),
-            "homed": [c.homed for c in self.controllers],
+            "homed": [d.homed for d in self.drives],
         }
 
     # ------------------------------------------------------------------ the loop
@@ -408,7 +394,7 @@ class Simulator:
                 while msg is not None:
                     self._on_message(msg)
                     msg = self.bus.recv(0)
-                due = min(c.next_due() for c in self.controllers)
+                due = min(d.next_due() for d in self.drives)
                 t_next = next_instant(t, [t + self.tick_dt(), due, clock.next_wake()])
                 self._tick(t_next - t, t_end=t_next)
                 self._cpu = time.thread_time() - cpu0
@@ -452,38 +438,27 @@ class Simulator:
 
     def tick_dt(self) -> float:
         """``min(physics_dt, 1 / fastest free-running feedback rate)`` (s)."""
-        rates = [c.rate_hz for c in self.controllers if c.rate_hz > 0 and not c.sync_mode]
+        rates = [r for r in (d.feedback_rate() for d in self.drives) if r > 0]
         dt = self.options.physics_dt
         return min(dt, 1.0 / max(rates)) if rates else dt
 
     def _on_message(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+        if msg.is_error_frame:
             return
-        frame = Frame(msg.arbitration_id, bytes(msg.data))
-        node, _ = codec.split_id(frame.arbitration_id)
         with self._lock:
             self._stats.frames_rx += 1
             now = self.now
-            if frame.arbitration_id == codec.SYNC_ID:
-                targets = self.controllers
-            else:
-                c = self._by_node.get(node)
-                targets = [] if c is None else [c]
-            for c in targets:
-                c._t = now  # the physics owns the axes: the firmware logic only, no dt
-                self._transmit(c.handle(frame, now))
+            for d in self.drives:
+                self._transmit(d.receive(msg, now))
 
     def _tick(self, dt: float, t_end: float | None = None) -> None:
         """Advance by ``dt`` (``t_end``: the simulated time reached, exactly: lockstep)."""
         opt = self.options
         r = self.robot
         drives = []
-        for i, c in enumerate(self.controllers):
-            steer_pos = self._steer_reported(i)
-            s = axis_drive(c.axes[Axis.STEER], Axis.STEER, steer_pos, dt, opt.position_tau)
-            w = axis_drive(
-                c.axes[Axis.WHEEL], Axis.WHEEL, float(r.psi_encoder[i]), dt, opt.position_tau
-            )
+        for i, d in enumerate(self.drives):
+            s = d.drive(Axis.STEER, self._steer_reported(i), dt, opt.position_tau)
+            w = d.drive(Axis.WHEEL, float(r.psi_encoder[i]), dt, opt.position_tau)
             drives.append(module_drive(s, w))
         t0 = self.now
         pose0 = r.pose.copy()
@@ -496,11 +471,10 @@ class Simulator:
         if self.truth_pub.due(now):
             self.truth_pub.publish_pose(self._truth_doc())
         self.truth_pub.maybe_publish_params(now)
-        for c in self.controllers:
-            was_homed = c.homed
-            c._t = now  # the physics owns the axes: the firmware logic only, no dt
-            self._transmit(c.step(now))
-            if c.homed and not was_homed:
+        for d in self.drives:
+            was_homed = d.homed
+            self._transmit(d.step(now))
+            if d.homed and not was_homed:
                 self._write_encoders(drives)
         if opt.bus_error_rate > 0.0 and r.t >= self._next_bus_error:
             self._next_bus_error = r.t + float(self._rng.exponential(1.0 / opt.bus_error_rate))
@@ -508,26 +482,37 @@ class Simulator:
         self._stats.ticks += 1
 
     def _steer_reported(self, i: int) -> float:
-        c = self.controllers[i]
-        off = 0.0 if c.homed else c.sensor_position
+        d = self.drives[i]
+        off = 0.0 if d.homed else d.sensor_position
         return float(self.robot.theta[i] - self.robot.arrays.beta[i] + off)
 
     def _write_encoders(self, drives: Sequence[ModuleDrive] | None = None) -> None:
+        """The encoders after a tick into the drives (``drives``: what each module's axes
+        did in it; None at the start: nothing applied yet)."""
         opt = self.options
         r = self.robot
-        for i, c in enumerate(self.controllers):
-            s, w = c.axes
-            s.position = quantize(self._steer_reported(i), opt.steer_counts)
-            w.position = quantize(float(r.psi_encoder[i]), opt.wheel_counts)
-            s.velocity = float(r.theta_dot[i])
-            w.velocity = float(r.psi_dot[i])
-            if drives is None:
-                continue
-            d = drives[i]
-            w.torque = d.wheel_value if d.wheel is WheelDrive.TORQUE else w.friction * w.velocity
-            if d.wheel in (WheelDrive.PASSIVE, WheelDrive.BRAKE):
-                w.torque = 0.0
-            s.torque = s.friction * s.velocity if d.steer is SteerDrive.RATE else 0.0
+        for i, d in enumerate(self.drives):
+            steer_torque: float | None = 0.0
+            wheel_torque: float | None = 0.0
+            if drives is not None:
+                md = drives[i]
+                steer_torque = None if md.steer is SteerDrive.RATE else 0.0
+                if md.wheel is WheelDrive.TORQUE:
+                    wheel_torque = md.wheel_value
+                elif md.wheel is WheelDrive.RATE:
+                    wheel_torque = None
+            d.sense(
+                Axis.STEER,
+                quantize(self._steer_reported(i), opt.steer_counts),
+                float(r.theta_dot[i]),
+                steer_torque,
+            )
+            d.sense(
+                Axis.WHEEL,
+                quantize(float(r.psi_encoder[i]), opt.wheel_counts),
+                float(r.psi_dot[i]),
+                wheel_torque,
+            )
 
     def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
         """The poses and gyro samples due in ``(t0, t1]``, stamped like the tick's frames
@@ -556,22 +541,15 @@ class Simulator:
         travel = axis_travel(p0, p1, self.robot.arrays.P_s[0])
         return tape_measure(travel, stddev, np.random.default_rng([self.options.seed, seed]))
 
-    def _transmit(self, frames: Iterable[Frame]) -> None:
+    def _transmit(self, frames: Iterable[can.Message]) -> None:
         stamp = self.clock.to_wall(self.now) if self.clock is not None else 0.0
         for f in frames:
+            f.timestamp = stamp
             try:
-                self.bus.send(
-                    can.Message(
-                        arbitration_id=f.arbitration_id,
-                        data=f.data,
-                        is_extended_id=False,
-                        timestamp=stamp,
-                    )
-                )
+                self.bus.send(f)
             except (can.CanError, OSError):
                 self._stats.tx_errors += 1
                 continue
-            self._sent[f.arbitration_id] += 1
             self._stats.frames_tx += 1
 
     def _inject_bus_error(self) -> None:

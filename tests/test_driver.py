@@ -314,10 +314,10 @@ def test_every_command_reaches_the_controller(active: Rig) -> None:
 def test_robot_io_steers_the_shortest_way_from_a_multi_turn_position(active: Rig) -> None:
     """The state machine's lock / steer_to: a free caster has trailed to -352.5 deg (multi-
     turn); locking it at 45 deg must turn it 37.5 deg (to -315 deg), not 397.5 deg back."""
-    from swpc_hw.drives.robot_io import DriverRobotIO
+    from swpc_hw.drives.robot_io import DrivesRobotIO
 
     drv, c1 = active.drv, active.ctrl(1)
-    io = DriverRobotIO(drv)
+    io = DrivesRobotIO(drv)
     drv.enable(1, Axis.WHEEL)
     drv.hold(1, Axis.WHEEL)  # a commanded axis: the driver's refresh feeds the watchdog
     drv.enable(1, Axis.STEER)
@@ -574,11 +574,11 @@ def test_robot_io_reports_a_fault_stop_before_its_event_callback_runs(active: Ri
     may be slow) must not leave a window in which take_faults() is empty yet the next
     command is refused, and the motors stop before any callback runs.  Checked from
     inside that first callback, at the moment it runs."""
-    from swpc_hw.drives.robot_io import DriverRobotIO
+    from swpc_hw.drives.robot_io import DrivesRobotIO
 
     drv = active.drv
     seen: list[dict[str, object]] = []
-    io: DriverRobotIO | None = None
+    io: DrivesRobotIO | None = None
 
     def first(ev: DriverEvent) -> None:  # registered first: runs before the RobotIO's
         if ev.severity is not Severity.FAULT or io is None:
@@ -599,7 +599,7 @@ def test_robot_io_reports_a_fault_stop_before_its_event_callback_runs(active: Ri
         )
 
     drv.add_event_callback(first)
-    io = DriverRobotIO(drv)
+    io = DrivesRobotIO(drv)
     drv.enable(1, Axis.WHEEL)
     drv.hold(1, Axis.WHEEL)
     assert io.take_faults() == []

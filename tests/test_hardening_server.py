@@ -541,7 +541,7 @@ def test_a_second_runtime_on_the_can_channel_stops_and_lets_go(tmp_path: Path) -
     finally:
         first.close()
     second = runtime("b").open()  # the channel too, once the first has stopped
-    assert second.driver is not None and math.isfinite(second.clock.now())
+    assert second.drives is not None and math.isfinite(second.clock.now())
     second.close()
 
 

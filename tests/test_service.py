@@ -257,7 +257,7 @@ def installed(service: tuple[TestClient, Runtime, Recorder]) -> Iterator[bytes]:
 
 
 def assert_stopped(rec: Recorder, since: float, rt: Runtime) -> None:
-    nodes = set((rt.config.nodes or {}).values())
+    nodes = set(rt.config.drives.node_map().values())
     want = {(n, a) for n in nodes for a in (0, 1)}
     deadline = time.monotonic() + 2.0
     while time.monotonic() < deadline:
@@ -314,10 +314,10 @@ def yaw_rate(rt: Runtime, t0: float, t1: float) -> float:
 
 def home_and_release(rt: Runtime) -> None:
     """Home every steering not homed yet, then leave every axis free and disabled."""
-    from swpc_hw.drives.robot_io import DriverRobotIO
+    from swpc_hw.drives.robot_io import DrivesRobotIO
 
-    assert rt.driver is not None
-    io = DriverRobotIO(rt.driver)
+    assert rt.drives is not None
+    io = DrivesRobotIO(rt.drives)
     try:
         io.activate()
         for m in io.unhomed():
@@ -343,7 +343,7 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    node = (rt.config.nodes or {})[1]
+    node = rt.config.drives.node_map()[1]
     window = 0.5  # s of robot time
     home_and_release(rt)  # (homing steers the modules, which would stop the robot too)
     sim.push(torque=2.0)  # turns the free robot at 0.24 rad/s
@@ -373,7 +373,7 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
             lambda n, d, m=m: n == m and isinstance(d, codec.SetControl)
             and d.axis == codec.Axis.WHEEL and d.mode == ControlMode.HOLD
         )
-        for m in (rt.config.nodes or {}).values()
+        for m in rt.config.drives.node_map().values()
     )
     assert wheels_braked < t_lock
     # pushed until braked: 0.24 rad/s

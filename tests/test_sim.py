@@ -39,6 +39,7 @@ from simulators.sim_options import SimOptions
 from simulators.virtual_robot import Simulator
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
+from swpc_hw.drives.config import SwpcDrives
 from swpc_hw.imu import decode_imu
 from swpc_hw.mocap import PoseEncoding, decode_pose
 from swpc_hw.model import RobotParams, rot
@@ -606,7 +607,10 @@ def test_custom_nodes_encoder_quantisation_and_bus_errors() -> None:
         truth,
         bus=bus,
         options=SimOptions(
-            nodes={10: 5, 20: 6, 30: 7}, steer_counts=2**10, wheel_counts=2**12, start_time=0.0
+            drives=SwpcDrives(modules={10: 5, 20: 6, 30: 7}),
+            steer_counts=2**10,
+            wheel_counts=2**12,
+            start_time=0.0,
         ),
         clock=clock,
     )

@@ -7,7 +7,7 @@ from pydantic import SecretStr
 
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
-from services.config.timing import TimingError, driver_config, timing_budget
+from services.config.timing import TimingError, bus_config, timing_budget
 
 
 def settings(**kw: object) -> ServiceSettings:
@@ -21,7 +21,7 @@ def test_the_in_process_simulator_gets_the_robots_own_windows() -> None:
     assert (b.watchdog, b.heartbeat_loss, b.mocap_stale) == (0.2, 0.3, 0.5)
     # refreshed exactly on time in lockstep: the longest period the budget allows, W / 4
     assert b.refresh == 0.05 and b.deadman == 0.5 and b.stop_bound == pytest.approx(0.7)
-    c = driver_config(settings(), cfg, interface="virtual", channel="x")
+    c = bus_config(settings(), cfg, interface="virtual", channel="x")
     assert (c.watchdog_timeout_ms, c.refresh_period_s, c.heartbeat_loss_periods) == (200, 0.05, 3)
     assert c.activate_timeout_s == 1.0 and c.feedback_rate_hz == 50  # the simulator's CPU
     assert c.modules == {1: 1, 2: 2, 3: 3, 4: 4}
@@ -34,7 +34,7 @@ def test_a_robot_is_the_same_budget_on_its_own_interface() -> None:
     b = timing_budget(st, cfg)
     assert (b.watchdog, b.refresh, b.heartbeat_loss, b.mocap_stale) == (0.1, 0.02, 0.3, 0.5)
     assert b.feedback_period == 0.005  # 200 Hz on a bus
-    c = driver_config(settings(feedback_rate=150), cfg, interface="virtual", channel="x")
+    c = bus_config(settings(feedback_rate=150), cfg, interface="virtual", channel="x")
     assert c.feedback_rate_hz == 150
 
 
@@ -54,7 +54,7 @@ def test_an_external_time_scaled_simulator_widens_the_windows_in_host_seconds(
     extra = {} if host_window is None else {"sim_host_window_s": host_window}
     st = settings(can_interface="socketcan", time_scale=scale, **extra)
     b = timing_budget(st, RobotConfig())
-    c = driver_config(st, RobotConfig(), interface="socketcan", channel="vcan0")
+    c = bus_config(st, RobotConfig(), interface="socketcan", channel="vcan0")
     assert c.watchdog_timeout_ms == watchdog_ms
     assert b.heartbeat_loss == pytest.approx(loss) and b.mocap_stale == pytest.approx(loss)
     assert c.refresh_period_s == pytest.approx(refresh)

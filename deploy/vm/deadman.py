@@ -15,7 +15,7 @@ A hold (``one_hold``) starts, on ``--channel``:
   instead (``emulate``), which under QEMU's emulation takes most of an emulated CPU from
   the driver and falls behind on its own heartbeats;
 * ``hold``: the service side, at normal priority: a :class:`CanDriver` with the service's
-  own CAN settings at the robot's windows (:func:`services.config.timing.driver_config`: watchdog
+  own CAN settings at the robot's windows (:func:`services.config.timing.bus_config`: watchdog
   200 ms, refresh 20 ms, heartbeat loss 0.3 s, dead-man 0.5 s unless ``--deadman``; on
   SocketCAN the refresh goes through the kernel's broadcast manager), activated, every axis
   enabled and held.  Once held it prints ``HELD``; it holds on without load for ``--idle``
@@ -105,7 +105,7 @@ def hold(args: argparse.Namespace) -> int:
 
     from services.config.robot import RobotConfig
     from services.config.settings import ServiceSettings
-    from services.config.timing import driver_config, timing_budget
+    from services.config.timing import bus_config, timing_budget
     from swpc_hw.can import CanDriver, CanError, LifecycleError, Severity
 
     # SIGTERM/SIGINT end the hold through sigwait (an orderly shutdown: stop frames);
@@ -117,7 +117,7 @@ def hold(args: argparse.Namespace) -> int:
     st = ServiceSettings(can_interface="socketcan", can_channel=args.channel, token=SecretStr("x"))
     cfg = RobotConfig()
     budget = timing_budget(st, cfg)
-    can_cfg = driver_config(st, cfg, interface="socketcan", channel=args.channel)
+    can_cfg = bus_config(st, cfg, interface="socketcan", channel=args.channel)
     # the feedback stream is not what this step tests (0: off; the heartbeats remain)
     can_cfg = replace(can_cfg, feedback_rate_hz=args.feedback_rate)
     if args.deadman:

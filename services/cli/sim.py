@@ -57,7 +57,18 @@ def register(sub: Any) -> None:
     p.add_argument("--robot", default="swpc", help="robot id in the zenoh keys (swpc)")
     p.add_argument("--truth", help="kinematic file of the hidden truth (default: paper Table 4)")
     p.add_argument(
-        "--nodes", help="module:node pairs, e.g. 1:1,2:2,3:3,4:4 (default 1..N in order)"
+        "--drives",
+        default=None,
+        help="the drive kind the virtual robot's drives speak (swpc; its default CAN nodes)",
+    )
+    p.add_argument(
+        "--robot-config",
+        help="robot config YAML whose drives: (kind, CAN nodes) the virtual drives take, as "
+        "the service does",
+    )
+    p.add_argument(
+        "--nodes",
+        help="swpc drives: module:node pairs, e.g. 1:1,2:2,3:3,4:4 (default 1..N in order)",
     )
     p.add_argument("--time-scale", type=float, default=1.0, help="simulated s per wall s (1)")
     p.add_argument(
@@ -128,6 +139,31 @@ def parse_nodes(text: str | None) -> dict[int, int] | None:
     return out
 
 
+def sim_drives(args: argparse.Namespace) -> Any:
+    """The virtual drives' config: ``--robot-config``'s ``drives:``, else ``--drives`` (its
+    kind's default nodes), ``--nodes`` the old spelling of swpc drives' node map."""
+    from pydantic import TypeAdapter
+
+    from services.config.robot import load_robot_config
+    from swpc_hw.drives.config import DrivesConfig, parse_drives
+    from swpc_hw.errors import SwpcError
+
+    given = [n for n in ("robot_config", "drives", "nodes") if getattr(args, n)]
+    if len(given) > 1:
+        raise SwpcError(
+            "give the drives once: " + " or ".join("--" + n.replace("_", "-") for n in given)
+        )
+    if args.robot_config:
+        return load_robot_config(args.robot_config).drives
+    doc: Any = parse_drives(args.drives or "swpc")
+    if args.nodes:
+        doc = {"kind": "swpc", "modules": parse_nodes(args.nodes)}
+    try:
+        return TypeAdapter(DrivesConfig).validate_python(doc)
+    except ValueError as exc:
+        raise SwpcError(f"--drives: {' '.join(str(exc).split())}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from simulators.datagen_imu import GyroOptions
     from simulators.mocap_sim import MocapOptions
@@ -141,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
     opt = SimOptions(
         robot=args.robot,
-        nodes=parse_nodes(args.nodes),
+        drives=sim_drives(args),
         time_scale=args.time_scale,
         physics_dt=args.physics_dt * 1e-3,
         feedback_rate_hz=args.feedback_rate,
@@ -206,7 +242,8 @@ def run(args: argparse.Namespace) -> int:
     freeze_startup_heap()  # no full-collection pause over the start-up heap (heartbeats)
     print(
         f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
-        f"{args.interface}:{args.channel} (nodes {sim.nodes}), mocap {args.pose_rate:g} Hz "
+        f"{args.interface}:{args.channel} (drives {opt.drives.kind}, nodes "
+        f"{opt.drives.nodes()}), mocap {args.pose_rate:g} Hz "
         f"{args.pose_encoding} on mocap/{args.robot}/pose, gyro {args.gyro_rate:g} Hz on "
         f"imu/{args.robot}/data via {listen or args.zenoh_connect}, time scale {args.time_scale:g}",
         flush=True,

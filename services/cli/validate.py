@@ -19,7 +19,7 @@ python-can ``virtual`` bus, zenoh on loopback, simulated time in lockstep; truth
 Table 4, default noise), truth from ``sim/<robot>/truth/pose``.  With ``--can-interface`` it
 drives the robot on that bus and takes the truth from the motion-capture pose key
 ``mocap/<robot>/pose`` over zenoh.  The CAN driver's settings come from
-:func:`services.config.timing.driver_config`, as the service's (``SWPC_*`` settings apply).
+:func:`services.config.timing.robot_drives`, as the service's (``SWPC_*`` settings apply).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from services.config.robot import RobotConfig
     from services.config.settings import ServiceSettings
-    from swpc_hw.can.driver import CanDriver
+    from swpc_hw.drives.interface import Drives
     from swpc_hw.model import RobotParams
     from swpc_hw.validation import SquareOptions, ValidationReport
 
@@ -109,7 +109,7 @@ def validation_settings(**overrides: Any) -> ServiceSettings:
 
 
 def drive_files(
-    driver: CanDriver,
+    driver: Drives,
     session: Any,
     truth_key: str,
     files: Sequence[tuple[str, RobotParams]],
@@ -161,10 +161,9 @@ def run_in_process(
     """The drive against the in-process simulator in lockstep (``truth`` hidden in it:
     default paper Table 4; default noise); a busy host slows it down, never changes it."""
     from services.config.robot import RobotConfig
-    from services.config.timing import driver_config
+    from services.config.timing import robot_drives
     from services.runtime.simulator import in_process_simulator
     from simulators.mocap_sim import truth_pose_key
-    from swpc_hw.can.driver import CanDriver
     from swpc_hw.clock import SimClock
     from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
@@ -177,9 +176,7 @@ def run_in_process(
     sim = None
     driver = None
     try:
-        driver = CanDriver(
-            driver_config(st, cfg, interface="virtual", channel=channel), clock=clock
-        )
+        driver = robot_drives(st, cfg, interface="virtual", channel=channel, clock=clock)
         driver.configure()
         sim = in_process_simulator(
             config=cfg,
@@ -287,8 +284,7 @@ def run(args: argparse.Namespace) -> int:
 
             raise ValidationError("--truth is for the in-process simulator: a robot's truth "
                                   "is its motion capture")
-        from services.config.timing import driver_config
-        from swpc_hw.can.driver import CanDriver
+        from services.config.timing import robot_drives
         from swpc_hw.clock import SystemClock
         from swpc_hw.zenoh_session import open_session
 
@@ -300,8 +296,11 @@ def run(args: argparse.Namespace) -> int:
             mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
             config_file=args.zenoh_config,
         )
-        driver = CanDriver(
-            driver_config(st, config, interface=args.can_interface, channel=args.can_channel),
+        driver = robot_drives(
+            st,
+            config,
+            interface=args.can_interface,
+            channel=args.can_channel,
             clock=SystemClock(rate=st.external_time_scale),
         )
         try:

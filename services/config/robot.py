@@ -4,7 +4,7 @@ YAML (every key documented in ``deploy/robot.example.yaml``)::
 
     robot: swpc                      # robot id (pose key mocap/<robot>/pose)
     nominal: {modules: [...]}        # or a path: nominal kinematics (kinematic-file schema)
-    nodes: {1: 1, 2: 2, 3: 3, 4: 4}  # module id -> CAN node id
+    drives: {kind: swpc, modules: {1: 1, 2: 2, 3: 3, 4: 4}}  # drive kind, CAN nodes
     limits: {...}                    # motion limits (SI)
     protocol: {...}                  # calibration protocol (angles in degrees for humans)
     tolerances: {...}                # max std devs for a result to be installed
@@ -25,7 +25,7 @@ from typing import Any, Optional
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from firmware_protocol.codec import MAX_NODE
+from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
 from swpc_hw.model import RobotParams
@@ -185,7 +185,9 @@ class RobotConfig(BaseModel):
 
     robot: str = "swpc"
     nominal: RobotParams = PAPER_NOMINAL
-    nodes: dict[int, int] | None = Field(None, description="module id -> CAN node id")
+    drives: DrivesConfig = Field(
+        SwpcDrives(), description="the drive kind and each module's CAN nodes (swpc_hw.drives)"
+    )
     limits: MotionLimits = MotionLimits()
     protocol: ProtocolConfig = ProtocolConfig()
     tolerances: Tolerances = Tolerances()
@@ -203,16 +205,18 @@ class RobotConfig(BaseModel):
             return parse_kinematics(doc, "nominal").params
         return v
 
+    @model_validator(mode="before")
+    @classmethod
+    def _old_spellings(cls, data: Any) -> Any:
+        return old_spellings(data)
+
     @model_validator(mode="after")
-    def _check_nodes(self) -> RobotConfig:
+    def _check_modules(self) -> RobotConfig:
         ids = self.nominal.ids
-        if self.nodes is None:
-            self.nodes = {mid: i + 1 for i, mid in enumerate(ids)}
-        if sorted(self.nodes) != sorted(ids):
-            raise ValueError(f"nodes must map exactly the module ids {ids}")
-        vals = list(self.nodes.values())
-        if len(set(vals)) != len(vals) or any(not 1 <= v <= MAX_NODE for v in vals):
-            raise ValueError(f"node ids must be unique and within 1..{MAX_NODE}")
+        problems = self.drives.check_modules(ids)
+        if problems:
+            raise ValueError("; ".join(problems))
+        self.drives = self.drives.for_modules(ids)
         if self.protocol.modules is not None and not set(self.protocol.modules) <= set(ids):
             raise ValueError("protocol.modules must be module ids of the robot")
         return self
@@ -241,12 +245,13 @@ class RobotConfig(BaseModel):
 
         * a limit or tolerance above this config's (an override may tighten, never loosen
           or remove, them), or a limit that is not per run (:data:`RUN_FIXED_LIMITS`);
-        * another robot id, CAN node map or set of module ids (the service's driver and
+        * another robot id, drives or set of module ids (the service's drives and
           motion-capture subscription are this config's);
         * anything :meth:`run_problems` finds for ``metrology``.
 
         Pydantic's ``ValidationError`` (a ``ValueError``) for an invalid merged config.
         """
+        overrides = old_spellings(overrides)
         run = self.with_overrides(overrides)
         problems: list[str] = []
         for group in ("limits", "tolerances"):
@@ -268,8 +273,11 @@ class RobotConfig(BaseModel):
                 f"robot: {run.robot!r} is not this service's robot {self.robot!r} (its motion "
                 "capture subscription is mocap/<robot>/pose)"
             )
-        if run.nodes != self.nodes:
-            problems.append(f"nodes: the CAN node map is the service's {self.nodes}, not per run")
+        if run.drives != self.drives:
+            problems.append(
+                f"drives: the drive kind and CAN node map are the service's "
+                f"({self.drives.model_dump(mode='json')}), not per run"
+            )
         if run.nominal.ids != self.nominal.ids:
             problems.append(
                 f"nominal: module ids {run.nominal.ids} are not the robot's {self.nominal.ids}"
@@ -338,6 +346,26 @@ class RobotConfig(BaseModel):
         return out
 
 
+def old_spellings(data: Any) -> Any:
+    """``drives: <kind>`` short for ``{kind: <kind>}``; ``nodes:`` (module id -> node) is
+    the old spelling of ``drives: {kind: swpc, modules: ...}``."""
+    if not isinstance(data, dict):
+        return data
+    data = dict(data)
+    if "drives" in data:
+        data["drives"] = parse_drives(data["drives"])
+    if "nodes" in data:
+        nodes = data.pop("nodes")
+        if "drives" in data:
+            raise ValueError(
+                "nodes and drives: give the node map once, in drives.modules (nodes is its "
+                "old spelling)"
+            )
+        if nodes is not None:
+            data["drives"] = {"kind": "swpc", "modules": nodes}
+    return data
+
+
 def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     out = dict(base)
     for k, v in over.items():
@@ -386,13 +414,14 @@ TolerancesOverride = _partial(Tolerances, "TolerancesOverride")
 
 class ConfigOverrides(BaseModel):
     """Overrides of the robot config for one run (every key optional, deep-merged).  Limits
-    and tolerances may only be tightened; ``robot``, ``nodes`` and the module ids are the
-    service's (:meth:`RobotConfig.for_run`)."""
+    and tolerances may only be tightened; ``robot``, ``drives`` and the module ids are the
+    service's (:meth:`RobotConfig.for_run`; ``nodes`` is the old spelling of ``drives``)."""
 
     model_config = STRICT
 
     robot: str | None = None
     nominal: RobotParams | None = None
+    drives: dict[str, Any] | str | None = None
     nodes: dict[int, int] | None = None
     limits: LimitsOverride | None = None  # type: ignore[valid-type]
     protocol: ProtocolOverride | None = None  # type: ignore[valid-type]

@@ -1,4 +1,5 @@
-"""The service's timing budget, stated once, and the one derivation of the CAN settings.
+"""The service's timing budget, stated once, and the one derivation of the CAN settings
+and of the robot's drives from them.
 
 Every duration here is in seconds of the service's clock (:mod:`swpc_hw.clock`), i.e.
 robot time:
@@ -46,6 +47,9 @@ from pathlib import Path
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
 from swpc_hw.can.config import CanConfig
+from swpc_hw.clock import Clock
+from swpc_hw.drives.factory import open_drives
+from swpc_hw.drives.interface import Drives
 
 HEARTBEAT_PERIOD_S = 0.1
 """The controllers' heartbeat period (firmware constant, firmware_protocol/README.md)."""
@@ -130,7 +134,7 @@ def timing_budget(settings: ServiceSettings, config: RobotConfig) -> TimingBudge
     ).check()
 
 
-def driver_config(
+def bus_config(
     settings: ServiceSettings,
     config: RobotConfig,
     *,
@@ -139,15 +143,14 @@ def driver_config(
     log_path: Path | None = None,
     log_total_bytes: int | None = None,
 ) -> CanConfig:
-    """The CAN driver's settings for this service and robot: the only place they are made
-    (``swpc serve`` and ``swpc validate`` both take them from here)."""
+    """The bus and timing settings of the robot's drives for this service and robot: the
+    only place they are made (:func:`robot_drives`)."""
     b = timing_budget(settings, config)
     lim = config.limits
     return CanConfig(
         interface=interface,
         channel=channel,
         bitrate=settings.can_bitrate,
-        modules=dict(config.nodes or {}),
         feedback_rate_hz=settings.feedback_rate_hz,
         watchdog_timeout_ms=math.ceil(1000.0 * b.watchdog),
         refresh_period_s=b.refresh,
@@ -161,3 +164,27 @@ def driver_config(
         log_total_bytes=log_total_bytes,
         log_idle_period_s=settings.can_log_idle_period,
     )
+
+
+def robot_drives(
+    settings: ServiceSettings,
+    config: RobotConfig,
+    *,
+    interface: str,
+    channel: str,
+    clock: Clock,
+    log_path: Path | None = None,
+    log_total_bytes: int | None = None,
+) -> Drives:
+    """The robot's drives (its config's kind, :func:`swpc_hw.drives.factory.open_drives`) on
+    :func:`bus_config`'s settings, UNCONFIGURED: what ``swpc serve`` and ``swpc validate``
+    open."""
+    bus = bus_config(
+        settings,
+        config,
+        interface=interface,
+        channel=channel,
+        log_path=log_path,
+        log_total_bytes=log_total_bytes,
+    )
+    return open_drives(config.drives, bus, config.nominal.ids, clock=clock)

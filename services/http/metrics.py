@@ -75,7 +75,7 @@ class RuntimeCollector:
 
     def collect(self) -> Iterator[Metric]:
         rt = self.rt
-        d = rt.driver
+        d = rt.drives
         if d is not None:
             s = d.stats()
             frames = CounterMetricFamily("swpc_can_frames", "CAN frames", labels=["direction"])

@@ -45,7 +45,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
     """``(status, document)`` (module docstring)."""
     failing: list[str] = []
     degraded: list[str] = []
-    d = rt.driver
+    d = rt.drives
     nodes: dict[str, Any] = {}
     # the in-process simulator between runs: simulated time stands still (it flows only
     # while someone waits on it, docs/time.md), so no heartbeat, pose or gyro sample is

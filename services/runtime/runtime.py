@@ -37,7 +37,7 @@ from typing import Any
 
 from services.config.robot import RobotConfig, load_robot_config
 from services.config.settings import ServiceSettings, SettingsError
-from services.config.timing import TimingBudget, driver_config, timing_budget
+from services.config.timing import TimingBudget, robot_drives, timing_budget
 from services.runs.imu import ImuCalibrationRun
 from services.runs.protocol import TERMINAL, CalibrationRun, State
 from services.runs.recording import SpaceGuard
@@ -51,9 +51,9 @@ from services.store.logs import event
 from services.store.runs import RunStore
 from simulators.datagen_imu import GyroOptions
 from simulators.virtual_robot import Simulator
-from swpc_hw.can.driver import CanDriver
 from swpc_hw.clock import Clock, SimClock, SystemClock
-from swpc_hw.drives.robot_io import DriverRobotIO
+from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.robot_io import DrivesRobotIO
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
@@ -144,7 +144,7 @@ class Runtime:
         self.can_channel = settings.can_channel
         self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
-        self.driver: CanDriver | None = None
+        self.drives: Drives | None = None
         self.started = time.time()
         self._opened = False
         self._closed = False
@@ -217,18 +217,16 @@ class Runtime:
         self.mocap.subscribe(self.session, self.config.pose_key)
         if s.metrology != "mocap":
             self.imu.subscribe(self.session, self.config.imu_key)
-        self.driver = CanDriver(
-            driver_config(
-                s,
-                self.config,
-                interface=interface,
-                channel=channel,
-                log_path=can_log,
-                log_total_bytes=int(s.can_log_bytes) or None,
-            ),
+        self.drives = robot_drives(
+            s,
+            self.config,
+            interface=interface,
+            channel=channel,
             clock=self.clock,
+            log_path=can_log,
+            log_total_bytes=int(s.can_log_bytes) or None,
         )
-        self.driver.configure()
+        self.drives.configure()
         event(
             log,
             logging.INFO,
@@ -273,10 +271,10 @@ class Runtime:
         if run is not None and not run.finished:
             run.shutdown(reason)
             run.join(5.0)
-        if self.driver is not None:
+        if self.drives is not None:
             with contextlib.suppress(Exception):
-                self.driver.stop_all()
-            self.driver.shutdown()
+                self.drives.stop_all()
+            self.drives.shutdown()
         self.mocap.close()
         self.imu.close()
         if self.simulator is not None:
@@ -319,7 +317,7 @@ class Runtime:
         space leaves no room for it, :class:`StoreError` when its first state cannot be
         saved (nothing has moved; the service takes the next start once the store does).
         """
-        assert self.driver is not None
+        assert self.drives is not None
         s = self.settings
         with self._lock:
             if self.current is not None and not self.current.finished:
@@ -343,8 +341,8 @@ class Runtime:
             if metrology == "imu" and not self.imu.subscribed:
                 self._listen_to_the_gyro()
             lim = config.limits
-            io = DriverRobotIO(
-                self.driver,
+            io = DrivesRobotIO(
+                self.drives,
                 limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
             )
             kwargs: dict[str, Any] = {
@@ -376,15 +374,15 @@ class Runtime:
             ) from exc
         # raw CAN traffic of the run, beside its dataset (candump format, our DBC decodes it)
         (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
-        self.driver.start_recording(str(run.run_dir / "dataset" / "can.log"))
+        self.drives.start_recording(str(run.run_dir / "dataset" / "can.log"))
         run.start()
         return run
 
     def _persist(self, run: CalibrationRun) -> None:
         """Save a run's state (its on_change); a failure is kept (health, the runs list
         shows the in-memory state) and raised, so that a run still going fails."""
-        if run.finished and self.driver is not None and run is self.current:
-            err = self.driver.stop_recording()
+        if run.finished and self.drives is not None and run is self.current:
+            err = self.drives.stop_recording()
             if err is not None:
                 run.status.errors.append(f"CAN recording stopped early: {err}")
         try:

@@ -54,7 +54,7 @@ def in_process_simulator(
     base = mocap or DEFAULT_MOCAP
     opts = SimOptions(
         robot=config.robot,
-        nodes=dict(config.nodes or {}),
+        drives=config.drives,
         physics_dt=physics_dt,
         watchdog_ms=config.limits.watchdog_ms,
         feedback_rate_hz=feedback_rate_hz,

@@ -1,8 +1,9 @@
 """The small interface through which the calibration state machine sees the robot.
 
-:class:`RobotIO` is all the state machine uses; :class:`DriverRobotIO` implements it on
-the CAN driver (:class:`swpc_hw.can.driver.CanDriver`), so the simulator (which speaks the
-same CAN frames) and the real robot are interchangeable.
+:class:`RobotIO` is all the state machine uses; :class:`DrivesRobotIO` implements it on
+the robot's drives of any kind (:class:`swpc_hw.drives.interface.Drives`), so the
+simulator (which speaks the same CAN frames) and the real robot, and every drive kind,
+are interchangeable.
 """
 
 from __future__ import annotations
@@ -15,8 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can import CanDriver, DriverEvent, Lifecycle, Severity
+from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.can.errors import NodeError
+from swpc_hw.drives.interface import Drives
 from swpc_hw.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
@@ -91,40 +93,40 @@ class RobotIO(Protocol):
         ...
 
 
-class DriverRobotIO:
-    """:class:`RobotIO` on a :class:`CanDriver` (which owns the bus and its lifecycle).
+class DrivesRobotIO:
+    """:class:`RobotIO` on the robot's :class:`Drives` (which own the bus and its lifecycle).
 
     ``limits``: ``(max torque, (steer, wheel) max velocity)`` sent to every controller at
-    activation, after the driver's own (a run's tightened limits, :mod:`services.config.robot`).
+    activation, after the drives' own (a run's tightened limits, :mod:`services.config.robot`).
     """
 
     def __init__(
-        self, driver: CanDriver, limits: tuple[float, tuple[float, float]] | None = None
+        self, drives: Drives, limits: tuple[float, tuple[float, float]] | None = None
     ) -> None:
-        self.driver = driver
+        self.drives = drives
         self.limits = limits
         self._faults: list[str] = []
-        self._cause_taken = driver.fault_cause  # the driver's fault cause last looked at
+        self._cause_taken = drives.fault_cause  # the drives' fault cause last looked at
         self._skip_event: str | None = None  # its event, when the cause was reported first
         self._lock = threading.Lock()
-        driver.add_event_callback(self._on_event)
+        drives.add_event_callback(self._on_event)
 
     def _on_event(self, ev: DriverEvent) -> None:
         if ev.severity is Severity.FAULT:
             with self._lock:
                 if ev.message == self._skip_event:
-                    self._skip_event = None  # already reported through the driver's cause
+                    self._skip_event = None  # already reported through the drives' cause
                 else:
                     self._faults.append(ev.message)
 
     @property
     def module_ids(self) -> list[int]:
-        return self.driver.modules()
+        return self.drives.modules()
 
     def problems(self) -> list[str]:
         out = []
         for m in self.module_ids:
-            st = self.driver.module_state(m)
+            st = self.drives.module_state(m)
             if not st.alive:
                 out.append(f"module {m} (node {st.node}): no heartbeat")
                 continue
@@ -137,7 +139,7 @@ class DriverRobotIO:
         return out
 
     def activate(self) -> None:
-        d = self.driver
+        d = self.drives
         if d.state is not Lifecycle.ACTIVE:
             d.activate()
         for m in self.module_ids:
@@ -150,16 +152,16 @@ class DriverRobotIO:
             d.enable(m, Axis.WHEEL)
 
     def unhomed(self) -> list[int]:
-        return [m for m in self.module_ids if not self.driver.module_state(m).homed]
+        return [m for m in self.module_ids if not self.drives.module_state(m).homed]
 
     def start_homing(self, module: int) -> None:
-        self.driver.start_homing(module)
+        self.drives.start_homing(module)
 
     def _steer_setpoint(self, module: int, steer: float) -> float:
         """``steer`` on the turn nearest the steering's reported position: the controller's
         position is multi-turn (free casters trail through whole turns during spins), a
         raw ``steer`` could send it the long way round, up to many turns."""
-        st = self.driver.module_state(module)
+        st = self.drives.module_state(module)
         if not math.isfinite(st.theta_hat):
             raise NodeError(
                 f"module {module} (node {st.node}): no steering feedback, cannot steer it",
@@ -169,55 +171,55 @@ class DriverRobotIO:
         return float(nearest_turn(st.theta_hat, steer))
 
     def lock(self, module: int, steer: float) -> None:
-        self.driver.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
-        self.driver.hold(module, Axis.WHEEL)
+        self.drives.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
+        self.drives.hold(module, Axis.WHEEL)
 
     def steer_to(self, module: int, steer: float) -> None:
-        self.driver.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
+        self.drives.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
 
     def free_steer(self, module: int) -> None:
-        self.driver.free(module, Axis.STEER)
+        self.drives.free(module, Axis.STEER)
 
     def wheel_torque(self, module: int, torque: float) -> None:
-        self.driver.set_torque(module, Axis.WHEEL, torque)
+        self.drives.set_torque(module, Axis.WHEEL, torque)
 
     def wheel_hold(self, module: int) -> None:
-        self.driver.hold(module, Axis.WHEEL)
+        self.drives.hold(module, Axis.WHEEL)
 
     def wheel_free(self, module: int) -> None:
-        self.driver.free(module, Axis.WHEEL)
+        self.drives.free(module, Axis.WHEEL)
 
     def steering(self, module: int) -> float:
-        return self.driver.module_state(module).theta_hat
+        return self.drives.module_state(module).theta_hat
 
     def stop_all(self) -> None:
-        self.driver.stop_all()
+        self.drives.stop_all()
 
     def release(self) -> None:
-        if self.driver.state is Lifecycle.ACTIVE:
-            self.driver.deactivate()
+        if self.drives.state is Lifecycle.ACTIVE:
+            self.drives.deactivate()
 
     def encoders(self, module: int, since: float) -> FloatArray:
-        """Feedback on the driver's clock, timed by the frames' *bus* time stamps.
+        """Feedback on the drives' clock, timed by the frames' *bus* time stamps.
 
-        The driver maps every bus stamp (kernel arrival on SocketCAN, send time on the
-        virtual bus) onto its clock (:func:`swpc_hw.can.node_tracking.frame_time`): the
+        The drives map every bus stamp (kernel arrival on SocketCAN, send time on the
+        virtual bus) onto their clock (:func:`swpc_hw.can.node_tracking.frame_time`): the
         receive thread's queueing delay, which can reach a second on a loaded host, is not
         in it.
         """
-        h = self.driver.history_arrays(module)
+        h = self.drives.history_arrays(module)
         sel = h["t"] >= since
         return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
 
     def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
-        return self.driver.history_since(module, cursor, since)
+        return self.drives.history_since(module, cursor, since)
 
     def take_faults(self) -> list[str]:
-        """The fault events since the last call, and the driver's fault cause as soon as it
-        has dropped out of ACTIVE: the event callbacks run just after that drop, so a
+        """The fault events since the last call, and the drives' fault cause as soon as they
+        have dropped out of ACTIVE: the event callbacks run just after that drop, so a
         caller polling between the two would otherwise see no fault yet its next command
         refused (LifecycleError)."""
-        cause = self.driver.fault_cause  # None while the driver is ACTIVE
+        cause = self.drives.fault_cause  # None while the drives are ACTIVE
         with self._lock:
             out, self._faults = self._faults, []
             if cause is not None and cause is not self._cause_taken:  # a new fault stop
@@ -228,4 +230,4 @@ class DriverRobotIO:
         return out
 
     def close(self) -> None:
-        self.driver.remove_event_callback(self._on_event)
+        self.drives.remove_event_callback(self._on_event)

@@ -7,7 +7,8 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can import CanDriver, DriverEvent, Lifecycle, Severity
+from swpc_hw.can import DriverEvent, Lifecycle, Severity
+from swpc_hw.drives.interface import Drives
 from swpc_hw.model import RobotParams
 from swpc_hw.odometry import OdometryOptions
 from swpc_hw.twist_controller import TwistController
@@ -19,7 +20,8 @@ from swpc_hw.validation.truth import ZenohTruth
 
 
 class SquareDrive:
-    """Drives squares through a :class:`CanDriver` (activated, homed) and measures them.
+    """Drives squares through the robot's :class:`~swpc_hw.drives.interface.Drives`
+    (activated, homed) and measures them.
 
     Time is the driver's clock (robot seconds; in lockstep with the in-process simulator
     the calling thread must be a participant of it).
@@ -27,7 +29,7 @@ class SquareDrive:
 
     def __init__(
         self,
-        driver: CanDriver,
+        driver: Drives,
         truth: ZenohTruth,
         params: RobotParams,
         options: SquareOptions | None = None,
@@ -208,7 +210,7 @@ def validate(
     return ValidationReport(labels=[lab for lab, _ in files], results=results, options=opt)
 
 
-def prepare_driver(driver: CanDriver, timeout: float = 10.0) -> None:
+def prepare_driver(driver: Drives, timeout: float = 10.0) -> None:
     """Activate (if needed), clear errors, enable both axes and home unhomed steering."""
     if driver.state is not Lifecycle.ACTIVE:
         driver.activate()

@@ -10,7 +10,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.can import CanDriver, FeedbackSample
+from swpc_hw.can import FeedbackSample
+from swpc_hw.drives.interface import Drives
 from swpc_hw.model import RobotParams
 from swpc_hw.odometry import Odometry, OdometryOptions
 from swpc_hw.validation.options import ValidationError
@@ -19,7 +20,7 @@ FloatArray = NDArray[np.float64]
 
 
 class DriverOdometry:
-    """:class:`Odometry` fed by a :class:`CanDriver`'s feedback frames.
+    """:class:`Odometry` fed by a :class:`~swpc_hw.drives.interface.Drives`'s feedback frames.
 
     Clock.  A module's sample ``seq`` (the frame counter unwrapped by the driver) counts
     controller periods, so with free-running feedback at ``rate`` Hz its robot time is
@@ -38,7 +39,7 @@ class DriverOdometry:
 
     def __init__(
         self,
-        driver: CanDriver,
+        driver: Drives,
         params: RobotParams,
         *,
         options: OdometryOptions | None = None,

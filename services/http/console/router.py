@@ -225,7 +225,7 @@ class _LiveCursor:
 
 
 def _nodes(rt: Runtime) -> list[dict[str, Any]]:
-    d = rt.driver
+    d = rt.drives
     if d is None:
         return []
     out = []
@@ -252,7 +252,7 @@ def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
     age = rt.mocap.age()
     run: CalibrationRun | None = rt.current
     out: dict[str, Any] = {
-        "can": None if rt.driver is None else rt.driver.state.name.lower(),
+        "can": None if rt.drives is None else rt.drives.state.name.lower(),
         "nodes": _nodes(rt),
         "mocap": {
             "age_s": _finite(age),

@@ -1,0 +1,48 @@
+"""The one place that knows the drive kinds: a robot config's ``drives:`` -> :class:`Drives`.
+
+Each kind registers an opener in :data:`OPENERS`; nothing else in swpc asks which kind a
+robot has.  The opener gets the kind's config (module map filled in), the bus and timing
+settings (:class:`~swpc_hw.can.config.CanConfig`: interface, channel, bitrate, feedback
+rate, watchdog, refresh, heartbeat loss, limits, dead-man, CAN log) and the clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+from swpc_hw.can.config import CanConfig
+from swpc_hw.can.driver import CanDriver
+from swpc_hw.can.errors import CanConfigError
+from swpc_hw.clock import SYSTEM_CLOCK, Clock
+from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.drives.interface import Drives
+
+
+def _open_swpc(config: Any, bus: CanConfig, clock: Clock) -> Drives:
+    assert isinstance(config, SwpcDrives)
+    return CanDriver(dataclasses.replace(bus, modules=config.node_map()), clock=clock)
+
+
+OPENERS: dict[str, Callable[[Any, CanConfig, Clock], Drives]] = {
+    "swpc": _open_swpc,
+}
+"""kind -> opener (module docstring)."""
+
+
+def open_drives(
+    config: DrivesConfig, bus: CanConfig, module_ids: list[int], *, clock: Clock = SYSTEM_CLOCK
+) -> Drives:
+    """The drives of ``config`` for a robot with ``module_ids``, UNCONFIGURED (call
+    ``configure()``); :class:`~swpc_hw.can.errors.CanConfigError` for a config that does
+    not fit the robot or a kind that is not known."""
+    problems = config.check_modules(module_ids)
+    if problems:
+        raise CanConfigError("; ".join(problems))
+    opener = OPENERS.get(config.kind)
+    if opener is None:
+        raise CanConfigError(
+            f"drives.kind: unknown kind {config.kind!r} (known: {', '.join(sorted(OPENERS))})"
+        )
+    return opener(config.for_modules(module_ids), bus, clock)
