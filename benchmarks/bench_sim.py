@@ -30,7 +30,7 @@ from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode
 from simulators.mocap_sim import MocapOptions
 from simulators.sim_options import SimOptions
-from simulators.virtual_robot import Simulator
+from simulators.virtual_robot import VirtualRobot
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 
@@ -86,7 +86,7 @@ def _run(opts: SimOptions, seconds: float, sessions: tuple[Any, Any]) -> dict[st
     sim_session, rx_session = sessions
     opts = replace(opts, robot=channel)  # a fresh pose key per run
     bus = can.Bus(interface="virtual", channel=channel)
-    sim = Simulator(bus=bus, session=sim_session, options=opts)
+    sim = VirtualRobot(bus=bus, session=sim_session, options=opts)
     rx = _Receiver(channel, rx_session, f"mocap/{opts.robot}/pose")  # the only other bus
     try:
         time.sleep(0.3)  # zenoh routes the subscriber

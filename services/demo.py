@@ -32,6 +32,7 @@ from typing import Any
 
 import httpx
 
+from services.cli._sim_options import add_metrology_argument
 from swpc_hw.blas_threads import single_blas_thread
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -136,7 +137,7 @@ def design_fit_truth(result: dict[str, Any]) -> RobotParams:
 
 def run_service_demo(
     data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False,
-    mocap_free: bool = False,
+    metrology: str = "mocap",
 ) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -181,7 +182,7 @@ def run_service_demo(
                 time.sleep(0.2)
             auth = {"Authorization": f"Bearer {token}"}
             body: dict[str, Any] = {}
-            if mocap_free:
+            if metrology == "imu":
                 body = {"metrology": "imu", "references": tape_references(seed)}
                 print("without motion capture: the tape-measured distances between the steering "
                       "axes go with the request")  # fmt: skip
@@ -209,7 +210,7 @@ def run_service_demo(
                 return 1
             res = http.get(f"/calibrations/{run_id}/result").json()
             print()
-            if mocap_free:
+            if metrology == "imu":
                 print("frame design-fit: the truth re-expressed in it")
                 print(_table(res, design_fit_truth(res)))
             else:
@@ -277,10 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         "--keep-serving", action="store_true",
         help="after the run, keep the service (and its console at /) up until Ctrl-C",
     )
-    parser.add_argument(
-        "--mocap-free", action="store_true",
-        help="calibrate without motion capture (gyro, encoders, the simulator's tape)",
-    )
+    add_metrology_argument(parser)
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     out = Path(args.out)
@@ -288,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.offline:
         return run_offline_demo(out, args.seed)
     return run_service_demo(
-        out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.mocap_free
+        out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.metrology
     )
 
 

@@ -1,12 +1,12 @@
 """What one controller axis does to the physics: the virtual controller's state and mode
-turned into a drive of :class:`simulators.robot_sim.RobotSim`, and encoder quantisation."""
+turned into a drive of :class:`simulators.robot_physics.RobotPhysics`, and encoder quantisation."""
 
 from __future__ import annotations
 
 import math
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode
-from simulators.robot_sim import ModuleDrive, SteerDrive, WheelDrive
+from simulators.robot_physics import ModuleDrive, SteerDrive, WheelDrive
 from simulators.virtual_controller import AxisModel
 
 HOMING_SPEED = 0.5

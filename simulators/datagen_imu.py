@@ -1,7 +1,7 @@
-"""Simulated mocap-free calibration run: the robot's gyro and tape-measure references.
+"""Simulated IMU calibration run: the robot's gyro and tape-measure references.
 
-:func:`generate_mocap_free_experiment` runs :func:`simulators.datagen.generate_experiment`
-with rests and a straight drive (:data:`MOCAP_FREE_PROTOCOL`), then adds what a robot
+:func:`generate_imu_experiment` runs :func:`simulators.datagen.generate_experiment`
+with rests and a straight drive (:data:`IMU_PROTOCOL`), then adds what a robot
 without motion capture records (docs/dataset-format.md, "Without motion capture"):
 
 * **a gyro fixed to R** (:func:`simulate_gyro`), sampled at ``rate`` on the encoders'
@@ -24,7 +24,7 @@ without motion capture records (docs/dataset-format.md, "Without motion capture"
   point travels the drive's length).
 
 The dataset holds the poses too (motion capture of the same run, for comparing the
-solvers); :meth:`MocapFreeExperiment.save` writes it with or without ``poses.csv``.
+solvers); :meth:`ImuExperiment.save` writes it with or without ``poses.csv``.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ from swpc_hw.references import AxisDistance, Reference, StraightDrive, WheelRadi
 
 _DEG = math.pi / 180.0
 
-MOCAP_FREE_PROTOCOL = ExperimentOptions(rest_time=2.0, drive_length=4.0)
+IMU_PROTOCOL = ExperimentOptions(rest_time=2.0, drive_length=4.0)
 """The default protocol without motion capture: the seed experiment with 2 s rests (the
 gyro's bias) and a 4 m straight drive at the end (the wheel radii)."""
 
@@ -67,6 +67,24 @@ class GyroOptions:
     bias_walk: float = 1e-4 * _DEG
     scale_error: float = 0.003
 
+    @classmethod
+    def from_human(
+        cls, rate: float, noise: float, bias: float, bias_walk: float, scale_error: float
+    ) -> GyroOptions:
+        """From the units people write (the command line's, the settings'): Hz,
+        deg/s/sqrt(Hz), deg/s, deg/s/sqrt(s) and %."""
+        return cls(rate, noise * _DEG, bias * _DEG, bias_walk * _DEG, scale_error / 100.0)
+
+    def human(self) -> tuple[float, float, float, float, float]:
+        """``(rate, noise, bias, bias_walk, scale_error)`` in :meth:`from_human`'s units."""
+        return (
+            self.rate,
+            self.noise_density / _DEG,
+            self.bias / _DEG,
+            self.bias_walk / _DEG,
+            self.scale_error * 100.0,
+        )
+
 
 @dataclass(frozen=True)
 class ReferenceOptions:
@@ -80,7 +98,7 @@ class ReferenceOptions:
 
 
 @dataclass
-class MocapFreeExperiment:
+class ImuExperiment:
     """A simulated run with gyro and references; ``experiment.dataset`` has everything."""
 
     experiment: Experiment
@@ -94,7 +112,7 @@ class MocapFreeExperiment:
         return self.experiment.dataset
 
     @property
-    def mocap_free_dataset(self) -> Dataset:
+    def imu_dataset(self) -> Dataset:
         """The same run without motion capture (no poses)."""
         return dataclasses.replace(self.dataset, poses=np.zeros((0, 4)))
 
@@ -110,7 +128,7 @@ class MocapFreeExperiment:
     def save(self, directory: str | os.PathLike[str], poses: bool = False) -> None:
         """Write the dataset (without ``poses.csv`` unless ``poses``) and ``truth.yaml``."""
         d = Path(directory)
-        save_dataset(d, self.dataset if poses else self.mocap_free_dataset)
+        save_dataset(d, self.dataset if poses else self.imu_dataset)
         save_kinematics(d / "truth.yaml", self.truth, extra={"note": "simulation ground truth"})
 
 
@@ -180,19 +198,19 @@ def draw_references(
     return refs
 
 
-def generate_mocap_free_experiment(
+def generate_imu_experiment(
     truth: RobotParams,
     options: ExperimentOptions | None = None,
     gyro: GyroOptions | None = None,
     references: ReferenceOptions | None = None,
     nominal: RobotParams | None = None,
-) -> MocapFreeExperiment:
-    """Simulate the mocap-free protocol on ``truth`` (module docstring).
+) -> ImuExperiment:
+    """Simulate the IMU protocol on ``truth`` (module docstring).
 
-    ``options`` default to :data:`MOCAP_FREE_PROTOCOL`; its ``seed`` seeds the gyro and
+    ``options`` default to :data:`IMU_PROTOCOL`; its ``seed`` seeds the gyro and
     the references too (other streams than the run's own noise).
     """
-    opt = options or MOCAP_FREE_PROTOCOL
+    opt = options or IMU_PROTOCOL
     g = gyro or GyroOptions()
     ref = references or ReferenceOptions()
     exp = generate_experiment(truth, opt, nominal)
@@ -200,7 +218,7 @@ def generate_mocap_free_experiment(
     imu, bias = simulate_gyro(exp, g, rng, opt.clock_offset)
     refs = draw_references(exp, ref, rng, opt.clock_offset)
     exp.dataset = dataclasses.replace(exp.dataset, imu=imu, references=refs)
-    return MocapFreeExperiment(exp, g, bias)
+    return ImuExperiment(exp, g, bias)
 
 
 def fisher_setup(
@@ -210,24 +228,24 @@ def fisher_setup(
     references: ReferenceOptions | None = None,
     nominal: RobotParams | None = None,
 ) -> tuple[ImuRun, FloatArray]:
-    """The mocap-free problem of an experiment at its truth, weighted for its noise.
+    """The IMU problem of an experiment at its truth, weighted for its noise.
 
-    The run of ``options`` (default :data:`MOCAP_FREE_PROTOCOL`) without noise
+    The run of ``options`` (default :data:`IMU_PROTOCOL`) without noise
     (encoders unquantized, gyro without noise or walk, exact references), built with the
     noise levels of the sensors as simulated (encoders of ``counts_per_rev`` counts, the
     ``gyro``'s white noise and walk, the references' std dev): the Jacobian at the truth,
     in the design-fit frame, is the experiment's (:mod:`swpc_hw.calibration.identifiability`).
     Returns the built problem (weights set) and the true unknowns.
     """
-    opt = options or MOCAP_FREE_PROTOCOL
+    opt = options or IMU_PROTOCOL
     g = gyro or GyroOptions()
     ref = references or ReferenceOptions()
     exact = dataclasses.replace(opt, counts_per_rev=None)
-    mf = generate_mocap_free_experiment(
+    mf = generate_imu_experiment(
         truth, exact, dataclasses.replace(g, noise_density=0.0, bias_walk=0.0),
         dataclasses.replace(ref, stddev=1e-12), nominal,
     )
-    ds = mf.mocap_free_dataset
+    ds = mf.imu_dataset
     ds.references = [dataclasses.replace(r, stddev=ref.stddev) for r in ds.references]
     q = 2.0 * math.pi / (opt.counts_per_rev or 2**40)
     noise = NoiseLevels(

@@ -9,7 +9,7 @@ Mocap (what the service uses): poses of R in W on ``mocap/<robot>/pose`` at ``ra
 
 Samples are taken at simulated times ``k / rate`` and stamped with the *mocap clock*
 ``t_mocap = stamp + clock_offset``, where ``stamp`` is the simulated time of the sample
-unless the simulator gives another (:class:`simulators.virtual_robot.Simulator` gives the
+unless the simulator gives another (:class:`simulators.virtual_robot.VirtualRobot` gives the
 host's wall clock at sampling, see its ``mocap_clock``).  Options model a real system (the
 generator's noise options, :class:`simulators.datagen.ExperimentOptions`, are the template):
 Gaussian noise on x, y and yaw, dropouts (a sample is not sent), outliers (a jump of

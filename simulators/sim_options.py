@@ -1,4 +1,4 @@
-"""Settings and counters of the virtual robot (:class:`simulators.virtual_robot.Simulator`)."""
+"""Settings and counters of the virtual robot (:class:`simulators.virtual_robot.VirtualRobot`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from firmware_protocol import codec
 from simulators.datagen_imu import GyroOptions
 from simulators.imu_sim import check_gyro
 from simulators.mocap_sim import MocapOptions
-from simulators.robot_sim import PhysicsOptions
+from simulators.robot_physics import PhysicsOptions
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams
@@ -66,7 +66,7 @@ class SimOptions:
 
 @dataclass
 class SimStats:
-    """Counters since :meth:`Simulator.start` (times in s)."""
+    """Counters since :meth:`VirtualRobot.start` (times in s)."""
 
     sim_time: float = 0.0
     wall_time: float = 0.0

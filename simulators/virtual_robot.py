@@ -1,12 +1,12 @@
 """The virtual SWPC robot: controllers on CAN + physics + motion capture, on a simulated clock.
 
-:class:`Simulator` stands in for the robot's motor controllers (one
+:class:`VirtualRobot` stands in for the robot's motor controllers (one
 :class:`simulators.virtual_controller.VirtualController` per module, speaking the DBC's frames on
 any python-can bus) and for the motion-capture system (poses over zenoh, see
-:mod:`simulators.mocap_sim`); :class:`simulators.robot_sim.RobotSim` moves the hidden true
+:mod:`simulators.mocap_sim`); :class:`simulators.robot_physics.RobotPhysics` moves the hidden true
 robot under what the controllers do.  It runs in one thread started by :meth:`start` and
 ended by :meth:`stop` (idempotent), on a bus and a zenoh session that the caller gives or
-that it opens itself (:meth:`Simulator.open`, used by ``swpc sim`` and by the service's
+that it opens itself (:meth:`VirtualRobot.open`, used by ``swpc sim`` and by the service's
 in-process simulator).
 
 Every tick of simulated time (``physics_dt``, at most 5 ms by default, and never longer than
@@ -50,7 +50,7 @@ feedback rate, heartbeat period, watchdog timeout, homing duration, mocap rate a
 latency.  A client matches it by dividing its own periods by ``s`` (e.g. the driver's
 command refresh period must be shorter than ``watchdog_ms / s`` of wall time, or the
 watchdog raised with ``SetWatchdog``).  If the machine cannot keep up, the simulated clock
-slows down rather than bursting (counted in ``overruns``; :meth:`Simulator.stats` gives
+slows down rather than bursting (counted in ``overruns``; :meth:`VirtualRobot.stats` gives
 the achieved scale).
 
 Pose time stamps (``mocap_clock``): ``"host"`` (default) stamps each pose with the host's
@@ -61,10 +61,10 @@ at real rate with a transport delay (:class:`services.sensors.mocap.MocapIngest`
 ``source`` mode).  ``"sim"`` stamps the simulated time itself (deterministic; a client
 divides it by ``s``, and must take receive times when the simulator slows its clock).
 
-Fault injection: :meth:`Simulator.mute` (heartbeat loss: the node sends nothing),
-:meth:`Simulator.inject_fault` (a latched hardware error and its FaultReport),
+Fault injection: :meth:`VirtualRobot.mute` (heartbeat loss: the node sends nothing),
+:meth:`VirtualRobot.inject_fault` (a latched hardware error and its FaultReport),
 ``bus_error_rate`` (error frames, or on buses that cannot send them, frames with an
-unknown id), slip bursts (:class:`simulators.robot_sim.PhysicsOptions`) and the mocap
+unknown id), slip bursts (:class:`simulators.robot_physics.PhysicsOptions`) and the mocap
 options (noise, dropouts, outliers, latency, clock offset).
 """
 
@@ -87,9 +87,9 @@ from simulators.axis_drives import module_drive, quantize
 from simulators.imu_sim import GyroSim, PoseHistory, axis_travel, tape_measure
 from simulators.mocap_sim import MocapSim, TruthPublisher
 from simulators.physics import FloatArray, se2_step
-from simulators.robot_sim import (
+from simulators.robot_physics import (
     ModuleDrive,
-    RobotSim,
+    RobotPhysics,
     SteerDrive,
     WheelDrive,
 )
@@ -102,7 +102,7 @@ from swpc_hw.zenoh_session import open_session
 
 # --------------------------------------------------------------------------- simulator
 
-class Simulator:
+class VirtualRobot:
     """The virtual robot on a python-can bus and a zenoh session (module docstring)."""
 
     def __init__(
@@ -131,7 +131,7 @@ class Simulator:
             if opt.sensor_positions is not None
             else list(rng.uniform(-math.pi, math.pi, n))
         )
-        self.robot = RobotSim(truth, opt.physics, opt.pose0, list(theta0))
+        self.robot = RobotPhysics(truth, opt.physics, opt.pose0, list(theta0))
         self.drives: list[VirtualDrive] = virtual_drives(
             opt.drives,
             truth.ids,
@@ -179,7 +179,7 @@ class Simulator:
         zenoh_config: str | None = None,
         options: SimOptions | None = None,
         clock: SimClock | None = None,
-    ) -> Simulator:
+    ) -> VirtualRobot:
         """Open its own bus and zenoh session (both closed by :meth:`stop`).
 
         ``clock``: run in lockstep on this simulated clock (in-process bus only)."""
@@ -216,7 +216,7 @@ class Simulator:
         return params_document(self.truth, drives, self.options, sensors)
 
     # ------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> Simulator:
+    def __enter__(self) -> VirtualRobot:
         self.start()
         return self
 

@@ -71,8 +71,8 @@ class Dataset:
         return bool(self.poses.shape[0] > 0)
 
     @property
-    def mocap_free(self) -> bool:
-        """No poses, a gyro: the mocap-free solver's dataset."""
+    def is_imu(self) -> bool:
+        """No poses, a gyro: the IMU solver's dataset."""
         return not self.has_poses and self.imu is not None
 
     def encoder_table(self) -> FloatArray:
@@ -215,7 +215,7 @@ def _csv_text(header: tuple[str, ...], rows: FloatArray, fmts: list[str]) -> str
 def save_dataset(directory: str | os.PathLike[str], ds: Dataset) -> None:
     """Write ``ds`` as a dataset directory (each file written atomically).
 
-    ``poses.csv`` is written when there are poses or no gyro; a mocap-free dataset
+    ``poses.csv`` is written when there are poses or no gyro; an IMU dataset
     removes a stale ``poses.csv`` (it would make the directory a motion-capture dataset).
     ``imu.csv`` when there is a gyro, ``references.yaml`` when there are references.
     """

@@ -1,4 +1,4 @@
-"""``references.yaml`` of a mocap-free dataset: known quantities with their std devs.
+"""``references.yaml`` of an IMU dataset: known quantities with their std devs.
 
 ::
 

@@ -17,7 +17,7 @@ that moves only when the state machine sleeps on its :class:`swpc_hw.clock.Virtu
 * with every steering position-held and every wheel under torque (the straight drive of
   a run without motion capture) the body translates at ``drive_speed`` along the wheels'
   mean direction, and every wheel rolls;
-* a gyro (``imu``: a real :class:`services.sensors.gyro.ImuIngest`) reads the yaw rate
+* a gyro (``imu``: a real :class:`services.sensors.gyro.GyroIngest`) reads the yaw rate
   every step with a scale error, a bias and seeded white noise.
 
 So the real solver recovers the fake robot's true parameters from a run.  Faults, stuck
@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.sensors.gyro import ImuIngest
+from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from simulators.physics import se2_step
 from swpc_hw.clock import VirtualClock
@@ -80,7 +80,7 @@ class FakeRobot:
     """added to every pose's stamp (a mocap clock off this host's)"""
     pose_latency: float = 0.0
     """poses arrive this long after they were sampled (a slow mocap network)"""
-    imu: ImuIngest | None = None
+    imu: GyroIngest | None = None
     """the robot's gyro goes here every step (rad/s: scale, bias and noise below)"""
     gyro_bias: float = 0.002
     gyro_scale_error: float = 0.003

@@ -9,7 +9,7 @@ import uuid
 import pytest
 
 from simulators.sim_options import SimOptions
-from simulators.virtual_robot import Simulator
+from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import COINCIDENT_S, SimClock, VirtualClock, next_instant
 
 
@@ -72,7 +72,7 @@ def test_the_simulator_in_lockstep_takes_only_whole_ticks(wake: float) -> None:
     were, 1e-8 to 1e-6 s, each costing a whole tick); with wake-ups on the tick grid every
     step is a whole tick."""
     clock = SimClock()
-    sim = Simulator.open(
+    sim = VirtualRobot.open(
         interface="virtual",
         channel=f"ticks-{uuid.uuid4().hex[:8]}",
         options=SimOptions(physics_dt=0.005),

@@ -265,16 +265,17 @@ def test_batch_of_10000_trials_is_finite_and_shaped() -> None:
     assert np.isfinite(bx.poses).all()
 
 
-def test_simulate_command_writes_a_loadable_dataset(tmp_path: Path) -> None:
+@pytest.mark.parametrize("name", ["datagen", "simulate"])  # simulate: its old name
+def test_datagen_command_writes_a_loadable_dataset(tmp_path: Path, name: str) -> None:
     import argparse
 
-    from services.cli import simulate as commands_gen
+    from services.cli import datagen
 
     parser = argparse.ArgumentParser()
-    commands_gen.register(parser.add_subparsers())
+    datagen.register(parser.add_subparsers())
     out = tmp_path / "sim"
     args = parser.parse_args(
-        ["simulate", str(out), "--spin-duration", "3", "--pose-sigma-xy", "0.5",
+        [name, str(out), "--spin-duration", "3", "--pose-sigma-xy", "0.5",
          "--angles", "30", "120", "200", "--seed", "2"]
     )
     assert args.func(args) == 0

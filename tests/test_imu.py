@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from services.sensors.gyro import ImuIngest
+from services.sensors.gyro import GyroIngest
 from simulators.datagen_imu import GyroOptions
 from simulators.imu_sim import (
     GyroSim,
@@ -137,14 +137,14 @@ def test_what_is_not_an_imu_message_is_a_clear_error() -> None:
 # --------------------------------------------------------------------------- the ingest
 
 
-def feed(ing: ImuIngest, clock: VirtualClock, t: float, wz: float) -> bool:
+def feed(ing: GyroIngest, clock: VirtualClock, t: float, wz: float) -> bool:
     """A sample stamped with the wall time of clock time ``t``, received now."""
     return ing.feed(encode_imu(GyroSample(clock.to_wall(t), wz)))
 
 
 def test_ingest_maps_the_stamps_and_counts_what_it_drops() -> None:
     clock = VirtualClock(start=100.0)
-    ing = ImuIngest(clock=clock, stale_after=0.5)
+    ing = GyroIngest(clock=clock, stale_after=0.5)
     assert ing.latest() is None and ing.age() == math.inf and ing.is_stale()
     for k in range(10):
         clock.advance(0.005)
@@ -171,7 +171,7 @@ def test_ingest_maps_the_stamps_and_counts_what_it_drops() -> None:
 
 def test_ingest_goes_stale_and_names_an_unsynchronised_clock() -> None:
     clock = VirtualClock()
-    ing = ImuIngest(clock=clock, stale_after=0.5, max_clock_error=1.0)
+    ing = GyroIngest(clock=clock, stale_after=0.5, max_clock_error=1.0)
     feed(ing, clock, clock.now(), 0.0)
     clock.advance(0.4)
     assert not ing.is_stale() and ing.age() == pytest.approx(0.4)
@@ -194,7 +194,7 @@ def test_gyro_samples_cross_zenoh_into_the_ingest() -> None:
         for i in range(10):
             gs.sample(0.0, 0.005 * i)
         assert (gs.counters.unheard, gs.counters.published) == (10, 0)
-        ing = ImuIngest(clock=VirtualClock(epoch=0.0))
+        ing = GyroIngest(clock=VirtualClock(epoch=0.0))
         ing.subscribe(sub_s, imu_key("t"))
         deadline = time.monotonic() + 5.0
         k = 0

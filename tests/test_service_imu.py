@@ -1,6 +1,6 @@
 """A calibration without motion capture through HTTP, on the in-process simulator.
 
-The real app, driver, simulator (its gyro over zenoh) and mocap-free solver on one
+The real app, driver, simulator (its gyro over zenoh) and IMU solver on one
 simulated clock, the test playing the operator: it marks the floor (``POST .../continue``
 in MARK) and reads the simulator's tape (``GET /simulator/tape-measure``) to post the
 straight drive's length (``POST .../references`` in MEASURE).  One short run (two angles
@@ -28,7 +28,7 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
-from swpc_hw.calibration.imu_solver import solve_mocap_free_directory
+from swpc_hw.calibration.imu_solver import solve_imu_directory
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -146,10 +146,10 @@ def test_a_calibration_without_motion_capture_through_http(
         assert abs(f.error) < limit, str(f)
     # the recorded dataset: no poses, the gyro and every reference; swpc solve agrees
     ds = load_dataset(res["dataset_dir"])
-    assert ds.mocap_free and not (Path(res["dataset_dir"]) / "poses.csv").exists()
+    assert ds.is_imu and not (Path(res["dataset_dir"]) / "poses.csv").exists()
     kinds = [ref.kind for ref in ds.references]
     assert kinds == ["axis_distance"] * 6 + ["straight_drive"]
-    offline = solve_mocap_free_directory(res["dataset_dir"])
+    offline = solve_imu_directory(res["dataset_dir"])
     off = np.array([[getattr(m, n) for n in NAMES] for m in offline.params.modules])
     api = np.array([[m[n] for n in NAMES] for m in res["modules"]])
     np.testing.assert_allclose(off, api, rtol=0, atol=1e-12)

@@ -36,7 +36,7 @@ from simulators.datagen_imu import GyroOptions
 from simulators.imu_sim import imu_key
 from simulators.mocap_sim import MocapOptions, pose_key, truth_params_key, truth_pose_key
 from simulators.sim_options import SimOptions
-from simulators.virtual_robot import Simulator
+from simulators.virtual_robot import VirtualRobot
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.config import SwpcDrives
@@ -124,7 +124,7 @@ class GyroLog:
 
 @dataclass
 class Rig:
-    sim: Simulator
+    sim: VirtualRobot
     channel: str
     session: Any
     poses: PoseLog
@@ -152,7 +152,7 @@ def rig(lockstep: bool = False, **opts: Any) -> Iterator[Rig]:
     opts.setdefault("start_time", 0.0)
     # these tests read pose times as simulated time (test_host_mocap_clock_... the default)
     opts.setdefault("mocap_clock", "sim")
-    sim = Simulator(bus=bus, session=sim_session, options=SimOptions(**opts), clock=clock)
+    sim = VirtualRobot(bus=bus, session=sim_session, options=SimOptions(**opts), clock=clock)
     log = PoseLog(clock=clock, key=pose_key(sim.options.robot))
     sub = client.declare_subscriber(log.key, log.on_sample)
     gyro = GyroLog(clock=clock, key=imu_key(sim.options.robot))
@@ -515,7 +515,7 @@ def test_ros2_cdr_poses_truth_channel_and_time_scale() -> None:
 
 
 def test_simulator_lifecycle() -> None:
-    sim = Simulator.open(
+    sim = VirtualRobot.open(
         interface="virtual",
         channel=f"lc-{uuid.uuid4().hex[:6]}",
         zenoh_listen=[free_tcp_endpoint()],
@@ -603,7 +603,7 @@ def test_custom_nodes_encoder_quantisation_and_bus_errors() -> None:
     clock = SimClock()
     bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     host = RawHost(can.Bus(interface="virtual", channel=channel), clock)
-    sim = Simulator(
+    sim = VirtualRobot(
         truth,
         bus=bus,
         options=SimOptions(

@@ -1,4 +1,4 @@
-"""Virtual robot physics (simulators.robot_sim) and mocap corruption (simulators.mocap_sim)."""
+"""Virtual robot physics (simulators.robot_physics) and mocap corruption (simulators.mocap_sim)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Hom
 from simulators.axis_drives import axis_drive, quantize
 from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
 from simulators.physics import caster_rates, settled_trailing
-from simulators.robot_sim import (
+from simulators.robot_physics import (
     FREE_MODULE,
     DriveArrays,
     ModuleDrive,
     PhysicsOptions,
-    RobotSim,
+    RobotPhysics,
     SteerDrive,
     WheelDrive,
     module_rates,
@@ -41,7 +41,7 @@ def torque(tau: float) -> ModuleDrive:
     return ModuleDrive(SteerDrive.PASSIVE, 0.0, WheelDrive.TORQUE, tau)
 
 
-def spin(sim: RobotSim, k: int, seconds: float, tau: float = -0.6, dt: float = 0.002) -> None:
+def spin(sim: RobotPhysics, k: int, seconds: float, tau: float = -0.6, dt: float = 0.002) -> None:
     drives = [locked() if i == k else torque(tau) for i in range(sim.n)]
     for _ in range(round(seconds / dt)):
         sim.step(dt, drives)
@@ -65,7 +65,7 @@ def test_module_rates_match_the_physics_core() -> None:
 
 @pytest.mark.parametrize("k", [0, 2])
 def test_locked_module_pins_its_contact_point_and_torque_gives_a_steady_spin(k: int) -> None:
-    sim = RobotSim(TRUTH, theta0=np.random.default_rng(k).uniform(-3, 3, 4))
+    sim = RobotPhysics(TRUTH, theta0=np.random.default_rng(k).uniform(-3, 3, 4))
     sim.theta[k] = math.radians(45) + A.beta[k]
     C_W = sim.contact_points_world()[k].copy()
     C_R = sim.contact_points()[k].copy()
@@ -86,7 +86,7 @@ def test_free_casters_trail_from_any_start_and_wheels_roll_d_dyaw_over_r(seed: i
     rng = np.random.default_rng(seed)
     k = int(rng.integers(4))
     theta0 = rng.uniform(-math.pi, math.pi, 4)
-    sim = RobotSim(TRUTH, theta0=theta0)
+    sim = RobotPhysics(TRUTH, theta0=theta0)
     spin(sim, k, 6.0)
     C = sim.contact_points()[k]
     target, D = settled_trailing(A.P_s, A.b, C, np.sign(sim.twist[2]))
@@ -107,7 +107,7 @@ def test_free_casters_trail_from_any_start_and_wheels_roll_d_dyaw_over_r(seed: i
 
 
 def test_resteering_a_locked_module_moves_the_body_around_the_pinned_point() -> None:
-    sim = RobotSim(TRUTH, theta0=[math.radians(45) + A.beta[0], 0.0, 1.0, 2.0])
+    sim = RobotPhysics(TRUTH, theta0=[math.radians(45) + A.beta[0], 0.0, 1.0, 2.0])
     C_W = sim.contact_points_world()[0].copy()
     yaw0 = sim.pose[2]
     rate = math.radians(120) / 2.0
@@ -122,7 +122,7 @@ def test_all_modules_driven_move_as_the_least_squares_twist_of_the_true_model() 
     v, w = np.array([0.3, 0.1]), 0.2
     for model, slips in ((TRUTH, False), (PAPER_NOMINAL, True)):
         M = model.arrays()
-        sim = RobotSim(TRUTH)
+        sim = RobotPhysics(TRUTH)
         for _ in range(300):
             th_dot, psi_dot = inverse_kinematics(M, sim.theta - M.beta, v, w)
             drives = [
@@ -170,7 +170,7 @@ def test_a_push_turns_a_free_robot_steadily_and_braked_wheels_hold_it() -> None:
     brake = [ModuleDrive(wheel=WheelDrive.BRAKE)] * 4
     rates = []
     for tau in (1.0, 2.0):
-        r = RobotSim(PAPER_CALIBRATED, theta0=[0.3, -1.0, 2.0, 0.5])
+        r = RobotPhysics(PAPER_CALIBRATED, theta0=[0.3, -1.0, 2.0, 0.5])
         r.push = np.array([0.0, 0.0, tau])
         w = []
         for _ in range(2000):  # 10 s
@@ -186,7 +186,7 @@ def test_a_push_turns_a_free_robot_steadily_and_braked_wheels_hold_it() -> None:
 
 
 def test_slip_bursts_only_move_the_encoder() -> None:
-    sim = RobotSim(TRUTH, PhysicsOptions(slip_burst_rate=2.0, seed=4), theta0=[0.8, 0, 0, 0])
+    sim = RobotPhysics(TRUTH, PhysicsOptions(slip_burst_rate=2.0, seed=4), theta0=[0.8, 0, 0, 0])
     spin(sim, 0, 4.0)
     assert sim.slip_bursts
     extra = sim.psi_encoder - sim.psi
@@ -205,7 +205,7 @@ def drive_straight(wheel: ModuleDrive, length: float = 2.0) -> tuple[np.ndarray,
     the first wheel turned ``length`` by its nominal radius.  Returns what every wheel's
     encoder says it rolled minus what its contact point moved along its rolling direction
     (m: slip), and the drive's yaw (rad)."""
-    r = RobotSim(TRUTH, PhysicsOptions(), (0.0, 0.0, 0.0), [math.pi + b for b in A.beta])
+    r = RobotPhysics(TRUTH, PhysicsOptions(), (0.0, 0.0, 0.0), [math.pi + b for b in A.beta])
     held = ModuleDrive(SteerDrive.RATE, 0.0, wheel.wheel, wheel.wheel_value)
     c0 = r.contact_points_world()
     while abs(float(r.psi_encoder[0])) * PAPER_NOMINAL.modules[0].r < length:
@@ -401,7 +401,7 @@ def test_any_number_of_modules_spins_about_the_locked_contact_point(n: int) -> N
         np.full(n, 0.02),
         np.full(n, 0.05),
     )
-    sim = RobotSim(truth, theta0=np.random.default_rng(n).uniform(-3, 3, n))
+    sim = RobotPhysics(truth, theta0=np.random.default_rng(n).uniform(-3, 3, n))
     C_W = sim.contact_points_world()[0].copy()
     spin(sim, 0, 5.0)
     assert abs(sim.twist[2]) > 0.1

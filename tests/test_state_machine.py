@@ -23,7 +23,7 @@ import pytest
 from services.config.robot import RobotConfig
 from services.runs.imu import ImuCalibrationRun
 from services.runs.protocol import TERMINAL, TRANSITIONS, CalibrationRun, State
-from services.sensors.gyro import ImuIngest
+from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from simulators.imu_sim import axis_travel
 from swpc_hw.clock import VirtualClock
@@ -82,7 +82,7 @@ class Rig:
     ) -> None:
         self.clock = VirtualClock(start=1000.0)
         self.mocap = MocapIngest(clock=self.clock, clock_mode="wall", stale_after=0.5)
-        self.imu = ImuIngest(clock=self.clock, stale_after=0.5)
+        self.imu = GyroIngest(clock=self.clock, stale_after=0.5)
         self.robot = FakeRobot(
             TRUTH, self.clock, self.mocap, dt=0.01, pose_every=1,
             imu=self.imu if metrology == "imu" else None, **robot,
@@ -210,7 +210,7 @@ def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) 
     assert run.drive == (pytest.approx((a0 + b0) / 2), pytest.approx((a1 + b1) / 2))
     assert run.status.drive_m == pytest.approx(1.0, abs=0.02)
     ds = run.dataset()
-    assert ds.mocap_free and not (run.run_dir / "dataset" / "poses.csv").exists()
+    assert ds.is_imu and not (run.run_dir / "dataset" / "poses.csv").exists()
     assert [r.kind for r in ds.references] == ["axis_distance"] * 3 + ["straight_drive"]
     res = run.result
     assert res is not None and res.params.frame == "design-fit" and res.covariance is not None

@@ -146,22 +146,22 @@ def test_report_means_reduction_and_table() -> None:
 
 
 def test_report_of_three_files_gives_each_its_reduction_against_the_first() -> None:
-    """nominal, mocap-calibrated, mocap-free-calibrated (issue 20): one reduction each."""
+    """nominal, mocap-calibrated, IMU-calibrated (issue 20): one reduction each."""
     opt = SquareOptions(runs=1, directions=("ccw",))
     res = [
         _result("nominal", "ccw", 0, 0.20, math.radians(4.0)),
         _result("mocap", "ccw", 0, 0.01, math.radians(0.1)),
-        _result("mocap-free", "ccw", 0, 0.02, math.radians(0.2)),
+        _result("imu", "ccw", 0, 0.02, math.radians(0.2)),
     ]
-    rep = ValidationReport(["nominal", "mocap", "mocap-free"], res, opt)
+    rep = ValidationReport(["nominal", "mocap", "imu"], res, opt)
     reds = rep.reductions()
-    assert list(reds) == ["mocap", "mocap-free"]
+    assert list(reds) == ["mocap", "imu"]
     assert reds["mocap"]["position"] == pytest.approx(0.95)
-    assert reds["mocap-free"]["position"] == pytest.approx(0.90)
-    assert reds["mocap-free"]["heading"] == pytest.approx(0.95)
-    assert rep.reduction() == reds["mocap-free"]  # the last file, as before
+    assert reds["imu"]["position"] == pytest.approx(0.90)
+    assert reds["imu"]["heading"] == pytest.approx(0.95)
+    assert rep.reduction() == reds["imu"]  # the last file, as before
     table = rep.table()
-    assert "mocap vs nominal" in table and "mocap-free vs nominal" in table
+    assert "mocap vs nominal" in table and "imu vs nominal" in table
     assert rep.to_document()["reductions"] == reds
 
 

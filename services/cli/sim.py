@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any
 
-from services.cli._noise_options import add_noise_arguments
+from services.cli._sim_options import add_gyro_arguments, add_noise_arguments, gyro_options
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -112,15 +112,7 @@ def register(sub: Any) -> None:
         help="start with this module's controller silent (heartbeat loss; repeatable)",
     )
     g = p.add_argument_group("gyro (imu/<robot>/data, sensor_msgs/msg/Imu in CDR)")
-    g.add_argument("--gyro-rate", type=float, default=200.0, help="gyro samples /s (200)")
-    g.add_argument(
-        "--gyro-noise", type=float, default=0.005, help="white noise, deg/s/sqrt(Hz) (0.005)"
-    )
-    g.add_argument("--gyro-bias", type=float, default=0.1, help="bias, deg/s (0.1)")
-    g.add_argument(
-        "--gyro-bias-walk", type=float, default=1e-4, help="bias walk, deg/s/sqrt(s) (1e-4)"
-    )
-    g.add_argument("--gyro-scale-error", type=float, default=0.3, help="scale error, %% (0.3)")
+    add_gyro_arguments(g)
     p.add_argument("--truth-rate", type=float, default=50.0, help="truth pose Hz (50)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=0.0, help="wall s to run (0: until ^C)")
@@ -165,11 +157,10 @@ def sim_drives(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from simulators.datagen_imu import GyroOptions
     from simulators.mocap_sim import MocapOptions
-    from simulators.robot_sim import PhysicsOptions
+    from simulators.robot_physics import PhysicsOptions
     from simulators.sim_options import SimOptions
-    from simulators.virtual_robot import Simulator
+    from simulators.virtual_robot import VirtualRobot
     from swpc_hw.heap_freeze import freeze_startup_heap
     from swpc_hw.kinematic_file import load_robot
     from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -197,13 +188,7 @@ def run(args: argparse.Namespace) -> int:
             clock_offset=args.clock_offset,
             seed=args.seed,
         ),
-        gyro=GyroOptions(
-            rate=args.gyro_rate,
-            noise_density=math.radians(args.gyro_noise),
-            bias=math.radians(args.gyro_bias),
-            bias_walk=math.radians(args.gyro_bias_walk),
-            scale_error=args.gyro_scale_error / 100.0,
-        ),
+        gyro=gyro_options(args),
         truth_rate=args.truth_rate,
         bus_error_rate=args.bus_error_rate,
         mocap_clock=args.mocap_clock,
@@ -215,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
     from swpc_hw.errors import SwpcError
 
     try:
-        sim = _open(Simulator, truth, args, listen, opt)
+        sim = _open(VirtualRobot, truth, args, listen, opt)
     except (OSError, can.CanError, ValueError) as exc:
         code = exc.errno if isinstance(exc, OSError) else None
         hint = {

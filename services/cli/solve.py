@@ -28,7 +28,7 @@ def register(sub: Any) -> None:
         description=(
             "Solve a dataset directory (robot.yaml, poses.csv, encoders.csv, segments.csv; "
             "see docs/dataset-format.md) and write the kinematic file. Without poses.csv "
-            "(imu.csv and references.yaml instead) the mocap-free solver runs and writes the "
+            "(imu.csv and references.yaml instead) the IMU solver runs and writes the "
             "design-fit frame. Bad data: one-line error, exit status 2, no output file."
         ),
     )
@@ -50,7 +50,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--truth",
         help="kinematic file of the true parameters (adds an error column; re-expressed in "
-        "the design-fit frame for a mocap-free result)",
+        "the design-fit frame for an IMU result)",
     )
     p.add_argument("--robot", help="robot id written to the file (default: robot.yaml's)")
     p.set_defaults(func=run)
@@ -58,7 +58,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from swpc_hw.calibration.baseline import solve_paper
-    from swpc_hw.calibration.imu_solver import solve_mocap_free
+    from swpc_hw.calibration.imu_solver import solve_imu
     from swpc_hw.calibration.report import format_table
     from swpc_hw.calibration.solver import SolverOptions, solve
     from swpc_hw.dataset import load_dataset
@@ -76,10 +76,10 @@ def run(args: argparse.Namespace) -> int:
         if args.method == "paper":
             raise CalibrationError(
                 f"{args.dataset}: no poses.csv: the paper's procedure needs motion capture "
-                "(this dataset is for the mocap-free solver: leave out --method paper)"
+                "(this dataset is for the IMU solver: leave out --method paper)"
             )
         opts = SolverOptions(time_offset=args.time_offset)
-        result = solve_mocap_free(ds, opts, source=args.dataset)
+        result = solve_imu(ds, opts, source=args.dataset)
     elif args.method == "paper":
         result = solve_paper(ds, float(args.time_offset), source=args.dataset)
     else:

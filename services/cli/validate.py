@@ -4,7 +4,7 @@ odometry test.
 Drives the seed's validation (:mod:`swpc_hw.validation`): a 2.5 m square with a 90 deg turn
 at each corner, CW and CCW, 4 runs each, ~0.2 m/s, once with the reference file (default:
 the robot config's nominal, i.e. the paper's design) and once with each ``--kinematics``
-file (e.g. a mocap-calibrated and a mocap-free-calibrated one), each used for both control
+file (e.g. a mocap-calibrated and a IMU-calibrated one), each used for both control
 and odometry; prints the Table-5-like comparison, each file's error reduction against the
 reference, and writes ``validation.txt``, ``validation.json`` and ``validation.png``
 (Figure-13-like paths).
@@ -12,7 +12,7 @@ reference, and writes ``validation.txt``, ``validation.json`` and ``validation.p
 A file in another frame than the motion capture's body frame (``design-fit``, from a
 calibration without motion capture) needs no conversion: the squares close in the frame
 of the file that drives them, and the end-pose errors of a closed path do not depend on
-the body frame to first order (docs/mocap-free.md).
+the body frame to first order (docs/imu.md).
 
 With no CAN interface it runs on the in-process simulator (like ``swpc serve``: a
 python-can ``virtual`` bus, zenoh on loopback, simulated time in lockstep; truth = paper
@@ -57,7 +57,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--kinematics", required=True, nargs="+", metavar="FILE",
-        help="kinematic file(s) under test, e.g. a mocap-calibrated and a mocap-free one",
+        help="kinematic file(s) under test, e.g. a mocap-calibrated and an IMU one",
     )
     p.add_argument(
         "--compare", default="nominal",

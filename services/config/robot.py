@@ -99,7 +99,7 @@ MAX_ANGLE_DEG = 360.0
 MAX_DRIVE_LENGTH = 20.0
 """m: the longest straight drive a run may ask for (the floor space it needs)."""
 MIN_REST_TIME = 1.0
-"""s: the shortest rest the mocap-free solver finds (0.5 s still, trimmed 0.1 s at both
+"""s: the shortest rest the IMU solver finds (0.5 s still, trimmed 0.1 s at both
 ends, swpc_hw.calibration.gyro) with a margin."""
 MIN_ANGLE_SEPARATION_DEG = 10.0
 

@@ -17,7 +17,11 @@ from typing import Literal
 from pydantic import ByteSize, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from simulators.datagen_imu import GyroOptions
 from swpc_hw.errors import SwpcError
+
+_GYRO = GyroOptions().human()
+"""The in-process simulator's gyro by default: GyroOptions' defaults, in human units."""
 
 MIN_TOKEN_LENGTH = 16
 PLACEHOLDER_TOKENS = frozenset({"change-me", "changeme", "token", "secret", "password"})
@@ -181,22 +185,22 @@ class ServiceSettings(BaseSettings):
         0.0, ge=0, le=5.0, description="in-process simulator: pose publication delay, robot s"
     )
     sim_gyro_rate: float = Field(
-        200.0, gt=0, le=2000, description="in-process simulator: gyro samples per robot s, Hz"
+        _GYRO[0], gt=0, le=2000, description="in-process simulator: gyro samples per robot s, Hz"
     )
     sim_gyro_noise: float = Field(
-        0.005, ge=0, le=10, description="in-process simulator: gyro white noise, deg/s/sqrt(Hz)"
+        _GYRO[1], ge=0, le=10, description="in-process simulator: gyro white noise, deg/s/sqrt(Hz)"
     )
     sim_gyro_bias: float = Field(
-        0.1, ge=-100, le=100, description="in-process simulator: gyro bias at start, deg/s"
+        _GYRO[2], ge=-100, le=100, description="in-process simulator: gyro bias at start, deg/s"
     )
     sim_gyro_bias_walk: float = Field(
-        1e-4,
+        _GYRO[3],
         ge=0,
         le=10,
         description="in-process simulator: random walk of the gyro bias, deg/s/sqrt(s)",
     )
     sim_gyro_scale_error: float = Field(
-        0.3, gt=-50, lt=50, description="in-process simulator: gyro scale error, %"
+        _GYRO[4], gt=-50, lt=50, description="in-process simulator: gyro scale error, %"
     )
 
     @property

@@ -2,8 +2,8 @@
 
 :class:`ImuCalibrationRun` walks the protocol of :mod:`services.runs.protocol` with the
 gyro (:mod:`services.sensors.gyro`) where that one reads the poses, and adds what the
-mocap-free solver needs (docs/mocap-free.md, and the simulated protocol
-:data:`simulators.datagen_imu.MOCAP_FREE_PROTOCOL`)::
+IMU solver needs (docs/imu.md, and the simulated protocol
+:data:`simulators.datagen_imu.IMU_PROTOCOL`)::
 
     PENDING -> CONNECT -> PRECHECK -> REST -> LOCK -> ALIGN -> FREE -> STILL -> SPIN -> STOP
     STOP    -> RESTEER -> STILL -> SPIN ... | RELEASE
@@ -36,7 +36,7 @@ mocap-free solver needs (docs/mocap-free.md, and the simulated protocol
   measurement of the distance the first module's steering axis travelled between the
   two floor marks (``POST /calibrations/{id}/references``); ``protocol.operator_timeout``.
 * SOLVE: ``imu.csv``, the encoders, the segments and ``references.yaml`` (the references
-  given at the start plus the drive's) solved by the mocap-free solver, exactly as
+  given at the start plus the drive's) solved by the IMU solver, exactly as
   ``swpc solve`` does; the result is in the ``design-fit`` frame.
 
 References given at the start are checked before any motion
@@ -60,7 +60,7 @@ from services.runs.journal import SampleSource
 from services.runs.pose_motion import REST_WINDOW, SpinWindow
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunFailedError, State
-from services.sensors.gyro import ImuIngest
+from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from swpc_hw.dataset import Segment
 from swpc_hw.drives.robot_io import RobotIO
@@ -140,7 +140,7 @@ class ImuCalibrationRun(CalibrationRun):
         self,
         robot: RobotIO,
         mocap: MocapIngest,
-        imu: ImuIngest,
+        imu: GyroIngest,
         config: RobotConfig,
         *,
         references: Sequence[Reference] = (),

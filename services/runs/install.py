@@ -30,15 +30,15 @@ PARAMS = ("x_s", "y_s", "beta", "b", "r")
 
 def solve_run(run_dir: Path) -> CalibrationResult:
     """Solve the dataset the run wrote under ``run_dir`` with the solver its files call
-    for, as ``swpc solve`` does (no ``poses.csv`` but ``imu.csv``: the mocap-free solver).
+    for, as ``swpc solve`` does (no ``poses.csv`` but ``imu.csv``: the IMU solver).
     A solver failure names the kept dataset and the command that reproduces it."""
-    from swpc_hw.calibration.imu_solver import solve_mocap_free
+    from swpc_hw.calibration.imu_solver import solve_imu
 
     directory = run_dir / "dataset"
     try:
         ds = load_dataset(directory)
-        if ds.mocap_free:
-            return solve_mocap_free(ds, SolverOptions(time_offset=0.0), source=str(directory))
+        if ds.is_imu:
+            return solve_imu(ds, SolverOptions(time_offset=0.0), source=str(directory))
         return solve(ds, SolverOptions(time_offset=0.0), source=str(directory))
     except CalibrationError as exc:
         raise CalibrationError(

@@ -42,7 +42,7 @@ RECORD_PERIOD = 0.5
 
 class SampleSource(Protocol):
     """The motion sensor's ingest (:class:`~services.sensors.mocap.MocapIngest` rows
-    ``t_source, t_recv, t_host, x, y, yaw``, :class:`~services.sensors.gyro.ImuIngest` rows
+    ``t_source, t_recv, t_host, x, y, yaw``, :class:`~services.sensors.gyro.GyroIngest` rows
     ``t_source, t_recv, t_host, wz``)."""
 
     def samples_since(self, cursor: int, since: float) -> tuple[FloatArray, int]: ...

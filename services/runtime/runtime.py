@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import grp
 import logging
-import math
 import os
 import stat
 import sys
@@ -43,14 +42,14 @@ from services.runs.protocol import TERMINAL, CalibrationRun, State
 from services.runs.recording import SpaceGuard
 from services.runtime.events import EventBus
 from services.runtime.simulator import in_process_simulator
-from services.sensors.gyro import ImuIngest
+from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from services.store.disk import make_room, run_reserve
 from services.store.locks import ChannelLock, DataDirLock
 from services.store.logs import event
 from services.store.runs import RunStore
 from simulators.datagen_imu import GyroOptions
-from simulators.virtual_robot import Simulator
+from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.drives.interface import Drives
 from swpc_hw.drives.robot_io import DrivesRobotIO
@@ -118,7 +117,7 @@ class Runtime:
             clock_mode="wall" if settings.in_process else settings.mocap_clock,
         )
         # the robot's gyro (a run without motion capture), stamped with wall time
-        self.imu = ImuIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
+        self.imu = GyroIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
         self.data_dir = Path(settings.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         # before anything in the data dir is touched: a second service stops here
@@ -140,7 +139,7 @@ class Runtime:
         self.current: CalibrationRun | None = None
         self.events = EventBus()  # every run change, for the console's event stream
         self._lock = threading.Lock()
-        self.simulator: Simulator | None = None
+        self.simulator: VirtualRobot | None = None
         self.can_channel = settings.can_channel
         self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
@@ -250,12 +249,12 @@ class Runtime:
                 physics_dt=s.sim_physics_dt,
                 mocap_latency=s.sim_mocap_latency,
                 feedback_rate_hz=s.feedback_rate_hz,
-                gyro=GyroOptions(
-                    rate=s.sim_gyro_rate,
-                    noise_density=math.radians(s.sim_gyro_noise),
-                    bias=math.radians(s.sim_gyro_bias),
-                    bias_walk=math.radians(s.sim_gyro_bias_walk),
-                    scale_error=s.sim_gyro_scale_error / 100.0,
+                gyro=GyroOptions.from_human(
+                    s.sim_gyro_rate,
+                    s.sim_gyro_noise,
+                    s.sim_gyro_bias,
+                    s.sim_gyro_bias_walk,
+                    s.sim_gyro_scale_error,
                 ),
             )
             self.simulator.start()

@@ -22,7 +22,7 @@ from services.config.robot import RobotConfig
 from simulators.datagen_imu import GyroOptions
 from simulators.mocap_sim import MocapOptions
 from simulators.sim_options import SimOptions
-from simulators.virtual_robot import Simulator
+from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
@@ -43,7 +43,7 @@ def in_process_simulator(
     mocap_latency: float | None = None,
     feedback_rate_hz: int = 50,
     gyro: GyroOptions | None = None,
-) -> Simulator:
+) -> VirtualRobot:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
     service's zenoh endpoint (it connects to ``zenoh_endpoints``), and its gyro
     (``gyro``, default :class:`~simulators.datagen_imu.GyroOptions`), master of ``clock``.
@@ -64,7 +64,7 @@ def in_process_simulator(
         gyro=gyro or GyroOptions(),
         seed=seed,
     )
-    return Simulator.open(
+    return VirtualRobot.open(
         truth,
         interface="virtual",
         channel=channel,

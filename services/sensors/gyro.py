@@ -7,7 +7,7 @@ service clock by :meth:`~swpc_hw.clock.Clock.from_wall` (the stamps are wall tim
 in-process simulator's simulated wall clock, ``swpc sim``'s host clock, or a robot's clock
 synchronised with this host), the way the CAN bus stamps and the poses in clock mode
 ``wall`` are.  A stamp more than ``max_clock_error`` off its receipt is reported by
-:meth:`ImuIngest.clock_problem` (an IMU whose clock is not this host's).
+:meth:`GyroIngest.clock_problem` (an IMU whose clock is not this host's).
 
 Dropped and counted: undecodable payloads, non-finite values, duplicates (same stamp) and
 samples older than the last accepted one (a stamp stepping back by more than
@@ -37,7 +37,7 @@ from swpc_hw.row_ring import RowRing
 
 FloatArray = NDArray[np.float64]
 
-#: columns of :meth:`ImuIngest.samples`
+#: columns of :meth:`GyroIngest.samples`
 COLUMNS = ("t_source", "t_recv", "t_host", "wz")
 
 
@@ -61,7 +61,7 @@ class ImuCounters:
         return self.received - self.accepted
 
 
-class ImuIngest:
+class GyroIngest:
     """Thread-safe gyro store fed by zenoh (or directly through :meth:`feed`)."""
 
     def __init__(

@@ -1,6 +1,6 @@
 """What an experiment without motion capture determines: its Fisher information.
 
-For weighted residuals ``f(x)`` (unit noise) of the mocap-free problem
+For weighted residuals ``f(x)`` (unit noise) of the IMU problem
 (:mod:`.imu_problem`) the Fisher information of the unknowns is ``F = J^T J`` at the
 truth (:func:`fisher_information`).  Every direction ``v`` with ``F v = 0`` is one the data
 cannot see.  Expected ones (:func:`gauge_directions`), for ``x = [X, s, b, da]``:
@@ -50,7 +50,7 @@ def fisher_information(prob: ImuProblem, x: FloatArray) -> FloatArray:
 
 
 def gauge_directions(prob: ImuProblem, x: FloatArray) -> dict[str, FloatArray]:
-    """The directions the data of a mocap-free experiment may not see (module docstring)."""
+    """The directions the data of an IMU experiment may not see (module docstring)."""
     lay = prob.layout
     X = lay.split(x)[0]
     n = lay.n

@@ -1,4 +1,4 @@
-"""Building the mocap-free problem from a dataset, and its starting point.
+"""Building the IMU problem from a dataset, and its starting point.
 
 * **Noise levels** (:class:`NoiseLevels`): the encoders' quantization steps (the settled
   steering's floor, a wheel reading's std dev) and the gyro's white-noise variance and
@@ -155,7 +155,7 @@ def build_imu_problem(
     source: str = "dataset",
     noise: NoiseLevels | None = None,
 ) -> ImuRun:
-    """Observations and weights of a mocap-free run (module docstring)."""
+    """Observations and weights of an IMU run (module docstring)."""
     if ds.imu is None:
         raise DatasetError(f"{source}/imu.csv: missing file (no poses.csv either)")
     imu = ds.imu

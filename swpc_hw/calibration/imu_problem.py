@@ -1,4 +1,4 @@
-"""The mocap-free least-squares problem: encoders, gyro and references, no poses.
+"""The IMU least-squares problem: encoders, gyro and references, no poses.
 
 Unknowns ``x = [X (N, 5) row by row, s, b_1 .. b_K, da_1 .. da_S]`` (:class:`ImuLayout`):
 every module's ``x_s, y_s, beta, b, r``, the gyro's scale ``s = 1 + eps``, its bias at the
@@ -343,7 +343,7 @@ def connected_chunks(present: BoolArray, run: IntArray) -> list[tuple[int, int]]
 
 @dataclass
 class ImuProblem:
-    """All observations of a mocap-free run; weighted residuals of the active blocks."""
+    """All observations of an IMU run; weighted residuals of the active blocks."""
 
     layout: ImuLayout
     settled: SettledObservations

@@ -36,6 +36,7 @@ from scipy.linalg import null_space
 from scipy.optimize import least_squares
 
 from swpc_hw.calibration import plausibility
+from swpc_hw.calibration.imu_assemble import assemble_imu_result
 from swpc_hw.calibration.imu_build import (
     ImuRun,
     NoiseLevels,
@@ -44,7 +45,6 @@ from swpc_hw.calibration.imu_build import (
     initial_parameters,
 )
 from swpc_hw.calibration.imu_problem import ImuProblem, RollingSet, connected_chunks
-from swpc_hw.calibration.imu_result import mocap_free_result
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import N_PARAMS, P_S, R, canonical_parameters
 from swpc_hw.calibration.prepare import prepare_segments
@@ -192,7 +192,7 @@ def cut_slip(
 
     A wheel's increment whose residual against its reference (:func:`wheel_increments`)
     is beyond ``slip_sigmas`` robust sigmas of its series (and one either side) slips
-    (:func:`.slip.detect_slip`, bursts only: see docs/mocap-free.md).  A slip starts a
+    (:func:`.slip.detect_slip`, bursts only: see docs/imu.md).  A slip starts a
     new run of that wheel (its constant jumps); runs of one node are dropped.  A straight
     drive must stay one connected run of nodes (its length is end minus start).
     ``pooled``: one robust sigma for all increments (the coarse problem's series are too
@@ -447,7 +447,7 @@ def undetermined_names(prob: ImuProblem, v: FloatArray, top: int = 4) -> str:
 # ------------------------------------------------------------------ the solve
 
 
-def solve_mocap_free(
+def solve_imu(
     ds: Dataset,
     options: SolverOptions | None = None,
     source: str = "dataset",
@@ -461,7 +461,7 @@ def solve_mocap_free(
             "offset (given or auto) applies"
         )
     if ds.imu is None:
-        raise CalibrationError(f"{source}: no imu.csv: not a mocap-free dataset")
+        raise CalibrationError(f"{source}: no imu.csv: not an IMU dataset")
     plausibility.check_dataset(ds, source)
     segs = prepare_segments(ds, 0.0, source)
     check_references(ds, source)
@@ -479,7 +479,7 @@ def solve_mocap_free(
     plausibility.check_gyro_scale(float(x[run.problem.layout.scale]) - 1.0)
     check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)
     cov, J, f = imu_covariance(run.problem, x)
-    return mocap_free_result(run, ds, segs, x, cov, J, f, cut)
+    return assemble_imu_result(run, ds, segs, x, cov, J, f, cut)
 
 
 def check_drives_straight(run: ImuRun, x: FloatArray, size: float, source: str) -> None:
@@ -522,8 +522,8 @@ def gyro_ratio(prob: ImuProblem, x: FloatArray) -> float:
     return float(np.median(out)) if out else 1.0
 
 
-def solve_mocap_free_directory(
+def solve_imu_directory(
     path: str | Path, options: SolverOptions | None = None
 ) -> CalibrationResult:
     """Load a dataset directory without poses.csv and solve it."""
-    return solve_mocap_free(load_dataset(path), options, source=str(path))
+    return solve_imu(load_dataset(path), options, source=str(path))

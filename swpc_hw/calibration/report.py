@@ -62,8 +62,8 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
     q = result
     lines.append("")
     chi2 = f"{q.reduced_chi2:.3g}" if _known(q.reduced_chi2) else "n/a (no noise model)"
-    if q.mocap_free is not None:
-        lines += mocap_free_lines(q)
+    if q.imu is not None:
+        lines += imu_lines(q)
         lines.append(
             f"wheel increments used {q.increments_used} (rejected as slip "
             f"{q.increments_rejected}); reduced chi2 {chi2}"
@@ -90,7 +90,7 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
         ]
         if _known(s.noise_inflation):
             figures.append(f"noise correlation x{s.noise_inflation:.2f}")
-        if q.mocap_free is None:
+        if q.imu is None:
             figures.append(f"poses {s.poses_used}/{s.poses_used + s.poses_rejected}")
         lines.append(
             f"  segment {s.row + 1}: module {s.static_module} at {angle:7.2f} deg: "
@@ -105,15 +105,15 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
     return "\n".join(lines)
 
 
-def mocap_free_lines(q: CalibrationResult) -> list[str]:
+def imu_lines(q: CalibrationResult) -> list[str]:
     """The mode, the gyro's estimates and every reference's residual (mm, deg/s, %)."""
-    m = q.mocap_free
+    m = q.imu
     if m is None:
         return []
     deg = 180.0 / math.pi
     eps_std = m.gyro_scale_error_std
     lines = [
-        f"mode: mocap-free (encoders, gyro and references; frame {q.params.frame}: the rigid "
+        f"mode: imu (encoders, gyro and references; frame {q.params.frame}: the rigid "
         "transform that best aligns the steering axes with robot.yaml's)",
         f"gyro: scale error {m.gyro_scale_error * 100:+.4f} %"
         + (f" (std {eps_std * 100:.4f} %)" if eps_std is not None else "")

@@ -69,7 +69,7 @@ class BiasKnot:
 
 
 @dataclass
-class MocapFreeQuality:
+class ImuQuality:
     """What a calibration without motion capture adds to the quality figures."""
 
     gyro_scale_error: float
@@ -117,8 +117,8 @@ class CalibrationResult:
     ``x_s, y_s, beta, b, r`` within a module (SI units), or None when unknown.
     ``time_offset_mode``: ``given``, ``estimated`` or ``not observable`` (then
     ``time_offset`` is the value assumed, 0).  ``reduced_chi2`` is None for a method
-    without a noise model.  ``mode``: ``mocap`` (poses) or ``mocap-free`` (gyro and
-    references, ``mocap_free`` set, parameters in the design-fit frame).
+    without a noise model.  ``mode``: ``mocap`` (poses) or ``imu`` (gyro and
+    references, ``imu`` set, parameters in the design-fit frame).
     """
 
     params: RobotParams
@@ -136,7 +136,7 @@ class CalibrationResult:
     covariance: FloatArray | None = None
     extra: dict[str, float] = field(default_factory=dict)
     mode: str = "mocap"
-    mocap_free: MocapFreeQuality | None = None
+    imu: ImuQuality | None = None
 
     def stddev_array(self) -> FloatArray:
         """(N, 5) standard deviations in the order x_s, y_s, beta, b, r."""
@@ -177,8 +177,8 @@ class CalibrationResult:
                 for q in self.segments
             ],
         }
-        if self.mocap_free is not None:
-            doc["mocap_free"] = self.mocap_free.document()
+        if self.imu is not None:
+            doc["imu"] = self.imu.document()
         return doc
 
 

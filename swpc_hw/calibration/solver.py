@@ -304,7 +304,7 @@ def solve(
     if not ds.has_poses:
         raise CalibrationError(
             f"{source}: no poses: the motion-capture solver needs poses.csv "
-            "(imu.csv: use the mocap-free solver, imu_solver.solve_mocap_free)"
+            "(imu.csv: use the IMU solver, imu_solver.solve_imu)"
         )
     plausibility.check_dataset(ds, source)
     auto = opts.time_offset == "auto"

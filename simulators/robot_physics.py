@@ -1,9 +1,9 @@
 """Physics of the whole virtual robot under its controllers' commands (model of CONVENTIONS.md).
 
-:class:`RobotSim` holds the hidden *true* robot (``RobotParams``, default the paper's Table 4
+:class:`RobotPhysics` holds the hidden *true* robot (``RobotParams``, default the paper's Table 4
 calibrated values), the pose of R in W, and per module the true steering angle ``theta``
 (relative to the body), the rolling wheel angle ``psi`` and the wheel angle its encoder
-reads (``psi`` plus slip).  :meth:`RobotSim.step` advances it by ``dt`` under one
+reads (``psi`` plus slip).  :meth:`RobotPhysics.step` advances it by ``dt`` under one
 :class:`ModuleDrive` per module (what each axis' controller does, see ``simulators.virtual_robot``).
 
 Constraint rows
@@ -45,7 +45,7 @@ with ``xi_0`` the previous twist and ``xi_p`` the hard/soft solution.  Viscous r
 rolling wheel (``g = U/r``, ``s = 0``, wheel damping), each steered but not held module's
 tyre (``g = N``, ``s = b theta_dot``, lateral damping), each steered module's fork rotation
 on the floor (``g = e_omega``, ``s = -theta_dot``, scrub damping) and the body (rolling
-resistance).  ``F_ext`` is :attr:`RobotSim.push`, an external wrench on the body (someone
+resistance).  ``F_ext`` is :attr:`RobotPhysics.push`, an external wrench on the body (someone
 pushing the robot).  A constant wheel torque therefore gives a steady spin, and the rolling
 wheels' encoder increments stay exactly those of rolling without slip:
 ``r dpsi = -D d(yaw)`` for a settled caster at distance ``D`` from the pivot.
@@ -282,7 +282,7 @@ class _SlipBurst:
 
 
 @dataclass
-class RobotSim:
+class RobotPhysics:
     """The true robot's state and its physics step (see the module docstring)."""
 
     truth: RobotParams = PAPER_CALIBRATED

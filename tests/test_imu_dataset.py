@@ -1,4 +1,4 @@
-"""The mocap-free dataset: imu.csv and references.yaml, their checks, the simulated run."""
+"""The IMU dataset: imu.csv and references.yaml, their checks, the simulated run."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from simulators.datagen_imu import (
-    MOCAP_FREE_PROTOCOL,
+    IMU_PROTOCOL,
     GyroOptions,
-    MocapFreeExperiment,
+    ImuExperiment,
     ReferenceOptions,
-    generate_mocap_free_experiment,
+    generate_imu_experiment,
     yaw_rate,
 )
 from swpc_hw.calibration.gyro import rest_windows
@@ -39,20 +39,20 @@ from swpc_hw.references import (
 )
 
 FAST = dataclasses.replace(
-    MOCAP_FREE_PROTOCOL, spin_duration=4.0, drive_length=2.0, encoder_rate=100.0
+    IMU_PROTOCOL, spin_duration=4.0, drive_length=2.0, encoder_rate=100.0
 )
 
 
 @pytest.fixture(scope="module")
-def run() -> MocapFreeExperiment:
-    return generate_mocap_free_experiment(
+def run() -> ImuExperiment:
+    return generate_imu_experiment(
         PAPER_CALIBRATED, FAST, references=ReferenceOptions(wheel_radius_modules=(3,))
     )
 
 
 @pytest.fixture(scope="module")
-def saved(run: MocapFreeExperiment, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("mocap_free") / "ds"
+def saved(run: ImuExperiment, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("imu") / "ds"
     run.save(d)
     return d
 
@@ -61,10 +61,10 @@ def copy_of(saved: Path, tmp_path: Path) -> Path:
     return Path(shutil.copytree(saved, tmp_path / "ds"))
 
 
-def test_round_trip_without_poses(run: MocapFreeExperiment, saved: Path) -> None:
+def test_round_trip_without_poses(run: ImuExperiment, saved: Path) -> None:
     assert not (saved / "poses.csv").exists()
     ds = load_dataset(saved)
-    assert not ds.has_poses and ds.mocap_free
+    assert not ds.has_poses and ds.is_imu
     assert ds.imu is not None and run.dataset.imu is not None
     np.testing.assert_allclose(ds.imu, run.dataset.imu, atol=1e-6)
     assert [type(r) for r in ds.references] == [type(r) for r in run.dataset.references]
@@ -75,12 +75,12 @@ def test_round_trip_without_poses(run: MocapFreeExperiment, saved: Path) -> None
 
 
 def test_poses_kept_when_asked_and_a_stale_one_removed(
-    run: MocapFreeExperiment, tmp_path: Path
+    run: ImuExperiment, tmp_path: Path
 ) -> None:
     run.save(tmp_path / "ds", poses=True)
     both = load_dataset(tmp_path / "ds")
-    assert both.has_poses and both.imu is not None and not both.mocap_free
-    save_dataset(tmp_path / "ds", run.mocap_free_dataset)  # same directory, no poses
+    assert both.has_poses and both.imu is not None and not both.is_imu
+    save_dataset(tmp_path / "ds", run.imu_dataset)  # same directory, no poses
     assert not (tmp_path / "ds" / "poses.csv").exists()
 
 
@@ -161,8 +161,8 @@ def test_an_unknown_kind_in_a_dataset_is_refused_on_load(saved: Path, tmp_path: 
         load_dataset(d)
 
 
-def test_the_gyro_reads_scale_times_yaw_rate_plus_bias(run: MocapFreeExperiment) -> None:
-    clean = generate_mocap_free_experiment(
+def test_the_gyro_reads_scale_times_yaw_rate_plus_bias(run: ImuExperiment) -> None:
+    clean = generate_imu_experiment(
         PAPER_CALIBRATED, FAST, GyroOptions(noise_density=0.0, bias_walk=0.0, scale_error=0.01)
     )
     imu = clean.dataset.imu
@@ -179,7 +179,7 @@ def test_the_gyro_reads_scale_times_yaw_rate_plus_bias(run: MocapFreeExperiment)
     assert np.std(noisy[sel, 1]) == pytest.approx(g.noise_density * math.sqrt(g.rate), rel=0.15)
 
 
-def test_references_are_the_truth_within_their_stddev(run: MocapFreeExperiment) -> None:
+def test_references_are_the_truth_within_their_stddev(run: ImuExperiment) -> None:
     exp = run.experiment
     P = PAPER_CALIBRATED.arrays().P_s
     z = []
@@ -199,7 +199,7 @@ def test_references_are_the_truth_within_their_stddev(run: MocapFreeExperiment) 
     assert np.std(z) > 0.2  # drawn, not copied
 
 
-def test_rest_windows_are_the_runs_rests(run: MocapFreeExperiment) -> None:
+def test_rest_windows_are_the_runs_rests(run: ImuExperiment) -> None:
     found = rest_windows(run.dataset, 2 * math.pi / 2**17)
     truth = run.experiment.rests
     assert len(found) == len(truth)

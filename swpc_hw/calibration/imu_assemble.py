@@ -1,4 +1,4 @@
-"""The result of a mocap-free calibration: parameters in the design-fit frame with their
+"""The result of an IMU calibration: parameters in the design-fit frame with their
 covariance, the gyro's estimates, every reference's residual, quality figures."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from swpc_hw.calibration.prepare import SegmentData
 from swpc_hw.calibration.result import (
     BiasKnot,
     CalibrationResult,
-    MocapFreeQuality,
+    ImuQuality,
     ReferenceResidual,
     SegmentQuality,
 )
@@ -97,7 +97,7 @@ def notes(X: FloatArray, cov: FloatArray, prob: ImuProblem) -> list[str]:
     return out
 
 
-def mocap_free_result(
+def assemble_imu_result(
     run: ImuRun,
     ds: Dataset,
     segs: list[SegmentData],
@@ -107,7 +107,7 @@ def mocap_free_result(
     f: FloatArray,
     cut: int,
 ) -> CalibrationResult:
-    """Assemble the :class:`CalibrationResult` (``mode="mocap-free"``, frame design-fit)."""
+    """Assemble the :class:`CalibrationResult` (``mode="imu"``, frame design-fit)."""
     prob = run.problem
     lay = prob.layout
     n = lay.n
@@ -132,7 +132,7 @@ def mocap_free_result(
     )
     bias_std = std_all[lay.knots]
     nl = run.noise
-    quality = MocapFreeQuality(
+    quality = ImuQuality(
         gyro_scale_error=s - 1.0,
         gyro_scale_error_std=_finite(std_all[lay.scale]),
         bias=[
@@ -183,8 +183,8 @@ def mocap_free_result(
         increments_rejected=cut,
         reduced_chi2=float(f @ f) / dof,
         covariance=full if np.all(np.isfinite(full)) else None,
-        mode="mocap-free",
-        mocap_free=quality,
+        mode="imu",
+        imu=quality,
     )
 
 

@@ -16,7 +16,7 @@
    0.05 deg at 100 Hz), the first half of the Table-4 runs: the same frame-free errors.
 
 ``SWPC_BENCH_SEEDS`` sets the seeds per family (default 20).  Figures in
-``docs/mocap-free.md``; ``python -m benchmarks mocap_free`` reproduces them.
+``docs/imu.md``; ``python -m benchmarks imu`` reproduces them.
 """
 
 from __future__ import annotations
@@ -30,15 +30,15 @@ import time
 import numpy as np
 
 from simulators.datagen_imu import (
-    MOCAP_FREE_PROTOCOL,
+    IMU_PROTOCOL,
     GyroOptions,
     ReferenceOptions,
     fisher_setup,
-    generate_mocap_free_experiment,
+    generate_imu_experiment,
 )
 from simulators.random_robots import random_robots
 from swpc_hw.calibration.identifiability import analyse
-from swpc_hw.calibration.imu_solver import solve_mocap_free
+from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.calibration.solver import solve
 from swpc_hw.frames import design_fit_transform, transform_parameters
@@ -53,7 +53,7 @@ UNIT = {"d_beta": (DEG, "deg", 0.05), "b": (1e3, "mm", 0.2), "distance": (1e3, "
         "r": (1e3, "mm", 0.05)}
 Z_KINDS = ("d_beta", "b", "distance", "r", "x_s", "y_s", "beta", "gyro scale")
 RUN = dataclasses.replace(
-    MOCAP_FREE_PROTOCOL, pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05)
+    IMU_PROTOCOL, pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05)
 )
 
 
@@ -87,7 +87,7 @@ def frame_free(X: np.ndarray) -> dict[str, list[tuple[float, np.ndarray]]]:
 def errors_and_z(
     res: CalibrationResult, truth: RobotParams, eps: float
 ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
-    """Frame-free errors, and z of every kind (module docstring) of a mocap-free result."""
+    """Frame-free errors, and z of every kind (module docstring) of an IMU result."""
     X, T = as_array(res.params), as_array(truth)
     phi, t = design_fit_transform(T[:, :2], res.nominal.arrays().P_s)
     T_df = transform_parameters(T, phi, t)
@@ -102,7 +102,7 @@ def errors_and_z(
     std = res.stddev_array()
     for name, col in (("x_s", 0), ("y_s", 1), ("beta", 2)):
         z[name] += list((X[:, col] - T_df[:, col]) / std[:, col])
-    q = res.mocap_free
+    q = res.imu
     if q is not None and q.gyro_scale_error_std:
         z["gyro scale"].append((q.gyro_scale_error - eps) / q.gyro_scale_error_std)
     return err, z
@@ -131,12 +131,12 @@ def family(
     times, failed = [], []
     for i, truth in enumerate(truths):
         opts = dataclasses.replace(RUN, seed=7000 + i)
-        run = generate_mocap_free_experiment(
+        run = generate_imu_experiment(
             truth, opts, gyro, references=references, nominal=PAPER_NOMINAL
         )
         t0 = time.perf_counter()
         try:
-            res = solve_mocap_free(run.mocap_free_dataset)
+            res = solve_imu(run.imu_dataset)
         except Exception as exc:  # a refusal is a finding, not a crash of the benchmark
             failed.append(f"seed {i}: {exc}")
             continue
@@ -244,7 +244,7 @@ def main() -> None:
     robots = random_robots(seeds, np.random.default_rng(2020), PAPER_NOMINAL)
     family("random", [robots.robot(i, PAPER_NOMINAL.ids) for i in range(seeds)], gyro, 0)
     # the length scale is the tape's: every distance read twice (12 readings) halves its
-    # variance (docs/mocap-free.md, "The cheapest reference set")
+    # variance (docs/imu.md, "The cheapest reference set")
     pairs = tuple(itertools.combinations(PAPER_NOMINAL.ids, 2)) * 2
     family("table4-taped-twice", [PAPER_CALIBRATED] * seeds, gyro, 0,
            ReferenceOptions(axis_pairs=pairs))

@@ -13,16 +13,16 @@ import pytest
 
 from services.cli import main as swpc_main
 from simulators.datagen_imu import (
-    MOCAP_FREE_PROTOCOL,
+    IMU_PROTOCOL,
     GyroOptions,
-    MocapFreeExperiment,
+    ImuExperiment,
     ReferenceOptions,
     fisher_setup,
-    generate_mocap_free_experiment,
+    generate_imu_experiment,
 )
 from swpc_hw.calibration.identifiability import analyse
 from swpc_hw.calibration.imu_problem import profiled_rolling
-from swpc_hw.calibration.imu_solver import solve_mocap_free
+from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.errors import CalibrationError, ImplausibleDataError
 from swpc_hw.frames import (
@@ -36,7 +36,7 @@ from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.references import AxisDistance
 
-SHORT = dataclasses.replace(MOCAP_FREE_PROTOCOL, spin_duration=6.0)
+SHORT = dataclasses.replace(IMU_PROTOCOL, spin_duration=6.0)
 EXACT = dataclasses.replace(SHORT, counts_per_rev=None)
 QUIET = GyroOptions(noise_density=0.0, bias_walk=0.0)
 LIGHT = dataclasses.replace(
@@ -74,28 +74,28 @@ def frame_free(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def noisy() -> tuple[MocapFreeExperiment, CalibrationResult]:
-    run = generate_mocap_free_experiment(PAPER_CALIBRATED, dataclasses.replace(SHORT, seed=3))
-    return run, solve_mocap_free(run.mocap_free_dataset)
+def noisy() -> tuple[ImuExperiment, CalibrationResult]:
+    run = generate_imu_experiment(PAPER_CALIBRATED, dataclasses.replace(SHORT, seed=3))
+    return run, solve_imu(run.imu_dataset)
 
 
 def test_noise_free_run_recovers_table_4_in_the_design_fit_frame() -> None:
-    run = generate_mocap_free_experiment(
+    run = generate_imu_experiment(
         PAPER_CALIBRATED, EXACT, QUIET, ReferenceOptions(stddev=1e-9)
     )
-    res = solve_mocap_free(run.mocap_free_dataset)
+    res = solve_imu(run.imu_dataset)
     X, T = as_array(res.params), as_array(PAPER_CALIBRATED)
     assert np.abs(frame_free(X)[0] - frame_free(T)[0]).max() < 1e-8
     phi, t = design_fit_transform(T[:, :2], PAPER_NOMINAL.arrays().P_s)
     assert np.abs(X - transform_parameters(T, phi, t)).max() < 1e-8
-    assert res.mocap_free is not None
-    assert res.mocap_free.gyro_scale_error == pytest.approx(QUIET.scale_error, abs=1e-7)
-    bias = [k.bias for k in res.mocap_free.bias]
+    assert res.imu is not None
+    assert res.imu.gyro_scale_error == pytest.approx(QUIET.scale_error, abs=1e-7)
+    bias = [k.bias for k in res.imu.bias]
     np.testing.assert_allclose(bias, QUIET.bias, atol=1e-9)
 
 
 def test_noisy_run_is_within_its_std_devs(
-    noisy: tuple[MocapFreeExperiment, CalibrationResult],
+    noisy: tuple[ImuExperiment, CalibrationResult],
 ) -> None:
     run, res = noisy
     X, T = as_array(res.params), as_array(PAPER_CALIBRATED)
@@ -109,7 +109,7 @@ def test_noisy_run_is_within_its_std_devs(
     err = np.abs(est - tru)
     assert err[:3].max() < math.radians(0.01)
     assert err[3:11].max() < 0.05e-3 and err[11:].max() < 1.5e-3
-    q = res.mocap_free
+    q = res.imu
     assert q is not None and q.gyro_scale_error_std is not None
     assert abs(q.gyro_scale_error - run.gyro.scale_error) < 4 * q.gyro_scale_error_std
     for knot in q.bias:  # the bias at every rest within 4 of its std devs
@@ -119,10 +119,10 @@ def test_noisy_run_is_within_its_std_devs(
 
 
 def test_the_result_is_in_the_design_fit_frame_with_its_covariance(
-    noisy: tuple[MocapFreeExperiment, CalibrationResult],
+    noisy: tuple[ImuExperiment, CalibrationResult],
 ) -> None:
     _, res = noisy
-    assert res.params.frame == DESIGN_FIT and res.mode == "mocap-free"
+    assert res.params.frame == DESIGN_FIT and res.mode == "imu"
     P, P_nom = res.params.arrays().P_s, PAPER_NOMINAL.arrays().P_s
     np.testing.assert_allclose(P.mean(axis=0), P_nom.mean(axis=0), atol=1e-12)
     assert abs(design_fit_constraints(P, P_nom)[2]) < 1e-12
@@ -138,22 +138,22 @@ def test_the_result_is_in_the_design_fit_frame_with_its_covariance(
 
 
 def test_references_that_fix_too_little_are_refused_naming_what_is_missing(
-    noisy: tuple[MocapFreeExperiment, CalibrationResult],
+    noisy: tuple[ImuExperiment, CalibrationResult],
 ) -> None:
     run, _ = noisy
-    ds = run.mocap_free_dataset
+    ds = run.imu_dataset
     only_axes = dataclasses.replace(
         ds, references=[r for r in ds.references if isinstance(r, AxisDistance)]
     )
     with pytest.raises(CalibrationError, match="nothing fixes the wheels' absolute radius"):
-        solve_mocap_free(only_axes, source="ds")
+        solve_imu(only_axes, source="ds")
     only_drive = dataclasses.replace(
         ds, references=[r for r in ds.references if not isinstance(r, AxisDistance)]
     )
     with pytest.raises(CalibrationError, match="nothing fixes the length scale"):
-        solve_mocap_free(only_drive, source="ds")
+        solve_imu(only_drive, source="ds")
     with pytest.raises(CalibrationError, match=r"missing references \(none given\)"):
-        solve_mocap_free(dataclasses.replace(ds, references=[]), source="ds")
+        solve_imu(dataclasses.replace(ds, references=[]), source="ds")
 
 
 @pytest.mark.parametrize(
@@ -161,23 +161,23 @@ def test_references_that_fix_too_little_are_refused_naming_what_is_missing(
     [(180.0 / math.pi, "wz looks like deg/s"), (-1.0, "the gyro's z axis points down")],
 )
 def test_a_gyro_in_other_units_or_upside_down_is_refused(
-    noisy: tuple[MocapFreeExperiment, CalibrationResult], factor: float, message: str
+    noisy: tuple[ImuExperiment, CalibrationResult], factor: float, message: str
 ) -> None:
     run, _ = noisy
-    ds = run.mocap_free_dataset
+    ds = run.imu_dataset
     assert ds.imu is not None
     imu = ds.imu.copy()
     imu[:, 1] *= factor
     with pytest.raises(ImplausibleDataError, match=message):
-        solve_mocap_free(dataclasses.replace(ds, imu=imu), source="ds")
+        solve_imu(dataclasses.replace(ds, imu=imu), source="ds")
 
 
 def test_slip_bursts_are_cut_against_the_gyro() -> None:
-    run = generate_mocap_free_experiment(
+    run = generate_imu_experiment(
         PAPER_CALIBRATED, dataclasses.replace(LIGHT, slip_burst_rate=0.08, seed=11)
     )
     assert run.experiment.slip_bursts
-    res = solve_mocap_free(run.mocap_free_dataset)
+    res = solve_imu(run.imu_dataset)
     assert res.increments_rejected > 0
     X, T = as_array(res.params), as_array(PAPER_CALIBRATED)
     est, G = frame_free(X)
@@ -187,27 +187,27 @@ def test_slip_bursts_are_cut_against_the_gyro() -> None:
 
 
 @pytest.fixture(scope="module")
-def light(tmp_path_factory: pytest.TempPathFactory) -> tuple[MocapFreeExperiment, Path]:
-    run = generate_mocap_free_experiment(PAPER_CALIBRATED, LIGHT)
+def light(tmp_path_factory: pytest.TempPathFactory) -> tuple[ImuExperiment, Path]:
+    run = generate_imu_experiment(PAPER_CALIBRATED, LIGHT)
     d = tmp_path_factory.mktemp("light") / "ds"
     run.save(d)
     return run, d
 
 
 def test_cli_solves_a_dataset_without_poses_in_the_design_fit_frame(
-    light: tuple[MocapFreeExperiment, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    light: tuple[ImuExperiment, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     _, d = light
     out = tmp_path / "k.yaml"
     assert swpc_main(["solve", str(d), "-o", str(out), "--truth", str(d / "truth.yaml")]) == 0
     text = capsys.readouterr().out
-    assert "mode: mocap-free" in text and "gyro: scale error" in text
+    assert "mode: imu" in text and "gyro: scale error" in text
     assert "straight_drive" in text and "axis_distance 1-2" in text
     k = load_kinematics(out)
     assert k.params.frame == DESIGN_FIT
     assert k.covariance is not None and len(k.covariance) == 20
     q = k.extra["quality"]
-    assert q["mode"] == "mocap-free" and len(q["mocap_free"]["references"]) == 7
+    assert q["mode"] == "imu" and len(q["imu"]["references"]) == 7
     # the paper's procedure needs poses: refused, nothing written
     out2 = tmp_path / "p.yaml"
     assert swpc_main(["solve", str(d), "-o", str(out2), "--method", "paper"]) == 2
@@ -215,14 +215,14 @@ def test_cli_solves_a_dataset_without_poses_in_the_design_fit_frame(
 
 
 def test_cli_takes_the_motion_capture_solver_when_poses_are_there(
-    light: tuple[MocapFreeExperiment, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    light: tuple[ImuExperiment, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     run, _ = light
     d = tmp_path / "ds"
     run.save(d, poses=True)  # poses.csv and imu.csv: motion capture wins
     out = tmp_path / "k.yaml"
     assert swpc_main(["solve", str(d), "-o", str(out)]) == 0
-    assert "mode: mocap-free" not in capsys.readouterr().out
+    assert "mode: imu" not in capsys.readouterr().out
     assert load_kinematics(out).params.frame == "R"
 
 
@@ -269,16 +269,16 @@ def test_profiled_rolling_leaves_white_noise_with_its_degrees_of_freedom() -> No
 
 
 def test_a_straight_drive_during_which_the_robot_turned_is_refused(
-    light: tuple[MocapFreeExperiment, Path],
+    light: tuple[ImuExperiment, Path],
 ) -> None:
     run, _ = light
-    ds = run.mocap_free_dataset
+    ds = run.imu_dataset
     assert ds.imu is not None and run.experiment.drive is not None
     t0, t1 = run.experiment.drive  # the motion, between the rests
     imu = ds.imu.copy()
     inside = (imu[:, 0] > t0) & (imu[:, 0] < t1)
     imu[inside, 1] += math.radians(0.5) / (t1 - t0)  # half a degree
     with pytest.raises(ImplausibleDataError, match="deg: not a pure translation") as exc:
-        solve_mocap_free(dataclasses.replace(ds, imu=imu), source="ds")
+        solve_imu(dataclasses.replace(ds, imu=imu), source="ds")
     turned = float(str(exc.value).split("turned ")[1].split(" deg")[0])
     assert turned == pytest.approx(0.5, abs=0.05)

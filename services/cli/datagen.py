@@ -1,9 +1,9 @@
-"""``swpc simulate OUT_DIR``: write a simulated calibration run as a dataset directory.
+"""``swpc datagen OUT_DIR``: write a simulated calibration run as a dataset directory.
 
-Register by listing ``services.cli.simulate`` in ``services.cli.SUBCOMMANDS``.  The
-directory gets the dataset files of CONVENTIONS.md plus ``truth.yaml`` (the hidden truth);
-with ``--mocap-free``, ``imu.csv`` and ``references.yaml`` instead of ``poses.csv``.
-Human-facing options are in degrees and millimetres; everything written is SI.
+The directory gets the dataset files of docs/dataset-format.md plus ``truth.yaml`` (the
+hidden truth); with ``--metrology imu``, ``imu.csv`` and ``references.yaml`` instead of
+``poses.csv``.  Human-facing options are in degrees and millimetres; everything written is
+SI.  (``swpc simulate`` is its old name; ``swpc sim`` runs the virtual robot instead.)
 """
 
 from __future__ import annotations
@@ -12,12 +12,18 @@ import argparse
 import math
 from typing import Any
 
-from services.cli._noise_options import add_noise_arguments
+from services.cli._sim_options import (
+    add_gyro_arguments,
+    add_metrology_argument,
+    add_noise_arguments,
+    gyro_options,
+)
 
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
-        "simulate",
+        "datagen",
+        aliases=["simulate"],
         help="simulate the calibration experiment and write a dataset directory",
         description=(
             "Simulate the seed calibration experiment on a hidden truth robot (default: the "
@@ -41,22 +47,14 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--seed", type=int, default=0)
     g = p.add_argument_group(
-        "without motion capture",
-        "--mocap-free writes imu.csv and references.yaml instead of poses.csv, from a run "
-        "with rests and a straight drive (docs/mocap-free.md)",
+        "metrology imu (without motion capture)",
+        "--metrology imu writes imu.csv and references.yaml instead of poses.csv, from a "
+        "run with rests and a straight drive (docs/imu.md)",
     )
-    g.add_argument("--mocap-free", action="store_true", help="write a mocap-free dataset")
+    add_metrology_argument(g)
     g.add_argument("--rest-time", type=float, default=2.0, help="s of stillness per rest (2)")
     g.add_argument("--drive-length", type=float, default=4.0, help="straight drive, m (4)")
-    g.add_argument("--gyro-rate", type=float, default=200.0, help="gyro samples /s (200)")
-    g.add_argument(
-        "--gyro-noise", type=float, default=0.005, help="white noise, deg/s/sqrt(Hz) (0.005)"
-    )
-    g.add_argument("--gyro-bias", type=float, default=0.1, help="bias, deg/s (0.1)")
-    g.add_argument(
-        "--gyro-bias-walk", type=float, default=1e-4, help="bias walk, deg/s/sqrt(s) (1e-4)"
-    )
-    g.add_argument("--gyro-scale-error", type=float, default=0.3, help="scale error, %% (0.3)")
+    add_gyro_arguments(g)
     g.add_argument(
         "--reference-stddev", type=float, default=0.5, help="tape-measure std dev, mm (0.5)"
     )
@@ -71,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
     nominal = load_robot(args.nominal) if args.nominal else None
     if len(args.angles) < 2:
-        raise SystemExit("swpc simulate: error: --angles needs at least two values")
+        raise SystemExit("swpc datagen: error: --angles needs at least two values")
     opt = ExperimentOptions(
         angles=tuple(math.radians(a) for a in args.angles),
         yaw_rate=args.yaw_rate,
@@ -86,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
         counts_per_rev=args.counts_per_rev or None,
         seed=args.seed,
     )
-    if args.mocap_free:
-        return run_mocap_free(args, truth, nominal, opt)
+    if args.metrology == "imu":
+        return run_imu(args, truth, nominal, opt)
     exp = generate_experiment(truth, opt, nominal)
     exp.save(args.output)
     ds = exp.dataset
@@ -99,25 +97,18 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_mocap_free(args: argparse.Namespace, truth: Any, nominal: Any, opt: Any) -> int:
-    """``--mocap-free``: the run with rests and a drive, written without poses.csv."""
+def run_imu(args: argparse.Namespace, truth: Any, nominal: Any, opt: Any) -> int:
+    """``--metrology imu``: the run with rests and a drive, written without poses.csv."""
     import dataclasses
 
-    from simulators.datagen_imu import GyroOptions, ReferenceOptions, generate_mocap_free_experiment
+    from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
 
-    deg = math.pi / 180.0
     opt = dataclasses.replace(opt, rest_time=args.rest_time, drive_length=args.drive_length)
-    gyro = GyroOptions(
-        rate=args.gyro_rate,
-        noise_density=args.gyro_noise * deg,
-        bias=args.gyro_bias * deg,
-        bias_walk=args.gyro_bias_walk * deg,
-        scale_error=args.gyro_scale_error / 100.0,
-    )
+    gyro = gyro_options(args)
     refs = ReferenceOptions(
         stddev=args.reference_stddev * 1e-3, straight_drive=args.drive_length > 0
     )
-    exp = generate_mocap_free_experiment(truth, opt, gyro, refs, nominal)
+    exp = generate_imu_experiment(truth, opt, gyro, refs, nominal)
     exp.save(args.output)
     ds = exp.dataset
     n_enc = sum(len(e) for e in ds.encoders.values())
