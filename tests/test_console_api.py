@@ -34,6 +34,7 @@ from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.http.console.router import mcap_summary
 from services.http.server import server as http_server
+from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runtime.runtime import Runtime
 from services.sensors.mocap import MocapIngest
@@ -84,7 +85,7 @@ def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) 
     robot = FakeRobot(TRUTH, rt.clock, rt.mocap, dt=0.01, pose_every=1)  # type: ignore[arg-type]
     run = CalibrationRun(
         robot,
-        rt.mocap,
+        MocapMetrology(rt.mocap),
         rt.config,
         clock=rt.clock,
         data_dir=rt.data_dir,

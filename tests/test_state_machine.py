@@ -21,20 +21,21 @@ import numpy as np
 import pytest
 
 from services.config.robot import RobotConfig
-from services.runs.imu import ImuCalibrationRun
+from services.runs.imu import ImuMetrology
+from services.runs.mocap import MocapMetrology
 from services.runs.protocol import TERMINAL, TRANSITIONS, CalibrationRun, State
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from simulators.imu_sim import axis_travel
 from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.model import RobotParams
+from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.references import AxisDistance, Reference, WheelRadius
 from tests.fake_robot import FakeRobot
 from tests.frame_free import frame_free
 
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 # three modules (N >= 2 is allowed) and three angles: every edge of TRANSITIONS, quickly
 TRUTH = RobotParams(robot="swpc", modules=PAPER_CALIBRATED.modules[:3])
 NOMINAL = RobotParams(robot="swpc", modules=PAPER_NOMINAL.modules[:3])
@@ -112,18 +113,20 @@ class Rig:
             hook = self.hooks.pop(st, None)
             if hook is not None:
                 hook(run)
-            if self.operator and isinstance(run, ImuCalibrationRun):
+            if self.operator:
                 self.play_operator(run)
 
-    def play_operator(self, run: ImuCalibrationRun) -> None:
+    def play_operator(self, run: CalibrationRun) -> None:
         """Mark the floor (MARK) and measure the drive exactly (MEASURE), at once."""
         if run.waits_for == "continue":
-            run.mark_done()
+            run.answer("continue")
         elif run.waits_for == "references":
-            assert run.drive is not None
-            start, end = (self.robot.pose_at(t) for t in run.drive)
+            drive = run.metrology.drive
+            assert drive is not None
+            start, end = (self.robot.pose_at(t) for t in drive)
             travel = axis_travel(start, end, TRUTH.arrays().P_s[0])
-            run.add_references([{"kind": "straight_drive", "value": travel, "stddev": 0.5e-3}])
+            drive_ref = {"kind": "straight_drive", "value": travel, "stddev": 0.5e-3}
+            run.answer("references", [drive_ref])
 
     def make_run(self) -> CalibrationRun:
         kwargs: dict[str, Any] = {
@@ -134,12 +137,12 @@ class Rig:
             "on_change": self._changed,
             **self.run_kwargs,
         }
-        if self.metrology == "imu":
-            return ImuCalibrationRun(
-                self.robot, self.mocap, self.imu, self.config, references=self.references,
-                **kwargs,
-            )  # fmt: skip
-        return CalibrationRun(self.robot, self.mocap, self.config, **kwargs)
+        metrology = (
+            ImuMetrology(self.imu, self.config, self.references)
+            if self.metrology == "imu"
+            else MocapMetrology(self.mocap)
+        )
+        return CalibrationRun(self.robot, metrology, self.config, **kwargs)
 
     def run(self) -> CalibrationRun:
         run = self.make_run()
@@ -198,16 +201,17 @@ def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) 
     rig = Rig(tmp_path, metrology="imu", homed=False, mocap_on=False)
     run = rig.run()
     assert run.status.state is State.DONE, run.status.errors
-    assert isinstance(run, ImuCalibrationRun)
+    imu = run.metrology
+    assert isinstance(imu, ImuMetrology)
     taken = TAKEN["imu"] = set(itertools.pairwise(rig.states))
     assert taken <= EDGES
     path = [st for st in rig.states if st in IMU_ONLY]
     assert path == [State.STILL] * 9 + [State.STEER, State.MARK, State.DRIVE, State.MEASURE]
     assert run.status.poses == 0 and run.status.gyro_samples > 5000
     # the drive: 1 m by the nominal radii, a 1 s rest either side, between the two rests
-    assert run.drive is not None and len(run.rests) == 9 + 2
-    (a0, b0), (a1, b1) = run.rests[-2:]
-    assert run.drive == (pytest.approx((a0 + b0) / 2), pytest.approx((a1 + b1) / 2))
+    assert imu.drive is not None and len(imu.rests) == 9 + 2
+    (a0, b0), (a1, b1) = imu.rests[-2:]
+    assert imu.drive == (pytest.approx((a0 + b0) / 2), pytest.approx((a1 + b1) / 2))
     assert run.status.drive_m == pytest.approx(1.0, abs=0.02)
     ds = run.dataset()
     assert ds.is_imu and not (run.run_dir / "dataset" / "poses.csv").exists()
@@ -245,13 +249,13 @@ def test_the_path_tests_took_every_edge_of_the_table() -> None:
 def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
     run = CalibrationRun(
-        rig.robot, rig.mocap, rig.config, clock=rig.clock, data_dir=tmp_path,
+        rig.robot, MocapMetrology(rig.mocap), rig.config, clock=rig.clock, data_dir=tmp_path,
         kinematics_path=rig.kinematics,
     )  # fmt: skip
     with pytest.raises(RuntimeError, match="illegal transition PENDING -> SPIN"):
-        run._enter(State.SPIN, "spinning")
-    run._enter(State.CONNECT, "connecting")
-    run._enter(State.FAILED, "any state may fail")
+        run.enter(State.SPIN, "spinning")
+    run.enter(State.CONNECT, "connecting")
+    run.enter(State.FAILED, "any state may fail")
     assert run.status.state is State.FAILED
 
 
@@ -318,7 +322,7 @@ def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
     ABORTED before that state's first command: nothing is activated or moved."""
     rig = Rig(tmp_path)
     run = CalibrationRun(
-        rig.robot, rig.mocap, rig.config, clock=rig.clock, data_dir=tmp_path,
+        rig.robot, MocapMetrology(rig.mocap), rig.config, clock=rig.clock, data_dir=tmp_path,
         kinematics_path=rig.kinematics, on_change=rig._changed, mcap=False,
     )  # fmt: skip
     run.abort()
@@ -406,7 +410,7 @@ def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
 ) -> None:
     rig = Rig(tmp_path, {"protocol": {"operator_timeout": 3.0, **FAST["protocol"]}}, "imu")
     if state is State.MEASURE:
-        rig.hooks[State.MARK] = lambda run: run.mark_done()  # the floor marked, then silence
+        rig.hooks[State.MARK] = lambda run: run.answer("continue")  # the floor marked, then silence
     rig.operator = False
     run = rig.run()
     reason = run.status.reason or ""
@@ -430,31 +434,31 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     seen: list[str] = []
 
     def at_mark(run: CalibrationRun) -> None:
-        assert isinstance(run, ImuCalibrationRun) and run.waits_for == "continue"
+        assert isinstance(run.metrology, ImuMetrology) and run.waits_for == "continue"
         with pytest.raises(ValueError, match="it takes references in MEASURE"):
-            run.add_references([{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
-        run.mark_done()
+            run.answer("references", [{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
+        run.answer("continue")
         with pytest.raises(ValueError, match="nothing to continue"):
-            run.mark_done()
+            run.answer("continue")
         seen.append("mark")
 
     def at_measure(run: CalibrationRun) -> None:
-        assert isinstance(run, ImuCalibrationRun) and run.waits_for == "references"
+        assert isinstance(run.metrology, ImuMetrology) and run.waits_for == "references"
         with pytest.raises(ValueError, match="nothing to continue"):
-            run.mark_done()
+            run.answer("continue")
         bad = {"kind": "straight_drive", "value": 1.0, "stddev": 1e-3, "start": 0, "end": 1}
         with pytest.raises(DatasetError, match="no start or end: the run knows when it drove"):
-            run.add_references([bad])
+            run.answer("references", [bad])
         with pytest.raises(DatasetError, match="straight_drive's measurement is missing"):
-            run.add_references([{"kind": "wheel_radius", "module": 1, "value": 0.05,
+            run.answer("references", [{"kind": "wheel_radius", "module": 1, "value": 0.05,
                                  "stddev": 1e-4}])  # fmt: skip
         with pytest.raises(DatasetError, match=r"module 9 is not in robot\.yaml"):
-            run.add_references([{"kind": "wheel_radius", "module": 9, "value": 0.05,
+            run.answer("references", [{"kind": "wheel_radius", "module": 9, "value": 0.05,
                                  "stddev": 1e-4}])  # fmt: skip
         assert run.waits_for == "references"
         rig.play_operator(run)
         with pytest.raises(ValueError, match="already has the drive's measurement"):
-            run.add_references([{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
+            run.answer("references", [{"kind": "straight_drive", "value": 1.0, "stddev": 1e-3}])
         seen.append("measure")
 
     rig.hooks[State.MARK] = at_mark
@@ -463,10 +467,9 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     run = rig.run()
     assert seen == ["mark", "measure"] and run.status.state is State.ABORTED, run.status.errors
     refs = run.dataset().references  # the drive's reference with the run's times
-    assert isinstance(run, ImuCalibrationRun) and run.drive is not None
-    assert [(r.kind, getattr(r, "start", None)) for r in refs][-1] == (
-        "straight_drive", run.drive[0]
-    )
+    drive = run.metrology.drive
+    assert isinstance(run.metrology, ImuMetrology) and drive is not None
+    assert [(r.kind, getattr(r, "start", None)) for r in refs][-1] == ("straight_drive", drive[0])
 
 
 def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path: Path) -> None:

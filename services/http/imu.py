@@ -24,7 +24,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.runs.imu import ImuCalibrationRun
+from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.runtime import Runtime
 from swpc_hw.errors import DatasetError
@@ -95,14 +95,12 @@ async def _runtime(request: Request) -> Runtime:
 Rt = Annotated[Runtime, Depends(_runtime)]
 
 
-def _imu_run(rt: Runtime, run_id: str) -> ImuCalibrationRun:
+def _running(rt: Runtime, run_id: str) -> CalibrationRun:
     run = rt.runs.get(run_id)
     if run is None:
         if rt.status(run_id) is None:
             raise HTTPException(404, f"no calibration {run_id}")
         raise HTTPException(409, f"calibration {run_id} is not running")
-    if not isinstance(run, ImuCalibrationRun):
-        raise HTTPException(409, f"calibration {run_id} measures with motion capture")
     return run
 
 
@@ -124,9 +122,9 @@ def imu_router(auth: Callable[..., Awaitable[None]], in_process: bool) -> APIRou
     )
     def continue_run(run_id: str, rt: Rt) -> dict[str, Any]:
         """The floor is marked under the first module's steering axis (MARK): drive."""
-        run = _imu_run(rt, run_id)
+        run = _running(rt, run_id)
         try:
-            run.mark_done()
+            run.answer("continue")
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from exc
         return run.status.to_dict()
@@ -141,9 +139,9 @@ def imu_router(auth: Callable[..., Awaitable[None]], in_process: bool) -> APIRou
         """The tape measurements (MEASURE): the straight drive's length with its std dev
         (``{"kind": "straight_drive", "value": 4.0012, "stddev": 0.0005}``), and any
         further axis_distance or wheel_radius."""
-        run = _imu_run(rt, run_id)
+        run = _running(rt, run_id)
         try:
-            run.add_references(entries(body.references))
+            run.answer("references", entries(body.references))
         except DatasetError as exc:
             raise refused("references", exc) from exc
         except ValueError as exc:
@@ -170,7 +168,7 @@ def imu_router(auth: Callable[..., Awaitable[None]], in_process: bool) -> APIRou
             got = rt.runs.get(run)
             if got is None:
                 raise HTTPException(404, f"no calibration {run} in this service")
-            drive = got.drive if isinstance(got, ImuCalibrationRun) else None
+            drive = got.metrology.drive
             if drive is None:
                 raise HTTPException(409, f"calibration {run} has not driven straight")
             try:

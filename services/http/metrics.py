@@ -105,7 +105,7 @@ class RuntimeCollector:
             buckets=[(("+Inf" if b == float("inf") else repr(b)), n) for b, n in buckets],
             sum_value=total,
         )
-        gy = rt.imu.stats()
+        gy = rt.gyro.stats()
         yield GaugeMetricFamily(
             "swpc_gyro_rate_hz", "accepted gyro samples per second", gy["rate_hz"]
         )

@@ -1,8 +1,9 @@
-"""A calibration without motion capture: the robot's encoders, its gyro and a tape measure.
+"""The IMU as a run's metrology: the robot's gyro, its wheel encoders and a tape measure.
 
-:class:`ImuCalibrationRun` walks the protocol of :mod:`services.runs.protocol` with the
-gyro (:mod:`services.sensors.gyro`) where that one reads the poses, and adds what the
-IMU solver needs (docs/imu.md, and the simulated protocol
+:class:`ImuMetrology` is the metrology (:mod:`services.runs.metrology`) of a calibration
+without motion capture: the protocol of :mod:`services.runs.protocol` reads the gyro
+(:mod:`services.sensors.gyro`) where it would read the poses, and gains the steps the IMU
+solver needs (docs/imu.md, and the simulated protocol
 :data:`simulators.datagen_imu.IMU_PROTOCOL`)::
 
     PENDING -> CONNECT -> PRECHECK -> REST -> LOCK -> ALIGN -> FREE -> STILL -> SPIN -> STOP
@@ -57,13 +58,12 @@ import numpy as np
 from services.config.robot import RobotConfig
 from services.runs.gyro_motion import GyroYaw, RecentRows, stillness, wheel_speed, wheel_travel
 from services.runs.journal import SampleSource
+from services.runs.metrology import RunSteps
+from services.runs.mocap import sweep_reached
 from services.runs.pose_motion import REST_WINDOW, SpinWindow
-from services.runs.protocol import CalibrationRun
 from services.runs.state import RunFailedError, State
 from services.sensors.gyro import GyroIngest
-from services.sensors.mocap import MocapIngest
 from swpc_hw.dataset import Segment
-from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import DatasetError
 from swpc_hw.model import wrap_angle
 from swpc_hw.references import (
@@ -127,27 +127,20 @@ def reference_problems(config: RobotConfig, refs: Sequence[Reference]) -> list[s
     return out
 
 
-# --------------------------------------------------------------------------- the run
+# --------------------------------------------------------------------------- the metrology
 
 
-class ImuCalibrationRun(CalibrationRun):
-    """One calibration without motion capture (module docstring)."""
+class ImuMetrology:
+    """The gyro, the encoders and a tape (module docstring): one per run."""
 
-    metrology = "imu"
+    name = "imu"
     sensor_name = "gyro"
+    samples_field = "gyro_samples"
 
     def __init__(
-        self,
-        robot: RobotIO,
-        mocap: MocapIngest,
-        imu: GyroIngest,
-        config: RobotConfig,
-        *,
-        references: Sequence[Reference] = (),
-        **kwargs: Any,
+        self, gyro: GyroIngest, config: RobotConfig, references: Sequence[Reference] = ()
     ) -> None:
-        self.imu = imu
-        super().__init__(robot, mocap, config, **kwargs)
+        self.gyro = gyro
         self.references: list[Reference] = list(references)
         self.drive: tuple[float, float] | None = None
         """The straight drive's ``(start, end)`` on the run's clock (the middles of the
@@ -159,225 +152,189 @@ class ImuCalibrationRun(CalibrationRun):
         self._measured_refs: list[Reference] = []
         self._answers = threading.Lock()  # one operator answer at a time
         ids = config.nominal.ids
+        self._ids = ids
         keep = max(config.protocol.rest_time, REST_WINDOW) + 2.0
         self._gyro = RecentRows(2, keep)
         self._wheels = {m: RecentRows(3, keep) for m in ids}
         self._radius = dict(zip(ids, config.nominal.arrays().r.tolist(), strict=True))
 
-    # ------------------------------------------------------------ the metrology
+    # ------------------------------------------------------------ the sensor
     @property
     def sensor(self) -> SampleSource:
-        return self.imu
+        return self.gyro
 
-    def _sensor_problem(self) -> str | None:
-        if self.imu.is_stale():
-            return (
-                f"gyro stale: no sample for {self.imu.age():.3f} s "
-                f"(limit {self.imu.stale_after:.3f} s)"
-            )
-        return None
+    def run_problems(self, config: RobotConfig) -> list[str]:
+        return config.run_problems(self.name) + reference_problems(config, self.references)
 
-    def _sensor_precheck(self) -> list[str]:
+    def start_fields(self) -> dict[str, Any]:
+        return {"references": ",".join(reference_label(r) for r in self.references)}
+
+    def precheck(self) -> list[str]:
         problems = []
-        if self.imu.is_stale():
-            problems.append(f"gyro not live (last sample {self.imu.age():.2f} s ago)")
-        clock = self.imu.clock_problem()
+        if self.gyro.is_stale():
+            problems.append(f"gyro not live (last sample {self.gyro.age():.2f} s ago)")
+        clock = self.gyro.clock_problem()
         if clock is not None:
             problems.append(clock)
         return problems
 
-    def _run_problems(self) -> list[str]:
-        return self.config.run_problems("imu") + reference_problems(self.config, self.references)
-
-    def _start_fields(self) -> dict[str, Any]:
-        return {
-            **super()._start_fields(),
-            "references": ",".join(reference_label(r) for r in self.references),
-        }
+    def problem(self) -> str | None:
+        if self.gyro.is_stale():
+            return (
+                f"gyro stale: no sample for {self.gyro.age():.3f} s "
+                f"(limit {self.gyro.stale_after:.3f} s)"
+            )
+        return None
 
     # ------------------------------------------------------------ the operator
-    @property
-    def waits_for(self) -> str | None:
-        """``"continue"`` in MARK, ``"references"`` in MEASURE (what the operator owes)."""
-        if self.status.state is State.MARK and not self._marked.is_set():
+    def waits_for(self, state: State) -> str | None:
+        """``"continue"`` in MARK, ``"references"`` in MEASURE: what the operator owes a
+        run in ``state``."""
+        if state is State.MARK and not self._marked.is_set():
             return "continue"
-        if self.status.state is State.MEASURE and not self._measured.is_set():
+        if state is State.MEASURE and not self._measured.is_set():
             return "references"
         return None
 
-    def mark_done(self) -> None:
-        """The operator has marked the floor (MARK); ValueError in another state.  Called
-        from another thread (an HTTP request): the run's thread logs and acts on it."""
+    def answer(
+        self, run_id: str, state: State, what: str, entries: Sequence[dict[str, Any]] = ()
+    ) -> None:
+        """The operator's answer to a run in ``state`` (from another thread: an HTTP
+        request; the run's thread logs and acts on it): ``continue`` once the floor is
+        marked (MARK), ``references`` with the tape measurements (MEASURE: parsed with the
+        drive's times, at least the straight drive).  ValueError when the run does not
+        wait for it, DatasetError for an entry."""
         with self._answers:
-            if self.waits_for != "continue":
+            if what == "continue" and self.waits_for(state) == "continue":
+                self._marked.set()
+                return
+            if what == "references" and self.waits_for(state) == "references":
+                refs = parse_references(entries, self._ids, self.drive)
+                if not any(isinstance(r, StraightDrive) for r in refs):
+                    raise DatasetError("references: the straight_drive's measurement is missing")
+                self._measured_refs = refs
+                self._measured.set()
+                return
+            if what == "continue":
                 done = " (already continued)" if self._marked.is_set() else ""
-                raise ValueError(
-                    f"calibration {self.id} is {self.status.state}{done}: nothing to continue"
-                )
-            self._marked.set()
+                raise ValueError(f"calibration {run_id} is {state}{done}: nothing to continue")
+            if self._measured.is_set():
+                raise ValueError(f"calibration {run_id} already has the drive's measurement")
+            raise ValueError(f"calibration {run_id} is {state}: it takes references in MEASURE")
 
-    def add_references(self, entries: Sequence[dict[str, Any]]) -> list[Reference]:
-        """The operator's measurements (MEASURE): parsed with the drive's times, at least
-        the straight drive.  ValueError in another state, DatasetError for an entry.
-        Called from another thread (an HTTP request), as :meth:`mark_done`."""
-        with self._answers:
-            if self.waits_for != "references":
-                if self._measured.is_set():
-                    raise ValueError(
-                        f"calibration {self.id} already has the drive's measurement"
-                    )
-                raise ValueError(
-                    f"calibration {self.id} is {self.status.state}: it takes references in "
-                    "MEASURE"
-                )
-            refs = parse_references(entries, self.config.nominal.ids, self.drive)
-            if not any(isinstance(r, StraightDrive) for r in refs):
-                raise DatasetError("references: the straight_drive's measurement is missing")
-            self._measured_refs = refs
-            self._measured.set()
-        return refs
-
-    def _wait_operator(self, done: threading.Event, what: str) -> None:
-        end = self.clock.now() + self.config.protocol.operator_timeout
+    def _wait_operator(self, run: RunSteps, done: threading.Event, what: str) -> None:
+        timeout = run.config.protocol.operator_timeout
+        end = run.clock.now() + timeout
         while not done.is_set():
-            self._check(False, None)
-            if self.clock.now() > end:
-                raise RunFailedError(
-                    f"operator timeout: no {what} within "
-                    f"{self.config.protocol.operator_timeout:g} s"
-                )
-            self.clock.sleep(self._poll)
+            run.check(False, None)
+            if run.clock.now() > end:
+                raise RunFailedError(f"operator timeout: no {what} within {timeout:g} s")
+            run.clock.sleep(run.poll)
 
     # ------------------------------------------------------------ the sensors
-    def _read(self) -> None:
+    def _read(self, run: RunSteps) -> None:
         """The gyro's and the encoders' new rows into the recent stores."""
         g = self._gyro
-        rows, g.cursor = self.imu.samples_since(g.cursor, self.clock.now() - g.keep)
+        now = run.clock.now()
+        rows, g.cursor = self.gyro.samples_since(g.cursor, now - g.keep)
         g.add(rows[:, [2, 3]])
         for m, w in self._wheels.items():
-            enc, w.cursor = self.robot.encoder_rows(m, w.cursor, self.clock.now() - w.keep)
+            enc, w.cursor = run.robot.encoder_rows(m, w.cursor, run.clock.now() - w.keep)
             w.add(enc)
 
-    def _stillness(self, window: float) -> Any:
-        now = self.clock.now()
-        return stillness(
-            self._gyro.rows,
-            {m: w.rows for m, w in self._wheels.items()},
-            self._radius,
-            now - window,
-            now,
-        )
-
-    def _until_still(self, window: float, step: str) -> tuple[float, float, float]:
+    def _until_still(self, run: RunSteps, window: float, step: str) -> tuple[float, float, float]:
         """Wait until the last ``window`` s show the robot still (gyro and encoders, the
         limits' rest rates); returns the window and the gyro's mean over it."""
-        lim = self.config.limits
-        t0 = self.clock.now()
-        deadline = self._deadline()
+        lim = run.config.limits
+        t0 = run.clock.now()
+        deadline = run.deadline()
         while True:
-            self._check(True, deadline)
-            self._read()
-            now = self.clock.now()
+            run.check(True, deadline)
+            self._read(run)
+            now = run.clock.now()
             if now - t0 >= window:
-                st = self._stillness(window)
+                st = stillness(
+                    self._gyro.rows,
+                    {m: w.rows for m, w in self._wheels.items()},
+                    self._radius,
+                    now - window,
+                    now,
+                )
                 if st.still(lim.rest_yaw_rate, lim.rest_speed):
                     return now - window, now, st.rate
                 if st.covered:
-                    with self._lock:
-                        self.status.step = (
-                            f"{step} (gyro {st.rate:.3f} rad/s, wheels {st.speed:.3f} m/s)"
-                        )
-            self.clock.sleep(self._poll)
+                    run.set_status(
+                        step=f"{step} (gyro {st.rate:.3f} rad/s, wheels {st.speed:.3f} m/s)"
+                    )
+            run.clock.sleep(run.poll)
 
-    def _hold_still(self, what: str) -> tuple[float, float]:
+    def _hold_still(self, run: RunSteps, what: str) -> tuple[float, float]:
         """STILL-like rest of ``protocol.rest_time`` (kept, its gyro mean the bias)."""
-        a, b, self._bias = self._until_still(self.config.protocol.rest_time, what)
+        a, b, self._bias = self._until_still(run, run.config.protocol.rest_time, what)
         self.rests.append((a, b))
-        self._event(logging.INFO, "run.rest", start=a, end=b, gyro_mean=self._bias)
+        run.event(logging.INFO, "run.rest", start=a, end=b, gyro_mean=self._bias)
         return a, b
 
     # ------------------------------------------------------------ the steps
-    def _come_to_rest(self) -> None:
+    def come_to_rest(self, run: RunSteps) -> None:
         step = "braking every wheel: waiting for the robot to come to rest"
-        self._enter(State.REST, step)
-        for m in self.config.nominal.ids:
-            self.robot.wheel_hold(m)
-        self._until_still(REST_WINDOW, step)
+        run.enter(State.REST, step)
+        for m in self._ids:
+            run.robot.wheel_hold(m)
+        self._until_still(run, REST_WINDOW, step)
 
-    def _before_spin(self, k: int, dyn: list[int]) -> None:
-        rest = self.config.protocol.rest_time
+    def before_spin(self, run: RunSteps, k: int, dyn: list[int]) -> None:
+        rest = run.config.protocol.rest_time
         step = f"holding still {rest:g} s for the gyro's bias"
-        self._enter(State.STILL, step)
+        run.enter(State.STILL, step)
         for m in dyn:
-            self.robot.wheel_hold(m)
-        self._hold_still(step)  # SPIN's torque releases the brakes
+            run.robot.wheel_hold(m)
+        self._hold_still(run, step)  # SPIN's torque releases the brakes
 
-    def _spin(self, k: int, done: int, total: int) -> None:
-        proto, limits = self.config.protocol, self.config.limits
-        sweep_target = math.radians(proto.sweep_deg)
-        self._read()
+    def spin(self, run: RunSteps, k: int, done: int, total: int) -> None:
+        self._read(run)
         last = self._gyro.last
         assert last is not None  # the STILL before had samples
         yaw = GyroYaw(self._bias)
         yaw.add(float(last[0]), float(last[1]))
-        spin = SpinWindow(self.clock.now(), proto.settle_time, float(last[0]), 0.0)
+        spin = SpinWindow(run.clock.now(), run.config.protocol.settle_time, float(last[0]), 0.0)
         seen = float(last[0])
-        deadline = self._deadline()
+        deadline = run.deadline()
         while True:
-            self._check(True, deadline)
-            self._read()
+            run.check(True, deadline)
+            self._read(run)
             rows = self._gyro.rows
             for t, wz in rows[rows[:, 0] > seen].tolist():
                 spin.add(t, yaw.add(t, wz))
                 seen = t
-            if spin.rate is not None and abs(spin.rate) > limits.max_yaw_rate:
-                raise RunFailedError(
-                    f"yaw rate {spin.rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
-                )
-            if spin.start is not None:
-                sweep = spin.sweep
-                with self._lock:
-                    self.status.sweep_deg = math.degrees(sweep)
-                    self.status.progress = min((done + min(sweep / sweep_target, 1.0)) / total, 1.0)
-                if sweep >= sweep_target:
-                    self._segment(Segment(k, spin.start, seen), sweep)
-                    return
-            self.clock.sleep(self._poll)
+            sweep = sweep_reached(run, spin, done, total)
+            if sweep is not None:
+                assert spin.start is not None
+                run.add_segment(Segment(k, spin.start, seen), sweep)
+                return
+            run.clock.sleep(run.poll)
 
-    def _segment(self, seg: Segment, sweep: float) -> None:
-        self.segments.append(seg)
-        self.status.segments = len(self.segments)
-        self.journal.add_segment(seg)
-        self._event(
-            logging.INFO,
-            "run.segment",
-            module=seg.static_module,
-            start=seg.start,
-            end=seg.end,
-            sweep_deg=math.degrees(sweep),
-        )
-
-    def _after_spins(self) -> None:
-        if self.config.protocol.drive_length > 0:
-            self._steer()
-            self._mark()
-            self._drive()
-            self._measure()
+    def after_spins(self, run: RunSteps) -> None:
+        if run.config.protocol.drive_length > 0:
+            self._steer(run)
+            self._mark(run)
+            self._drive(run)
+            self._measure(run)
         else:
-            step = f"holding still {self.config.protocol.rest_time:g} s after the last spin"
-            self._enter(State.STILL, step)
-            for m in self.config.nominal.ids:
-                self.robot.wheel_hold(m)
-            self._hold_still(step)
-            self.robot.stop_all()
-            self.robot.release()
-            self._close_dataset()
+            step = f"holding still {run.config.protocol.rest_time:g} s after the last spin"
+            run.enter(State.STILL, step)
+            for m in self._ids:
+                run.robot.wheel_hold(m)
+            self._hold_still(run, step)
+            run.robot.stop_all()
+            run.robot.release()
+            self._close_dataset(run)
 
-    def _steer(self) -> None:
-        p = self.config.protocol
-        nominal = self.config.nominal
+    def _steer(self, run: RunSteps) -> None:
+        p = run.config.protocol
+        nominal = run.config.nominal
         heading = math.radians(p.drive_heading_deg)
-        self._enter(
+        run.enter(
             State.STEER,
             f"steering every module for a straight drive along {p.drive_heading_deg:g} deg "
             "in R, wheels braked",
@@ -386,53 +343,51 @@ class ImuCalibrationRun(CalibrationRun):
         for m, beta in zip(nominal.ids, nominal.arrays().beta.tolist(), strict=True):
             # the wheel trailing its axis: u = -(cos h, sin h), the contact moves along -u
             targets[m] = float(wrap_angle(heading + math.pi - beta))
-            self.robot.wheel_hold(m)
-            self.robot.steer_to(m, targets[m])
+            run.robot.wheel_hold(m)
+            run.robot.steer_to(m, targets[m])
         tol = math.radians(0.5)
-        self._wait_until(
+        run.wait_until(
             lambda: all(
-                abs(float(wrap_angle(self.robot.steering(m) - a))) < tol for m, a in targets.items()
+                abs(float(wrap_angle(run.robot.steering(m) - a))) < tol
+                for m, a in targets.items()
             ),
             motion=True,
         )
 
-    def _mark(self) -> None:
-        first = self.config.nominal.ids[0]
-        self._enter(
+    def _mark(self, run: RunSteps) -> None:
+        first = self._ids[0]
+        run.enter(
             State.MARK,
             f"mark the floor under module {first}'s steering axis, then continue "
-            f"(POST /calibrations/{self.id}/continue); the robot holds still, wheels braked, "
+            f"(POST /calibrations/{run.id}/continue); the robot holds still, wheels braked, "
             "and drives off once you continue",
         )
-        self._wait_operator(self._marked, "floor mark before the straight drive")
-        self._event(logging.INFO, "run.marked")
+        self._wait_operator(run, self._marked, "floor mark before the straight drive")
+        run.event(logging.INFO, "run.marked")
 
-    def _drive(self) -> None:
-        p, lim = self.config.protocol, self.config.limits
-        ids = self.config.nominal.ids
+    def _drive(self, run: RunSteps) -> None:
+        p, lim = run.config.protocol, run.config.limits
         length = p.drive_length
-        self._enter(State.DRIVE, f"holding still {p.rest_time:g} s before the straight drive")
-        a0, b0 = self._hold_still(f"holding still {p.rest_time:g} s before the straight drive")
+        step = f"holding still {p.rest_time:g} s before the straight drive"
+        run.enter(State.DRIVE, step)
+        a0, b0 = self._hold_still(run, step)
         start = 0.5 * (a0 + b0)
         psi0 = {m: float(w.rows[-1, 2]) for m, w in self._wheels.items()}
-        with self._lock:
-            self.status.step = f"driving {length:g} m straight"
-            self.status.drive_m = 0.0
-        self._changed()
-        for m in ids:
-            self.robot.wheel_torque(m, -lim.drive_torque)
-        self._roll(lambda: self._travel(psi0) >= length, psi0, "driving")
-        for m in ids:  # torque off: the wheels roll on until the robot has coasted down
-            self.robot.wheel_free(m)
-        self._roll(lambda: self._speed() <= COAST_LIMIT, psi0, "coasting to a stop")
-        for m in ids:
-            self.robot.wheel_hold(m)
+        run.set_status(step=f"driving {length:g} m straight", drive_m=0.0)
+        run.changed()
+        for m in self._ids:
+            run.robot.wheel_torque(m, -lim.drive_torque)
+        self._roll(run, lambda: self._travel(psi0) >= length, psi0, "driving")
+        for m in self._ids:  # torque off: the wheels roll on until the robot has coasted down
+            run.robot.wheel_free(m)
+        self._roll(run, lambda: self._speed(run) <= COAST_LIMIT, psi0, "coasting to a stop")
+        for m in self._ids:
+            run.robot.wheel_hold(m)
         step = f"holding still {p.rest_time:g} s after the straight drive"
-        with self._lock:
-            self.status.step = step
-        a1, b1 = self._hold_still(step)
+        run.set_status(step=step)
+        a1, b1 = self._hold_still(run, step)
         self.drive = (round(start, 6), round(0.5 * (a1 + b1), 6))
-        self._event(
+        run.event(
             logging.INFO,
             "run.drive",
             start=self.drive[0],
@@ -445,26 +400,28 @@ class ImuCalibrationRun(CalibrationRun):
             psi0, {m: float(w.rows[-1, 2]) for m, w in self._wheels.items()}, self._radius
         )
 
-    def _speed(self, window: float = 0.2) -> float:
-        now = self.clock.now()
+    def _speed(self, run: RunSteps, window: float = 0.2) -> float:
+        now = run.clock.now()
         return wheel_speed(
             {m: w.between(now - window, now) for m, w in self._wheels.items()}, self._radius
         )
 
-    def _roll(self, done: Callable[[], bool], psi0: dict[int, float], what: str) -> None:
+    def _roll(
+        self, run: RunSteps, done: Callable[[], bool], psi0: dict[int, float], what: str
+    ) -> None:
         """Poll the moving robot until ``done()``: its speed and yaw rate within limits."""
-        lim = self.config.limits
-        deadline = self._deadline()
+        lim = run.config.limits
+        deadline = run.deadline()
         while True:
-            self._check(True, deadline)
-            self._read()
-            speed = self._speed()
+            run.check(True, deadline)
+            self._read(run)
+            speed = self._speed(run)
             if speed > lim.max_drive_speed:
                 raise RunFailedError(
                     f"drive speed {speed:.2f} m/s exceeds limits.max_drive_speed "
                     f"{lim.max_drive_speed:g}"
                 )
-            now = self.clock.now()
+            now = run.clock.now()
             g = self._gyro.between(now - 0.2, now)
             rate = float(np.mean(g[:, 1])) - self._bias if g.shape[0] else 0.0
             if abs(rate) > lim.max_yaw_rate:
@@ -472,41 +429,39 @@ class ImuCalibrationRun(CalibrationRun):
                     f"yaw rate {rate:.2f} rad/s exceeds the limit {lim.max_yaw_rate:g} while "
                     f"{what}"
                 )
-            with self._lock:
-                self.status.drive_m = self._travel(psi0)
+            run.set_status(drive_m=self._travel(psi0))
             if done():
                 return
-            self.clock.sleep(self._poll)
+            run.clock.sleep(run.poll)
 
-    def _measure(self) -> None:
-        self.robot.stop_all()  # nothing moves while someone measures next to the robot
-        self.robot.release()
-        self._close_dataset()
-        first = self.config.nominal.ids[0]
-        self._enter(
+    def _measure(self, run: RunSteps) -> None:
+        run.robot.stop_all()  # nothing moves while someone measures next to the robot
+        run.robot.release()
+        self._close_dataset(run)
+        first = self._ids[0]
+        run.enter(
             State.MEASURE,
             f"measure the distance module {first}'s steering axis travelled between the two "
             f"floor marks (the one you made and one under the axis now), then POST it with "
-            f"its std dev to /calibrations/{self.id}/references",
+            f"its std dev to /calibrations/{run.id}/references",
         )
-        self._wait_operator(self._measured, "tape measurement of the straight drive")
+        self._wait_operator(run, self._measured, "tape measurement of the straight drive")
         self.references += self._measured_refs
-        self._event(
+        run.event(
             logging.INFO,
             "run.references",
             references=",".join(
                 f"{reference_label(r)}={r.value:.6f}" for r in self._measured_refs
             ),
         )
-        self.journal.save_references(self.references)
+        run.journal.save_references(self.references)
 
-    def _close_dataset(self) -> None:
+    def _close_dataset(self, run: RunSteps) -> None:
         """The recorded samples closed, with the references known so far (a run that
         ends later keeps a dataset that ``swpc solve`` reads and judges)."""
-        self._record(force=True)  # the last samples, counted in the status
-        self.journal.close_dataset(self.sensor, self.robot)
-        self.journal.save_references(self.references)
+        run.record(force=True)  # the last samples, counted in the status
+        run.journal.close_dataset(self.gyro, run.robot)
+        run.journal.save_references(self.references)
 
-    def _solve(self) -> None:
-        self._close_dataset()
-        super()._solve()
+    def before_solve(self, run: RunSteps) -> None:
+        self._close_dataset(run)

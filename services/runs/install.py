@@ -24,8 +24,7 @@ from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import CalibrationError, KinematicFileError
 from swpc_hw.kinematic_file import save_kinematics
-
-PARAMS = ("x_s", "y_s", "beta", "b", "r")
+from swpc_hw.model import PARAM_NAMES
 
 
 def solve_run(run_dir: Path) -> CalibrationResult:
@@ -111,9 +110,9 @@ def result_document(
         modules.append(
             {
                 "id": m.id,
-                **{k: getattr(m, k) for k in PARAMS},
+                **{k: getattr(m, k) for k in PARAM_NAMES},
                 "stddev": None if std is None else std.model_dump(),
-                "nominal": {k: getattr(nom, k) for k in PARAMS},
+                "nominal": {k: getattr(nom, k) for k in PARAM_NAMES},
             }
         )
     header = ["module", "param", "unit", "nominal", "estimate", "std dev"]

@@ -3,11 +3,12 @@
 :class:`RunMachine` is what every step of a calibration (:mod:`services.runs.protocol`,
 which subclasses it with the protocol's steps in :meth:`RunMachine._protocol`) relies on:
 
-* :meth:`~RunMachine._enter` a state: only along :data:`~services.runs.state.TRANSITIONS`,
+* :meth:`~RunMachine.enter` a state: only along :data:`~services.runs.state.TRANSITIONS`,
   saved by the owner (``on_change``: a state that cannot be saved fails the run), logged;
-* :meth:`~RunMachine._check`, at every poll of every step: an abort, a shutdown, a robot
-  fault, a stale motion sensor during motion, a step over ``limits.step_timeout``; the
-  recordings are written from here too (:class:`~services.runs.journal.RunJournal`);
+* :meth:`~RunMachine.check`, at every poll of every step: an abort, a shutdown, a robot
+  fault, a motion sensor its metrology no longer trusts during motion, a step over
+  ``limits.step_timeout``; the recordings are written from here too
+  (:class:`~services.runs.journal.RunJournal`);
 * :meth:`~RunMachine._end`: ``stop_all()`` first (its latency measured for an abort), then
   release, FAILED or ABORTED with the reason (and the state it happened in), the last
   samples recorded and the recordings closed.
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
 import traceback
@@ -30,7 +32,8 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from services.config.robot import RobotConfig
-from services.runs.journal import RunJournal, SampleSource
+from services.runs.journal import RunJournal
+from services.runs.metrology import Metrology
 from services.runs.recording import RecordingError
 from services.runs.state import (
     TERMINAL,
@@ -42,8 +45,8 @@ from services.runs.state import (
     State,
     now_iso,
 )
-from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.dataset import Segment
 from swpc_hw.drives.robot_io import RobotIO
 
 
@@ -52,13 +55,11 @@ class RunMachine:
     :attr:`journal` and implements :meth:`_protocol`."""
 
     journal: RunJournal
-    metrology: str = "mocap"
-    """What measures the robot's motion: ``mocap`` or ``imu`` (the gyro, no mocap)."""
 
     def __init__(
         self,
         robot: RobotIO,
-        mocap: MocapIngest,
+        metrology: Metrology,
         config: RobotConfig,
         *,
         clock: Clock = SYSTEM_CLOCK,
@@ -66,15 +67,18 @@ class RunMachine:
         poll: float = 0.02,
     ) -> None:
         self.robot = robot
-        self.mocap = mocap
+        self.metrology = metrology
+        """What measures the robot's motion (:mod:`services.runs.metrology`)."""
         self.config = config
         self.clock = clock
         self.status = RunStatus(id=uuid.uuid4().hex[:12], created=now_iso())
+        self.status.metrology = metrology.name
         self.result_doc: dict[str, Any] | None = None
         self.abort_latency: float | None = None
         self.persist_error: str | None = None
+        self.segments: list[Segment] = []
         self._on_change = on_change
-        self._poll = poll
+        self.poll = poll
         self._abort = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -119,24 +123,30 @@ class RunMachine:
         if self._thread is not None:
             self._thread.join(timeout)
 
-    # ---------------------------------------------------------------- internals
-    def _enter(self, state: State, step: str) -> None:
+    # ---------------------------------------------------------------- the steps' API
+    def enter(self, state: State, step: str) -> None:
         cur = self.status.state
         if state not in TERMINAL and state not in TRANSITIONS.get(cur, frozenset()):
             raise RuntimeError(f"illegal transition {cur} -> {state}")
         with self._lock:
             self.status.state = state
             self.status.step = step
-        self._event(
+        self.event(
             logging.INFO, "run.state", state=str(state), step=step, module=self.status.module
         )
-        self._changed()
+        self.changed()
         if state not in TERMINAL:
             # an abort or a fault since the last check ends the run before this state's
             # first command
-            self._check(False, None)
+            self.check(False, None)
 
-    def _changed(self) -> None:
+    def set_status(self, **fields: Any) -> None:
+        """Update the operator's view of the run (under its lock)."""
+        with self._lock:
+            for name, value in fields.items():
+                setattr(self.status, name, value)
+
+    def changed(self) -> None:
         """Tell the owner (the service saves the state); a failure to save fails a run
         still going (robot stopped first), and is kept in :attr:`persist_error`."""
         if self._on_change is None:
@@ -145,48 +155,46 @@ class RunMachine:
             self._on_change(self)
         except Exception as exc:
             self.persist_error = f"{type(exc).__name__}: {exc}"
-            self._event(logging.ERROR, "run.persist_failed", error=self.persist_error)
+            self.event(logging.ERROR, "run.persist_failed", error=self.persist_error)
             if self.status.state not in TERMINAL:
                 raise PersistError(f"cannot save the run's state: {self.persist_error}") from exc
 
-    def _event(self, level: int, name: str, **fields: Any) -> None:
+    def event(self, level: int, name: str, **fields: Any) -> None:
         self.journal.event(level, name, **fields)
 
-    def _record(self, force: bool = False) -> None:
+    def record(self, force: bool = False) -> None:
         """The samples since the last batch to the run's recordings (every half second of
         robot time, or now)."""
-        counts = self.journal.record(self.sensor, self.robot, force)
+        counts = self.journal.record(self.metrology.sensor, self.robot, force)
         if counts is not None:
-            with self._lock:
-                if self.metrology == "imu":
-                    self.status.gyro_samples, self.status.encoder_samples = counts
-                else:
-                    self.status.poses, self.status.encoder_samples = counts
-
-    @property
-    def sensor(self) -> SampleSource:
-        """The ingest of what measures the robot's motion (recorded with the encoders)."""
-        return self.mocap
-
-    def _sensor_problem(self) -> str | None:
-        """Why the motion sensor cannot be trusted now (checked during motion)."""
-        if self.mocap.is_stale():
-            return (
-                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
-                f"(limit {self.mocap.stale_after:.3f} s)"
+            self.set_status(
+                **{self.metrology.samples_field: counts[0], "encoder_samples": counts[1]}
             )
-        return None
 
-    def _check(self, motion: bool, deadline: float | None) -> None:
+    def add_segment(self, seg: Segment, sweep: float) -> None:
+        """A finished spin's window (the solver's segment), logged and recorded."""
+        self.segments.append(seg)
+        self.status.segments = len(self.segments)
+        self.journal.add_segment(seg)
+        self.event(
+            logging.INFO,
+            "run.segment",
+            module=seg.static_module,
+            start=seg.start,
+            end=seg.end,
+            sweep_deg=math.degrees(sweep),
+        )
+
+    def check(self, motion: bool, deadline: float | None) -> None:
         if self._abort.is_set():
             if self._stop_reason is not None:
                 raise RunFailedError(self._stop_reason)
             raise RunAbortedError("aborted by the operator")
-        self._record()
+        self.record()
         faults = self.robot.take_faults()
         if faults:
             raise RunFailedError(f"robot fault: {faults[0]}")
-        problem = self._sensor_problem() if motion else None
+        problem = self.metrology.problem() if motion else None
         if problem is not None:
             raise RunFailedError(problem)
         if deadline is not None and self.clock.now() > deadline:
@@ -195,25 +203,27 @@ class RunMachine:
                 f"{self.config.limits.step_timeout:g} s"
             )
 
-    def _deadline(self) -> float:
+    def deadline(self) -> float:
+        """Now plus the step timeout."""
         return self.clock.now() + self.config.limits.step_timeout
 
-    def _wait(self, seconds: float, motion: bool = True) -> None:
+    def wait(self, seconds: float, motion: bool = True) -> None:
         """Wait ``seconds`` of robot time, checking for faults and abort."""
         end = self.clock.now() + seconds
-        deadline = self._deadline()
+        deadline = self.deadline()
         while True:
-            self._check(motion, deadline)
+            self.check(motion, deadline)
             left = end - self.clock.now()
             if left <= 0:
                 return
-            self.clock.sleep(min(self._poll, left))
+            self.clock.sleep(min(self.poll, left))
 
-    def _wait_until(self, cond: Callable[[], bool], motion: bool) -> None:
-        deadline = self._deadline()
+    def wait_until(self, cond: Callable[[], bool], motion: bool) -> None:
+        """Poll until ``cond()``, checking at every poll (step timeout)."""
+        deadline = self.deadline()
         while not cond():
-            self._check(motion, deadline)
-            self.clock.sleep(self._poll)
+            self.check(motion, deadline)
+            self.clock.sleep(self.poll)
 
     @contextlib.contextmanager
     def _in_step(self) -> Iterator[None]:
@@ -231,7 +241,7 @@ class RunMachine:
     def _run(self) -> None:
         self._t0 = self.clock.now()  # before `started`: who sees that sees this
         self.status.started = now_iso()
-        self._event(logging.INFO, "run.start", **self._start_fields())
+        self.event(logging.INFO, "run.start", **self._start_fields())
         try:
             self._protocol()
         except RunAbortedError as exc:
@@ -276,12 +286,12 @@ class RunMachine:
             self.status.state = state
             self.status.step = "stopped"
         level = logging.WARNING if state is State.ABORTED else logging.ERROR
-        self._event(level, "run.end", state=str(state), reason=reason)
+        self.event(level, "run.end", state=str(state), reason=reason)
         with contextlib.suppress(Exception):  # best effort: the end is decided
-            self._record(force=True)
+            self.record(force=True)
         with contextlib.suppress(Exception):
             self.journal.finish({"state": str(state), "reason": reason}, self.result_doc)
-        self._changed()
+        self.changed()
 
     # ---------------------------------------------------------------- the protocol's
     def _start_fields(self) -> dict[str, Any]:

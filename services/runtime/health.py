@@ -32,7 +32,7 @@ def judged_sensors(rt: Runtime) -> set[str]:
     """``{"mocap"}``, ``{"imu"}`` or both: the running run's metrology, else the setting's."""
     run = rt.current
     if run is not None and rt.running():
-        return {run.metrology}
+        return {run.metrology.name}
     m = rt.settings.metrology
     return {"mocap", "imu"} if m == "both" else {m}
 
@@ -67,7 +67,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
         if err is not None:
             degraded.append(f"CAN log stopped: {err}")
     sensors = judged_sensors(rt)
-    age, gyro_age = rt.mocap.age(), rt.imu.age()
+    age, gyro_age = rt.mocap.age(), rt.gyro.age()
     if "mocap" in sensors:
         if rt.mocap.is_stale() and not still:
             failing.append(
@@ -78,7 +78,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
         if clock is not None:
             failing.append(clock)
     if "imu" in sensors:
-        if rt.imu.is_stale() and not still:
+        if rt.gyro.is_stale() and not still:
             failing.append(
                 "gyro stale: "
                 + (
@@ -87,7 +87,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
                     else f"no sample for {gyro_age:.2f} s"
                 )
             )
-        clock = rt.imu.clock_problem()
+        clock = rt.gyro.clock_problem()
         if clock is not None:
             failing.append(clock)
     if rt._unsaved:
@@ -128,7 +128,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
         "mocap_age_s": _age(age),
         "mocap_stale": rt.mocap.is_stale(),
         "gyro_age_s": _age(gyro_age),
-        "gyro_stale": rt.imu.is_stale(),
+        "gyro_stale": rt.gyro.is_stale(),
         "sensors": sorted(sensors),
         "running": rt.running(),
         "in_process_simulator": rt.simulator is not None,

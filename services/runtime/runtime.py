@@ -37,7 +37,9 @@ from typing import Any
 from services.config.robot import RobotConfig, load_robot_config
 from services.config.settings import ServiceSettings, SettingsError
 from services.config.timing import TimingBudget, robot_drives, timing_budget
-from services.runs.imu import ImuCalibrationRun
+from services.runs.imu import ImuMetrology
+from services.runs.metrology import Metrology
+from services.runs.mocap import MocapMetrology
 from services.runs.protocol import TERMINAL, CalibrationRun, State
 from services.runs.recording import SpaceGuard
 from services.runtime.events import EventBus
@@ -117,7 +119,7 @@ class Runtime:
             clock_mode="wall" if settings.in_process else settings.mocap_clock,
         )
         # the robot's gyro (a run without motion capture), stamped with wall time
-        self.imu = GyroIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
+        self.gyro = GyroIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
         self.data_dir = Path(settings.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         # before anything in the data dir is touched: a second service stops here
@@ -215,7 +217,7 @@ class Runtime:
         )
         self.mocap.subscribe(self.session, self.config.pose_key)
         if s.metrology != "mocap":
-            self.imu.subscribe(self.session, self.config.imu_key)
+            self.gyro.subscribe(self.session, self.config.imu_key)
         self.drives = robot_drives(
             s,
             self.config,
@@ -275,7 +277,7 @@ class Runtime:
                 self.drives.stop_all()
             self.drives.shutdown()
         self.mocap.close()
-        self.imu.close()
+        self.gyro.close()
         if self.simulator is not None:
             self.simulator.stop()
         if isinstance(self.clock, SimClock):
@@ -296,7 +298,7 @@ class Runtime:
         service set up for motion capture).  Until then nothing decodes 200 samples a
         second that no one reads, and the in-process simulator does not even send them."""
         assert self.session is not None
-        self.imu.subscribe(self.session, self.config.imu_key)
+        self.gyro.subscribe(self.session, self.config.imu_key)
         event(log, logging.INFO, "imu.subscribed", key=self.config.imu_key)
 
     # --------------------------------------------------------------------- runs
@@ -337,28 +339,24 @@ class Runtime:
                     f"system; a run needs {reserve / MIB:.1f} MiB above SWPC_MIN_FREE "
                     f"{int(s.min_free) / MIB:.1f} MiB"
                 )
-            if metrology == "imu" and not self.imu.subscribed:
+            if metrology == "imu" and not self.gyro.subscribed:
                 self._listen_to_the_gyro()
             lim = config.limits
             io = DrivesRobotIO(
                 self.drives,
                 limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
             )
-            kwargs: dict[str, Any] = {
-                "clock": self.clock,
-                "data_dir": self.data_dir,
-                "kinematics_path": s.kinematics_file,
-                "install": install,
-                "on_change": self._persist,
-                "space": SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
-                "robot_config_path": None if s.robot_config is None else str(s.robot_config),
-            }
-            run = (
-                ImuCalibrationRun(
-                    io, self.mocap, self.imu, config, references=references, **kwargs
-                )
-                if metrology == "imu"
-                else CalibrationRun(io, self.mocap, config, **kwargs)
+            run = CalibrationRun(
+                io,
+                self.metrology(metrology, config, references),
+                config,
+                clock=self.clock,
+                data_dir=self.data_dir,
+                kinematics_path=s.kinematics_file,
+                install=install,
+                on_change=self._persist,
+                space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
+                robot_config_path=None if s.robot_config is None else str(s.robot_config),
             )
             previous, self.current = self.current, run
             self.runs[run.id] = run
@@ -376,6 +374,15 @@ class Runtime:
         self.drives.start_recording(str(run.run_dir / "dataset" / "can.log"))
         run.start()
         return run
+
+    def metrology(
+        self, name: str, config: RobotConfig, references: Sequence[Reference] = ()
+    ) -> Metrology:
+        """A new run's metrology on this service's sensors: ``mocap`` (motion capture) or
+        ``imu`` (the gyro, the encoders and ``references``)."""
+        if name == "imu":
+            return ImuMetrology(self.gyro, config, references)
+        return MocapMetrology(self.mocap)
 
     def _persist(self, run: CalibrationRun) -> None:
         """Save a run's state (its on_change); a failure is kept (health, the runs list

@@ -1,0 +1,146 @@
+"""Motion capture as a run's metrology: the poses say when the robot rests and how far a
+spin went (:mod:`services.runs.metrology`).
+
+* PRECHECK: the pose stream live and its clock mapped (:meth:`MocapIngest.clock_problem`).
+* During motion: a pose stream gone stale fails the run.
+* REST: every wheel braked until, over the last :data:`REST_WINDOW` s after the brake
+  (robot time), the least-squares speed and yaw rate of the poses
+  (:func:`~services.runs.pose_motion.motion_rates`) are within ``limits.rest_speed`` /
+  ``rest_yaw_rate``.
+* SPIN: the yaw of the poses, unwrapped, from ``settle_time`` after the torque on
+  (:class:`~services.runs.pose_motion.SpinWindow`); the segment ends once it has swept
+  ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from services.config.robot import RobotConfig
+from services.runs.journal import SampleSource
+from services.runs.metrology import RunSteps
+from services.runs.pose_motion import REST_WINDOW, SpinWindow, motion_rates
+from services.runs.state import RunFailedError, State
+from services.sensors.mocap import MocapIngest
+from swpc_hw.dataset import Segment
+
+
+def sweep_reached(run: RunSteps, spin: SpinWindow, done: int, total: int) -> float | None:
+    """Judge a spin at a poll: the yaw-rate limit, the operator's progress; the sweep once
+    ``sweep_deg`` is reached (None before)."""
+    limits, target = run.config.limits, math.radians(run.config.protocol.sweep_deg)
+    if spin.rate is not None and abs(spin.rate) > limits.max_yaw_rate:
+        raise RunFailedError(
+            f"yaw rate {spin.rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
+        )
+    if spin.start is None:
+        return None
+    sweep = spin.sweep
+    run.set_status(
+        sweep_deg=math.degrees(sweep), progress=min((done + min(sweep / target, 1.0)) / total, 1.0)
+    )
+    return sweep if sweep >= target else None
+
+
+class MocapMetrology:
+    """The poses of the robot's rigid body R on ``mocap/<robot>/pose`` (module docstring)."""
+
+    name = "mocap"
+    sensor_name = "mocap"
+    samples_field = "poses"
+
+    def __init__(self, mocap: MocapIngest) -> None:
+        self.mocap = mocap
+        self.drive: tuple[float, float] | None = None  # it never drives straight
+
+    @property
+    def sensor(self) -> SampleSource:
+        return self.mocap
+
+    def run_problems(self, config: RobotConfig) -> list[str]:
+        return config.run_problems(self.name)
+
+    def start_fields(self) -> dict[str, Any]:
+        return {}
+
+    def precheck(self) -> list[str]:
+        problems = []
+        if self.mocap.is_stale():
+            problems.append(f"motion capture not live (last pose {self.mocap.age():.2f} s ago)")
+        clock = self.mocap.clock_problem()
+        if clock is not None:
+            problems.append(clock)
+        return problems
+
+    def problem(self) -> str | None:
+        if self.mocap.is_stale():
+            return (
+                f"motion capture stale: no pose for {self.mocap.age():.3f} s "
+                f"(limit {self.mocap.stale_after:.3f} s)"
+            )
+        return None
+
+    def waits_for(self, state: State) -> str | None:
+        return None  # the poses need no operator
+
+    def answer(
+        self, run_id: str, state: State, what: str, entries: Sequence[dict[str, Any]] = ()
+    ) -> None:
+        raise ValueError(f"calibration {run_id} measures with motion capture: nothing to {what}")
+
+    def come_to_rest(self, run: RunSteps) -> None:
+        limits = run.config.limits
+        step = "braking every wheel: waiting for the robot to come to rest"
+        run.enter(State.REST, step)
+        for m in run.config.nominal.ids:
+            run.robot.wheel_hold(m)
+        t_brake = run.clock.now()
+        deadline = run.deadline()
+        while True:
+            run.check(True, deadline)
+            # the poses *sampled* over the last window after the brake (by their host
+            # times: with late poses, from a slow mocap network or clock mode wall, the
+            # newest pose at hand may have been sampled a while ago)
+            latest = self.mocap.latest()
+            if latest is not None and latest.t_host - t_brake >= REST_WINDOW:
+                poses = self.mocap.samples(since_host=latest.t_host - REST_WINDOW)
+                if poses.shape[0] >= 3 and poses[-1, 2] - poses[0, 2] >= 0.5 * REST_WINDOW:
+                    speed, rate = motion_rates(poses[:, 2], poses[:, 3], poses[:, 4], poses[:, 5])
+                    if speed <= limits.rest_speed and abs(rate) <= limits.rest_yaw_rate:
+                        return
+                    run.set_status(
+                        step=f"{step} (yaw rate {rate:.3f} rad/s, speed {speed:.3f} m/s)"
+                    )
+            run.clock.sleep(run.poll)
+
+    def before_spin(self, run: RunSteps, k: int, dyn: list[int]) -> None:
+        """Nothing: the poses need no rest before a spin."""
+
+    def spin(self, run: RunSteps, k: int, done: int, total: int) -> None:
+        latest = self.mocap.latest()
+        assert latest is not None
+        spin = SpinWindow(
+            run.clock.now(), run.config.protocol.settle_time, latest.t_host, latest.yaw
+        )
+        deadline = run.deadline()
+        while True:
+            run.check(True, deadline)
+            p = self.mocap.latest()
+            assert p is not None
+            spin.add(p.t_host, p.yaw)
+            sweep = sweep_reached(run, spin, done, total)
+            if spin.start is not None:
+                run.set_status(poses=self.mocap.counters.accepted)
+            if sweep is not None:
+                assert spin.start is not None
+                run.add_segment(Segment(k, spin.start, p.t_host), sweep)
+                return
+            run.clock.sleep(run.poll)
+
+    def after_spins(self, run: RunSteps) -> None:
+        """Nothing: the poses measured everything the solver needs."""
+
+    def before_solve(self, run: RunSteps) -> None:
+        """Nothing: SOLVE closes the dataset."""
