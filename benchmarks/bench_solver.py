@@ -42,10 +42,10 @@ from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.baseline import solve_paper
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.dataset import Dataset
-from swpc_hw.model import RobotParams
+from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 DISPLAY = np.array([1e3, 1e3, 180.0 / math.pi, 1e3, 1e3])  # mm, mm, deg, mm, mm
 UNITS = ("mm", "mm", "deg", "mm", "mm")
 

@@ -228,6 +228,13 @@ def _messages_by_id() -> dict[int, Message]:
     return {m.frame_id: m for m in database().messages}
 
 
+def _cycle_time_s(command: Command) -> float:
+    """The DBC's ``GenMsgCycleTime`` of a periodic message, in s."""
+    ms = database().get_message_by_frame_id(frame_id(1, command)).cycle_time
+    assert ms, f"{command.name} has no cycle time in the DBC"
+    return float(ms) / 1000.0
+
+
 @functools.cache
 def message_for(node: int, command: Command) -> Message:
     """The DBC message of ``command`` for ``node`` (cached; errors are not)."""
@@ -789,3 +796,13 @@ STEER_SPAN = signal_span("SteerPosition")
 """Wrap period of the steering position signal, rad: ``2**20 * 2*pi/2**17`` = 8 turns."""
 WHEEL_SPAN = signal_span("WheelPosition")
 """Wrap period of the wheel position signal, rad: ``2**36 * 2*pi/2**17`` = 2**19 turns."""
+
+
+HEARTBEAT_PERIOD_S = _cycle_time_s(Command.HEARTBEAT)
+"""The controllers' heartbeat period (s): the DBC's cycle time of Heartbeat."""
+POWER_UP_FEEDBACK_RATE_HZ = round(1.0 / _cycle_time_s(Command.FEEDBACK_POSITION))
+"""The feedback rate a controller starts with (Hz): the DBC's cycle time of
+FeedbackPosition (the host sets its own with SetFeedback)."""
+POWER_UP_WATCHDOG_MS = 100
+"""The command watchdog a controller starts with, until the host sends SetWatchdog
+(firmware_protocol/README.md; the C emulator's ctrl_init says the same)."""

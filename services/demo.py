@@ -34,7 +34,7 @@ import httpx
 
 from services.cli._sim_options import add_metrology_argument
 from swpc_hw.blas_threads import single_blas_thread
-from swpc_hw.model import RobotParams
+from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.zenoh_session import free_tcp_endpoint
 
@@ -79,7 +79,7 @@ def _table(result: dict[str, Any], truth_robot: RobotParams = PAPER_CALIBRATED) 
 def parameters_digest(result: dict[str, Any]) -> str:
     """sha256 (first 16 hex digits) of every calibrated parameter's exact float value."""
     values = [
-        float(m[k]).hex() for m in result["modules"] for k in ("x_s", "y_s", "beta", "b", "r")
+        float(m[k]).hex() for m in result["modules"] for k in PARAM_NAMES
     ]
     return hashlib.sha256(" ".join(values).encode()).hexdigest()[:16]
 

@@ -34,7 +34,7 @@ import numpy as np
 import zenoh
 
 from simulators.datagen_imu import GyroOptions
-from simulators.mocap_sim import listened, lockstep_put
+from simulators.mocap_sim import SampleGrid, listened, lockstep_put
 from simulators.physics import FloatArray
 from swpc_hw.clock import SimClock
 from swpc_hw.imu import IMU_ENCODING, GyroSample, encode_imu
@@ -100,7 +100,7 @@ class GyroSim:
         self.counters = GyroCounters()
         self.bias = float(self.options.bias)
         self._rng = np.random.default_rng([self.seed, 21])
-        self._k_next: int | None = None
+        self._grid = SampleGrid(self.options.rate)
         self.sent: deque[GyroSample] = deque(maxlen=max(self.keep_sent, 1))
         opt = self.options
         self._walk_sd = opt.bias_walk * math.sqrt(1.0 / opt.rate)
@@ -117,14 +117,7 @@ class GyroSim:
 
     def due_times(self, t0: float, t1: float) -> list[float]:
         """Sample times ``k / rate`` in ``(t0, t1]`` (the first call also includes ``t0``)."""
-        rate = self.options.rate
-        if self._k_next is None:
-            self._k_next = math.ceil(t0 * rate - 1e-9)
-        out = []
-        while self._k_next / rate <= t1 + 1e-12:
-            out.append(self._k_next / rate)
-            self._k_next += 1
-        return out
+        return self._grid.due(t0, t1)
 
     def sample(self, omega: float, stamp: float) -> GyroSample:
         """The reading of the true yaw rate ``omega`` (rad/s), stamped ``stamp``; the bias

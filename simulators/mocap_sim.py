@@ -148,6 +148,26 @@ class MocapCounters:
     put_errors: int = 0
 
 
+class SampleGrid:
+    """The sample times of a sensor sampled every ``1 / rate`` s of simulated time,
+    ``t_k = k / rate`` (exact multiples: no drift however long it runs)."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = float(rate)
+        self._k_next: int | None = None
+
+    def due(self, t0: float, t1: float) -> list[float]:
+        """Sample times in ``(t0, t1]`` (the first call also includes ``t0``)."""
+        rate = self.rate
+        if self._k_next is None:
+            self._k_next = math.ceil(t0 * rate - 1e-9)
+        out = []
+        while self._k_next / rate <= t1 + 1e-12:
+            out.append(self._k_next / rate)
+            self._k_next += 1
+        return out
+
+
 @dataclass
 class MocapSim:
     """The mocap system: sample the true pose, corrupt it, delay it, publish it on zenoh.
@@ -170,7 +190,7 @@ class MocapSim:
         self._rng = np.random.default_rng(self.options.seed)
         self._queue: deque[tuple[float, PoseSample]] = deque()
         self._seq = 0
-        self._k_next: int | None = None
+        self._grid = SampleGrid(self.options.rate)
         self.sent: deque[PoseSample] = deque(maxlen=max(self.keep_sent, 1))
         self._pub: Any = None
         self._encoding = PoseEncoding(self.options.encoding)
@@ -189,14 +209,7 @@ class MocapSim:
 
     def due_times(self, t0: float, t1: float) -> list[float]:
         """Sample times ``k / rate`` in ``(t0, t1]`` (the first call also includes ``t0``)."""
-        rate = self.options.rate
-        if self._k_next is None:
-            self._k_next = math.ceil(t0 * rate - 1e-9)
-        out = []
-        while self._k_next / rate <= t1 + 1e-12:
-            out.append(self._k_next / rate)
-            self._k_next += 1
-        return out
+        return self._grid.due(t0, t1)
 
     def sample(self, t: float, pose: FloatArray, stamp: float | None = None) -> None:
         """Take the sample of simulated time ``t`` from the true pose ``(x, y, yaw)``,

@@ -34,8 +34,8 @@ class SimOptions:
     wheel_counts: int = 2**17
     """Encoder counts per turn (0: no quantisation before the frame's own)."""
     position_tau: float = 0.02
-    feedback_rate_hz: int = 200
-    watchdog_ms: int = 100
+    feedback_rate_hz: int = codec.POWER_UP_FEEDBACK_RATE_HZ
+    watchdog_ms: int = codec.POWER_UP_WATCHDOG_MS
     homing_duration: float = 0.2
     sensor_positions: Sequence[float] | None = None
     """Power-up steering coordinate of each homing sensor (default: seeded random)."""

@@ -41,9 +41,9 @@ from firmware_protocol.codec import (
 )
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, next_instant
 
-DEFAULT_RATE_HZ = 200
-DEFAULT_WATCHDOG_MS = 100
-HEARTBEAT_PERIOD_S = 0.1
+DEFAULT_RATE_HZ = codec.POWER_UP_FEEDBACK_RATE_HZ
+DEFAULT_WATCHDOG_MS = codec.POWER_UP_WATCHDOG_MS
+HEARTBEAT_PERIOD_S = codec.HEARTBEAT_PERIOD_S
 OVER_SPEED_FACTOR = 1.2
 
 

@@ -37,10 +37,9 @@ import numpy as np
 import yaml
 
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.model import ModuleParams, ModuleStddev, RobotParams
+from swpc_hw.model import PARAM_NAMES, ModuleParams, ModuleStddev, RobotParams
 
 FORMAT = "swpc-kinematics/1"
-PARAM_KEYS = ("x_s", "y_s", "beta", "b", "r")
 UNITS = {"length": "m", "angle": "rad"}
 """The format's units (SI); a file may say so in ``units:``, never anything else."""
 COVARIANCE_KEY = "covariance"
@@ -110,7 +109,7 @@ def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
             raise KinematicFileError(f"{where}: {loc}.id: duplicate module id {mid}")
         seen.add(mid)
         vals: dict[str, float] = {}
-        for key in PARAM_KEYS:
+        for key in PARAM_NAMES:
             if key not in m:
                 raise KinematicFileError(f"{where}: missing key '{loc}.{key}'")
             vals[key] = _number(m[key], f"{loc}.{key}", where)
@@ -123,7 +122,7 @@ def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
             if not isinstance(sd, dict):
                 raise KinematicFileError(f"{where}: {loc}.stddev: must be a mapping")
             sdv: dict[str, float] = {}
-            for key in PARAM_KEYS:
+            for key in PARAM_NAMES:
                 if key not in sd:
                     raise KinematicFileError(f"{where}: missing key '{loc}.stddev.{key}'")
                 sdv[key] = _number(sd[key], f"{loc}.stddev.{key}", where)
@@ -147,11 +146,11 @@ def parse_covariance(doc: Any, modules: list[ModuleParams], where: str) -> list[
     key = COVARIANCE_KEY
     if not isinstance(doc, dict):
         raise KinematicFileError(f"{where}: {key}: must be a mapping with order and matrix")
-    if doc.get("order") != list(PARAM_KEYS):
+    if doc.get("order") != list(PARAM_NAMES):
         raise KinematicFileError(
-            f"{where}: {key}.order: expected {list(PARAM_KEYS)} (got {doc.get('order')!r})"
+            f"{where}: {key}.order: expected {list(PARAM_NAMES)} (got {doc.get('order')!r})"
         )
-    size = len(PARAM_KEYS) * len(modules)
+    size = len(PARAM_NAMES) * len(modules)
     rows = doc.get("matrix")
     if not isinstance(rows, list) or len(rows) != size:
         raise KinematicFileError(f"{where}: {key}.matrix: must be {size} rows of {size} numbers")
@@ -173,9 +172,9 @@ def parse_covariance(doc: Any, modules: list[ModuleParams], where: str) -> list[
     for i, m in enumerate(modules):
         if m.stddev is None:
             continue
-        for k, name in enumerate(PARAM_KEYS):
+        for k, name in enumerate(PARAM_NAMES):
             std = float(getattr(m.stddev, name))
-            got = math.sqrt(diag[len(PARAM_KEYS) * i + k])
+            got = math.sqrt(diag[len(PARAM_NAMES) * i + k])
             if abs(got - std) > 1e-6 * std + 1e-15:
                 raise KinematicFileError(
                     f"{where}: {key}.matrix: variance of module {m.id} {name} gives a std dev "
@@ -222,9 +221,9 @@ def kinematics_document(
     modules = []
     for m in params.modules:
         d: dict[str, Any] = {"id": m.id}
-        d.update({k: float(getattr(m, k)) for k in PARAM_KEYS})
+        d.update({k: float(getattr(m, k)) for k in PARAM_NAMES})
         if m.stddev is not None:
-            d["stddev"] = {k: float(getattr(m.stddev, k)) for k in PARAM_KEYS}
+            d["stddev"] = {k: float(getattr(m.stddev, k)) for k in PARAM_NAMES}
         modules.append(d)
     doc: dict[str, Any] = {
         "format": FORMAT,
@@ -236,7 +235,7 @@ def kinematics_document(
     }
     if covariance is not None:
         doc[COVARIANCE_KEY] = {
-            "order": list(PARAM_KEYS),
+            "order": list(PARAM_NAMES),
             "matrix": [[float(v) for v in row] for row in np.asarray(covariance, dtype=float)],
         }
     for k, v in (extra or {}).items():

@@ -27,6 +27,10 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 
 FloatArray = NDArray[np.float64]
 
+PARAM_NAMES = ("x_s", "y_s", "beta", "b", "r")
+"""One module's parameters, in the one order everything uses: a module's row of arrays
+and covariances, the kinematic file's keys and its ``covariance.order``."""
+
 
 def _finite(value: float) -> float:
     if not math.isfinite(value):

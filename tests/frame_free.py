@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from swpc_hw.model import RobotParams
+from swpc_hw.model import PARAM_NAMES, RobotParams
 
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 
 
 @dataclass(frozen=True)

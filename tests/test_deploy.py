@@ -22,6 +22,8 @@ import pytest
 import yaml
 from pydantic import BaseModel
 
+from swpc_hw.model import PARAM_NAMES
+
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
 UNITS = ("swpc-service.service", "swpc-sim.service")
@@ -243,7 +245,7 @@ def test_robot_example_loads_and_documents_every_key() -> None:
         leaf = key.split(".")[-1]
         found = [ln for ln in lines if re.match(rf"^\s*{leaf}:", ln)]
         assert found and all("#" in ln for ln in found), f"{key} has no comment"
-    for field in ("id", "x_s", "y_s", "beta", "b", "r"):
+    for field in ("id", *PARAM_NAMES):
         assert any(re.match(rf"^\s*-? ?{field}: .*#", ln) for ln in lines), field
 
 

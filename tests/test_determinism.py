@@ -18,6 +18,7 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.demo import parameters_digest
 from services.http.app import create_app
+from swpc_hw.model import PARAM_NAMES
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -51,7 +52,7 @@ def test_the_same_seed_gives_the_same_parameters_bit_for_bit(tmp_path: Path) -> 
     print(f"\nseed 7: digests {parameters_digest(first)} {parameters_digest(second)}")
     assert parameters_digest(first) == parameters_digest(second)
     for a, b in zip(first["modules"], second["modules"], strict=True):
-        for k in ("x_s", "y_s", "beta", "b", "r"):
+        for k in PARAM_NAMES:
             assert float(a[k]).hex() == float(b[k]).hex(), (a["id"], k, a[k], b[k])
             assert float(a["stddev"][k]).hex() == float(b["stddev"][k]).hex()
     for name in ("poses.csv", "encoders.csv", "segments.csv"):

@@ -39,11 +39,12 @@ from swpc_hw.calibration.solver import solve_directory
 from swpc_hw.clock import Clock
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.model import PARAM_NAMES
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 SHORT = {"protocol": {"sweep_deg": 1440}}  # a long first spin (module 1): faults land in it
 # the whole protocol with short spins (as make test-vcan): a real result, quickly
 QUICK_PROTOCOL = {

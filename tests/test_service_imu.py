@@ -31,12 +31,13 @@ from services.runtime.runtime import Runtime
 from swpc_hw.calibration.imu_solver import solve_imu_directory
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics
+from swpc_hw.model import PARAM_NAMES
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from tests.frame_free import frame_free
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 PROTOCOL = {
     "sweep_deg": 45,
     "settle_time": 1.0,

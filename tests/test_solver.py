@@ -16,10 +16,10 @@ from swpc_hw.calibration.baseline import solve_paper
 from swpc_hw.calibration.solver import SolverOptions, canonical_parameters, solve
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics
-from swpc_hw.model import RobotParams, contact_point
+from swpc_hw.model import PARAM_NAMES, RobotParams, contact_point
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 NOISELESS = ExperimentOptions(counts_per_rev=None, spin_duration=6.0)
 
 

@@ -27,10 +27,10 @@ from swpc_hw.calibration.uncertainty import ar1_quadratic_form, long_run_covaria
 from swpc_hw.calibration.yaw_noise import score_variance
 from swpc_hw.dataset import Dataset, save_dataset
 from swpc_hw.errors import ImplausibleDataError, ImplausibleResultError
-from swpc_hw.model import RobotParams, wrap_angle
+from swpc_hw.model import PARAM_NAMES, RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
-NAMES = ("x_s", "y_s", "beta", "b", "r")
+NAMES = PARAM_NAMES
 MOCAP = ExperimentOptions(
     pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05), spin_duration=4.0, seed=21
 )

@@ -77,8 +77,15 @@ def register(sub: Any) -> None:
         default=5.0,
         help="longest physics step, ms (5; shorter when the feedback rate asks for it)",
     )
-    p.add_argument("--feedback-rate", type=int, default=200, help="initial feedback Hz (200)")
-    p.add_argument("--watchdog-ms", type=int, default=100, help="initial watchdog, ms (100)")
+    from simulators.sim_options import SimOptions
+
+    rate, watchdog = SimOptions.feedback_rate_hz, SimOptions.watchdog_ms
+    p.add_argument(
+        "--feedback-rate", type=int, default=rate, help=f"initial feedback Hz ({rate})"
+    )
+    p.add_argument(
+        "--watchdog-ms", type=int, default=watchdog, help=f"initial watchdog, ms ({watchdog})"
+    )
     p.add_argument("--steer-counts", type=int, default=2**17, help="steering counts/turn")
     p.add_argument("--wheel-counts", type=int, default=2**17, help="wheel counts/turn")
     p.add_argument("--pose-rate", type=float, default=100.0, help="mocap Hz, <= 2000 (100)")
@@ -228,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
         f"{args.interface}:{args.channel} (drives {opt.drives.kind}, nodes "
-        f"{opt.drives.nodes()}), mocap {args.pose_rate:g} Hz "
+        f"{opt.drives.for_modules(truth.ids).nodes()}), mocap {args.pose_rate:g} Hz "
         f"{args.pose_encoding} on mocap/{args.robot}/pose, gyro {args.gyro_rate:g} Hz on "
         f"imu/{args.robot}/data via {listen or args.zenoh_connect}, time scale {args.time_scale:g}",
         flush=True,

@@ -93,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     if args.robot:
         params = params.model_copy(update={"robot": args.robot})
     from services.store.provenance import UNITS, dataset_sha256, provenance
+    from swpc_hw.model import PARAM_NAMES
 
     extra = {
         "provenance": provenance(
@@ -104,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         ),
         "quality": result.quality_document(),
         "nominal": [
-            {k: float(getattr(m, k)) for k in ("x_s", "y_s", "beta", "b", "r")} | {"id": m.id}
+            {k: float(getattr(m, k)) for k in PARAM_NAMES} | {"id": m.id}
             for m in ds.robot.modules
         ],
     }

@@ -25,6 +25,7 @@ from typing import Any, Optional
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from swpc_hw.can.config import DEFAULT_WATCHDOG_MS
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
@@ -71,7 +72,9 @@ class MotionLimits(BaseModel):
         0.01, gt=0, description="at rest (wheels braked, before locking) below this, m/s"
     )
     step_timeout: float = Field(60.0, gt=0, description="any single step longer than this fails, s")
-    watchdog_ms: int = Field(200, ge=20, le=60000, description="controller command timeout, ms")
+    watchdog_ms: int = Field(
+        DEFAULT_WATCHDOG_MS, ge=20, le=60000, description="controller command timeout, ms"
+    )
     drive_torque: float = Field(
         0.6, gt=0, description="wheel torque of every wheel in the straight drive, N.m"
     )

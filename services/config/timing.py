@@ -44,15 +44,15 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_protocol.codec import HEARTBEAT_PERIOD_S
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
-from swpc_hw.can.config import CanConfig
+from swpc_hw.can.config import CanConfig, deadman_problem
+from swpc_hw.can.errors import CanConfigError
 from swpc_hw.clock import Clock
 from swpc_hw.drives.factory import open_drives
 from swpc_hw.drives.interface import Drives
 
-HEARTBEAT_PERIOD_S = 0.1
-"""The controllers' heartbeat period (firmware constant, firmware_protocol/README.md)."""
 HOST_REFRESH_FLOOR_S = 0.02
 """The driver refreshes a node's last command at most this often in host time."""
 ROBOT_HEARTBEAT_TIMEOUT_S = 0.3
@@ -60,7 +60,7 @@ ROBOT_MOCAP_STALE_S = 0.5
 DEADMAN_S = 0.5
 
 
-class TimingError(ValueError):
+class TimingError(CanConfigError):
     """The timing budget breaks one of its invariants (names which, with the values)."""
 
 
@@ -89,11 +89,9 @@ class TimingBudget:
                 f"heartbeat timeout {self.heartbeat_loss:g} s must be at least two heartbeat "
                 f"periods ({2 * self.heartbeat_period:g} s)"
             )
-        if self.deadman < 2 * self.refresh - 1e-12:
-            raise TimingError(
-                f"dead-man {self.deadman:g} s must be at least two refresh periods "
-                f"({2 * self.refresh:g} s)"
-            )
+        problem = deadman_problem(self.deadman, self.refresh)
+        if problem is not None:
+            raise TimingError(problem)
         return self
 
     @property
@@ -124,7 +122,7 @@ def timing_budget(settings: ServiceSettings, config: RobotConfig) -> TimingBudge
         refresh = watchdog / 4
     return TimingBudget(
         feedback_period=1.0 / settings.feedback_rate_hz,
-        heartbeat_period=HEARTBEAT_PERIOD_S,
+        heartbeat_period=HEARTBEAT_PERIOD_S,  # swpc's firmware (its DBC)
         watchdog=watchdog,
         refresh=refresh,
         heartbeat_loss=loss,

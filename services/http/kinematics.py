@@ -37,11 +37,12 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import Tolerances
-from services.runs.install import BACKUP_STAMP, PARAMS, backup_kinematics
+from services.runs.install import BACKUP_STAMP, backup_kinematics
 from services.runtime.runtime import Runtime
 from services.store.logs import event
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.kinematic_file import KinematicFile, atomic_write_text, load_kinematics
+from swpc_hw.model import PARAM_NAMES
 
 log = logging.getLogger("swpc.service")
 
@@ -255,7 +256,7 @@ def compare(
                 ref = in_force.params.module(int(m["id"]))
             except (KeyError, ValueError):
                 ref = None
-        for p in PARAMS:
+        for p in PARAM_NAMES:
             unit, f = UNITS[p]
             sd = (m.get("stddev") or {}).get(p)
             sd = None if sd is None or not math.isfinite(sd) else float(sd)

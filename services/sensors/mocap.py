@@ -25,30 +25,24 @@ Time bases (``clock_mode``), each sample's time ``t_host`` on the clock's axis:
   (0.1-0.2 mm at 12-23 ms in the VM).  Use ``wall`` when the clocks are synchronised.
 * ``receive``: ``t_host`` is the receive time itself (transport jitter, no drift).
 
-A stream whose newest accepted sample was received more than ``stale_after`` clock seconds
-ago is *stale*; during motion the state machine treats that as a fault.
-
-Lockstep (:class:`swpc_hw.clock.SimClock`): the subscriber tells the clock of every
-arrival on its key, so the simulated time moves on only once every pose published up to
-now has been stored: a reader at any simulated time sees all of them.
+The subscription, the stamp order, the store, staleness and the common counters are every
+ingest's (:mod:`services.sensors.ingest`); a stale stream is a fault during motion.
 """
 
 from __future__ import annotations
 
 import bisect
-import contextlib
 import math
-import threading
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from services.sensors.ingest import Ingest, IngestCounters
+from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose, detect_encoding
-from swpc_hw.row_ring import RowRing
 
 FloatArray = NDArray[np.float64]
 
@@ -72,23 +66,11 @@ class LatestPose(NamedTuple):
 
 
 @dataclass
-class IngestCounters:
-    received: int = 0
-    accepted: int = 0
-    decode_errors: int = 0
-    non_finite: int = 0
+class PoseCounters(IngestCounters):
     non_unit_quaternion: int = 0
-    duplicates: int = 0
-    out_of_order: int = 0
-    clock_resets: int = 0
-    """source clock stepped back by more than ``max_clock_step``: the stamp sequence restarts"""
-
-    @property
-    def dropped(self) -> int:
-        return self.received - self.accepted
 
 
-class MocapIngest:
+class MocapIngest(Ingest):
     """Thread-safe pose store fed by zenoh (or directly through :meth:`feed`)."""
 
     def __init__(
@@ -105,63 +87,33 @@ class MocapIngest:
         max_clock_error: float = 1.0,
         max_clock_step: float = 1.0,
     ) -> None:
-        self.clock = clock
+        super().__init__(
+            COLUMNS,
+            clock=clock,
+            stale_after=stale_after,
+            capacity=capacity,
+            max_clock_error=max_clock_error,
+            max_clock_step=max_clock_step,
+            recent=4096,
+        )
         self.encoding = PoseEncoding(encoding)
-        self.stale_after = float(stale_after)
         self.quaternion_tol = float(quaternion_tol)
         rate = clock.rate if source_rate is None else source_rate
         self.source_rate = float(rate) if math.isfinite(rate) else 1.0
         """Clock seconds per source second (``swpc sim --time-scale k`` stamps host wall
         time, on a clock that runs k times faster: k)."""
-        self.counters = IngestCounters()
+        self.counters: PoseCounters = PoseCounters()
         self.detected_encoding: PoseEncoding | None = None
-        self._lock = threading.Lock()
-        self._rows = RowRing(len(COLUMNS), capacity, initial=1 << 16)
-        self._last_source = -math.inf
         self.sync_window = float(sync_window)
         if clock_mode not in CLOCK_MODES:
             raise ValueError(f"clock_mode must be one of {CLOCK_MODES}, not {clock_mode!r}")
         self.clock_mode = clock_mode
-        self.max_clock_error = float(max_clock_error)
-        self.max_clock_step = float(max_clock_step)
         self._wall_delay = math.nan  # clock_mode "wall": receive minus mapped stamp, last sample
         self._offset = math.inf  # sliding min(t_recv - s t_source)
         self._delays: deque[tuple[float, float]] = deque()  # (t_recv, delay), increasing delay
-        self._recent = deque[float](maxlen=4096)  # receive times for the rate
         self._latency = deque[float](maxlen=4096)
         self._delay_counts = [0] * (len(DELAY_BUCKETS) + 1)  # the last: above every bound
         self._delay_sum = 0.0
-        self._subscriber: Any = None
-        self._lockstep_key: str | None = None
-
-    # ------------------------------------------------------------------ zenoh
-    def subscribe(self, session: Any, key: str) -> None:
-        """Declare the zenoh subscriber (callback runs on zenoh's threads)."""
-        clock = self.clock
-        lockstep = isinstance(clock, SimClock)
-
-        def on_sample(sample: Any) -> None:
-            try:
-                self.feed(sample.payload.to_bytes())
-            finally:
-                if lockstep:
-                    assert isinstance(clock, SimClock)
-                    clock.arrived(key)
-
-        if isinstance(clock, SimClock):
-            clock.subscribe(key)
-            self._lockstep_key = key
-        self._subscriber = session.declare_subscriber(key, on_sample)
-
-    def close(self) -> None:
-        """Undeclare the subscriber (idempotent)."""
-        sub, self._subscriber = self._subscriber, None
-        if sub is not None:
-            with contextlib.suppress(Exception):  # session already closed
-                sub.undeclare()
-        key, self._lockstep_key = self._lockstep_key, None
-        if key is not None and isinstance(self.clock, SimClock):
-            self.clock.unsubscribe(key)
 
     # ------------------------------------------------------------------ input
     def feed(self, payload: bytes, t_recv: float | None = None) -> bool:
@@ -185,19 +137,13 @@ class MocapIngest:
             if abs(p.quaternion_norm - 1.0) > self.quaternion_tol:
                 c.non_unit_quaternion += 1
                 return False
-            if p.t == self._last_source:
-                c.duplicates += 1
+            resets = c.clock_resets
+            if not self._in_order(p.t, self.source_rate):
                 return False
-            if p.t < self._last_source:
-                if (self._last_source - p.t) * self.source_rate <= self.max_clock_step:
-                    c.out_of_order += 1
-                    return False
+            if c.clock_resets != resets:
                 # the source clock was stepped back (mocap PC restarted, clock re-synced):
-                # restart the stamp sequence and the delay envelope rather than refusing
-                # every pose from now on
-                c.clock_resets += 1
+                # the delay envelope restarts with the stamp sequence
                 self._delays.clear()
-            self._last_source = p.t
             s = self.source_rate
             delay = now - s * p.t
             dq = self._delays  # monotonic queue: sliding-window minimum in O(1)
@@ -214,13 +160,11 @@ class MocapIngest:
                 t_host = now
             else:
                 t_host = s * p.t + self._offset
-            self._rows.append((p.t, now, t_host, p.x, p.y, p.yaw))
-            self._recent.append(now)
+            self._store((p.t, now, t_host, p.x, p.y, p.yaw), now)
             self._latency.append(now - s * p.t)
             delay = max(0.0, now - t_host)
             self._delay_counts[bisect.bisect_left(DELAY_BUCKETS, delay)] += 1
             self._delay_sum += delay
-            c.accepted += 1
             return True
 
     @staticmethod
@@ -228,28 +172,6 @@ class MocapIngest:
         return all(math.isfinite(v) for v in (p.t, p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw))
 
     # ----------------------------------------------------------------- output
-    def samples(self, since_host: float = -math.inf) -> FloatArray:
-        """Accepted samples (rows as :data:`COLUMNS`) with host time >= ``since_host``.
-
-        ``t_host`` is fixed when the sample arrives (the clock offset of that moment).
-        """
-        with self._lock:
-            data = self._rows.array()
-        i = int(np.searchsorted(data[:, 2], since_host))
-        return data[i:]
-
-    def samples_since(
-        self, cursor: int, since_host: float = -math.inf
-    ) -> tuple[FloatArray, int]:
-        """Accepted samples appended after ``cursor`` (0: every one kept) with host time
-        >= ``since_host``, and the new cursor (each sample read once by a reader that
-        keeps it)."""
-        with self._lock:
-            rows, cursor = self._rows.since(cursor)
-        if since_host > -math.inf:
-            rows = rows[rows[:, 2] >= since_host]
-        return rows, cursor
-
     def latest(self) -> LatestPose | None:
         """The newest accepted sample."""
         with self._lock:
@@ -257,15 +179,6 @@ class MocapIngest:
                 return None
             r = self._rows.last()
             return LatestPose(float(r[0]), float(r[2]), float(r[3]), float(r[4]), float(r[5]))
-
-    def age(self, now: float | None = None) -> float:
-        """Clock seconds since the newest accepted sample was received (inf if none)."""
-        now = self.clock.now() if now is None else now
-        with self._lock:
-            return now - float(self._rows.last()[1]) if len(self._rows) else math.inf
-
-    def is_stale(self, now: float | None = None) -> bool:
-        return self.age(now) > self.stale_after
 
     def clock_problem(self) -> str | None:
         """Why the pose stamps cannot be used as they are (``None``: they can).
@@ -302,25 +215,10 @@ class MocapIngest:
         return out, total, acc
 
     def stats(self, window: float = 1.0) -> dict[str, float]:
-        """Rate (Hz over the last ``window`` s), latency percentiles (s), counters."""
-        now = self.clock.now()
+        """Rate (Hz over the last ``window`` s), counters, age and latency percentiles (s)."""
+        out = super().stats(window)
         with self._lock:
-            recent = [t for t in self._recent if t >= now - window]
             lat = np.array(self._latency) - (self._offset if math.isfinite(self._offset) else 0)
-            c = self.counters
-            out = {
-                "rate_hz": len(recent) / window,
-                "received": float(c.received),
-                "accepted": float(c.accepted),
-                "dropped": float(c.dropped),
-                "decode_errors": float(c.decode_errors),
-                "non_finite": float(c.non_finite),
-                "non_unit_quaternion": float(c.non_unit_quaternion),
-                "duplicates": float(c.duplicates),
-                "out_of_order": float(c.out_of_order),
-                "clock_resets": float(c.clock_resets),
-            }
-        out["age_s"] = self.age(now)
         if lat.size:
             out["latency_p50_s"] = float(np.percentile(lat, 50))
             out["latency_p99_s"] = float(np.percentile(lat, 99))

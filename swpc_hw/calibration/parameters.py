@@ -1,8 +1,8 @@
 """The solver's unknowns: one row per module, one named column per parameter.
 
 ``X`` is an (N, 5) matrix, row i = module i in robot order, columns in the order of
-CONVENTIONS.md: ``x_s, y_s, beta, b, r``.  The least-squares vector ``x`` is ``X``
-flattened row by row.  Code indexes the columns by these names, never by number::
+:data:`swpc_hw.model.PARAM_NAMES` (``x_s, y_s, beta, b, r``).  The least-squares vector
+``x`` is ``X`` flattened row by row.  Code indexes the columns by these names, never by number::
 
     X[j, P_S]      steering axis P_s,j (2,)        X[j, BETA]   homing error beta_j
     X[j, B]        caster offset b_j               X[j, R]      wheel radius r_j
@@ -13,10 +13,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from swpc_hw.model import PARAM_NAMES
+
+__all__ = ["PARAM_NAMES"]  # the column names, in column order (re-exported)
+
 FloatArray = NDArray[np.float64]
 
-PARAM_NAMES = ("x_s", "y_s", "beta", "b", "r")
-"""Column names, in column order (the kinematic file's keys)."""
 X_S, Y_S, BETA, B, R = range(len(PARAM_NAMES))
 P_S = slice(X_S, Y_S + 1)
 """Both coordinates of the steering axis: ``X[:, P_S]`` is (N, 2)."""

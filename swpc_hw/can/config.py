@@ -10,6 +10,24 @@ from firmware_protocol import codec
 from swpc_hw.can.errors import CanConfigError
 
 
+def deadman_problem(deadman_s: float, refresh_period_s: float) -> str | None:
+    """Why a dead-man of ``deadman_s`` cannot guard a refresh every ``refresh_period_s``
+    (None when it can): it is renewed every half of it, so it must last at least two
+    refresh periods.  The one statement of the rule (CanConfig, the kernel refresh and the
+    service's timing budget all ask it)."""
+    if not 0 < 2 * refresh_period_s <= deadman_s + 1e-12:
+        return (
+            f"dead-man {deadman_s:g} s must be at least two refresh periods "
+            f"({2 * refresh_period_s:g} s)"
+        )
+    return None
+
+
+DEFAULT_WATCHDOG_MS = 200
+"""The robot's command watchdog ``W`` (ms) unless its config says otherwise
+(``limits.watchdog_ms``; services/config/timing.py states what it bounds)."""
+
+
 @dataclass(frozen=True)
 class CanConfig:
     """Everything the driver needs to open a bus and talk to the module controllers.
@@ -24,9 +42,9 @@ class CanConfig:
     modules: Mapping[int, int] = field(default_factory=lambda: {1: 1, 2: 2, 3: 3, 4: 4})
     feedback_rate_hz: int = 200
     sync_mode: bool = False
-    watchdog_timeout_ms: int = 100
+    watchdog_timeout_ms: int = DEFAULT_WATCHDOG_MS
     refresh_period_s: float = 0.02
-    heartbeat_period_s: float = 0.1
+    heartbeat_period_s: float = codec.HEARTBEAT_PERIOD_S
     heartbeat_loss_periods: int = 3
     history_len: int = 200_000
     log_path: str | None = None
@@ -80,11 +98,9 @@ class CanConfig:
             raise CanConfigError("refresh_period_s and heartbeat_period_s must be > 0")
         if not 0 <= self.rx_buffer_bytes <= 1 << 28:
             raise CanConfigError(f"rx_buffer_bytes: {self.rx_buffer_bytes} outside 0..2**28")
-        if self.deadman_s < 2 * self.refresh_period_s:
-            raise CanConfigError(
-                f"deadman_s: {self.deadman_s} s must be at least two refresh periods "
-                f"({self.refresh_period_s} s)"
-            )
+        problem = deadman_problem(self.deadman_s, self.refresh_period_s)
+        if problem is not None:
+            raise CanConfigError(f"deadman_s: {problem}")
         if self.heartbeat_loss_periods < 1:
             raise CanConfigError("heartbeat_loss_periods must be >= 1")
         if not 0 <= self.log_idle_period_s <= 3600:

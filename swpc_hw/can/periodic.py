@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import can
 
 from firmware_protocol import codec
+from swpc_hw.can.config import deadman_problem
+from swpc_hw.can.errors import CanConfigError
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +52,9 @@ class KernelRefresh:
     """
 
     def __init__(self, bus: can.BusABC, period: float, deadman: float) -> None:
-        if not 0 < 2 * period <= deadman:
-            raise ValueError(f"dead-man {deadman} s must be at least two periods of {period} s")
+        problem = deadman_problem(deadman, period)
+        if problem is not None:
+            raise CanConfigError(problem)
         self.bus = bus
         self.period = float(period)
         self.deadman = float(deadman)

@@ -56,9 +56,9 @@ void ctrl_init(struct ctrl *c, int node)
 {
     memset(c, 0, sizeof *c);
     c->node = node;
-    c->rate_hz = 200;
-    c->watchdog_ms = 100;
-    c->heartbeat_period = 0.1;
+    c->rate_hz = 1000 / SWPC_N1_FEEDBACK_POSITION_CYCLE_TIME_MS;
+    c->watchdog_ms = 100; /* codec.POWER_UP_WATCHDOG_MS */
+    c->heartbeat_period = SWPC_N1_HEARTBEAT_CYCLE_TIME_MS / 1000.0;
     c->homing_duration = 0.2;
     c->sensor_position = 0.3;
     for (int i = 0; i < 2; i++) {

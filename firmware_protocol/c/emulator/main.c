@@ -38,6 +38,7 @@
 #include <linux/can/raw.h>
 
 #include "controller.h"
+#include "swpc.h"
 
 #define MAX_NODES 8
 #define WAIT_MAX 0.05 /* longest wait for a frame (s), as ControllerEmulator */
@@ -290,7 +291,7 @@ static int run_can(const char *iface)
 int main(int argc, char **argv)
 {
     const char *nodes = "1,2,3,4", *iface = NULL;
-    int trace = 0, rate_hz = 200;
+    int trace = 0, rate_hz = 1000 / SWPC_N1_FEEDBACK_POSITION_CYCLE_TIME_MS;
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--nodes") == 0 && i + 1 < argc) {
             nodes = argv[++i];

@@ -44,6 +44,7 @@ from services.runtime.runtime import Runtime
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import SwpcError
+from swpc_hw.model import PARAM_NAMES
 
 STATIC = Path(__file__).parent / "static"
 _ASSETS = {
@@ -301,7 +302,7 @@ def hello(rt: Runtime) -> dict[str, Any]:
     return {
         "robot": cfg.robot,
         "modules": [
-            {k: getattr(m, k) for k in ("id", "x_s", "y_s", "beta", "b", "r")}
+            {k: getattr(m, k) for k in ("id", *PARAM_NAMES)}
             for m in cfg.nominal.modules
         ],
         "protocol": cfg.protocol.model_dump(),
@@ -392,7 +393,7 @@ def console_router() -> APIRouter:
         except SwpcError as exc:
             raise HTTPException(409, f"calibration {run_id}: dataset unreadable: {exc}") from exc
         spins = [spin_of(s.static_module, s.start, s.end, ds.poses) for s in ds.segments]
-        keys = ("id", "x_s", "y_s", "beta", "b", "r")
+        keys = ("id", *PARAM_NAMES)
         out = RunGeometry(
             run=run_id,
             nominal=[ModuleGeometry(**{k: getattr(m, k) for k in keys}) for m in ds.robot.modules],
