@@ -1,5 +1,7 @@
 """The kinematic file in force, its dated backups, install and roll back (HTTP).
 
+* ``GET /kinematics``: the file in force (docs/kinematic-file.md); 404 when none is
+  installed, 500 naming the backups that load when it is on disk but does not load.
 * ``GET /kinematics/files``: the file in force and every backup kept beside it
   (``<stem>.<UTC time><suffix>``, :func:`services.runs.install.backup_kinematics`),
   newest first, each with the run it came from (its ``provenance.run``).
@@ -28,15 +30,15 @@ import math
 import os
 import re
 import threading
-from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import Tolerances
+from services.http.deps import AUTH, GUARDED, FiniteJSONResponse, Problem, Rt, problems
 from services.runs.install import BACKUP_STAMP, backup_kinematics
 from services.runtime.runtime import Runtime
 from services.store.logs import event
@@ -125,10 +127,6 @@ class Comparison(BaseModel):
     within_tolerance: bool
     installed: bool
     rows: list[ComparisonRow]
-
-
-class Problem(BaseModel):
-    detail: str
 
 
 class UnreadableFileProblem(Problem):
@@ -289,131 +287,152 @@ def compare(
     return rows
 
 
-def _runtime(request: Request) -> Runtime:
-    rt: Runtime = request.app.state.runtime
-    return rt
+WRITE_RESPONSES = {
+    **GUARDED,
+    **problems(
+        404,
+        409,
+        _500="the file could not be written (untouched)",
+        _507="no room on disk for the file (untouched)",
+    ),
+}
+_install_lock = threading.Lock()  # one install at a time
 
 
-Rt = Annotated[Runtime, Depends(_runtime)]
+def files(rt: Runtime) -> KinematicFiles:
+    path = rt.settings.kinematics_file
+    return KinematicFiles(
+        path=str(path),
+        in_force=describe(path) if present(path) else None,
+        backups=[describe(p, backup=True) for p in backups(path)],
+    )
 
 
-def kinematics_router(auth: Callable[..., Awaitable[None]]) -> APIRouter:
-    """The routes above; ``auth`` is the service's bearer-token dependency."""
-    router = APIRouter()
-    lock = threading.Lock()  # one install at a time
-    problems: dict[int | str, dict[str, Any]] = {
-        401: {"model": Problem},
-        404: {"model": Problem},
-        409: {"model": Problem},
-        500: {"model": Problem, "description": "the file could not be written (untouched)"},
-        507: {"model": Problem, "description": "no room on disk for the file (untouched)"},
-    }
-
-    def files(rt: Runtime) -> KinematicFiles:
+def install_checked(rt: Runtime, source: Path, request: Request, **what: Any) -> InstallResult:
+    """Install ``source`` (module docstring); ``what`` names it in the log lines (``run=``
+    for a run's result, ``restored=`` for a backup rolled back to)."""
+    action = "rollback" if "restored" in what else "install"
+    client = request.client.host if request.client is not None else None
+    fields: dict[str, Any] = {"action": action, **what, "client": client}
+    with _install_lock:
+        if rt.running():
+            why = "a calibration is running: the file is not changed"
+            event(log, logging.WARNING, "kinematics.install_refused", **fields, reason=why)
+            raise HTTPException(409, why)
         path = rt.settings.kinematics_file
-        return KinematicFiles(
-            path=str(path),
-            in_force=describe(path) if present(path) else None,
-            backups=[describe(p, backup=True) for p in backups(path)],
-        )
-
-    def _install(rt: Runtime, source: Path, request: Request, **what: Any) -> InstallResult:
-        """Install ``source``; ``what`` names it in the log lines (``run=`` for a run's
-        result, ``restored=`` for a backup rolled back to)."""
-        action = "rollback" if "restored" in what else "install"
-        client = request.client.host if request.client is not None else None
-        fields: dict[str, Any] = {"action": action, **what, "client": client}
-        with lock:
-            if rt.running():
-                why = "a calibration is running: the file is not changed"
-                event(log, logging.WARNING, "kinematics.install_refused", **fields, reason=why)
-                raise HTTPException(409, why)
-            path = rt.settings.kinematics_file
-            try:
-                text = checked_text(source)
-            except KinematicFileError as exc:
-                event(
-                    log, logging.WARNING, "kinematics.install_refused", **fields, reason=str(exc)
-                )
-                # the shape of FastAPI's own 422 (one schema for 422)
-                raise RequestValidationError(
-                    [{"loc": ["body"], "msg": f"not installed: {exc}", "type": "value_error"}]
-                ) from exc
-            try:
-                backup = install_text(path, text)
-            except (OSError, KinematicFileError) as exc:
-                failure = _write_failure(exc)
-                event(
-                    log, logging.ERROR, "kinematics.install_failed", **fields,
-                    path=str(path), status=failure.status_code, error=str(exc),
-                )  # fmt: skip
-                raise failure from exc
-            info = describe(path)
+        try:
+            text = checked_text(source)
+        except KinematicFileError as exc:
+            event(log, logging.WARNING, "kinematics.install_refused", **fields, reason=str(exc))
+            # the shape of FastAPI's own 422 (one schema for 422)
+            raise RequestValidationError(
+                [{"loc": ["body"], "msg": f"not installed: {exc}", "type": "value_error"}]
+            ) from exc
+        try:
+            backup = install_text(path, text)
+        except (OSError, KinematicFileError) as exc:
+            failure = _write_failure(exc)
             event(
-                log, logging.INFO, f"kinematics.{action}", **what, path=str(path),
-                sha256=info.sha256, source_run=info.run,
-                backup=None if backup is None else backup.name, client=client,
+                log, logging.ERROR, "kinematics.install_failed", **fields,
+                path=str(path), status=failure.status_code, error=str(exc),
             )  # fmt: skip
-            return InstallResult(in_force=info, backup=None if backup is None else backup.name)
+            raise failure from exc
+        info = describe(path)
+        event(
+            log, logging.INFO, f"kinematics.{action}", **what, path=str(path),
+            sha256=info.sha256, source_run=info.run,
+            backup=None if backup is None else backup.name, client=client,
+        )  # fmt: skip
+        return InstallResult(in_force=info, backup=None if backup is None else backup.name)
 
-    @router.get("/kinematics/files", response_model=KinematicFiles)
-    def list_files(rt: Rt) -> KinematicFiles:
-        return files(rt)
 
-    @router.post(
-        "/kinematics/rollback",
-        response_model=InstallResult,
-        dependencies=[Depends(auth)],
-        responses=problems,
+router = APIRouter()
+
+
+@router.get(
+    "/kinematics",
+    responses={
+        404: {"model": Problem, "description": "no kinematic file installed"},
+        500: {
+            "model": UnreadableFileProblem,
+            "description": "the file in force is on disk but does not load (damaged, "
+            "not UTF-8, not a file): a fault of the server's data that lasts until a "
+            "file is installed or rolled back, named with the backups that load; "
+            "GET /health is then degraded",
+        },
+    },
+)
+def kinematics_in_force(rt: Rt) -> Any:
+    """The kinematic file in force (docs/kinematic-file.md)."""
+    try:
+        doc = rt.kinematics_document()
+    except KinematicFileError as exc:
+        problem = unreadable_problem(rt.settings.kinematics_file, exc)
+        return FiniteJSONResponse(problem.model_dump(), status_code=500)
+    if doc is None:
+        raise HTTPException(404, f"no kinematic file installed at {rt.settings.kinematics_file}")
+    return doc
+
+
+@router.get("/kinematics/files", response_model=KinematicFiles)
+def list_files(rt: Rt) -> KinematicFiles:
+    return files(rt)
+
+
+@router.post(
+    "/kinematics/rollback",
+    response_model=InstallResult,
+    dependencies=AUTH,
+    responses=WRITE_RESPONSES,
+)
+def rollback(body: RollbackRequest, rt: Rt, request: Request) -> InstallResult:
+    path = rt.settings.kinematics_file
+    chosen = next((p for p in backups(path) if p.name == body.backup), None)
+    if chosen is None:
+        raise HTTPException(404, f"no backup {body.backup!r} beside {path}")
+    return install_checked(rt, chosen, request, restored=chosen.name)
+
+
+@router.post(
+    "/calibrations/{run_id}/install",
+    response_model=InstallResult,
+    dependencies=AUTH,
+    responses=WRITE_RESPONSES,
+)
+def install(run_id: str, rt: Rt, request: Request) -> InstallResult:
+    got = rt.result(run_id)
+    if got is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    state, doc = got
+    source = Path(rt.settings.data_dir) / "runs" / run_id / "kinematics.yaml"
+    if state != "DONE" or doc is None or not source.is_file():
+        raise HTTPException(409, f"calibration {run_id} is {state}: no result to install")
+    return install_checked(rt, source, request, run=run_id)
+
+
+@router.get(
+    "/calibrations/{run_id}/comparison",
+    response_model=Comparison,
+    responses=problems(404, 409),
+)
+def comparison(run_id: str, rt: Rt) -> Comparison:
+    got = rt.result(run_id)
+    if got is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    state, doc = got
+    if state != "DONE" or doc is None:
+        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    path = rt.settings.kinematics_file
+    info = describe(path) if present(path) else None
+    in_force = load_kinematics(path) if info is not None and info.valid else None
+    tol = Tolerances.model_validate(doc.get("tolerances") or rt.config.tolerances.model_dump())
+    return Comparison(
+        run=run_id,
+        reference="file in force" if in_force is not None else "nominal",
+        in_force=info,
+        is_in_force=info is not None and info.run == run_id,
+        significance_k=SIGNIFICANCE_K,
+        within_tolerance=bool(doc.get("within_tolerance")),
+        installed=bool(doc.get("installed")),
+        rows=compare(run_id, doc, in_force, tol),
     )
-    def rollback(body: RollbackRequest, rt: Rt, request: Request) -> InstallResult:
-        path = rt.settings.kinematics_file
-        chosen = next((p for p in backups(path) if p.name == body.backup), None)
-        if chosen is None:
-            raise HTTPException(404, f"no backup {body.backup!r} beside {path}")
-        return _install(rt, chosen, request, restored=chosen.name)
-
-    @router.post(
-        "/calibrations/{run_id}/install",
-        response_model=InstallResult,
-        dependencies=[Depends(auth)],
-        responses=problems,
-    )
-    def install(run_id: str, rt: Rt, request: Request) -> InstallResult:
-        got = rt.result(run_id)
-        if got is None:
-            raise HTTPException(404, f"no calibration {run_id}")
-        state, doc = got
-        source = Path(rt.settings.data_dir) / "runs" / run_id / "kinematics.yaml"
-        if state != "DONE" or doc is None or not source.is_file():
-            raise HTTPException(409, f"calibration {run_id} is {state}: no result to install")
-        return _install(rt, source, request, run=run_id)
-
-    @router.get(
-        "/calibrations/{run_id}/comparison",
-        response_model=Comparison,
-        responses={404: {"model": Problem}, 409: {"model": Problem}},
-    )
-    def comparison(run_id: str, rt: Rt) -> Comparison:
-        got = rt.result(run_id)
-        if got is None:
-            raise HTTPException(404, f"no calibration {run_id}")
-        state, doc = got
-        if state != "DONE" or doc is None:
-            raise HTTPException(409, f"calibration {run_id} is {state}: no result")
-        path = rt.settings.kinematics_file
-        info = describe(path) if present(path) else None
-        in_force = load_kinematics(path) if info is not None and info.valid else None
-        tol = Tolerances.model_validate(doc.get("tolerances") or rt.config.tolerances.model_dump())
-        return Comparison(
-            run=run_id,
-            reference="file in force" if in_force is not None else "nominal",
-            in_force=info,
-            is_in_force=info is not None and info.run == run_id,
-            significance_k=SIGNIFICANCE_K,
-            within_tolerance=bool(doc.get("within_tolerance")),
-            installed=bool(doc.get("installed")),
-            rows=compare(run_id, doc, in_force, tol),
-        )
-
-    return router

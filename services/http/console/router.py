@@ -30,15 +30,16 @@ import zipfile
 from collections import OrderedDict
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from pydantic import BaseModel, Field
 
+from services.http.deps import Problem, Rt, problems
 from services.runs.protocol import TERMINAL, CalibrationRun
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration import geometry as geo
@@ -63,10 +64,6 @@ FILES: dict[str, tuple[str, str]] = {
 }
 """Downloadable files of a run: name -> (path in the run's directory, media type)."""
 FileName = Literal["run.mcap", "can.log", "kinematics.yaml", "dataset.zip"]
-
-
-class Problem(BaseModel):
-    detail: str
 
 
 class Spin(BaseModel):
@@ -176,12 +173,6 @@ def mcap_summary(run_id: str, path: Path) -> McapSummary:
     )
 
 
-def _runtime(request: Request) -> Runtime:
-    rt: Runtime = request.app.state.runtime
-    return rt
-
-
-Rt = Annotated[Runtime, Depends(_runtime)]
 
 
 def spin_of(module: int, start: float, end: float, poses: np.ndarray[Any, Any]) -> Spin | None:
@@ -311,164 +302,165 @@ def hello(rt: Runtime) -> dict[str, Any]:
     }
 
 
-def console_router() -> APIRouter:
-    router = APIRouter()
-    geometry_cache: OrderedDict[str, RunGeometry] = OrderedDict()
+router = APIRouter()
+_geometry_cache: OrderedDict[tuple[str, str], RunGeometry] = OrderedDict()
+"""Finished runs' geometry by (data dir, run id): computed once from the run's dataset."""
 
-    @router.get("/", include_in_schema=False)
-    def index() -> FileResponse:
-        return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
-    @router.get("/console/{name}", include_in_schema=False)
-    def asset(name: str) -> FileResponse:
-        if name not in _ASSETS:
-            raise HTTPException(404, f"no console asset {name}")
-        return FileResponse(
-            STATIC / name, media_type=_ASSETS[name], headers={"Cache-Control": "no-cache"}
+@router.get("/", include_in_schema=False)
+def index() -> FileResponse:
+    return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+@router.get("/console/{name}", include_in_schema=False)
+def asset(name: str) -> FileResponse:
+    if name not in _ASSETS:
+        raise HTTPException(404, f"no console asset {name}")
+    return FileResponse(
+        STATIC / name, media_type=_ASSETS[name], headers={"Cache-Control": "no-cache"}
+    )
+
+@router.get("/events", include_in_schema=False)
+async def events(request: Request, rt: Rt, run: str | None = None) -> StreamingResponse:
+    if run is not None and rt.status(run) is None:
+        raise HTTPException(404, f"no calibration {run}")
+    return StreamingResponse(
+        _stream(request, rt, run),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )
+
+async def _stream(request: Request, rt: Runtime, only: str | None) -> AsyncIterator[str]:
+    loop = asyncio.get_running_loop()
+    cur = _LiveCursor()
+    with rt.events.subscribe() as sub:
+        # the snapshot as the subscription starts (no await between): every change
+        # after it is in the queue
+        first = (
+            rt.status(only)
+            if only
+            else (None if rt.current is None else rt.current.status.to_dict())
         )
-
-    @router.get("/events", include_in_schema=False)
-    async def events(request: Request, rt: Rt, run: str | None = None) -> StreamingResponse:
-        if run is not None and rt.status(run) is None:
-            raise HTTPException(404, f"no calibration {run}")
-        return StreamingResponse(
-            _stream(request, rt, run),
-            media_type="text/event-stream",
-            headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
-        )
-
-    async def _stream(request: Request, rt: Runtime, only: str | None) -> AsyncIterator[str]:
-        loop = asyncio.get_running_loop()
-        cur = _LiveCursor()
-        with rt.events.subscribe() as sub:
-            # the snapshot as the subscription starts (no await between): every change
-            # after it is in the queue
-            first = (
-                rt.status(only)
-                if only
-                else (None if rt.current is None else rt.current.status.to_dict())
-            )
-            yield "retry: 1000\n\n"
-            yield _sse("hello", hello(rt))
-            if first is not None:
-                yield _sse("run", first)
-                if only and first["state"] in TERMINAL:
-                    return
-            next_live = loop.time()
-            while not _stopping(request):
-                ev = await sub.get(timeout=max(0.0, next_live - loop.time()))
-                if ev is not None:
-                    st = ev["run"]
-                    if only is None or st["id"] == only:
-                        yield _sse("run", st)
-                        if only and st["state"] in TERMINAL:
-                            return
-                if loop.time() >= next_live:
-                    if only is not None and sub.queue.empty():  # its end, even if missed
-                        st = rt.status(only)
-                        if st is not None and st["state"] in TERMINAL:
-                            yield _sse("run", st)
-                            return
-                    yield _sse("live", live_snapshot(rt, cur))
-                    next_live = loop.time() + LIVE_PERIOD
-                    if await request.is_disconnected():
+        yield "retry: 1000\n\n"
+        yield _sse("hello", hello(rt))
+        if first is not None:
+            yield _sse("run", first)
+            if only and first["state"] in TERMINAL:
+                return
+        next_live = loop.time()
+        while not _stopping(request):
+            ev = await sub.get(timeout=max(0.0, next_live - loop.time()))
+            if ev is not None:
+                st = ev["run"]
+                if only is None or st["id"] == only:
+                    yield _sse("run", st)
+                    if only and st["state"] in TERMINAL:
                         return
+            if loop.time() >= next_live:
+                if only is not None and sub.queue.empty():  # its end, even if missed
+                    st = rt.status(only)
+                    if st is not None and st["state"] in TERMINAL:
+                        yield _sse("run", st)
+                        return
+                yield _sse("live", live_snapshot(rt, cur))
+                next_live = loop.time() + LIVE_PERIOD
+                if await request.is_disconnected():
+                    return
 
-    @router.get(
-        "/calibrations/{run_id}/geometry",
-        response_model=RunGeometry,
-        responses={404: {"model": Problem}, 409: {"model": Problem}},
+@router.get(
+    "/calibrations/{run_id}/geometry",
+    response_model=RunGeometry,
+    responses=problems(404, 409),
+)
+def geometry(run_id: str, rt: Rt) -> RunGeometry:
+    key = (str(rt.data_dir), run_id)
+    if key in _geometry_cache:
+        return _geometry_cache[key]
+    got = rt.result(run_id)
+    if got is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    state, doc = got
+    if state != "DONE" or doc is None:
+        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    try:
+        ds = load_dataset(Path(rt.settings.data_dir) / "runs" / run_id / "dataset")
+    except SwpcError as exc:
+        raise HTTPException(409, f"calibration {run_id}: dataset unreadable: {exc}") from exc
+    spins = [spin_of(s.static_module, s.start, s.end, ds.poses) for s in ds.segments]
+    keys = ("id", *PARAM_NAMES)
+    out = RunGeometry(
+        run=run_id,
+        nominal=[ModuleGeometry(**{k: getattr(m, k) for k in keys}) for m in ds.robot.modules],
+        calibrated=[ModuleGeometry(**{k: m[k] for k in keys}) for m in doc["modules"]],
+        spins=[s for s in spins if s is not None],
     )
-    def geometry(run_id: str, rt: Rt) -> RunGeometry:
-        if run_id in geometry_cache:
-            return geometry_cache[run_id]
-        got = rt.result(run_id)
-        if got is None:
-            raise HTTPException(404, f"no calibration {run_id}")
-        state, doc = got
-        if state != "DONE" or doc is None:
-            raise HTTPException(409, f"calibration {run_id} is {state}: no result")
-        try:
-            ds = load_dataset(Path(rt.settings.data_dir) / "runs" / run_id / "dataset")
-        except SwpcError as exc:
-            raise HTTPException(409, f"calibration {run_id}: dataset unreadable: {exc}") from exc
-        spins = [spin_of(s.static_module, s.start, s.end, ds.poses) for s in ds.segments]
-        keys = ("id", *PARAM_NAMES)
-        out = RunGeometry(
-            run=run_id,
-            nominal=[ModuleGeometry(**{k: getattr(m, k) for k in keys}) for m in ds.robot.modules],
-            calibrated=[ModuleGeometry(**{k: m[k] for k in keys}) for m in doc["modules"]],
-            spins=[s for s in spins if s is not None],
-        )
-        geometry_cache[run_id] = out
-        while len(geometry_cache) > 16:
-            geometry_cache.popitem(last=False)
-        return out
+    _geometry_cache[key] = out
+    while len(_geometry_cache) > 16:
+        _geometry_cache.popitem(last=False)
+    return out
 
-    def run_dir(rt: Runtime, run_id: str) -> Path:
-        if rt.status(run_id) is None:
-            raise HTTPException(404, f"no calibration {run_id}")
-        return Path(rt.settings.data_dir) / "runs" / run_id
+def run_dir(rt: Runtime, run_id: str) -> Path:
+    if rt.status(run_id) is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    return Path(rt.settings.data_dir) / "runs" / run_id
 
-    @router.get(
-        "/calibrations/{run_id}/files",
-        response_model=list[RunFile],
-        responses={404: {"model": Problem}},
-    )
-    def list_files(run_id: str, rt: Rt) -> list[RunFile]:
-        d = run_dir(rt, run_id)
-        out = []
-        for name, (rel, _) in FILES.items():
-            p = d / rel
-            if name == "dataset.zip":
-                if not any((p / f).is_file() for f in ("poses.csv", "imu.csv")):
-                    continue  # no motion recorded (with or without motion capture)
-                size = sum(f.stat().st_size for f in p.iterdir() if f.is_file())
-            elif p.is_file():
-                size = p.stat().st_size
-            else:
-                continue
-            out.append(RunFile(name=name, size=size, url=f"/calibrations/{run_id}/files/{name}"))
-        return out
-
-    @router.get(
-        "/calibrations/{run_id}/files/{name}",
-        response_class=Response,
-        responses={
-            200: {"content": {media: {} for _, media in FILES.values()}},
-            404: {"model": Problem},
-        },
-    )
-    def download(run_id: str, name: FileName, rt: Rt) -> Response:
-        d = run_dir(rt, run_id)
-        rel, media = FILES[name]
+@router.get(
+    "/calibrations/{run_id}/files",
+    response_model=list[RunFile],
+    responses=problems(404),
+)
+def list_files(run_id: str, rt: Rt) -> list[RunFile]:
+    d = run_dir(rt, run_id)
+    out = []
+    for name, (rel, _) in FILES.items():
         p = d / rel
-        disposition = {"Content-Disposition": f'attachment; filename="{run_id}-{name}"'}
         if name == "dataset.zip":
-            if not p.is_dir():
-                raise HTTPException(404, f"calibration {run_id} has no dataset")
-            buf = io.BytesIO()
-            with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-                for f in sorted(p.iterdir()):
-                    if f.is_file():
-                        z.write(f, f"{run_id}/dataset/{f.name}")
-            return Response(buf.getvalue(), media_type=media, headers=disposition)
-        if not p.is_file():
-            raise HTTPException(404, f"calibration {run_id} has no {name}")
-        return FileResponse(p, media_type=media, headers=disposition)
+            if not any((p / f).is_file() for f in ("poses.csv", "imu.csv")):
+                continue  # no motion recorded (with or without motion capture)
+            size = sum(f.stat().st_size for f in p.iterdir() if f.is_file())
+        elif p.is_file():
+            size = p.stat().st_size
+        else:
+            continue
+        out.append(RunFile(name=name, size=size, url=f"/calibrations/{run_id}/files/{name}"))
+    return out
 
-    @router.get(
-        "/calibrations/{run_id}/mcap",
-        response_model=McapSummary,
-        responses={404: {"model": Problem}, 409: {"model": Problem}},
-    )
-    def mcap(run_id: str, rt: Rt) -> McapSummary:
-        p = run_dir(rt, run_id) / FILES["run.mcap"][0]
-        if not p.is_file():
-            raise HTTPException(404, f"calibration {run_id} has no run.mcap")
-        try:
-            return mcap_summary(run_id, p)
-        except (McapError, OSError, ValueError) as exc:
-            raise HTTPException(409, f"calibration {run_id}: run.mcap unreadable: {exc}") from exc
+@router.get(
+    "/calibrations/{run_id}/files/{name}",
+    response_class=Response,
+    responses={
+        200: {"content": {media: {} for _, media in FILES.values()}},
+        404: {"model": Problem},
+    },
+)
+def download(run_id: str, name: FileName, rt: Rt) -> Response:
+    d = run_dir(rt, run_id)
+    rel, media = FILES[name]
+    p = d / rel
+    disposition = {"Content-Disposition": f'attachment; filename="{run_id}-{name}"'}
+    if name == "dataset.zip":
+        if not p.is_dir():
+            raise HTTPException(404, f"calibration {run_id} has no dataset")
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+            for f in sorted(p.iterdir()):
+                if f.is_file():
+                    z.write(f, f"{run_id}/dataset/{f.name}")
+        return Response(buf.getvalue(), media_type=media, headers=disposition)
+    if not p.is_file():
+        raise HTTPException(404, f"calibration {run_id} has no {name}")
+    return FileResponse(p, media_type=media, headers=disposition)
 
-    return router
+@router.get(
+    "/calibrations/{run_id}/mcap",
+    response_model=McapSummary,
+    responses=problems(404, 409),
+)
+def mcap(run_id: str, rt: Rt) -> McapSummary:
+    p = run_dir(rt, run_id) / FILES["run.mcap"][0]
+    if not p.is_file():
+        raise HTTPException(404, f"calibration {run_id} has no run.mcap")
+    try:
+        return mcap_summary(run_id, p)
+    except (McapError, OSError, ValueError) as exc:
+        raise HTTPException(409, f"calibration {run_id}: run.mcap unreadable: {exc}") from exc
+

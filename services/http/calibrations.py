@@ -1,0 +1,183 @@
+"""Calibration runs over HTTP: start, list, watch, read the result and the plot, abort.
+
+* ``POST /calibrations`` (token): start a run (202 with its status and ``Location``).
+  Overrides may only tighten the robot config's limits and tolerances, and everything
+  that can be checked before motion is: 422 otherwise, before any CAN frame; 409 while a
+  run goes, 507 without room on disk, 503 when the run store cannot be written.
+* ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
+* ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
+* ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
+  ABORTED.
+* ``GET /calibrations/{id}/plot.png``: the run's plot, rendered once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any, Literal
+
+from fastapi import APIRouter, HTTPException, Response
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from services.config.robot import ConfigOverrides, OverrideError, RobotConfig
+from services.http.answers import ReferenceIn, entries, refused
+from services.http.deps import AUTH, GUARDED, Rt, not_running, problems
+from services.runs.imu import parse_references, reference_problems
+from services.runs.state import RunStatus
+from services.runtime.runtime import DiskSpaceError, NoResultError, RunConflictError, StoreError
+from swpc_hw.errors import DatasetError
+from swpc_hw.references import Reference
+
+router = APIRouter()
+
+
+class StartRequest(BaseModel):
+    """Start a calibration; ``overrides`` are deep-merged into the robot config (limits and
+    tolerances may only be tightened).  ``metrology``: ``mocap`` (motion capture) or
+    ``imu`` (none: the robot's gyro, with ``references`` measured by tape; the straight
+    drive's comes during the run); default ``imu`` when the service is set up without
+    motion capture (``SWPC_METROLOGY=imu``), else ``mocap``."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    overrides: ConfigOverrides = Field(default_factory=ConfigOverrides)
+    install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
+    metrology: Literal["mocap", "imu"] | None = None
+    references: list[ReferenceIn] = Field(default_factory=list)
+
+
+def refused_before_motion(where: str, problems: list[str]) -> RequestValidationError:
+    """A 422 in the shape of FastAPI's own (one schema for 422), one entry per problem."""
+    msg = "refused before any motion: {}"
+    return RequestValidationError(
+        [{"loc": ["body", where], "msg": msg.format(p), "type": "value_error"} for p in problems]
+    )
+
+
+def start_references(
+    config: RobotConfig, metrology: str, given: list[ReferenceIn]
+) -> list[Reference]:
+    """The references of a run to start, checked before any motion (422 otherwise)."""
+    if metrology != "imu":
+        if given:
+            raise refused("references", ValueError("references are for metrology imu"))
+        return []
+    try:
+        refs = parse_references(entries(given), config.nominal.ids)
+    except DatasetError as exc:
+        raise refused("references", ValueError(f"refused before any motion: {exc}")) from exc
+    problems = reference_problems(config, refs)
+    if problems:
+        raise refused_before_motion("references", problems)
+    return refs
+
+
+def run_config(rt: Rt, body: StartRequest, metrology: str) -> RobotConfig:
+    """The run's robot config: the service's with the request's overrides (422 when they
+    loosen a limit or cannot succeed)."""
+    try:
+        return rt.config.for_run(body.overrides.document(), metrology)
+    except OverrideError as exc:
+        raise refused_before_motion("overrides", exc.problems) from exc
+    except (ValidationError, ValueError, TypeError) as exc:
+        raise RequestValidationError(
+            [
+                {
+                    "loc": ["body", "overrides"],
+                    "msg": f"invalid robot config override: {exc}",
+                    "type": "value_error",
+                }
+            ]
+        ) from exc
+
+
+@router.post(
+    "/calibrations",
+    status_code=202,
+    response_model=RunStatus,
+    dependencies=AUTH,
+    responses={
+        **GUARDED,
+        **problems(
+            409,
+            _503="the run store cannot be written",
+            _507="no room on disk for a run",
+        ),
+    },
+)
+def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
+    """Start a run (module docstring)."""
+    metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
+    config = run_config(rt, body, metrology)
+    refs = start_references(config, metrology, body.references)
+    try:
+        run = rt.start_run(config, body.install, metrology, refs)
+    except RunConflictError as exc:
+        raise HTTPException(409, str(exc)) from exc
+    except DiskSpaceError as exc:
+        raise HTTPException(507, str(exc)) from exc
+    except StoreError as exc:
+        raise HTTPException(503, str(exc)) from exc
+    response.headers["Location"] = f"/calibrations/{run.id}"
+    return run.status.to_dict()
+
+
+@router.get("/calibrations", response_model=list[RunStatus])
+def list_runs(rt: Rt) -> list[dict[str, Any]]:
+    return rt.list_runs()
+
+
+@router.get("/calibrations/{run_id}", response_model=RunStatus, responses=problems(404))
+def get_run(run_id: str, rt: Rt) -> dict[str, Any]:
+    st = rt.status(run_id)
+    if st is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    return st
+
+
+@router.get("/calibrations/{run_id}/result", responses=problems(404, 409))
+def get_result(run_id: str, rt: Rt) -> dict[str, Any]:
+    got = rt.result(run_id)
+    if got is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    state, doc = got
+    if state != "DONE" or doc is None:
+        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    return doc
+
+
+@router.post(
+    "/calibrations/{run_id}/abort",
+    response_model=RunStatus,
+    dependencies=AUTH,
+    responses={**GUARDED, **problems(404, 409)},
+)
+async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
+    # async: runs on the event loop itself, so stop_all() is not queued behind a
+    # threadpool hand-off; only the wait for the run's thread goes to a worker
+    run = rt.runs.get(run_id)
+    if run is None:
+        raise not_running(rt, run_id)
+    if run.finished:
+        raise HTTPException(409, f"calibration {run_id} is {run.status.state}")
+    run.abort()
+    await asyncio.to_thread(run.join, 10.0)
+    return run.status.to_dict()
+
+
+@router.get(
+    "/calibrations/{run_id}/plot.png",
+    responses={200: {"content": {"image/png": {}}}, **problems(404, 409)},
+    response_class=Response,
+)
+def plot(run_id: str, rt: Rt) -> Response:
+    """The run's plot: rendered once, then served from the run's directory."""
+    try:
+        path = rt.plot(run_id)
+    except NoResultError as exc:
+        raise HTTPException(409, str(exc)) from exc
+    if path is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    return FileResponse(path, media_type="image/png")

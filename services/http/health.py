@@ -1,0 +1,30 @@
+"""How the service is: ``GET /health`` for operators, systemd and the console, ``GET
+/metrics`` for Prometheus (:mod:`services.runtime.health` judges, :mod:`.metrics`
+renders)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import PlainTextResponse
+
+from services.http.deps import FiniteJSONResponse, Rt
+from services.http.metrics import render_metrics
+from services.runtime.health import service_health
+
+router = APIRouter()
+
+
+@router.get(
+    "/health",
+    responses={503: {"description": "failing: a calibration cannot start or go on"}},
+)
+def health(rt: Rt) -> FiniteJSONResponse:
+    """``ok`` / ``degraded`` (200) or ``failing`` (503), with the problems."""
+    state, doc = service_health(rt)
+    return FiniteJSONResponse(doc, status_code=503 if state == "failing" else 200)
+
+
+@router.get("/metrics", response_class=PlainTextResponse)
+def metrics(rt: Rt) -> PlainTextResponse:
+    body, content_type = render_metrics(rt)
+    return PlainTextResponse(body, media_type=content_type)
