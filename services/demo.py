@@ -84,7 +84,7 @@ def parameters_digest(result: dict[str, Any]) -> str:
     return hashlib.sha256(" ".join(values).encode()).hexdigest()[:16]
 
 
-def tape_references(seed: int, stddev: float = 0.5e-3) -> list[dict[str, Any]]:
+def tape_references(seed: int, stddev: float | None = None) -> list[dict[str, Any]]:
     """What the operator measures with a tape before a run without motion capture: the
     distances between the steering axes of every pair of modules (the simulator's truth,
     with the tape's error)."""
@@ -92,6 +92,9 @@ def tape_references(seed: int, stddev: float = 0.5e-3) -> list[dict[str, Any]]:
 
     import numpy as np
 
+    from simulators.datagen_imu import ReferenceOptions
+
+    stddev = ReferenceOptions.stddev if stddev is None else stddev
     rng = np.random.default_rng([seed, 20])
     a = PAPER_CALIBRATED.arrays()
     ids = PAPER_CALIBRATED.ids

@@ -350,6 +350,193 @@ def _settle_time(
     )
 
 
+class _Timeline:
+    """The experiment's motion as phases, built step by step (module docstring's timeline):
+    each step starts where the previous one ended."""
+
+    def __init__(self, truth: RobotParams, opt: ExperimentOptions) -> None:
+        A = truth.arrays()
+        self.opt = opt
+        self.P_s, self.beta, self.b, self.r = A.P_s, A.beta, A.b, A.r
+        self.t = 0.0
+        self.pose = np.zeros(3)
+        self.theta = self.beta.copy()  # theta_hat = 0 everywhere
+        self.psi = np.zeros(A.n)
+        self.phases: list[_Phase] = []
+        self.seg_info: list[tuple[int, int, float, float, float, FloatArray, FloatArray]] = []
+        self.rests: list[tuple[float, float]] = []
+        self.drive: tuple[float, float] | None = None
+
+    def close(self, ph: _Phase) -> None:
+        """Append a phase; the next starts at its end state."""
+        self.phases.append(ph)
+        pe, te, se = ph.evaluate(np.array([ph.t1]), self.P_s, self.b, self.r)
+        self.t, self.pose, self.theta, self.psi = ph.t1, pe[0], te[0], se[0]
+
+    def until(self, duration: float) -> float:
+        return round(self.t + duration, 9)
+
+    def rest(self) -> None:
+        if self.opt.rest_time > 0:
+            self.rests.append((self.t, self.until(self.opt.rest_time)))
+            self.close(
+                _Phase(self.t, self.rests[-1][1], self.pose, self.theta, self.psi, "align",
+                       theta1=self.theta)
+            )  # fmt: skip
+
+    def align(self, theta1: FloatArray) -> None:
+        opt = self.opt
+        self.close(
+            _Phase(self.t, self.until(opt.align_time), self.pose, self.theta, self.psi, "align",
+                   theta1=theta1)
+        )  # fmt: skip
+
+    def module(self, k: int) -> None:
+        """Every angle of static module ``k``: re-steer, align, rest, spin."""
+        opt, P_s, b, beta, w = self.opt, self.P_s, self.b, self.beta, self.opt.yaw_rate
+        n = len(beta)
+        dyn = np.ones(n, dtype=bool)
+        dyn[k] = False
+        G = P_s.mean(axis=0)
+        for m, a in enumerate(opt.angles):
+            if m > 0:
+                d = a - opt.angles[m - 1]
+                self.close(
+                    _Phase(
+                        self.t, self.until(opt.resteer_time), self.pose, self.theta, self.psi,
+                        "rotate", pivot=P_s[k].copy(), free=dyn, fork=k,
+                        profile=("resteer", -d, opt.resteer_time, 0.0),
+                    )
+                )  # fmt: skip
+            C = contact_point(P_s[k], b[k], a + beta[k])
+            gc = G - C
+            uc = -np.sign(w) * np.array([-gc[1], gc[0]])
+            target = np.full(n, math.atan2(uc[1], uc[0]))
+            target[k] = a + beta[k]
+            self.align(self.theta + wrap_angle(target - self.theta))
+            self.rest()
+            settle = _settle_time(self.theta, P_s, b, self.r, C, opt, dyn)
+            settle = math.ceil(settle / opt.integration_dt - 1e-9) * opt.integration_dt
+            steady = settle + opt.spin_duration
+            t0, pose0 = self.t, self.pose.copy()
+            self.close(
+                _Phase(
+                    self.t, self.until(2.0 * opt.ramp_time + steady), self.pose, self.theta,
+                    self.psi, "rotate", pivot=C, free=dyn,
+                    profile=("spin", w, opt.ramp_time, steady),
+                )
+            )  # fmt: skip
+            w0 = t0 + opt.ramp_time + settle
+            C_W = pose0[:2] + rot(pose0[2]) @ C
+            self.seg_info.append((k, m, float(a), w0, w0 + opt.spin_duration, C, C_W))
+
+    def straight_drive(self) -> None:
+        opt = self.opt
+        self.align(self.theta + wrap_angle(opt.drive_direction - self.theta))
+        self.rest()
+        steady = opt.drive_length / opt.drive_speed - opt.ramp_time
+        if steady < 0:
+            raise ValueError("drive_length too short for drive_speed and ramp_time")
+        direction = -np.array([math.cos(opt.drive_direction), math.sin(opt.drive_direction)])
+        self.drive = (self.t, self.until(2.0 * opt.ramp_time + steady))
+        self.close(
+            _Phase(
+                self.t, self.drive[1], self.pose, self.theta, self.psi, "translate",
+                pivot=direction, profile=("spin", opt.drive_speed, opt.ramp_time, steady),
+            )
+        )  # fmt: skip
+
+
+def _slipped(
+    tl: _Timeline, ids: list[int], t_enc: FloatArray, psi_e: FloatArray, rng: np.random.Generator
+) -> tuple[FloatArray, list[SlipBurst]]:
+    """The wheel encoders with slip: random bursts on rolling wheels (extra rotation factor
+    x rolling rotation), then the options' partial slips of one segment's window."""
+    opt, t_end = tl.opt, tl.t
+    bursts: list[SlipBurst] = []
+    psi_meas = psi_e.copy()
+
+    def slip(j: int, ts: float, te: float, f: float) -> None:
+        """Encoder j turns ``f`` x its rolling rotation extra in [ts, te] (kept after)."""
+        _, _, ps = _evaluate(tl.phases, np.array([ts, te]), tl.P_s, tl.b, tl.r)
+        if abs(ps[1, j] - ps[0, j]) < 1e-12:
+            return  # wheel not rolling (static or still): nothing to slip
+        inside = (t_enc > ts) & (t_enc < te)
+        after = t_enc >= te
+        psi_meas[inside, j] += f * (psi_e[inside, j] - ps[0, j])
+        psi_meas[after, j] += f * (ps[1, j] - ps[0, j])
+        bursts.append(SlipBurst(ids[j], float(ts), float(te), float(f)))
+
+    if opt.slip_burst_rate > 0.0:
+        for j in range(len(ids)):
+            n_b = rng.poisson(opt.slip_burst_rate * t_end)
+            starts = np.sort(rng.uniform(0.0, t_end, n_b))
+            durs = rng.uniform(*opt.slip_duration, n_b)
+            facs = rng.uniform(*opt.slip_factor, n_b)
+            for ts, du, f in zip(starts, durs, facs, strict=True):
+                slip(j, float(ts), float(min(ts + du, t_end)), float(f))
+    for ps_ in opt.partial_slips:
+        if ps_.module not in ids:
+            raise ValueError(f"partial slip: no module {ps_.module}")
+        if not 0 <= ps_.segment < len(tl.seg_info):
+            raise ValueError(
+                f"partial slip: no segment {ps_.segment} (run has {len(tl.seg_info)})"
+            )
+        if not 0.0 <= ps_.start < ps_.end <= 1.0:
+            raise ValueError("partial slip: need 0 <= start < end <= 1 (fractions of the window)")
+        s0, s1 = tl.seg_info[ps_.segment][3], tl.seg_info[ps_.segment][4]
+        slip(ids.index(ps_.module), s0 + ps_.start * (s1 - s0), s0 + ps_.end * (s1 - s0),
+             ps_.factor)  # fmt: skip
+    return psi_meas, bursts
+
+
+def _measured_poses(
+    poses_true: FloatArray, opt: ExperimentOptions, rng: np.random.Generator
+) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.intp]]:
+    """The poses as the mocap gives them: noise (AR(1) over frames), dropouts, outliers.
+    Returns the measured poses, the kept mask and the outliers' indices."""
+    n_p = int(poses_true.shape[0])
+    meas = poses_true.copy()
+    if opt.pose_sigma_xy > 0:
+        meas[:, :2] += ar1_noise(rng.normal(0.0, opt.pose_sigma_xy, (n_p, 2)), opt.pose_noise_rho)
+    if opt.pose_sigma_yaw > 0:
+        meas[:, 2] += ar1_noise(rng.normal(0.0, opt.pose_sigma_yaw, n_p), opt.pose_noise_rho)
+    keep = np.ones(n_p, dtype=bool)
+    if opt.dropout_fraction > 0:
+        drop = rng.choice(n_p, round(opt.dropout_fraction * n_p), replace=False)
+        keep[drop] = False
+    kept = np.flatnonzero(keep)
+    out_idx = np.zeros(0, dtype=np.intp)
+    if opt.outlier_fraction > 0:
+        n_out = round(opt.outlier_fraction * kept.size)
+        out_idx = np.sort(rng.choice(kept, n_out, replace=False))
+        ang = rng.uniform(-np.pi, np.pi, n_out)
+        meas[out_idx, 0] += opt.outlier_magnitude * np.cos(ang)
+        meas[out_idx, 1] += opt.outlier_magnitude * np.sin(ang)
+        meas[out_idx, 2] += rng.choice([-1.0, 1.0], n_out) * opt.outlier_magnitude / 0.25
+    meas[:, 2] = wrap_angle(meas[:, 2])
+    return meas, keep, out_idx
+
+
+def _segments(tl: _Timeline, ids: list[int]) -> tuple[list[Segment], list[SegmentTruth]]:
+    """Every spin's segment window and its truth."""
+    w = tl.opt.yaw_rate
+    segments: list[Segment] = []
+    seg_truth: list[SegmentTruth] = []
+    for k, m, a, s0, s1, C, C_W in tl.seg_info:
+        _, th_s, _ = _evaluate(tl.phases, np.array([0.5 * (s0 + s1)]), tl.P_s, tl.b, tl.r)
+        th_set = np.asarray(wrap_angle(th_s[0]), dtype=float)
+        _, D = settled_trailing(tl.P_s, tl.b, C, np.sign(w))
+        D[k] = 0.0
+        th_hat = np.asarray(wrap_angle(th_set - tl.beta), dtype=float)
+        th_hat[k] = a
+        segments.append(Segment(ids[k], round(s0, 6), round(s1, 6)))
+        seg_truth.append(
+            SegmentTruth(ids[k], m, a, s0, s1, C.copy(), np.asarray(C_W), th_set, th_hat, D, w)
+        )
+    return segments, seg_truth
+
+
 def generate_experiment(
     truth: RobotParams, options: ExperimentOptions | None = None, nominal: RobotParams | None = None
 ) -> Experiment:
@@ -363,86 +550,17 @@ def generate_experiment(
     nom = nominal if nominal is not None else default_nominal(truth)
     if nom.ids != truth.ids:
         raise ValueError(f"nominal ids {nom.ids} differ from truth ids {truth.ids}")
-    A = truth.arrays()
-    n = A.n
-    P_s, beta, b, r = A.P_s, A.beta, A.b, A.r
-    G = P_s.mean(axis=0)
-    w = opt.yaw_rate
+    ids = [int(m) for m in truth.ids]
 
-    t = 0.0
-    pose = np.zeros(3)
-    theta = beta.copy()  # theta_hat = 0 everywhere
-    psi = np.zeros(n)
-    phases: list[_Phase] = []
-    seg_info: list[tuple[int, int, float, float, float, FloatArray, FloatArray]] = []
-
-    rests: list[tuple[float, float]] = []
-
-    def close(ph: _Phase) -> None:
-        nonlocal t, pose, theta, psi
-        phases.append(ph)
-        pe, te, se = ph.evaluate(np.array([ph.t1]), P_s, b, r)
-        t, pose, theta, psi = ph.t1, pe[0], te[0], se[0]
-
-    def rest() -> None:
-        if opt.rest_time > 0:
-            rests.append((t, round(t + opt.rest_time, 9)))
-            close(_Phase(t, rests[-1][1], pose, theta, psi, "align", theta1=theta))
-
-    rest()
-    for k in range(n):
-        dyn = np.ones(n, dtype=bool)
-        dyn[k] = False
-        for m, a in enumerate(opt.angles):
-            if m > 0:
-                d = a - opt.angles[m - 1]
-                close(
-                    _Phase(
-                        t, round(t + opt.resteer_time, 9), pose, theta, psi, "rotate",
-                        pivot=P_s[k].copy(), free=dyn, fork=k,
-                        profile=("resteer", -d, opt.resteer_time, 0.0),
-                    )
-                )
-            C = contact_point(P_s[k], b[k], a + beta[k])
-            gc = G - C
-            uc = -np.sign(w) * np.array([-gc[1], gc[0]])
-            target = np.full(n, math.atan2(uc[1], uc[0]))
-            target[k] = a + beta[k]
-            theta1 = theta + wrap_angle(target - theta)
-            close(_Phase(t, round(t + opt.align_time, 9), pose, theta, psi, "align", theta1=theta1))
-            rest()
-            settle = _settle_time(theta, P_s, b, r, C, opt, dyn)
-            settle = math.ceil(settle / opt.integration_dt - 1e-9) * opt.integration_dt
-            steady = settle + opt.spin_duration
-            t0 = t
-            pose0 = pose.copy()
-            close(
-                _Phase(
-                    t, round(t + 2.0 * opt.ramp_time + steady, 9), pose, theta, psi, "rotate",
-                    pivot=C, free=dyn, profile=("spin", w, opt.ramp_time, steady),
-                )
-            )
-            w0 = t0 + opt.ramp_time + settle
-            C_W = pose0[:2] + rot(pose0[2]) @ C
-            seg_info.append((k, m, float(a), w0, w0 + opt.spin_duration, C, C_W))
-    drive = None
+    # ---------------------------------------------------------------- the motion
+    tl = _Timeline(truth, opt)
+    tl.rest()
+    for k in range(len(ids)):
+        tl.module(k)
     if opt.drive_length > 0:
-        theta1 = theta + wrap_angle(opt.drive_direction - theta)
-        close(_Phase(t, round(t + opt.align_time, 9), pose, theta, psi, "align", theta1=theta1))
-        rest()
-        steady = opt.drive_length / opt.drive_speed - opt.ramp_time
-        if steady < 0:
-            raise ValueError("drive_length too short for drive_speed and ramp_time")
-        direction = -np.array([math.cos(opt.drive_direction), math.sin(opt.drive_direction)])
-        drive = (t, round(t + 2.0 * opt.ramp_time + steady, 9))
-        close(
-            _Phase(
-                t, drive[1], pose, theta, psi, "translate", pivot=direction,
-                profile=("spin", opt.drive_speed, opt.ramp_time, steady),
-            )
-        )
-    rest()
-    t_end = t
+        tl.straight_drive()
+    tl.rest()
+    t_end = tl.t
 
     # ---------------------------------------------------------------- sampling
     rng = np.random.default_rng(opt.seed)
@@ -452,96 +570,22 @@ def generate_experiment(
     i1 = math.floor((t_end + opt.clock_offset) * opt.encoder_rate + 1e-9)
     stamps = np.arange(i0, i1 + 1) / opt.encoder_rate
     t_enc = np.clip(stamps - opt.clock_offset, 0.0, t_end)
-
-    poses_true, _, _ = _evaluate(phases, t_pose, P_s, b, r)
-    _, theta_e, psi_e = _evaluate(phases, t_enc, P_s, b, r)
+    poses_true, _, _ = _evaluate(tl.phases, t_pose, tl.P_s, tl.b, tl.r)
+    _, theta_e, psi_e = _evaluate(tl.phases, t_enc, tl.P_s, tl.b, tl.r)
     theta_e = np.asarray(wrap_angle(theta_e), dtype=float)
-
-    # slip bursts on rolling wheels: extra rotation factor x rolling rotation
-    bursts: list[SlipBurst] = []
-    psi_meas = psi_e.copy()
-
-    def slip(j: int, ts: float, te: float, f: float) -> None:
-        """Encoder j turns ``f`` x its rolling rotation extra in [ts, te] (kept after)."""
-        _, _, ps = _evaluate(phases, np.array([ts, te]), P_s, b, r)
-        if abs(ps[1, j] - ps[0, j]) < 1e-12:
-            return  # wheel not rolling (static or still): nothing to slip
-        inside = (t_enc > ts) & (t_enc < te)
-        after = t_enc >= te
-        psi_meas[inside, j] += f * (psi_e[inside, j] - ps[0, j])
-        psi_meas[after, j] += f * (ps[1, j] - ps[0, j])
-        bursts.append(SlipBurst(int(A.ids[j]), float(ts), float(te), float(f)))
-
-    if opt.slip_burst_rate > 0.0:
-        for j in range(n):
-            n_b = rng.poisson(opt.slip_burst_rate * t_end)
-            starts = np.sort(rng.uniform(0.0, t_end, n_b))
-            durs = rng.uniform(*opt.slip_duration, n_b)
-            facs = rng.uniform(*opt.slip_factor, n_b)
-            for ts, du, f in zip(starts, durs, facs, strict=True):
-                slip(j, float(ts), float(min(ts + du, t_end)), float(f))
-    for ps_ in opt.partial_slips:
-        if ps_.module not in A.ids.tolist():
-            raise ValueError(f"partial slip: no module {ps_.module}")
-        if not 0 <= ps_.segment < len(seg_info):
-            raise ValueError(f"partial slip: no segment {ps_.segment} (run has {len(seg_info)})")
-        if not 0.0 <= ps_.start < ps_.end <= 1.0:
-            raise ValueError("partial slip: need 0 <= start < end <= 1 (fractions of the window)")
-        s0, s1 = seg_info[ps_.segment][3], seg_info[ps_.segment][4]
-        j = A.ids.tolist().index(ps_.module)
-        slip(j, s0 + ps_.start * (s1 - s0), s0 + ps_.end * (s1 - s0), ps_.factor)
+    psi_meas, bursts = _slipped(tl, ids, t_enc, psi_e, rng)
 
     # encoders: reported steering (held angle for the static module) and wheel
-    steer = np.asarray(wrap_angle(theta_e - beta), dtype=float)
-    steer = _quantize(steer, opt.counts_per_rev)
+    steer = _quantize(np.asarray(wrap_angle(theta_e - tl.beta), dtype=float), opt.counts_per_rev)
     wheel = _quantize(psi_meas, opt.counts_per_rev)
-    encoders = {
-        int(mid): np.column_stack([stamps, steer[:, j], wheel[:, j]])
-        for j, mid in enumerate(A.ids)
-    }
+    encoders = {m: np.column_stack([stamps, steer[:, j], wheel[:, j]]) for j, m in enumerate(ids)}
 
-    # poses: noise, dropout, outliers
-    meas = poses_true.copy()
-    if opt.pose_sigma_xy > 0:
-        meas[:, :2] += ar1_noise(rng.normal(0.0, opt.pose_sigma_xy, (n_p, 2)), opt.pose_noise_rho)
-    if opt.pose_sigma_yaw > 0:
-        meas[:, 2] += ar1_noise(rng.normal(0.0, opt.pose_sigma_yaw, n_p), opt.pose_noise_rho)
-    keep = np.ones(n_p, dtype=bool)
-    if opt.dropout_fraction > 0:
-        drop = rng.choice(n_p, round(opt.dropout_fraction * n_p), replace=False)
-        keep[drop] = False
-    kept = np.flatnonzero(keep)
-    out_idx = np.zeros(0, dtype=int)
-    if opt.outlier_fraction > 0:
-        n_out = round(opt.outlier_fraction * kept.size)
-        out_idx = np.sort(rng.choice(kept, n_out, replace=False))
-        ang = rng.uniform(-np.pi, np.pi, n_out)
-        meas[out_idx, 0] += opt.outlier_magnitude * np.cos(ang)
-        meas[out_idx, 1] += opt.outlier_magnitude * np.sin(ang)
-        meas[out_idx, 2] += rng.choice([-1.0, 1.0], n_out) * opt.outlier_magnitude / 0.25
-    meas[:, 2] = wrap_angle(meas[:, 2])
+    meas, keep, out_idx = _measured_poses(poses_true, opt, rng)
     poses_out = np.column_stack([t_pose, meas])[keep]
     true_rows = np.column_stack([t_pose, poses_true[:, :2], wrap_angle(poses_true[:, 2])])
-
-    # segments and their truth
-    segments: list[Segment] = []
-    seg_truth: list[SegmentTruth] = []
-    for k, m, a, s0, s1, C, C_W in seg_info:
-        _, th_s, _ = _evaluate(phases, np.array([0.5 * (s0 + s1)]), P_s, b, r)
-        th_set = np.asarray(wrap_angle(th_s[0]), dtype=float)
-        _, D = settled_trailing(P_s, b, C, np.sign(w))
-        D[k] = 0.0
-        th_hat = np.asarray(wrap_angle(th_set - beta), dtype=float)
-        th_hat[k] = a
-        mid = int(A.ids[k])
-        segments.append(Segment(mid, round(s0, 6), round(s1, 6)))
-        seg_truth.append(
-            SegmentTruth(mid, m, a, s0, s1, C.copy(), np.asarray(C_W), th_set, th_hat, D, w)
-        )
-
-    ds = Dataset(robot=nom, poses=poses_out, encoders=encoders, segments=segments)
+    segments, seg_truth = _segments(tl, ids)
     return Experiment(
-        dataset=ds,
+        dataset=Dataset(robot=nom, poses=poses_out, encoders=encoders, segments=segments),
         truth=truth,
         true_poses=true_rows,
         encoder_stamps=stamps,
@@ -553,7 +597,7 @@ def generate_experiment(
         outlier_times=t_pose[out_idx],
         duration=t_end,
         generation_seconds=time.perf_counter() - t_start,
-        rests=rests,
-        drive=drive,
-        phases=phases,
+        rests=tl.rests,
+        drive=tl.drive,
+        phases=tl.phases,
     )

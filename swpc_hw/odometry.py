@@ -170,29 +170,16 @@ class StepSolution(NamedTuple):
     iterations: int  # least-squares solves
 
 
-def step_twist(
+def _contact_velocities(
     rows: Sequence[tuple[float, float, float, float, float, float]],
     dt: float,
     theta_hat0: Sequence[float] | FloatArray,
     theta_hat1: Sequence[float] | FloatArray,
     psi0: Sequence[float] | FloatArray,
     psi1: Sequence[float] | FloatArray,
-    *,
-    robust: Robust = "geman",
-    scale_abs: float = 0.003,
-    scale_rel: float = 0.02,
-    max_iterations: int = 8,
-    alpha: float = 1.0,
-    filtered: Sequence[float] | None = None,
-) -> StepSolution:
-    """Robust least-squares twist of one step (equations in the module docstring).
-
-    ``rows[i] = (x_s, y_s, beta, b, r, r / (12 b))``.  The IRLS weights are computed from the
-    low-passed residual vectors ``f_i = alpha e_i + (1 - alpha) f_i,prev`` (``filtered`` holds
-    ``f_prev``; ``alpha = 1``: this step's residuals only), so that encoder quantization noise,
-    which differentiates into large but zero-mean per-step residuals, does not modulate the
-    weights while a persistent slip does.
-    """
+) -> tuple[list[float], list[float], list[float], list[float], float]:
+    """Each wheel's mid-step contact point ``Q_i`` and the velocity ``g_i`` its encoders say
+    it had (module docstring): ``(Qx, Qy, gx, gy, sum |g_i|^2)``."""
     n = len(rows)
     Qx = [0.0] * n
     Qy = [0.0] * n
@@ -225,6 +212,70 @@ def step_twist(
         gx[i] = gxi
         gy[i] = gyi
         g2 += gxi * gxi + gyi * gyi
+    return Qx, Qy, gx, gy, g2
+
+
+def _weighted_twist(
+    w: Sequence[float], Qx: list[float], Qy: list[float], gx: list[float], gy: list[float]
+) -> tuple[float, float, float]:
+    """The twist ``(vx, vy, omega)`` of weighted least squares over the contact points:
+    ``min sum w_i |v + omega x Q_i - g_i|^2`` in closed form."""
+    W = X = Y = S = Gx = Gy = T = 0.0
+    for i in range(len(w)):
+        wi = w[i]
+        qx = Qx[i]
+        qy = Qy[i]
+        W += wi
+        X += wi * qx
+        Y += wi * qy
+        S += wi * (qx * qx + qy * qy)
+        Gx += wi * gx[i]
+        Gy += wi * gy[i]
+        T += wi * (qx * gy[i] - qy * gx[i])
+    D = S - (X * X + Y * Y) / W
+    if not D > 1e-12 * S:
+        raise OdometryError("odometry: the weighted contact points are degenerate")
+    om = (T + (Y * Gx - X * Gy) / W) / D
+    return (Gx + om * Y) / W, (Gy - om * X) / W, om
+
+
+def robust_weight(robust: Robust, z2: float) -> float:
+    """The IRLS weight of a residual of squared size ``z2`` (in sigmas^2)."""
+    if robust == "geman":
+        wn = 1.0 / (1.0 + z2)
+        return wn * wn
+    if robust == "cauchy":
+        return 1.0 / (1.0 + z2)
+    if robust == "huber":  # threshold 1 sigma
+        return 1.0 if z2 <= 1.0 else 1.0 / math.sqrt(z2)
+    return 1.0
+
+
+def step_twist(
+    rows: Sequence[tuple[float, float, float, float, float, float]],
+    dt: float,
+    theta_hat0: Sequence[float] | FloatArray,
+    theta_hat1: Sequence[float] | FloatArray,
+    psi0: Sequence[float] | FloatArray,
+    psi1: Sequence[float] | FloatArray,
+    *,
+    robust: Robust = "geman",
+    scale_abs: float = 0.003,
+    scale_rel: float = 0.02,
+    max_iterations: int = 8,
+    alpha: float = 1.0,
+    filtered: Sequence[float] | None = None,
+) -> StepSolution:
+    """Robust least-squares twist of one step (equations in the module docstring).
+
+    ``rows[i] = (x_s, y_s, beta, b, r, r / (12 b))``.  The IRLS weights are computed from the
+    low-passed residual vectors ``f_i = alpha e_i + (1 - alpha) f_i,prev`` (``filtered`` holds
+    ``f_prev``; ``alpha = 1``: this step's residuals only), so that encoder quantization noise,
+    which differentiates into large but zero-mean per-step residuals, does not modulate the
+    weights while a persistent slip does.
+    """
+    n = len(rows)
+    Qx, Qy, gx, gy, g2 = _contact_velocities(rows, dt, theta_hat0, theta_hat1, psi0, psi1)
     sigma = scale_abs + scale_rel * math.sqrt(g2 / n)
     inv_sigma = 1.0 / sigma
     keep = 1.0 - alpha
@@ -233,28 +284,10 @@ def step_twist(
     w = [1.0] * n
     wn_all = [1.0] * n
     res = [0.0] * n
-    vx = vy = om = 0.0
     iterations = 0
     while True:
         iterations += 1
-        W = X = Y = S = Gx = Gy = T = 0.0
-        for i in range(n):
-            wi = w[i]
-            qx = Qx[i]
-            qy = Qy[i]
-            W += wi
-            X += wi * qx
-            Y += wi * qy
-            S += wi * (qx * qx + qy * qy)
-            Gx += wi * gx[i]
-            Gy += wi * gy[i]
-            T += wi * (qx * gy[i] - qy * gx[i])
-        D = S - (X * X + Y * Y) / W
-        if not D > 1e-12 * S:
-            raise OdometryError("odometry: the weighted contact points are degenerate")
-        om = (T + (Y * Gx - X * Gy) / W) / D
-        vx = (Gx + om * Y) / W
-        vy = (Gy - om * X) / W
+        vx, vy, om = _weighted_twist(w, Qx, Qy, gx, gy)
         change = 0.0
         for i in range(n):
             ex = vx - om * Qy[i] - gx[i]
@@ -266,17 +299,8 @@ def step_twist(
             filt[2 * i + 1] = fy
             if robust == "none":
                 continue
-            z2 = (fx * fx + fy * fy) * inv_sigma * inv_sigma
-            if robust == "geman":
-                wn = 1.0 / (1.0 + z2)
-                wn *= wn
-            elif robust == "cauchy":
-                wn = 1.0 / (1.0 + z2)
-            else:  # huber, threshold 1 sigma
-                wn = 1.0 if z2 <= 1.0 else 1.0 / math.sqrt(z2)
-            d = abs(wn - w[i])
-            if d > change:
-                change = d
+            wn = robust_weight(robust, (fx * fx + fy * fy) * inv_sigma * inv_sigma)
+            change = max(change, abs(wn - w[i]))
             wn_all[i] = wn
         if robust == "none" or change < 1e-4 or iterations >= max_iterations:
             break  # ``w`` (reported) are the weights that produced the twist

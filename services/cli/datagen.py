@@ -51,12 +51,23 @@ def register(sub: Any) -> None:
         "--metrology imu writes imu.csv and references.yaml instead of poses.csv, from a "
         "run with rests and a straight drive (docs/imu.md)",
     )
+    from simulators.datagen_imu import IMU_PROTOCOL, ReferenceOptions
+
+    rest, drive = IMU_PROTOCOL.rest_time, IMU_PROTOCOL.drive_length
+    tape_mm = ReferenceOptions.stddev * 1e3
     add_metrology_argument(g)
-    g.add_argument("--rest-time", type=float, default=2.0, help="s of stillness per rest (2)")
-    g.add_argument("--drive-length", type=float, default=4.0, help="straight drive, m (4)")
+    g.add_argument(
+        "--rest-time", type=float, default=rest, help=f"s of stillness per rest ({rest:g})"
+    )
+    g.add_argument(
+        "--drive-length", type=float, default=drive, help=f"straight drive, m ({drive:g})"
+    )
     add_gyro_arguments(g)
     g.add_argument(
-        "--reference-stddev", type=float, default=0.5, help="tape-measure std dev, mm (0.5)"
+        "--reference-stddev",
+        type=float,
+        default=tape_mm,
+        help=f"tape-measure std dev, mm ({tape_mm:g})",
     )
     p.set_defaults(func=run)
 
