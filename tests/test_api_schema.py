@@ -27,8 +27,8 @@ from schemathesis.specs.openapi.checks import (
 )
 
 from swpc_hw.zenoh_session import free_tcp_endpoint
+from tests.service_rig import TOKEN
 
-TOKEN = "schema-token-0123456789"
 #: no 5xx, and every response matches the schema (status code, content type, headers, body)
 CHECKS = [
     not_a_server_error,

@@ -44,9 +44,8 @@ from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.zenoh_session import free_tcp_endpoint
 from tests.fake_robot import FakeRobot
+from tests.service_rig import AUTH, TOKEN
 
-TOKEN = "console-token-for-tests"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
 TRUTH = RobotParams(robot="swpc", modules=PAPER_CALIBRATED.modules[:3])
 NOMINAL = RobotParams(robot="swpc", modules=PAPER_NOMINAL.modules[:3])
 PROTOCOL = {"angles_deg": [30, 150], "sweep_deg": 90, "settle_time": 0.5, "stop_time": 0.3,

@@ -18,8 +18,8 @@ import pytest
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode, Frame
 from simulators.virtual_controller import VirtualController
+from tests.service_rig import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 C_DIR = ROOT / "firmware_protocol" / "c"
 SOURCES = [C_DIR / "swpc.c", C_DIR / "emulator" / "controller.c", C_DIR / "emulator" / "main.c"]
 

@@ -23,8 +23,8 @@ import yaml
 from pydantic import BaseModel
 
 from swpc_hw.model import PARAM_NAMES
+from tests.service_rig import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
 UNITS = ("swpc-service.service", "swpc-sim.service")
 

@@ -1,4 +1,4 @@
-"""The same seed gives the same calibration, bit for bit (issue 18, point 4).
+"""The same seed gives the same calibration, bit for bit.
 
 Two fresh services on the in-process simulator (lockstep: simulated time, whatever the
 host does), the same seed, the same run started through HTTP: the calibrated parameters
@@ -19,9 +19,8 @@ from services.config.settings import ServiceSettings
 from services.demo import parameters_digest
 from services.http.app import create_app
 from swpc_hw.model import PARAM_NAMES
+from tests.service_rig import AUTH, TOKEN
 
-TOKEN = "test-token-0123456789"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
 # every module, two angles, the shortest spins the solver takes: the whole protocol
 PROTOCOL = {
     "sweep_deg": 15, "settle_time": 0.3, "stop_time": 0.3, "align_time": 0.3, "resteer_time": 1.0

@@ -13,8 +13,8 @@ from urllib.parse import unquote
 import pytest
 
 from firmware_protocol import codec, frame_table
+from tests.service_rig import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 CAN_DOC = DOCS / "can-protocol.md"
 DOC_FILES = ("README.md", "model-and-frames.md", "dataset-format.md", "kinematic-file.md",

@@ -53,8 +53,8 @@ from tests.can_rig import (
     sleep,
     wait_until,
 )
+from tests.service_rig import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 NODES = (1, 2, 3, 4)
 virtual_only = pytest.mark.skipif(
     INTERFACE != "virtual", reason="error frames can only be injected on the virtual bus"

@@ -44,10 +44,10 @@ from swpc_hw.twist_controller import (
     settled_wheel_rates,
     twist_rates,
 )
+from tests.service_rig import ROOT
 
 FloatArray = NDArray[np.float64]
 Twist = tuple[float, float, float]
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # --------------------------------------------------------------------------- stream generator

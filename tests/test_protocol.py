@@ -26,8 +26,8 @@ from firmware_protocol.codec import (
     Frame,
     HomingState,
 )
+from tests.service_rig import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 # Every position on the bus (feedback steer and wheel, PositionSetpoint, SensorPosition)
 # is 2**17 counts per turn.  Written out here, not taken from the codec, so that the byte
 # expectations below check the DBC's scale.

@@ -28,12 +28,9 @@ import can
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from pydantic import SecretStr
 
 from firmware_protocol import codec
 from firmware_protocol.codec import ControlMode
-from services.config.settings import ServiceSettings
-from services.http.app import create_app
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration.solver import solve_directory
 from swpc_hw.clock import Clock
@@ -41,9 +38,8 @@ from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import PARAM_NAMES
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from tests.service_rig import AUTH, sim_service, wait_state
 
-TOKEN = "test-token-0123456789"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
 NAMES = PARAM_NAMES
 SHORT = {"protocol": {"sweep_deg": 1440}}  # a long first spin (module 1): faults land in it
 # the whole protocol with short spins (as make test-vcan): a real result, quickly
@@ -100,31 +96,16 @@ class Recorder(can.Listener):  # type: ignore[misc]
 def service(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Iterator[tuple[TestClient, Runtime, Recorder]]:
-    data = tmp_path_factory.mktemp("svc")
-    settings = ServiceSettings(data_dir=data, token=SecretStr(TOKEN))
-    app = create_app(settings)
-    with TestClient(app) as client:
-        rt: Runtime = app.state.runtime
+    with sim_service(tmp_path_factory.mktemp("svc")) as sim:
+        rt = sim.rt
         rec = Recorder(rt.clock)
         bus = can.Bus(interface="virtual", channel=rt.can_channel)
         notifier = can.Notifier(bus, [rec])
         try:
-            yield client, rt, rec
+            yield sim.client, rt, rec
         finally:
             notifier.stop()
             bus.shutdown()
-
-
-def wait_state(
-    client: TestClient, run_id: str, states: set[str], timeout: float = 240.0
-) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        st: dict[str, Any] = client.get(f"/calibrations/{run_id}").json()
-        if st["state"] in states:
-            return st
-        time.sleep(0.05)
-    raise AssertionError(f"run {run_id} never reached {states}: {st}")
 
 
 def data_summary(rt: Runtime, run_id: str) -> str:

@@ -16,17 +16,13 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from pydantic import SecretStr
 
-from services.config.settings import ServiceSettings
-from services.http.app import create_app
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration.imu_solver import solve_imu_directory
 from swpc_hw.dataset import load_dataset
@@ -34,9 +30,8 @@ from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.model import PARAM_NAMES
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from tests.frame_free import frame_free
+from tests.service_rig import AUTH, Sim
 
-TOKEN = "test-token-0123456789"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
 NAMES = PARAM_NAMES
 PROTOCOL = {
     "sweep_deg": 45,
@@ -47,7 +42,7 @@ PROTOCOL = {
     "rest_time": 1.0,
     "drive_length": 1.0,
 }
-TAPE = 0.5e-3  # m: the tape's std dev, as the issue's references
+TAPE = 0.5e-3  # m: the tape's std dev, as the references of docs/imu-operation.md
 
 
 def axis_distances(seed: int = 20) -> list[dict[str, Any]]:
@@ -63,11 +58,9 @@ def axis_distances(seed: int = 20) -> list[dict[str, Any]]:
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, Runtime]]:
-    data = tmp_path_factory.mktemp("svc-imu")
-    app = create_app(ServiceSettings(data_dir=data, token=SecretStr(TOKEN)))
-    with TestClient(app) as client:
-        yield client, app.state.runtime
+def service(sim: Sim) -> tuple[TestClient, Runtime]:
+    """The service on the in-process simulator (tests/conftest.py's)."""
+    return sim.client, sim.rt
 
 
 def play_operator(

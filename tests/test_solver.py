@@ -17,7 +17,7 @@ from swpc_hw.calibration.solver import SolverOptions, canonical_parameters, solv
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.model import PARAM_NAMES, RobotParams, contact_point
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NAMES = PARAM_NAMES
 NOISELESS = ExperimentOptions(counts_per_rev=None, spin_duration=6.0)
@@ -256,3 +256,17 @@ def test_dataset_round_trip(dataset_dir: Path, tmp_path: Path) -> None:
     assert again.segments == ds.segments
     for mid in ds.robot.ids:
         np.testing.assert_allclose(again.encoders[mid], ds.encoders[mid], atol=1e-9)
+
+
+def test_the_paper_method_table_has_no_nan_and_one_turn_angles() -> None:
+    from swpc_hw.calibration.report import format_table
+    from swpc_hw.calibration.solver import CalibrationResult, SegmentQuality
+
+    seg = SegmentQuality(0, 1, math.radians(405.0), 100, 0, math.nan, (0.0, 0.0), math.nan)
+    res = CalibrationResult(
+        params=PAPER_NOMINAL, nominal=PAPER_NOMINAL, segments=[seg], time_offset=0.0,
+        time_offset_std=None, time_offset_mode="given", poses_used=100, poses_rejected=0,
+        increments_used=0, increments_rejected=0, reduced_chi2=math.nan, method="paper",
+    )  # fmt: skip
+    text = format_table(res)
+    assert "nan" not in text.lower() and "at   45.00 deg" in text, text

@@ -13,158 +13,36 @@ from __future__ import annotations
 import itertools
 import math
 import re
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from services.config.robot import RobotConfig
 from services.runs.imu import ImuMetrology
 from services.runs.mocap import MocapMetrology
 from services.runs.protocol import TERMINAL, TRANSITIONS, CalibrationRun, State
-from services.sensors.gyro import GyroIngest
-from services.sensors.mocap import MocapIngest
-from simulators.imu_sim import axis_travel
-from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from swpc_hw.references import AxisDistance, Reference, WheelRadius
-from tests.fake_robot import FakeRobot
+from swpc_hw.model import PARAM_NAMES
+from swpc_hw.references import WheelRadius
 from tests.frame_free import frame_free
+from tests.run_rig import NOMINAL, TRUTH, Rig, axis_distances, stopped_after
 
 NAMES = PARAM_NAMES
-# three modules (N >= 2 is allowed) and three angles: every edge of TRANSITIONS, quickly
-TRUTH = RobotParams(robot="swpc", modules=PAPER_CALIBRATED.modules[:3])
-NOMINAL = RobotParams(robot="swpc", modules=PAPER_NOMINAL.modules[:3])
-PROTOCOL = {
-    "angles_deg": [30, 150, 270],
-    "sweep_deg": 90,
-    "settle_time": 0.5,
-    "stop_time": 0.3,
-    "align_time": 0.3,
-    "resteer_time": 0.5,
-}
+
 FAULT = "module 2 (node 2): no heartbeat for 0.300 s"
+
 QUICK = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}}
 """Two angles, short spins: every state still, a quarter of the data to solve."""
 
-
-IMU_PROTOCOL = {"rest_time": 1.0, "drive_length": 1.0, "operator_timeout": 30.0}
-"""Without motion capture: 1 s rests, a 1 m drive (2.5 s on the fake robot)."""
 IMU_ONLY = frozenset({State.STILL, State.STEER, State.MARK, State.DRIVE, State.MEASURE})
-
-
-def axis_distances(truth: RobotParams, stddev: float = 0.5e-3) -> list[Reference]:
-    """Every distance between two steering axes of ``truth``, exact, with ``stddev``."""
-    a = truth.arrays()
-    return [
-        AxisDistance((i, j), float(np.linalg.norm(a.P_s[truth.index(i)] - a.P_s[truth.index(j)])),
-                     stddev)
-        for i, j in itertools.combinations(truth.ids, 2)
-    ]  # fmt: skip
-
-
-class Rig:
-    """One run on a fresh fake robot; ``hooks[state]`` run as the run enters ``state``.
-
-    ``metrology="imu"``: the run without motion capture (the fake robot's gyro, the
-    exact axis distances) whose operator (``operator``) marks the floor at MARK and
-    measures the drive exactly at MEASURE."""
-
-    def __init__(
-        self,
-        tmp: Path,
-        overrides: dict[str, Any] | None = None,
-        metrology: str = "mocap",
-        **robot: Any,
-    ) -> None:
-        self.clock = VirtualClock(start=1000.0)
-        self.mocap = MocapIngest(clock=self.clock, clock_mode="wall", stale_after=0.5)
-        self.imu = GyroIngest(clock=self.clock, stale_after=0.5)
-        self.robot = FakeRobot(
-            TRUTH, self.clock, self.mocap, dt=0.01, pose_every=1,
-            imu=self.imu if metrology == "imu" else None, **robot,
-        )
-        doc = {"nominal": NOMINAL.model_dump(), "protocol": {**PROTOCOL, **IMU_PROTOCOL}}
-        self.config = RobotConfig.model_validate(doc).with_overrides(overrides or {})
-        self.metrology = metrology
-        self.references = axis_distances(TRUTH)
-        self.operator = True
-        self.kinematics = tmp / "kinematics.yaml"
-        self.states: list[State] = [State.PENDING]
-        self.entered_at: dict[State, float] = {}
-        self.entries: list[tuple[State, float]] = []
-        self.hooks: dict[State, Callable[[CalibrationRun], None]] = {}
-        self.install = "if-within-tolerance"
-        self.tmp = tmp
-        # the state machine's tests need the run's dataset, not its MCAP (tested with the
-        # service and in tests/test_hardening.py): half the CPU of a run on the fake robot
-        self.run_kwargs: dict[str, Any] = {"mcap": False}
-
-    def _changed(self, run: CalibrationRun) -> None:
-        st = run.status.state
-        if st != self.states[-1]:
-            self.states.append(st)
-            self.entries.append((st, self.clock.now()))
-            self.entered_at.setdefault(st, self.clock.now())
-            hook = self.hooks.pop(st, None)
-            if hook is not None:
-                hook(run)
-            if self.operator:
-                self.play_operator(run)
-
-    def play_operator(self, run: CalibrationRun) -> None:
-        """Mark the floor (MARK) and measure the drive exactly (MEASURE), at once."""
-        if run.waits_for == "continue":
-            run.answer("continue")
-        elif run.waits_for == "references":
-            drive = run.metrology.drive
-            assert drive is not None
-            start, end = (self.robot.pose_at(t) for t in drive)
-            travel = axis_travel(start, end, TRUTH.arrays().P_s[0])
-            drive_ref = {"kind": "straight_drive", "value": travel, "stddev": 0.5e-3}
-            run.answer("references", [drive_ref])
-
-    def make_run(self) -> CalibrationRun:
-        kwargs: dict[str, Any] = {
-            "clock": self.clock,
-            "data_dir": self.tmp,
-            "kinematics_path": self.kinematics,
-            "install": self.install,
-            "on_change": self._changed,
-            **self.run_kwargs,
-        }
-        metrology = (
-            ImuMetrology(self.imu, self.config, self.references)
-            if self.metrology == "imu"
-            else MocapMetrology(self.mocap)
-        )
-        return CalibrationRun(self.robot, metrology, self.config, **kwargs)
-
-    def run(self) -> CalibrationRun:
-        run = self.make_run()
-        run._main()  # the run's thread body, here on the test's thread
-        assert run.finished and self.robot.closed
-        return run
-
-
-def stopped_after(rig: Rig, t: float) -> bool:
-    """stop_all() came at or after ``t`` and no motion command followed it."""
-    return rig.robot.stopped_for_good_after(t)
-
-
-# --------------------------------------------------------------------------- the path
-
 
 EDGES = {(a, b) for a, targets in TRANSITIONS.items() for b in targets} | {
     (State.WRITE, State.DONE)  # DONE, terminal, may follow any state
 }
+
 TAKEN: dict[str, set[tuple[State, State]]] = {}
 """The edges each run of the path tests took (every edge of the table, over all)."""
-
 
 def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Path) -> None:
     rig = Rig(tmp_path, homed=False)  # unhomed: CONNECT homes the steering
@@ -192,7 +70,6 @@ def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Pa
     assert cov.shape == (15, 15)
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), std.ravel(), rtol=1e-9)
     assert load_kinematics(run.run_dir / "kinematics.yaml").covariance == k.covariance
-
 
 def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) -> None:
     """The gyro, the encoders and the tape only (the motion capture silent all along):
@@ -225,7 +102,6 @@ def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) 
         assert abs(f.z) < 3.0, str(f)
         assert abs(f.error) < (math.radians(0.02) if f.unit == "deg" else 0.05e-3), str(f)
 
-
 def test_a_run_without_a_drive_rests_after_the_last_spin(tmp_path: Path) -> None:
     """``protocol.drive_length: 0`` with wheel_radius references: RELEASE -> STILL ->
     SOLVE (the gyro's bias after the last spin), no operator step."""
@@ -238,13 +114,11 @@ def test_a_run_without_a_drive_rests_after_the_last_spin(tmp_path: Path) -> None
     assert (State.RELEASE, State.STILL) in taken and (State.STILL, State.SOLVE) in taken
     assert not {State.STEER, State.MARK, State.DRIVE, State.MEASURE} & set(rig.states)
 
-
 def test_the_path_tests_took_every_edge_of_the_table() -> None:
     """Both metrologies together: every edge of TRANSITIONS (run after the path tests)."""
     if len(TAKEN) < 3:
         pytest.skip("needs the three path tests of this module in the same session")
     assert set().union(*TAKEN.values()) == EDGES
-
 
 def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
@@ -258,27 +132,20 @@ def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     run.enter(State.FAILED, "any state may fail")
     assert run.status.state is State.FAILED
 
-
-# --------------------------------------------------------------------------- faults, aborts
-
 STARTED = [s for s in TRANSITIONS if s is not State.PENDING]
 """Every state a started run passes through: each checks for faults and aborts on entry
 (the states of a run without motion capture in such a run, the others with mocap)."""
-
 
 FAST = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 15, "settle_time": 0.2,
                      "stop_time": 0.2, "align_time": 0.2, "resteer_time": 0.3}}  # fmt: skip
 """Spins only to get past them (no solve): the states of a run without motion capture."""
 
-
 def metrology(state: State) -> str:
     return "imu" if state in IMU_ONLY else "mocap"
-
 
 def quick(state: State) -> dict[str, Any]:
     """The overrides of the fault and abort tests: fast spins before the drive's states."""
     return FAST if state in IMU_ONLY else QUICK
-
 
 @pytest.mark.parametrize("state", STARTED, ids=str)
 def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
@@ -292,7 +159,6 @@ def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
     assert run.status.reason.startswith(f"robot fault: {FAULT} (during {state}: ")
     assert stopped_after(rig, rig.entered_at[state])
     assert not rig.kinematics.exists()
-
 
 @pytest.mark.parametrize("state", STARTED, ids=str)
 def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
@@ -316,7 +182,6 @@ def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
     # abort came at a state's entry: the run ended before robot time moved on much
     assert rig.clock.now() - t_abort[0] < 0.05
 
-
 def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
     """PENDING: aborted before its thread ran.  The first state's entry check ends it
     ABORTED before that state's first command: nothing is activated or moved."""
@@ -332,7 +197,6 @@ def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
     assert {c[1] for c in rig.robot.log} <= {"stop_all", "release"}, rig.robot.log
     assert not rig.kinematics.exists()
 
-
 def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) -> None:
     """A command refused because the driver had just stopped on a fault: the fault is the
     reason, the refusal only its consequence (the order a real driver gives them in)."""
@@ -347,10 +211,6 @@ def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) ->
     assert run.status.state is State.FAILED
     assert run.status.reason is not None and run.status.reason.startswith(f"robot fault: {FAULT}")
     assert any("then RuntimeError: cannot hold" in e for e in run.status.errors)
-
-
-# --------------------------------------------------------------------------- timeouts
-
 
 @pytest.mark.parametrize(
     ("state", "knob", "how"),
@@ -388,7 +248,6 @@ def test_a_step_that_outlasts_step_timeout_fails_the_run(
     assert 5.0 <= rig.clock.now() - rig.entered_at[state] < 5.2
     assert stopped_after(rig, rig.entered_at[state])
 
-
 def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Path) -> None:
     """1 m at 0.05 m/s: the drive itself (after its rest) times out 5 s after its torque."""
     rig = Rig(tmp_path, {**FAST, "limits": {"step_timeout": 5.0}}, "imu", drive_speed=0.05)
@@ -399,10 +258,6 @@ def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Pat
     t_torque = max(t for t, what, _ in rig.robot.log if what == "wheel_torque")
     assert 5.0 <= rig.clock.now() - t_torque < 5.05
     assert stopped_after(rig, t_torque)
-
-
-# --------------------------------------------------------------------------- without mocap
-
 
 @pytest.mark.parametrize("state", [State.MARK, State.MEASURE], ids=str)
 def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
@@ -422,7 +277,6 @@ def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
     assert 3.0 < rig.clock.now() - rig.entered_at[state] < 3.05
     assert stopped_after(rig, rig.entered_at[state])
     assert not rig.kinematics.exists()
-
 
 def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     """continue only in MARK, references only in MEASURE, a straight drive without times
@@ -471,7 +325,6 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     assert isinstance(run.metrology, ImuMetrology) and drive is not None
     assert [(r.kind, getattr(r, "start", None)) for r in refs][-1] == ("straight_drive", drive[0])
 
-
 def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path: Path) -> None:
     rig = Rig(tmp_path, FAST, "imu", mocap_on=False)
     rig.hooks[State.SPIN] = lambda run: setattr(rig.robot, "gyro_on", False)
@@ -480,7 +333,6 @@ def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path:
     assert run.status.state is State.FAILED and reason.startswith("gyro stale: no sample for")
     assert "(limit 0.500 s)" in reason and "(during SPIN" in reason
     assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
-
 
 def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_speed(
     tmp_path: Path,
@@ -496,7 +348,6 @@ def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_spe
     assert re.match(r"drive speed 0\.\d\d m/s exceeds limits.max_drive_speed 0.5 \(during DRIVE",
                     reason), reason  # fmt: skip
     assert stopped_after(rig, rig.entered_at[State.DRIVE])
-
 
 def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_path: Path) -> None:
     """Defence in depth (the API refuses these with 422): FAILED before CONNECT, nothing
@@ -515,10 +366,6 @@ def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_pa
         "(drive straight, or give a wheel_radius)"
     ]
 
-
-# --------------------------------------------------------------------------- mocap
-
-
 def test_motion_capture_going_silent_during_a_spin_fails_the_run(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
     rig.hooks[State.SPIN] = lambda run: setattr(rig.robot, "mocap_on", False)
@@ -528,7 +375,6 @@ def test_motion_capture_going_silent_during_a_spin_fails_the_run(tmp_path: Path)
     assert "(limit 0.500 s)" in run.status.reason and "(during SPIN" in run.status.reason
     # stale after 0.5 s without a pose: caught at the next check (every poll of 20 ms)
     assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
-
 
 def test_precheck_refuses_unready_nodes_and_an_unsynchronised_mocap_before_any_motion(
     tmp_path: Path,
@@ -546,7 +392,6 @@ def test_precheck_refuses_unready_nodes_and_an_unsynchronised_mocap_before_any_m
     assert moved == []  # nothing was commanded to move
     assert rig.clock.now() - rig.entered_at[State.PRECHECK] == pytest.approx(5.0, abs=0.02)
 
-
 def test_a_spin_faster_than_the_yaw_rate_limit_fails_the_run(tmp_path: Path) -> None:
     rig = Rig(tmp_path, {"limits": {"max_yaw_rate": 0.4}}, spin_rate=0.5)
     run = rig.run()
@@ -554,7 +399,6 @@ def test_a_spin_faster_than_the_yaw_rate_limit_fails_the_run(tmp_path: Path) -> 
     assert run.status.reason is not None
     assert run.status.reason.startswith("yaw rate 0.50 rad/s exceeds the limit 0.4 (during SPIN")
     assert stopped_after(rig, rig.entered_at[State.SPIN])
-
 
 def test_late_poses_open_each_window_on_a_steady_spin(tmp_path: Path) -> None:
     """Poses arriving 2 s after they were sampled, stamped exactly: each window opens at the
@@ -576,10 +420,6 @@ def test_late_poses_open_each_window_on_a_steady_spin(tmp_path: Path) -> None:
     for seg in run.segments:  # spinning from the window's first pose on
         m = (t >= seg.start) & (t <= seg.start + 0.2)
         assert np.polyfit(t[m], yaw[m], 1)[0] == pytest.approx(0.5, rel=0.02)
-
-
-# --------------------------------------------------------------------------- install policy
-
 
 def test_install_policies(tmp_path: Path) -> None:
     """Outside tolerance: reported, not installed, the file in force untouched; ``always``
@@ -608,7 +448,6 @@ def test_install_policies(tmp_path: Path) -> None:
     assert run.result_doc is not None and run.result_doc["within_tolerance"] is True
     assert rig.kinematics.exists()
 
-
 def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path) -> None:
     """robot.yaml with modules 1 and 3 on each other's corners: every fixed point is far
     from where that robot puts it.  FAILED with the solver's one-line reason; the file in
@@ -636,12 +475,10 @@ def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path
     assert not (run.run_dir / "kinematics.yaml").exists()
     assert (run.run_dir / "dataset" / "poses.csv").exists()  # the data is kept
 
-
 def test_terminal_states_have_no_way_out() -> None:
     assert not (set(TRANSITIONS) & TERMINAL)
     reachable = {State.PENDING} | {b for v in TRANSITIONS.values() for b in v}
     assert reachable | TERMINAL == set(State)
-
 
 def test_spin_window_unwraps_measures_its_rate_and_opens_once_settled() -> None:
     """The spin's pure core: fed 10 s of poses at 100 Hz turning at 0.5 rad/s through the

@@ -15,7 +15,7 @@ def settings(**kw: object) -> ServiceSettings:
 
 
 def test_the_in_process_simulator_gets_the_robots_own_windows() -> None:
-    """Lockstep: a busy host cannot fault the run, so nothing is widened (issue 18)."""
+    """Lockstep: a busy host cannot fault the run, so nothing is widened."""
     cfg = RobotConfig()
     b = timing_budget(settings(), cfg)
     assert (b.watchdog, b.heartbeat_loss, b.mocap_stale) == (0.2, 0.3, 0.5)

@@ -1,4 +1,4 @@
-"""Square-path validation drive (issue 6, "Validation drive").
+"""Square-path validation drive.
 
 Pure parts (path, follower, statistics, odometry feed from the real driver's feedback type)
 run instantly; the end-to-end test drives the in-process simulator through CAN (python-can
@@ -146,7 +146,7 @@ def test_report_means_reduction_and_table() -> None:
 
 
 def test_report_of_three_files_gives_each_its_reduction_against_the_first() -> None:
-    """nominal, mocap-calibrated, IMU-calibrated (issue 20): one reduction each."""
+    """nominal, mocap-calibrated, IMU-calibrated: one reduction each."""
     opt = SquareOptions(runs=1, directions=("ccw",))
     res = [
         _result("nominal", "ccw", 0, 0.20, math.radians(4.0)),

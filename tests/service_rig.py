@@ -1,0 +1,119 @@
+"""The real service as the tests open it: its token, a service on the in-process simulator
+with a bus of ours on its CAN channel (:class:`Sim`), one not connected to any robot
+(:func:`app_without_robot`), and the requests and readings the tests share.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+from pydantic import SecretStr
+
+from firmware_protocol import codec
+from services.config.robot import ConfigOverrides
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runtime.runtime import Runtime
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository's root."""
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def overrides(doc: dict[str, Any]) -> dict[str, Any]:
+    return ConfigOverrides.model_validate(doc).document()
+
+
+#: overrides that cannot succeed, each with the words of its refusal (before any motion)
+PRE_MOTION_REFUSALS: list[tuple[dict[str, Any], str]] = [
+    ({"protocol": {"modules": [1]}}, "modules [2, 3, 4] are never locked"),
+    ({"protocol": {"angles_deg": [0, 360]}}, "modulo 360"),
+    ({"protocol": {"angles_deg": [1e300, -1e300]}}, "within +-360 deg"),
+    (
+        {"protocol": {"sweep_deg": 1440}, "limits": {"max_yaw_rate": 0.3}},
+        "takes at least 86.8 s at limits.max_yaw_rate 0.3 rad/s",
+    ),
+    ({"protocol": {"settle_time": 61}}, "settle_time: 61 s is not shorter"),
+    ({"limits": {"step_timeout": 2}}, "resteer_time: 2.5 s is not shorter"),
+    ({"robot": "other"}, "not this service's robot"),
+    ({"nodes": {1: 4, 2: 3, 3: 2, 4: 1}}, "CAN node map"),
+]
+
+
+def app_without_robot(tmp_path: Path, **settings: Any) -> Any:
+    """The real app on a real runtime that is not connected to a robot (no bus, no
+    simulator): what the API does before and after a run."""
+    cfg = ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN), **settings)
+    return create_app(cfg, runtime_factory=Runtime)
+
+
+def families(text: str) -> dict[str, Any]:
+    return {f.name: f for f in text_string_to_metric_families(text)}
+
+
+#: a run of the whole protocol with short steps (as tests/test_service.py's quick one)
+SHORT_STEPS = {"protocol": {"sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5,
+                      "align_time": 0.5, "resteer_time": 1.5}}  # fmt: skip
+
+
+@dataclass
+class Sim:
+    """The service on the in-process simulator, and a bus of ours on its CAN channel."""
+
+    client: TestClient
+    rt: Runtime
+    bus: can.BusABC
+
+    def host_frames(self) -> list[can.Message]:
+        """The commands a host sent since the last call (drained from our bus's queue: the
+        virtual bus hands every frame to every other bus on the channel as it is sent)."""
+        out = []
+        while (msg := self.bus.recv(0)) is not None:
+            if not msg.is_error_frame and codec.split_id(msg.arbitration_id)[1] in (
+                codec.HOST_COMMANDS
+            ):
+                out.append(msg)
+        return out
+
+    def wait(self, run_id: str, states: set[str]) -> dict[str, Any]:
+        return wait_state(self.client, run_id, states, timeout=60.0)
+
+
+@contextmanager
+def sim_service(data: Path, **settings: Any) -> Iterator[Sim]:
+    app = create_app(ServiceSettings(data_dir=data, token=SecretStr(TOKEN), **settings))
+    with TestClient(app) as client:
+        rt: Runtime = app.state.runtime
+        with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
+            yield Sim(client, rt, bus)
+
+
+def send(client: TestClient, overrides: str, install: str = "if-within-tolerance") -> Any:
+    """POST /calibrations with ``overrides`` as written (NaN and Infinity included)."""
+    body = f'{{"overrides":{overrides},"install":"{install}"}}'
+    return client.post(
+        "/calibrations", content=body, headers={**AUTH, "content-type": "application/json"}
+    )
+
+
+def wait_state(
+    client: TestClient, run_id: str, states: set[str], timeout: float = 240.0
+) -> dict[str, Any]:
+    """Poll the run until its state is one of ``states``; its status then.  ``timeout``
+    (wall s) is a guard against a hang, never a judgement of speed."""
+    deadline = time.monotonic() + timeout
+    while True:
+        st: dict[str, Any] = client.get(f"/calibrations/{run_id}").json()
+        if st["state"] in states:
+            return st
+        assert time.monotonic() < deadline, f"run {run_id} never reached {states}: {st}"
+        time.sleep(0.01)

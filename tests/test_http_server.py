@@ -1,0 +1,82 @@
+"""The real HTTP server (uvicorn with services.http.server.GuardedH11) on a loopback port:
+idle connections are closed and health still answers.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from pydantic import SecretStr
+
+from services.config.settings import ServiceSettings
+from services.http.app import create_app
+from services.runtime.runtime import Runtime
+from swpc_hw.zenoh_session import free_tcp_endpoint
+from tests.service_rig import (
+    TOKEN,
+)
+
+
+@pytest.fixture()
+def server(tmp_path: Path) -> Iterator[tuple[str, int]]:
+    from services.http.server import server as make_server
+
+    app = create_app(
+        ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN)), runtime_factory=Runtime
+    )
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    srv = make_server(
+        app, host="127.0.0.1", port=port, header_timeout=0.5, max_connections=8,
+        log_level="warning",
+    )  # fmt: skip
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not srv.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "server did not start"
+        time.sleep(0.01)
+    try:
+        yield "127.0.0.1", port
+    finally:
+        srv.should_exit = True
+        thread.join(10)
+
+
+def closed_by_peer(sock: socket.socket, within: float) -> bool:
+    """The server closed ``sock`` within ``within`` host seconds (a guard: it may well
+    be sooner)."""
+    sock.settimeout(within)
+    try:
+        return sock.recv(1) == b""
+    except TimeoutError:
+        return False
+    except ConnectionResetError:
+        return True
+
+
+def test_idle_connections_are_closed_and_health_still_answers(server: tuple[str, int]) -> None:
+    host, port = server
+    # 3 times the connection cap, silent or sending half a request head: each one held a
+    # file descriptor for ever (256 of them: /health unanswered for 50 s)
+    idle = []
+    for i in range(24):
+        s = socket.create_connection((host, port))
+        if i % 2:
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")  # never finished
+        idle.append(s)
+    r = httpx.get(f"http://{host}:{port}/health", timeout=20)
+    assert r.status_code == 503  # answered (no robot here: failing)
+    # every one of them is closed: the head timeout (0.5 s) or the cap (8)
+    assert all(closed_by_peer(s, 20.0) for s in idle)
+    for s in idle:
+        s.close()
+    # a client that sends its request in time is served, on a kept-alive connection too
+    with httpx.Client(base_url=f"http://{host}:{port}", timeout=20) as c:
+        assert c.get("/health").status_code == 503
+        assert c.get("/kinematics").status_code == 404
