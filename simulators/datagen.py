@@ -1,4 +1,4 @@
-"""Simulated calibration experiment (CONVENTIONS.md, "The calibration experiment").
+"""Simulated calibration experiment (docs/model-and-frames.md, "The calibration experiment").
 
 :func:`generate_experiment` plays the whole seed method on a hidden *truth* robot and
 returns a :class:`~swpc_hw.dataset.Dataset` (whose ``robot`` is the *nominal* robot, never
@@ -46,7 +46,7 @@ Outputs: poses (t, x, y, yaw) at ``pose_rate`` with **yaw wrapped to (-pi, pi]**
 encoders at ``encoder_rate`` for every module with reported steering
 ``theta_hat = theta - beta`` **wrapped to (-pi, pi]** (the static module reports its held
 angle) and cumulative wheel angle ``psi`` (not wrapped).  Trailing wheels turn backwards
-(``psi`` decreasing) in the sign convention of CONVENTIONS.md.
+(``psi`` decreasing) in the sign convention of docs/model-and-frames.md.
 
 Clock offset convention (dataset): ``time_offset = encoder clock - pose clock``; an
 encoder row stamped ``t_e`` was sampled at pose-clock time ``t_e - clock_offset``.

@@ -1,4 +1,4 @@
-"""Pure-numpy physics core of the SWPC simulators (model and symbols of CONVENTIONS.md).
+"""Pure-numpy physics core of the SWPC simulators (model and symbols of docs/model-and-frames.md).
 
 State of the robot: planar pose ``(x, y, yaw)`` of R in W, and per module its *true*
 steering angle ``theta`` (relative to the body) and cumulative wheel angle ``psi``.

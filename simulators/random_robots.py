@@ -5,7 +5,7 @@ trials, ``N`` modules, ``M`` steering angles of the static module, ``K`` poses p
 Index ``k`` of the second axis is the static module, ``m`` the angle; the last ``N`` axis
 of per-module arrays is the module ``j``.
 
-Sign conventions (CONVENTIONS.md):
+Sign conventions (docs/model-and-frames.md):
 
 * the body rotates about the true contact point ``C = P_s,k + b_k u(a_m + beta_k)`` of the
   static module by ``dyaw = sweep`` (``sweep > 0``: counter-clockwise);

@@ -1,4 +1,4 @@
-"""Offline calibration dataset (directory format of CONVENTIONS.md).
+"""Offline calibration dataset (directory format of docs/dataset-format.md).
 
 ::
 

@@ -1,6 +1,6 @@
 """Kinematic file (``format: swpc-kinematics/1``): load with validation, save atomically.
 
-Schema (CONVENTIONS.md)::
+Schema (docs/kinematic-file.md)::
 
     format: swpc-kinematics/1
     robot: <robot id>

@@ -1,4 +1,4 @@
-"""Kinematic model of an SWPC robot (exactly the model of CONVENTIONS.md).
+"""Kinematic model of an SWPC robot (exactly the model of docs/model-and-frames.md).
 
 Per module i: steering axis ``P_s = (x_s, y_s)`` in the robot frame R, homing error
 ``beta`` (true minus reported steering angle), caster offset ``b`` and wheel radius ``r``.

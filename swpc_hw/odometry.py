@@ -1,6 +1,6 @@
 """Onboard odometry: integrate steering and wheel encoders of all modules into the robot pose.
 
-Model (CONVENTIONS.md), per module i with true steering ``theta = theta_hat + beta``,
+Model (docs/model-and-frames.md), per module i with true steering ``theta = theta_hat + beta``,
 ``u = (cos theta, sin theta)``, ``n = (sin theta, -cos theta)``, ``c = v + omega x P_s``::
 
     v + omega x P_w = r psi_dot u + b theta_dot n          (P_w = P_s + b u)
@@ -22,7 +22,7 @@ mean direction is therefore, to fourth order in the step,
     theta_e = theta_hat0 + dtheta / 2 + beta - r dpsi dtheta / (12 b)
 
 (the midpoint angle, corrected by the steering curvature).  Dividing by ``s`` gives the
-model of CONVENTIONS.md at an *effective* contact point ``Q``::
+model of docs/model-and-frames.md at an *effective* contact point ``Q``::
 
     v + omega x Q_i = g_i,     Q_i = P_s,i + (b_i / s_i) u(theta_e,i),
                                g_i = (r_i dpsi_i u(theta_e,i) + b_i dtheta_i n(theta_e,i)) / (s_i h)

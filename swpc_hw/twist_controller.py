@@ -1,6 +1,6 @@
 """Controller helper: steering and wheel rates that realise a commanded robot twist.
 
-Inverse kinematics of the no-slip model (CONVENTIONS.md), per module at the current
+Inverse kinematics of the no-slip model (docs/model-and-frames.md), per module at the current
 reported steering ``theta_hat`` (true ``theta = theta_hat + beta``)::
 
     r psi_dot   = (v + omega x P_w) . u(theta)

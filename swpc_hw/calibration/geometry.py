@@ -1,7 +1,7 @@
 """Closed-form geometry of the calibration experiment (pure functions, batched).
 
 Every function accepts arbitrary leading batch dimensions ``(...)`` so that thousands of
-robots can be processed in one numpy call.  Notation (CONVENTIONS.md): during a spin
+robots can be processed in one numpy call.  Notation (docs/model-and-frames.md): during a spin
 about the locked module k the body point ``C_R`` (the contact point, in R) stays at
 ``C_W`` in the world::
 
