@@ -1,4 +1,4 @@
-"""Physics of the whole virtual robot under its controllers' commands (model of docs/model-and-frames.md).
+"""Physics of the whole virtual robot under its drives (model of docs/model-and-frames.md).
 
 :class:`RobotPhysics` holds the hidden *true* robot (``RobotParams``, default the paper's Table 4
 calibrated values), the pose of R in W, and per module the true steering angle ``theta``

@@ -14,7 +14,8 @@ import numpy as np
 from services.config.robot import RobotConfig
 from services.runs.imu import ImuMetrology
 from services.runs.mocap import MocapMetrology
-from services.runs.protocol import CalibrationRun, State
+from services.runs.protocol import CalibrationRun
+from services.runs.state import State
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from simulators.imu_sim import axis_travel

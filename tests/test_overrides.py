@@ -14,7 +14,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.config.robot import MotionLimits, RobotConfig, Tolerances
-from services.runs.protocol import State
+from services.runs.state import State
 from tests.run_rig import Rig
 from tests.service_rig import (
     PRE_MOTION_REFUSALS,

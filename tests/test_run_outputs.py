@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
 from services.config.settings import ServiceSettings
-from services.runs.protocol import State
+from services.runs.state import State
 from services.runtime.runtime import Runtime
 from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import KinematicFileError

@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from services.runs.protocol import State
+from services.runs.state import State
 from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.paper_robot import PAPER_NOMINAL
@@ -76,7 +76,7 @@ KILLED = textwrap.dedent(
     from pathlib import Path
     sys.path.insert(0, {root!r})
     from tests.run_rig import Rig
-    from services.runs.protocol import State
+    from services.runs.state import State
 
     rig = Rig(Path(sys.argv[1]))
     rig.run_kwargs["mcap"] = True

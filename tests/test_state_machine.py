@@ -21,7 +21,8 @@ import pytest
 
 from services.runs.imu import ImuMetrology
 from services.runs.mocap import MocapMetrology
-from services.runs.protocol import TERMINAL, TRANSITIONS, CalibrationRun, State
+from services.runs.protocol import CalibrationRun
+from services.runs.state import TERMINAL, TRANSITIONS, State
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import PARAM_NAMES
 from swpc_hw.references import WheelRadius

@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.config.robot import ConfigOverrides, OverrideError, RobotConfig
 from services.http.answers import ReferenceIn, entries, refused
-from services.http.deps import AUTH, GUARDED, Rt, not_running, problems
+from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
 from services.runs.state import RunStatus
 from services.runtime.runtime import DiskSpaceError, NoResultError, RunConflictError, StoreError
@@ -139,12 +139,7 @@ def get_run(run_id: str, rt: Rt) -> dict[str, Any]:
 
 @router.get("/calibrations/{run_id}/result", responses=problems(404, 409))
 def get_result(run_id: str, rt: Rt) -> dict[str, Any]:
-    got = rt.result(run_id)
-    if got is None:
-        raise HTTPException(404, f"no calibration {run_id}")
-    state, doc = got
-    if state != "DONE" or doc is None:
-        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    doc = done_result(rt, run_id)
     return doc
 
 

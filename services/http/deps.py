@@ -105,3 +105,15 @@ def not_running(rt: Runtime, run_id: str) -> HTTPException:
     if rt.status(run_id) is None:
         return HTTPException(404, f"no calibration {run_id}")
     return HTTPException(409, f"calibration {run_id} is not running")
+
+
+def done_result(rt: Runtime, run_id: str) -> dict[str, Any]:
+    """A DONE run's result document: 404 for a run never seen, 409 for one without a
+    result."""
+    got = rt.result(run_id)
+    if got is None:
+        raise HTTPException(404, f"no calibration {run_id}")
+    state, doc = got
+    if state != "DONE" or doc is None:
+        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    return doc

@@ -38,7 +38,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import Tolerances
-from services.http.deps import AUTH, GUARDED, FiniteJSONResponse, Problem, Rt, problems
+from services.http.deps import AUTH, GUARDED, FiniteJSONResponse, Problem, Rt, done_result, problems
 from services.runs.install import BACKUP_STAMP, backup_kinematics
 from services.runtime.runtime import Runtime
 from services.store.logs import event
@@ -416,12 +416,7 @@ def install(run_id: str, rt: Rt, request: Request) -> InstallResult:
     responses=problems(404, 409),
 )
 def comparison(run_id: str, rt: Rt) -> Comparison:
-    got = rt.result(run_id)
-    if got is None:
-        raise HTTPException(404, f"no calibration {run_id}")
-    state, doc = got
-    if state != "DONE" or doc is None:
-        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    doc = done_result(rt, run_id)
     path = rt.settings.kinematics_file
     info = describe(path) if present(path) else None
     in_force = load_kinematics(path) if info is not None and info.valid else None

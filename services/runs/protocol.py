@@ -76,19 +76,13 @@ import numpy as np
 
 from services.config.robot import RobotConfig
 from services.runs.install import solve_run, within_tolerance, write_result
-from services.runs.journal import RECORD_PERIOD, RunJournal
+from services.runs.journal import RunJournal
 from services.runs.machine import RunMachine
 from services.runs.metrology import Metrology
-from services.runs.pose_motion import motion_rates
 from services.runs.recording import SpaceGuard
 from services.runs.state import (
-    MOTION,
-    TERMINAL,
-    TRANSITIONS,
-    PersistError,
     RunAbortedError,
     RunFailedError,
-    RunStatus,
     State,
     now_iso,
 )
@@ -99,20 +93,6 @@ from swpc_hw.dataset import Dataset, load_dataset
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
 from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
-
-__all__ = [  # the run's vocabulary, importable from here as before the split
-    "MOTION",
-    "RECORD_PERIOD",
-    "TERMINAL",
-    "TRANSITIONS",
-    "CalibrationRun",
-    "PersistError",
-    "RunAbortedError",
-    "RunFailedError",
-    "RunStatus",
-    "State",
-    "motion_rates",
-]
 
 
 class CalibrationRun(RunMachine):

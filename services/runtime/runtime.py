@@ -40,8 +40,9 @@ from services.config.timing import TimingBudget, robot_drives, timing_budget
 from services.runs.imu import ImuMetrology
 from services.runs.metrology import Metrology
 from services.runs.mocap import MocapMetrology
-from services.runs.protocol import TERMINAL, CalibrationRun, State
+from services.runs.protocol import CalibrationRun
 from services.runs.recording import SpaceGuard
+from services.runs.state import TERMINAL, State
 from services.runtime.events import EventBus
 from services.runtime.simulator import in_process_simulator
 from services.sensors.gyro import GyroIngest

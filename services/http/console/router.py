@@ -39,8 +39,9 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from pydantic import BaseModel, Field
 
-from services.http.deps import Problem, Rt, problems
-from services.runs.protocol import TERMINAL, CalibrationRun
+from services.http.deps import Problem, Rt, done_result, problems
+from services.runs.protocol import CalibrationRun
+from services.runs.state import TERMINAL
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.dataset import load_dataset
@@ -375,12 +376,7 @@ def geometry(run_id: str, rt: Rt) -> RunGeometry:
     key = (str(rt.data_dir), run_id)
     if key in _geometry_cache:
         return _geometry_cache[key]
-    got = rt.result(run_id)
-    if got is None:
-        raise HTTPException(404, f"no calibration {run_id}")
-    state, doc = got
-    if state != "DONE" or doc is None:
-        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+    doc = done_result(rt, run_id)
     try:
         ds = load_dataset(Path(rt.settings.data_dir) / "runs" / run_id / "dataset")
     except SwpcError as exc:
