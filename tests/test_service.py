@@ -414,21 +414,3 @@ def test_second_start_conflicts_and_auth_and_bad_config(
     client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
     assert wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
     assert client.get("/calibrations/nope").status_code == 404
-
-
-def test_restart_lists_past_runs_and_fails_interrupted_ones(tmp_path: Path) -> None:
-    from services.store.runs import RunStore
-
-    store = RunStore(tmp_path / "runs.sqlite")
-    store.upsert("a1", "2026-01-01T00:00:00Z", {"id": "a1", "state": "DONE", "created": "x"})
-    store.set_result("a1", {"run": "a1", "modules": []})
-    store.upsert("b2", "2026-01-01T00:01:00Z", {"id": "b2", "state": "SPIN", "created": "y"})
-    store.close()
-    store = RunStore(tmp_path / "runs.sqlite")  # "restart"
-    assert store.mark_interrupted() == ["b2"]
-    states = {r["id"]: r["state"] for r in store.list()}
-    assert states == {"a1": "DONE", "b2": "FAILED"}
-    got = store.get("b2")
-    assert got is not None and got[0]["reason"] == "service restarted during the run"
-    got = store.get("a1")
-    assert got is not None and got[1] == {"run": "a1", "modules": []}

@@ -267,15 +267,36 @@ class ServiceSettings(BaseSettings):
     def token_file(self) -> Path:
         return self.data_dir / TOKEN_FILE
 
+    def ensure_data_dir(self) -> Path:
+        """The data dir, made if missing; :class:`SettingsError` naming ``SWPC_DATA_DIR``
+        when it cannot be one (a file is there, no permission, ...)."""
+        path = self.data_dir
+        if path.exists() and not path.is_dir():
+            raise SettingsError(
+                f"SWPC_DATA_DIR={path}: not a directory (a file is there): point it at a "
+                "directory, or remove the file"
+            )
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SettingsError(
+                f"SWPC_DATA_DIR={path}: cannot make the data dir: {exc.strerror or exc}"
+            ) from exc
+        return path
+
     def ensure_token(self) -> str:
         """The configured token (checked); on loopback with none set, the one kept in
-        ``<data dir>/api-token`` (mode 0600, created on first use).  Never printed."""
+        ``<data dir>/api-token`` (mode 0600, created on first use, tightened to 0600 when
+        found looser).  Never printed."""
         token = self.check_token()
         if token is not None:
             return token
         path = self.token_file
+        self.ensure_data_dir()
         try:
             kept = path.read_text(encoding="utf-8").strip()
+            if path.stat().st_mode & 0o077:
+                os.chmod(path, 0o600)  # a secret: the service's user only
         except FileNotFoundError:
             kept = ""
         except (OSError, UnicodeDecodeError) as exc:

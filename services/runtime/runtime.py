@@ -42,7 +42,7 @@ from services.runs.metrology import Metrology
 from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.recording import SpaceGuard
-from services.runs.state import TERMINAL, State
+from services.runs.state import TERMINAL, State, now_iso
 from services.runtime.events import EventBus
 from services.runtime.simulator import in_process_simulator
 from services.sensors.gyro import GyroIngest
@@ -121,15 +121,14 @@ class Runtime:
         )
         # the robot's gyro (a run without motion capture), stamped with wall time
         self.gyro = GyroIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
-        self.data_dir = Path(settings.data_dir)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.data_dir = settings.ensure_data_dir()
         # before anything in the data dir is touched: a second service stops here
         self.dir_lock = DataDirLock(self.data_dir).acquire()
         self.channel_lock: ChannelLock | None = None
         try:
             self._apply_file_group()
             self.store = RunStore(self.data_dir / "runs.sqlite")
-            self.interrupted = self.store.mark_interrupted()
+            self.interrupted = self.store.mark_interrupted(found=now_iso())
         except BaseException:
             self.dir_lock.release()
             raise

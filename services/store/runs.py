@@ -1,7 +1,10 @@
 """Persistent run store (SQLite in the data dir).
 
 A restarted service lists past runs and their results; a run that was in progress when
-the service died is marked FAILED with the reason ``service restarted during the run``.
+the service died is marked FAILED with the reason ``service restarted during the run`` and
+the time it was found so.  The store is checked when it opens (SQLite's ``quick_check``):
+a damaged one is :class:`RunStoreError`, one line naming the file and how to recover,
+before the service touches anything else.
 """
 
 from __future__ import annotations
@@ -12,6 +15,8 @@ import threading
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+from swpc_hw.errors import SwpcError
 
 TERMINAL = ("DONE", "FAILED", "ABORTED")
 
@@ -27,17 +32,34 @@ CREATE TABLE IF NOT EXISTS runs (
 """
 
 
+class RunStoreError(SwpcError):
+    """The run store cannot be opened: damaged, or not a database (module docstring)."""
+
+
 class RunStore:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute(_SCHEMA)
+        try:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute(_SCHEMA)
+            check = self._db.execute("PRAGMA quick_check").fetchone()
+            if check is None or check[0] != "ok":
+                raise sqlite3.DatabaseError(f"quick_check: {check[0] if check else 'no answer'}")
+            self._db.execute("SELECT count(*) FROM runs").fetchone()
+        except sqlite3.DatabaseError as exc:
+            self._db.close()
+            raise RunStoreError(
+                f"{self.path}: the run store is damaged ({exc}); move it aside (mv "
+                f"{self.path} {self.path}.damaged) and start again: a new store is made, and "
+                f"every run's data stays in {self.path.parent / 'runs'}"
+            ) from exc
 
-    def mark_interrupted(self) -> list[str]:
-        """Mark every non-terminal run FAILED (called at start-up); returns their ids."""
+    def mark_interrupted(self, found: str) -> list[str]:
+        """Mark every non-terminal run FAILED, finished at ``found`` (when the service
+        found it so, at start-up); returns their ids."""
         with self._lock:
             rows = self._db.execute(
                 "SELECT id, status FROM runs WHERE state NOT IN (?, ?, ?)", TERMINAL
@@ -47,6 +69,7 @@ class RunStore:
                 st["state"] = "FAILED"
                 st.setdefault("errors", []).append("service restarted during the run")
                 st["reason"] = "service restarted during the run"
+                st["finished"] = found
                 self._db.execute(
                     "UPDATE runs SET state = 'FAILED', status = ?, updated = datetime('now') "
                     "WHERE id = ?",
