@@ -45,6 +45,7 @@ EDGES = {(a, b) for a, targets in TRANSITIONS.items() for b in targets} | {
 TAKEN: dict[str, set[tuple[State, State]]] = {}
 """The edges each run of the path tests took (every edge of the table, over all)."""
 
+
 def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Path) -> None:
     rig = Rig(tmp_path, homed=False)  # unhomed: CONNECT homes the steering
     run = rig.run()
@@ -71,6 +72,7 @@ def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Pa
     assert cov.shape == (15, 15)
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), std.ravel(), rtol=1e-9)
     assert load_kinematics(run.run_dir / "kinematics.yaml").covariance == k.covariance
+
 
 def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) -> None:
     """The gyro, the encoders and the tape only (the motion capture silent all along):
@@ -103,6 +105,7 @@ def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) 
         assert abs(f.z) < 3.0, str(f)
         assert abs(f.error) < (math.radians(0.02) if f.unit == "deg" else 0.05e-3), str(f)
 
+
 def test_a_run_without_a_drive_rests_after_the_last_spin(tmp_path: Path) -> None:
     """``protocol.drive_length: 0`` with wheel_radius references: RELEASE -> STILL ->
     SOLVE (the gyro's bias after the last spin), no operator step."""
@@ -115,11 +118,13 @@ def test_a_run_without_a_drive_rests_after_the_last_spin(tmp_path: Path) -> None
     assert (State.RELEASE, State.STILL) in taken and (State.STILL, State.SOLVE) in taken
     assert not {State.STEER, State.MARK, State.DRIVE, State.MEASURE} & set(rig.states)
 
+
 def test_the_path_tests_took_every_edge_of_the_table() -> None:
     """Both metrologies together: every edge of TRANSITIONS (run after the path tests)."""
     if len(TAKEN) < 3:
         pytest.skip("needs the three path tests of this module in the same session")
     assert set().union(*TAKEN.values()) == EDGES
+
 
 def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
@@ -133,6 +138,7 @@ def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     run.enter(State.FAILED, "any state may fail")
     assert run.status.state is State.FAILED
 
+
 STARTED = [s for s in TRANSITIONS if s is not State.PENDING]
 """Every state a started run passes through: each checks for faults and aborts on entry
 (the states of a run without motion capture in such a run, the others with mocap)."""
@@ -141,12 +147,15 @@ FAST = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 15, "settle_time": 0.
                      "stop_time": 0.2, "align_time": 0.2, "resteer_time": 0.3}}  # fmt: skip
 """Spins only to get past them (no solve): the states of a run without motion capture."""
 
+
 def metrology(state: State) -> str:
     return "imu" if state in IMU_ONLY else "mocap"
+
 
 def quick(state: State) -> dict[str, Any]:
     """The overrides of the fault and abort tests: fast spins before the drive's states."""
     return FAST if state in IMU_ONLY else QUICK
+
 
 @pytest.mark.parametrize("state", STARTED, ids=str)
 def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
@@ -160,6 +169,7 @@ def test_a_fault_in_any_state_stops_the_robot_and_fails_the_run(
     assert run.status.reason.startswith(f"robot fault: {FAULT} (during {state}: ")
     assert stopped_after(rig, rig.entered_at[state])
     assert not rig.kinematics.exists()
+
 
 @pytest.mark.parametrize("state", STARTED, ids=str)
 def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
@@ -183,6 +193,7 @@ def test_an_abort_in_any_state_stops_the_robot_at_once_and_ends_aborted(
     # abort came at a state's entry: the run ended before robot time moved on much
     assert rig.clock.now() - t_abort[0] < 0.05
 
+
 def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
     """PENDING: aborted before its thread ran.  The first state's entry check ends it
     ABORTED before that state's first command: nothing is activated or moved."""
@@ -198,6 +209,7 @@ def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
     assert {c[1] for c in rig.robot.log} <= {"stop_all", "release"}, rig.robot.log
     assert not rig.kinematics.exists()
 
+
 def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) -> None:
     """A command refused because the driver had just stopped on a fault: the fault is the
     reason, the refusal only its consequence (the order a real driver gives them in)."""
@@ -212,6 +224,7 @@ def test_a_fault_before_the_first_command_is_still_the_reason(tmp_path: Path) ->
     assert run.status.state is State.FAILED
     assert run.status.reason is not None and run.status.reason.startswith(f"robot fault: {FAULT}")
     assert any("then RuntimeError: cannot hold" in e for e in run.status.errors)
+
 
 @pytest.mark.parametrize(
     ("state", "knob", "how"),
@@ -249,6 +262,7 @@ def test_a_step_that_outlasts_step_timeout_fails_the_run(
     assert 5.0 <= rig.clock.now() - rig.entered_at[state] < 5.2
     assert stopped_after(rig, rig.entered_at[state])
 
+
 def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Path) -> None:
     """1 m at 0.05 m/s: the drive itself (after its rest) times out 5 s after its torque."""
     rig = Rig(tmp_path, {**FAST, "limits": {"step_timeout": 5.0}}, "imu", drive_speed=0.05)
@@ -259,6 +273,7 @@ def test_a_straight_drive_that_outlasts_step_timeout_fails_the_run(tmp_path: Pat
     t_torque = max(t for t, what, _ in rig.robot.log if what == "wheel_torque")
     assert 5.0 <= rig.clock.now() - t_torque < 5.05
     assert stopped_after(rig, t_torque)
+
 
 @pytest.mark.parametrize("state", [State.MARK, State.MEASURE], ids=str)
 def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
@@ -271,13 +286,14 @@ def test_the_operator_not_answering_fails_the_run_after_operator_timeout(
     run = rig.run()
     reason = run.status.reason or ""
     what = "floor mark before the straight drive" if state is State.MARK else "tape measurement"
-    assert run.status.state is State.FAILED and reason.startswith(
-        f"operator timeout: no {what}"
-    ), reason
+    assert run.status.state is State.FAILED and reason.startswith(f"operator timeout: no {what}"), (
+        reason
+    )
     assert "within 3 s" in reason and f"(during {state}:" in reason
     assert 3.0 < rig.clock.now() - rig.entered_at[state] < 3.05
     assert stopped_after(rig, rig.entered_at[state])
     assert not rig.kinematics.exists()
+
 
 def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     """continue only in MARK, references only in MEASURE, a straight drive without times
@@ -326,6 +342,7 @@ def test_the_operator_is_held_to_what_the_run_waits_for(tmp_path: Path) -> None:
     assert isinstance(run.metrology, ImuMetrology) and drive is not None
     assert [(r.kind, getattr(r, "start", None)) for r in refs][-1] == ("straight_drive", drive[0])
 
+
 def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path: Path) -> None:
     rig = Rig(tmp_path, FAST, "imu", mocap_on=False)
     rig.hooks[State.SPIN] = lambda run: setattr(rig.robot, "gyro_on", False)
@@ -334,6 +351,7 @@ def test_the_gyro_going_silent_during_a_spin_fails_a_run_without_mocap(tmp_path:
     assert run.status.state is State.FAILED and reason.startswith("gyro stale: no sample for")
     assert "(limit 0.500 s)" in reason and "(during SPIN" in reason
     assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
+
 
 def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_speed(
     tmp_path: Path,
@@ -349,6 +367,7 @@ def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_spe
     assert re.match(r"drive speed 0\.\d\d m/s exceeds limits.max_drive_speed 0.5 \(during DRIVE",
                     reason), reason  # fmt: skip
     assert stopped_after(rig, rig.entered_at[State.DRIVE])
+
 
 def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_path: Path) -> None:
     """Defence in depth (the API refuses these with 422): FAILED before CONNECT, nothing
@@ -367,6 +386,7 @@ def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_pa
         "(drive straight, or give a wheel_radius)"
     ]
 
+
 def test_motion_capture_going_silent_during_a_spin_fails_the_run(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
     rig.hooks[State.SPIN] = lambda run: setattr(rig.robot, "mocap_on", False)
@@ -376,6 +396,7 @@ def test_motion_capture_going_silent_during_a_spin_fails_the_run(tmp_path: Path)
     assert "(limit 0.500 s)" in run.status.reason and "(during SPIN" in run.status.reason
     # stale after 0.5 s without a pose: caught at the next check (every poll of 20 ms)
     assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
+
 
 def test_precheck_refuses_unready_nodes_and_an_unsynchronised_mocap_before_any_motion(
     tmp_path: Path,
@@ -393,6 +414,7 @@ def test_precheck_refuses_unready_nodes_and_an_unsynchronised_mocap_before_any_m
     assert moved == []  # nothing was commanded to move
     assert rig.clock.now() - rig.entered_at[State.PRECHECK] == pytest.approx(5.0, abs=0.02)
 
+
 def test_a_spin_faster_than_the_yaw_rate_limit_fails_the_run(tmp_path: Path) -> None:
     rig = Rig(tmp_path, {"limits": {"max_yaw_rate": 0.4}}, spin_rate=0.5)
     run = rig.run()
@@ -400,6 +422,7 @@ def test_a_spin_faster_than_the_yaw_rate_limit_fails_the_run(tmp_path: Path) -> 
     assert run.status.reason is not None
     assert run.status.reason.startswith("yaw rate 0.50 rad/s exceeds the limit 0.4 (during SPIN")
     assert stopped_after(rig, rig.entered_at[State.SPIN])
+
 
 def test_late_poses_open_each_window_on_a_steady_spin(tmp_path: Path) -> None:
     """Poses arriving 2 s after they were sampled, stamped exactly: each window opens at the
@@ -421,6 +444,7 @@ def test_late_poses_open_each_window_on_a_steady_spin(tmp_path: Path) -> None:
     for seg in run.segments:  # spinning from the window's first pose on
         m = (t >= seg.start) & (t <= seg.start + 0.2)
         assert np.polyfit(t[m], yaw[m], 1)[0] == pytest.approx(0.5, rel=0.02)
+
 
 def test_install_policies(tmp_path: Path) -> None:
     """Outside tolerance: reported, not installed, the file in force untouched; ``always``
@@ -449,6 +473,7 @@ def test_install_policies(tmp_path: Path) -> None:
     assert run.result_doc is not None and run.result_doc["within_tolerance"] is True
     assert rig.kinematics.exists()
 
+
 def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path) -> None:
     """robot.yaml with modules 1 and 3 on each other's corners: every fixed point is far
     from where that robot puts it.  FAILED with the solver's one-line reason; the file in
@@ -476,10 +501,12 @@ def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path
     assert not (run.run_dir / "kinematics.yaml").exists()
     assert (run.run_dir / "dataset" / "poses.csv").exists()  # the data is kept
 
+
 def test_terminal_states_have_no_way_out() -> None:
     assert not (set(TRANSITIONS) & TERMINAL)
     reachable = {State.PENDING} | {b for v in TRANSITIONS.values() for b in v}
     assert reachable | TERMINAL == set(State)
+
 
 def test_spin_window_unwraps_measures_its_rate_and_opens_once_settled() -> None:
     """The spin's pure core: fed 10 s of poses at 100 Hz turning at 0.5 rad/s through the

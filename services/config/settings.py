@@ -26,6 +26,8 @@ _GYRO = GyroOptions().human()
 MIN_TOKEN_LENGTH = 16
 PLACEHOLDER_TOKENS = frozenset({"change-me", "changeme", "token", "secret", "password"})
 """Values a token must not have (``deploy/swpc.env.example`` ships ``change-me``)."""
+KINEMATICS_BACKUPS = 20
+"""Backups kept beside the kinematic file in force unless ``SWPC_KINEMATICS_BACKUPS`` says."""
 TOKEN_FILE = "api-token"
 """Generated on loopback when no token is set: ``<data dir>/api-token``, mode 0600."""
 
@@ -114,6 +116,14 @@ class ServiceSettings(BaseSettings):
     robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")
     data_dir: Path = Path("swpc-data")
     kinematics_path: Path | None = Field(None, description="default: <data_dir>/kinematics.yaml")
+    kinematics_backups: int = Field(
+        KINEMATICS_BACKUPS,
+        ge=1,
+        le=10_000,
+        description="backups kept beside the kinematic file in force (each install keeps the "
+        "file it replaces, unless identical to the newest backup; the oldest beyond this "
+        "number are removed)",
+    )
     file_group: str | None = Field(
         None,
         description="group that may read what the service writes (the kinematic file, run "

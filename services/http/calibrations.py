@@ -7,7 +7,8 @@
 * ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
 * ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
 * ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
-  ABORTED.
+  ABORTED and nothing is installed; 409 when it is too late: the run has finished, or
+  has begun installing its result (then that stands).
 * ``GET /calibrations/{id}/plot.png``: the run's plot, rendered once.
 """
 
@@ -155,9 +156,10 @@ async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
     run = rt.runs.get(run_id)
     if run is None:
         raise not_running(rt, run_id)
-    if run.finished:
-        raise HTTPException(409, f"calibration {run_id} is {run.status.state}")
-    run.abort()
+    if not run.abort():
+        st = run.status.state
+        why = "it has finished" if run.finished else "it is installing its result, which stands"
+        raise HTTPException(409, f"calibration {run_id} is {st}: too late to abort ({why})")
     await asyncio.to_thread(run.join, 10.0)
     return run.status.to_dict()
 

@@ -29,7 +29,6 @@ import logging
 import math
 import os
 import re
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import Tolerances
 from services.http.deps import AUTH, GUARDED, FiniteJSONResponse, Problem, Rt, done_result, problems
-from services.runs.install import BACKUP_STAMP, backup_kinematics
+from services.runs.install import BACKUP_STAMP, backup_kinematics, backups
 from services.runtime.runtime import Runtime
 from services.store.logs import event
 from swpc_hw.errors import KinematicFileError
@@ -163,19 +162,6 @@ def present(path: Path) -> bool:
     return os.path.lexists(path)
 
 
-def _backup_pattern(path: Path) -> re.Pattern[str]:
-    return re.compile(rf"^{re.escape(path.stem)}\.(\d{{8}}T\d{{12}}Z){re.escape(path.suffix)}$")
-
-
-def backups(path: Path) -> list[Path]:
-    """The backups kept beside the kinematic file ``path``, newest first."""
-    pat = _backup_pattern(path)
-    if not path.parent.is_dir():
-        return []
-    found = [p for p in path.parent.iterdir() if pat.match(p.name) and p.is_file()]
-    return sorted(found, key=lambda p: p.name, reverse=True)
-
-
 def describe(path: Path, backup: bool = False) -> FileInfo:
     """What a kinematic file says of itself (a corrupt one: ``valid`` false, the error)."""
     try:
@@ -214,20 +200,14 @@ def checked_text(source: Path) -> str:
         raise KinematicFileError(f"{source}: {exc}") from exc
 
 
-def install_text(target: Path, text: str) -> Path | None:
+def install_text(target: Path, text: str, keep: int) -> Path | None:
     """Install ``text`` at ``target`` (atomic replace, the file replaced kept as a backup,
-    whose path is returned).  ``OSError`` or :class:`KinematicFileError` (no room for the
-    backup): the file in force is untouched."""
-    backup = backup_kinematics(target)
+    ``keep`` at the most, whose path is returned).  ``OSError`` or
+    :class:`KinematicFileError` (no room for the backup): the file in force is untouched."""
+    backup = backup_kinematics(target, keep)
     target.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(target, text)
     return backup
-
-
-def install_file(target: Path, source: Path) -> Path | None:
-    """Install the kinematic file ``source`` at ``target`` (checked first: nothing is
-    touched when it does not load)."""
-    return install_text(target, checked_text(source))
 
 
 def _write_failure(exc: Exception) -> HTTPException:
@@ -296,7 +276,6 @@ WRITE_RESPONSES = {
         _507="no room on disk for the file (untouched)",
     ),
 }
-_install_lock = threading.Lock()  # one install at a time
 
 
 def files(rt: Runtime) -> KinematicFiles:
@@ -314,7 +293,7 @@ def install_checked(rt: Runtime, source: Path, request: Request, **what: Any) ->
     action = "rollback" if "restored" in what else "install"
     client = request.client.host if request.client is not None else None
     fields: dict[str, Any] = {"action": action, **what, "client": client}
-    with _install_lock:
+    with rt.lock:  # the runtime's: no run starts during an install
         if rt.running():
             why = "a calibration is running: the file is not changed"
             event(log, logging.WARNING, "kinematics.install_refused", **fields, reason=why)
@@ -329,7 +308,7 @@ def install_checked(rt: Runtime, source: Path, request: Request, **what: Any) ->
                 [{"loc": ["body"], "msg": f"not installed: {exc}", "type": "value_error"}]
             ) from exc
         try:
-            backup = install_text(path, text)
+            backup = install_text(path, text, rt.settings.kinematics_backups)
         except (OSError, KinematicFileError) as exc:
             failure = _write_failure(exc)
             event(

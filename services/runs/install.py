@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import filecmp
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,12 +63,33 @@ BACKUP_STAMP = "%Y%m%dT%H%M%S%fZ"
 """UTC time in a backup's name: ``<stem>.<stamp><suffix>`` beside the file in force."""
 
 
-def backup_kinematics(path: Path) -> Path | None:
+def _backup_pattern(path: Path) -> re.Pattern[str]:
+    return re.compile(rf"^{re.escape(path.stem)}\.(\d{{8}}T\d{{12}}Z){re.escape(path.suffix)}$")
+
+
+def backups(path: Path) -> list[Path]:
+    """The backups kept beside the kinematic file ``path``, newest first."""
+    pat = _backup_pattern(path)
+    if not path.parent.is_dir():
+        return []
+    found = [p for p in path.parent.iterdir() if pat.match(p.name) and p.is_file()]
+    return sorted(found, key=lambda p: p.name, reverse=True)
+
+
+def backup_kinematics(path: Path, keep: int) -> Path | None:
     """Keep a copy of the kinematic file in force at ``path`` beside it, as
-    ``<stem>.<UTC time><suffix>``; its path (None when there is no file in force).
-    :class:`KinematicFileError` if it cannot (the file in force untouched)."""
+    ``<stem>.<UTC time><suffix>``; its path (None when there is no file in force).  A file
+    identical to the newest backup is not copied again (that backup is returned); beyond
+    ``keep`` backups the oldest are removed.  :class:`KinematicFileError` if it cannot (the
+    file in force untouched)."""
     if not path.exists():
         return None
+    kept = backups(path)
+    try:
+        if kept and filecmp.cmp(path, kept[0], shallow=False):
+            return kept[0]
+    except OSError:
+        pass  # unreadable: copy it (the error, if any, is the copy's)
     stamp = _dt.datetime.now(_dt.UTC).strftime(BACKUP_STAMP)
     backup = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
     try:
@@ -78,14 +101,19 @@ def backup_kinematics(path: Path) -> Path | None:
             f"{backup}: cannot keep the kinematic file in force as a backup: "
             f"{exc.strerror or exc} (the file in force is untouched)"
         ) from exc
+    for old in backups(path)[keep:]:
+        with contextlib.suppress(OSError):
+            old.unlink()
     return backup
 
 
-def install_kinematics(path: Path, result: CalibrationResult, extra: dict[str, Any]) -> Path | None:
+def install_kinematics(
+    path: Path, result: CalibrationResult, extra: dict[str, Any], keep: int
+) -> Path | None:
     """Install the result (with its parameters' covariance) as the kinematic file in force
     at ``path`` (atomic replace); the file it replaces is kept beside it
     (:func:`backup_kinematics`), whose path is returned (None when there was none)."""
-    backup = backup_kinematics(path)
+    backup = backup_kinematics(path, keep)
     path.parent.mkdir(parents=True, exist_ok=True)
     save_kinematics(path, result.params, extra=extra, covariance=result.covariance)
     return backup
@@ -150,6 +178,7 @@ def write_result(
     kinematics_path: Path,
     install: str,
     provenance: dict[str, Any],
+    keep_backups: int,
 ) -> Written:
     """The run's WRITE: its kinematic file (with ``provenance`` and the quality figures)
     in ``run_dir``, installed at ``kinematics_path`` when ``install`` is ``always``, or
@@ -160,7 +189,9 @@ def write_result(
     save_kinematics(
         run_dir / "kinematics.yaml", result.params, extra=extra, covariance=result.covariance
     )
-    backup = install_kinematics(kinematics_path, result, extra) if installed else None
+    backup = (
+        install_kinematics(kinematics_path, result, extra, keep_backups) if installed else None
+    )
     document = result_document(
         run_id,
         result,

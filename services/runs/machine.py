@@ -80,6 +80,8 @@ class RunMachine:
         self._on_change = on_change
         self.poll = poll
         self._abort = threading.Event()
+        self._commit = threading.Lock()
+        self._committed = False
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self._t0 = 0.0
@@ -103,21 +105,38 @@ class RunMachine:
         self._thread = threading.Thread(target=self._main, name=f"calib-{self.id}", daemon=True)
         self._thread.start()
 
-    def abort(self) -> None:
-        """Stop motion at once (``stop_all()`` from the caller's thread) and end ABORTED."""
-        if self.finished:
-            return
-        self._abort.set()
-        self.robot.stop_all()
+    def abort(self) -> bool:
+        """Stop motion at once (``stop_all()`` from the caller's thread) and end ABORTED;
+        False when it is too late: the run has finished, or has begun installing its
+        result (:meth:`committing`), which then stands."""
+        return self._stop(None)
 
     def shutdown(self, reason: str = "the service was stopped during the run") -> None:
         """Stop motion at once and end FAILED with ``reason`` (the service is stopping:
-        SIGTERM is no operator's abort)."""
-        if self.finished:
-            return
-        self._stop_reason = reason
-        self._abort.set()
+        SIGTERM is no operator's abort); a run already installing its result finishes."""
+        self._stop(reason)
+
+    def _stop(self, reason: str | None) -> bool:
+        with self._commit:  # held only while a result is being installed: milliseconds
+            if self.finished or self._committed:
+                return False
+            self._stop_reason = reason
+            self._abort.set()
         self.robot.stop_all()
+        return True
+
+    @contextlib.contextmanager
+    def committing(self) -> Iterator[None]:
+        """The point of no return: an abort or a shutdown accepted before it ends the run
+        (raised here) and nothing is installed; one that comes after it is refused
+        (:meth:`abort` is False) and what the block installs stands."""
+        with self._commit:
+            if self._abort.is_set():
+                if self._stop_reason is not None:
+                    raise RunFailedError(f"{self._stop_reason} (the result is not installed)")
+                raise RunAbortedError("aborted by the operator (the result is not installed)")
+            self._committed = True
+            yield
 
     def join(self, timeout: float | None = None) -> None:
         if self._thread is not None:

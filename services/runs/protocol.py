@@ -75,6 +75,7 @@ from typing import Any
 import numpy as np
 
 from services.config.robot import RobotConfig
+from services.config.settings import KINEMATICS_BACKUPS
 from services.runs.install import solve_run, within_tolerance, write_result
 from services.runs.journal import RunJournal
 from services.runs.machine import RunMachine
@@ -109,6 +110,7 @@ class CalibrationRun(RunMachine):
         data_dir: Path,
         kinematics_path: Path,
         install: str = "if-within-tolerance",
+        keep_backups: int = KINEMATICS_BACKUPS,
         on_change: Callable[[CalibrationRun], None] | None = None,
         poll: float = 0.02,
         space: SpaceGuard | None = None,
@@ -117,6 +119,7 @@ class CalibrationRun(RunMachine):
     ) -> None:
         super().__init__(robot, metrology, config, clock=clock, on_change=on_change, poll=poll)
         self.install = install
+        self.keep_backups = keep_backups
         self.run_dir = Path(data_dir) / "runs" / self.status.id
         self.kinematics_path = Path(kinematics_path)
         self.result: CalibrationResult | None = None
@@ -249,7 +252,8 @@ class CalibrationRun(RunMachine):
                 raise RunFailedError(f"{self._stop_reason} (the result is not installed)")
             raise RunAbortedError("aborted by the operator (the result is not installed)")
         self.enter(State.WRITE, "writing the kinematic file")
-        self._write()
+        with self.committing():  # an abort from here on is refused: the result stands
+            self._write()
         with self._lock:
             self.status.progress = 1.0
             self.status.finished = now_iso()
@@ -303,6 +307,7 @@ class CalibrationRun(RunMachine):
             kinematics_path=self.kinematics_path,
             install=self.install,
             provenance=prov,
+            keep_backups=self.keep_backups,
         )
         self.backup = out.backup
         if out.installed:

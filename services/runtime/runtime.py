@@ -140,7 +140,9 @@ class Runtime:
         self.runs: dict[str, CalibrationRun] = {}
         self.current: CalibrationRun | None = None
         self.events = EventBus()  # every run change, for the console's event stream
-        self._lock = threading.Lock()
+        self.lock = threading.Lock()
+        """Held to start a run and to install a kinematic file: an install never lands
+        while a run exists, and a run never starts during an install."""
         self.simulator: VirtualRobot | None = None
         self.can_channel = settings.can_channel
         self.can_interface = settings.can_interface or "virtual"
@@ -320,7 +322,7 @@ class Runtime:
         """
         assert self.drives is not None
         s = self.settings
-        with self._lock:
+        with self.lock:
             if self.current is not None and not self.current.finished:
                 raise RunConflictError(f"calibration {self.current.id} is still running")
             budget, reserve = int(s.disk_budget), run_reserve(int(s.disk_budget))
@@ -354,6 +356,7 @@ class Runtime:
                 data_dir=self.data_dir,
                 kinematics_path=s.kinematics_file,
                 install=install,
+                keep_backups=s.kinematics_backups,
                 on_change=self._persist,
                 space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
                 robot_config_path=None if s.robot_config is None else str(s.robot_config),
@@ -363,7 +366,7 @@ class Runtime:
         try:
             self._persist(run)
         except Exception as exc:  # a run that was never saved would block every next one
-            with self._lock:
+            with self.lock:
                 self.runs.pop(run.id, None)
                 self.current = previous
             raise StoreError(
