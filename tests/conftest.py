@@ -1,17 +1,20 @@
 """Fixtures shared by the suite (plain helpers: tests/service_rig.py, tests/run_rig.py,
 tests/can_rig.py, tests/fake_robot.py).
+
+The services the tests open answer to the name FastAPI's TestClient sends
+(``testserver``), as a lab would list its own names in ``SWPC_ALLOWED_HOSTS``.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
 
-from tests.service_rig import (
-    Sim,
-    sim_service,
-)
+from tests.service_rig import Sim, sim_service
+
+os.environ.setdefault("SWPC_ALLOWED_HOSTS", '["testserver"]')
 
 
 @pytest.fixture(scope="module")

@@ -156,3 +156,27 @@ def test_docs_are_served_without_internet(tmp_path: Path) -> None:
         assert client.get("/docs/assets/swagger-ui.css").status_code == 200
         lic = client.get("/docs/assets/LICENSE").text
         assert "Apache License 2.0" in lic and "Permission is hereby granted" in lic
+
+
+@pytest.mark.parametrize(
+    ("host", "status"),
+    [
+        ("evil.example", 400),
+        ("evil.example:8080", 400),
+        ("localhost:8080", 200),
+        ("127.0.0.1:8080", 200),
+        ("[::1]:8080", 200),
+        ("192.168.1.10", 200),
+        ("robot.lab.example", 200),
+    ],
+)
+def test_only_the_services_own_names_are_answered(tmp_path: Path, host: str, status: int) -> None:
+    """A request with ``Host: evil.example`` read /kinematics and a run's dataset.zip: a
+    page of another site, its name rebound to the robot's address, could read them."""
+    app = app_without_robot(tmp_path, allowed_hosts=["robot.lab.example"])
+    with TestClient(app) as client:
+        r = client.get("/kinematics", headers={"host": host})
+        got = r.status_code if r.status_code == 400 else 200  # 404: no file, but answered
+        assert got == status, r.text
+        if status == 400:
+            assert "not a name of this service" in r.json()["detail"]

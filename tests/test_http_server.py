@@ -4,6 +4,7 @@ idle connections are closed and health still answers.
 
 from __future__ import annotations
 
+import logging
 import socket
 import threading
 import time
@@ -80,3 +81,25 @@ def test_idle_connections_are_closed_and_health_still_answers(server: tuple[str,
     with httpx.Client(base_url=f"http://{host}:{port}", timeout=20) as c:
         assert c.get("/health").status_code == 503
         assert c.get("/kinematics").status_code == 404
+
+
+def test_the_token_never_reaches_a_log(
+    server: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A token sent in the query string was refused (401) but uvicorn's access log wrote
+    it down."""
+    host, port = server
+    caplog.set_level(logging.INFO, logger="uvicorn.access")
+    with httpx.Client(base_url=f"http://{host}:{port}") as client:
+        r = client.post(f"/calibrations?token={TOKEN}&x=1", json={})
+        assert r.status_code == 401
+        assert client.get("/health?access_token=s3cret-0123456789&run=abc").status_code in (
+            200,
+            503,
+        )
+        assert client.get(f"/calibrations/{TOKEN}").status_code == 404
+    lines = [r.getMessage() for r in caplog.records if r.name == "uvicorn.access"]
+    assert len(lines) == 3, lines
+    text = "\n".join(lines)
+    assert TOKEN not in text and "s3cret" not in text, text
+    assert "token=[redacted]" in text and "run=abc" in text  # what is not secret stays

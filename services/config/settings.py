@@ -11,6 +11,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import secrets
+import socket
 from pathlib import Path
 from typing import Literal
 
@@ -42,6 +43,11 @@ class ServiceSettings(BaseSettings):
     )
 
     host: str = Field("127.0.0.1", description="bind address (loopback by default)")
+    allowed_hosts: list[str] = Field(
+        default_factory=list,
+        description="host names the API answers to, beyond an IP address, localhost and this "
+        "host's own names (another Host header is refused 400: DNS rebinding)",
+    )
     port: int = Field(8080, ge=0, le=65535)
     token: SecretStr | None = Field(
         None,
@@ -272,6 +278,12 @@ class ServiceSettings(BaseSettings):
                 f"SWPC_TOKEN is {len(token)} characters: at least {MIN_TOKEN_LENGTH} are needed"
             )
         return token
+
+    def host_names(self) -> frozenset[str]:
+        """The names in a Host header the API answers to (an IP address always passes)."""
+        names = {"localhost", socket.gethostname(), socket.getfqdn(), self.host}
+        names.update(self.allowed_hosts)
+        return frozenset(n.strip().lower().rstrip(".") for n in names if n.strip())
 
     @property
     def token_file(self) -> Path:

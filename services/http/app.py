@@ -72,7 +72,10 @@ def create_app(
     )
     app.state.token = cfg.ensure_token()
     app.add_middleware(
-        RequestGuard, token=lambda: str(app.state.token), max_body=cfg.max_body_bytes
+        RequestGuard,
+        token=lambda: str(app.state.token),
+        max_body=cfg.max_body_bytes,
+        hosts=cfg.host_names(),
     )
     offline_docs(app)
 

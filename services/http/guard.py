@@ -1,7 +1,11 @@
-"""What the HTTP API checks before a request reaches a route: token, size, strict JSON.
+"""What the HTTP API checks before a request reaches a route: host, token, size, JSON.
 
 :class:`RequestGuard` is a pure ASGI middleware, so it decides before the body is read:
 
+0. the ``Host`` header must name this service: an IP address (v4 or v6), or one of the
+   names it answers to (this host's names, ``localhost`` and ``SWPC_ALLOWED_HOSTS``);
+   any other is answered 400.  A web page on another site whose name an attacker points at
+   the robot's address (DNS rebinding) sends its own name: it reads nothing;
 1. a request that may change something (any method but GET, HEAD, OPTIONS) without the
    bearer token is answered 401 at once: its body is never read or parsed;
 2. a body over ``max_body`` bytes (by its ``Content-Length``, or counted as it arrives when
@@ -17,6 +21,7 @@ What passes is handed to the app unchanged.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import math
 import secrets
@@ -121,10 +126,34 @@ async def _reply(send: Send, status: int, doc: Any, headers: dict[str, str] | No
 class RequestGuard:
     """The middleware of the module docstring; ``token`` is read per request."""
 
-    def __init__(self, app: ASGIApp, token: Callable[[], str], max_body: int) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        token: Callable[[], str],
+        max_body: int,
+        hosts: frozenset[str] = frozenset(),
+    ) -> None:
         self.app = app
         self.token = token
         self.max_body = max_body
+        self.hosts = hosts
+
+    def _host_refused(self, scope: Scope) -> str | None:
+        """The Host header when it names no host this service answers to (else None)."""
+        for k, v in scope.get("headers", []):
+            if k == b"host":
+                host: str = v.decode("latin-1").strip().lower()
+                break
+        else:
+            return None  # HTTP/1.0 without Host: nothing to rebind
+        name = host[1:].split("]", 1)[0] if host.startswith("[") else host.rsplit(":", 1)[0]
+        if name.rstrip(".") in self.hosts:
+            return None
+        try:
+            ipaddress.ip_address(name)
+        except ValueError:
+            return host
+        return None
 
     def _authorised(self, scope: Scope) -> bool:
         for k, v in scope.get("headers", []):
@@ -138,6 +167,14 @@ class RequestGuard:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        refused = self._host_refused(scope)
+        if refused is not None:
+            await _reply(
+                send,
+                400,
+                {"detail": f"Host {refused!r} is not a name of this service (SWPC_ALLOWED_HOSTS)"},
+            )
             return
         if scope["method"] not in SAFE_METHODS and not self._authorised(scope):
             await _reply(

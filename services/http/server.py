@@ -15,6 +15,11 @@ every failed accept).  :class:`GuardedH11` adds:
 
 The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and files.
 
+Secrets never reach a log: uvicorn's access log line carries the request's query string,
+where a client may put the token (``?token=...``, refused with 401 all the same);
+:class:`RedactSecrets` replaces the values of secret-looking query parameters and the
+service's token wherever it appears before the line is written.
+
 ``swpc serve`` binds the listening socket itself (:func:`listen_socket`) before the
 service opens anything, so that a port in use is one line on stderr, not uvicorn's
 start-up and shut-down log and exit status 3.
@@ -23,9 +28,12 @@ start-up and shut-down log and exit status 3.
 from __future__ import annotations
 
 import asyncio
+import logging
+import re
 import signal
 import socket
 import time
+from collections.abc import Callable
 from typing import Any
 
 import h11
@@ -118,6 +126,46 @@ class GuardedH11(H11Protocol):
         super().connection_lost(exc)
 
 
+SECRET_PARAMS = re.compile(
+    r"(?i)([?&](?:[^=&#]*(?:token|auth|key|secret|password)[^=&#]*)=)[^&#\s]*"
+)
+"""A query parameter whose name says it holds a secret, up to its value."""
+REDACTED = "[redacted]"
+
+
+class RedactSecrets(logging.Filter):
+    """Redact secrets from a log record (module docstring): the values of secret-looking
+    query parameters and ``token()`` wherever it appears; the record is kept."""
+
+    def __init__(self, token: Callable[[], str]) -> None:
+        super().__init__("swpc.redact")
+        self.token = token
+
+    def redact(self, text: str) -> str:
+        text = SECRET_PARAMS.sub(lambda m: m.group(1) + REDACTED, text)
+        token = self.token()
+        return text.replace(token, REDACTED) if token else text
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(
+                self.redact(a) if isinstance(a, str) else a for a in record.args
+            )
+        if isinstance(record.msg, str):
+            record.msg = self.redact(record.msg)
+        return True
+
+
+def redact_access_log(token: Callable[[], str]) -> None:
+    """Put :class:`RedactSecrets` on uvicorn's access and error loggers (once)."""
+    for name in ("uvicorn.access", "uvicorn.error"):
+        lg = logging.getLogger(name)
+        for f in list(lg.filters):
+            if isinstance(f, RedactSecrets):
+                lg.removeFilter(f)
+        lg.addFilter(RedactSecrets(token))
+
+
 class Server(uvicorn.Server):
     """uvicorn's server that tells the app which signal stopped it (a run in progress
     then ends "stopped (SIGTERM)", not "aborted by the operator")."""
@@ -132,7 +180,10 @@ class Server(uvicorn.Server):
 
 def server(app: Any, *, host: str, port: int, header_timeout: float, max_connections: int,
            log_level: str = "info") -> Server:
-    """The configured server (``.run()`` serves until SIGTERM/SIGINT)."""
+    """The configured server (``.run()`` serves until SIGTERM/SIGINT); its logs redacted
+    (:class:`RedactSecrets`, the app's token)."""
+    state = getattr(app, "state", None)
+    redact_access_log(lambda: str(getattr(state, "token", "") or ""))
     protocol = type(
         "GuardedH11",
         (GuardedH11,),
