@@ -1,6 +1,8 @@
-"""The disk budget (services/store/disk.py): old runs' recordings pruned to make room for a
-run, then 507 when nothing is left; 507 on a nearly full file system; health warns when a
-run would not find its room.
+"""The disk budget (services/store/disk.py) and the data dir's room: old runs' recordings
+pruned to make room for a run, then 507 when nothing is left; 507 on a nearly full file
+system or one with no inodes left, 503 when the data dir cannot keep a run's files, each
+before any frame and leaving nothing half-made; health warns when a run would not find its
+room and names what is wrong.
 """
 
 from __future__ import annotations
@@ -8,6 +10,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
+import subprocess
+import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -15,6 +21,7 @@ import pytest
 
 from tests.service_rig import (
     AUTH,
+    ROOT,
     SHORT_STEPS,
     send,
     sim_service,
@@ -110,3 +117,99 @@ def test_health_warns_when_a_run_would_not_find_its_room(tmp_path: Path) -> None
         r = send(sim.client, json.dumps(SHORT_STEPS))
         assert r.status_code == 507 and r.json()["detail"].startswith("disk nearly full: ")
         assert sim.host_frames() == []
+
+
+def test_a_data_dir_that_cannot_keep_a_run_refuses_it_and_leaves_nothing(
+    tmp_path: Path,
+) -> None:
+    """runs/ unusable after the service started: POST /calibrations was a 500, the run
+    stayed PENDING for ever, every later start and install a 409, an abort changed nothing
+    and /health blamed "no heartbeat".  Now: 503 before any frame, nothing half-made,
+    /health names the data dir, and the next start once it is fixed runs."""
+    with sim_service(tmp_path / "data") as sim:
+        client, rt = sim.client, sim.rt
+        runs = rt.data_dir / "runs"
+        if runs.exists():
+            shutil.rmtree(runs)
+        runs.write_text("not a directory\n")  # what a root-owned, unwritable runs/ is to us
+        sim.host_frames()
+        r = send(client, json.dumps(SHORT_STEPS))
+        assert r.status_code == 503, r.text
+        assert "cannot keep a run" in r.json()["detail"] and str(runs) in r.json()["detail"]
+        assert sim.host_frames() == []  # not one command frame
+        assert client.get("/calibrations").json() == [] and rt.current is None
+        health = client.get("/health").json()
+        assert any(f"{runs} is not a directory" in p for p in health["problems"]), health
+        assert not any("heartbeat" in p for p in health["problems"]), health
+        runs.unlink()
+        r = send(client, json.dumps(SHORT_STEPS))
+        assert r.status_code == 202, r.text
+        run_id = r.json()["id"]
+        assert client.post(f"/calibrations/{run_id}/abort", headers=AUTH).status_code == 200
+        assert sim.wait(run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
+
+
+NO_INODES = textwrap.dedent(
+    """
+    import json, sys, uuid
+    from pathlib import Path
+    sys.path.insert(0, {root!r})
+    from tests.service_rig import AUTH, SHORT_STEPS, send, sim_service
+
+    d = Path(sys.argv[1])
+    with sim_service(d / "data") as sim:
+        filler = d / "filler"
+        filler.mkdir()
+        n = 0
+        try:  # every inode left, after the service has started
+            while True:
+                (filler / str(n)).touch()
+                n += 1
+        except OSError:
+            pass
+        r = send(sim.client, json.dumps(SHORT_STEPS))
+        out = {{"status": r.status_code, "detail": r.json().get("detail"),
+                "runs": sim.client.get("/calibrations").json(), "frames": len(sim.host_frames()),
+                "health": sim.client.get("/health").json()["problems"]}}
+        for p in list(filler.iterdir())[:50]:
+            p.unlink()
+        r = send(sim.client, json.dumps(SHORT_STEPS))
+        out["then"] = r.status_code
+        if r.status_code == 202:
+            run_id = r.json()["id"]
+            sim.client.post(f"/calibrations/{{run_id}}/abort", headers=AUTH)
+            out["end"] = sim.wait(run_id, {{"ABORTED", "FAILED", "DONE"}})["state"]
+    print(json.dumps(out))
+    """
+)
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None, reason="no unshare(1)")
+def test_no_inodes_left_refuses_a_run_with_507_and_health_says_why(tmp_path: Path) -> None:
+    """A real exhaustion of inodes: a tmpfs of 400 inodes in a user + mount namespace,
+    filled once the service has started."""
+    script = tmp_path / "inodes.py"
+    script.write_text(NO_INODES.format(root=str(ROOT)))
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    probe = subprocess.run(
+        ["unshare", "--user", "--map-root-user", "--mount", "true"], capture_output=True
+    )
+    if probe.returncode != 0:
+        pytest.skip(f"no user namespaces here: {probe.stderr.decode().strip()}")
+    cmd = (
+        f"mount -t tmpfs -o size=2g,nr_inodes=400 tmpfs {mnt} && "
+        f"exec {sys.executable} {script} {mnt}"
+    )
+    p = subprocess.run(
+        ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", cmd],
+        capture_output=True,
+        timeout=240,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert p.returncode == 0, p.stderr.decode()[-3000:]
+    out = json.loads(p.stdout.decode().strip().splitlines()[-1])
+    assert out["status"] == 507 and "no room for the run's files" in out["detail"], out
+    assert out["runs"] == [] and out["frames"] == 0, out
+    assert any("no inodes left" in h for h in out["health"]), out
+    assert out["then"] == 202 and out["end"] == "ABORTED", out

@@ -17,7 +17,9 @@ simulator's nodes and sensors are not judged between runs: its time stands still
 from __future__ import annotations
 
 import math
+import os
 import shutil
+from pathlib import Path
 from typing import Any
 
 from services.runtime.runtime import Runtime
@@ -35,6 +37,25 @@ def judged_sensors(rt: Runtime) -> set[str]:
         return {run.metrology.name}
     m = rt.settings.metrology
     return {"mocap", "imu"} if m == "both" else {m}
+
+
+def run_files_problems(data_dir: Path) -> list[str]:
+    """Why a run could not make its directory and files in ``data_dir`` (empty: it can):
+    ``runs`` not a writable directory, or no inodes left on the file system."""
+    out = []
+    runs = data_dir / "runs"
+    where = runs if runs.exists() else data_dir
+    if runs.exists() and not runs.is_dir():
+        out.append(f"data dir: {runs} is not a directory: a run cannot keep its files")
+    elif not os.access(where, os.W_OK | os.X_OK):
+        out.append(f"data dir: {where} is not writable: a run cannot keep its files")
+    st = os.statvfs(data_dir)
+    if st.f_files and st.f_favail == 0:
+        out.append(
+            "data dir: no inodes left on its file system: a run cannot make its files "
+            f"({data_dir})"
+        )
+    return out
 
 
 def _age(age: float) -> float | None:
@@ -113,6 +134,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
                     f"above SWPC_MIN_FREE {int(rt.settings.min_free) / MIB:.1f} MiB (507 "
                     "unless pruning old recordings makes the room)"
                 )
+        failing += run_files_problems(rt.data_dir)
     except OSError as exc:
         failing.append(f"data dir: {exc}")
     try:

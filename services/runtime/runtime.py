@@ -22,9 +22,11 @@ in-memory state, saved again once the store takes writes.
 from __future__ import annotations
 
 import contextlib
+import errno
 import grp
 import logging
 import os
+import shutil
 import stat
 import sys
 import threading
@@ -79,7 +81,20 @@ class NoResultError(SwpcError):
 
 
 class StoreError(SwpcError):
-    """The run store cannot be written: no run starts (HTTP 503)."""
+    """The run store, or the data dir where a run keeps its files, cannot be written: no
+    run starts (HTTP 503)."""
+
+
+def room_error(path: Path, exc: OSError) -> SwpcError:
+    """Why a run's directory or files could not be made: no room (ENOSPC, EDQUOT: bytes
+    or inodes, 507) or another failure of the data dir (503)."""
+    what = exc.strerror or str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return DiskSpaceError(
+            f"no room for the run's files: {path}: {what} (no bytes or no inodes left on the "
+            "data dir's file system): no run started"
+        )
+    return StoreError(f"the data dir cannot keep a run: {path}: {what}: no run started")
 
 
 def give_group(path: Path, gid: int, bits: int) -> None:
@@ -361,6 +376,14 @@ class Runtime:
                 space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
                 robot_config_path=None if s.robot_config is None else str(s.robot_config),
             )
+            # its directory, and its raw CAN traffic beside its dataset (candump format, our
+            # DBC decodes it), before it exists for anyone: nothing is left half-made
+            try:
+                (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
+                self.drives.start_recording(str(run.run_dir / "dataset" / "can.log"))
+            except OSError as exc:
+                self._forget_files(run)
+                raise room_error(run.run_dir, exc) from exc
             previous, self.current = self.current, run
             self.runs[run.id] = run
         try:
@@ -369,14 +392,18 @@ class Runtime:
             with self.lock:
                 self.runs.pop(run.id, None)
                 self.current = previous
+            self._forget_files(run)
             raise StoreError(
                 f"run store not writable: {self.store_error}: no run started"
             ) from exc
-        # raw CAN traffic of the run, beside its dataset (candump format, our DBC decodes it)
-        (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
-        self.drives.start_recording(str(run.run_dir / "dataset" / "can.log"))
         run.start()
         return run
+
+    def _forget_files(self, run: CalibrationRun) -> None:
+        """A run that does not start leaves no recording and no directory."""
+        assert self.drives is not None
+        self.drives.stop_recording()
+        shutil.rmtree(run.run_dir, ignore_errors=True)
 
     def metrology(
         self, name: str, config: RobotConfig, references: Sequence[Reference] = ()
