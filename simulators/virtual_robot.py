@@ -98,7 +98,7 @@ from simulators.virtual_drives import VirtualDrive, virtual_drives
 from swpc_hw.clock import SimClock, SystemClock, next_instant
 from swpc_hw.model import RobotParams, wrap_angle
 from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.zenoh_session import open_session
+from swpc_hw.zenoh_session import ZenohAuth, open_session
 
 # --------------------------------------------------------------------------- simulator
 
@@ -177,6 +177,7 @@ class VirtualRobot:
         zenoh_listen: Sequence[str] = (),
         zenoh_connect: Sequence[str] = (),
         zenoh_config: str | None = None,
+        zenoh_auth: ZenohAuth | None = None,
         options: SimOptions | None = None,
         clock: SimClock | None = None,
     ) -> VirtualRobot:
@@ -195,7 +196,10 @@ class VirtualRobot:
         bus = can.Bus(interface=interface, channel=channel, **kwargs)
         try:
             session = open_session(
-                listen=zenoh_listen, connect=zenoh_connect, config_file=zenoh_config
+                listen=zenoh_listen,
+                connect=zenoh_connect,
+                config_file=zenoh_config,
+                auth=zenoh_auth,
             )
         except BaseException:
             bus.shutdown()

@@ -131,7 +131,7 @@ class Rig:
         metrology = (
             ImuMetrology(self.imu, self.config, self.references)
             if self.metrology == "imu"
-            else MocapMetrology(self.mocap)
+            else MocapMetrology(self.mocap, self.config.pose_key)
         )
         return CalibrationRun(self.robot, metrology, self.config, **kwargs)
 

@@ -84,7 +84,7 @@ def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) 
     robot = FakeRobot(TRUTH, rt.clock, rt.mocap, dt=0.01, pose_every=1)  # type: ignore[arg-type]
     run = CalibrationRun(
         robot,
-        MocapMetrology(rt.mocap),
+        MocapMetrology(rt.mocap, rt.config.pose_key),
         rt.config,
         clock=rt.clock,
         data_dir=rt.data_dir,

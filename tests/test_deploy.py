@@ -274,7 +274,7 @@ def test_mocap_bridge_maps_ros_pose_topics_to_our_key_space() -> None:
     assert re.fullmatch(pattern, "/robot1/pose") and not re.fullmatch(pattern, "/tf")
 
 
-def test_lab_router_routes_each_robot_its_poses_and_denies_the_rest() -> None:
+def test_lab_router_routes_each_robot_its_poses_and_denies_the_rest(tmp_path: Path) -> None:
     """The router file on loopback: mocap PC and robot connect to it as in the README."""
     import zenoh
 
@@ -286,6 +286,9 @@ def test_lab_router_routes_each_robot_its_poses_and_denies_the_rest() -> None:
     mcfg = zenoh_config(config_file=str(DEPLOY / "zenoh" / "mocap-peer.json5"), connect=[ep])
     mcfg.insert_json5("listen/endpoints", "[]")
     mcfg.insert_json5("plugins", "{}")
+    robots = tmp_path / "robots.txt"  # the mocap PC's dictionary of robots (none here)
+    robots.write_text("")
+    mcfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(robots)))
     got: dict[str, list[str]] = {"robot1": [], "other": []}
     sessions = [zenoh.open(rcfg)]
     try:

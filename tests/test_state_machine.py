@@ -24,6 +24,7 @@ from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL, TRANSITIONS, State
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.mocap import PoseSample, encode_native
 from swpc_hw.model import PARAM_NAMES
 from swpc_hw.references import WheelRadius
 from tests.frame_free import frame_free
@@ -129,8 +130,8 @@ def test_the_path_tests_took_every_edge_of_the_table() -> None:
 def test_an_illegal_transition_is_refused(tmp_path: Path) -> None:
     rig = Rig(tmp_path)
     run = CalibrationRun(
-        rig.robot, MocapMetrology(rig.mocap), rig.config, clock=rig.clock, data_dir=tmp_path,
-        kinematics_path=rig.kinematics,
+        rig.robot, MocapMetrology(rig.mocap, rig.config.pose_key), rig.config,
+        clock=rig.clock, data_dir=tmp_path, kinematics_path=rig.kinematics,
     )  # fmt: skip
     with pytest.raises(RuntimeError, match="illegal transition PENDING -> SPIN"):
         run.enter(State.SPIN, "spinning")
@@ -199,8 +200,9 @@ def test_an_abort_before_the_run_starts_moves_nothing(tmp_path: Path) -> None:
     ABORTED before that state's first command: nothing is activated or moved."""
     rig = Rig(tmp_path)
     run = CalibrationRun(
-        rig.robot, MocapMetrology(rig.mocap), rig.config, clock=rig.clock, data_dir=tmp_path,
-        kinematics_path=rig.kinematics, on_change=rig._changed, mcap=False,
+        rig.robot, MocapMetrology(rig.mocap, rig.config.pose_key), rig.config,
+        clock=rig.clock, data_dir=tmp_path, kinematics_path=rig.kinematics,
+        on_change=rig._changed, mcap=False,
     )  # fmt: skip
     run.abort()
     run._main()
@@ -396,6 +398,28 @@ def test_motion_capture_going_silent_during_a_spin_fails_the_run(tmp_path: Path)
     assert "(limit 0.500 s)" in run.status.reason and "(during SPIN" in run.status.reason
     # stale after 0.5 s without a pose: caught at the next check (every poll of 20 ms)
     assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
+
+
+def test_a_motion_capture_clock_that_jumps_back_mid_spin_fails_the_run_at_once(
+    tmp_path: Path,
+) -> None:
+    """Poses stamped over 1 s in the past (another publisher on the key, or the mocap's
+    clock reset) were taken as a clock reset: the run went on through the whole protocol
+    and failed only at SOLVE.  Now it fails at once, robot stopped, with the reason."""
+    rig = Rig(tmp_path)
+
+    def rogue_pose(run: CalibrationRun) -> None:
+        stamp = rig.clock.wall() - 5.0  # 5 s in the past, on the robot's key
+        rig.mocap.feed(encode_native(PoseSample.planar(stamp, 0.0, 0.0, 0.0)))
+
+    rig.hooks[State.SPIN] = rogue_pose
+    run = rig.run()
+    assert run.status.state is State.FAILED
+    reason = run.status.reason or ""
+    assert "motion-capture clock jumped back by" in reason and "mocap/swpc/pose" in reason
+    assert "(during SPIN" in reason
+    assert rig.clock.now() - rig.entered_at[State.SPIN] < 0.05  # at the next check
+    assert stopped_after(rig, rig.entered_at[State.SPIN])
 
 
 def test_precheck_refuses_unready_nodes_and_an_unsynchronised_mocap_before_any_motion(

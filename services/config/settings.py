@@ -94,6 +94,16 @@ class ServiceSettings(BaseSettings):
     zenoh_listen: list[str] = Field(default_factory=list)
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_config_file: str | None = None
+    zenoh_users_file: Path | None = Field(
+        None,
+        description="zenoh peers allowed to connect to this service, as user:password lines "
+        "(zenoh's user-password dictionary); with it, only zenoh_publishers may publish the "
+        "robot's poses and gyro (a service that listens; one that connects trusts its peer)",
+    )
+    zenoh_publishers: list[str] = Field(
+        default_factory=lambda: ["mocap"],
+        description="with zenoh_users_file: the users that may publish the robot's sensor keys",
+    )
     pose_encoding: str = Field("auto", description="native | ros2-cdr | auto")
     mocap_stale_after: float | None = Field(
         None,

@@ -141,6 +141,8 @@ class ImuMetrology:
         self, gyro: GyroIngest, config: RobotConfig, references: Sequence[Reference] = ()
     ) -> None:
         self.gyro = gyro
+        self.key = config.imu_key
+        self._resets = gyro.counters.clock_resets  # at the run's start
         self.references: list[Reference] = list(references)
         self.drive: tuple[float, float] | None = None
         """The straight drive's ``(start, end)`` on the run's clock (the middles of the
@@ -171,6 +173,9 @@ class ImuMetrology:
 
     def precheck(self) -> list[str]:
         problems = []
+        jump = self.gyro.clock_jump(self._resets, "gyro", self.key)
+        if jump is not None:
+            problems.append(jump)
         if self.gyro.is_stale():
             problems.append(f"gyro not live (last sample {self.gyro.age():.2f} s ago)")
         clock = self.gyro.clock_problem()
@@ -179,6 +184,9 @@ class ImuMetrology:
         return problems
 
     def problem(self) -> str | None:
+        jump = self.gyro.clock_jump(self._resets, "gyro", self.key)
+        if jump is not None:
+            return jump
         if self.gyro.is_stale():
             return (
                 f"gyro stale: no sample for {self.gyro.age():.3f} s "

@@ -51,8 +51,10 @@ class MocapMetrology:
     sensor_name = "mocap"
     samples_field = "poses"
 
-    def __init__(self, mocap: MocapIngest) -> None:
+    def __init__(self, mocap: MocapIngest, key: str) -> None:
         self.mocap = mocap
+        self.key = key
+        self._resets = mocap.counters.clock_resets  # at the run's start
         self.drive: tuple[float, float] | None = None  # it never drives straight
 
     @property
@@ -67,6 +69,9 @@ class MocapMetrology:
 
     def precheck(self) -> list[str]:
         problems = []
+        jump = self.mocap.clock_jump(self._resets, "motion-capture", self.key)
+        if jump is not None:
+            problems.append(jump)
         if self.mocap.is_stale():
             problems.append(f"motion capture not live (last pose {self.mocap.age():.2f} s ago)")
         clock = self.mocap.clock_problem()
@@ -75,6 +80,9 @@ class MocapMetrology:
         return problems
 
     def problem(self) -> str | None:
+        jump = self.mocap.clock_jump(self._resets, "motion-capture", self.key)
+        if jump is not None:
+            return jump
         if self.mocap.is_stale():
             return (
                 f"motion capture stale: no pose for {self.mocap.age():.3f} s "

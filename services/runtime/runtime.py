@@ -26,6 +26,7 @@ import errno
 import grp
 import logging
 import os
+import secrets
 import shutil
 import stat
 import sys
@@ -61,9 +62,13 @@ from swpc_hw.drives.robot_io import DrivesRobotIO
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.zenoh_session import ZenohAuth, free_tcp_endpoint, open_session, publishers_acl
 
 SWITCH_INTERVAL_S = 0.001
+SIM_USER = "simulator"
+"""The in-process simulator's zenoh user: the only publisher of the robot's sensor keys."""
+ZENOH_USERS_FILE = ".zenoh-users"
+"""In the data dir while the in-process simulator runs: its zenoh credential (0600)."""
 log = logging.getLogger("swpc.service")
 MIB = 1 << 20
 
@@ -162,6 +167,10 @@ class Runtime:
         self.can_channel = settings.can_channel
         self.can_interface = settings.can_interface or "virtual"
         self.session: Any = None
+        self.zenoh_endpoints: list[str] = []
+        """The endpoints the zenoh session listens on or connects to, once open."""
+        self._sim_password = ""
+        self._zenoh_users: Path | None = None
         self.drives: Drives | None = None
         self.started = time.time()
         self._opened = False
@@ -229,9 +238,21 @@ class Runtime:
             (self.data_dir / "can").mkdir(exist_ok=True)
             can_log = self.data_dir / "can" / "can.log"
         self.can_log = can_log
+        guard = self._zenoh_guard(listen, connect)
         self.session = open_session(
-            mode=s.zenoh_mode, listen=listen, connect=connect, config_file=s.zenoh_config_file
+            mode=s.zenoh_mode,
+            listen=listen,
+            connect=connect,
+            config_file=s.zenoh_config_file,
+            auth=guard,
+            acl=None
+            if guard is None
+            else publishers_acl(
+                [self.config.pose_key, self.config.imu_key],
+                [SIM_USER] if s.in_process else s.zenoh_publishers,
+            ),
         )
+        self.zenoh_endpoints = listen or connect
         self.mocap.subscribe(self.session, self.config.pose_key)
         if s.metrology != "mocap":
             self.gyro.subscribe(self.session, self.config.imu_key)
@@ -263,6 +284,7 @@ class Runtime:
                 config=self.config,
                 channel=channel,
                 zenoh_endpoints=listen or connect,
+                zenoh_auth=None if guard is None else ZenohAuth(SIM_USER, self._sim_password),
                 clock=self.clock,
                 seed=s.sim_seed,
                 physics_dt=s.sim_physics_dt,
@@ -279,6 +301,37 @@ class Runtime:
             self.simulator.start()
         self._opened = True
         return self
+
+    def _zenoh_guard(self, listen: list[str], connect: list[str]) -> ZenohAuth | None:
+        """Who may connect to this service's zenoh session, and publish its robot's sensor
+        keys (zenoh's authentication and access control, :mod:`swpc_hw.zenoh_session`):
+
+        * against the in-process simulator on its own loopback endpoint: the simulator
+          only, with a password made for this run of the service (kept in a file of the
+          data dir readable by the service alone, removed at close);
+        * with ``SWPC_ZENOH_USERS_FILE``: the peers it lists, of which only
+          ``SWPC_ZENOH_PUBLISHERS`` may publish the poses and the gyro;
+        * else nobody is checked (a service that connects to a mocap PC or a router
+          trusts it: that peer's listener is what requires authentication,
+          deploy/zenoh/mocap-peer.json5)."""
+        s = self.settings
+        if s.in_process and listen and not connect:
+            self._sim_password = secrets.token_urlsafe(24)
+            path = self.data_dir / ZENOH_USERS_FILE
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                fh.write(f"{SIM_USER}:{self._sim_password}\n")
+            self._zenoh_users = path
+            return ZenohAuth(users_file=str(path))
+        if s.zenoh_users_file is not None:
+            if connect:
+                raise SettingsError(
+                    "SWPC_ZENOH_USERS_FILE guards the peers that connect to this service; "
+                    "the peers it connects to (SWPC_ZENOH_CONNECT) cannot be checked by "
+                    "it: require authentication on their listener instead"
+                )
+            return ZenohAuth(users_file=str(s.zenoh_users_file))
+        return None
 
     def close(self, reason: str = "the service was stopped during the run") -> None:
         """Stop everything; a run in progress ends FAILED with ``reason``."""
@@ -302,6 +355,9 @@ class Runtime:
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()
+        if self._zenoh_users is not None:
+            with contextlib.suppress(OSError):
+                self._zenoh_users.unlink()
         self._save_unsaved()
         self.store.close()
         if self.channel_lock is not None:
@@ -412,7 +468,7 @@ class Runtime:
         ``imu`` (the gyro, the encoders and ``references``)."""
         if name == "imu":
             return ImuMetrology(self.gyro, config, references)
-        return MocapMetrology(self.mocap)
+        return MocapMetrology(self.mocap, config.pose_key)
 
     def _persist(self, run: CalibrationRun) -> None:
         """Save a run's state (its on_change); a failure is kept (health, the runs list

@@ -26,6 +26,7 @@ from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.zenoh_session import ZenohAuth
 
 DEFAULT_MOCAP = MocapOptions(rate=100.0, sigma_xy=0.5e-3, sigma_yaw=math.radians(0.05))
 
@@ -43,6 +44,7 @@ def in_process_simulator(
     mocap_latency: float | None = None,
     feedback_rate_hz: int = 50,
     gyro: GyroOptions | None = None,
+    zenoh_auth: ZenohAuth | None = None,
 ) -> VirtualRobot:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
     service's zenoh endpoint (it connects to ``zenoh_endpoints``), and its gyro
@@ -69,6 +71,7 @@ def in_process_simulator(
         interface="virtual",
         channel=channel,
         zenoh_connect=list(zenoh_endpoints),
+        zenoh_auth=zenoh_auth,
         options=opts,
         clock=clock,
     )

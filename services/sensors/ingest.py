@@ -74,6 +74,8 @@ class Ingest:
         self._lock = threading.Lock()
         self._rows = RowRing(len(columns), capacity, initial=1 << 16)
         self._last_source = -math.inf
+        self.last_clock_step = 0.0
+        """How far the source clock last stepped back (s of source time), at a reset."""
         self._recent = deque[float](maxlen=recent)  # receive times, for the rate
         self._subscriber: Any = None
         self._lockstep_key: str | None = None
@@ -127,6 +129,7 @@ class Ingest:
                 c.out_of_order += 1
                 return False
             c.clock_resets += 1  # the source clock was stepped back: a new sequence
+            self.last_clock_step = self._last_source - t
         self._last_source = t
         return True
 
@@ -164,6 +167,19 @@ class Ingest:
 
     def is_stale(self, now: float | None = None) -> bool:
         return self.age(now) > self.stale_after
+
+    def clock_jump(self, resets_before: int, what: str, key: str) -> str | None:
+        """Why the samples since ``resets_before`` clock resets cannot be trusted (None:
+        none since): during a run, the source's clock stepping back is a second publisher
+        on ``key`` or a clock reset, and either makes the run's data wrong."""
+        with self._lock:
+            n, step = self.counters.clock_resets, self.last_clock_step
+        if n == resets_before:
+            return None
+        return (
+            f"{what} clock jumped back by {step:.3f} s during the run (a second publisher on "
+            f"{key}, or its clock reset): its samples cannot be trusted"
+        )
 
     def stats(self, window: float = 1.0) -> dict[str, float]:
         """Rate (Hz over the last ``window`` s), every counter, age (s)."""
