@@ -401,3 +401,39 @@ def test_vm_speed_prints_shell_assignments() -> None:
     # any real loop is far slower than 1 us: the slowest settings
     assert float(got["TIME_FACTOR"]) == 24.0 and float(got["SIM_TIME_SCALE"]) == 0.1
     assert float(got["DEADMAN_S"]) == 8.0
+
+
+@pytest.mark.parametrize(
+    ("passed", "before", "loop_after", "fixed", "deadman"),
+    [
+        (False, 0.56, 0.51, False, 2.1),  # 2026-11: 0.56 before, 1.02 after: held again
+        (False, 1.0, 0.55, False, None),  # as slow as before: the failure stands
+        (False, 0.56, 0.51, True, None),  # SWPC_VM_DEADMAN_D fixed it: never resized
+        (True, 0.56, 0.51, False, None),  # a passed hold is not held again
+    ],
+)
+def test_vm_deadman_step_is_judged_against_the_speed_it_had(
+    monkeypatch: pytest.MonkeyPatch,
+    passed: bool,
+    before: float,
+    loop_after: float,
+    fixed: bool,
+    deadman: float | None,
+) -> None:
+    """The deadman step failed once when the host slowed down during it (slowness 0.56
+    before it, 1.02 before the next step): its dead-man had been sized for 0.56."""
+    import argparse
+
+    monkeypatch.syspath_prepend(str(DEPLOY / "vm"))
+    import deadman as step
+    import speed
+
+    monkeypatch.setattr(speed, "loaded_loop_seconds", lambda *a, **k: loop_after)
+    monkeypatch.setattr(step, "passed", lambda args, k: passed)
+    args = argparse.Namespace(speed=f"LOOP_S=0.28 SLOWNESS={before}", fixed_deadman=fixed)
+    got = step.slowed_down(args, {})
+    if deadman is None:
+        assert got is None
+    else:
+        assert got is not None and got["deadman"] == pytest.approx(deadman)
+        assert f"slowness {before:.2f} before the step, 1.02 after" in got["why"]

@@ -170,16 +170,22 @@ fi
 # must be free within dead-man + watchdog.  The dead-man D is the robot's 0.5 s scaled with
 # the emulation's measured slowness (speed.py: D = 2 s x s; Python here is 20-50x slower than on the host,
 # and D / 2 is how late the driver's Python thread may renew it); SWPC_VM_DEADMAN_D fixes
-# it.  A 20 s hold with the refresh sent from Python instead is reported beside it.
+# it.  A hold that fails when the emulation has become slower than the speed D was sized
+# for (by 1.25x, measured again after it) is held once more with D sized for the speed it
+# had: the step is judged against that speed, not the one before it.  A 20 s hold with the
+# refresh sent from Python instead is reported beside it.
 # OUT/deadman.json; docs/history/2026-11-25-deadman-vm.md has the figures.
 measure_speed deadman "${SWPC_VM_DEADMAN_D:-}"
 deadman() {
+    local fixed=()
+    [[ -n "${SWPC_VM_DEADMAN_D:-}" ]] && fixed=(--fixed-deadman)
     deploy/vcan-up.sh vcan40 >/dev/null || return 1
     "$PY" deploy/vm/deadman.py run --channel vcan40 --idle "${SWPC_VM_DEADMAN_IDLE:-10}" \
         --hold "${SWPC_VM_DEADMAN_HOLD:-60}" --contrast "${SWPC_VM_DEADMAN_CONTRAST:-20}" \
         --deadman "${SWPC_VM_DEADMAN_D:-${SPEED_DEADMAN_S:-0}}" --out "$OUT/deadman.json" \
         "$( ((${SWPC_VM_DEADMAN_SOFTIRQ_RT:-1})) && echo --softirq-rt || echo --no-softirq-rt)" \
-        --speed "LOOP_S=${SPEED_LOOP_S:-} SLOWNESS=${SPEED_SLOWNESS:-}" ${SWPC_VM_DEADMAN_ARGS:-}
+        --speed "LOOP_S=${SPEED_LOOP_S:-} SLOWNESS=${SPEED_SLOWNESS:-}" "${fixed[@]}" \
+        ${SWPC_VM_DEADMAN_ARGS:-}
 }
 step deadman deadman
 
