@@ -228,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
         f"{args.interface}:{args.channel} (drives {opt.drives.kind}, nodes "
-        f"{opt.drives.nodes()}), mocap {args.pose_rate:g} Hz "
+        f"{opt.drives.for_modules(truth.ids).nodes()}), mocap {args.pose_rate:g} Hz "
         f"{args.pose_encoding} on mocap/{args.robot}/pose, gyro {args.gyro_rate:g} Hz on "
         f"imu/{args.robot}/data via {listen or args.zenoh_connect}, time scale {args.time_scale:g}",
         flush=True,
