@@ -289,8 +289,13 @@ def test_our_driver_refuses_odrive_cans_mock_which_has_no_watchdog() -> None:
         assert mocks[0].odrive.axis_state in ("CLOSED_LOOP_CONTROL", "IDLE")
     finally:
         drv.shutdown()
-        for t in tasks:
-            loop.call_soon_threadsafe(t.cancel)
+
+        async def cancel() -> None:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+        asyncio.run_coroutine_threadsafe(cancel(), loop).result(timeout=5)
         loop.call_soon_threadsafe(loop.stop)
         th.join(timeout=5)
         for m in mocks:

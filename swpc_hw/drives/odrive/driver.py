@@ -528,6 +528,9 @@ class ODriveDriver(CanDriver):
             self._send_frames(frames, best_effort=True)
 
     # ================================================================ observation
+    def _error_names(self, bits: int) -> str:
+        return self.codec.error_names(bits)
+
     def axis_states(self) -> dict[int, dict[str, object]]:
         """Every axis by node: module, axis, state, axis error (named), last estimate."""
         with self._lock:
