@@ -26,8 +26,10 @@ On the bus:
   driver's I/O step (a :class:`~swpc_hw.clock.SimClock` hook in lockstep);
 * :meth:`ODriveDriver.activate` proves that dead-man before anything moves: it arms every
   axis at zero torque, sends it nothing, and waits for its heartbeat to report
-  ``WATCHDOG_TIMER_EXPIRED`` within ``W + 2 T_hb``; an axis that stays armed is refused with
-  the setting to fix.  The same window checks the encoder estimates' rate.
+  ``WATCHDOG_TIMER_EXPIRED`` within ``W + L`` (the expiry, then the heartbeat that reports
+  it, which may be as late as a heartbeat may be before its node counts as lost); an axis
+  that stays armed is refused with the setting to fix.  The same window checks the encoder
+  estimates' rate.
 
 Units: the wire's turns of the axis, turns/s and N.m at the motor, A; SI at the module's
 output above, through each axis' gear ratio and torque constant.
@@ -61,9 +63,6 @@ from swpc_hw.drives.odrive.tracking import (
 )
 
 TWO_PI = 2.0 * math.pi
-PROOF_HEARTBEATS = 2
-"""The watchdog proof waits ``W + PROOF_HEARTBEATS x T_hb``: the expiry, then a heartbeat
-that reports it (one may be lost)."""
 MIN_RATE_FRACTION = 0.5
 """The encoder estimates must come at least at this fraction of the configured rate."""
 
@@ -225,7 +224,8 @@ class ODriveDriver(CanDriver):
         """Arm every axis at zero torque, send it nothing, and wait for its heartbeat to
         report the watchdog's expiry; the estimates' rate is measured in the same window."""
         cfg, clock, c = self.config, self.clock, self.codec
-        window = cfg.watchdog_timeout_ms / 1000.0 + PROOF_HEARTBEATS * cfg.heartbeat_period_s
+        loss_after = cfg.heartbeat_loss_periods * cfg.heartbeat_period_s
+        window = cfg.watchdog_timeout_ms / 1000.0 + loss_after
         counts: dict[int, int] = {}
         with self._changed:
             for ax in axes:
