@@ -312,3 +312,31 @@ def test_node_numbers_of_the_default_map_and_refusals() -> None:
     with pytest.raises(ValueError, match="less than or equal to 63"):
         ODriveAxis(node=64)
     assert list(itertools.islice(cfg.module_map(), 2)) == [1, 2]
+
+
+def test_the_kernel_refresh_takes_a_new_frame_id_for_an_axis() -> None:
+    """An ODrive axis' refresh goes from Set_Input_Torque (enable, free) to Set_Input_Pos
+    (hold after its index search): python-can's periodic tasks change their data, never
+    their ids, so the new id takes a new task (the VM's SocketCAN run faulted here before)."""
+    from swpc_hw.can.periodic import KernelRefresh
+
+    c = cs.can_simple("0.5")
+    channel = f"odrive-refresh-{uuid.uuid4().hex[:8]}"
+    with can.Bus(interface="virtual", channel=channel) as tx, can.Bus(
+        interface="virtual", channel=channel
+    ) as rx:
+        ref = KernelRefresh(tx, period=0.02, deadman=2.0)
+        try:
+            ref.set_node(4, [c.set_input_torque(4, 0.0)])
+            ref.set_node(4, [c.set_input_torque(4, 0.5)])  # same id: the data changes
+            ref.set_node(4, [c.set_input_pos(4, 1.25)])  # another id: a new task
+            assert ref.nodes() == [4]
+            deadline = time.monotonic() + 5.0
+            seen = None
+            while time.monotonic() < deadline and seen is None:
+                m = rx.recv(0.1)
+                if m is not None and m.arbitration_id == 4 << 5 | cs.Cmd.SET_INPUT_POS:
+                    seen = c.decode(m.arbitration_id, bytes(m.data))
+            assert seen == cs.SetInputPos(4, 1.25, 0.0, 0.0)
+        finally:
+            ref.close()

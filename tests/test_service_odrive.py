@@ -13,6 +13,7 @@ Stale motion capture and a step timeout are judged by the state machine on any d
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -195,6 +196,43 @@ def test_bus_off_mid_spin(service: tuple[TestClient, Runtime, Recorder]) -> None
     assert st["state"] == "FAILED" and "bus-off" in st["reason"], st
     dt = first_stop(rec, t, rt)
     print(f"\nfault table (odrive {LINE}): bus-off -> first IDLE after {dt * 1e3:.1f} ms")
+
+
+def test_stale_motion_capture_mid_spin(service: tuple[TestClient, Runtime, Recorder]) -> None:
+    client, rt, rec = service
+    sim = rt.simulator
+    assert sim is not None
+    run_id = start(client, SHORT)
+    wait_spinning(client, run_id)
+    t = rt.clock.now()
+    before = sim.mocap.options
+    sim.mocap.options = dataclasses.replace(before, dropout=1.0)  # every pose lost
+    try:
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    finally:
+        sim.mocap.options = before
+    assert st["state"] == "FAILED" and "motion capture stale" in st["reason"], st
+    dt = first_stop(rec, t, rt)
+    assert dt <= rt.timing.mocap_stale + 0.1, dt
+    print(f"\nfault table (odrive {LINE}): motion capture stale -> first IDLE after "
+          f"{dt * 1e3:.1f} ms (stale after {rt.timing.mocap_stale:g} s)")  # fmt: skip
+
+
+def test_a_spin_that_outlasts_the_step_timeout(
+    service: tuple[TestClient, Runtime, Recorder],
+) -> None:
+    """A 1440 deg spin within a 25 s step timeout (the pre-motion check's least: settle
+    3 s + 25 rad at 1.2 rad/s) at 0.6 N.m, which turns the robot far slower than that."""
+    client, rt, rec = service
+    t = rt.clock.now()
+    run_id = start(client, {**SHORT, "limits": {"step_timeout": 25.0}})
+    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=120)
+    assert st["state"] == "FAILED" and st["reason"].startswith("step timeout: "), st
+    assert "25 s" in st["reason"], st["reason"]
+    # the spin alone took 25 s: the stop of the timeout is the first after that
+    at = 25.0 + first_stop(rec, t + 25.0, rt)
+    print(f"\nfault table (odrive {LINE}): step timeout -> every axis IDLE {at:.1f} s after "
+          f"the run started ({st['reason']})")
 
 
 def test_a_host_that_stops_refreshing_is_stopped_by_every_axis_watchdog(
