@@ -340,3 +340,40 @@ def test_the_kernel_refresh_takes_a_new_frame_id_for_an_axis() -> None:
             assert seen == cs.SetInputPos(4, 1.25, 0.0, 0.0)
         finally:
             ref.close()
+
+
+def test_a_frame_queued_before_the_simulator_slows_down_takes_effect_at_once() -> None:
+    """The virtual robot in real time (``swpc sim``) slows its clock down when it cannot keep
+    up.  A command queued just before (a burst: the watchdog proof's frames) must still take
+    effect at its arrival, not after the stall has been simulated: in the VM, a 1.5 s stall
+    held the proof's frames back until the service had given up on them."""
+    from simulators.sim_options import SimOptions
+    from simulators.virtual_robot import VirtualRobot
+    from swpc_hw.paper_robot import PAPER_CALIBRATED
+
+    channel = f"odrive-slow-{uuid.uuid4().hex[:8]}"
+    drives = ODriveDrives(firmware="0.5")
+    with can.Bus(interface="virtual", channel=channel) as host:
+        sim_bus = can.Bus(interface="virtual", channel=channel)
+        sim = VirtualRobot(PAPER_CALIBRATED, bus=sim_bus, own_bus=True,
+                           options=SimOptions(drives=drives, watchdog_ms=200))  # fmt: skip
+        try:
+            # robot time due now is 5 s, the simulation is at 0: it has fallen 5 s behind
+            sim.start_time, sim._origin = 0.0, sim._host.now() - 5.0
+            for d in sim.drives:
+                d.step(sim.now)
+            c = cs.can_simple("0.5")
+            f = c.set_axis_state(1, cs.AxisState.CLOSED_LOOP_CONTROL)  # module 1's wheel
+            host.send(can.Message(arbitration_id=f.arbitration_id, data=f.data,
+                                  is_extended_id=False))  # fmt: skip
+            msg = sim_bus.recv(1.0)
+            assert msg is not None
+            sim._queue_frame(msg)
+            sim._slow_down(5.0 - sim.tick_dt())  # as _run_real_time does, lag - dt
+            for _ in range(2):  # it takes effect at the first tick after its arrival
+                sim._tick(sim.tick_dt())
+                sim._receive_pending()
+            axis = sim.drives[0].axes[1]  # type: ignore[attr-defined]
+            assert axis.state == cs.AxisState.CLOSED_LOOP_CONTROL
+        finally:
+            sim.stop()
