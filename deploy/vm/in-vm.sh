@@ -250,8 +250,11 @@ step sim-calibration calibration_through_simulator
 # calibration (DONE), a second run is stopped mid-spin by kill -STOP of the service
 # (deploy/vm/odrive_deadman.py): the kernel's refresh ends D after the driver's last
 # renewal, then every axis' watchdog disarms it; bound D + (W + T_hb) / S host seconds.
+# Half sim-calibration's time scale: 8 axis nodes put twice the swpc kind's refresh frames
+# through the simulator's Python (each armed axis every T_ref of host time, in the kernel);
+# at its full time scale the simulator stalled mid-spin for longer than L (every node lost).
 measure_speed odrive "${SWPC_VM_SIM_TIME_SCALE:-}"
-ODRIVE_TS="${SWPC_VM_SIM_TIME_SCALE:-${SPEED_SIM_TIME_SCALE:-0.3}}"
+ODRIVE_TS="${SWPC_VM_SIM_TIME_SCALE:-$(awk -v s="${SPEED_SIM_TIME_SCALE:-0.3}" 'BEGIN {printf "%.3f", s / 2}')}"
 odrive_calibration() {
     local ts=$ODRIVE_TS ep=tcp/127.0.0.1:7448 port=8081 token=vm-token-0123456789 rc=0
     local window data=/tmp/swpc-odrive cfg=/tmp/odrive-robot.yaml chan=vcan41 sim_pid svc_pid
