@@ -369,10 +369,14 @@ def test_a_frame_queued_before_the_simulator_slows_down_takes_effect_at_once() -
             msg = sim_bus.recv(1.0)
             assert msg is not None
             sim._queue_frame(msg)
-            sim._slow_down(5.0 - sim.tick_dt())  # as _run_real_time does, lag - dt
-            for _ in range(2):  # it takes effect at the first tick after its arrival
-                sim._tick(sim.tick_dt())
-                sim._receive_pending()
+            # what _run_real_time does when it has fallen behind: the lag (robot time due
+            # now, after the frame's arrival, minus the simulation's) less one tick
+            dt = sim.tick_dt()
+            lag = (sim._host.now() - sim._origin) - sim.robot.t
+            assert lag >= 5.0
+            sim._slow_down(lag - dt)
+            sim._tick(dt)  # the frame arrived before the new "now": due by the next tick
+            sim._receive_pending()
             axis = sim.drives[0].axes[1]  # type: ignore[attr-defined]
             assert axis.state == cs.AxisState.CLOSED_LOOP_CONTROL
         finally:
