@@ -138,10 +138,60 @@ def design_fit_truth(result: dict[str, Any]) -> RobotParams:
     return transform_robot(PAPER_CALIBRATED, phi, t, result.get("frame", "design-fit"))
 
 
+DEMO_DRIVES: dict[str, dict[str, Any]] = {
+    "odrive": {
+        "kind": "odrive",
+        "homing": "index",
+        "modules": {
+            m: {
+                "steer": {"node": 2 * i, "gear_ratio": 8.0},
+                "wheel": {"node": 2 * i + 1, "gear_ratio": 4.0},
+            }
+            for i, m in enumerate(PAPER_CALIBRATED.ids)
+        },
+    },
+}
+"""The demo's drives of each kind but swpc's own (which is the robot config's default): an
+ODrive v3.6 per module (steering axis0, wheel axis1), geared 8:1 and 4:1."""
+
+
+def demo_robot_config(data_dir: Path, drives: str, firmware: str) -> Path | None:
+    """The demo's robot config with ``drives`` (None: the default robot config, swpc's own
+    drives), written into ``data_dir``."""
+    if drives == "swpc":
+        return None
+    import yaml
+
+    from services.config.robot import RobotConfig
+
+    doc = RobotConfig().to_document()
+    doc["drives"] = dict(DEMO_DRIVES[drives], firmware=firmware)
+    path = data_dir / "robot.yaml"
+    path.write_text(yaml.safe_dump(RobotConfig.model_validate(doc).to_document()))
+    return path
+
+
+def combined_sd_differences(a: dict[str, Any], b: dict[str, Any]) -> tuple[float, str]:
+    """The largest ``|a - b| / sqrt(sd_a^2 + sd_b^2)`` over every calibrated parameter of
+    two results, and which parameter it is."""
+    worst, where = 0.0, ""
+    sb = {m["id"]: m for m in b["modules"]}
+    for m in a["modules"]:
+        o = sb[m["id"]]
+        for k in ("x_s", "y_s", "beta", "b", "r"):
+            z = abs(m[k] - o[k]) / math.hypot(m["stddev"][k], o["stddev"][k])
+            if z >= worst:
+                worst, where = z, f"module {m['id']} {k}"
+    return worst, where
+
+
 def run_service_demo(
     data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False,
-    metrology: str = "mocap",
+    metrology: str = "mocap", robot_config: Path | None = None,
+    results: list[dict[str, Any]] | None = None,
 ) -> int:
+    """One calibration through ``swpc serve`` (module docstring); ``robot_config``: the
+    service's robot config (default: its own default); ``results`` gets the result."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     token = secrets.token_urlsafe(16)
@@ -156,6 +206,8 @@ def run_service_demo(
     )
     for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
         env.pop(key, None)
+    if robot_config is not None:
+        env["SWPC_ROBOT_CONFIG"] = str(robot_config)
     t0 = time.monotonic()
     log = open(data_dir / "service.log", "w")  # noqa: SIM115 - lives as long as the process
     proc = subprocess.Popen(
@@ -212,6 +264,8 @@ def run_service_demo(
                 print(f"calibration {st['state']}: {st['reason']}", file=sys.stderr)
                 return 1
             res = http.get(f"/calibrations/{run_id}/result").json()
+            if results is not None:
+                results.append(res)
             print()
             if metrology == "imu":
                 print("frame design-fit: the truth re-expressed in it")
@@ -282,15 +336,41 @@ def main(argv: list[str] | None = None) -> int:
         help="after the run, keep the service (and its console at /) up until Ctrl-C",
     )
     add_metrology_argument(parser)
+    parser.add_argument(
+        "--drives", choices=["swpc", *DEMO_DRIVES], default="swpc",
+        help="the drive kind of the virtual robot and the service (default swpc); with "
+        "another kind the same seed then runs on swpc drives, and the largest difference "
+        "of the two results in combined std devs is printed",
+    )
+    parser.add_argument(
+        "--odrive-firmware", choices=["0.5", "0.6"], default="0.6",
+        help="the ODrive firmware line of --drives odrive (default 0.6)",
+    )
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.offline:
         return run_offline_demo(out, args.seed)
-    return run_service_demo(
-        out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.metrology
+    results: list[dict[str, Any]] = []
+    code = run_service_demo(
+        out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.metrology,
+        demo_robot_config(out.resolve(), args.drives, args.odrive_firmware), results,
     )
+    if code != 0 or args.drives == "swpc":
+        return code
+    ref = out.resolve() / "swpc"
+    ref.mkdir(exist_ok=True)
+    print(f"\nthe same seed on swpc drives ({ref}):")
+    code = run_service_demo(
+        ref, args.sim_speed, args.seed, False, args.metrology, None, results
+    )
+    if code != 0:
+        return code
+    worst, where = combined_sd_differences(results[0], results[1])
+    print(f"{args.drives} against swpc drives, seed {args.seed}: largest difference "
+          f"{worst:.2f} combined std devs ({where})")  # fmt: skip
+    return 0 if worst < 3.0 else 1
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ErrorFlag, Frame
 from simulators.axis_drives import axis_drive
 from simulators.virtual_controller import VirtualController
-from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.drives.config import DrivesConfig, ODriveDrives, SwpcDrives
 
 
 class VirtualDrive(Protocol):
@@ -188,7 +188,14 @@ def _swpc(
     )
 
 
-BUILDERS: dict[str, Callable[..., VirtualDrive]] = {"swpc": _swpc}
+def _odrive(config: DrivesConfig, module: int, **kwargs: Any) -> VirtualDrive:
+    from simulators.virtual_odrive import odrive_virtual_drive
+
+    assert isinstance(config, ODriveDrives)
+    return odrive_virtual_drive(config, module, **kwargs)
+
+
+BUILDERS: dict[str, Callable[..., VirtualDrive]] = {"swpc": _swpc, "odrive": _odrive}
 """kind -> builder of one module's virtual drives."""
 
 

@@ -370,8 +370,7 @@ class VirtualRobot:
                 lag = target - self.robot.t
                 if lag > self.options.max_lag * self.options.time_scale:
                     # cannot keep up: slow the simulated clock down instead of bursting
-                    self._origin += lag - dt
-                    self._stats.overruns += 1
+                    self._slow_down(lag - dt)
                 self._cpu = time.thread_time() - cpu0
             timeout = self._host_seconds(self._origin + self.robot.t + dt - self._host.now())
             msg = self.bus.recv(timeout=max(timeout, 0.0)) if timeout > 0 else self.bus.recv(0)
@@ -403,6 +402,16 @@ class VirtualRobot:
                 self._tick(t_next - t, t_end=t_next)
                 self._cpu = time.thread_time() - cpu0
             clock.advance_to(t_next, self._stop)
+
+    def _slow_down(self, shift: float) -> None:
+        """Move robot time 0 ``shift`` later on the host clock (real time): the simulated
+        clock slows down.  The frames already queued keep their arrival on the host clock,
+        so on the new origin they are due ``shift`` sooner: without that, a burst of frames
+        queued before a long stall waited until the simulation had run the whole stall
+        (seconds under QEMU), and an ODrive axis handled its commands that late."""
+        self._origin += shift
+        self._pending = deque((t - shift, m) for t, m in self._pending)
+        self._stats.overruns += 1
 
     def _stamp(self, t: float) -> float:
         """The bus / pose time stamp of simulated time ``t`` (lockstep: the simulated

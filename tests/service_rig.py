@@ -60,9 +60,13 @@ def families(text: str) -> dict[str, Any]:
     return {f.name: f for f in text_string_to_metric_families(text)}
 
 
-#: a run of the whole protocol with short steps (as tests/test_service.py's quick one)
-SHORT_STEPS = {"protocol": {"sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5,
-                      "align_time": 0.5, "resteer_time": 1.5}}  # fmt: skip
+QUICK_PROTOCOL = {
+    "sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5, "resteer_time": 1.5
+}
+"""The whole protocol with short spins (as make test-vcan): a real result, quickly."""
+SHORT_STEPS = {"protocol": QUICK_PROTOCOL}
+SHORT = {"protocol": {"sweep_deg": 1440}}
+"""A long first spin (about module 1): the faults a test injects land in it."""
 
 
 @dataclass
@@ -117,3 +121,23 @@ def wait_state(
             return st
         assert time.monotonic() < deadline, f"run {run_id} never reached {states}: {st}"
         time.sleep(0.01)
+
+
+def start(client: TestClient, overrides: dict[str, Any] | None = None, **kw: Any) -> str:
+    """POST /calibrations (202): the new run's id."""
+    r = client.post("/calibrations", json={"overrides": overrides or {}, **kw}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    assert r.headers["Location"] == f"/calibrations/{r.json()['id']}"
+    return str(r.json()["id"])
+
+
+def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
+    """Until the run spins and has swept ``sweep`` deg (a guard of 60 s against a hang)."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        st = client.get(f"/calibrations/{run_id}").json()
+        assert st["state"] not in ("FAILED", "ABORTED", "DONE"), st
+        if st["state"] == "SPIN" and st["sweep_deg"] >= sweep:
+            return
+        time.sleep(0.02)
+    raise AssertionError("never reached a steady spin")

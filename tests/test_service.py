@@ -38,14 +38,17 @@ from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import PARAM_NAMES
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from tests.service_rig import AUTH, sim_service, wait_state
+from tests.service_rig import (
+    AUTH,
+    QUICK_PROTOCOL,
+    SHORT,
+    sim_service,
+    start,
+    wait_spinning,
+    wait_state,
+)
 
 NAMES = PARAM_NAMES
-SHORT = {"protocol": {"sweep_deg": 1440}}  # a long first spin (module 1): faults land in it
-# the whole protocol with short spins (as make test-vcan): a real result, quickly
-QUICK_PROTOCOL = {
-    "sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5, "resteer_time": 1.5
-}
 
 
 class Recorder(can.Listener):  # type: ignore[misc]
@@ -127,24 +130,6 @@ def data_summary(rt: Runtime, run_id: str) -> str:
             f"{rot:.1f} deg, longest pose gap {gaps:.3f} s"
         )
     return "; ".join(rows)
-
-
-def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        st = client.get(f"/calibrations/{run_id}").json()
-        assert st["state"] not in ("FAILED", "ABORTED", "DONE"), st
-        if st["state"] == "SPIN" and st["sweep_deg"] >= sweep:
-            return
-        time.sleep(0.02)
-    raise AssertionError("never reached a steady spin")
-
-
-def start(client: TestClient, overrides: dict[str, Any] | None = None, **kw: Any) -> str:
-    r = client.post("/calibrations", json={"overrides": overrides or {}, **kw}, headers=AUTH)
-    assert r.status_code == 202, r.text
-    assert r.headers["Location"] == f"/calibrations/{r.json()['id']}"
-    return str(r.json()["id"])
 
 
 # ---------------------------------------------------------------------- happy path

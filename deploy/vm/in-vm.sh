@@ -17,6 +17,10 @@
 #   sim-calibration  `swpc sim` as a separate process on vcan0 + `swpc serve` calibrating
 #                 through it over HTTP (OUT/sim-calibration.json; compared by run-in-vm.sh
 #                 with an in-process run of the same configuration on the host)
+#   odrive        ODrive drives (firmware 0.5.x) on vcan41: `swpc sim --robot-config` with
+#                 virtual ODrives + `swpc serve` calibrating through it (OUT/odrive-
+#                 calibration.json), then kill -STOP of the service mid-spin: every axis
+#                 stopped by its own watchdog within the bound (deploy/vm/odrive_deadman.py)
 #   can-up        deploy/can-up.sh on can0/can1, two SJA1000 (kvaser_pci) controllers that
 #                 QEMU emulates on one CAN bus; python-can exchange can0 -> can1
 #   robot-install deploy/vm/robot-install.sh: deploy/README.md's robot set-up on systemd
@@ -243,6 +247,68 @@ calibration_through_simulator() {
     return $rc
 }
 step sim-calibration calibration_through_simulator
+
+# --- ODrive drives: a calibration through virtual ODrives, then kill -STOP -------------------
+# The same set-up as sim-calibration on its own vcan41, with ODrive drives (firmware 0.5.x,
+# where every frame to an axis feeds its watchdog) in a robot config both processes read.
+# The ODrive's watchdog is set on the drive, not by the host: the simulator gets the
+# service's W (services/config/timing.py at this time scale) as its --watchdog-ms.  After a
+# calibration (DONE), a second run is stopped mid-spin by kill -STOP of the service
+# (deploy/vm/odrive_deadman.py): the kernel's refresh ends D after the driver's last
+# renewal, then every axis' watchdog disarms it; bound D + (W + T_hb) / S host seconds.
+# Half sim-calibration's time scale: 8 axis nodes put twice the swpc kind's refresh frames
+# through the simulator's Python (each armed axis every T_ref of host time, in the kernel);
+# at its full time scale the simulator stalled mid-spin for longer than L (every node lost).
+measure_speed odrive "${SWPC_VM_SIM_TIME_SCALE:-}"
+ODRIVE_TS="${SWPC_VM_SIM_TIME_SCALE:-$(awk -v s="${SPEED_SIM_TIME_SCALE:-0.3}" 'BEGIN {printf "%.3f", s / 2}')}"
+odrive_calibration() {
+    local ts=$ODRIVE_TS ep=tcp/127.0.0.1:7448 port=8081 token=vm-token-0123456789 rc=0
+    local window data=/tmp/swpc-odrive cfg=/tmp/odrive-robot.yaml chan=vcan41 sim_pid svc_pid
+    local w hb d
+    window=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
+    deploy/vcan-up.sh "$chan" >/dev/null || return 1
+    ip link set dev lo up || return 1
+    printf 'drives: {kind: odrive, firmware: "0.5", homing: index}\n' > "$cfg"
+    read -r w hb d < <(SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL="$chan" \
+        SWPC_TIME_SCALE="$ts" SWPC_SIM_HOST_WINDOW_S="$window" SWPC_ROBOT_CONFIG="$cfg" \
+        SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" "$PY" -c '
+from services.config.robot import load_robot_config
+from services.config.settings import ServiceSettings
+from services.config.timing import timing_budget
+s = ServiceSettings()
+b = timing_budget(s, load_robot_config(s.robot_config))
+print(b.watchdog, b.heartbeat_period, b.deadman)') || return 1
+    echo "ODrive budget at time scale $ts: W $w s, T_hb $hb s (robot), D $d s (kernel)"
+    swpc sim --robot-config "$cfg" --interface socketcan --channel "$chan" \
+        --zenoh-listen "$ep" --time-scale "$ts" \
+        --physics-dt "$(awk -v d="$PHYSICS_DT" 'BEGIN {print d * 1000}')" \
+        --feedback-rate "$FEEDBACK_RATE" --watchdog-ms "$(awk -v w="$w" 'BEGIN {print int(w * 1000 + 0.5)}')" \
+        --pose-sigma-xy 0.5 --pose-sigma-yaw 0.05 --seed "$SIM_SEED" --stats-every 20 \
+        > "$OUT/odrive-sim.log" 2>&1 &
+    sim_pid=$!
+    SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL="$chan" SWPC_ZENOH_CONNECT="[\"$ep\"]" \
+    SWPC_TIME_SCALE="$ts" SWPC_SIM_HOST_WINDOW_S="$window" SWPC_ROBOT_CONFIG="$cfg" \
+    SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
+    SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
+    SWPC_DISK_BUDGET=256MiB SWPC_MIN_FREE=32MiB \
+        swpc serve > "$OUT/odrive-service.log" 2>&1 &
+    svc_pid=$!
+    echo "simulator pid $sim_pid, service pid $svc_pid (ODrive drives on $chan)"
+    "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
+        --overrides "$SIM_OVERRIDES" --out "$OUT/odrive-calibration.json" \
+        --service-log "$OUT/odrive-service.log" --health-timeout 300 --timeout 1500 || rc=1
+    if ((rc == 0)); then
+        "$PY" deploy/vm/odrive_deadman.py --url "http://127.0.0.1:$port" --token "$token" \
+            --service-pid "$svc_pid" --channel "$chan" --firmware 0.5 --time-scale "$ts" \
+            --deadman "$d" --watchdog "$w" --heartbeat "$hb" \
+            --out "$OUT/odrive-deadman.json" || rc=1
+    fi
+    kill "$svc_pid" "$sim_pid" 2>/dev/null
+    wait "$svc_pid" "$sim_pid" 2>/dev/null
+    echo "simulator log (tail):"; tail -n 3 "$OUT/odrive-sim.log"
+    return $rc
+}
+step odrive odrive_calibration
 
 # --- real CAN controllers (QEMU kvaser_pci / SJA1000 on one emulated bus) ---------------------
 if [[ -e /sys/class/net/can0 && -e /sys/class/net/can1 ]]; then

@@ -59,7 +59,8 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--drives",
         default=None,
-        help="the drive kind the virtual robot's drives speak (swpc; its default CAN nodes)",
+        help="the drive kind the virtual robot's drives speak: swpc (default) or odrive "
+        "(virtual ODrives, firmware 0.6.x), each with its default CAN nodes",
     )
     p.add_argument(
         "--robot-config",

@@ -30,7 +30,11 @@ Invariants (:meth:`TimingBudget.check`):
 * ``S >= 2 / mocap rate`` is the operator's to keep (the mocap rate is not known here).
 
 Stop bound: a hung or stopped service frees every axis within ``W`` when the host refreshes
-the watchdog, within ``D + W`` when the kernel does (SocketCAN broadcast manager).
+the watchdog, within ``D + W`` when the kernel does (SocketCAN broadcast manager).  The
+same bound holds for every drive kind whose dead-man the host refreshes: on ODrive drives
+``W`` is each axis' own watchdog (``watchdog_timeout``, set on the ODrive to ``W``) and the
+refresh is the axis' last setpoint frame; its heartbeat reports the stop ``T_hb`` later,
+and ``activate()`` proves the watchdog first, ``W + L`` at most (docs/drives.md).
 
 Against an external time-scaled simulator (``k != 1``) a host stall of ``J`` seconds is
 ``k J`` seconds of robot time, so ``W``, ``L`` and ``S`` are floored at ``k`` times

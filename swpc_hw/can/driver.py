@@ -51,11 +51,11 @@ from swpc_hw.can.errors import (
     NodeTimeoutError,
 )
 from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.node_tracking import NodeTrack, apply_frame, frame_time
+from swpc_hw.can.node_tracking import Applied, NodeTrack, apply_frame, frame_time
 from swpc_hw.can.observation import DriverObservation
 from swpc_hw.can.periodic import KernelRefresh
 from swpc_hw.can.recording import Recorder, grow_receive_buffer
-from swpc_hw.can.supervision import check
+from swpc_hw.can.supervision import CheckResult, check
 from swpc_hw.can.types import (
     DriverEvent,
     DriverStats,
@@ -162,7 +162,7 @@ class CanDriver(DriverCommands, DriverObservation):
             if cfg.interface == "socketcan":
                 # in the kernel: our own commands (the periodic refresh, looped back) never
                 # reach the receive path
-                kwargs.setdefault("can_filters", codec.host_receive_filters())
+                kwargs.setdefault("can_filters", self._receive_filters())
             try:
                 self._bus = can.Bus(
                     interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **kwargs
@@ -277,6 +277,11 @@ class CanDriver(DriverCommands, DriverObservation):
             self._state = Lifecycle.FINALIZED
             self._changed.notify_all()
 
+    def _receive_filters(self) -> list[dict[str, int | bool]]:
+        """The kernel's receive filters on SocketCAN: the controllers' frames only (a drive
+        kind with other frames has its own)."""
+        return codec.host_receive_filters()
+
     # ================================================================ transmit
     def _send_frames(self, frames: list[codec.Frame], best_effort: bool = False) -> None:
         bus = self._bus
@@ -388,7 +393,7 @@ class CanDriver(DriverCommands, DriverObservation):
         self._log(msg)
         try:
             with self._changed:
-                applied = apply_frame(self._by_node, msg, t, self._stats)
+                applied = self._apply_frame(msg, t)
                 if stamp:
                     self._latency.append(clock.wall() - stamp)
                 # events queued before the state drops: whoever sees INACTIVE finds why
@@ -409,6 +414,10 @@ class CanDriver(DriverCommands, DriverObservation):
         except Exception as exc:
             self._on_listener_error(exc)
 
+    def _apply_frame(self, msg: can.Message, t: float) -> Applied:
+        """What one received frame tells (the pure core; under the driver's lock)."""
+        return apply_frame(self._by_node, msg, t, self._stats)
+
     def _on_listener_error(self, exc: Exception) -> None:
         with self._lock:
             self._stats.listener_errors += 1
@@ -428,14 +437,7 @@ class CanDriver(DriverCommands, DriverObservation):
         loss_after = cfg.heartbeat_loss_periods * cfg.heartbeat_period_s
         with self._lock:
             active = self._state == Lifecycle.ACTIVE
-            res = check(
-                self._nodes.values(),
-                now,
-                t_configured=self._configured_at,
-                loss_after=loss_after,
-                refresh_period=cfg.refresh_period_s,
-                refresh=active and self._kernel is None,
-            )
+            res = self._check(now, loss_after, active)
             recorded = [
                 self._record(
                     Observation(
@@ -465,6 +467,17 @@ class CanDriver(DriverCommands, DriverObservation):
                 self._next_renewal = now + self._kernel.renew_every
             deadline = min(deadline, self._next_renewal)
         return deadline
+
+    def _check(self, now: float, loss_after: float, active: bool) -> CheckResult:
+        """Heartbeat loss and the host's refresh at ``now`` (the pure core; lock held)."""
+        return check(
+            self._nodes.values(),
+            now,
+            t_configured=self._configured_at,
+            loss_after=loss_after,
+            refresh_period=self.config.refresh_period_s,
+            refresh=active and self._kernel is None,
+        )
 
     # ================================================================ faults and events
     def _begin_fault(self, cause: str) -> bool:

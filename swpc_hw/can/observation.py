@@ -168,10 +168,14 @@ class DriverObservation:
         raise NodeTimeoutError(
             f"{where(nd.module, nd.node)}: {what} not reached within {timeout} s "
             f"(states {[s.name for s in st.states]}, errors "
-            f"{[codec.error_names(e) for e in st.errors]}, homed {st.homed}, "
+            f"{[self._error_names(e) for e in st.errors]}, homed {st.homed}, "
             f"homing {st.homing.name})",
             node=nd.node,
         )
+
+    def _error_names(self, bits: int) -> str:
+        """An axis' error bits by name (the drive kind's own)."""
+        return codec.error_names(bits)
 
     def wait_axis_state(
         self, module: int, axis: Axis, state: AxisState, timeout: float = 1.0

@@ -71,7 +71,12 @@ class KernelRefresh:
         cur = self._tasks.get(node)
         if cur is not None and cur.frames == new:
             return
-        if cur is not None and len(cur.frames) == len(new) and new:
+        same_ids = cur is not None and [f.arbitration_id for f in cur.frames] == [
+            f.arbitration_id for f in new
+        ]
+        if cur is not None and same_ids and new:
+            # python-can changes a task's data, never its ids (an ODrive axis' refresh goes
+            # from Set_Input_Torque to Set_Input_Pos): other ids take a new task, below
             msgs = [_message(f, self.bus.channel_info) for f in new]
             cur.task.modify_data(msgs)  # type: ignore[attr-defined]
             cur.frames = new

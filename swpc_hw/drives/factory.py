@@ -16,8 +16,9 @@ from swpc_hw.can.config import CanConfig
 from swpc_hw.can.driver import CanDriver
 from swpc_hw.can.errors import CanConfigError
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
-from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.drives.config import DrivesConfig, ODriveDrives, SwpcDrives
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.odrive.driver import ODriveDriver
 
 
 def _open_swpc(config: Any, bus: CanConfig, clock: Clock) -> Drives:
@@ -25,8 +26,17 @@ def _open_swpc(config: Any, bus: CanConfig, clock: Clock) -> Drives:
     return CanDriver(dataclasses.replace(bus, modules=config.node_map()), clock=clock)
 
 
+def _open_odrive(config: Any, bus: CanConfig, clock: Clock) -> Drives:
+    """ODrive axes: the encoder estimates come at the config's ``encoder_rate_hz`` (set on
+    the ODrive), else at the service's feedback rate, which the ODrive must then be set to."""
+    assert isinstance(config, ODriveDrives)
+    rate = config.encoder_rate_hz or bus.feedback_rate_hz
+    return ODriveDriver(config, dataclasses.replace(bus, feedback_rate_hz=rate), clock=clock)
+
+
 OPENERS: dict[str, Callable[[Any, CanConfig, Clock], Drives]] = {
     "swpc": _open_swpc,
+    "odrive": _open_odrive,
 }
 """kind -> opener (module docstring)."""
 
