@@ -98,3 +98,43 @@ def test_swpc_serve_on_a_damaged_run_store_says_so_in_one_line(
     assert len(err) == 1 and "the run store is damaged" in err[0], err
     assert f"mv {tmp_path / 'runs.sqlite'} " in err[0]
     json.dumps(err)  # one plain line
+
+
+def test_a_long_lived_service_keeps_a_bounded_number_of_runs_in_memory(
+    tmp_path: Path,
+) -> None:
+    """Every run ever started stayed in memory (the soak's resident memory grew with every
+    run): the runtime keeps the current one and the newest finished ones, the store the
+    rest, and lists them all."""
+    from types import SimpleNamespace
+
+    from pydantic import SecretStr
+
+    from services.config.settings import ServiceSettings
+    from services.runtime.runtime import RUNS_IN_MEMORY, Runtime
+
+    rt = Runtime(ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN)))
+    try:
+        for i in range(3 * RUNS_IN_MEMORY):
+            rid = f"r{i:03d}"
+            status = {
+                "id": rid,
+                "state": "DONE",
+                "created": f"2026-01-01T00:{i // 60:02d}:{i % 60:02d}Z",
+            }
+            run = SimpleNamespace(
+                id=rid,
+                finished=True,
+                status=SimpleNamespace(created=status["created"], to_dict=lambda s=status: s),
+            )
+            rt.runs[rid] = run  # type: ignore[assignment]
+            rt.store.upsert(rid, status["created"], status)
+            rt._retire()
+        assert len(rt.runs) == RUNS_IN_MEMORY
+        assert sorted(rt.runs) == [
+            f"r{i:03d}" for i in range(2 * RUNS_IN_MEMORY, 3 * RUNS_IN_MEMORY)
+        ]
+        assert len(rt.list_runs()) == 3 * RUNS_IN_MEMORY
+        assert rt.status("r000") is not None  # from the store
+    finally:
+        rt.close()

@@ -65,6 +65,9 @@ from swpc_hw.references import Reference
 from swpc_hw.zenoh_session import ZenohAuth, free_tcp_endpoint, open_session, publishers_acl
 
 SWITCH_INTERVAL_S = 0.001
+RUNS_IN_MEMORY = 8
+"""Finished runs the runtime keeps in memory beside the current one (the others are read
+from the run store)."""
 SIM_USER = "simulator"
 """The in-process simulator's zenoh user: the only publisher of the robot's sensor keys."""
 ZENOH_USERS_FILE = ".zenoh-users"
@@ -490,6 +493,21 @@ class Runtime:
         finally:  # the console's event stream: saved or not, as the runs list shows it
             self.events.publish({"type": "run", "run": run.status.to_dict()})
         self._unsaved.discard(run.id)
+        if run.finished:
+            self._retire()
+
+    def _retire(self) -> None:
+        """Keep in memory the current run and the :data:`RUNS_IN_MEMORY` newest finished
+        ones (and any whose state the store has yet to take): the rest are read from the
+        store, so a service that runs for months holds a bounded number of runs."""
+        with self.lock:
+            finished = [
+                r for r in self.runs.values()
+                if r.finished and r is not self.current and r.id not in self._unsaved
+            ]  # fmt: skip
+            finished.sort(key=lambda r: r.status.created)
+            for r in finished[: max(0, len(finished) - RUNS_IN_MEMORY)]:
+                del self.runs[r.id]
 
     def _save_unsaved(self) -> None:
         """Save again the runs whose last save failed (once the store takes writes)."""
