@@ -406,3 +406,37 @@ def test_a_command_hands_its_setpoint_to_the_kernel_before_its_frame_goes_out() 
     drv.disable(1, Axis.STEER)  # no longer refreshed: out of the task, then the frame
     assert [k for k, _ in log] == ["periodic", "stop", "send"]
     assert log[0][1] == [free_wheel]
+
+
+def test_the_kernel_refresh_runs_on_host_time_against_a_time_scaled_simulator() -> None:
+    """Against ``swpc sim --time-scale k`` the clock runs k robot seconds a host second,
+    and the kernel's timers on host time: the refresh period and the dead-man were taken
+    as host seconds though the budget is robot time, and renewed every D / 2 robot
+    seconds: at k < 1 the kernel's refresh lapsed between renewals."""
+    import uuid
+
+    from swpc_hw.can import CanConfig, CanDriver
+    from swpc_hw.can.types import Lifecycle
+    from swpc_hw.clock import SystemClock
+
+    k = 0.25
+    cfg = CanConfig(
+        modules={1: 1}, channel=f"kr-{uuid.uuid4().hex[:8]}", refresh_period_s=0.02,
+        deadman_s=0.5, refresh_in_kernel=True,
+    )  # fmt: skip
+    drv = CanDriver(cfg, clock=SystemClock(rate=k))
+    drv.configure()
+    try:
+        ref = drv._kernel
+        assert ref is not None
+        assert ref.period == pytest.approx(0.02 / k) and ref.deadman == pytest.approx(0.5 / k)
+        drv._state = Lifecycle.ACTIVE
+        now = drv.clock.now()
+        drv._next_renewal = now
+        drv._supervise(now)
+        # renewed every D / 2 of host time: D / 2 * k of robot time
+        assert drv._next_renewal - now == pytest.approx(ref.renew_every * k)
+        assert ref.renew_every * k == pytest.approx(0.25)
+    finally:
+        drv._state = Lifecycle.INACTIVE
+        drv.shutdown()

@@ -179,7 +179,12 @@ class CanDriver(DriverCommands, DriverObservation):
             if kernel is None:
                 kernel = cfg.interface == "socketcan" and not self._lockstep
             if kernel:
-                self._kernel = KernelRefresh(self._bus, cfg.refresh_period_s, cfg.deadman_s)
+                # the kernel's timers run on the host's time; the budget is robot time
+                # (SystemClock(rate=k) against a time-scaled simulator: k robot s a host s)
+                rate = self.clock.rate
+                self._kernel = KernelRefresh(
+                    self._bus, cfg.refresh_period_s / rate, cfg.deadman_s / rate
+                )
             if cfg.log_path:
                 self._logger = Recorder(
                     cfg.log_path,
@@ -464,7 +469,7 @@ class CanDriver(DriverCommands, DriverObservation):
                 with self._tx_lock:
                     if self._state == Lifecycle.ACTIVE:
                         self._kernel.renew()
-                self._next_renewal = now + self._kernel.renew_every
+                self._next_renewal = now + self._kernel.renew_every * self.clock.rate
             deadline = min(deadline, self._next_renewal)
         return deadline
 
