@@ -21,6 +21,7 @@ import can
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ErrorFlag, Frame
+from simulators import cia402_drive
 from simulators.axis_drives import axis_drive
 from simulators.virtual_controller import VirtualController
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives
@@ -188,7 +189,7 @@ def _swpc(
     )
 
 
-BUILDERS: dict[str, Callable[..., VirtualDrive]] = {"swpc": _swpc}
+BUILDERS: dict[str, Callable[..., VirtualDrive]] = {"swpc": _swpc, "cia402": cia402_drive.build}
 """kind -> builder of one module's virtual drives."""
 
 
