@@ -12,6 +12,10 @@
    gives the same digest, bit for bit, on any host and at any load;
 4. stops the service (by its PID).
 
+``--drives cia402`` runs the same on CiA 402 drives (the virtual robot's drives and the
+service's robot config say ``drives: cia402``), then the swpc-drive run of the same seed,
+and prints the largest difference between the two calibrations in combined std devs.
+
 ``--offline`` instead generates a dataset and solves it with ``swpc solve`` (no service).
 """
 
@@ -135,9 +139,13 @@ def design_fit_truth(result: dict[str, Any]) -> RobotParams:
     return transform_robot(PAPER_CALIBRATED, phi, t, result.get("frame", "design-fit"))
 
 
+DRIVES = ("swpc", "cia402")
+"""The drive kinds the demo's virtual robot and service can run on (swpc_hw.drives)."""
+
+
 def run_service_demo(
     data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False,
-    metrology: str = "mocap",
+    metrology: str = "mocap", drives: str = "swpc", result: dict[str, Any] | None = None,
 ) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -153,6 +161,10 @@ def run_service_demo(
     )
     for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
         env.pop(key, None)
+    if drives != "swpc":
+        robot = data_dir / "robot.yaml"
+        robot.write_text(f"# written by services.demo --drives {drives}\ndrives: {drives}\n")
+        env["SWPC_ROBOT_CONFIG"] = str(robot)
     t0 = time.monotonic()
     log = open(data_dir / "service.log", "w")  # noqa: SIM115 - lives as long as the process
     proc = subprocess.Popen(
@@ -163,7 +175,8 @@ def run_service_demo(
     )
     base = f"http://127.0.0.1:{port}"
     speed = "as fast as the host allows" if sim_speed <= 0 else f"at most {sim_speed:g}x"
-    print(f"swpc serve started (pid {proc.pid}) on {base}, in-process simulator ({speed})")
+    print(f"swpc serve started (pid {proc.pid}) on {base}, in-process simulator ({speed}), "
+          f"{drives} drives")  # fmt: skip
     print(f"operator console: {base}/ (token {token})")
     try:
         with httpx.Client(base_url=base, timeout=10.0) as http:
@@ -209,6 +222,8 @@ def run_service_demo(
                 print(f"calibration {st['state']}: {st['reason']}", file=sys.stderr)
                 return 1
             res = http.get(f"/calibrations/{run_id}/result").json()
+            if result is not None:
+                result.update(res)
             print()
             if metrology == "imu":
                 print("frame design-fit: the truth re-expressed in it")
@@ -236,6 +251,47 @@ def run_service_demo(
             proc.wait()
         log.close()
         print(f"service (pid {proc.pid}) stopped")
+
+
+AGREEMENT = 3.0
+"""Two calibrations of the same robot agree when every parameter differs by at most this
+many combined std devs (their noise is independent: the largest of 20 such differences is
+about 2 by chance alone)."""
+
+
+def largest_difference(a: dict[str, Any], b: dict[str, Any]) -> tuple[float, str]:
+    """The largest ``|a - b| / sqrt(sd_a^2 + sd_b^2)`` over every calibrated parameter of
+    two results of the same robot, and which parameter it is."""
+    worst, which = 0.0, ""
+    other = {m["id"]: m for m in b["modules"]}
+    for m in a["modules"]:
+        o = other[m["id"]]
+        for k in ("x_s", "y_s", "beta", "b", "r"):
+            sd = math.hypot(m["stddev"][k], o["stddev"][k])
+            z = abs(m[k] - o[k]) / sd
+            if z >= worst:
+                worst, which = z, f"module {m['id']} {k}"
+    return worst, which
+
+
+def compare_drives(out: Path, sim_speed: float, seed: int, metrology: str) -> int:
+    """The demo on CiA 402 drives, then on swpc drives (same seed): both DONE, and how far
+    apart their parameters are in combined std devs."""
+    results: dict[str, dict[str, Any]] = {}
+    for kind in ("cia402", "swpc"):
+        d = out / kind
+        d.mkdir(parents=True, exist_ok=True)
+        print(f"\n=== {kind} drives ===")
+        res: dict[str, Any] = {}
+        code = run_service_demo(d, sim_speed, seed, metrology=metrology, drives=kind, result=res)
+        if code:
+            return code
+        results[kind] = res
+    z, which = largest_difference(results["cia402"], results["swpc"])
+    print(f"\ncia402 vs swpc drives (seed {seed}): largest difference {z:.2f} combined std "
+          f"devs ({which}); digests {parameters_digest(results['cia402'])} / "
+          f"{parameters_digest(results['swpc'])}")  # fmt: skip
+    return 0 if z <= AGREEMENT else 1
 
 
 def run_offline_demo(out: Path, seed: int) -> int:
@@ -279,12 +335,18 @@ def main(argv: list[str] | None = None) -> int:
         help="after the run, keep the service (and its console at /) up until Ctrl-C",
     )
     add_metrology_argument(parser)
+    parser.add_argument(
+        "--drives", choices=DRIVES, default="swpc",
+        help="the robot's drive kind (swpc); cia402 also runs swpc and compares the results",
+    )
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.offline:
         return run_offline_demo(out, args.seed)
+    if args.drives != "swpc":
+        return compare_drives(out.resolve(), args.sim_speed, args.seed, args.metrology)
     return run_service_demo(
         out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.metrology
     )

@@ -59,7 +59,8 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--drives",
         default=None,
-        help="the drive kind the virtual robot's drives speak (swpc; its default CAN nodes)",
+        help="the drive kind the virtual robot's drives speak: swpc or cia402 (swpc; the "
+        "kind's default CAN nodes)",
     )
     p.add_argument(
         "--robot-config",
@@ -228,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"swpc sim: robot {args.robot!r}, {len(truth.modules)} modules on "
         f"{args.interface}:{args.channel} (drives {opt.drives.kind}, nodes "
-        f"{opt.drives.nodes()}), mocap {args.pose_rate:g} Hz "
+        f"{opt.drives.for_modules(truth.ids).nodes()}), mocap {args.pose_rate:g} Hz "
         f"{args.pose_encoding} on mocap/{args.robot}/pose, gyro {args.gyro_rate:g} Hz on "
         f"imu/{args.robot}/data via {listen or args.zenoh_connect}, time scale {args.time_scale:g}",
         flush=True,
