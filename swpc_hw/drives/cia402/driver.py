@@ -518,9 +518,10 @@ class Cia402Driver:
         with self._lock:
             for ax in axes:
                 a = mt.axes[Axis(ax)]
+                # the code stays until the drive has left FAULT: a FAULT statusword
+                # still on its way is then not taken for a new fault
                 if a.state in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) or a.error_code:
                     a.reset = True
-                a.error_code = 0
 
     def set_limits(self, module: int, axis: Axis, max_torque: float, max_velocity: float) -> None:
         """Over SDO (a set-up step: 0x6072 max torque, 0x607F max profile velocity)."""

@@ -172,6 +172,8 @@ def on_statusword(m: ModuleTrack, a: AxisTrack, statusword: int, mode_display: i
                         f"statusword 0x{statusword:04X}: FAULT"))  # fmt: skip
     if a.state is not PowerState.FAULT:
         a.reset = False
+        if before is PowerState.FAULT:
+            a.error_code = 0  # reset (its EMCY 0x0000 may come later, or never)
     if a is m.steer and a.homing_start and seq > a.homing_sync and mode_display == Mode.HOMING:
         if statusword & cia402.SW_HOMING_ERROR:
             a.homing_start = False
