@@ -444,3 +444,27 @@ def test_host_and_virtual_drives_in_lockstep_and_the_drives_own_deadman() -> Non
         sim.stop()
         host.shutdown()
         clock.close()
+
+
+def test_a_homing_method_the_drive_refuses_fails_the_set_up_naming_it() -> None:
+    clock = SimClock()
+    ch = f"cia402-homing-{uuid.uuid4().hex[:8]}"
+    cfg = Cia402Drives.model_validate({"kind": "cia402", "modules": {
+        m: {"steer": {"node": 2 * m - 1, "homing": 35 if m == 2 else 19},
+            "wheel": {"node": 2 * m}} for m in PAPER_CALIBRATED.ids}})  # fmt: skip
+    host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
+    host.configure()
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
+                            options=SimOptions(drives=cfg, physics_dt=0.01))  # fmt: skip
+    sim.start()
+    try:
+        with clock.participant(), pytest.raises(NodeError) as err:
+            host.activate()
+        assert str(err.value) == (
+            "module 2 steer (node 3): set-up 0x6098 homing method 35: "
+            "Code 0x06090030, Value range of parameter exceeded"
+        )
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
