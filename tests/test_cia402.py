@@ -94,26 +94,30 @@ def _track(axis: Axis = Axis.STEER, node: int = 1) -> AxisTrack:
 def test_supervise_loses_a_silent_drive_once_and_names_a_refused_mode() -> None:
     a = _track()
     a.alive, a.t_heartbeat, a.statusword = True, 0.0, 0x0237
-    a.state, a.enable, a.t_enable = PowerState.OPERATION_ENABLED, True, 0.0
-    a.controlword, a.mode, a.t_mode, a.mode_display = 0x0F, Mode.CYCLIC_SYNC_TORQUE, 1.0, 0
-    kw: dict[str, Any] = dict(t_configured=0.0, loss_after=0.3, retry=0.06, power_timeout=1.0,
-                              mode_timeout=0.5, active=True)  # fmt: skip
+    a.state, a.enable, a.enable_sync = PowerState.OPERATION_ENABLED, True, 0
+    a.controlword, a.mode, a.mode_sync, a.mode_display = 0x0F, Mode.CYCLIC_SYNC_TORQUE, 50, 0
+    kw: dict[str, Any] = dict(t_configured=0.0, loss_after=0.3, retry=0.06, power_syncs=50,
+                              mode_syncs=25, sync_period=0.02, active=True)  # fmt: skip
+    a.seq = 74  # the last statusword answered a SYNC 24 periods after the mode: not yet
     d = supervise([a], 0.29, **kw)
     assert not d.fault and d.next_deadline == pytest.approx(0.3)
+    a.seq = 75  # 25 periods: 0.5 s of SYNCs answered, the display has not followed
     d = supervise([a], 1.5, **kw)
     assert d.fault and [o.kind for o in d.observations] == [EventKind.HEARTBEAT_LOST] * 1 + [
         EventKind.NODE_FAULT
     ]
     assert "refused mode CYCLIC_SYNC_TORQUE" in d.observations[1].message
-    assert "display 0x6061 still NONE" in d.observations[1].message
+    assert "display 0x6061 still NONE 0.5 s after it" in d.observations[1].message
     assert not supervise([a], 2.0, **kw).observations  # each reported once
     # a drive that never reaches OPERATION ENABLED
     b = _track(node=2)
     b.alive, b.t_heartbeat, b.statusword, b.state = True, 9.9, 0x0250, PowerState.SWITCH_ON_DISABLED
-    b.enable, b.t_enable, b.controlword = True, 9.0, 0x06
+    b.enable, b.enable_sync, b.controlword, b.seq = True, 10, 0x06, 59
+    d = supervise([b], 9.95, **kw)  # however late: no statusword answering 1 s of SYNCs yet
+    assert not d.fault and d.send == [b]  # the shutdown again: the drive did not follow it
+    b.seq = 60
     d = supervise([b], 10.0, **kw)
     assert d.fault and "did not reach OPERATION ENABLED within 1 s" in d.observations[0].message
-    assert d.send == [b]  # the shutdown again: the drive did not follow it
 
 
 def test_homing_ends_on_attained_and_target_reached_of_a_later_sync() -> None:

@@ -101,9 +101,11 @@ log = logging.getLogger(__name__)
 IO_WAIT_MAX = 0.05
 """Longest wall wait of the I/O thread for a frame (s): how soon it notices shutdown."""
 POWER_TIMEOUT_S = 1.0
-"""An axis asked to enable that is not OPERATION ENABLED this long after has refused."""
+"""An axis asked to enable that is not OPERATION ENABLED in a statusword answering a SYNC
+sent this long after has refused (robot time, in SYNC periods)."""
 MODE_TIMEOUT_S = 0.5
-"""A mode whose display has not followed this long after it was commanded was refused."""
+"""A mode whose display has not followed in a statusword answering a SYNC sent this long
+after it was commanded was refused (robot time, in SYNC periods)."""
 
 
 class _HostNetwork(canopen.Network):
@@ -377,6 +379,7 @@ class Cia402Driver:
         with self._lock:
             a.configured = True
             a.controlword = cia402.CW_DISABLE_VOLTAGE
+            a.sync_base, a.answered = self._sync_seq, 0  # it answers the SYNCs after this
         node.nmt.send_command(cia402.NMT_START)
 
     def _check_factor(self, a: AxisTrack, key: str, mine: float, theirs: float, obj: str) -> None:
@@ -497,14 +500,14 @@ class Cia402Driver:
                 before = a.mode
                 change(a)
                 if a.mode is not before:
-                    a.t_mode = self.clock.now()
+                    a.mode_sync = self._sync_seq
                     a.refused_reported = False
             self._send_rpdo(a, targets)
 
     def enable(self, module: int, axis: Axis) -> None:
         def change(a: AxisTrack) -> None:
             if not a.enable:
-                a.enable, a.t_enable, a.refused_reported = True, self.clock.now(), False
+                a.enable, a.enable_sync, a.refused_reported = True, self._sync_seq, False
             a.mode, a.target_torque = Mode.CYCLIC_SYNC_TORQUE, 0
             nxt = cia402.host_controlword(a.state, True, a.reset, a.controlword)
             if nxt is not None:
@@ -604,7 +607,7 @@ class Cia402Driver:
                     a.target_torque = 0
                     a.controlword = cia402.CW_DISABLE_VOLTAGE
                     a.t_controlword = self.clock.now()
-                    a.t_enable = math.inf
+                    a.enable_sync = -1
                 bus_open = self._bus is not None and self._state in (
                     Lifecycle.INACTIVE,
                     Lifecycle.ACTIVE,
@@ -724,7 +727,9 @@ class Cia402Driver:
                 sw = int(p[f"0x{cia402.STATUSWORD:04X}"].raw)
                 pos = int(p[f"0x{cia402.POSITION_ACTUAL:04X}"].raw)
                 disp = int(p[f"0x{cia402.MODES_DISPLAY:04X}"].raw)
-                self._pending += on_statusword(mt, a, sw, disp, pos, self._sync_seq, self._arrival)
+                a.answered += 1
+                seq = a.sync_base + a.answered
+                self._pending += on_statusword(mt, a, sw, disp, pos, seq, self._arrival)
                 s = pair(mt)
                 if s is not None:
                     self._sample(mt, s)
@@ -789,8 +794,9 @@ class Cia402Driver:
                 t_configured=self._configured_at,
                 loss_after=loss_after,
                 retry=max(3.0 / max(cfg.feedback_rate_hz, 1), 0.02),
-                power_timeout=POWER_TIMEOUT_S,
-                mode_timeout=MODE_TIMEOUT_S,
+                power_syncs=math.ceil(POWER_TIMEOUT_S * max(cfg.feedback_rate_hz, 1)),
+                mode_syncs=math.ceil(MODE_TIMEOUT_S * max(cfg.feedback_rate_hz, 1)),
+                sync_period=1.0 / max(cfg.feedback_rate_hz, 1),
                 active=active,
             )
             self._stats.heartbeat_losses += len(d.lost)

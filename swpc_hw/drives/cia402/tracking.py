@@ -10,9 +10,15 @@ under its lock with times on its clock, and the tests call them directly.
   controlword of the 402 power state machine towards what the host asked
   (:func:`firmware_protocol.cia402.host_controlword`, one transition per statusword, sent
   again after ``retry`` when the drive did not follow), and the two refusals a drive can
-  make silently: not reaching OPERATION ENABLED within ``power_timeout``, and a mode whose
-  display (0x6061) does not follow within ``mode_timeout`` (the operator sees the mode
-  named in the fault).
+  make silently: not reaching OPERATION ENABLED, and a mode whose display (0x6061) does
+  not follow (the operator sees the mode named in the fault).
+
+Refusals are judged on evidence, not on the host's clock alone: by a statusword that
+answers a SYNC sent ``power_syncs`` / ``mode_syncs`` SYNC periods after the command (a
+drive that lags, e.g. a simulator on a slow machine, is not taken for one that refuses).
+Which SYNC a TPDO answers: its drive answers every SYNC once it is OPERATIONAL, in order,
+so the k-th TPDO 1 since then answers the k-th SYNC (a lost TPDO makes the count lag:
+the host waits longer, never less).
 """
 
 from __future__ import annotations
@@ -51,7 +57,11 @@ class AxisTrack:
     velocity: float = math.nan
     torque: float = math.nan
     seq: int = -1
-    """The SYNC the last TPDO 1 answered (the host's count)."""
+    """The SYNC the last TPDO 1 answered (the host's count: ``sync_base + answered``)."""
+    sync_base: int = 0
+    """The host's SYNC count when the drive was started (NMT): it answers the next ones."""
+    answered: int = 0
+    """TPDO 1s received since then."""
     t_feedback: float = math.nan
     configured: bool = False
     # the host's side
@@ -61,8 +71,10 @@ class AxisTrack:
     target_position: int = 0
     target_velocity: int = 0
     target_torque: int = 0
-    t_enable: float = math.inf
-    t_mode: float = math.inf
+    enable_sync: int = -1
+    """The SYNC count when OPERATION ENABLED was asked (-1: not asked)."""
+    mode_sync: int = -1
+    """The SYNC count when the last mode was commanded (-1: none)."""
     homing_start: bool = False
     homing_sync: int = -1
     """The last SYNC before the homing start was sent: only later statuswords tell."""
@@ -216,8 +228,9 @@ def supervise(
     t_configured: float,
     loss_after: float,
     retry: float,
-    power_timeout: float,
-    mode_timeout: float,
+    power_syncs: int,
+    mode_syncs: int,
+    sync_period: float,
     active: bool,
 ) -> Decision:
     """Heartbeat loss, the power state machine and the refusals at ``now`` (module
@@ -249,25 +262,25 @@ def supervise(
                 a.controlword = cw
                 a.t_controlword = now
                 d.send.append(a)
-        if a.enable and a.state is not PowerState.OPERATION_ENABLED:
-            if now - a.t_enable >= power_timeout and not a.refused_reported:
+        if a.refused_reported or not a.enable:
+            continue
+        refused_mode = a.mode is not Mode.NONE and a.mode_display != a.mode
+        if a.state is not PowerState.OPERATION_ENABLED:
+            if a.enable_sync >= 0 and a.seq >= a.enable_sync + power_syncs:
                 a.refused_reported = True
                 d.fault = True
                 d.observations.append(
                     _obs(a, EventKind.NODE_FAULT, Severity.FAULT,
-                         f"did not reach OPERATION ENABLED within {power_timeout:g} s "
-                         f"(statusword 0x{a.statusword:04X}: {a.state.value})")
+                         f"did not reach OPERATION ENABLED within {power_syncs * sync_period:g} "
+                         f"s (statusword 0x{a.statusword:04X}: {a.state.value})")
                 )  # fmt: skip
-            d.next_deadline = min(d.next_deadline, a.t_enable + power_timeout)
-        elif a.enable and a.mode is not Mode.NONE and a.mode_display != a.mode:
-            if now - a.t_mode >= mode_timeout and not a.refused_reported:
-                a.refused_reported = True
-                d.fault = True
-                d.observations.append(
-                    _obs(a, EventKind.NODE_FAULT, Severity.FAULT,
-                         f"the drive refused mode {cia402.mode_name(a.mode)} (0x6060 = "
-                         f"{int(a.mode)}): modes display 0x6061 still "
-                         f"{cia402.mode_name(a.mode_display)} after {mode_timeout:g} s")
-                )  # fmt: skip
-            d.next_deadline = min(d.next_deadline, a.t_mode + mode_timeout)
+        elif refused_mode and a.mode_sync >= 0 and a.seq >= a.mode_sync + mode_syncs:
+            a.refused_reported = True
+            d.fault = True
+            d.observations.append(
+                _obs(a, EventKind.NODE_FAULT, Severity.FAULT,
+                     f"the drive refused mode {cia402.mode_name(a.mode)} (0x6060 = "
+                     f"{int(a.mode)}): modes display 0x6061 still "
+                     f"{cia402.mode_name(a.mode_display)} {mode_syncs * sync_period:g} s after it")
+            )  # fmt: skip
     return d
