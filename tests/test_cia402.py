@@ -201,6 +201,7 @@ def host_and_locals(
             feedback_rate_hz=50,
             watchdog_timeout_ms=200,
             refresh_period_s=0.02,
+            heartbeat_loss_periods=20,  # 2 s: SDO answers from a thread on a busy host
             activate_timeout_s=10.0,
         ),
         clock=SYSTEM_CLOCK,
@@ -279,7 +280,8 @@ def test_a_drive_whose_factor_group_disagrees_with_the_config_is_refused() -> No
     drives = [LocalDrive(net, 1), LocalDrive(net, 2)]
     cfg = Cia402Drives.model_validate({"kind": "cia402", "modules": {
         1: {"steer": {"node": 1, "gear_ratio": 50}, "wheel": {"node": 2}}}})  # fmt: skip
-    host = Cia402Driver(cfg, CanConfig(channel=ch, activate_timeout_s=10.0), clock=SYSTEM_CLOCK)
+    bus = CanConfig(channel=ch, heartbeat_loss_periods=20, activate_timeout_s=10.0)
+    host = Cia402Driver(cfg, bus, clock=SYSTEM_CLOCK)
     host.configure()
     try:
         with pytest.raises(NodeError, match=r"steer.gear_ratio is 50 but the drive's 0x6091"):

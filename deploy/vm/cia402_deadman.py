@@ -42,6 +42,16 @@ def nodes_arg(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
+def alive(pid: int | None) -> bool:
+    if pid is None:
+        return True
+    try:
+        os.kill(pid, 0)
+    except OSError:
+        return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--channel", required=True)
@@ -50,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--host-node", type=int, default=127)
     ap.add_argument("--bound", type=float, required=True, help="s of wall time")
     ap.add_argument("--enabled-timeout", type=float, default=900.0)
+    ap.add_argument("--run-pid", type=int, help="the client of the run: give up once it ends")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     bus = can.Bus(interface="socketcan", channel=args.channel)
@@ -58,8 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     enabled: set[int] = set()
     t0 = time.monotonic()
     while enabled != nodes:
-        if time.monotonic() - t0 > args.enabled_timeout:
-            print(f"drives never all OPERATION ENABLED: {sorted(enabled)} of {sorted(nodes)}")
+        if time.monotonic() - t0 > args.enabled_timeout or not alive(args.run_pid):
+            print(f"drives never all OPERATION ENABLED: {sorted(enabled)} of {sorted(nodes)}"
+                  f"{'' if alive(args.run_pid) else ' (the run ended)'}")  # fmt: skip
             return 1
         msg = bus.recv(1.0)
         if msg is None or msg.arbitration_id - TPDO1 not in nodes or len(msg.data) < 2:

@@ -284,7 +284,7 @@ cia402_step() {
         --health-timeout 300 --timeout 900 > "$OUT/cia402-stopped-run.log" 2>&1 &
     run_pid=$!
     "$PY" deploy/vm/cia402_deadman.py --channel vcan50 --pid "$svc_pid" --nodes 1-8 \
-        --bound "$bound" --out "$OUT/cia402-deadman.json" || rc=1
+        --run-pid "$run_pid" --bound "$bound" --out "$OUT/cia402-deadman.json" || rc=1
     kill "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
     wait "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
     echo "cia402 simulator log (tail):"; tail -n 3 "$OUT/cia402-sim.log"

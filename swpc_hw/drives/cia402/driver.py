@@ -174,6 +174,7 @@ class Cia402Driver:
         self._recorder: Recorder | None = None
         self._limits: dict[tuple[int, int], tuple[int, int]] = {}
         self._latency: deque[float] = deque(maxlen=10_000)
+        self._arrival = 0.0  # the arrival of the frame being handled (canopen's callbacks)
 
     # ================================================================ lifecycle
     @property
@@ -228,7 +229,10 @@ class Cia402Driver:
             for m, mt in self._modules.items():
                 for a in mt.axes:
                     node = ClockedRemoteNode(
-                        a.node, str(self.drives.object_dictionary), self.clock
+                        a.node,
+                        str(self.drives.object_dictionary),
+                        self.clock,
+                        timeout=cfg.heartbeat_loss_periods * cfg.heartbeat_period_s,
                     )
                     net.add_node(node)
                     self._nodes[a.node] = node
@@ -698,9 +702,8 @@ class Cia402Driver:
         self._arrival = t
         self._network.notify(msg.arbitration_id, bytearray(msg.data), t)
 
-    # canopen's callbacks (on the I/O step's thread, from notify())
-    _arrival = 0.0
-
+    # canopen's callbacks (on the I/O step's thread, from notify(); ``_arrival`` is the
+    # frame's arrival on the clock)
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         a = self._axes.get(can_id - cia402.HEARTBEAT_BASE)
         if a is None or not data:
@@ -720,7 +723,6 @@ class Cia402Driver:
 
     def _on_tpdo(self, module: int, a: AxisTrack, p: PdoMap) -> None:
         mt = self._modules[module]
-        data = bytes(p.data)
         with self._changed:
             mt.feedback_frames += 1
             if p is self._nodes[a.node].tpdo[1]:
@@ -745,7 +747,6 @@ class Cia402Driver:
                         last, steer_velocity=vt[0], wheel_velocity=vt[1], steer_torque=vt[2],
                         wheel_torque=vt[3],
                     )
-            del data
             self._changed.notify_all()
 
     def _sample(self, mt: ModuleTrack, seq: int) -> None:

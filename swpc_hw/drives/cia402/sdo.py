@@ -6,7 +6,10 @@ only while someone waits *on the clock*, and the simulator answers a request onl
 a real-time wait would see no answer at all.  Here the wait is the clock's
 (:meth:`swpc_hw.clock.Clock.wait`): on a robot the same real-time wait as canopen's, in
 lockstep a wait that lets the simulation run until the response has been delivered.  The
-response timeout is robot time.  Everything else (expedited, segmented and block
+response timeout is robot time: the drives' heartbeat loss window ``L`` of the timing budget
+(:mod:`services.config.timing`; 0.3 s on a robot, canopen's own default, and floored like
+it against a slow external simulator): a drive that has not answered within the time it
+would take to be judged lost has not answered.  Everything else (expedited, segmented and block
 transfers, aborts, retries) is canopen's.
 """
 
@@ -24,18 +27,17 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from swpc_hw.clock import Clock, wait_until
 
-RESPONSE_TIMEOUT_S = 0.3
-"""A drive that has not answered an SDO request within this much robot time has not
-answered it (canopen's own default)."""
-
 
 class ClockedSdoClient(SdoClient):
     """:class:`~canopen.sdo.SdoClient` whose response wait is on ``clock`` (module
     docstring)."""
 
-    def __init__(self, rx_cobid: int, tx_cobid: int, od: Any, clock: Clock) -> None:
+    def __init__(
+        self, rx_cobid: int, tx_cobid: int, od: Any, clock: Clock, timeout: float
+    ) -> None:
         super().__init__(rx_cobid, tx_cobid, od)
         self.clock = clock
+        self.timeout = timeout
         self._arrived = threading.Condition()
 
     def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -45,7 +47,7 @@ class ClockedSdoClient(SdoClient):
 
     def read_response(self) -> bytes:
         with self._arrived:
-            deadline = self.clock.now() + RESPONSE_TIMEOUT_S
+            deadline = self.clock.now() + self.timeout
             got = wait_until(
                 self.clock, self._arrived, lambda: not self.responses.empty(), deadline
             )
@@ -63,14 +65,19 @@ class ClockedSdoClient(SdoClient):
 
 
 class ClockedRemoteNode(canopen.RemoteNode):
-    """A :class:`canopen.RemoteNode` whose SDO client waits on ``clock``."""
+    """A :class:`canopen.RemoteNode` whose SDO client waits on ``clock`` up to ``timeout``."""
 
-    def __init__(self, node_id: int, object_dictionary: Any, clock: Clock) -> None:
+    def __init__(
+        self, node_id: int, object_dictionary: Any, clock: Clock, timeout: float
+    ) -> None:
         self._clock = clock
+        self._timeout = timeout
         super().__init__(node_id, object_dictionary)
 
     def add_sdo(self, rx_cobid: int, tx_cobid: int) -> ClockedSdoClient:
-        client = ClockedSdoClient(rx_cobid, tx_cobid, self.object_dictionary, self._clock)
+        client = ClockedSdoClient(
+            rx_cobid, tx_cobid, self.object_dictionary, self._clock, self._timeout
+        )
         self.sdo_channels.append(client)
         if self.has_network():
             self.network.subscribe(client.tx_cobid, client.on_response)
