@@ -37,7 +37,14 @@ from swpc_hw.can.errors import LifecycleError, NodeError
 from swpc_hw.can.types import EventKind, Lifecycle, Severity
 from swpc_hw.clock import SYSTEM_CLOCK, SimClock
 from swpc_hw.drives.cia402.driver import Cia402Driver
-from swpc_hw.drives.cia402.tracking import AxisTrack, ModuleTrack, on_statusword, pair, supervise
+from swpc_hw.drives.cia402.tracking import (
+    AxisTrack,
+    ModuleTrack,
+    on_emcy,
+    on_statusword,
+    pair,
+    supervise,
+)
 from swpc_hw.drives.config import Cia402Drives
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 
@@ -118,6 +125,17 @@ def test_supervise_loses_a_silent_drive_once_and_names_a_refused_mode() -> None:
     b.seq = 60
     d = supervise([b], 10.0, **kw)
     assert d.fault and "did not reach OPERATION ENABLED within 1 s" in d.observations[0].message
+
+
+def test_a_tripped_deadman_is_a_fault_only_while_the_drives_are_active() -> None:
+    a = _track()
+    (obs,) = on_emcy(a, 0x8130, 0x11, active=True)
+    assert obs.severity is Severity.FAULT and a.error_code == 0x8130
+    (obs,) = on_emcy(a, 0x8130, 0x11, active=False)  # every axis disabled: stops nothing
+    assert obs.severity is Severity.WARNING and "tripped on a stalled host" in obs.message
+    (obs,) = on_emcy(a, 0x4310, 0x09, active=False)  # any other fault stays one
+    assert obs.severity is Severity.FAULT
+    assert on_emcy(a, 0x0000, 0x00) == [] and a.error_code == 0
 
 
 def test_homing_ends_on_attained_and_target_reached_of_a_later_sync() -> None:

@@ -718,7 +718,8 @@ class Cia402Driver:
     def _on_emcy(self, a: AxisTrack, e: EmcyError) -> None:
         with self._changed:
             self._stats.node_faults += 1 if e.code & 0xFF00 else 0
-            self._pending += on_emcy(a, e.code, e.register)
+            active = self._state == Lifecycle.ACTIVE
+            self._pending += on_emcy(a, e.code, e.register, active)
             self._changed.notify_all()
 
     def _on_tpdo(self, module: int, a: AxisTrack, p: PdoMap) -> None:

@@ -156,16 +156,27 @@ def on_heartbeat(a: AxisTrack, nmt: int, t: float) -> list[Observation]:
     return out
 
 
-def on_emcy(a: AxisTrack, code: int, register: int) -> list[Observation]:
-    """An EMCY: a fault naming its error code (code 0: the drive's error reset)."""
+HEARTBEAT_ERROR = 0x8130
+"""The EMCY of a drive whose heartbeat consumer timed out (the host's heartbeat lapsed)."""
+
+
+def on_emcy(a: AxisTrack, code: int, register: int, active: bool = True) -> list[Observation]:
+    """An EMCY: a fault naming its error code (code 0: the drive's error reset).
+
+    A heartbeat error while the drives are not ``active`` (every axis disabled by the host:
+    between runs, or while a run solves) stops nothing: the drives' dead-man tripped on a
+    host that stalled, and the next activation resets it.  It is a warning then, not a
+    fault that would end a run whose motion is over."""
     if code & 0xFF00 == 0:
         a.error_code = 0
         return []
     a.error_code = code
-    return [
-        _obs(a, EventKind.NODE_FAULT, Severity.FAULT,
-             f"EMCY {cia402.emcy_name(code)} (error register 0x{register:02X})")
-    ]  # fmt: skip
+    text = f"EMCY {cia402.emcy_name(code)} (error register 0x{register:02X})"
+    if code == HEARTBEAT_ERROR and not active:
+        return [_obs(a, EventKind.NODE_FAULT, Severity.WARNING,
+                     f"{text} while every axis was disabled: the drive's dead-man tripped on "
+                     "a stalled host; the next activation resets it")]  # fmt: skip
+    return [_obs(a, EventKind.NODE_FAULT, Severity.FAULT, text)]
 
 
 def on_statusword(m: ModuleTrack, a: AxisTrack, statusword: int, mode_display: int,
