@@ -30,6 +30,7 @@ torque 0 is free (the amplifier applies no torque), as the swpc firmware's FREE 
 from __future__ import annotations
 
 import math
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -148,6 +149,7 @@ class VirtualAxis:
         assert self.node.rpdo.map is not None and self.node.tpdo.map is not None
         for pdo in self.node.rpdo.map.values():
             pdo.add_callback(self._on_rpdo)
+        self._formats: dict[int, struct.Struct] = {}
         self.model = AxisModel()
         self.counts_per_rad = config.counts_per_rad()
         self.rated_torque = self._od_default(cia402.RATED_TORQUE) / 1000.0  # N.m at the motor
@@ -182,9 +184,13 @@ class VirtualAxis:
         return int(var.default or 0)
 
     def _store(self, index: int, value: int) -> None:
-        var = self.node.object_dictionary[index]
-        assert isinstance(var, ODVariable)
-        self.node.data_store.setdefault(index, {})[0] = var.encode_raw(value)
+        fmt = self._formats.get(index)
+        if fmt is None:
+            var = self.node.object_dictionary[index]
+            assert isinstance(var, ODVariable)
+            fmt = var.STRUCT_TYPES[int(var.data_type or 0)]
+            self._formats[index] = fmt
+        self.node.data_store.setdefault(index, {})[0] = fmt.pack(value)
 
     def _read(self, index: int, sub: int = 0) -> int:
         obj = self.node.object_dictionary[index]
@@ -338,8 +344,8 @@ class VirtualAxis:
             every = pdo.trans_type or 0
             if not pdo.enabled or not 1 <= every <= 240 or self.sync_count % every:
                 continue
-            for var in pdo.map:
-                var.set_data(store[var.index][var.subindex])
+            # the mapped objects' bytes, in map order (swpc maps whole bytes: no bit packing)
+            pdo.data = bytearray(b"".join(store[v.index][v.subindex] for v in pdo.map))
             pdo.transmit()
 
     def step(self, now: float) -> None:

@@ -32,6 +32,10 @@ class ClockedSdoClient(SdoClient):
     """:class:`~canopen.sdo.SdoClient` whose response wait is on ``clock`` (module
     docstring)."""
 
+    MAX_RETRIES = 3
+    """canopen's retry of a request that got no answer (its default: none): a drive, or a
+    simulator on a slow machine, that missed one is asked again before the set-up fails."""
+
     def __init__(
         self, rx_cobid: int, tx_cobid: int, od: Any, clock: Clock, timeout: float
     ) -> None:
