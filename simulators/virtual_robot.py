@@ -365,8 +365,12 @@ class VirtualRobot:
                         break
                 lag = target - self.robot.t
                 if lag > self.options.max_lag * self.options.time_scale:
-                    # cannot keep up: slow the simulated clock down instead of bursting
-                    self._origin += lag - dt
+                    # cannot keep up: slow the simulated clock down instead of bursting;
+                    # the frames waiting for their arrival move with it (each stays at its
+                    # host instant: none waits behind one left at the old mapping)
+                    shift = lag - dt
+                    self._origin += shift
+                    self._pending = deque((t - shift, m) for t, m in self._pending)
                     self._stats.overruns += 1
                 self._cpu = time.thread_time() - cpu0
             timeout = self._host_seconds(self._origin + self.robot.t + dt - self._host.now())

@@ -821,7 +821,8 @@ class Cia402Driver:
         elif now >= self._next_renewal:
             with self._tx_lock:
                 self._kernel.renew()
-            self._next_renewal = now + self._kernel.renew_every
+            # the kernel counts host seconds: renew_every of them on this clock
+            self._next_renewal = now + self._kernel.renew_every * self.clock.rate
             deadline = min(deadline, self._next_renewal)
         if self._sync_on:
             if now >= self._next_sync:
