@@ -21,6 +21,7 @@ import can
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ErrorFlag, Frame
+from simulators import cia402_drive
 from simulators.axis_drives import axis_drive
 from simulators.virtual_controller import VirtualController
 from swpc_hw.drives.config import DrivesConfig, ODriveDrives, SwpcDrives
@@ -195,7 +196,11 @@ def _odrive(config: DrivesConfig, module: int, **kwargs: Any) -> VirtualDrive:
     return odrive_virtual_drive(config, module, **kwargs)
 
 
-BUILDERS: dict[str, Callable[..., VirtualDrive]] = {"swpc": _swpc, "odrive": _odrive}
+BUILDERS: dict[str, Callable[..., VirtualDrive]] = {
+    "swpc": _swpc,
+    "cia402": cia402_drive.build,
+    "odrive": _odrive,
+}
 """kind -> builder of one module's virtual drives."""
 
 

@@ -21,6 +21,10 @@
 #                 virtual ODrives + `swpc serve` calibrating through it (OUT/odrive-
 #                 calibration.json), then kill -STOP of the service mid-spin: every axis
 #                 stopped by its own watchdog within the bound (deploy/vm/odrive_deadman.py)
+#   cia402        `swpc sim --drives cia402` and `swpc serve` (robot config drives: cia402) on
+#                 vcan50: a calibration through it (OUT/cia402-calibration.json), then a
+#                 spinning run and kill -STOP of the service: every CiA 402 drive's heartbeat
+#                 consumer must fault it within D + W (deploy/vm/cia402_deadman.py)
 #   can-up        deploy/can-up.sh on can0/can1, two SJA1000 (kvaser_pci) controllers that
 #                 QEMU emulates on one CAN bus; python-can exchange can0 -> can1
 #   robot-install deploy/vm/robot-install.sh: deploy/README.md's robot set-up on systemd
@@ -309,6 +313,60 @@ print(b.watchdog, b.heartbeat_period, b.deadman)') || return 1
     return $rc
 }
 step odrive odrive_calibration
+# --- CiA 402 drives: a calibration through `swpc sim --drives cia402`, and their dead-man ----
+# The same configuration as sim-calibration (time scale, physics step, feedback rate,
+# overrides) on its own interface (vcan50) with CiA 402 drives: the service's robot config
+# says `drives: cia402`, the simulator's drives are canopen LocalNodes with the 402 state
+# machine.  Then a long run, and once every drive reports OPERATION ENABLED, kill -STOP of
+# the service (deploy/vm/cia402_deadman.py): its heartbeat, sent by the kernel's broadcast
+# manager, must end at most D = 0.5 s (host time) after the STOP, and every drive's heartbeat
+# consumer (its time: the service's watchdog W, robot time) must then fault it within W of
+# the drive's own time.  Eight CiA 402 drives in Python cost the simulator more than swpc's
+# controllers: it runs at half the time scale of sim-calibration, with 10 ms physics steps
+# (at the full scale it lagged the service by seconds on a slow host, which then lost its
+# heartbeats).
+measure_speed cia402 "${SWPC_VM_SIM_TIME_SCALE:-}"
+cia402_step() {
+    local ts ep=tcp/127.0.0.1:7448
+    local port=8081 token=vm-token-0123456789 rc=0 sim_pid svc_pid run_pid window
+    local data=/tmp/swpc-cia402 robot=/tmp/cia402-robot.yaml
+    ts=$(awk -v s="${SWPC_VM_SIM_TIME_SCALE:-${SPEED_SIM_TIME_SCALE:-0.3}}" \
+        'BEGIN {printf "%.3f", s / 2}')
+    # W = ts x window = 1.5 s of robot time (services/config/timing.py), D = 0.5 s host time
+    window=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
+    deploy/vcan-up.sh vcan50 >/dev/null || return 1
+    ip link set dev lo up || return 1
+    printf 'drives: cia402\n' > "$robot"
+    swpc sim --drives cia402 --interface socketcan --channel vcan50 --zenoh-listen "$ep" \
+        --time-scale "$ts" --physics-dt 10 \
+        --pose-sigma-xy 0.5 --pose-sigma-yaw 0.05 --seed "$SIM_SEED" --stats-every 20 \
+        > "$OUT/cia402-sim.log" 2>&1 &
+    sim_pid=$!
+    SWPC_CAN_INTERFACE=socketcan SWPC_CAN_CHANNEL=vcan50 SWPC_ZENOH_CONNECT="[\"$ep\"]" \
+    SWPC_TIME_SCALE="$ts" SWPC_SIM_HOST_WINDOW_S="$window" SWPC_ROBOT_CONFIG="$robot" \
+    SWPC_TOKEN="$token" SWPC_DATA_DIR="$data" SWPC_PORT="$port" \
+    SWPC_FEEDBACK_RATE="$FEEDBACK_RATE" SWPC_MOCAP_CLOCK=wall \
+    SWPC_DISK_BUDGET=256MiB SWPC_MIN_FREE=32MiB \
+        swpc serve > "$OUT/cia402-service.log" 2>&1 &
+    svc_pid=$!
+    echo "cia402: simulator pid $sim_pid, service pid $svc_pid, time scale $ts"
+    "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
+        --overrides "$SIM_OVERRIDES" --out "$OUT/cia402-calibration.json" \
+        --service-log "$OUT/cia402-service.log" --health-timeout 300 --timeout 1500 || rc=1
+    # the dead-man: a long spin, every drive enabled, then the service stopped
+    "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
+        --overrides '{"protocol": {"sweep_deg": 3600}}' --out "$OUT/cia402-stopped-run.json" \
+        --health-timeout 300 --timeout 900 > "$OUT/cia402-stopped-run.log" 2>&1 &
+    run_pid=$!
+    "$PY" deploy/vm/cia402_deadman.py --channel vcan50 --pid "$svc_pid" --nodes 1-8 \
+        --run-pid "$run_pid" --deadman 0.5 --consumer 1.5 --out "$OUT/cia402-deadman.json" \
+        || rc=1
+    kill "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
+    wait "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
+    echo "cia402 simulator log (tail):"; tail -n 3 "$OUT/cia402-sim.log"
+    return $rc
+}
+step cia402 cia402_step
 
 # --- real CAN controllers (QEMU kvaser_pci / SJA1000 on one emulated bus) ---------------------
 if [[ -e /sys/class/net/can0 && -e /sys/class/net/can1 ]]; then

@@ -59,8 +59,9 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--drives",
         default=None,
-        help="the drive kind the virtual robot's drives speak: swpc (default) or odrive "
-        "(virtual ODrives, firmware 0.6.x), each with its default CAN nodes",
+        help="the drive kind the virtual robot's drives speak: swpc (default), cia402 (CiA 402 "
+        "drives over CANopen) or odrive (virtual ODrives, firmware 0.6.x), each with its "
+        "default CAN nodes",
     )
     p.add_argument(
         "--robot-config",

@@ -36,6 +36,18 @@ same bound holds for every drive kind whose dead-man the host refreshes: on ODri
 refresh is the axis' last setpoint frame; its heartbeat reports the stop ``T_hb`` later,
 and ``activate()`` proves the watchdog first, ``W + L`` at most (docs/drives.md).
 
+What carries the refresh and the watchdog depends on the drive kind (:mod:`swpc_hw.drives`);
+the windows are the same, none is added:
+
+* ``swpc``: the driver re-sends each node's last command every ``T_ref``; a controller
+  without one for ``W`` frees its axes (its command watchdog).
+* ``cia402``: the host's heartbeat (node ``drives.host_node``) goes out every ``T_ref``;
+  every drive's heartbeat consumer (0x1016) is set to ``W`` and faults its axis (EMCY
+  0x8130, the power stage off) without one.  The drives' own heartbeat (0x1017) is
+  ``T_hb``, judged lost after ``L``; the SYNC that samples their feedback is ``T_fb``.
+
+So the stop bound above holds for both kinds: ``W`` from Python, ``D + W`` from the kernel.
+
 Against an external time-scaled simulator (``k != 1``) a host stall of ``J`` seconds is
 ``k J`` seconds of robot time, so ``W``, ``L`` and ``S`` are floored at ``k`` times
 ``sim_host_window_s`` host seconds (the simulator shares, possibly emulates, the host).

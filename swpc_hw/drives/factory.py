@@ -16,7 +16,8 @@ from swpc_hw.can.config import CanConfig
 from swpc_hw.can.driver import CanDriver
 from swpc_hw.can.errors import CanConfigError
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
-from swpc_hw.drives.config import DrivesConfig, ODriveDrives, SwpcDrives
+from swpc_hw.drives.cia402.driver import Cia402Driver
+from swpc_hw.drives.config import Cia402Drives, DrivesConfig, ODriveDrives, SwpcDrives
 from swpc_hw.drives.interface import Drives
 from swpc_hw.drives.odrive.driver import ODriveDriver
 
@@ -34,9 +35,15 @@ def _open_odrive(config: Any, bus: CanConfig, clock: Clock) -> Drives:
     return ODriveDriver(config, dataclasses.replace(bus, feedback_rate_hz=rate), clock=clock)
 
 
+def _open_cia402(config: Any, bus: CanConfig, clock: Clock) -> Drives:
+    assert isinstance(config, Cia402Drives)
+    return Cia402Driver(config, bus, clock=clock)
+
+
 OPENERS: dict[str, Callable[[Any, CanConfig, Clock], Drives]] = {
     "swpc": _open_swpc,
     "odrive": _open_odrive,
+    "cia402": _open_cia402,
 }
 """kind -> opener (module docstring)."""
 
