@@ -259,7 +259,7 @@ step sim-calibration calibration_through_simulator
 # service's W (services/config/timing.py at this time scale) as its --watchdog-ms.  After a
 # calibration (DONE), a second run is stopped mid-spin by kill -STOP of the service
 # (deploy/vm/odrive_deadman.py): the kernel's refresh ends D after the driver's last
-# renewal, then every axis' watchdog disarms it; bound D + (W + T_hb) / S host seconds.
+# renewal, then every axis' watchdog disarms it; bound (D + W + T_hb) / S host seconds.
 # Half sim-calibration's time scale: 8 axis nodes put twice the swpc kind's refresh frames
 # through the simulator's Python (each armed axis every T_ref of host time, in the kernel);
 # at its full time scale the simulator stalled mid-spin for longer than L (every node lost).
@@ -319,7 +319,8 @@ step odrive odrive_calibration
 # says `drives: cia402`, the simulator's drives are canopen LocalNodes with the 402 state
 # machine.  Then a long run, and once every drive reports OPERATION ENABLED, kill -STOP of
 # the service (deploy/vm/cia402_deadman.py): its heartbeat, sent by the kernel's broadcast
-# manager, must end at most D = 0.5 s (host time) after the STOP, and every drive's heartbeat
+# manager, must end at most D = 0.5 s of robot time (D / S host seconds: the kernel runs on
+# the host's time) after the STOP, and every drive's heartbeat
 # consumer (its time: the service's watchdog W, robot time) must then fault it within W of
 # the drive's own time.  Eight CiA 402 drives in Python cost the simulator more than swpc's
 # controllers: it runs at half the time scale of sim-calibration, with 10 ms physics steps
@@ -359,7 +360,8 @@ cia402_step() {
         --health-timeout 300 --timeout 900 > "$OUT/cia402-stopped-run.log" 2>&1 &
     run_pid=$!
     "$PY" deploy/vm/cia402_deadman.py --channel vcan50 --pid "$svc_pid" --nodes 1-8 \
-        --run-pid "$run_pid" --deadman 0.5 --consumer 1.5 --out "$OUT/cia402-deadman.json" \
+        --run-pid "$run_pid" --deadman "$(awk -v s="$ts" 'BEGIN {printf "%.3f", 0.5 / s}')" \
+        --consumer 1.5 --out "$OUT/cia402-deadman.json" \
         || rc=1
     kill "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
     wait "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null

@@ -7,10 +7,11 @@ its own watchdog within the bound (the ``odrive`` step of ``make test-vcan``).
 Starts a calibration with a long first spin through ``swpc serve`` (HTTP), waits until the
 robot turns under the service's control (SPIN), listens on the bus, then ``kill -STOP`` of
 the service: a hang, no signal handler runs.  The kernel's broadcast manager keeps
-refreshing each axis' setpoint until the dead-man ends the tasks (``D`` host seconds after
-the driver's last renewal), then every ODrive axis' watchdog (``W``, robot time) disarms it
-and its next heartbeat (``T_HB``) reports WATCHDOG_TIMER_EXPIRED.  Bound in host seconds
-from the stop: ``D + (W + T_HB) / S`` (the simulator runs ``S`` times real time).  Prints,
+refreshing each axis' setpoint until the dead-man ends the tasks (``D`` robot seconds,
+``D / S`` of the kernel's host time, after the driver's last renewal), then every ODrive
+axis' watchdog (``W``, robot time) disarms it and its next heartbeat (``T_HB``) reports
+WATCHDOG_TIMER_EXPIRED.  Bound in host seconds from the stop: ``(D + W + T_HB) / S`` (the
+simulator and the service's clock run ``S`` times real time).  Prints,
 per axis, when the refresh to it ended and when its heartbeat reported the expiry; writes
 ``OUT``; exit 0 only if every axis reported it within the bound.  Then SIGCONT (the caller
 stops the service).
@@ -51,7 +52,10 @@ def main() -> int:
     p.add_argument("--firmware", default="0.5")
     p.add_argument("--nodes", default="0,1,2,3,4,5,6,7")
     p.add_argument("--time-scale", type=float, required=True)
-    p.add_argument("--deadman", type=float, required=True, help="D, host s (the kernel's)")
+    p.add_argument(
+        "--deadman", type=float, required=True, help="D, robot s (the budget's; the kernel "
+        "holds it D / S host seconds)"
+    )
     p.add_argument("--watchdog", type=float, required=True, help="W, robot s")
     p.add_argument("--heartbeat", type=float, required=True, help="T_hb, robot s")
     p.add_argument("--spin-timeout", type=float, default=1500.0, help="host s to reach SPIN")
@@ -59,7 +63,7 @@ def main() -> int:
     a = p.parse_args()
     c = cs.can_simple(a.firmware)
     nodes = {int(n) for n in a.nodes.split(",")}
-    bound = a.deadman + (a.watchdog + a.heartbeat) / a.time_scale
+    bound = (a.deadman + a.watchdog + a.heartbeat) / a.time_scale
     body = {"overrides": {"protocol": {"sweep_deg": 1440}}, "install": "never"}
     run = _request(f"{a.url}/calibrations", a.token, body)
     rid = run["id"]
@@ -82,7 +86,7 @@ def main() -> int:
         t_stop = time.time()
         os.kill(a.service_pid, signal.SIGSTOP)
         print(f"kill -STOP {a.service_pid} mid-spin (sweep {st['sweep_deg']:.0f} deg); bound "
-              f"D + (W + T_hb) / S = {a.deadman:g} + ({a.watchdog:g} + {a.heartbeat:g}) / "
+              f"(D + W + T_hb) / S = ({a.deadman:g} + {a.watchdog:g} + {a.heartbeat:g}) / "
               f"{a.time_scale:g} = {bound:.2f} s", flush=True)  # fmt: skip
         last_host: dict[int, float] = {}
         expired: dict[int, float] = {}

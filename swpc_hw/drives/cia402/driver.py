@@ -244,7 +244,11 @@ class Cia402Driver:
             if kernel is None:
                 kernel = cfg.interface == "socketcan" and not self._lockstep
             if kernel:
-                self._kernel = KernelRefresh(self._bus, cfg.refresh_period_s, cfg.deadman_s)
+                # the kernel's timers run on host time; the budget is robot time
+                rate = self.clock.rate
+                self._kernel = KernelRefresh(
+                    self._bus, cfg.refresh_period_s / rate, cfg.deadman_s / rate
+                )
                 self._kernel.set_node(self.drives.host_node, [self._heartbeat_frame()])
             if cfg.log_path:
                 self._logger = Recorder(
