@@ -115,6 +115,26 @@ def zenoh_config(
     return cfg
 
 
+def connect_endpoints(connect: Sequence[str], config_file: str | None = None) -> list[str]:
+    """The endpoints a session opened with these arguments connects to: ``connect``, else
+    those of its config file (as :func:`zenoh_config` merges them)."""
+    if connect or not config_file:
+        return list(connect)
+    import zenoh
+
+    try:
+        found = json.loads(zenoh.Config.from_file(config_file).get_json("connect/endpoints"))
+    except Exception:  # a file zenoh_config() refuses is refused there, with its reason
+        return []
+    return [str(e) for e in found] if isinstance(found, list) else []
+
+
+def linked_sessions(session: Any) -> int:
+    """How many zenoh sessions (peers and routers) ``session`` has a link with now."""
+    info = session.info
+    return len(list(info.peers_zid())) + len(list(info.routers_zid()))
+
+
 def open_session(
     *,
     mode: str = "peer",

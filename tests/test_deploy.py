@@ -165,7 +165,6 @@ def test_units_are_hardened(unit: str) -> None:
     assert d["ProtectSystem"] == ["strict"] and d["NoNewPrivileges"] == ["yes"]
     assert d["CapabilityBoundingSet"] == [""]
     assert "AF_CAN" in d["RestrictAddressFamilies"][0].split()
-    assert "EnvironmentFile" in d
     assert all(v.startswith("+/opt/swpc/deploy/") for v in d["ExecStartPre"])
     if unit == "swpc-service.service":
         # the data dir is the only writable path: the state dir, nothing else
@@ -174,6 +173,7 @@ def test_units_are_hardened(unit: str) -> None:
         assert d["ExecStart"] == ["/opt/swpc/.venv/bin/swpc serve --data-dir /var/lib/swpc"]
         # what it writes is 0640 in the odometry's group, with no setgid bit (refused by
         # RestrictSUIDSGID=); file descriptors for every HTTP connection and more
+        assert d["EnvironmentFile"] == ["/etc/swpc/swpc.env"]
         assert d["Group"] == ["swpc-data"] and d["UMask"] == ["0027"]
         assert d["RestrictSUIDSGID"] == ["yes"]
         from services.config.settings import ServiceSettings
@@ -181,8 +181,11 @@ def test_units_are_hardened(unit: str) -> None:
         assert int(d["LimitNOFILE"][0]) >= 4 * ServiceSettings().max_connections
     else:
         assert "StateDirectory" not in d and "ReadWritePaths" not in d
+        assert "EnvironmentFile" not in d  # `swpc sim` reads no SWPC_* setting
         assert d["ExecStart"] == [
-            "/opt/swpc/.venv/bin/swpc sim --interface socketcan --channel vcan0"
+            "/opt/swpc/.venv/bin/swpc sim --interface socketcan --channel vcan0 "
+            "--zenoh-listen tcp/127.0.0.1:7447 "
+            "--zenoh-config /opt/swpc/deploy/zenoh/mocap-peer.json5"
         ]
 
 
@@ -198,7 +201,7 @@ def test_env_example_loads_and_names_every_setting() -> None:
     assert s.can_interface == "socketcan" and s.can_channel == "can0"
     assert s.can_bitrate == 1_000_000 and s.zenoh_mode == "peer"
     assert s.data_dir == Path("/var/lib/swpc") and s.host == "127.0.0.1"
-    assert s.zenoh_config_file == "/opt/swpc/deploy/zenoh/robot-peer.json5"
+    assert s.zenoh_config_file == "/etc/swpc/zenoh.json5"  # its copy of robot-peer.json5
 
 
 def _keys(model: type[BaseModel], prefix: str = "") -> list[str]:

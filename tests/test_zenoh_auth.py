@@ -132,3 +132,65 @@ def test_the_in_process_credential_is_gone_when_the_service_closes(tmp_path: Pat
 
 
 pytestmark = pytest.mark.timeout(120)
+
+
+def test_health_names_a_refused_zenoh_link_and_the_right_password_clears_it(
+    tmp_path: Path,
+) -> None:
+    """The service set up as deploy/README.md says (robot-peer.json5 presenting this robot's
+    user/password) against the mocap PC's listener (mocap-peer.json5): with a password the
+    mocap PC does not know, /health names the link, not only the silent poses; with the
+    right one, the link is up and the poses arrive."""
+    import uuid
+
+    import zenoh
+    from fastapi.testclient import TestClient
+    from pydantic import SecretStr
+
+    from services.config.settings import ServiceSettings
+    from services.http.app import create_app
+    from services.runtime.runtime import Runtime
+    from swpc_hw.zenoh_session import zenoh_config
+    from tests.service_rig import TOKEN
+
+    root = Path(__file__).resolve().parents[1]
+    users = tmp_path / "robots.txt"
+    users.write_text("swpc-robot07:robot-secret-0123\n")
+    ep = free_tcp_endpoint()
+    mcfg = zenoh_config(config_file=str(root / "deploy" / "zenoh" / "mocap-peer.json5"))
+    mcfg.insert_json5("listen/endpoints", json.dumps([ep]))
+    mcfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+    mocap = zenoh.open(mcfg)
+    template = (root / "deploy" / "zenoh" / "robot-peer.json5").read_text()
+    template = template.replace("tcp/192.0.2.10:7447", ep)
+    seen: dict[str, dict[str, Any]] = {}
+    try:
+        for name, password in (("refused", "guessed"), ("admitted", "robot-secret-0123")):
+            robot_cfg = tmp_path / f"{name}.json5"
+            robot_cfg.write_text(
+                template.replace("replace-with-this-robot's-password", password)
+            )
+            settings = ServiceSettings(
+                data_dir=tmp_path / name,
+                token=SecretStr(TOKEN),
+                can_interface="virtual",
+                can_channel=f"swpc-{name}-{uuid.uuid4().hex[:8]}",
+                zenoh_config_file=str(robot_cfg),
+            )
+            app = create_app(settings, runtime_factory=lambda s: Runtime(s).open())
+            with TestClient(app) as client:
+                rt: Runtime = app.state.runtime
+                assert rt.zenoh_connect == [ep]
+                pose = encode_native(PoseSample.planar(time.time(), 1.0, 2.0, 0.0))
+                deliveries(lambda p=pose: mocap.put(KEY, p), [], within=1.5)
+                seen[name] = client.get("/health").json()
+    finally:
+        mocap.close()
+    link = [p for p in seen["refused"]["problems"] if p.startswith("zenoh: no link to ")]
+    assert link == [
+        f"zenoh: no link to {ep}: check the address, that the peer listens there, and this "
+        "robot's zenoh user/password (deploy/README.md, Motion capture over zenoh)"
+    ], seen["refused"]["problems"]
+    assert seen["refused"]["zenoh_links"] == 0 and seen["refused"]["mocap_age_s"] is None
+    assert not [p for p in seen["admitted"]["problems"] if p.startswith("zenoh")]
+    assert seen["admitted"]["zenoh_links"] == 1 and seen["admitted"]["mocap_age_s"] is not None

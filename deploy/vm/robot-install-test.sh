@@ -57,7 +57,16 @@ check sysusers sysusers || exit
 config() {
     install -d -m 0750 -o root -g swpc /etc/swpc &&
         install -m 0640 -o root -g swpc deploy/swpc.env.example /etc/swpc/swpc.env &&
-        install -m 0640 -o root -g swpc deploy/robot.example.yaml /etc/swpc/robot.yaml || return 1
+        install -m 0640 -o root -g swpc deploy/robot.example.yaml /etc/swpc/robot.yaml &&
+        install -m 0640 -o root -g swpc deploy/zenoh/robot-peer.json5 /etc/swpc/zenoh.json5 ||
+        return 1
+    # this robot's zenoh password, known to the mocap PC (here the lab simulator)
+    local password; password=$(head -c 18 /dev/urandom | base64 | tr '+/' '-_')
+    sed -i -e "s|replace-with-this-robot's-password|$password|" /etc/swpc/zenoh.json5 &&
+        install -d -m 0755 /etc/zenoh &&
+        install -m 0640 -o root -g swpc /dev/null /etc/zenoh/robots.txt &&
+        echo "swpc-robot07:$password" > /etc/zenoh/robots.txt &&
+        grep -q "password: \"$password\"" /etc/swpc/zenoh.json5 || return 1
     # the edits the README asks for: token, bus, mocap endpoint (the simulator on this
     # machine, wall-clock stamps); the emulation's timing (a slow machine); and its disk:
     # the container's /var has ~500 MB free, less than the defaults ask of a run (a
@@ -101,7 +110,7 @@ sim_unit() {
 ExecStartPre=
 ExecStartPre=+/opt/swpc/deploy/can-up.sh can1 --bitrate 500000 --restart-ms 100
 ExecStart=
-ExecStart=/opt/swpc/.venv/bin/swpc sim --interface socketcan --channel can1 --zenoh-listen tcp/127.0.0.1:7447 --time-scale $TS --physics-dt 5 --feedback-rate 50 --stats-every 60
+ExecStart=/opt/swpc/.venv/bin/swpc sim --interface socketcan --channel can1 --zenoh-listen tcp/127.0.0.1:7447 --zenoh-config /opt/swpc/deploy/zenoh/mocap-peer.json5 --time-scale $TS --physics-dt 5 --feedback-rate 50 --stats-every 60
 EOF
     ip link set dev lo up &&
         systemctl daemon-reload && systemctl start swpc-sim.service &&

@@ -27,11 +27,12 @@ passed.  ``D`` is the dead-man of the kernel's watchdog refresh for the ``deadma
 (``deploy/vm/deadman.py``): the driver renews it every ``D / 2`` from its Python I/O
 thread, which beside two busy loops in the VM renewed it up to 0.5-1.1 s late (the same
 work takes that thread 1 % of a CPU on the host, 25-45 % in the VM, where it also waits
-for a CPU as long as it runs), where the robot's ``D`` of 0.5 s allows 0.25 s.  Both are clamped: F to [F_MIN, F_MAX], k to [K_MIN, K_MAX], and never beyond the
-reference values on a faster host.  The loop time is only a proxy of the load the
-simulator and the service put on the emulated CPUs: on a host whose loop ran 1.3x faster
-than the reference, k = 0.4 put the simulator at 1.4-2.2 of the 2 emulated CPUs (against
-1.3 at k = 0.3) and the spins slowed down 3x, so a faster host keeps the reference values.
+for a CPU as long as it runs), where the robot's ``D`` of 0.5 s allows 0.25 s.  Both are
+clamped: F to [F_MIN, F_MAX], k to [K_MIN, K_MAX], and never beyond the reference values
+on a faster host.  The loop time is only a proxy of the load the simulator and the service
+put on the emulated CPUs: on a host whose loop ran 1.3x faster than the reference, k = 0.4
+put the simulator at 1.4-2.2 of the 2 emulated CPUs (against 1.3 at k = 0.3) and the spins
+slowed down 3x, so a faster host keeps the reference values.
 """
 
 from __future__ import annotations

@@ -4,7 +4,11 @@
 ``failing`` when a calibration cannot start or go on (CAN not open or faulted, a node
 lost, a sensor the calibration needs not live or its clock off, the disk full, the store
 unwritable), ``degraded`` when it can but something needs attention (node errors, a CAN
-log stopped, the kinematic file in force unreadable), else ``ok``.
+log stopped, the kinematic file in force unreadable, zenoh linked to none of its connect
+endpoints while the sensors are live through another), else ``ok``.  ``zenoh_links`` counts
+the zenoh sessions linked; none while connect endpoints are configured is a problem of its
+own, named with the endpoints: zenoh retries them quietly, so a wrong address or a
+refused user/password would otherwise look like a silent mocap PC.
 
 The sensors judged: while a run goes, those of its metrology (motion capture, or the
 gyro without motion capture); between runs, those of ``SWPC_METROLOGY`` (``mocap``,
@@ -26,6 +30,7 @@ from services.runtime.runtime import Runtime
 from services.store.disk import run_reserve
 from swpc_hw.can.types import Lifecycle
 from swpc_hw.errors import KinematicFileError
+from swpc_hw.zenoh_session import linked_sessions
 
 MIB = 1 << 20
 
@@ -111,6 +116,19 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
         clock = rt.gyro.clock_problem()
         if clock is not None:
             failing.append(clock)
+    links = None if rt.session is None else linked_sessions(rt.session)
+    if links == 0 and rt.zenoh_connect:
+        # zenoh retries its connect endpoints quietly: a wrong address, a peer not
+        # listening, or a user/password it refused all look like silent sensors
+        problem = (
+            f"zenoh: no link to {', '.join(rt.zenoh_connect)}: check the address, that the "
+            "peer listens there, and this robot's zenoh user/password (deploy/README.md, "
+            "Motion capture over zenoh)"
+        )
+        stale = ("mocap" in sensors and rt.mocap.is_stale()) or (
+            "imu" in sensors and rt.gyro.is_stale()
+        )
+        (failing if stale and not still else degraded).append(problem)
     if rt._unsaved:
         rt._save_unsaved()
     if rt.store_error is not None:
@@ -156,5 +174,6 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
         "in_process_simulator": rt.simulator is not None,
         "simulated_time_still": still,
         "disk": disk,
+        "zenoh_links": links,
     }
     return status, doc

@@ -62,7 +62,13 @@ from swpc_hw.drives.robot_io import DrivesRobotIO
 from swpc_hw.errors import SwpcError
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
-from swpc_hw.zenoh_session import ZenohAuth, free_tcp_endpoint, open_session, publishers_acl
+from swpc_hw.zenoh_session import (
+    ZenohAuth,
+    connect_endpoints,
+    free_tcp_endpoint,
+    open_session,
+    publishers_acl,
+)
 
 SWITCH_INTERVAL_S = 0.001
 RUNS_IN_MEMORY = 8
@@ -172,6 +178,9 @@ class Runtime:
         self.session: Any = None
         self.zenoh_endpoints: list[str] = []
         """The endpoints the zenoh session listens on or connects to, once open."""
+        self.zenoh_connect: list[str] = []
+        """The endpoints the zenoh session connects to (settings or its config file): with
+        none linked, ``/health`` says so."""
         self._sim_password = ""
         self._zenoh_users: Path | None = None
         self.drives: Drives | None = None
@@ -256,6 +265,7 @@ class Runtime:
             ),
         )
         self.zenoh_endpoints = listen or connect
+        self.zenoh_connect = connect_endpoints(connect, s.zenoh_config_file)
         self.mocap.subscribe(self.session, self.config.pose_key)
         if s.metrology != "mocap":
             self.gyro.subscribe(self.session, self.config.imu_key)
