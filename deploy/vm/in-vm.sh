@@ -260,13 +260,14 @@ step sim-calibration calibration_through_simulator
 # calibration (DONE), a second run is stopped mid-spin by kill -STOP of the service
 # (deploy/vm/odrive_deadman.py): the kernel's refresh ends D after the driver's last
 # renewal, then every axis' watchdog disarms it; bound (D + W + T_hb) / S host seconds.
-# Half sim-calibration's time scale: 8 axis nodes put twice the swpc kind's refresh frames
-# through the simulator's Python (each armed axis every T_ref of host time, in the kernel);
-# at its full time scale the simulator stalled mid-spin for longer than L (every node lost).
+# sim-calibration's time scale: the kernel renews each armed axis every T_ref of robot time
+# (T_ref / S of host time), so 8 axis nodes cost the simulator's Python what they would at
+# full speed.  (Renewed every T_ref of host time, they once stalled the simulator mid-spin at
+# this scale for longer than L, and the step ran at half of it.)
 measure_speed odrive "${SWPC_VM_SIM_TIME_SCALE:-}"
-ODRIVE_TS="${SWPC_VM_SIM_TIME_SCALE:-$(awk -v s="${SPEED_SIM_TIME_SCALE:-0.3}" 'BEGIN {printf "%.3f", s / 2}')}"
 odrive_calibration() {
-    local ts=$ODRIVE_TS ep=tcp/127.0.0.1:7448 port=8081 token=vm-token-0123456789 rc=0
+    local ts=${SWPC_VM_SIM_TIME_SCALE:-${SPEED_SIM_TIME_SCALE:-0.3}}
+    local ep=tcp/127.0.0.1:7448 port=8081 token=vm-token-0123456789 rc=0
     local window data=/tmp/swpc-odrive cfg=/tmp/odrive-robot.yaml chan=vcan41 sim_pid svc_pid
     local w hb d
     window=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
@@ -323,16 +324,13 @@ step odrive odrive_calibration
 # the host's time) after the STOP, and every drive's heartbeat
 # consumer (its time: the service's watchdog W, robot time) must then fault it within W of
 # the drive's own time.  Eight CiA 402 drives in Python cost the simulator more than swpc's
-# controllers: it runs at half the time scale of sim-calibration, with 10 ms physics steps
-# (at the full scale it lagged the service by seconds on a slow host, which then lost its
-# heartbeats).
+# controllers: it steps its physics every 10 ms.  sim-calibration's time scale: the kernel
+# renews the drives every T_ref of robot time (T_ref / S of host time).
 measure_speed cia402 "${SWPC_VM_SIM_TIME_SCALE:-}"
 cia402_step() {
-    local ts ep=tcp/127.0.0.1:7448
+    local ts=${SWPC_VM_SIM_TIME_SCALE:-${SPEED_SIM_TIME_SCALE:-0.3}} ep=tcp/127.0.0.1:7448
     local port=8081 token=vm-token-0123456789 rc=0 sim_pid svc_pid run_pid window
     local data=/tmp/swpc-cia402 robot=/tmp/cia402-robot.yaml
-    ts=$(awk -v s="${SWPC_VM_SIM_TIME_SCALE:-${SPEED_SIM_TIME_SCALE:-0.3}}" \
-        'BEGIN {printf "%.3f", s / 2}')
     # W = ts x window = 1.5 s of robot time (services/config/timing.py), D = 0.5 s host time
     window=$(awk -v s="$ts" 'BEGIN {printf "%.2f", 1.5 / s}')
     deploy/vcan-up.sh vcan50 >/dev/null || return 1
