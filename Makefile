@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 
-.PHONY: all install lock test lint typecheck bench demo demo-offline clean test-browser console-screenshots ctrl-emu
+.PHONY: all install lock test lint typecheck bench demo demo-offline console clean test-browser console-screenshots ctrl-emu
 
 all: test
 
@@ -60,6 +60,10 @@ bench: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/python -m services.demo
+
+# The console on the simulated robot, kept up until Ctrl-C: prints where to click.
+console: $(STAMP)
+	$(BIN)/python -m services.demo --console --out out/console
 
 demo-offline: $(STAMP)
 	$(BIN)/python -m services.demo --offline

@@ -28,6 +28,7 @@ import math
 import os
 import secrets
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -195,6 +196,72 @@ def combined_sd_differences(a: dict[str, Any], b: dict[str, Any]) -> tuple[float
     return worst, where
 
 
+class _Service:
+    """``swpc serve`` as a child process on the in-process simulator (step 1 of the module
+    docstring): its address, token and PID; stopped by its PID on exit."""
+
+    def __init__(
+        self, data_dir: Path, sim_speed: float, seed: int, robot_config: Path | None = None,
+        port: int | None = None,
+    ) -> None:
+        self.data_dir = data_dir
+        self.token = secrets.token_urlsafe(16)
+        self.port = port if port is not None else _free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        env = dict(
+            os.environ,
+            SWPC_TOKEN=self.token,
+            SWPC_DATA_DIR=str(data_dir),
+            SWPC_SIM_SPEED=str(sim_speed),
+            SWPC_SIM_SEED=str(seed),
+            SWPC_PORT=str(self.port),
+        )
+        for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
+            env.pop(key, None)
+        if robot_config is not None:
+            env["SWPC_ROBOT_CONFIG"] = str(robot_config)
+        self.log = open(data_dir / "service.log", "w")  # noqa: SIM115 - closed in __exit__
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "serve", "--log-level", "warning"],
+            env=env,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+        )
+        speed = "as fast as the host allows" if sim_speed <= 0 else f"at most {sim_speed:g}x"
+        drives = "the robot config's" if robot_config is not None else "swpc"
+        print(f"swpc serve started (pid {self.proc.pid}) on {self.base}, in-process "
+              f"simulator ({speed}), {drives} drives")  # fmt: skip
+
+    def wait_healthy(self, http: httpx.Client, timeout: float = 60.0) -> bool:
+        """Until ``/health`` answers with live motion capture; False (the service's log
+        printed) when the process ends or ``timeout`` s of wall time pass first."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                if not http.get("/health").json()["mocap_stale"]:
+                    return True
+            except httpx.TransportError:
+                pass
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                print((self.data_dir / "service.log").read_text()[-2000:], file=sys.stderr)
+                print("demo: the service did not come up", file=sys.stderr)
+                return False
+            time.sleep(0.2)
+
+    def __enter__(self) -> _Service:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            self.proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.log.close()
+        print(f"service (pid {self.proc.pid}) stopped")
+
+
 def run_service_demo(
     data_dir: Path, sim_speed: float, seed: int, keep_serving: bool = False,
     metrology: str = "mocap", robot_config: Path | None = None,
@@ -204,107 +271,99 @@ def run_service_demo(
     service's robot config (default: its own default); ``results`` gets the result."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    token = secrets.token_urlsafe(16)
-    port = _free_port()
-    env = dict(
-        os.environ,
-        SWPC_TOKEN=token,
-        SWPC_DATA_DIR=str(data_dir),
-        SWPC_SIM_SPEED=str(sim_speed),
-        SWPC_SIM_SEED=str(seed),
-        SWPC_PORT=str(port),
-    )
-    for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
-        env.pop(key, None)
-    if robot_config is not None:
-        env["SWPC_ROBOT_CONFIG"] = str(robot_config)
     t0 = time.monotonic()
-    log = open(data_dir / "service.log", "w")  # noqa: SIM115 - lives as long as the process
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "serve", "--log-level", "warning"],
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    base = f"http://127.0.0.1:{port}"
-    speed = "as fast as the host allows" if sim_speed <= 0 else f"at most {sim_speed:g}x"
-    drives = "the robot config's" if robot_config is not None else "swpc"
-    print(f"swpc serve started (pid {proc.pid}) on {base}, in-process simulator ({speed}), "
-          f"{drives} drives")  # fmt: skip
-    print(f"operator console: {base}/ (token {token})")
-    try:
-        with httpx.Client(base_url=base, timeout=10.0) as http:
-            deadline = time.monotonic() + 60
+    with _Service(data_dir, sim_speed, seed, robot_config) as svc, httpx.Client(
+        base_url=svc.base, timeout=10.0
+    ) as http:
+        print(f"operator console: {svc.base}/ (token {svc.token})")
+        if not svc.wait_healthy(http):
+            return 1
+        auth = {"Authorization": f"Bearer {svc.token}"}
+        body: dict[str, Any] = {}
+        if metrology == "imu":
+            body = {"metrology": "imu", "references": tape_references(seed)}
+            print("without motion capture: the tape-measured distances between the steering "
+                  "axes go with the request")  # fmt: skip
+        r = http.post("/calibrations", json=body, headers=auth)
+        r.raise_for_status()
+        run_id = r.json()["id"]
+        print(f"POST /calibrations -> {r.status_code}, Location: {r.headers['location']}")
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>5.1f}%"),
+            TimeElapsedColumn(),
+        ) as bar:
+            task = bar.add_task("starting", total=1.0)
             while True:
-                try:
-                    health = http.get("/health").json()
-                    if not health["mocap_stale"]:
-                        break
-                except httpx.TransportError:
-                    pass
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    print((data_dir / "service.log").read_text()[-2000:], file=sys.stderr)
-                    print("demo: the service did not come up", file=sys.stderr)
-                    return 1
-                time.sleep(0.2)
-            auth = {"Authorization": f"Bearer {token}"}
-            body: dict[str, Any] = {}
-            if metrology == "imu":
-                body = {"metrology": "imu", "references": tape_references(seed)}
-                print("without motion capture: the tape-measured distances between the steering "
-                      "axes go with the request")  # fmt: skip
-            r = http.post("/calibrations", json=body, headers=auth)
-            r.raise_for_status()
-            run_id = r.json()["id"]
-            print(f"POST /calibrations -> {r.status_code}, Location: {r.headers['location']}")
-            with Progress(
-                TextColumn("{task.description}"),
-                BarColumn(),
-                TextColumn("{task.percentage:>5.1f}%"),
-                TimeElapsedColumn(),
-            ) as bar:
-                task = bar.add_task("starting", total=1.0)
-                while True:
-                    st = http.get(f"/calibrations/{run_id}").json()
-                    desc = f"{st['state']:<8} module {st['module'] or '-'}/{st['modules_total']}"
-                    bar.update(task, completed=st["progress"], description=desc)
-                    if st["state"] in ("DONE", "FAILED", "ABORTED"):
-                        break
-                    operator_step(http, run_id, st, auth)
-                    time.sleep(0.25)
-            if st["state"] != "DONE":
-                print(f"calibration {st['state']}: {st['reason']}", file=sys.stderr)
-                return 1
-            res = http.get(f"/calibrations/{run_id}/result").json()
-            if results is not None:
-                results.append(res)
-            print()
-            if metrology == "imu":
-                print("frame design-fit: the truth re-expressed in it")
-                print(_table(res, design_fit_truth(res)))
-            else:
-                print(_table(res))
-            q = res["quality"]
-            print(f"\nposes used {q.get('poses_used', 0)}, wheel increments used "
-                  f"{q['increments_used']}")  # fmt: skip
-            print(f"kinematic file written: {res['kinematics_path']}")
-            print(f"run dataset (solve offline with `swpc solve`): {res['dataset_dir']}")
-            print(f"calibrated parameters digest (seed {seed}): {parameters_digest(res)}")
-            print(f"demo wall time: {time.monotonic() - t0:.1f} s")
-            if keep_serving:
-                print(f"the console stays at {base}/ (token {token}); Ctrl-C stops the service")
-                with contextlib.suppress(KeyboardInterrupt):
-                    proc.wait()
-            return 0
-    finally:
-        proc.send_signal(signal.SIGINT)
+                st = http.get(f"/calibrations/{run_id}").json()
+                desc = f"{st['state']:<8} module {st['module'] or '-'}/{st['modules_total']}"
+                bar.update(task, completed=st["progress"], description=desc)
+                if st["state"] in ("DONE", "FAILED", "ABORTED"):
+                    break
+                operator_step(http, run_id, st, auth)
+                time.sleep(0.25)
+        if st["state"] != "DONE":
+            print(f"calibration {st['state']}: {st['reason']}", file=sys.stderr)
+            return 1
+        res = http.get(f"/calibrations/{run_id}/result").json()
+        if results is not None:
+            results.append(res)
+        print()
+        if metrology == "imu":
+            print("frame design-fit: the truth re-expressed in it")
+            print(_table(res, design_fit_truth(res)))
+        else:
+            print(_table(res))
+        q = res["quality"]
+        print(f"\nposes used {q.get('poses_used', 0)}, wheel increments used "
+              f"{q['increments_used']}")  # fmt: skip
+        print(f"kinematic file written: {res['kinematics_path']}")
+        print(f"run dataset (solve offline with `swpc solve`): {res['dataset_dir']}")
+        print(f"calibrated parameters digest (seed {seed}): {parameters_digest(res)}")
+        print(f"demo wall time: {time.monotonic() - t0:.1f} s")
+        if keep_serving:
+            print(f"the console stays at {svc.base}/ (token {svc.token}); Ctrl-C stops the "
+                  "service")  # fmt: skip
+            with contextlib.suppress(KeyboardInterrupt):
+                svc.proc.wait()
+        return 0
+
+
+CONSOLE_PORT = 8080
+"""``make console``'s port when it is free (else any free one, printed)."""
+
+
+def run_console(data_dir: Path, seed: int, port: int = CONSOLE_PORT) -> int:
+    """``make console``: ``swpc serve`` on the in-process simulator at the robot's own pace
+    (1 simulated s per wall s, so that a run in the console moves as on a robot), no
+    calibration started; prints where to click and the token, and keeps the service up
+    until Ctrl-C (then stops it by its PID)."""
+    try:
+        with contextlib.closing(socket.socket()) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+            probe.bind(("127.0.0.1", port))
+    except OSError:
+        port = _free_port()
+    with _Service(data_dir, 1.0, seed, port=port) as svc, httpx.Client(
+        base_url=svc.base, timeout=10.0
+    ) as http:
+        if not svc.wait_healthy(http):
+            return 1
+        print(
+            f"\nopen {svc.base}/ in a browser: the operator console, on the simulated robot"
+            f"\n  press Start; the console asks once for the bearer token: {svc.token}"
+            "\n  the console shows the run as it goes; Abort stops the robot at once"
+            f"\n  the API's own pages: {svc.base}/docs; the service's data and log: {data_dir}"
+            "\nCtrl-C stops the service"
+        )
         try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.close()
-        print(f"service (pid {proc.pid}) stopped")
+            code = svc.proc.wait()
+        except KeyboardInterrupt:
+            return 0  # the way to stop it; __exit__ stops the service
+        print(f"the service ended on its own (exit status {code}): its log is "
+              f"{data_dir / 'service.log'}", file=sys.stderr)  # fmt: skip
+        return 1
 
 
 AGREEMENT = 3.0
@@ -350,6 +409,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--offline", action="store_true", help="dataset + swpc solve only")
     parser.add_argument(
+        "--console", action="store_true",
+        help="start no calibration: keep the service and its console up, on the simulator at "
+        "the robot's own pace, until Ctrl-C (make console)",
+    )
+    parser.add_argument(
         "--keep-serving", action="store_true",
         help="after the run, keep the service (and its console at /) up until Ctrl-C",
     )
@@ -370,6 +434,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.offline:
         return run_offline_demo(out, args.seed)
+    if args.console:
+        return run_console(out.resolve(), args.seed)
     results: list[dict[str, Any]] = []
     code = run_service_demo(
         out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.metrology,

@@ -33,6 +33,16 @@ TOKEN_FILE = "api-token"
 """Generated on loopback when no token is set: ``<data dir>/api-token``, mode 0600."""
 
 
+def default_data_dir() -> Path:
+    """The data dir when ``SWPC_DATA_DIR`` is unset: ``$XDG_STATE_HOME/swpc``, else
+    ``~/.local/state/swpc`` (the XDG base directories' place for an application's state),
+    never the current directory (a bare ``swpc serve`` in a checkout must not write into
+    it).  The robot's units set ``/var/lib/swpc``."""
+    state = os.environ.get("XDG_STATE_HOME", "")
+    base = Path(state) if os.path.isabs(state) else Path.home() / ".local" / "state"
+    return base / "swpc"
+
+
 class SettingsError(SwpcError, ValueError):
     """The service's settings cannot be used as they are (names the setting)."""
 
@@ -130,7 +140,11 @@ class ServiceSettings(BaseSettings):
     )
 
     robot_config: Path | None = Field(None, description="robot config YAML; unset: paper robot")
-    data_dir: Path = Path("swpc-data")
+    data_dir: Path = Field(
+        default_factory=default_data_dir,
+        description="runs, datasets, logs, the kinematic file and a generated token "
+        "(default: $XDG_STATE_HOME/swpc, else ~/.local/state/swpc)",
+    )
     kinematics_path: Path | None = Field(None, description="default: <data_dir>/kinematics.yaml")
     kinematics_backups: int = Field(
         KINEMATICS_BACKUPS,
