@@ -18,14 +18,14 @@ $(BIN)/python:
 # The exact versions of requirements.lock (pyproject.toml has the lower bounds).
 $(STAMP): pyproject.toml requirements.lock | $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -c requirements.lock -e '.[test]'
+	$(BIN)/python -m pip install -q -c requirements.lock -e '.[service,test]'
 	touch $(STAMP)
 
 # requirements.lock from pyproject.toml: the newest versions within its bounds, for every
 # Python swpc supports (uv's universal resolution).
 lock: | $(BIN)/python
 	$(BIN)/python -m pip install -q uv
-	$(BIN)/uv pip compile pyproject.toml --extra test --universal --python-version 3.11 \
+	$(BIN)/uv pip compile pyproject.toml --extra service --extra test --universal --python-version 3.11 \
 		--no-header -o requirements.lock.new
 	{ sed -n '1,3p' requirements.lock; cat requirements.lock.new; } > requirements.lock
 	rm requirements.lock.new

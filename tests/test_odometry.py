@@ -13,10 +13,14 @@ arcs (settled casters) 1e-11 m / 1e-11 rad; omnidirectional motion with steering
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
 import os
+import re
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -410,16 +414,54 @@ def test_synchronize_per_module_logs() -> None:
         synchronize_encoders(enc, [1, 9])
 
 
-def test_import_is_dependency_light() -> None:
+def test_the_odometry_needs_only_the_base_dependencies() -> None:
+    """What a robot imports to run the odometry (the odometry, the controller, the
+    kinematic file) comes from pyproject's base ``dependencies`` and what they require,
+    nothing of the extra ``service`` (the robot-only install of docs/odometry.md)."""
     code = (
-        "import sys, swpc_hw.odometry, swpc_hw.twist_controller\n"
-        "bad = [m for m in ('fastapi', 'zenoh', 'scipy', 'uvicorn', 'matplotlib') "
-        "if m in sys.modules]\n"
-        "print(','.join(bad))\n"
+        "import sys, json, importlib.metadata as md\n"
+        "before = set(sys.modules)  # the interpreter's start-up (site's .pth files)\n"
+        "import swpc_hw.odometry, swpc_hw.twist_controller, swpc_hw.kinematic_file\n"
+        "dists = md.packages_distributions()\n"
+        "tops = {m.split('.')[0] for m in set(sys.modules) - before}\n"
+        "tops -= set(sys.stdlib_module_names)\n"
+        "print(json.dumps(sorted({d for t in tops for d in dists.get(t, [])})))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, check=True, timeout=60)
-    assert out.stdout.strip() == ""
+    used = {canonical(d) for d in json.loads(out.stdout)} - {"swpc"}
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    allowed = requirement_closure(project["dependencies"])
+    assert {"numpy", "pyyaml", "pydantic"} <= used
+    assert used <= allowed, f"the odometry imports {sorted(used - allowed)}"
+    service = {canonical(re.split(r"[<>=\[ ;]", r)[0])
+               for r in project["optional-dependencies"]["service"]}
+    assert not used & service
+
+
+def canonical(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def requirement_closure(requirements: list[str]) -> set[str]:
+    """The distributions ``requirements`` install: their names and, recursively, what
+    the installed ones require (extras and environment markers that do not apply here
+    left out)."""
+    from importlib import metadata
+
+    seen: set[str] = set()
+    todo = list(requirements)
+    while todo:
+        req = todo.pop()
+        if ";" in req and "extra ==" in req.split(";", 1)[1]:
+            continue
+        name = canonical(re.split(r"[<>=!~\[ ;(]", req.strip())[0])
+        if name in seen:
+            continue
+        seen.add(name)
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            todo.extend(metadata.requires(name) or [])
+    return seen
 
 
 # --------------------------------------------------------------------------- controller

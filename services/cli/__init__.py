@@ -15,13 +15,22 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import pkgutil
 import sys
 from collections.abc import Sequence
 
 from firmware_protocol.errors import FirmwareProtocolError
-from swpc_hw.blas_threads import single_blas_thread
 from swpc_hw.errors import SwpcError
+
+SERVICE_EXTRA_PROBES = ("scipy", "can", "fastapi", "zenoh", "threadpoolctl")
+"""One import name per part of pyproject's ``service`` extra that every command needs."""
+
+
+def missing_service_extra() -> str | None:
+    """The first of :data:`SERVICE_EXTRA_PROBES` not installed (a robot that installed
+    ``swpc`` for its odometry only), or None."""
+    return next((m for m in SERVICE_EXTRA_PROBES if importlib.util.find_spec(m) is None), None)
 
 
 def subcommand_modules() -> list[str]:
@@ -47,6 +56,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    missing = missing_service_extra()
+    if missing is not None:
+        print(
+            f"swpc: error: no module {missing!r}: the swpc command needs the extra 'service' "
+            "(pip install 'swpc[service]'); a robot that runs only the odometry does not",
+            file=sys.stderr,
+        )
+        return 2
+    from swpc_hw.blas_threads import single_blas_thread
+
     single_blas_thread()
     parser = build_parser()
     args = parser.parse_args(argv)
