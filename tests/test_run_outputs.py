@@ -248,3 +248,50 @@ def test_the_plot_after_a_restart_is_rendered_once_and_served_from_disk(
         again = client.get(f"/calibrations/{run.id}/plot.png")
         assert again.content == r.content and cached.stat().st_mtime_ns == stamp  # not redrawn
         assert client.get("/calibrations/nope/plot.png").status_code == 404
+
+
+def mcap_log_times(path: Path, topic: str | None = None) -> list[float]:
+    """Epoch s of the messages of a run's MCAP (of ``topic``), in file order."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as fh:
+        return [
+            m.log_time / 1e9
+            for _s, c, m in make_reader(fh).iter_messages(log_time_order=False)
+            if topic is None or c.topic == topic
+        ]
+
+
+def test_the_mcap_lines_up_with_the_api_and_two_runs_never_overlap(
+    done_run: tuple[Rig, Any, list[str]], tmp_path: Path
+) -> None:
+    """A run's MCAP starts at the API's ``started`` (the fake robot's clock, like the
+    in-process simulator's, has its own epoch: 2001 here, and races through a run in
+    milliseconds of host time), and a next run's log times start where the previous
+    run's ended, although it started in the API a few milliseconds later."""
+    import datetime as dt
+
+    def epoch(iso: str | None) -> float:
+        assert iso is not None
+        return dt.datetime.fromisoformat(iso.replace("Z", "+00:00")).timestamp()
+
+    rig, first, _ = done_run
+    assert abs(rig.clock.wall() - dt.datetime.now(dt.UTC).timestamp()) > 3.0e8  # 2001
+    times = mcap_log_times(first.run_dir / "run.mcap")
+    events = mcap_log_times(first.run_dir / "run.mcap", "/calibration/events")
+    started = epoch(first.status.started)
+    assert abs(events[0] - started) < 0.5  # the first event, as the run opened its files
+    assert min(times) >= started - 1.0 - 0.5  # samples from 1 s before the start
+    span = max(times) - min(times)
+    assert span > 30.0  # robot time, which the fake robot ran through in host ms
+    end = first.journal.log_end()
+    assert end is not None and end >= max(times)
+
+    rig2 = Rig(tmp_path)
+    rig2.run_kwargs.update(mcap=True, log_after=end)
+    second = rig2.run()
+    assert second.status.state is State.DONE, second.status.errors
+    times2 = mcap_log_times(second.run_dir / "run.mcap")
+    assert epoch(second.status.started) < max(times)  # it started before run 1's log ended
+    assert min(times2) >= max(times)  # and its log begins after it
+    assert min(times2) - max(times) < 2.0

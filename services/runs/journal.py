@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import logging
 import math
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -49,6 +51,23 @@ class SampleSource(Protocol):
 
 
 
+def log_wall_offset(host_wall: float, clock_now: float, after: float | None = None) -> float:
+    """A run's MCAP ``wall_offset`` (epoch s minus clock s) at its start, log time =
+    clock time + offset.
+
+    The run's log times start at the host's time ``host_wall`` (the API's ``started``),
+    so a viewer lines the file up with the API on a robot and in a simulator alike (a
+    simulated clock's own epoch drifts from the host's time: it stands still while
+    nothing runs, and races ahead of it flat out).  ``after``: where the previous run's
+    log times ended; a simulator faster than the robot can leave them past
+    ``host_wall``, and then this run starts there instead, so that two runs never
+    overlap::
+
+        offset = max(host_wall, after) - clock_now
+    """
+    return max(host_wall, -math.inf if after is None else after) - clock_now
+
+
 class EncoderSource(Protocol):
     def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]: ...
 
@@ -67,8 +86,16 @@ class RunJournal:
         mcap: bool = True,
         robot_config_path: str | None = None,
         metrology: str = "mocap",
+        log_after: float | None = None,
+        host_wall: Callable[[], float] = time.time,
     ) -> None:
+        """``log_after``, ``host_wall``: :func:`log_wall_offset`'s ``after`` and where its
+        ``host_wall`` is read."""
         self.run_id = run_id
+        self.log_after = log_after
+        self.host_wall = host_wall
+        self.wall_offset: float | None = None
+        """:func:`log_wall_offset` from :meth:`open` on."""
         self.metrology = metrology
         self.run_dir = run_dir
         self.config = config
@@ -82,6 +109,11 @@ class RunJournal:
         self._next_record = -math.inf
         self._pose_cursor = 0
         self._enc_cursors = dict.fromkeys(config.nominal.ids, 0)
+
+    def log_end(self) -> float | None:
+        """Epoch s no earlier than any log time this run has written (the clock's now on
+        the run's log axis: a later run starts after it), None before :meth:`open`."""
+        return None if self.wall_offset is None else self.clock.now() + self.wall_offset
 
     @property
     def recording_open(self) -> bool:
@@ -103,10 +135,11 @@ class RunJournal:
         the run's request as metadata); samples from ``t0 - 1 s`` on are recorded.
         Raises :class:`~services.runs.recording.RecordingError`."""
         self._since = t0 - 1.0
+        self.wall_offset = log_wall_offset(self.host_wall(), self.clock.now(), self.log_after)
         rec = RunRecording(
             self.run_dir,
             self.config.nominal,
-            wall_offset=self.clock.wall() - self.clock.now(),
+            wall_offset=self.wall_offset,
             guard=self.space,
             mcap=self.mcap,
             metrology=self.metrology,

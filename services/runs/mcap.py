@@ -24,8 +24,10 @@ topic                        schema                      what
                                                          poses)
 ===========================  ==========================  =================================
 
-Log and publish times are epoch nanoseconds (the dataset's clock times plus the clock's
-wall offset at the start of the run); each message's ``timestamp`` is the same instant.
+Log and publish times are epoch nanoseconds: the dataset's clock times plus the run's
+``wall_offset`` (:func:`services.runs.journal.log_wall_offset`: the run's first log time is
+the host's time at its start, the API's ``started``, so a viewer lines the file up with the
+API); each message's ``timestamp`` is the same instant.
 Metadata records: ``robot-config`` (the run's robot config), ``provenance`` and, at the
 end, ``outcome`` (state, reason) and ``result`` (within tolerance, installed);
 attachments: the run's ``kinematics.yaml`` and ``result.json`` when there is a result.
@@ -149,8 +151,8 @@ def _num(x: float) -> str:
 class McapRecorder:
     """An MCAP file written as a run records (module docstring).
 
-    ``wall_offset``: epoch seconds minus clock seconds (``clock.wall() - clock.now()`` at
-    the start of the run), so log times are epoch time.
+    ``wall_offset``: epoch seconds minus clock seconds (module docstring), so log times
+    are epoch time.
     """
 
     def __init__(

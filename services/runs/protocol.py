@@ -116,7 +116,10 @@ class CalibrationRun(RunMachine):
         space: SpaceGuard | None = None,
         robot_config_path: str | None = None,
         mcap: bool = True,
+        log_after: float | None = None,
     ) -> None:
+        """``log_after``: where the previous run's log times ended
+        (:func:`~services.runs.journal.log_wall_offset`)."""
         super().__init__(robot, metrology, config, clock=clock, on_change=on_change, poll=poll)
         self.install = install
         self.keep_backups = keep_backups
@@ -136,6 +139,7 @@ class CalibrationRun(RunMachine):
             mcap=mcap,
             robot_config_path=robot_config_path,
             metrology=metrology.name,
+            log_after=log_after,
         )
         self.backup: Path | None = None
 
