@@ -86,7 +86,7 @@ def synchronize_encoders(
         tt = t0[(t0 >= lo) & (t0 <= hi)]
     else:
         tt = np.asarray(t, dtype=float).reshape(-1)
-        if tt.size and (tt.min() < lo or tt.max() > hi):
+        if tt.size and (np.min(tt) < lo or np.max(tt) > hi):
             raise OdometryError(f"odometry: requested times outside the common span [{lo}, {hi}]")
     TH = np.column_stack([np.interp(tt, e[:, 0], np.unwrap(e[:, 1])) for e in tables])
     PS = np.column_stack([np.interp(tt, e[:, 0], e[:, 2]) for e in tables])

@@ -155,7 +155,7 @@ def profiled_rolling_residuals(
     counts = np.maximum(np.bincount(run), 1)
     Gc = G - (np.bincount(run, weights=G) / counts)[run]
     pc = psi - (np.bincount(run, weights=psi) / counts)[run]
-    nser = int(series.ser.max()) + 1
+    nser = int(np.max(series.ser)) + 1
     num = np.bincount(ser, weights=pc * Gc, minlength=nser)
     den = np.bincount(ser, weights=pc * pc, minlength=nser)
     r = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
@@ -196,7 +196,7 @@ def estimate_clock_offset(
         return ClockOffset(0.0, None, "not observable")
     inc0, _ = profiled_series_radius(X, C_kept, base)
     ser0 = base.ser[base.pairs()]
-    scale = np.array([max(mad_sigma(inc0[ser0 == k]), 1e-12) for k in range(int(ser0.max()) + 1)])
+    scale = np.array([max(mad_sigma(inc0[ser0 == k]), 1e-12) for k in range(int(np.max(ser0)) + 1)])
 
     def coarse_cost(delta: float) -> float:
         inc, _ = profiled_series_radius(X, C_kept, build(delta))

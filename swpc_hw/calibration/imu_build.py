@@ -169,7 +169,7 @@ def build_imu_problem(
             "gyro samples): the gyro's bias cannot be measured"
         )
     for sd in segs:
-        if not (knots.tau.min() < sd.segment.start and knots.tau.max() > sd.segment.end):
+        if not (np.min(knots.tau) < sd.segment.start and np.max(knots.tau) > sd.segment.end):
             raise CalibrationError(
                 f"{source}/segments.csv: segment {sd.row + 1} (module "
                 f"{sd.segment.static_module}, {sd.segment.start:g}-{sd.segment.end:g} s) has "

@@ -138,7 +138,7 @@ class ProfileStructure:
     def of(cls, present: BoolArray, run: IntArray) -> ProfileStructure:
         rows, cols = np.nonzero(present)
         runs = run[rows, cols]
-        n_run = int(runs.max()) + 1 if runs.size else 0
+        n_run = int(np.max(runs)) + 1 if runs.size else 0
         pr, pi, pj = [], [], []
         for i in range(present.shape[1]):
             for j in range(present.shape[1]):
@@ -293,7 +293,7 @@ def stack_sets(spins: list[RollingSet], drives: list[RollingSet], n_knots: int) 
         block = np.zeros((rs.t.size, w), np.int64)
         block[rs.present] = run0 + dense
         run[rows, :w] = block
-        run0 += int(dense.max()) + 1 if dense.size else 0
+        run0 += int(np.max(dense)) + 1 if dense.size else 0
         set_mods[k, :w], set_mask[k, :w], theta[k, :w] = rs.mods, True, rs.theta
         row_set[rows], row_sigma[rows] = k, rs.sigma
         I_wz[rows], W_bias[rows] = rs.I_wz, rs.W_bias
@@ -464,9 +464,9 @@ class ImuProblem:
             out[ref.kind].append(((pred - ref.value) / ref.stddev)[:, None])
         if "gauge" in act:
             P = X[:, :, P_S]
-            a = self.P_nom - self.P_nom.mean(axis=0)
-            d = P - P.mean(axis=1, keepdims=True)
-            cross = np.sum(a[:, 0] * d[..., 1] - a[:, 1] * d[..., 0], axis=-1)
+            arm = self.P_nom - self.P_nom.mean(axis=0)
+            dev = P - P.mean(axis=1, keepdims=True)
+            cross = np.sum(arm[:, 0] * dev[..., 1] - arm[:, 1] * dev[..., 0], axis=-1)
             c_s = P.mean(axis=1) - self.P_nom.mean(axis=0)
             out["gauge"].append(np.column_stack([c_s, cross]) / GAUGE_SCALE)
         blocks = {

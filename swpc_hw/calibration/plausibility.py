@@ -85,7 +85,7 @@ def _check_clock(rows: FloatArray, where: str, what: str) -> None:
             f"{where}: {what} are not in time order ({t[i + 1]:.6f} s after {t[i]:.6f} s)"
         )
     dup = np.flatnonzero(dt == 0)
-    conflict = [i for i in dup if not np.array_equal(rows[i, 1:], rows[i + 1, 1:])]
+    conflict = [i for i in dup.tolist() if not np.array_equal(rows[i, 1:], rows[i + 1, 1:])]
     if conflict:
         raise ImplausibleDataError(
             f"{where}: {len(conflict)} timestamp(s) carry two different {what} (first at "

@@ -97,7 +97,7 @@ def encoder_resolution(ds: Dataset, column: int = 1) -> float:
         d = np.diff(u)
         d = d[d > 0]
         if d.size:
-            steps.append(float(d.min()))
+            steps.append(float(np.min(d)))
     return max(float(np.median(steps)) if steps else 0.0, 1e-9)
 
 
@@ -273,7 +273,7 @@ def profiled_series_radius(
     dG = 0.5 * (g[idx] + g[idx + 1]) * (series.yaw[idx + 1] - series.yaw[idx])
     dpsi = series.psi[idx + 1] - series.psi[idx]
     ser = series.ser[idx]
-    nser = int(series.ser.max()) + 1 if series.size else 0
+    nser = int(np.max(series.ser)) + 1 if series.size else 0
     num = np.bincount(ser, weights=dG * dpsi, minlength=nser)
     den = np.bincount(ser, weights=dpsi * dpsi, minlength=nser)
     r = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)

@@ -237,7 +237,7 @@ def lever_uncertainty(
     """
     series = prob.rolling
     g = np.abs(rolling_levers(X, C, series))
-    nser = int(series.ser.max()) + 1 if series.size else 0
+    nser = int(np.max(series.ser)) + 1 if series.size else 0
     mean_g = np.bincount(series.ser, weights=g, minlength=nser) / np.maximum(
         np.bincount(series.ser, minlength=nser), 1
     )

@@ -56,7 +56,7 @@ def grid_index(t: FloatArray, dt: float) -> IntArray:
 
 def dense_rows(index: IntArray, rows: FloatArray) -> FloatArray:
     """Rows summed into a dense grid: ``S[k] = sum of rows with index k`` (zeros elsewhere)."""
-    size = int(index.max()) + 1 if index.size else 0
+    size = int(np.max(index)) + 1 if index.size else 0
     S = np.zeros((size, rows.shape[1]))
     np.add.at(S, index, rows)
     return S

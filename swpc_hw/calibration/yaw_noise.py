@@ -77,7 +77,7 @@ def node_coefficients(
     g_out[last] = 0.0
     # T_l: sum of a from node l to the end of its run
     before = np.cumsum(a) - a
-    run_start = np.zeros(int(run.max()) + 1 if n else 0)
+    run_start = np.zeros(int(np.max(run)) + 1 if n else 0)
     run_start[run[~after]] = before[~after]
     T = np.bincount(run, weights=a, minlength=run_start.size)[run] - (before - run_start[run])
     T_next = np.zeros(n)

@@ -6,6 +6,8 @@ import math
 import threading
 from collections.abc import Callable, Iterator, Sequence
 
+import numpy as np
+
 from firmware_protocol.codec import Axis
 from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.drives.interface import Drives
@@ -183,7 +185,7 @@ class SquareDrive:
             end_odometry=end_odo, duration=duration,
             true_path=to_start_frame(start, tr[:, 2:4]),
             odometry_path=to_start_frame(start, od[:, 1:3]),
-            max_slip=float(slip.max()) if slip.size else 0.0,
+            max_slip=float(np.max(slip)) if slip.size else 0.0,
         )
         self._log(
             f"{label:<11} {direction.upper():<4} run {run + 1}: end error "
