@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 export OPENBLAS_NUM_THREADS := 1
 export OMP_NUM_THREADS := 1
 
-.PHONY: all install lock test lint typecheck bench demo demo-offline console clean test-browser console-screenshots ctrl-emu
+.PHONY: all install lock test lint typecheck bench demo demo-offline console clean typecheck-pythons test-browser console-screenshots ctrl-emu
 
 all: test
 
@@ -38,6 +38,20 @@ lint: $(STAMP)
 
 typecheck: $(STAMP)
 	$(BIN)/mypy
+
+# mypy on the other supported Pythons, each in its own venv from the lock (.cache/venv-X.Y):
+# the lock takes another numpy there, with other type stubs.  The suite itself runs on
+# .venv's Python; docs/figures.md has make test on each.
+PYTHONS ?= 3.12 3.13
+typecheck-pythons:
+	@set -e; for x in $(PYTHONS); do \
+		py=$$(python$$x -c 'import sys; print(sys.executable)' 2>/dev/null \
+			|| ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/$$x.*/bin/python$$x 2>/dev/null | tail -n 1); \
+		[ -n "$$py" ] || { echo "typecheck-pythons: no Python $$x found"; exit 1; }; \
+		v=.cache/venv-$$x; [ -x $$v/bin/python ] || $$py -m venv $$v; \
+		$$v/bin/python -m pip install -q -c requirements.lock -e '.[service,test]'; \
+		echo "mypy on $$($$v/bin/python -V)"; $$v/bin/mypy; \
+	done
 
 # One pytest worker per core, a test module's tests on one worker (module fixtures).  Only
 # the plugins the suite uses: hypothesis's and schemathesis's pytest plugins cost every
