@@ -361,6 +361,8 @@ def run_console(data_dir: Path, seed: int, port: int = CONSOLE_PORT) -> int:
             code = svc.proc.wait()
         except KeyboardInterrupt:
             return 0  # the way to stop it; __exit__ stops the service
+        if code in (0, -signal.SIGINT, -signal.SIGTERM):
+            return 0  # a terminal's Ctrl-C reached the service before this process
         print(f"the service ended on its own (exit status {code}): its log is "
               f"{data_dir / 'service.log'}", file=sys.stderr)  # fmt: skip
         return 1
