@@ -7,6 +7,7 @@ The services the tests open answer to the name FastAPI's TestClient sends
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterator
 
@@ -21,3 +22,17 @@ os.environ.setdefault("SWPC_ALLOWED_HOSTS", '["testserver"]')
 def sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Sim]:
     with sim_service(tmp_path_factory.mktemp("sim")) as s:
         yield s
+
+
+@pytest.fixture(autouse=True)
+def log_state() -> Iterator[None]:
+    """``swpc serve`` configures logging (services/store/logs.py: a handler on the root
+    logger, the levels of ``swpc`` and ``uvicorn``): put it back as it was for the tests
+    after one that ran it in this process."""
+    loggers = [logging.getLogger(n) for n in ("", "swpc", "uvicorn")]
+    saved = [(list(lg.handlers), lg.level, lg.propagate) for lg in loggers]
+    yield
+    for lg, (handlers, level, propagate) in zip(loggers, saved, strict=True):
+        lg.handlers[:] = handlers
+        lg.setLevel(level)
+        lg.propagate = propagate

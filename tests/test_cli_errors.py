@@ -4,13 +4,11 @@ another process, a CAN interface that cannot be opened, a port or zenoh endpoint
 
 from __future__ import annotations
 
-import logging
 import subprocess
 import sys
 import textwrap
 import uuid
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -61,16 +59,6 @@ HOLD_LOCK = textwrap.dedent(
 )
 
 
-@pytest.fixture()
-def swpc_log_state() -> Any:
-    """``swpc serve`` configures the ``swpc`` logger (a stderr handler, no propagation):
-    put it back as it was for the tests after this one."""
-    lg = logging.getLogger("swpc")
-    saved = (list(lg.handlers), lg.propagate, lg.level)
-    yield
-    lg.handlers[:], lg.propagate, lg.level = saved[0], saved[1], saved[2]
-
-
 def serve_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
     """Run ``swpc serve`` in this process: it must return 2 with one line on stderr, the
     error (it was uvicorn's 29-50 line traceback and exit status 3)."""
@@ -82,7 +70,6 @@ def serve_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
     return err[0]
 
 
-@pytest.mark.usefixtures("swpc_log_state")
 def test_serve_on_a_data_dir_held_by_another_process_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -109,7 +96,6 @@ def test_serve_on_a_data_dir_held_by_another_process_is_one_line(
         holder.wait(10)
 
 
-@pytest.mark.usefixtures("swpc_log_state")
 def test_serve_with_a_can_interface_that_cannot_be_opened_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -127,7 +113,6 @@ def test_serve_with_a_can_interface_that_cannot_be_opened_is_one_line(
     ChannelLock("socketcan", channel).acquire().release()
 
 
-@pytest.mark.usefixtures("swpc_log_state")
 def test_serve_on_a_port_or_zenoh_endpoint_in_use_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

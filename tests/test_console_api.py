@@ -10,6 +10,7 @@ follows it on ``GET /events?run=<id>``.  The browser drives the same endpoints i
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -18,7 +19,7 @@ import signal
 import threading
 import time
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ from services.http.console.router import mcap_summary
 from services.http.server import server as http_server
 from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
+from services.runtime.events import EventBus
 from services.runtime.runtime import Runtime
 from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
@@ -425,3 +427,114 @@ def test_an_open_event_stream_does_not_hold_up_a_sigterm(tmp_path: Path) -> None
         srv.force_exit = True
         serving.join(10)
 
+
+
+@contextlib.contextmanager
+def http_service(rt: Runtime) -> Iterator[str]:
+    """The app on ``rt`` behind the real HTTP server (uvicorn, GuardedH11) on a loopback
+    port, in this process; its base URL."""
+    app = create_app(rt.settings, runtime_factory=lambda _: rt)
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    srv = http_server(
+        app, host="127.0.0.1", port=port, header_timeout=5, max_connections=8,
+        log_level="warning",
+    )  # fmt: skip
+    serving = threading.Thread(target=srv.run, daemon=True)
+    serving.start()
+    deadline = time.monotonic() + 30
+    while not srv.started:
+        assert serving.is_alive() and time.monotonic() < deadline, "server did not start"
+        time.sleep(0.01)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        srv.should_exit = True
+        serving.join(10)
+
+
+SSE = tuple[str, str, Any]
+"""An event as a client reads it: its id, its name, its data."""
+
+
+def read_sse(lines: Iterator[str], stop: Callable[[list[SSE]], bool]) -> list[SSE]:
+    """Events from a text/event-stream's lines until ``stop(events so far)``."""
+    out: list[SSE] = []
+    fields: dict[str, str] = {}
+    for line in lines:
+        if line:
+            name, _, value = line.partition(": ")
+            fields[name] = value
+            continue
+        if "event" in fields:
+            out.append((fields["id"], fields["event"], json.loads(fields["data"])))
+            if stop(out):
+                break
+        fields = {}
+    return out
+
+
+def number(event_id: str) -> int:
+    return int(event_id.split(":")[1])
+
+
+def test_a_reconnect_with_last_event_id_gets_exactly_the_events_it_missed(
+    tmp_path: Path,
+) -> None:
+    """The events had no ids: a page whose stream broke during a run (a Wi-Fi hand-over)
+    came back with the run's state now, the states in between lost."""
+    rt = bare_runtime(tmp_path)
+    with http_service(rt) as url:
+        seen: list[str] = []
+        run = new_run(rt, seen=seen)  # published: PENDING
+        with httpx.stream("GET", f"{url}/events", timeout=30) as r:
+            assert r.headers["content-type"].startswith("text/event-stream")
+            lines = r.iter_lines()
+            first = read_sse(lines, lambda got: len(got) == 2)
+            run.start()  # a whole run in about a second of host time
+            first += read_sse(lines, lambda got: [e for _, e, _ in got].count("run") == 4)
+        # the stream broke after 4 changes of state; the run goes on to its end
+        run.join(30)
+        assert run.status.state == "DONE", run.status.errors
+        last_id = first[-1][0]
+        with httpx.stream(
+            "GET", f"{url}/events", headers={"Last-Event-ID": last_id}, timeout=30
+        ) as r:
+            again = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
+    # a new stream: hello, the run's state as it began; every id of a stream larger
+    assert [e for _, e, _ in first[:2]] == ["hello", "run"] and first[1][2]["state"] == "PENDING"
+    for events in (first, again):
+        ids = [number(i) for i, _, _ in events]
+        assert ids == sorted(set(ids)), ids
+        assert len({i.split(":")[0] for i, _, _ in events}) == 1  # one epoch
+    # the reconnect: no hello, exactly the states published after the last one it had,
+    # then the live view again
+    got = [d["state"] for _, e, d in first[2:] if e == "run"]
+    missed = [d["state"] for _, e, d in again if e == "run"]
+    assert len(got) == 4 and [e for _, e, _ in again][-1] == "live"
+    assert "hello" not in [e for _, e, _ in again]
+    assert got + missed == seen[1:], (got, missed, seen)
+    assert missed[-1] == "DONE" and len(missed) > 20
+
+
+def test_a_last_event_id_too_old_or_unknown_starts_over_with_a_snapshot(
+    tmp_path: Path,
+) -> None:
+    rt = bare_runtime(tmp_path)
+    rt.events = EventBus(history=8)  # a run publishes more than that
+    with http_service(rt) as url:
+        run = new_run(rt)
+        with httpx.stream("GET", f"{url}/events", timeout=30) as r:
+            first = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
+        run.start()
+        run.join(30)
+        assert run.status.state == "DONE", run.status.errors
+        epoch = first[0][0].split(":")[0]
+        for last_id in (first[-1][0], "0badc0de:3", f"{epoch}:99999", first[0][0], "junk"):
+            with httpx.stream(
+                "GET", f"{url}/events", headers={"Last-Event-ID": last_id}, timeout=30
+            ) as r:
+                again = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
+            # too old (forgotten), another process's, not one yet, hello's, not an id:
+            # hello and the run's state now, as for a new client
+            assert [e for _, e, _ in again] == ["hello", "run", "live"], (last_id, again)
+            assert again[1][2]["state"] == "DONE"

@@ -6,6 +6,7 @@ store said everywhere.
 from __future__ import annotations
 
 import json
+import platform
 import time
 import uuid
 from collections.abc import Iterator
@@ -19,6 +20,7 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
+from services.store.provenance import tool_version
 from swpc_hw.zenoh_session import free_tcp_endpoint
 from tests.service_rig import (
     AUTH,
@@ -87,6 +89,11 @@ def test_metrics_are_counters_and_histograms(lost: tuple[TestClient, Runtime]) -
     assert {s.labels["outcome"] for s in before["swpc_poses"].samples} >= {"received", "accepted"}
     health = before["swpc_health"].samples[0].value
     assert health == 2.0  # failing
+    # which build answers: swpc_build_info{python="3.11.2",version="0.1.0"} 1.0
+    (build,) = before["swpc_build_info"].samples
+    assert before["swpc_build_info"].type == "gauge" and build.name == "swpc_build_info"
+    assert build.labels == {"version": tool_version(), "python": platform.python_version()}
+    assert build.value == 1.0 and tool_version() != "unknown"
 
     def rx(fams: dict[str, Any]) -> float:
         return float(

@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import re
 import stat
 from pathlib import Path
 from typing import Any
@@ -150,7 +151,16 @@ def test_docs_are_served_without_internet(tmp_path: Path) -> None:
             html = client.get(page).text
             urls = [u for u in html.split('"') if u.startswith(("http://", "https://", "//"))]
             assert urls == [], urls  # nothing from a CDN (or fonts from Google)
-            assert f"/docs/assets/{asset}" in html
+            # every URL the page names (scripts, styles, the logo, the spec) is a path of
+            # this service that answers
+            refs = re.findall(r"""(?:src|href|spec-url)="([^"]*)"|url: '([^']*)'""", html)
+            paths = {a or b for a, b in refs}
+            assert {f"/docs/assets/{asset}", "/docs/assets/favicon.png", "/openapi.json"} <= paths
+            for path in paths:
+                assert path.startswith("/") and not path.startswith("//"), (page, path)
+                assert client.get(path).status_code == 200, (page, path)
+            assert client.get("/docs/assets/favicon.png").headers["content-type"] == "image/png"
+            assert "x-logo" not in client.get("/openapi.json").json()["info"]  # ReDoc's logo
             js = client.get(f"/docs/assets/{asset}")
             assert js.status_code == 200 and len(js.content) > 500_000
         assert client.get("/docs/assets/swagger-ui.css").status_code == 200

@@ -3,9 +3,9 @@
 With no CAN settings (``SWPC_CAN_INTERFACE`` unset) it runs on the in-process simulator:
 the virtual robot in the service's process on a virtual bus, zenoh on loopback, in
 simulated time.  Settings come from ``SWPC_*`` environment variables, an env file
-(``--env-file``, which must exist) and the flags below.  With no token set it binds to
-loopback only, keeping a generated token in ``<data dir>/api-token`` (mode 0600); never
-printed.
+(``--env-file``, which must exist) and the flags below, which override them.  With no
+token set it binds to loopback only, keeping a generated token in
+``<data dir>/api-token`` (mode 0600); never printed.  Log lines: :mod:`services.store.logs`.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ import argparse
 import socket
 from pathlib import Path
 from typing import Any
+
+from services.config.log_options import LOG_FORMATS, LOG_LEVELS
 
 
 def register(sub: Any) -> None:
@@ -30,7 +32,18 @@ def register(sub: Any) -> None:
         type=float,
         help="in-process simulator: most simulated s per wall s (default 0: unbounded)",
     )
-    p.add_argument("--log-level", default="info")
+    p.add_argument(
+        "--log-level",
+        type=str.lower,
+        choices=LOG_LEVELS,
+        help="lowest level of swpc's and uvicorn's log lines (default info; SWPC_LOG_LEVEL)",
+    )
+    p.add_argument(
+        "--log-format",
+        type=str.lower,
+        choices=LOG_FORMATS,
+        help="text (default) or json: one object per line (SWPC_LOG_FORMAT)",
+    )
     p.set_defaults(func=run)
 
 
@@ -48,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     if args.env_file is not None and not Path(args.env_file).is_file():
         raise SettingsError(f"--env-file {args.env_file}: no such file")
     overrides: dict[str, Any] = {}
-    for key in ("host", "port", "data_dir", "time_scale", "sim_speed"):
+    for key in ("host", "port", "data_dir", "time_scale", "sim_speed", "log_level", "log_format"):
         value = getattr(args, key)
         if value is not None:
             overrides[key] = value
@@ -58,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         first = exc.errors()[0]
         where = ".".join(str(x) for x in first["loc"])
         raise SettingsError(f"setting {where}: {first['msg']}") from None
-    configure(args.log_level)
+    configure(settings.log_level, settings.log_format)
     settings.check_token()  # a weak token, or none beyond loopback: before anything else
     generated = settings.token is None
     # The runtime is opened here, not in uvicorn's lifespan: an error (the data dir or the
@@ -82,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
             port=settings.port,
             header_timeout=settings.header_timeout,
             max_connections=settings.max_connections,
-            log_level=args.log_level,
+            log_level=settings.log_level,
         ).run(sockets=[sock])
     finally:
         runtime.close()  # idempotent: the lifespan has closed it, unless it never ran

@@ -15,9 +15,10 @@ import socket
 from pathlib import Path
 from typing import Literal
 
-from pydantic import ByteSize, Field, SecretStr
+from pydantic import ByteSize, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from services.config.log_options import LogFormat, LogLevel
 from simulators.datagen_imu import GyroOptions
 from swpc_hw.errors import SwpcError
 
@@ -76,6 +77,17 @@ class ServiceSettings(BaseSettings):
     )
     max_connections: int = Field(
         128, ge=4, le=8192, description="open HTTP connections at most; more are closed"
+    )
+    log_level: LogLevel = Field(
+        "info",
+        description="the lowest level of swpc's and uvicorn's log lines written (other "
+        "libraries': warning at least); `swpc serve --log-level` overrides it",
+    )
+    log_format: LogFormat = Field(
+        "text",
+        description="'text' (time, level, logger, message; no time when stderr is the "
+        "journal, which stamps each line) or 'json' (one object per line: time, level, "
+        "logger, message and the event's fields); `swpc serve --log-format` overrides it",
     )
 
     can_interface: str | None = Field(
@@ -242,6 +254,11 @@ class ServiceSettings(BaseSettings):
     sim_gyro_scale_error: float = Field(
         _GYRO[4], gt=-50, lt=50, description="in-process simulator: gyro scale error, %"
     )
+
+    @field_validator("log_level", "log_format", mode="before")
+    @classmethod
+    def _lower(cls, value: object) -> object:
+        return value.strip().lower() if isinstance(value, str) else value
 
     @property
     def in_process(self) -> bool:

@@ -3,12 +3,14 @@
 A collector reads the runtime at each scrape (a private registry per call: several apps
 in one process, as the tests make, never share one).  Counters are the driver's and the
 ingest's running totals (``*_total``), histograms the ingest's pose delays and the
-finished runs' durations; gauges what is true now.
+finished runs' durations; gauges what is true now; ``swpc_build_info`` the version
+serving (an info metric: 1, its labels say it).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import platform
 from collections.abc import Iterator
 from typing import Any
 
@@ -18,11 +20,13 @@ from prometheus_client.metrics_core import (
     CounterMetricFamily,
     GaugeMetricFamily,
     HistogramMetricFamily,
+    InfoMetricFamily,
     Metric,
 )
 
 from services.runtime.health import service_health
 from services.runtime.runtime import Runtime
+from services.store.provenance import tool_version
 
 CAN_ERROR_KINDS = (
     "error_frames",
@@ -75,6 +79,11 @@ class RuntimeCollector:
 
     def collect(self) -> Iterator[Metric]:
         rt = self.rt
+        yield InfoMetricFamily(
+            "swpc_build",
+            "the swpc version serving, and its Python's",
+            value={"version": tool_version(), "python": platform.python_version()},
+        )
         d = rt.drives
         if d is not None:
             s = d.stats()

@@ -181,7 +181,8 @@ class Server(uvicorn.Server):
 def server(app: Any, *, host: str, port: int, header_timeout: float, max_connections: int,
            log_level: str = "info") -> Server:
     """The configured server (``.run()`` serves until SIGTERM/SIGINT); its logs redacted
-    (:class:`RedactSecrets`, the app's token)."""
+    (:class:`RedactSecrets`, the app's token) and written by the root logger's handler
+    (:func:`services.store.logs.configure`), in swpc's format."""
     state = getattr(app, "state", None)
     redact_access_log(lambda: str(getattr(state, "token", "") or ""))
     protocol = type(
@@ -195,6 +196,7 @@ def server(app: Any, *, host: str, port: int, header_timeout: float, max_connect
         port=port,
         http=protocol,
         log_level=log_level,
+        log_config=None,  # no handler or format of its own: its lines go to swpc's
         timeout_keep_alive=min(5, max(1, int(header_timeout))),
         h11_max_incomplete_event_size=MAX_HEADER_BYTES,
         server_header=False,

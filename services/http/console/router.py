@@ -7,7 +7,12 @@
   state machine through :class:`services.runtime.events.EventBus`) and ``live`` (nodes, mocap age,
   the robot's pose, its trajectory since the last one, the fixed point of every spin done)
   every :data:`LIVE_PERIOD` s of host time while the stream is open.  ``?run=<id>``
-  follows one run and ends after its final state.
+  follows one run and ends after its final state.  FastAPI's own server-sent events
+  (``fastapi.sse``); every event has an id (:mod:`services.runtime.events`: increasing
+  along a stream), so a client that reconnects with ``Last-Event-ID`` (a browser's
+  EventSource does it itself) gets exactly the ``run`` events it missed, then ``live``
+  again; with an id too old, unknown or ``hello``'s, the stream starts over as a new one
+  (``hello``, the run's status).
 * ``GET /calibrations/{id}/geometry`` a finished run's spins for the top-down view.
 * ``GET /calibrations/{id}/files`` and ``.../files/{name}`` its files for download.
 * ``GET /calibrations/{id}/mcap`` what its ``run.mcap`` holds, read from the file's own
@@ -23,18 +28,18 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import math
 import re
 import zipfile
 from collections import OrderedDict
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, HTTPException, Request
-from fastapi.responses import FileResponse, Response, StreamingResponse
+from fastapi import APIRouter, Depends, Header, HTTPException, Request
+from fastapi.responses import FileResponse, Response
+from fastapi.sse import EventSourceResponse, ServerSentEvent
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from pydantic import BaseModel, Field
@@ -55,6 +60,11 @@ _ASSETS = {
 }
 LIVE_PERIOD = 0.25
 """s of host time between two ``live`` events of one stream."""
+RETRY_MS = 1000
+"""How long a browser waits before it reconnects a stream that broke, ms."""
+HELLO = 0
+"""The number in the id of ``hello``: before every event (a client resuming from it
+starts over)."""
 TRAIL_POINTS = 60
 """Most trajectory points in one ``live`` event (decimated evenly beyond)."""
 FILES: dict[str, tuple[str, str]] = {
@@ -197,10 +207,6 @@ def spin_of(module: int, start: float, end: float, poses: np.ndarray[Any, Any]) 
     )
 
 
-def _sse(event: str, data: Any) -> str:
-    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
-
-
 def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
@@ -320,52 +326,118 @@ def asset(name: str) -> FileResponse:
         STATIC / name, media_type=_ASSETS[name], headers={"Cache-Control": "no-cache"}
     )
 
-@router.get("/events", include_in_schema=False)
-async def events(request: Request, rt: Rt, run: str | None = None) -> StreamingResponse:
+def _followed(rt: Rt, run: str | None = None) -> str | None:
+    """``?run=<id>``: a run this service knows (404 before the stream begins)."""
     if run is not None and rt.status(run) is None:
         raise HTTPException(404, f"no calibration {run}")
-    return StreamingResponse(
-        _stream(request, rt, run),
-        media_type="text/event-stream",
-        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
-    )
+    return run
 
-async def _stream(request: Request, rt: Runtime, only: str | None) -> AsyncIterator[str]:
+
+@router.get("/events", include_in_schema=False, response_class=EventSourceResponse)
+async def events(
+    request: Request,
+    rt: Rt,
+    run: Annotated[str | None, Depends(_followed)],
+    last_event_id: Annotated[str | None, Header()] = None,
+) -> AsyncIterator[ServerSentEvent]:
+    async for ev in _stream(request, rt, run, last_event_id):
+        yield ev
+
+
+class _Sender:
+    """One stream's events: numbered by the bus, :data:`RETRY_MS` on the first."""
+
+    def __init__(self, rt: Runtime, only: str | None) -> None:
+        self.rt, self.only = rt, only
+        self.last = 0  # the number of the newest event this stream stands for
+        self.ended = False  # ?run=<id>: its final state was sent
+        self._retry: int | None = RETRY_MS
+
+    def event(self, name: str, data: Any, seq: int) -> ServerSentEvent:
+        ev = ServerSentEvent(
+            event=name, data=data, id=self.rt.events.event_id(seq), retry=self._retry
+        )
+        self._retry = None
+        self.last = max(self.last, seq)
+        return ev
+
+    def status(self) -> dict[str, Any] | None:
+        """The followed run's status now (the current run's without ``?run``)."""
+        rt = self.rt
+        if self.only:
+            return rt.status(self.only)
+        return None if rt.current is None else rt.current.status.to_dict()
+
+    def run(self, st: dict[str, Any], seq: int) -> list[ServerSentEvent]:
+        """``run`` for ``st`` (numbered ``seq``) if this stream follows it."""
+        self.last = max(self.last, seq)
+        if self.ended or (self.only is not None and st["id"] != self.only):
+            return []
+        self.ended = self.only is not None and st["state"] in TERMINAL
+        return [self.event("run", st, seq)]
+
+    def snapshot(self, with_hello: bool) -> list[ServerSentEvent]:
+        """``hello`` and the followed run's status, numbered before it is read: every
+        change published after it comes next.  ``hello`` stands for nothing published
+        (:data:`HELLO`): a client that reconnects with its id starts over."""
+        seq = self.rt.events.mark()
+        st = self.status()
+        out = [self.event("hello", hello(self.rt), HELLO)] if with_hello else []
+        self.last = seq
+        return out + ([] if st is None else self.run(st, seq))
+
+    def catch_up(self, news: list[tuple[int, dict[str, Any]]] | None) -> list[ServerSentEvent]:
+        """The run events published since :attr:`last` (``news``), or the status now when
+        the bus no longer has them all."""
+        if news is None:
+            return self.snapshot(with_hello=False)
+        out: list[ServerSentEvent] = []
+        for seq, ev in news:
+            out += self.run(ev["run"], seq)
+        return out
+
+
+async def _stream(
+    request: Request, rt: Runtime, only: str | None, last_event_id: str | None
+) -> AsyncIterator[ServerSentEvent]:
     loop = asyncio.get_running_loop()
     cur = _LiveCursor()
-    with rt.events.subscribe() as sub:
-        # the snapshot as the subscription starts (no await between): every change
-        # after it is in the queue
-        first = (
-            rt.status(only)
-            if only
-            else (None if rt.current is None else rt.current.status.to_dict())
-        )
-        yield "retry: 1000\n\n"
-        yield _sse("hello", hello(rt))
-        if first is not None:
-            yield _sse("run", first)
-            if only and first["state"] in TERMINAL:
-                return
+    bus = rt.events
+    send = _Sender(rt, only)
+    with bus.subscribe() as sub:
+        resume = bus.number(last_event_id) or HELLO
+        news = None if resume == HELLO else bus.since(resume)
+        if news is None:  # a new client, or one whose id is too old or unknown
+            first = send.snapshot(with_hello=True)
+        else:  # exactly what it missed
+            send.last = resume
+            first = send.catch_up(news)
+        for ev in first:
+            yield ev
         next_live = loop.time()
-        while not _stopping(request):
-            ev = await sub.get(timeout=max(0.0, next_live - loop.time()))
-            if ev is not None:
-                st = ev["run"]
-                if only is None or st["id"] == only:
-                    yield _sse("run", st)
-                    if only and st["state"] in TERMINAL:
-                        return
-            if loop.time() >= next_live:
-                if only is not None and sub.queue.empty():  # its end, even if missed
-                    st = rt.status(only)
-                    if st is not None and st["state"] in TERMINAL:
-                        yield _sse("run", st)
-                        return
-                yield _sse("live", live_snapshot(rt, cur))
-                next_live = loop.time() + LIVE_PERIOD
-                if await request.is_disconnected():
+        while not send.ended and not _stopping(request):
+            await sub.wait(timeout=max(0.0, next_live - loop.time()))
+            for ev in send.catch_up(bus.since(send.last)):
+                yield ev
+            if send.ended or loop.time() < next_live:
+                continue
+            if only is not None:  # its end, even if missed
+                st = rt.status(only)
+                if st is not None and st["state"] in TERMINAL:
+                    for ev in send.catch_up(bus.since(send.last)):
+                        yield ev
+                    if not send.ended:
+                        for ev in send.run(st, bus.mark()):
+                            yield ev
                     return
+            seq = bus.mark()
+            for ev in send.catch_up(bus.since(send.last)):  # published before the mark
+                yield ev
+            yield send.event("live", live_snapshot(rt, cur), seq)
+            next_live = loop.time() + LIVE_PERIOD
+            if await request.is_disconnected():
+                return
+
 
 @router.get(
     "/calibrations/{run_id}/geometry",
