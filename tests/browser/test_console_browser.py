@@ -257,21 +257,85 @@ return out;
 """
 
 
-def check_tablet_view(d: WebDriver, view: str) -> None:
-    """No sideways scrolling at the tablet's width; every text's contrast >= 4.5:1."""
-    width = d.execute_script("return [document.documentElement.scrollWidth, innerWidth]")
-    assert width[0] <= width[1], f"{view}: {width[0]} px wide in a {width[1]} px window"
-    cut = d.execute_script(
-        "return [...document.querySelectorAll('.table-wrap')].filter((e) => e.offsetParent"
-        " && e.scrollWidth > e.clientWidth).map((e) => e.firstElementChild.className)"
+# What is cut off or drawn over something else, at the window's size: every visible box
+# that clips what it holds (overflow other than visible, or text-overflow: ellipsis) and
+# holds more than it shows (scrollWidth over clientWidth), and every two visible boxes of
+# the layout (not inline text runs, not taken out of the flow) side by side under one
+# parent that overlap.  Form fields, SVG drawings and screen-reader-only text are left out.
+LAYOUT_JS = """
+const name = (e) => e.tagName.toLowerCase() + (e.id ? "#" + e.id : "") +
+  (e.className && typeof e.className === "string" ? "." + e.className.trim().replace(/\\s+/g, ".") : "") +
+  " '" + e.textContent.trim().replace(/\\s+/g, " ").slice(0, 40) + "'";
+const shown = (e) => e.getClientRects().length > 0 && getComputedStyle(e).visibility === "visible";
+const skip = (e) => e.closest("svg, .sr-only, input, select, textarea, dialog:not([open])");
+const clipped = [], overlaps = [];
+for (const e of document.querySelectorAll("body *")) {
+  if (skip(e) || !shown(e)) continue;
+  const cs = getComputedStyle(e);
+  const clips = cs.overflowX !== "visible" || cs.textOverflow === "ellipsis";
+  if (clips && e.scrollWidth > e.clientWidth + 1) {
+    clipped.push(`${name(e)}: ${e.scrollWidth} px in ${e.clientWidth} px`);
+  }
+  const kids = [...e.children].filter((k) => !skip(k) && shown(k) &&
+    getComputedStyle(k).display !== "inline" &&
+    !["absolute", "fixed"].includes(getComputedStyle(k).position));
+  const boxes = kids.map((k) => k.getBoundingClientRect());
+  for (let i = 0; i < kids.length; i++) {
+    for (let j = i + 1; j < kids.length; j++) {
+      const a = boxes[i], b = boxes[j];
+      const w = Math.min(a.right, b.right) - Math.max(a.left, b.left);
+      const h = Math.min(a.bottom, b.bottom) - Math.max(a.top, b.top);
+      if (w > 1 && h > 1) overlaps.push(`${name(kids[i])} and ${name(kids[j])}: ${w.toFixed(0)} x ${h.toFixed(0)} px`);
+    }
+  }
+}
+return [clipped, overlaps];
+"""
+
+WIDTHS = [TABLET, (1280, 900), (1920, 1080), (800, 1200)]
+"""The windows every view is checked in (CSS px): a tablet in portrait, two desktops, a
+narrow window."""
+
+
+def set_window(d: WebDriver, size: tuple[int, int]) -> None:
+    """The page's viewport at exactly ``size`` CSS px (device metrics, no window chrome)."""
+    d.execute_cdp_cmd(
+        "Emulation.setDeviceMetricsOverride",
+        {"width": size[0], "height": size[1], "deviceScaleFactor": 1, "mobile": False},
     )
-    assert not cut, f"{view}: tables scrolling sideways: {cut}"
-    found = d.execute_script(CONTRAST_JS)
-    assert found, view
-    worst = min(found)
-    state["contrast"] = min(state.get("contrast", (99.0, ""))[0], worst[0]), worst[1]
-    low = [f"{r:.2f} {what}" for r, what in found if r < 4.5]
-    assert not low, f"{view}: text under 4.5:1: {low}"
+    wait_for(f"a {size[0]} px window", lambda: d.execute_script("return innerWidth") == size[0])
+
+
+def layout_problems(d: WebDriver) -> list[str]:
+    """What is scrolled sideways, clipped or drawn over something else, at this size."""
+    width = d.execute_script("return [document.documentElement.scrollWidth, innerWidth]")
+    out = [] if width[0] <= width[1] else [f"page {width[0]} px wide in {width[1]} px"]
+    clipped, overlaps = d.execute_script(LAYOUT_JS)
+    return out + [f"clipped: {c}" for c in clipped] + [f"overlapping: {o}" for o in overlaps]
+
+
+def check_view(d: WebDriver, view: str, shots: str | None = None) -> None:
+    """In every window of :data:`WIDTHS`: nothing scrolls sideways, nothing is clipped
+    or overlaps (:data:`LAYOUT_JS`), every text's contrast is 4.5:1 at least; with
+    ``shots``, a screenshot ``<shots>-<width>`` at each desktop width (the tablet's is
+    the caller's).  The window is the tablet's again afterwards."""
+    found: dict[str, list[str]] = {}
+    try:
+        for size in WIDTHS:
+            set_window(d, size)
+            problems = layout_problems(d)
+            contrast = d.execute_script(CONTRAST_JS)
+            assert contrast, view
+            worst = min(contrast)
+            state["contrast"] = min(state.get("contrast", (99.0, ""))[0], worst[0]), worst[1]
+            problems += [f"contrast {r:.2f} under 4.5: {what}" for r, what in contrast if r < 4.5]
+            if problems:
+                found[f"{size[0]}x{size[1]}"] = problems
+            if shots and size != TABLET:
+                shot(d, f"{shots}-{size[0]}")
+    finally:
+        set_window(d, TABLET)
+    assert not found, f"{view}: " + json.dumps(found, indent=1)
 
 
 # --------------------------------------------------------------------------- tests
@@ -290,7 +354,7 @@ def test_page_loads_offline_and_the_token_is_asked_once(
     assert urls and all(u.startswith(service["url"]) for u in urls), urls
     assert d.find_element(By.ID, "f-angles").get_attribute("value") == "45, 165"
     assert not d.find_element(By.ID, "abort-bar").is_displayed()
-    check_tablet_view(d, "run, idle")
+    check_view(d, "run, idle")
     shot(d, "01-idle")
     # Start without a token asks for it; typed and Enter'd from the keyboard
     d.find_element(By.ID, "start").click()
@@ -327,7 +391,7 @@ def test_live_view_advances_and_abort_ends_aborted(
     # the top-down view draws the robot and the trajectory so far
     wait_for("a trajectory", lambda: d.find_elements(By.CSS_SELECTOR, "#live-view polyline"))
     assert len(d.find_elements(By.CSS_SELECTOR, "#live-view polygon")) == 1  # the outline
-    check_tablet_view(d, "run, live")
+    check_view(d, "run, live", shots="03-live-spin")
     shot(d, "03-live-spin")
     # Abort from the keyboard: from the first link of the page, Tab reaches it right after
     # the header's controls (the views' links and the token), then Enter
@@ -414,7 +478,7 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     wait_for("the spins", lambda: len(css(d, "#res-world polyline")) == 8)
     files = [e.text for e in d.find_elements(By.CSS_SELECTOR, "#res-files a")]
     assert {"run.mcap", "can.log", "kinematics.yaml", "dataset.zip"} <= set(files), files
-    check_tablet_view(d, "result")
+    check_view(d, "result", shots="06-result")
     shot(d, "06-result")
     # install, confirmed from the keyboard (Cancel has the focus first)
     d.find_element(By.ID, "res-install").click()
@@ -436,7 +500,7 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     rows = d.find_elements(By.CSS_SELECTOR, "#backup-rows tr[data-backup]")
     assert len(rows) == 1 and "–" in rows[0].text  # the nominal file: from no run
     nominal_backup = rows[0].get_attribute("data-backup")
-    check_tablet_view(d, "kinematic files")
+    check_view(d, "kinematic files")
     shot(d, "08-kinematic-files")
     rows[0].find_element(By.TAG_NAME, "button").click()
     wait_for("the confirmation", lambda: dialog_open(d, "confirm-dialog"))
@@ -462,7 +526,7 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     assert "ABORTED" in aborted and "aborted by the operator" in aborted
     assert "DONE" in by_id[state["done_run"]]
     assert not css(d, "#history-rows .in-force")  # rolled back: the nominal file is in force
-    check_tablet_view(d, "history")
+    check_view(d, "history")
     shot(d, "10-history")
     # every file of the finished run downloads from the service
     for f in ("run.mcap", "can.log", "kinematics.yaml", "dataset.zip"):
@@ -481,7 +545,7 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     pose = d.find_element(By.CSS_SELECTOR, '#fox-rows tr[data-topic="/mocap/pose"]')
     assert "foxglove.PoseInFrame" in pose.text and pose.text.endswith("yes")
     assert summary["epoch_times"] and "robot-config" in text(d, "fox-extra")
-    check_tablet_view(d, "foxglove")
+    check_view(d, "foxglove")
     shot(d, "11-foxglove")
     assert severe_logs(d) == []
     metrics = {
