@@ -425,3 +425,63 @@ def test_an_open_event_stream_does_not_hold_up_a_sigterm(tmp_path: Path) -> None
         srv.force_exit = True
         serving.join(10)
 
+
+
+def test_a_runs_elapsed_and_remaining_robot_time(svc: dict[str, Any]) -> None:
+    """Every status pushed carries the robot time since the start and the estimate of
+    what the plan's steps left take: unknown until a spin has ended (how long a sweep
+    takes is the robot's), then within 1 s of what the run really took (30 s)."""
+    pushed = [d for e, d in svc["events"] if e == "run" and d["started"] is not None]
+    elapsed = [d["elapsed_s"] for d in pushed]
+    assert elapsed == sorted(elapsed) and elapsed[0] is not None
+    total = pushed[-1]["elapsed_s"]
+    assert pushed[-1]["state"] == "DONE" and 25 < total < 40, total
+    assert pushed[-1]["remaining_s"] is None
+    first_stop = next(i for i, d in enumerate(pushed) if d["state"] == "STOP")
+    assert all(d["remaining_s"] is None for d in pushed[:first_stop])
+    last_release = max(i for i, d in enumerate(pushed) if d["state"] == "RELEASE")
+    planned = pushed[first_stop : last_release + 1]
+    assert len(planned) == 23
+    for d in planned:
+        assert d["remaining_s"] >= 0 and abs(d["elapsed_s"] + d["remaining_s"] - total) < 1.0, (
+            d["state"], d["elapsed_s"], d["remaining_s"], total,
+        )  # fmt: skip
+    assert planned[0]["remaining_s"] > 20 and planned[-1]["remaining_s"] == 0.0
+    # past the plan (solving, writing): not estimated
+    assert all(d["remaining_s"] is None for d in pushed[last_release + 1 :])
+
+
+def test_no_start_while_health_fails_and_the_reason_is_said(svc: dict[str, Any]) -> None:
+    """``POST /calibrations`` was accepted while ``/health`` failed; the run then failed at
+    CONNECT.  Now 409 with the health's reason, and nothing is started."""
+    client, rt = svc["client"], svc["rt"]
+    health = client.get("/health")
+    assert health.status_code == 503 and "CAN driver not open" in health.json()["problems"]
+    runs = client.get("/calibrations").json()
+    r = client.post("/calibrations", json={}, headers=AUTH)
+    assert r.status_code == 409, r.text
+    assert r.json()["detail"] == "not started: GET /health is failing: CAN driver not open"
+    assert client.get("/calibrations").json() == runs and not rt.running()
+    # bad input is still told first (422), then the token (401)
+    bad = client.post("/calibrations", json={"install": "sometimes"}, headers=AUTH)
+    assert bad.status_code == 422
+    assert client.post("/calibrations", json={}).status_code == 401
+
+
+def test_node_liveness_is_unknown_while_no_heartbeat_is_watched(tmp_path: Path) -> None:
+    """After a run on the in-process simulator the console showed "Alive yes" beside
+    "CAN bus: inactive": between runs simulated time stands still, and no heartbeat is
+    watched.  Its liveness is now unknown (null) there; the rest of a node stays."""
+    from services.http.console.router import _LiveCursor, live_snapshot
+    from tests.service_rig import sim_service
+
+    with sim_service(tmp_path) as sim:
+        rt = sim.rt
+        assert rt.simulator is not None and not rt.running()
+        snap = live_snapshot(rt, _LiveCursor())
+        nodes = snap["nodes"]
+        assert [n["module"] for n in nodes] == [1, 2, 3, 4]
+        assert all(n["alive"] is None for n in nodes), nodes
+        assert all(n["homed"] in (True, False) for n in nodes)
+        health = sim.client.get("/health").json()
+        assert health["simulated_time_still"] is True
