@@ -263,8 +263,9 @@ return out;
 # the layout (not inline text runs, not taken out of the flow) side by side under one
 # parent that overlap.  Form fields, SVG drawings and screen-reader-only text are left out.
 LAYOUT_JS = """
-const name = (e) => e.tagName.toLowerCase() + (e.id ? "#" + e.id : "") +
-  (e.className && typeof e.className === "string" ? "." + e.className.trim().replace(/\\s+/g, ".") : "") +
+const cls = (e) => (typeof e.className === "string" && e.className.trim()
+  ? "." + e.className.trim().replace(/\\s+/g, ".") : "");
+const name = (e) => e.tagName.toLowerCase() + (e.id ? "#" + e.id : "") + cls(e) +
   " '" + e.textContent.trim().replace(/\\s+/g, " ").slice(0, 40) + "'";
 const shown = (e) => e.getClientRects().length > 0 && getComputedStyle(e).visibility === "visible";
 const skip = (e) => e.closest("svg, .sr-only, input, select, textarea, dialog:not([open])");
@@ -285,7 +286,9 @@ for (const e of document.querySelectorAll("body *")) {
       const a = boxes[i], b = boxes[j];
       const w = Math.min(a.right, b.right) - Math.max(a.left, b.left);
       const h = Math.min(a.bottom, b.bottom) - Math.max(a.top, b.top);
-      if (w > 1 && h > 1) overlaps.push(`${name(kids[i])} and ${name(kids[j])}: ${w.toFixed(0)} x ${h.toFixed(0)} px`);
+      if (w > 1 && h > 1) {
+        overlaps.push(`${name(kids[i])} and ${name(kids[j])}: ${w.toFixed(0)}x${h.toFixed(0)} px`);
+      }
     }
   }
 }
