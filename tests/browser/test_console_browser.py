@@ -20,6 +20,7 @@ required (``SWPC_BROWSER_REQUIRED=1``, as ``.ci/run`` sets, or ``CI`` set): a fa
 from __future__ import annotations
 
 import base64
+import io
 import json
 import os
 import shutil
@@ -33,6 +34,7 @@ from typing import Any
 
 import httpx
 import pytest
+from PIL import Image
 
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.paper_robot import PAPER_NOMINAL
@@ -165,7 +167,9 @@ def shot(d: WebDriver, name: str) -> Path:
         "Page.captureScreenshot", {"format": "png", "captureBeyondViewport": True, "clip": clip}
     )
     path = SHOTS / f"{name}.png"
-    path.write_bytes(base64.b64decode(png["data"]))
+    # 256 colours: a third of the size, the page's flat colours unchanged to the eye
+    image = Image.open(io.BytesIO(base64.b64decode(png["data"]))).convert("RGB")
+    image.quantize(256, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
     return path
 
 
@@ -391,6 +395,11 @@ def test_live_view_advances_and_abort_ends_aborted(
     )
     assert text(d, "run-module").startswith("1 of 4")
     assert text(d, "run-angle").startswith("1 of 2: 45.0")
+    # one run at a time: Start is off while it goes; robot time elapsed, and the remaining
+    # time is estimated once a spin has ended
+    assert d.find_element(By.ID, "start").get_attribute("disabled") is not None
+    assert text(d, "run-elapsed").endswith("s (robot time)")
+    assert text(d, "run-remaining") == "estimated once a spin has ended"
     # the top-down view draws the robot and the trajectory so far
     wait_for("a trajectory", lambda: d.find_elements(By.CSS_SELECTOR, "#live-view polyline"))
     assert len(d.find_elements(By.CSS_SELECTOR, "#live-view polygon")) == 1  # the outline
@@ -410,6 +419,8 @@ def test_live_view_advances_and_abort_ends_aborted(
     state["abort_s"] = time.monotonic() - t
     assert "aborted by the operator" in text(d, "run-reason")
     wait_for("the abort bar gone", lambda: not d.find_element(By.ID, "abort-bar").is_displayed())
+    assert d.find_element(By.ID, "start").get_attribute("disabled") is None
+    assert text(d, "run-remaining") == "–"
     assert httpx.get(f"{service['url']}/calibrations/{run_id}").json()["state"] == "ABORTED"
     shot(d, "04-aborted")
 
@@ -430,6 +441,10 @@ def test_a_run_to_done_through_every_module(service: dict[str, Any], browser: We
         m = text(d, "run-module").split(" (")[0]
         if m and (not modules_seen or modules_seen[-1] != m):
             modules_seen.append(m)
+        if s == "SPIN" and "remaining" not in state and m.startswith("2"):
+            left = text(d, "run-remaining")
+            assert left.startswith("about "), left
+            state["remaining"] = left
         if s == "SPIN" and "spin" not in state and m.startswith("3"):
             wait_for(
                 "spins drawn",
@@ -443,6 +458,7 @@ def test_a_run_to_done_through_every_module(service: dict[str, Any], browser: We
         assert time.monotonic() - t0 < 240, f"run {run_id} stuck in {s}"
         time.sleep(0.05)
     state["done_s"] = time.monotonic() - t0
+    assert state["remaining"], "no estimate of the remaining time seen in module 2"
     assert s == "DONE", text(d, "run-reason")
     assert [x for x in modules_seen if x[0] != "–"] == ["1 of 4", "2 of 4", "3 of 4", "4 of 4"]
     # every state change was pushed to the page, in the protocol's order
@@ -476,7 +492,11 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     assert cells[0] == "1 x_s (mm)" and cells[1] == "215.000" and cells[4] == "215.000"
     assert float(cells[5]) == pytest.approx(float(cells[2]) - 215.0, abs=2e-3)
     assert cells[6] == "yes" and cells[7] == "yes"  # significant (truth: Table 4), within
+    changed = cells[5]
     assert "not installed" in text(d, "res-summary")
+    assert "compared with the file in force, kinematics.yaml (not from a run)" in text(
+        d, "res-summary"
+    )
     wait_for("the module panels", lambda: len(css(d, "#res-modules svg")) == 4)
     wait_for("the spins", lambda: len(css(d, "#res-world polyline")) == 8)
     files = [e.text for e in d.find_elements(By.CSS_SELECTOR, "#res-files a")]
@@ -496,7 +516,12 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     assert d.find_element(By.ID, "res-install").get_attribute("disabled") is not None
     row = d.find_element(By.CSS_SELECTOR, '#res-rows tr[data-param="1.x_s"]')
     cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
-    assert cells[4] == cells[2] and cells[5] in ("0.000", "+0.000") and cells[6] == "no"
+    # still compared with the file its install replaced (it compared with itself: 0.000)
+    assert cells[4] == "215.000" and cells[5] == changed and cells[6] == "yes"
+    assert "compared with the file its install replaced, kept as kinematics." in text(
+        d, "res-summary"
+    )
+    assert text(d, "res-ref-head") == "Replaced"
     # the kinematic files: the run's in force, the nominal design kept as a backup
     go(d, "files")
     wait_for("the file in force", lambda: run_id in text(d, "kin-in-force"))
@@ -529,6 +554,10 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     assert "ABORTED" in aborted and "aborted by the operator" in aborted
     assert "DONE" in by_id[state["done_run"]]
     assert not css(d, "#history-rows .in-force")  # rolled back: the nominal file is in force
+    # the changes of the file in force: the install, then the roll-back (newest first)
+    changes = css(d, "#change-rows tr[data-action]")
+    assert [r.get_attribute("data-action") for r in changes] == ["rollback", "install"]
+    assert state["done_run"] in changes[1].text and "none in force" not in changes[1].text
     check_view(d, "history")
     shot(d, "10-history")
     # every file of the finished run downloads from the service
