@@ -168,13 +168,15 @@ def test_install_and_roll_back_with_dated_backups(svc: dict[str, Any]) -> None:
     nominal_bytes = path.read_bytes()
     files = client.get("/kinematics/files").json()
     assert files["in_force"]["run"] is None and files["backups"] == []
-    # the comparison with the file in force (the nominal design): one verdict per parameter
+    # never installed: against the file in force (the nominal design), what an install
+    # would replace; one verdict per parameter
     cmp = client.get(f"/calibrations/{run.id}/comparison").json()
     assert cmp["reference"] == "file in force" and not cmp["is_in_force"]
+    assert cmp["replaced"] is None and cmp["reference_why"] is None
     assert not cmp["installed"] and len(cmp["rows"]) == 15
     rows = {(r["module"], r["param"]): r for r in cmp["rows"]}
     x = rows[(1, "x_s")]
-    assert x["unit"] == "mm" and x["in_force"] == pytest.approx(215.0)
+    assert x["unit"] == "mm" and x["reference_value"] == pytest.approx(215.0)
     assert x["change"] == pytest.approx(x["calibrated"] - 215.0)
     assert x["calibrated"] == pytest.approx(TRUTH.module(1).x_s * 1e3, abs=0.05)
     assert x["significant"] is True and x["within_tolerance"] is True  # 1.3 mm, sd ~0.01
@@ -187,9 +189,15 @@ def test_install_and_roll_back_with_dated_backups(svc: dict[str, Any]) -> None:
     assert r.json()["in_force"]["run"] == run.id
     assert (path.parent / backup).read_bytes() == nominal_bytes
     assert load_kinematics(path).extra["provenance"]["run"] == run.id
-    cmp = client.get(f"/calibrations/{run.id}/comparison").json()
-    assert cmp["is_in_force"] and all(
-        r["change"] == 0.0 and r["significant"] is False for r in cmp["rows"]
+    # installed: still against the file it replaced (it compared with itself: all 0)
+    after = client.get(f"/calibrations/{run.id}/comparison").json()
+    assert after["is_in_force"] and after["reference"] == "replaced file"
+    assert after["replaced"]["replaced"] == backup and after["replaced"]["action"] == "install"
+    assert after["rows"] == cmp["rows"]
+    changes = client.get("/kinematics/changes").json()
+    c = changes[0]
+    assert (c["action"], c["run"], c["replaced"], c["replaced_run"]) == (
+        "install", run.id, backup, None
     )
     # roll back to the nominal design: the run's file kept as a backup in turn
     assert client.post("/kinematics/rollback", json={"backup": backup}).status_code == 401
@@ -201,6 +209,12 @@ def test_install_and_roll_back_with_dated_backups(svc: dict[str, Any]) -> None:
     assert path.read_bytes() == nominal_bytes
     files = client.get("/kinematics/files").json()
     assert [b["run"] for b in files["backups"]] == [run.id, None]  # newest first
+    # the roll-back is a change of its own, newest first; the run is still compared with
+    # the file its install replaced
+    rolled = client.get("/kinematics/changes").json()[0]
+    assert (rolled["action"], rolled["run"], rolled["file"]) == ("rollback", None, backup)
+    assert rolled["replaced_run"] == run.id and rolled["replaced"] == files["backups"][0]["name"]
+    assert client.get(f"/calibrations/{run.id}/comparison").json()["rows"] == cmp["rows"]
     assert files["backups"][0]["backup_time"].endswith("Z")
     # a corrupt backup installs nothing
     bad = path.with_name("kinematics.20200101T000000000000Z.yaml")
@@ -538,3 +552,110 @@ def test_a_last_event_id_too_old_or_unknown_starts_over_with_a_snapshot(
             # hello and the run's state now, as for a new client
             assert [e for _, e, _ in again] == ["hello", "run", "live"], (last_id, again)
             assert again[1][2]["state"] == "DONE"
+
+def test_a_runs_elapsed_and_remaining_robot_time(svc: dict[str, Any]) -> None:
+    """Every status pushed carries the robot time since the start and the estimate of
+    what the plan's steps left take: unknown until a spin has ended (how long a sweep
+    takes is the robot's), then within 1 s of what the run really took (30 s)."""
+    pushed = [d for e, d in svc["events"] if e == "run" and d["started"] is not None]
+    elapsed = [d["elapsed_s"] for d in pushed]
+    assert elapsed == sorted(elapsed) and elapsed[0] is not None
+    total = pushed[-1]["elapsed_s"]
+    assert pushed[-1]["state"] == "DONE" and 25 < total < 40, total
+    assert pushed[-1]["remaining_s"] is None
+    first_stop = next(i for i, d in enumerate(pushed) if d["state"] == "STOP")
+    assert all(d["remaining_s"] is None for d in pushed[:first_stop])
+    last_release = max(i for i, d in enumerate(pushed) if d["state"] == "RELEASE")
+    planned = pushed[first_stop : last_release + 1]
+    assert len(planned) == 23
+    for d in planned:
+        assert d["remaining_s"] >= 0 and abs(d["elapsed_s"] + d["remaining_s"] - total) < 1.0, (
+            d["state"], d["elapsed_s"], d["remaining_s"], total,
+        )  # fmt: skip
+    assert planned[0]["remaining_s"] > 20 and planned[-1]["remaining_s"] == 0.0
+    # past the plan (solving, writing): not estimated
+    assert all(d["remaining_s"] is None for d in pushed[last_release + 1 :])
+
+
+def test_no_start_while_health_fails_and_the_reason_is_said(svc: dict[str, Any]) -> None:
+    """``POST /calibrations`` was accepted while ``/health`` failed; the run then failed at
+    CONNECT.  Now 409 with the health's reason, and nothing is started."""
+    client, rt = svc["client"], svc["rt"]
+    health = client.get("/health")
+    assert health.status_code == 503 and "CAN driver not open" in health.json()["problems"]
+    runs = client.get("/calibrations").json()
+    r = client.post("/calibrations", json={}, headers=AUTH)
+    assert r.status_code == 409, r.text
+    assert r.json()["detail"] == "not started: GET /health is failing: CAN driver not open"
+    assert client.get("/calibrations").json() == runs and not rt.running()
+    # bad input is still told first (422), then the token (401)
+    bad = client.post("/calibrations", json={"install": "sometimes"}, headers=AUTH)
+    assert bad.status_code == 422
+    assert client.post("/calibrations", json={}).status_code == 401
+
+
+def test_node_liveness_is_unknown_while_no_heartbeat_is_watched(tmp_path: Path) -> None:
+    """After a run on the in-process simulator the console showed "Alive yes" beside
+    "CAN bus: inactive": between runs simulated time stands still, and no heartbeat is
+    watched.  Its liveness is now unknown (null) there; the rest of a node stays."""
+    from services.http.console.router import _LiveCursor, live_snapshot
+    from tests.service_rig import sim_service
+
+    with sim_service(tmp_path) as sim:
+        rt = sim.rt
+        assert rt.simulator is not None and not rt.running()
+        snap = live_snapshot(rt, _LiveCursor())
+        nodes = snap["nodes"]
+        assert [n["module"] for n in nodes] == [1, 2, 3, 4]
+        assert all(n["alive"] is None for n in nodes), nodes
+        assert all(n["homed"] in (True, False) for n in nodes)
+        health = sim.client.get("/health").json()
+        assert health["simulated_time_still"] is True
+
+
+def installed_run(data: Path, in_force: bool) -> tuple[Runtime, TestClient, CalibrationRun]:
+    """A run of the fake robot with the default install, to DONE, installed; ``in_force``:
+    the nominal design's file is in force before it."""
+    rt = bare_runtime(data)
+    if in_force:
+        save_kinematics(rt.settings.kinematics_file, NOMINAL, created="2026-01-01T00:00:00Z")
+    client = TestClient(create_app(rt.settings, runtime_factory=lambda _: rt))
+    run = new_run(rt, install="if-within-tolerance")
+    run.start()
+    run.join(30)
+    assert run.status.state == "DONE" and run.status.installed, run.status.errors
+    return rt, client, run
+
+
+def test_a_run_that_installs_itself_is_compared_with_the_file_it_replaced(
+    tmp_path: Path,
+) -> None:
+    """After the default install (if within tolerance) the result compared the run with
+    itself: every change 0.000, never significant, although beta moved 0.6-1.5 deg.  Now
+    with the file in force before its install, or, none, nominal (said so); the install
+    is in the changes' history."""
+    truth = math.degrees(TRUTH.module(2).beta)
+    assert abs(truth) > 0.5
+    for in_force in (True, False):
+        rt, client, run = installed_run(tmp_path / str(in_force), in_force)
+        with client:
+            cmp = client.get(f"/calibrations/{run.id}/comparison").json()
+            changes = client.get("/kinematics/changes").json()
+        assert cmp["is_in_force"] and cmp["replaced"]["action"] == "run"
+        rows = {(r["module"], r["param"]): r for r in cmp["rows"]}
+        beta, x = rows[(2, "beta")], rows[(1, "x_s")]
+        assert beta["change"] == pytest.approx(beta["calibrated"] - beta["nominal"])
+        assert beta["change"] == pytest.approx(truth, abs=0.05) and beta["significant"]
+        assert x["change"] == pytest.approx(x["calibrated"] - 215.0) and x["significant"]
+        assert len(changes) == 1 and changes[0]["run"] == run.id
+        assert changes[0]["file"] == f"runs/{run.id}/kinematics.yaml"
+        if in_force:
+            assert cmp["reference"] == "replaced file" and cmp["reference_why"] is None
+            backup = cmp["replaced"]["replaced"]
+            assert backup.startswith("kinematics.") and backup == changes[0]["replaced"]
+            assert (rt.settings.kinematics_file.parent / backup).is_file()
+            assert beta["reference_value"] == 0.0 and x["reference_value"] == 215.0
+        else:
+            assert cmp["reference"] == "nominal" and cmp["replaced"]["replaced"] is None
+            assert cmp["reference_why"] == "no file was in force when it was installed"
+            assert beta["reference_value"] is None

@@ -3,7 +3,9 @@
 * ``POST /calibrations`` (token): start a run (202 with its status and ``Location``).
   Overrides may only tighten the robot config's limits and tolerances, and everything
   that can be checked before motion is: 422 otherwise, before any CAN frame; 409 while a
-  run goes, 507 without room on disk, 503 when the run store cannot be written.
+  run goes, or while ``GET /health`` fails on the robot or its sensors (the run would
+  fail at CONNECT or PRECHECK: the detail names why), 507 without room on disk, 503 when
+  the run store cannot be written.
 * ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
 * ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
 * ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
@@ -27,6 +29,7 @@ from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
 from services.runs.state import RunStatus
+from services.runtime.health import start_problems
 from services.runtime.runtime import DiskSpaceError, NoResultError, RunConflictError, StoreError
 from swpc_hw.errors import DatasetError
 from swpc_hw.references import Reference
@@ -102,7 +105,7 @@ def run_config(rt: Rt, body: StartRequest, metrology: str) -> RobotConfig:
     responses={
         **GUARDED,
         **problems(
-            409,
+            _409="a run goes, or GET /health fails on the robot or its sensors (named)",
             _503="the run store cannot be written",
             _507="no room on disk for a run",
         ),
@@ -113,6 +116,9 @@ def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
     metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
     config = run_config(rt, body, metrology)
     refs = start_references(config, metrology, body.references)
+    failing = [] if rt.running() else start_problems(rt)
+    if failing:
+        raise HTTPException(409, "not started: GET /health is failing: " + "; ".join(failing))
     try:
         run = rt.start_run(config, body.install, metrology, refs)
     except RunConflictError as exc:

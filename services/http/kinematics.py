@@ -7,8 +7,14 @@
   newest first, each with the run it came from (its ``provenance.run``).
 * ``POST /calibrations/{id}/install``: installs a finished run's own result file.
 * ``POST /kinematics/rollback``: installs one of the backups again.
-* ``GET /calibrations/{id}/comparison``: a run's result against the file in force, one
-  verdict per parameter.
+* ``GET /kinematics/changes``: every change of the file in force, newest first: a run's
+  install at its end, an install of a run's result, a roll-back, each with the backup
+  kept of the file it replaced (the run store keeps them,
+  :meth:`services.store.runs.RunStore.add_change`).
+* ``GET /calibrations/{id}/comparison``: a run's result against its reference, one
+  verdict per parameter: once installed, the file its install replaced (the last
+  install of it, at the run's end or later; none in force: nominal); never installed,
+  the file in force (what an install would replace; none: nominal).
 
 Both writes need the bearer token, are refused while a calibration runs (409), check the
 file they install (a corrupt one is 422, shaped as FastAPI's own, and installs nothing)
@@ -29,20 +35,28 @@ import logging
 import math
 import os
 import re
+import sqlite3
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+import yaml
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import Tolerances
 from services.http.deps import AUTH, GUARDED, FiniteJSONResponse, Problem, Rt, done_result, problems
-from services.runs.install import BACKUP_STAMP, backup_kinematics, backups
+from services.runs.install import BACKUP_STAMP, backup_kinematics, backups, read_replaced
+from services.runs.state import now_iso
 from services.runtime.runtime import Runtime
 from services.store.logs import event
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.kinematic_file import KinematicFile, atomic_write_text, load_kinematics
+from swpc_hw.kinematic_file import (
+    KinematicFile,
+    atomic_write_text,
+    load_kinematics,
+    parse_kinematics,
+)
 from swpc_hw.model import PARAM_NAMES
 
 log = logging.getLogger("swpc.service")
@@ -108,8 +122,10 @@ class ComparisonRow(BaseModel):
     nominal: float
     calibrated: float
     stddev: float | None
-    in_force: float | None = Field(description="the file in force's value (None: no file)")
-    change: float = Field(description="calibrated - reference (the file in force, else nominal)")
+    reference_value: float | None = Field(
+        description="the reference file's value (None: the reference is nominal)"
+    )
+    change: float = Field(description="calibrated - the reference's value (else nominal)")
     significant: bool | None = Field(
         description=f"|change| > {SIGNIFICANCE_K:g} std devs of the change (None: unknown)"
     )
@@ -117,9 +133,36 @@ class ComparisonRow(BaseModel):
     within_tolerance: bool | None
 
 
+class KinematicChange(BaseModel):
+    """One change of the file in force (``GET /kinematics/changes``)."""
+
+    time: str = Field(description="when (UTC)")
+    action: Literal["run", "install", "rollback"] = Field(
+        description="run: a run installed its result at its end; install: a run's result "
+        "installed later; rollback: a backup installed again"
+    )
+    run: str | None = Field(description="the run whose result was installed (a roll-back: "
+                            "the run the restored file came from, if any)")
+    file: str = Field(description="the file installed: a run's result, or a backup")
+    replaced: str | None = Field(
+        description="the backup kept of the file it replaced (None: no file was in force)"
+    )
+    replaced_run: str | None = Field(description="the run the replaced file came from")
+
+
 class Comparison(BaseModel):
     run: str
-    reference: str = Field(description="'file in force' or 'nominal' (no file in force)")
+    reference: Literal["replaced file", "file in force", "nominal"] = Field(
+        description="'replaced file': the file the run's last install replaced; 'file in "
+        "force': never installed, the file an install would replace; 'nominal': neither "
+        "(see reference_why)"
+    )
+    reference_why: str | None = Field(
+        None, description="why the reference is nominal: no file was, or is, in force"
+    )
+    replaced: KinematicChange | None = Field(
+        None, description="the run's last install (its time, the backup of the file replaced)"
+    )
     in_force: FileInfo | None
     is_in_force: bool = Field(description="the file in force is this run's result")
     significance_k: float
@@ -223,15 +266,16 @@ def _write_failure(exc: Exception) -> HTTPException:
 
 
 def compare(
-    run_id: str, doc: dict[str, Any], in_force: KinematicFile | None, tol: Tolerances
+    run_id: str, doc: dict[str, Any], reference: KinematicFile | None, tol: Tolerances
 ) -> list[ComparisonRow]:
-    """One row per module and parameter (display units, :data:`UNITS`)."""
+    """One row per module and parameter (display units, :data:`UNITS`), against the
+    ``reference`` file (None: nominal)."""
     rows = []
     for m in doc["modules"]:
         ref = None
-        if in_force is not None:
+        if reference is not None:
             try:
-                ref = in_force.params.module(int(m["id"]))
+                ref = reference.params.module(int(m["id"]))
             except (KeyError, ValueError):
                 ref = None
         for p in PARAM_NAMES:
@@ -257,7 +301,7 @@ def compare(
                     nominal=float(m["nominal"][p]) * f,
                     calibrated=float(m[p]) * f,
                     stddev=None if sd is None else sd * f,
-                    in_force=None if ref_v is None else ref_v * f,
+                    reference_value=None if ref_v is None else ref_v * f,
                     change=change * f,
                     significant=significant,
                     tolerance=t * f,
@@ -293,12 +337,12 @@ def install_checked(rt: Runtime, source: Path, request: Request, **what: Any) ->
     action = "rollback" if "restored" in what else "install"
     client = request.client.host if request.client is not None else None
     fields: dict[str, Any] = {"action": action, **what, "client": client}
+    path = rt.settings.kinematics_file
     with rt.lock:  # the runtime's: no run starts during an install
         if rt.running():
             why = "a calibration is running: the file is not changed"
             event(log, logging.WARNING, "kinematics.install_refused", **fields, reason=why)
             raise HTTPException(409, why)
-        path = rt.settings.kinematics_file
         try:
             text = checked_text(source)
         except KinematicFileError as exc:
@@ -307,6 +351,8 @@ def install_checked(rt: Runtime, source: Path, request: Request, **what: Any) ->
             raise RequestValidationError(
                 [{"loc": ["body"], "msg": f"not installed: {exc}", "type": "value_error"}]
             ) from exc
+        old = describe(path) if present(path) else None
+        old_text = read_replaced(path) if old is not None else None
         try:
             backup = install_text(path, text, rt.settings.kinematics_backups)
         except (OSError, KinematicFileError) as exc:
@@ -322,6 +368,18 @@ def install_checked(rt: Runtime, source: Path, request: Request, **what: Any) ->
             sha256=info.sha256, source_run=info.run,
             backup=None if backup is None else backup.name, client=client,
         )  # fmt: skip
+        change = {
+            "time": now_iso(),
+            "action": action,
+            "run": info.run,
+            "file": source.name if action == "rollback" else f"runs/{what['run']}/{source.name}",
+            "replaced": None if backup is None else backup.name,
+            "replaced_run": None if old is None else old.run,
+        }
+        try:
+            rt.store.add_change(change, old_text)
+        except sqlite3.Error as exc:  # installed all the same: the history misses it
+            event(log, logging.ERROR, "kinematics.change_unrecorded", **fields, error=str(exc))
         return InstallResult(in_force=info, backup=None if backup is None else backup.name)
 
 
@@ -356,6 +414,12 @@ def kinematics_in_force(rt: Rt) -> Any:
 @router.get("/kinematics/files", response_model=KinematicFiles)
 def list_files(rt: Rt) -> KinematicFiles:
     return files(rt)
+
+
+@router.get("/kinematics/changes", response_model=list[KinematicChange])
+def list_changes(rt: Rt) -> list[dict[str, Any]]:
+    """Every change of the file in force, newest first (module docstring)."""
+    return rt.store.changes()
 
 
 @router.post(
@@ -400,13 +464,42 @@ def comparison(run_id: str, rt: Rt) -> Comparison:
     info = describe(path) if present(path) else None
     in_force = load_kinematics(path) if info is not None and info.valid else None
     tol = Tolerances.model_validate(doc.get("tolerances") or rt.config.tolerances.model_dump())
+    got = rt.store.replaced_by(run_id)
+    why = None
+    replaced = None
+    if got is not None:  # installed: against the file its last install replaced
+        replaced, text = KinematicChange(**got[0]), got[1]
+        ref = None if text is None else _parse(text, replaced.replaced or "replaced file")
+        reference = "replaced file" if ref is not None else "nominal"
+        if text is None:
+            why = "no file was in force when it was installed"
+        elif ref is None:
+            why = f"the file it replaced ({replaced.replaced}) does not load"
+    elif bool(doc.get("installed")) or (info is not None and info.run == run_id):
+        ref, reference = None, "nominal"  # installed before installs were recorded
+        why = "the file its install replaced was not recorded"
+    else:  # never installed: against what an install would replace
+        ref = in_force
+        reference = "file in force" if ref is not None else "nominal"
+        if ref is None:
+            why = "no file is in force" if info is None else "the file in force does not load"
     return Comparison(
         run=run_id,
-        reference="file in force" if in_force is not None else "nominal",
+        reference=reference,
+        reference_why=why,
+        replaced=replaced,
         in_force=info,
         is_in_force=info is not None and info.run == run_id,
         significance_k=SIGNIFICANCE_K,
         within_tolerance=bool(doc.get("within_tolerance")),
         installed=bool(doc.get("installed")),
-        rows=compare(run_id, doc, in_force, tol),
+        rows=compare(run_id, doc, ref, tol),
     )
+
+
+def _parse(text: str, name: str) -> KinematicFile | None:
+    """A kinematic file's text, loaded; None when it does not load."""
+    try:
+        return parse_kinematics(yaml.safe_load(text), name)
+    except (KinematicFileError, yaml.YAMLError):
+        return None

@@ -25,7 +25,7 @@ from swpc_hw.calibration.report import result_rows
 from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import CalibrationError, KinematicFileError
-from swpc_hw.kinematic_file import save_kinematics
+from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import PARAM_NAMES
 
 
@@ -105,6 +105,27 @@ def backup_kinematics(path: Path, keep: int) -> Path | None:
         with contextlib.suppress(OSError):
             old.unlink()
     return backup
+
+
+def file_run(path: Path) -> str | None:
+    """The run the kinematic file at ``path`` came from (its ``provenance.run``); None when
+    it names none or does not load."""
+    try:
+        prov = load_kinematics(path).extra.get("provenance")
+    except (KinematicFileError, OSError):
+        return None
+    return str(prov["run"]) if isinstance(prov, dict) and prov.get("run") else None
+
+
+def read_replaced(path: Path | None) -> str | None:
+    """The text of the file an install replaced, from ``path`` (its backup, or the file
+    in force before the install); None when there was none or it cannot be read."""
+    if path is None:
+        return None
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def install_kinematics(

@@ -86,6 +86,12 @@ class RunMachine:
         self._lock = threading.Lock()
         self._t0 = 0.0
         self._stop_reason: str | None = None
+        self.plan: list[State] = []
+        """The protocol's planned steps, in order (the subclass's): what
+        :meth:`remaining` estimates."""
+        self._at = -1  # the plan's step the run is in (-1: before the plan)
+        self._entered = 0.0  # when it entered its state (robot time)
+        self._spent: dict[State, list[float]] = {}  # robot time each state took
 
     # ------------------------------------------------------------------ control
     @property
@@ -147,9 +153,19 @@ class RunMachine:
         cur = self.status.state
         if state not in TERMINAL and state not in TRANSITIONS.get(cur, frozenset()):
             raise RuntimeError(f"illegal transition {cur} -> {state}")
+        now = self.clock.now()
         with self._lock:
+            self._spent.setdefault(cur, []).append(now - self._entered)
+            self._entered = now
+            later = range(self._at + 1, len(self.plan))
+            nxt = next((i for i in later if self.plan[i] is state), None)
+            if nxt is not None:
+                self._at = nxt
+            elif self._at >= 0:
+                self._at = len(self.plan)  # past the plan
             self.status.state = state
             self.status.step = step
+            self._times(now)
         self.event(
             logging.INFO, "run.state", state=str(state), step=step, module=self.status.module
         )
@@ -204,7 +220,44 @@ class RunMachine:
             sweep_deg=math.degrees(sweep),
         )
 
+    def planned(self, state: State) -> float | None:
+        """The robot time a step of the plan should take before one was measured (s);
+        None: unknown (the subclass's)."""
+        return 0.0
+
+    def remaining(self, now: float) -> float | None:
+        """Robot time the plan's steps left should take (s): each as long as the mean of
+        the same state's so far in this run, else :meth:`planned`; the current one less
+        the time already in it.  None when one is unknown or the run is past its plan."""
+        if self._at >= len(self.plan):
+            return None
+
+        def took(state: State) -> float | None:
+            done = self._spent.get(state)
+            return sum(done) / len(done) if done else self.planned(state)
+
+        total = 0.0
+        for i in range(max(self._at, 0), len(self.plan)):
+            t = took(self.plan[i])
+            if t is None:
+                return None
+            total += max(0.0, t - (now - self._entered)) if i == self._at else t
+        return total
+
+    def _times(self, now: float) -> None:
+        """The status's elapsed and remaining robot time (under the run's lock)."""
+        if self.status.started is None:
+            return
+        if self.status.state in TERMINAL:
+            self.status.remaining_s = None
+            return
+        self.status.elapsed_s = round(now - self._t0, 2)
+        left = self.remaining(now)
+        self.status.remaining_s = None if left is None else round(left, 1)
+
     def check(self, motion: bool, deadline: float | None) -> None:
+        with self._lock:
+            self._times(self.clock.now())
         if self._abort.is_set():
             if self._stop_reason is not None:
                 raise RunFailedError(self._stop_reason)
@@ -258,7 +311,7 @@ class RunMachine:
             self._run()
 
     def _run(self) -> None:
-        self._t0 = self.clock.now()  # before `started`: who sees that sees this
+        self._t0 = self._entered = self.clock.now()  # before `started`: who sees that sees this
         self.status.started = now_iso()
         self.event(logging.INFO, "run.start", **self._start_fields())
         try:
@@ -302,6 +355,8 @@ class RunMachine:
             if detail:
                 self.status.errors.append(detail.strip().splitlines()[-1])
             self.status.finished = now_iso()
+            self.status.elapsed_s = round(self.clock.now() - self._t0, 2)
+            self.status.remaining_s = None
             self.status.state = state
             self.status.step = "stopped"
         level = logging.WARNING if state is State.ABORTED else logging.ERROR

@@ -142,6 +142,25 @@ class CalibrationRun(RunMachine):
             log_after=log_after,
         )
         self.backup: Path | None = None
+        still = [State.STILL] if metrology.name == "imu" else []
+        first = [State.LOCK, State.ALIGN, State.FREE, *still, State.SPIN, State.STOP]
+        again = [State.RESTEER, *still, State.SPIN, State.STOP]
+        per_module = first + again * (len(config.protocol.angles_deg) - 1) + [State.RELEASE]
+        self.plan = per_module * len(self.modules)
+
+    def planned(self, state: State) -> float | None:
+        """A step's robot time from the protocol's settings before one was measured: the
+        align, stop, re-steer and rest times; a lock as long as a re-steer; a spin's
+        unknown until one has ended (how long a sweep takes is the robot's)."""
+        p = self.config.protocol
+        return {
+            State.LOCK: p.resteer_time,
+            State.ALIGN: p.align_time,
+            State.STOP: p.stop_time,
+            State.RESTEER: p.resteer_time,
+            State.STILL: p.rest_time,
+            State.SPIN: None,
+        }.get(state, 0.0)
 
     def _start_fields(self) -> dict[str, Any]:
         return {
@@ -261,6 +280,7 @@ class CalibrationRun(RunMachine):
         with self._lock:
             self.status.progress = 1.0
             self.status.finished = now_iso()
+            self.status.elapsed_s = round(self.clock.now() - self._t0, 2)
         self.journal.finish(
             {"state": "DONE", "installed": self.status.installed, "reason": ""}, self.result_doc
         )

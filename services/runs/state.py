@@ -118,6 +118,13 @@ class RunStatus(BaseModel):
     installed: bool | None = None
     drive_m: float | None = None
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
+    elapsed_s: float | None = None
+    """Robot time since the run started (s)."""
+    remaining_s: float | None = None
+    """Robot time the steps left of the protocol's plan should take (s), estimated
+    (:meth:`services.runs.machine.RunMachine.remaining`); None when it cannot be: before
+    the first spin has ended, past the plan (the operator's steps without motion
+    capture), after the run."""
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(mode="json")

@@ -67,20 +67,37 @@ def _age(age: float) -> float | None:
     return age if math.isfinite(age) else None
 
 
-def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
-    """``(status, document)`` (module docstring)."""
+def simulated_time_still(rt: Runtime) -> bool:
+    """The in-process simulator between runs: simulated time stands still (it flows only
+    while someone waits on it, docs/time.md), so no heartbeat, pose or gyro sample is
+    late, and none is watched: a node's liveness is unknown; the run's PRECHECK judges
+    them once time flows."""
+    return rt.simulator is not None and not rt.running()
+
+
+def start_problems(rt: Runtime) -> list[str]:
+    """Why a run started now would fail at CONNECT or PRECHECK: what ``GET /health``
+    calls failing about the robot and its sensors (the CAN driver, the nodes, the
+    sensors, zenoh), but a fault the driver stopped on (the next run's CONNECT clears it;
+    a cause that lasts, a node lost, is a problem of its own).  ``POST /calibrations``
+    refuses a run with these (409); the disk and the run store it judges itself (507,
+    503)."""
+    return _robot_health(rt, simulated_time_still(rt), past_fault=False)[0]
+
+
+def _robot_health(
+    rt: Runtime, still: bool, past_fault: bool = True
+) -> tuple[list[str], list[str], dict[str, Any], set[str], int | None]:
+    """``(failing, degraded, nodes, sensors judged, zenoh links)`` of the robot and its
+    sensors."""
     failing: list[str] = []
     degraded: list[str] = []
     d = rt.drives
     nodes: dict[str, Any] = {}
-    # the in-process simulator between runs: simulated time stands still (it flows only
-    # while someone waits on it, docs/time.md), so no heartbeat, pose or gyro sample is
-    # late; the run's PRECHECK judges them once time flows
-    still = rt.simulator is not None and not rt.running()
     if d is None or d.state in (Lifecycle.UNCONFIGURED, Lifecycle.FINALIZED):
         failing.append("CAN driver not open")
     else:
-        if d.fault_cause is not None:
+        if d.fault_cause is not None and past_fault:
             failing.append(f"CAN driver stopped on a fault: {d.fault_cause}")
         for m in d.modules():
             st = d.module_state(m)
@@ -129,6 +146,15 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
             "imu" in sensors and rt.gyro.is_stale()
         )
         (failing if stale and not still else degraded).append(problem)
+    return failing, degraded, nodes, sensors, links
+
+
+def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
+    """``(status, document)`` (module docstring)."""
+    still = simulated_time_still(rt)
+    failing, degraded, nodes, sensors, links = _robot_health(rt, still)
+    d = rt.drives
+    age, gyro_age = rt.mocap.age(), rt.gyro.age()
     if rt._unsaved:
         rt._save_unsaved()
     if rt.store_error is not None:

@@ -41,6 +41,7 @@ from services.config.robot import RobotConfig, load_robot_config
 from services.config.settings import ServiceSettings, SettingsError
 from services.config.timing import TimingBudget, robot_drives, timing_budget
 from services.runs.imu import ImuMetrology
+from services.runs.install import file_run, read_replaced
 from services.runs.metrology import Metrology
 from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
@@ -495,6 +496,8 @@ class Runtime:
             self.store.upsert(run.id, run.status.created, run.status.to_dict())
             if run.status.state is State.DONE and run.result_doc is not None:
                 self.store.set_result(run.id, run.result_doc)
+                if run.status.installed:
+                    self._record_install(run)
         except Exception as exc:
             self._unsaved.add(run.id)
             if self.store_error is None:
@@ -506,6 +509,22 @@ class Runtime:
         self._unsaved.discard(run.id)
         if run.finished:
             self._retire()
+
+    def _record_install(self, run: CalibrationRun) -> None:
+        """A run installed its result at its end: a change of the file in force, with
+        the file it replaced (its backup, made just before)."""
+        b = run.backup
+        self.store.add_change(
+            {
+                "time": run.status.finished or now_iso(),
+                "action": "run",
+                "run": run.id,
+                "file": f"runs/{run.id}/kinematics.yaml",
+                "replaced": None if b is None else b.name,
+                "replaced_run": None if b is None else file_run(b),
+            },
+            read_replaced(b),
+        )
 
     def _retire(self) -> None:
         """Keep in memory the current run and the :data:`RUNS_IN_MEMORY` newest finished

@@ -1,4 +1,6 @@
-"""Persistent run store (SQLite in the data dir).
+"""Persistent run store (SQLite in the data dir): the runs, and every change of the
+kinematic file in force (:meth:`RunStore.add_change`: a run's install at its end, an
+install of a run's result, a roll-back, each with the file it replaced).
 
 A restarted service lists past runs and their results; a run that was in progress when
 the service died is marked FAILED with the reason ``service restarted during the run`` and
@@ -9,6 +11,7 @@ before the service touches anything else.
 
 from __future__ import annotations
 
+import builtins
 import json
 import sqlite3
 import threading
@@ -29,7 +32,23 @@ CREATE TABLE IF NOT EXISTS runs (
     status TEXT NOT NULL,
     result TEXT
 );
+CREATE TABLE IF NOT EXISTS changes (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    time TEXT NOT NULL,
+    action TEXT NOT NULL,
+    run TEXT,
+    file TEXT NOT NULL,
+    replaced TEXT,
+    replaced_run TEXT,
+    replaced_text TEXT
+);
 """
+CHANGE_FIELDS = ("time", "action", "run", "file", "replaced", "replaced_run")
+"""A change of the file in force as listed: when (UTC), ``action`` (``run``: a run
+installed its result at its end; ``install``: a run's result installed later; ``rollback``:
+a backup installed again), the run whose result it installed (a roll-back: the run the
+restored file came from, if any), the file installed, the backup kept of the file it
+replaced (None: no file was in force) and the run that one came from."""
 
 
 class RunStoreError(SwpcError):
@@ -44,7 +63,7 @@ class RunStore:
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         try:
             self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute(_SCHEMA)
+            self._db.executescript(_SCHEMA)
             check = self._db.execute("PRAGMA quick_check").fetchone()
             if check is None or check[0] != "ok":
                 raise sqlite3.DatabaseError(f"quick_check: {check[0] if check else 'no answer'}")
@@ -105,6 +124,38 @@ class RunStore:
         with self._lock:
             rows = self._db.execute("SELECT status FROM runs ORDER BY created").fetchall()
         return [json.loads(r[0]) for r in rows]
+
+    def add_change(self, change: dict[str, Any], replaced_text: str | None) -> None:
+        """Record a change of the file in force (:data:`CHANGE_FIELDS`) with the text of
+        the file it replaced (None: none was in force), kept for
+        :meth:`replaced_by` even once its backup is pruned."""
+        with self._lock:
+            self._db.execute(
+                f"INSERT INTO changes ({', '.join(CHANGE_FIELDS)}, replaced_text) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (*(change.get(k) for k in CHANGE_FIELDS), replaced_text),
+            )
+
+    def changes(self) -> builtins.list[dict[str, Any]]:
+        """Every change of the file in force, newest first (:data:`CHANGE_FIELDS`)."""
+        with self._lock:
+            rows = self._db.execute(
+                f"SELECT {', '.join(CHANGE_FIELDS)} FROM changes ORDER BY seq DESC"
+            ).fetchall()
+        return [dict(zip(CHANGE_FIELDS, r, strict=True)) for r in rows]
+
+    def replaced_by(self, run_id: str) -> tuple[dict[str, Any], str | None] | None:
+        """The last install of ``run_id``'s result (at its end or later) and the text of
+        the file it replaced (None: none was in force); None if it was never installed."""
+        with self._lock:
+            row = self._db.execute(
+                f"SELECT {', '.join(CHANGE_FIELDS)}, replaced_text FROM changes "
+                "WHERE run = ? AND action IN ('run', 'install') ORDER BY seq DESC LIMIT 1",
+                (run_id,),
+            ).fetchone()
+        if row is None:
+            return None
+        return dict(zip(CHANGE_FIELDS, row[:-1], strict=True)), row[-1]
 
     def close(self) -> None:
         with self._lock:

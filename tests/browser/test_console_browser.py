@@ -20,6 +20,7 @@ required (``SWPC_BROWSER_REQUIRED=1``, as ``.ci/run`` sets, or ``CI`` set): a fa
 from __future__ import annotations
 
 import base64
+import io
 import json
 import os
 import shutil
@@ -33,6 +34,7 @@ from typing import Any
 
 import httpx
 import pytest
+from PIL import Image
 
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.paper_robot import PAPER_NOMINAL
@@ -165,7 +167,9 @@ def shot(d: WebDriver, name: str) -> Path:
         "Page.captureScreenshot", {"format": "png", "captureBeyondViewport": True, "clip": clip}
     )
     path = SHOTS / f"{name}.png"
-    path.write_bytes(base64.b64decode(png["data"]))
+    # 256 colours: a third of the size, the page's flat colours unchanged to the eye
+    image = Image.open(io.BytesIO(base64.b64decode(png["data"]))).convert("RGB")
+    image.quantize(256, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
     return path
 
 
@@ -257,21 +261,88 @@ return out;
 """
 
 
-def check_tablet_view(d: WebDriver, view: str) -> None:
-    """No sideways scrolling at the tablet's width; every text's contrast >= 4.5:1."""
-    width = d.execute_script("return [document.documentElement.scrollWidth, innerWidth]")
-    assert width[0] <= width[1], f"{view}: {width[0]} px wide in a {width[1]} px window"
-    cut = d.execute_script(
-        "return [...document.querySelectorAll('.table-wrap')].filter((e) => e.offsetParent"
-        " && e.scrollWidth > e.clientWidth).map((e) => e.firstElementChild.className)"
+# What is cut off or drawn over something else, at the window's size: every visible box
+# that clips what it holds (overflow other than visible, or text-overflow: ellipsis) and
+# holds more than it shows (scrollWidth over clientWidth), and every two visible boxes of
+# the layout (not inline text runs, not taken out of the flow) side by side under one
+# parent that overlap.  Form fields, SVG drawings and screen-reader-only text are left out.
+LAYOUT_JS = """
+const cls = (e) => (typeof e.className === "string" && e.className.trim()
+  ? "." + e.className.trim().replace(/\\s+/g, ".") : "");
+const name = (e) => e.tagName.toLowerCase() + (e.id ? "#" + e.id : "") + cls(e) +
+  " '" + e.textContent.trim().replace(/\\s+/g, " ").slice(0, 40) + "'";
+const shown = (e) => e.getClientRects().length > 0 && getComputedStyle(e).visibility === "visible";
+const skip = (e) => e.closest("svg, .sr-only, input, select, textarea, dialog:not([open])");
+const clipped = [], overlaps = [];
+for (const e of document.querySelectorAll("body *")) {
+  if (skip(e) || !shown(e)) continue;
+  const cs = getComputedStyle(e);
+  const clips = cs.overflowX !== "visible" || cs.textOverflow === "ellipsis";
+  if (clips && e.scrollWidth > e.clientWidth + 1) {
+    clipped.push(`${name(e)}: ${e.scrollWidth} px in ${e.clientWidth} px`);
+  }
+  const kids = [...e.children].filter((k) => !skip(k) && shown(k) &&
+    getComputedStyle(k).display !== "inline" &&
+    !["absolute", "fixed"].includes(getComputedStyle(k).position));
+  const boxes = kids.map((k) => k.getBoundingClientRect());
+  for (let i = 0; i < kids.length; i++) {
+    for (let j = i + 1; j < kids.length; j++) {
+      const a = boxes[i], b = boxes[j];
+      const w = Math.min(a.right, b.right) - Math.max(a.left, b.left);
+      const h = Math.min(a.bottom, b.bottom) - Math.max(a.top, b.top);
+      if (w > 1 && h > 1) {
+        overlaps.push(`${name(kids[i])} and ${name(kids[j])}: ${w.toFixed(0)}x${h.toFixed(0)} px`);
+      }
+    }
+  }
+}
+return [clipped, overlaps];
+"""
+
+WIDTHS = [TABLET, (1280, 900), (1920, 1080), (800, 1200)]
+"""The windows every view is checked in (CSS px): a tablet in portrait, two desktops, a
+narrow window."""
+
+
+def set_window(d: WebDriver, size: tuple[int, int]) -> None:
+    """The page's viewport at exactly ``size`` CSS px (device metrics, no window chrome)."""
+    d.execute_cdp_cmd(
+        "Emulation.setDeviceMetricsOverride",
+        {"width": size[0], "height": size[1], "deviceScaleFactor": 1, "mobile": False},
     )
-    assert not cut, f"{view}: tables scrolling sideways: {cut}"
-    found = d.execute_script(CONTRAST_JS)
-    assert found, view
-    worst = min(found)
-    state["contrast"] = min(state.get("contrast", (99.0, ""))[0], worst[0]), worst[1]
-    low = [f"{r:.2f} {what}" for r, what in found if r < 4.5]
-    assert not low, f"{view}: text under 4.5:1: {low}"
+    wait_for(f"a {size[0]} px window", lambda: d.execute_script("return innerWidth") == size[0])
+
+
+def layout_problems(d: WebDriver) -> list[str]:
+    """What is scrolled sideways, clipped or drawn over something else, at this size."""
+    width = d.execute_script("return [document.documentElement.scrollWidth, innerWidth]")
+    out = [] if width[0] <= width[1] else [f"page {width[0]} px wide in {width[1]} px"]
+    clipped, overlaps = d.execute_script(LAYOUT_JS)
+    return out + [f"clipped: {c}" for c in clipped] + [f"overlapping: {o}" for o in overlaps]
+
+
+def check_view(d: WebDriver, view: str, shots: str | None = None) -> None:
+    """In every window of :data:`WIDTHS`: nothing scrolls sideways, nothing is clipped
+    or overlaps (:data:`LAYOUT_JS`), every text's contrast is 4.5:1 at least; with
+    ``shots``, a screenshot ``<shots>-<width>`` at each desktop width (the tablet's is
+    the caller's).  The window is the tablet's again afterwards."""
+    found: dict[str, list[str]] = {}
+    try:
+        for size in WIDTHS:
+            set_window(d, size)
+            problems = layout_problems(d)
+            contrast = d.execute_script(CONTRAST_JS)
+            assert contrast, view
+            worst = min(contrast)
+            state["contrast"] = min(state.get("contrast", (99.0, ""))[0], worst[0]), worst[1]
+            problems += [f"contrast {r:.2f} under 4.5: {what}" for r, what in contrast if r < 4.5]
+            if problems:
+                found[f"{size[0]}x{size[1]}"] = problems
+            if shots and size != TABLET:
+                shot(d, f"{shots}-{size[0]}")
+    finally:
+        set_window(d, TABLET)
+    assert not found, f"{view}: " + json.dumps(found, indent=1)
 
 
 # --------------------------------------------------------------------------- tests
@@ -290,7 +361,7 @@ def test_page_loads_offline_and_the_token_is_asked_once(
     assert urls and all(u.startswith(service["url"]) for u in urls), urls
     assert d.find_element(By.ID, "f-angles").get_attribute("value") == "45, 165"
     assert not d.find_element(By.ID, "abort-bar").is_displayed()
-    check_tablet_view(d, "run, idle")
+    check_view(d, "run, idle")
     shot(d, "01-idle")
     # Start without a token asks for it; typed and Enter'd from the keyboard
     d.find_element(By.ID, "start").click()
@@ -324,10 +395,15 @@ def test_live_view_advances_and_abort_ends_aborted(
     )
     assert text(d, "run-module").startswith("1 of 4")
     assert text(d, "run-angle").startswith("1 of 2: 45.0")
+    # one run at a time: Start is off while it goes; robot time elapsed, and the remaining
+    # time is estimated once a spin has ended
+    assert d.find_element(By.ID, "start").get_attribute("disabled") is not None
+    assert text(d, "run-elapsed").endswith("s (robot time)")
+    assert text(d, "run-remaining") == "estimated once a spin has ended"
     # the top-down view draws the robot and the trajectory so far
     wait_for("a trajectory", lambda: d.find_elements(By.CSS_SELECTOR, "#live-view polyline"))
     assert len(d.find_elements(By.CSS_SELECTOR, "#live-view polygon")) == 1  # the outline
-    check_tablet_view(d, "run, live")
+    check_view(d, "run, live", shots="03-live-spin")
     shot(d, "03-live-spin")
     # Abort from the keyboard: from the first link of the page, Tab reaches it right after
     # the header's controls (the views' links and the token), then Enter
@@ -343,6 +419,8 @@ def test_live_view_advances_and_abort_ends_aborted(
     state["abort_s"] = time.monotonic() - t
     assert "aborted by the operator" in text(d, "run-reason")
     wait_for("the abort bar gone", lambda: not d.find_element(By.ID, "abort-bar").is_displayed())
+    assert d.find_element(By.ID, "start").get_attribute("disabled") is None
+    assert text(d, "run-remaining") == "–"
     assert httpx.get(f"{service['url']}/calibrations/{run_id}").json()["state"] == "ABORTED"
     shot(d, "04-aborted")
 
@@ -363,6 +441,10 @@ def test_a_run_to_done_through_every_module(service: dict[str, Any], browser: We
         m = text(d, "run-module").split(" (")[0]
         if m and (not modules_seen or modules_seen[-1] != m):
             modules_seen.append(m)
+        if s == "SPIN" and "remaining" not in state and m.startswith("2"):
+            left = text(d, "run-remaining")
+            assert left.startswith("about "), left
+            state["remaining"] = left
         if s == "SPIN" and "spin" not in state and m.startswith("3"):
             wait_for(
                 "spins drawn",
@@ -376,6 +458,7 @@ def test_a_run_to_done_through_every_module(service: dict[str, Any], browser: We
         assert time.monotonic() - t0 < 240, f"run {run_id} stuck in {s}"
         time.sleep(0.05)
     state["done_s"] = time.monotonic() - t0
+    assert state["remaining"], "no estimate of the remaining time seen in module 2"
     assert s == "DONE", text(d, "run-reason")
     assert [x for x in modules_seen if x[0] != "–"] == ["1 of 4", "2 of 4", "3 of 4", "4 of 4"]
     # every state change was pushed to the page, in the protocol's order
@@ -409,12 +492,16 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     assert cells[0] == "1 x_s (mm)" and cells[1] == "215.000" and cells[4] == "215.000"
     assert float(cells[5]) == pytest.approx(float(cells[2]) - 215.0, abs=2e-3)
     assert cells[6] == "yes" and cells[7] == "yes"  # significant (truth: Table 4), within
+    changed = cells[5]
     assert "not installed" in text(d, "res-summary")
+    assert "compared with the file in force, kinematics.yaml (not from a run)" in text(
+        d, "res-summary"
+    )
     wait_for("the module panels", lambda: len(css(d, "#res-modules svg")) == 4)
     wait_for("the spins", lambda: len(css(d, "#res-world polyline")) == 8)
     files = [e.text for e in d.find_elements(By.CSS_SELECTOR, "#res-files a")]
     assert {"run.mcap", "can.log", "kinematics.yaml", "dataset.zip"} <= set(files), files
-    check_tablet_view(d, "result")
+    check_view(d, "result", shots="06-result")
     shot(d, "06-result")
     # install, confirmed from the keyboard (Cancel has the focus first)
     d.find_element(By.ID, "res-install").click()
@@ -429,14 +516,19 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     assert d.find_element(By.ID, "res-install").get_attribute("disabled") is not None
     row = d.find_element(By.CSS_SELECTOR, '#res-rows tr[data-param="1.x_s"]')
     cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
-    assert cells[4] == cells[2] and cells[5] in ("0.000", "+0.000") and cells[6] == "no"
+    # still compared with the file its install replaced (it compared with itself: 0.000)
+    assert cells[4] == "215.000" and cells[5] == changed and cells[6] == "yes"
+    assert "compared with the file its install replaced, kept as kinematics." in text(
+        d, "res-summary"
+    )
+    assert text(d, "res-ref-head") == "Replaced"
     # the kinematic files: the run's in force, the nominal design kept as a backup
     go(d, "files")
     wait_for("the file in force", lambda: run_id in text(d, "kin-in-force"))
     rows = d.find_elements(By.CSS_SELECTOR, "#backup-rows tr[data-backup]")
     assert len(rows) == 1 and "–" in rows[0].text  # the nominal file: from no run
     nominal_backup = rows[0].get_attribute("data-backup")
-    check_tablet_view(d, "kinematic files")
+    check_view(d, "kinematic files")
     shot(d, "08-kinematic-files")
     rows[0].find_element(By.TAG_NAME, "button").click()
     wait_for("the confirmation", lambda: dialog_open(d, "confirm-dialog"))
@@ -462,7 +554,11 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     assert "ABORTED" in aborted and "aborted by the operator" in aborted
     assert "DONE" in by_id[state["done_run"]]
     assert not css(d, "#history-rows .in-force")  # rolled back: the nominal file is in force
-    check_tablet_view(d, "history")
+    # the changes of the file in force: the install, then the roll-back (newest first)
+    changes = css(d, "#change-rows tr[data-action]")
+    assert [r.get_attribute("data-action") for r in changes] == ["rollback", "install"]
+    assert state["done_run"] in changes[1].text and "none in force" not in changes[1].text
+    check_view(d, "history")
     shot(d, "10-history")
     # every file of the finished run downloads from the service
     for f in ("run.mcap", "can.log", "kinematics.yaml", "dataset.zip"):
@@ -481,7 +577,7 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     pose = d.find_element(By.CSS_SELECTOR, '#fox-rows tr[data-topic="/mocap/pose"]')
     assert "foxglove.PoseInFrame" in pose.text and pose.text.endswith("yes")
     assert summary["epoch_times"] and "robot-config" in text(d, "fox-extra")
-    check_tablet_view(d, "foxglove")
+    check_view(d, "foxglove")
     shot(d, "11-foxglove")
     assert severe_logs(d) == []
     metrics = {

@@ -47,6 +47,7 @@ from pydantic import BaseModel, Field
 from services.http.deps import Problem, Rt, done_result, problems
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL
+from services.runtime.health import simulated_time_still
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.dataset import load_dataset
@@ -224,9 +225,12 @@ class _LiveCursor:
 
 
 def _nodes(rt: Runtime) -> list[dict[str, Any]]:
+    """Each node's state; ``alive`` None (unknown) while no heartbeat is watched: the
+    in-process simulator between runs, whose time stands still."""
     d = rt.drives
     if d is None:
         return []
+    watched = not simulated_time_still(rt)
     out = []
     for m in d.modules():
         st = d.module_state(m)
@@ -235,7 +239,7 @@ def _nodes(rt: Runtime) -> list[dict[str, Any]]:
             {
                 "module": m,
                 "node": st.node,
-                "alive": st.alive,
+                "alive": st.alive if watched else None,
                 "errors": [int(e) for e in st.errors],
                 "homed": st.homed,
                 "steer_deg": _finite(math.degrees(th)),

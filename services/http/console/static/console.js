@@ -43,6 +43,8 @@ function svg(tag, attrs = {}) {
 const fmt = (x, d = 3) => (x === null || x === undefined || !isFinite(x) ? "–" : x.toFixed(d));
 const signed = (x, d) => (x > 0 ? "+" : "") + fmt(x, d);
 const wrapDeg = (a) => ((((a + 180) % 360) + 360) % 360) - 180;
+const duration = (s) => (s < 60 ? `${s.toFixed(0)} s` :
+  `${Math.floor(s / 60)} min ${String(Math.round(s % 60)).padStart(2, "0")} s`);
 const colorOf = (module) => COLORS[(module - 1 + COLORS.length) % COLORS.length];
 
 async function api(method, path, body) {
@@ -162,7 +164,7 @@ async function start(ev) {
     app.startAt = null;
     $("start-error").textContent = "Not started: " + e.message;
   } finally {
-    $("start").disabled = false;
+    $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
   }
 }
 async function abortRun() {
@@ -195,6 +197,7 @@ function onRun(st, pushed) {
   if (!app.current || app.current.id !== st.id) {
     app.trail = { run: st.id, chunks: [] };
     app.spins = [];
+    if (app.current) $("start-error").textContent = "";  // a new run: the last error is old
   }
   app.current = st;
   renderRun();
@@ -209,6 +212,7 @@ function renderRun() {
   const st = app.current;
   const active = st && !TERMINAL.has(st.state);
   $("abort-bar").hidden = !active;
+  $("start").disabled = !!active;  // one run at a time: the service refuses a second
   if (!st) return;
   $("abort-text").textContent = `Calibration ${st.id}: ${st.state}`;
   $("run-id").textContent = st.id;
@@ -221,6 +225,9 @@ function renderRun() {
   const target = app.hello ? Number($("f-sweep").value) || app.hello.protocol.sweep_deg : null;
   $("run-sweep").textContent = `${fmt(st.sweep_deg, 1)}°` + (st.state === "SPIN" && target ? ` of ${target}°` : "");
   $("run-segments").textContent = String(st.segments);
+  $("run-elapsed").textContent = st.elapsed_s === null ? "–" : `${duration(st.elapsed_s)} (robot time)`;
+  $("run-remaining").textContent = st.remaining_s !== null ? `about ${duration(st.remaining_s)}` :
+    !active ? "–" : st.segments === 0 ? "estimated once a spin has ended" : "not estimated in this step";
   $("run-progress").value = st.progress;
   $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
   const link = $("run-result-link");
@@ -231,11 +238,13 @@ function onLive(ev) {
   app.live = ev;
   const rows = ev.nodes.map((n) => el("tr", {},
     el("td", {}, n.module), el("td", {}, n.node),
-    el("td", { class: n.alive ? "yes" : "no" }, n.alive ? "yes" : "no"),
+    n.alive === null ? el("td", { class: "muted" }, "unknown") :
+      el("td", { class: n.alive ? "yes" : "no" }, n.alive ? "yes" : "no"),
     el("td", { class: n.homed ? "yes" : "no" }, n.homed ? "yes" : "no"),
     el("td", { class: n.errors.some((e) => e) ? "no" : "" }, n.errors.some((e) => e) ? n.errors.map((e) => "0x" + e.toString(16)).join(" / ") : "none"),
     el("td", { class: "num" }, n.steer_deg === null ? "–" : `${fmt(wrapDeg(n.steer_deg), 1)}°`)));
   $("node-rows").replaceChildren(...rows);
+  $("node-note").hidden = !ev.nodes.some((n) => n.alive === null);
   $("can-state").textContent = ev.can || "–";
   const m = ev.mocap;
   const age = m.age_s === null ? "no pose yet" : `last pose ${(m.age_s * 1000).toFixed(0)} ms ago`;
@@ -258,6 +267,8 @@ function onLive(ev) {
     chunk.points.push(...ev.trail.points);
     app.spins = ev.spins || [];
   }
+  // without motion capture there is no pose to draw
+  $("live-figure").hidden = !!app.current && app.current.metrology === "imu" && !(m.pose);
   drawLive();
 }
 
@@ -368,22 +379,24 @@ function chip(value, yes, no, goodWhenTrue) {
   return el("span", { class: "chip " + (value && !goodWhenTrue ? "sig" : good ? "ok" : "bad") }, value ? yes : no);
 }
 function renderComparison(cmp) {
-  const inForce = cmp.in_force;
-  const ref = cmp.reference === "nominal" ? "no file in force: change from nominal" :
-    `file in force ${inForce.name}` + (inForce.run ? ` (from run ${inForce.run})` : " (not from a run)");
+  const inForce = cmp.in_force, rep = cmp.replaced;
+  const from = (run) => (run ? ` (from run ${run})` : " (not from a run)");
+  const ref = cmp.reference === "replaced file" ? `the file its install replaced, kept as ${rep.replaced}` + from(rep.replaced_run) :
+    cmp.reference === "file in force" ? `the file in force, ${inForce.name}` + from(inForce.run) :
+    `the nominal design: ${cmp.reference_why}`;
   $("res-summary").replaceChildren(
     el("b", { class: cmp.within_tolerance ? "yes" : "no" }, cmp.within_tolerance ? "Within tolerance" : "Over tolerance"),
     " · ", cmp.is_in_force ? el("b", { class: "yes" }, "this result is in force") :
       (cmp.installed ? "installed at the run's end, since replaced" : "not installed"),
-    " · compared with the " + ref + `; significant = change over ${cmp.significance_k} std devs.`);
-  $("res-ref-head").textContent = cmp.reference === "nominal" ? "In force (none)" : "In force";
+    " · compared with " + ref + `; significant = change over ${cmp.significance_k} std devs.`);
+  $("res-ref-head").textContent = { "replaced file": "Replaced", "file in force": "In force", nominal: "Reference (none)" }[cmp.reference];
   $("res-install").disabled = cmp.is_in_force;
   $("res-install-note").textContent = cmp.is_in_force ? "already the file in force" : "";
   const d = (r) => (r.unit === "deg" ? 4 : 3);
   $("res-rows").replaceChildren(...cmp.rows.map((r) => el("tr", { "data-param": `${r.module}.${r.param}` },
     el("th", { scope: "row" }, `${r.module} ${r.param} `, el("span", { class: "muted" }, `(${r.unit})`)),
     el("td", { class: "num" }, fmt(r.nominal, d(r))), el("td", { class: "num" }, fmt(r.calibrated, d(r))),
-    el("td", { class: "num" }, fmt(r.stddev, d(r) + 1)), el("td", { class: "num" }, fmt(r.in_force, d(r))),
+    el("td", { class: "num" }, fmt(r.stddev, d(r) + 1)), el("td", { class: "num" }, fmt(r.reference_value, d(r))),
     el("td", { class: "num" }, signed(r.change, d(r))),
     el("td", { title: `|change| > ${cmp.significance_k} std devs` }, chip(r.significant, "yes", "no", false)),
     el("td", { title: `std dev <= ${fmt(r.tolerance, d(r) + 1)} ${r.unit}` }, chip(r.within_tolerance, "yes", "NO", true)))));
@@ -414,6 +427,7 @@ function renderGeometry(geo) {
   }
   drawSpins(g, geo.spins, w);
   scaleBar(world, w);
+  $("res-world-figure").hidden = !geo.spins.length;  // without motion capture: no path
   const panels = geo.calibrated.map((cal) => {
     const nom = geo.nominal.find((n) => n.id === cal.id);
     const el2 = svg("svg", { role: "img", "aria-label": `module ${cal.id} in the robot frame` });
@@ -442,8 +456,18 @@ function renderGeometry(geo) {
 }
 
 // ------------------------------------------------------------------ history and files
+const CHANGES = { run: "installed by its run", install: "installed", rollback: "rolled back" };
 async function showHistory() {
-  const [runs, files] = await Promise.all([api("GET", "/calibrations"), api("GET", "/kinematics/files")]);
+  const [runs, files, changes] = await Promise.all([api("GET", "/calibrations"),
+    api("GET", "/kinematics/files"), api("GET", "/kinematics/changes")]);
+  const when = (t) => (t || "").replace("T", " ").replace("Z", "");
+  $("change-rows").replaceChildren(...changes.map((c) => el("tr", { "data-action": c.action },
+    el("td", {}, when(c.time)),
+    el("td", {}, CHANGES[c.action] || c.action, ...(c.run ? [" · run ", el("a", { href: "#result/" + c.run }, c.run)] : [])),
+    el("td", {}, el("span", { class: "mono name" }, c.file)),
+    el("td", {}, c.replaced ? el("span", { class: "mono name" }, c.replaced) : "none in force",
+      c.replaced_run ? ` (from run ${c.replaced_run})` : ""))));
+  if (!changes.length) $("change-rows").replaceChildren(el("tr", {}, el("td", { colspan: 4 }, "none yet")));
   const inForce = files.in_force && files.in_force.run;
   runs.reverse();
   $("history-rows").replaceChildren(...runs.map((r) => el("tr", { "data-run": r.id },
