@@ -18,16 +18,25 @@ Re-expressing parameters in a frame rotated by ``phi`` and shifted by ``t``::
 
 (a direction ``u(theta_hat + beta)`` of the old frame is ``u(theta_hat + beta + phi)`` in
 the new one).
+
+**base_link**, the frame a ROS 2 robot's description and controllers use, is given by the
+robot config (:class:`BaseLinkPose`, or the rule ``centroid``; docs/ros2.md): with
+base_link's pose ``(x, y, yaw)`` in R, a point ``P`` of R is ``R(-yaw) (P - (x, y))`` in
+base_link, i.e. ``phi = -yaw`` and ``t = -R(-yaw) (x, y)`` above.  ``centroid`` puts
+base_link's origin at the centroid ``c = (1/N) sum_i P_s,i`` of the calibrated steering
+axes, its x axis along R's: ``phi = 0``, ``t = -c``.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict
 
-from swpc_hw.model import RobotParams, rot, wrap_angle
+from swpc_hw.model import PARAM_NAMES, Finite, RobotParams, rot, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -78,16 +87,30 @@ def transform_parameters(X: ArrayLike, phi: float, t: ArrayLike) -> FloatArray:
     return Y
 
 
-def transform_covariance(cov: ArrayLike, phi: float) -> FloatArray:
-    """The (5N, 5N) covariance of parameters re-expressed by :func:`transform_parameters`
-    with a *fixed* transform: ``T C T^T`` with ``T`` block-diagonal, ``R(phi)`` on every
-    module's ``(x_s, y_s)`` and 1 elsewhere."""
+def transform_covariance(
+    cov: ArrayLike, phi: float, t_jacobian: ArrayLike | None = None
+) -> FloatArray:
+    """The (5N, 5N) covariance of parameters re-expressed by :func:`transform_parameters`:
+    ``T C T^T`` with ``T`` the Jacobian of the re-expression.
+
+    For a *fixed* transform ``T`` is block-diagonal, ``R(phi)`` on every module's
+    ``(x_s, y_s)`` and 1 elsewhere.  A translation ``t`` that is itself a function of the
+    steering axes (``t_jacobian``: ``d t / d P_s``, (2, 2N), ``P_s`` flattened as
+    ``(x_1, y_1, x_2, ...)``; e.g. ``-I/N`` per module for the centroid) adds
+    ``d P_s,j' / d P_s,i = d t / d P_s,i`` to every module ``j``'s rows: the uncertainty
+    of the frame itself.
+    """
     C = np.asarray(cov, dtype=float)
     n = C.shape[0] // 5
     T = np.eye(C.shape[0])
     R = rot(phi)
     for i in range(n):
         T[5 * i : 5 * i + 2, 5 * i : 5 * i + 2] = R
+    if t_jacobian is not None:
+        G = np.asarray(t_jacobian, dtype=float).reshape(2, 2 * n)
+        for j in range(n):
+            for i in range(n):
+                T[5 * j : 5 * j + 2, 5 * i : 5 * i + 2] += G[:, 2 * i : 2 * i + 2]
     return np.asarray(T @ C @ T.T, dtype=float)
 
 
@@ -138,3 +161,97 @@ def design_fit_constraint_jacobian(P_nom: ArrayLike) -> FloatArray:
     A[2, 0::2] = -a[:, 1]
     A[2, 1::2] = a[:, 0]
     return A
+
+
+BASE_LINK = "base_link"
+"""The ``frame:`` of parameters re-expressed in the robot's base_link (docs/ros2.md)."""
+
+CENTROID = "centroid"
+"""The base_link rule: origin at the centroid of the calibrated steering axes, x along R's."""
+
+
+class BaseLinkPose(BaseModel):
+    """base_link's planar pose in R: its origin at ``(x, y)`` of R (m), its x axis at
+    ``yaw`` (rad) from R's, counter-clockwise positive (the static transform whose parent
+    is R and whose child is base_link)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    x: Finite = 0.0
+    y: Finite = 0.0
+    yaw: Finite = 0.0
+
+
+BaseLink = BaseLinkPose | Literal["centroid"]
+"""The robot config's ``base_link``: a pose in R or the rule ``centroid``."""
+
+FRAMES_OF_R = ("R", DESIGN_FIT)
+"""Frames that stand for R when re-expressed in base_link: R itself and design-fit (the
+nominal robot's R, best aligned with the calibrated steering axes)."""
+
+
+def base_link_transform(
+    P_s: ArrayLike, base_link: BaseLink | None
+) -> tuple[float, FloatArray, FloatArray | None]:
+    """``(phi, t, d t / d P_s)`` taking points of R to base_link (module docstring).
+
+    ``None`` is base_link = R (the identity).  ``d t / d P_s`` is (2, 2N) for
+    ``centroid`` (``-I/N`` per module) and None for a fixed pose.
+    """
+    P = np.asarray(P_s, dtype=float).reshape(-1, 2)
+    n = P.shape[0]
+    if base_link is None:
+        return 0.0, np.zeros(2), None
+    if base_link == CENTROID:
+        G = np.zeros((2, 2 * n))
+        G[0, 0::2] = -1.0 / n
+        G[1, 1::2] = -1.0 / n
+        return 0.0, -P.mean(axis=0), G
+    assert isinstance(base_link, BaseLinkPose)
+    phi = -base_link.yaw
+    t = -(rot(phi) @ np.array([base_link.x, base_link.y]))
+    return phi, np.asarray(t, dtype=float), None
+
+
+def to_base_link(
+    params: RobotParams, covariance: ArrayLike | None, base_link: BaseLink | None
+) -> tuple[RobotParams, FloatArray | None]:
+    """``params`` (frame R or design-fit) and their (5N, 5N) covariance re-expressed in
+    base_link (:func:`base_link_transform`, :func:`transform_covariance`).
+
+    Standard deviations: the square roots of the new covariance's diagonal when it is
+    known; without it a module's ``stddev`` is kept when base_link is R shifted by a fixed
+    translation (unchanged by it) and dropped otherwise (a rotation or the centroid mixes
+    parameters whose covariance the file does not hold).  Raises ``ValueError`` for a file
+    in another frame.
+    """
+    if params.frame == BASE_LINK:
+        cov = None if covariance is None else np.asarray(covariance, dtype=float)
+        return params, cov
+    if params.frame not in FRAMES_OF_R:
+        raise ValueError(
+            f"frame {params.frame!r}: the robot config gives base_link in R; a file in "
+            f"{', '.join(FRAMES_OF_R)} or {BASE_LINK} can be exported"
+        )
+    if base_link is None:  # the identity: the values as they are, to the bit
+        cov = None if covariance is None else np.asarray(covariance, dtype=float)
+        return params.model_copy(update={"frame": BASE_LINK}), cov
+    a = params.arrays()
+    phi, t, G = base_link_transform(a.P_s, base_link)
+    moved = transform_robot(params, phi, t, BASE_LINK)
+    if covariance is not None:
+        cov = transform_covariance(covariance, phi, G)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, len(PARAM_NAMES))
+        if any(m.stddev is None for m in params.modules):
+            return moved, cov
+        b = moved.arrays()
+        return RobotParams.from_arrays(
+            b.ids, b.P_s, b.beta, b.b, b.r, robot=params.robot, frame=BASE_LINK, stddev=sd
+        ), cov
+    if phi == 0.0 and G is None:  # a fixed translation: every module keeps its stddev
+        modules = [
+            m.model_copy(update={"stddev": old.stddev})
+            for m, old in zip(moved.modules, params.modules, strict=True)
+        ]
+        return moved.model_copy(update={"modules": modules}), None
+    return moved, None

@@ -4,6 +4,7 @@ YAML (every key documented in ``deploy/robot.example.yaml``)::
 
     robot: swpc                      # robot id (pose key mocap/<robot>/pose)
     nominal: {modules: [...]}        # or a path: nominal kinematics (kinematic-file schema)
+    base_link: {x: 0, y: 0, yaw: 0}  # or centroid; unset: base_link = R (docs/ros2.md)
     drives: {kind: swpc, modules: {1: 1, 2: 2, 3: 3, 4: 4}}  # drive kind, CAN nodes
     limits: {...}                    # motion limits (SI)
     protocol: {...}                  # calibration protocol (angles in degrees for humans)
@@ -28,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from swpc_hw.can.config import DEFAULT_WATCHDOG_MS
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
+from swpc_hw.frames import BaseLink
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_NOMINAL
@@ -188,6 +190,12 @@ class RobotConfig(BaseModel):
 
     robot: str = "swpc"
     nominal: RobotParams = PAPER_NOMINAL
+    base_link: BaseLink | None = Field(
+        None,
+        description="base_link's pose in R {x, y, yaw} (m, rad) or 'centroid' (of the "
+        "calibrated steering axes, x along R's); unset: base_link = R. Every export is in "
+        "base_link (docs/ros2.md)",
+    )
     drives: DrivesConfig = Field(
         SwpcDrives(), description="the drive kind and each module's CAN nodes (swpc_hw.drives)"
     )

@@ -12,11 +12,16 @@
   ABORTED and nothing is installed; 409 when it is too late: the run has finished, or
   has begun installing its result (then that stands).
 * ``GET /calibrations/{id}/plot.png``: the run's plot, rendered once.
+* ``GET /calibrations/{id}/export?to=urdf|ros2-params|kinematics``: a DONE run's result in
+  the robot config's base_link, as ``swpc export`` writes it (docs/ros2.md), a download;
+  404 for a run never seen, 409 without a result, 422 for a result the target cannot hold.
 """
 
 from __future__ import annotations
 
 import asyncio
+import re
+from pathlib import Path
 from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException, Response
@@ -31,7 +36,9 @@ from services.runs.imu import parse_references, reference_problems
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
 from services.runtime.runtime import DiskSpaceError, NoResultError, RunConflictError, StoreError
-from swpc_hw.errors import DatasetError
+from swpc_hw.errors import DatasetError, KinematicFileError
+from swpc_hw.export import TARGETS, file_name, make_export, render
+from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
 
 router = APIRouter()
@@ -184,3 +191,37 @@ def plot(run_id: str, rt: Rt) -> Response:
     if path is None:
         raise HTTPException(404, f"no calibration {run_id}")
     return FileResponse(path, media_type="image/png")
+
+
+ExportTarget = Literal["urdf", "ros2-params", "kinematics"]
+
+
+@router.get(
+    "/calibrations/{run_id}/export",
+    responses={
+        200: {"content": {"application/xml": {}, "application/yaml": {}}},
+        **problems(404, 409),
+    },
+    response_class=Response,
+)
+def export(run_id: str, rt: Rt, to: ExportTarget) -> Response:
+    """A DONE run's result file in the robot config's ``base_link``: a URDF, a ROS 2
+    parameter file or the kinematic file (``to``), as ``swpc export`` writes it."""
+    done_result(rt, run_id)
+    path = Path(rt.settings.data_dir) / "runs" / run_id / "kinematics.yaml"
+    try:
+        kf = load_kinematics(path)
+    except KinematicFileError as exc:
+        raise HTTPException(409, f"calibration {run_id}: its result file: {exc}") from exc
+    try:
+        text = render(make_export(kf, rt.config.base_link, f"run {run_id}"), to)
+    except ValueError as exc:  # the shape of FastAPI's own 422 (one schema for 422)
+        raise RequestValidationError(
+            [{"loc": ["query", "to"], "msg": f"calibration {run_id}: {exc}", "type": "value_error"}]
+        ) from exc
+    name = file_name(re.sub(r"[^A-Za-z0-9._-]", "_", f"{kf.params.robot}-{run_id}"), to)
+    return Response(
+        text,
+        media_type=TARGETS[to][1],
+        headers={"Content-Disposition": f'attachment; filename="{name}"'},
+    )
