@@ -168,6 +168,13 @@ def _scaled_radius(p: RobotParams, k: float) -> RobotParams:
                                             for m in p.modules]})
 
 
+def _listening(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
 def _wait(cond: Any, what: str, limit: float = 20.0) -> None:
     """Wait for delivery (a safety limit only: nothing here asserts on wall time)."""
     end = time.monotonic() + limit
@@ -274,3 +281,41 @@ def test_a_bad_new_file_keeps_the_running_parameters(tmp_path: Path) -> None:
     assert "missing key 'frame'" in stream.reload_error
     assert stream.odometry.params == p
     assert len(got) == 2 * (len(t) - 1)
+
+
+def test_swpc_odometry_replays_a_datasets_encoders_to_a_ros2_client(
+    tmp_path: Path, sdk_client: Any
+) -> None:
+    """``swpc odometry --encoders DIR`` on loopback: one /odom message per reading after
+    the first, received by the independent client."""
+    from services.cli import main
+    from swpc_hw.dataset import Dataset, Segment, save_dataset
+
+    p = PAPER_CALIBRATED
+    kin = tmp_path / "kinematics.yaml"
+    save_kinematics(kin, p)
+    t, th, ps, truth = make_stream(p, [(1.0, (0.1, 0.0, 0.2))], rate=50.0, jitter=0.0)
+    enc = {m.id: np.column_stack([t, th[:, i], ps[:, i]]) for i, m in enumerate(p.modules)}
+    ds = Dataset(p, np.column_stack([t, truth]), enc, [Segment(1, 0.1, 0.9)])
+    save_dataset(tmp_path / "ds", ds)
+    ep = free_tcp_endpoint()
+    port = int(ep.rsplit(":", 1)[1])
+    got: list[Any] = []
+    # the command listens, waits for a subscriber of /odom, replays; the client connects
+    codes: list[int] = []
+    cmd = threading.Thread(target=lambda: codes.append(main([
+        "odometry", "--kinematics", str(kin), "--encoders", str(tmp_path / "ds"),
+        "--zenoh-listen", ep, "--wait-subscriber", "20"])))
+    cmd.start()
+    try:
+        _wait(lambda: _listening(port), "the command's endpoint")
+        sub = sdk_client.ROS2Subscriber("/odom", ODOMETRY, got.append,
+                                        router_ip="127.0.0.1", router_port=port)
+        _wait(lambda: bool(codes), "the command")
+        _wait(lambda: len(got) >= len(t) - 1, "the replay")
+        sub.close()
+    finally:
+        cmd.join(30)
+    assert codes == [0]
+    assert len(got) == len(t) - 1
+    assert got[-1].twist.twist.angular.z == pytest.approx(0.2, rel=1e-6)
