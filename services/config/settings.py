@@ -196,6 +196,11 @@ class ServiceSettings(BaseSettings):
         "run.mcap) of the oldest runs are pruned to stay within it, and a run that cannot "
         "fit fails",
     )
+    mcap_profile: Literal["foxglove", "ros2"] = Field(
+        "foxglove",
+        description="the run's MCAP (run.mcap): foxglove (JSON, Foxglove's schemas) or ros2 "
+        "(CDR, ROS 2 ros2msg schemas: PoseStamped, TFMessage, JointState; docs/ros2.md)",
+    )
     min_free: ByteSize = Field(
         ByteSize(256 << 20),
         ge=0,

@@ -84,6 +84,7 @@ class RunJournal:
         *,
         space: SpaceGuard | None = None,
         mcap: bool = True,
+        mcap_profile: str = "foxglove",
         robot_config_path: str | None = None,
         metrology: str = "mocap",
         log_after: float | None = None,
@@ -97,6 +98,7 @@ class RunJournal:
         self.wall_offset: float | None = None
         """:func:`log_wall_offset` from :meth:`open` on."""
         self.metrology = metrology
+        self.mcap_profile = mcap_profile
         self.run_dir = run_dir
         self.config = config
         self.clock = clock
@@ -142,6 +144,7 @@ class RunJournal:
             wall_offset=self.wall_offset,
             guard=self.space,
             mcap=self.mcap,
+            mcap_profile=self.mcap_profile,
             metrology=self.metrology,
         )
         rec.open(

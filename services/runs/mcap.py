@@ -24,6 +24,24 @@ topic                        schema                      what
                                                          poses)
 ===========================  ==========================  =================================
 
+Profile ``ros2`` (``SWPC_MCAP_PROFILE=ros2``, ``McapRecorder(profile="ros2")``) writes the
+same topics for ROS tools instead: CDR messages (rosbags) with ``ros2msg`` schemas, MCAP
+profile ``ros2``:
+
+===========================  ====================================  ===========================
+topic                        ROS 2 type                            what
+===========================  ====================================  ===========================
+``/mocap/pose``              ``geometry_msgs/msg/PoseStamped``     frame ``W``
+``/tf``                      ``tf2_msgs/msg/TFMessage``            ``W -> R``
+``/module<id>/encoders``     ``sensor_msgs/msg/JointState``        ``module<id>_steering``
+                                                                   (theta_hat, rad) and
+                                                                   ``module<id>_wheel``
+                                                                   (psi, rad) positions
+``/calibration/segments``    ``std_msgs/msg/String``               the segment as JSON
+``/calibration/events``      ``rcl_interfaces/msg/Log``            the run's events
+``/imu/gyro``                ``sensor_msgs/msg/Imu``               the gyro's yaw rate
+===========================  ====================================  ===========================
+
 Log and publish times are epoch nanoseconds: the dataset's clock times plus the run's
 ``wall_offset`` (:func:`services.runs.journal.log_wall_offset`: the run's first log time is
 the host's time at its start, the API's ``started``, so a viewer lines the file up with the
@@ -46,6 +64,7 @@ import numpy as np
 from mcap.writer import Writer
 
 from swpc_hw.dataset import Dataset
+from swpc_hw.errors import SwpcError
 from swpc_hw.model import FloatArray
 
 _TIME = {
@@ -136,7 +155,37 @@ GYRO = {
     },
 }
 LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
+ROS_LOG_LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40, "fatal": 50}
 WORLD, ROBOT = "W", "R"
+PROFILES = ("foxglove", "ros2")
+"""``foxglove``: JSON messages with Foxglove's schemas (default); ``ros2``: CDR messages
+with ROS 2 ``ros2msg`` schemas (module docstring)."""
+
+
+class _Ros2:
+    """The ``ros2`` profile's messages: rosbags' type store, CDR."""
+
+    def __init__(self) -> None:
+        from swpc_hw.mocap import ros2_typestore
+
+        self.ts = ros2_typestore()
+        self.T = self.ts.types
+
+    def schema(self, ros_type: str) -> bytes:
+        text, _ = self.ts.generate_msgdef(ros_type, ros_version=2)
+        return str(text).encode()
+
+    def header(self, ns: int, frame_id: str) -> Any:
+        T = self.T
+        return T["std_msgs/msg/Header"](
+            stamp=T["builtin_interfaces/msg/Time"](
+                sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000
+            ),
+            frame_id=frame_id,
+        )
+
+    def cdr(self, msg: Any, ros_type: str) -> bytes:
+        return bytes(self.ts.serialize_cdr(msg, ros_type))
 
 
 def _stamp(ns: int) -> dict[str, int]:
@@ -162,22 +211,37 @@ class McapRecorder:
         *,
         wall_offset: float = 0.0,
         library: str = "swpc",
+        profile: str = "foxglove",
     ) -> None:
+        if profile not in PROFILES:
+            raise SwpcError(f"MCAP profile must be one of {', '.join(PROFILES)} (got {profile!r})")
         self.path = Path(path)
         self.wall_offset = float(wall_offset)
+        self.profile = profile
         self.messages = 0
+        self._ros2 = _Ros2() if profile == "ros2" else None
         self._fh: IO[bytes] = self.path.open("wb")
         self._w = Writer(self._fh)
-        self._w.start(profile="", library=library)
-        self._pose = self._channel("/mocap/pose", POSE_IN_FRAME)
-        self._tf = self._channel("/tf", FRAME_TRANSFORM)
-        self._enc = {m: self._channel(f"/module{m}/encoders", ENCODERS) for m in module_ids}
-        self._seg = self._channel("/calibration/segments", SEGMENT)
-        self._log = self._channel("/calibration/events", LOG)
+        self._w.start(profile="ros2" if self._ros2 else "", library=library)
+        self._pose = self._channel("/mocap/pose", POSE_IN_FRAME, "geometry_msgs/msg/PoseStamped")
+        self._tf = self._channel("/tf", FRAME_TRANSFORM, "tf2_msgs/msg/TFMessage")
+        self._enc = {
+            m: self._channel(f"/module{m}/encoders", ENCODERS, "sensor_msgs/msg/JointState")
+            for m in module_ids
+        }
+        self._seg = self._channel("/calibration/segments", SEGMENT, "std_msgs/msg/String")
+        self._log = self._channel("/calibration/events", LOG, "rcl_interfaces/msg/Log")
         self._gyro: int | None = None  # registered with the first gyro sample
         self._finished = False
 
-    def _channel(self, topic: str, schema: Mapping[str, object]) -> int:
+    def _channel(self, topic: str, schema: Mapping[str, object], ros_type: str) -> int:
+        if self._ros2 is not None:
+            sid = self._w.register_schema(
+                name=ros_type, encoding="ros2msg", data=self._ros2.schema(ros_type)
+            )
+            return int(
+                self._w.register_channel(topic=topic, message_encoding="cdr", schema_id=sid)
+            )
         sid = self._w.register_schema(
             name=str(schema["title"]), encoding="jsonschema", data=json.dumps(schema).encode()
         )
@@ -186,6 +250,10 @@ class McapRecorder:
     def ns(self, t: float) -> int:
         """Epoch nanoseconds of clock time ``t``."""
         return max(0, round((t + self.wall_offset) * 1e9))
+
+    def _bytes(self, channel: int, ns: int, data: bytes) -> None:
+        self._w.add_message(channel_id=channel, log_time=ns, publish_time=ns, data=data)
+        self.messages += 1
 
     def _add(self, channel: int, ns: int, doc: dict[str, Any]) -> None:
         self._raw(channel, ns, json.dumps(doc))
@@ -197,6 +265,9 @@ class McapRecorder:
     def poses(self, rows: FloatArray) -> None:
         """Rows ``t, x, y, yaw`` (clock s, m, m, rad): a ``foxglove.PoseInFrame`` and a
         ``foxglove.FrameTransform`` each (formatted directly: the hot path of a run)."""
+        if self._ros2 is not None:
+            self._ros2_poses(self._ros2, rows)
+            return
         for t, x, y, yaw in rows.tolist():
             ns = self.ns(t)
             stamp = f'{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}}'
@@ -215,12 +286,41 @@ class McapRecorder:
                 f'"translation":{p},"rotation":{q}}}',
             )
 
+    def _ros2_poses(self, r: _Ros2, rows: FloatArray) -> None:
+        T = r.T
+        for t, x, y, yaw in rows.tolist():
+            ns = self.ns(t)
+            q = T["geometry_msgs/msg/Quaternion"](
+                x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)
+            )
+            pose = T["geometry_msgs/msg/PoseStamped"](
+                header=r.header(ns, WORLD),
+                pose=T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0), orientation=q
+                ),
+            )
+            self._bytes(self._pose, ns, r.cdr(pose, "geometry_msgs/msg/PoseStamped"))
+            tf = T["tf2_msgs/msg/TFMessage"](transforms=[T["geometry_msgs/msg/TransformStamped"](
+                header=r.header(ns, WORLD), child_frame_id=ROBOT,
+                transform=T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0), rotation=q
+                ),
+            )])  # fmt: skip
+            self._bytes(self._tf, ns, r.cdr(tf, "tf2_msgs/msg/TFMessage"))
+
     def gyro(self, rows: FloatArray) -> None:
         """Rows ``t, wz`` (clock s, rad/s) of the gyro."""
         if not rows.shape[0]:
             return
         if self._gyro is None:
-            self._gyro = self._channel("/imu/gyro", GYRO)
+            self._gyro = self._channel("/imu/gyro", GYRO, "sensor_msgs/msg/Imu")
+        if self._ros2 is not None:
+            from swpc_hw.imu import GyroSample, encode_imu
+
+            for t, wz in rows.tolist():
+                ns = self.ns(t)
+                self._bytes(self._gyro, ns, encode_imu(GyroSample(ns * 1e-9, wz), ROBOT))
+            return
         for t, wz in rows.tolist():
             ns = self.ns(t)
             self._raw(
@@ -233,6 +333,18 @@ class McapRecorder:
     def encoders(self, module: int, rows: FloatArray) -> None:
         """Rows ``t, theta_hat, psi`` of one module."""
         ch = self._enc[module]
+        if self._ros2 is not None:
+            r = self._ros2
+            names = [f"module{module}_steering", f"module{module}_wheel"]
+            for t, th, psi in rows.tolist():
+                ns = self.ns(t)
+                msg = r.T["sensor_msgs/msg/JointState"](
+                    header=r.header(ns, ROBOT), name=names,
+                    position=np.array([th, psi], dtype=np.float64),
+                    velocity=np.zeros(0), effort=np.zeros(0),
+                )  # fmt: skip
+                self._bytes(ch, ns, r.cdr(msg, "sensor_msgs/msg/JointState"))
+            return
         for t, th, psi in rows.tolist():
             ns = self.ns(t)
             self._raw(
@@ -244,6 +356,11 @@ class McapRecorder:
 
     def segment(self, static_module: int, start: float, end: float) -> None:
         ns = self.ns(start)
+        if self._ros2 is not None:
+            doc = {"static_module": static_module, "start": start, "end": end}
+            msg = self._ros2.T["std_msgs/msg/String"](data=json.dumps(doc))
+            self._bytes(self._seg, ns, self._ros2.cdr(msg, "std_msgs/msg/String"))
+            return
         self._add(
             self._seg,
             ns,
@@ -252,6 +369,14 @@ class McapRecorder:
 
     def event(self, t: float, level: str, message: str) -> None:
         ns = self.ns(t)
+        if self._ros2 is not None:
+            r = self._ros2
+            msg = r.T["rcl_interfaces/msg/Log"](
+                stamp=r.header(ns, "").stamp, level=ROS_LOG_LEVELS.get(level, 20),
+                name="swpc.run", msg=message, file="", function="", line=0,
+            )  # fmt: skip
+            self._bytes(self._log, ns, r.cdr(msg, "rcl_interfaces/msg/Log"))
+            return
         self._add(
             self._log,
             ns,
@@ -301,9 +426,11 @@ class McapRecorder:
                 self._fh.close()
 
 
-def write_mcap(path: str | Path, ds: Dataset, wall_offset: float = 0.0) -> int:
+def write_mcap(
+    path: str | Path, ds: Dataset, wall_offset: float = 0.0, profile: str = "foxglove"
+) -> int:
     """Write dataset ``ds`` to ``path`` in one go; returns the number of messages."""
-    rec = McapRecorder(path, list(ds.robot.ids), wall_offset=wall_offset)
+    rec = McapRecorder(path, list(ds.robot.ids), wall_offset=wall_offset, profile=profile)
     try:
         rec.poses(np.asarray(ds.poses))
         for mid, enc in ds.encoders.items():

@@ -116,6 +116,7 @@ class CalibrationRun(RunMachine):
         space: SpaceGuard | None = None,
         robot_config_path: str | None = None,
         mcap: bool = True,
+        mcap_profile: str = "foxglove",
         log_after: float | None = None,
     ) -> None:
         """``log_after``: where the previous run's log times ended
@@ -137,6 +138,7 @@ class CalibrationRun(RunMachine):
             clock,
             space=space,
             mcap=mcap,
+            mcap_profile=mcap_profile,
             robot_config_path=robot_config_path,
             metrology=metrology.name,
             log_after=log_after,

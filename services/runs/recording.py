@@ -132,11 +132,13 @@ class RunRecording:
         wall_offset: float,
         guard: SpaceGuard | None = None,
         mcap: bool = True,
+        mcap_profile: str = "foxglove",
         metrology: str = "mocap",
     ) -> None:
         self.run_dir = Path(run_dir)
         self.metrology = metrology
         self.with_mcap = mcap
+        self.mcap_profile = mcap_profile
         self.dataset_dir = self.run_dir / "dataset"
         self.robot = robot
         self.wall_offset = wall_offset
@@ -177,7 +179,8 @@ class RunRecording:
             self._dataset_open = True
             if self.with_mcap:
                 self.mcap = McapRecorder(
-                    self.mcap_path, list(self.robot.ids), wall_offset=self.wall_offset
+                    self.mcap_path, list(self.robot.ids), wall_offset=self.wall_offset,
+                    profile=self.mcap_profile,
                 )
                 for name, values in metadata.items():
                     self.mcap.metadata(name, values)

@@ -445,6 +445,7 @@ class Runtime:
                 on_change=self._persist,
                 space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
                 robot_config_path=None if s.robot_config is None else str(s.robot_config),
+                mcap_profile=s.mcap_profile,
                 log_after=None if self.current is None else self.current.journal.log_end(),
             )
             # its directory, and its raw CAN traffic beside its dataset (candump format, our

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +35,9 @@ class DriverOdometry:
     the odometry integrates at the sample times of the first module, the others linearly
     interpolated there (one sample of delay).  Runs in the driver's receive thread.  The
     track ``(t, x, y, yaw)`` and the slip indicator of each update are kept for the report.
+    ``on_update(t, theta_hat, psi)``, when given, receives every aligned reading that was
+    integrated (module order of ``params``), in the same thread: e.g. the ROS 2 stream of
+    ``swpc odometry`` (:class:`swpc_hw.ros2.stream.Ros2OdometryStream`).
     """
 
     def __init__(
@@ -43,8 +46,10 @@ class DriverOdometry:
         params: RobotParams,
         *,
         options: OdometryOptions | None = None,
+        on_update: Callable[[float, list[float], list[float]], None] | None = None,
     ) -> None:
         self._lock = threading.Lock()
+        self._on_update = on_update
         self._options = options
         self._odo = Odometry(params, options=options)
         self._ids = tuple(params.ids)
@@ -118,6 +123,8 @@ class DriverOdometry:
             self.track.append((T, pose.x, pose.y, pose.yaw))
             step = self._odo.last
             self.slip.append(max(step.filtered_residuals) if step is not None else 0.0)
+            if self._on_update is not None:
+                self._on_update(T, th, ps)
 
     def set_params(self, params: RobotParams) -> None:
         """A fresh odometry on other parameters (readings restart; pose kept)."""

@@ -1,0 +1,119 @@
+"""``swpc odometry --kinematics FILE``: the robot's odometry as ROS 2 over zenoh.
+
+Publishes ``nav_msgs/msg/Odometry`` on ``/odom`` and ``tf2_msgs/msg/TFMessage`` on ``/tf``
+(``odom -> base_link``) at the odometry's update rate, on rmw_zenoh's keys
+(:mod:`swpc_hw.ros2`; docs/ros2.md), and reloads the kinematic file when a new one is
+installed.  Readings come from the drives' CAN feedback (``--can-interface``, through the
+robot config's driver, as ``swpc validate`` drives them) or from a recorded dataset's
+``encoders.csv`` (``--encoders DIR``: a replay, stamps on the dataset's clock).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import threading
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "odometry",
+        help="the odometry as ROS 2 /odom and /tf over zenoh (rmw_zenoh's keys)",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+    )
+    p.add_argument("--kinematics", required=True, metavar="FILE",
+                   help="the installed kinematic file (reloaded when it changes)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--can-interface", help="python-can interface of the drives, e.g. socketcan")
+    src.add_argument("--encoders", metavar="DIR",
+                     help="replay a dataset directory's encoders.csv instead")
+    p.add_argument("--can-channel", default="can0")
+    p.add_argument("--can-bitrate", type=int, default=1_000_000)
+    p.add_argument("--robot-config", help="robot config YAML (default: the paper's robot)")
+    p.add_argument("--wait-subscriber", type=float, default=5.0, metavar="SECONDS",
+                   help="replay: wait up to this long for a subscriber of /odom first (5)")
+    p.add_argument("--domain-id", type=int, default=0, help="ROS_DOMAIN_ID (0)")
+    p.add_argument("--namespace", default="", help="ROS 2 namespace of the topics ('')")
+    p.add_argument("--zenoh-mode", default="peer")
+    p.add_argument("--zenoh-listen", nargs="*", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-connect", nargs="*", default=[], metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", help="zenoh JSON5 config file")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from swpc_hw.ros2.publisher import ZenohRos2Publisher
+    from swpc_hw.ros2.stream import Ros2OdometryStream
+    from swpc_hw.zenoh_session import open_session
+
+    session = open_session(
+        mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
+        config_file=args.zenoh_config,
+    )
+    publisher = ZenohRos2Publisher(session, domain_id=args.domain_id, namespace=args.namespace)
+    try:
+        if args.encoders:
+            stream = Ros2OdometryStream(args.kinematics, publisher)
+            _wait_subscriber(publisher, args.wait_subscriber)
+            _replay(stream, args.encoders)
+        else:
+            stream = _on_the_drives(args, publisher)
+        print(f"swpc odometry: {stream.published} messages on /odom and /tf, "
+              f"{stream.reloads} reloads")
+    finally:
+        publisher.close()
+        with contextlib.suppress(Exception):
+            session.close()
+    return 0
+
+
+def _wait_subscriber(publisher: Any, limit: float) -> None:
+    """Until a subscriber of ``/odom`` matches (a replay has no message to lose), at most
+    ``limit`` seconds."""
+    from swpc_hw.clock import SystemClock
+    from swpc_hw.ros2.messages import ODOMETRY
+
+    clock = SystemClock()
+    end = clock.now() + limit
+    while not publisher.matched("/odom", ODOMETRY) and clock.now() < end:
+        clock.sleep(0.01)
+
+
+def _replay(stream: Any, directory: str) -> None:
+    from swpc_hw.dataset import load_dataset
+    from swpc_hw.odometry_log import synchronize_encoders
+
+    ds = load_dataset(directory)
+    t, th, ps = synchronize_encoders(ds.encoders, stream.ids)
+    for k in range(t.shape[0]):
+        stream.update(float(t[k]), th[k], ps[k])
+
+
+def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
+    """Until Ctrl-C: the drives' feedback, aligned by :class:`DriverOdometry`, into the
+    stream (stamps: the host's epoch time of each reading)."""
+    from services.cli.validate import validation_settings
+    from services.config.robot import load_robot_config
+    from services.config.timing import robot_drives
+    from swpc_hw.clock import SystemClock
+    from swpc_hw.ros2.stream import Ros2OdometryStream
+    from swpc_hw.validation.odometry_feed import DriverOdometry
+
+    config = load_robot_config(args.robot_config)
+    st = validation_settings(can_interface=args.can_interface, can_channel=args.can_channel,
+                             can_bitrate=args.can_bitrate)
+    clock = SystemClock(rate=st.external_time_scale)
+    stream = Ros2OdometryStream(args.kinematics, publisher,
+                                stamp_offset=clock.wall() - clock.now())
+    driver = robot_drives(st, config, interface=args.can_interface, channel=args.can_channel,
+                          clock=clock)
+    try:
+        driver.configure()
+        DriverOdometry(driver, stream.odometry.params, on_update=stream.update)
+        print("swpc odometry: publishing /odom and /tf; Ctrl-C stops")
+        with contextlib.suppress(KeyboardInterrupt):
+            threading.Event().wait()
+    finally:
+        driver.shutdown()
+    return stream

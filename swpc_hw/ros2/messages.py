@@ -1,0 +1,128 @@
+"""The odometry's ROS 2 messages, CDR-serialised with rosbags' type store (never by hand).
+
+* ``nav_msgs/msg/Odometry`` on ``/odom``: header ``frame_id = odom``, ``child_frame_id =
+  base_link``; pose of ``base_link`` in ``odom`` with its covariance, twist of ``base_link``
+  in ``base_link`` with its covariance (:mod:`swpc_hw.ros2.covariance`);
+* ``tf2_msgs/msg/TFMessage`` on ``/tf``: one transform ``odom -> base_link``, the same pose.
+
+The odometry integrates the pose of its frame R (the kinematic file's frame, on the floor);
+:func:`base_link_from_robot` is the one place where the robot config's transform
+R -> base_link applies.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from swpc_hw.mocap import ros2_typestore
+
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+ODOM_FRAME = "odom"
+BASE_LINK = "base_link"
+
+
+@dataclass(frozen=True)
+class PlanarState:
+    """Pose ``(x, y, yaw)`` of a frame in ``odom`` and its body twist ``(v_x, v_y, omega)``."""
+
+    x: float
+    y: float
+    yaw: float
+    vx: float
+    vy: float
+    omega: float
+
+
+def base_link_from_robot(state: PlanarState) -> PlanarState:
+    """The state of ``base_link`` from the state of the odometry's frame R.
+
+    Until the robot config names a transform R -> base_link, base_link *is* R (identity).
+    With a planar offset ``(x_b, y_b, yaw_b)`` of base_link in R it becomes
+    ``pose_b = pose_R (+) (x_b, y_b, yaw_b)``,
+    ``v_b = R(-yaw_b) (v_R + omega x (x_b, y_b))``, ``omega_b = omega``.
+    """
+    return state
+
+
+def stamp(t: float) -> tuple[int, int]:
+    """``(sec, nanosec)`` of a time in seconds (nanosec in [0, 1e9))."""
+    ns = round(t * 1e9)
+    return ns // 1_000_000_000, ns % 1_000_000_000
+
+
+def _header(t: float, frame_id: str) -> object:
+    T = ros2_typestore().types
+    sec, nsec = stamp(t)
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id
+    )
+
+
+def _quaternion(yaw: float) -> object:
+    T = ros2_typestore().types
+    return T["geometry_msgs/msg/Quaternion"](
+        x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0)
+    )
+
+
+def odometry_cdr(t: float, s: PlanarState, pose_covariance: Sequence[float],
+                 twist_covariance: Sequence[float]) -> bytes:
+    """CDR ``nav_msgs/msg/Odometry`` (covariances: ROS's row-major 6 x 6, 36 values)."""
+    ts = ros2_typestore()
+    T = ts.types
+    msg = T[ODOMETRY](
+        header=_header(t, ODOM_FRAME),
+        child_frame_id=BASE_LINK,
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=s.x, y=s.y, z=0.0),
+                orientation=_quaternion(s.yaw),
+            ),
+            covariance=np.asarray(pose_covariance, dtype=np.float64),
+        ),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](
+                linear=T["geometry_msgs/msg/Vector3"](x=s.vx, y=s.vy, z=0.0),
+                angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=s.omega),
+            ),
+            covariance=np.asarray(twist_covariance, dtype=np.float64),
+        ),
+    )
+    return bytes(ts.serialize_cdr(msg, ODOMETRY))
+
+
+def tf_cdr(t: float, s: PlanarState) -> bytes:
+    """CDR ``tf2_msgs/msg/TFMessage`` with the one transform ``odom -> base_link``."""
+    ts = ros2_typestore()
+    T = ts.types
+    msg = T[TF_MESSAGE](
+        transforms=[
+            T["geometry_msgs/msg/TransformStamped"](
+                header=_header(t, ODOM_FRAME),
+                child_frame_id=BASE_LINK,
+                transform=T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=s.x, y=s.y, z=0.0),
+                    rotation=_quaternion(s.yaw),
+                ),
+            )
+        ]
+    )
+    return bytes(ts.serialize_cdr(msg, TF_MESSAGE))
+
+
+__all__ = [
+    "BASE_LINK",
+    "ODOMETRY",
+    "ODOM_FRAME",
+    "TF_MESSAGE",
+    "PlanarState",
+    "base_link_from_robot",
+    "odometry_cdr",
+    "stamp",
+    "tf_cdr",
+]

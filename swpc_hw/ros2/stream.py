@@ -1,0 +1,150 @@
+"""The robot's odometry as a ROS 2 stream: readings in, ``/odom`` and ``/tf`` messages out.
+
+:class:`Ros2OdometryStream` owns the :class:`~swpc_hw.odometry.Odometry` on a kinematic
+file, the covariances (:mod:`swpc_hw.ros2.covariance`) and the messages
+(:mod:`swpc_hw.ros2.messages`).  Every reading of all modules (:meth:`update`) is one
+odometry step and one message on each topic, handed to a *sink* (the zenoh publisher of
+:mod:`swpc_hw.ros2.publisher`, or a list in a test): the stream publishes at the
+odometry's update rate.
+
+Reload.  Before every step the stream compares the kinematic file's (mtime, size, inode)
+with the last load's (a calibration installs a new file by an atomic rename, which changes
+the inode).  A changed file is loaded and swapped in between two steps, pose and readings
+kept; a file that does not load, or describes other modules, is reported once
+(:attr:`reload_error`, the log) and the old parameters stay.
+
+Stamps.  Readings carry the odometry's time ``t`` (robot seconds); the messages' header
+stamps and rmw_zenoh's source timestamps are ``t + stamp_offset`` (epoch seconds minus
+robot seconds, given by the caller from its clock; 0 for a replay).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from swpc_hw.errors import SwpcError
+from swpc_hw.kinematic_file import KinematicFile, load_kinematics
+from swpc_hw.odometry import Odometry, OdometryOptions, _Geometry
+from swpc_hw.ros2.covariance import (
+    OdometryCovariance,
+    contact_points,
+    measurement_covariance,
+    parameter_covariance,
+    ros_covariance,
+    twist_sensitivity,
+)
+from swpc_hw.ros2.messages import (
+    ODOMETRY,
+    TF_MESSAGE,
+    PlanarState,
+    base_link_from_robot,
+    odometry_cdr,
+    tf_cdr,
+)
+
+log = logging.getLogger(__name__)
+
+Sink = Callable[[str, str, float, bytes], None]
+"""``sink(topic, ros_type, stamp_seconds, cdr_payload)``."""
+
+ODOM_TOPIC = "/odom"
+TF_TOPIC = "/tf"
+
+
+def _signature(path: Path) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+def _parameter_covariance(kf: KinematicFile) -> object:
+    mods = kf.params.modules
+    sds = [
+        None if m.stddev is None else
+        [m.stddev.x_s, m.stddev.y_s, m.stddev.beta, m.stddev.b, m.stddev.r]
+        for m in mods
+    ]  # fmt: skip
+    return parameter_covariance(len(mods), kf.covariance, sds)
+
+
+class Ros2OdometryStream:
+    """Readings -> odometry -> ``/odom`` and ``/tf`` (module docstring)."""
+
+    def __init__(
+        self,
+        kinematics: str | os.PathLike[str],
+        sink: Sink,
+        *,
+        stamp_offset: float = 0.0,
+        options: OdometryOptions | None = None,
+    ) -> None:
+        self.path = Path(kinematics)
+        self._sink = sink
+        self.stamp_offset = float(stamp_offset)
+        self._signature = _signature(self.path)
+        kf = load_kinematics(self.path)
+        self.odometry = Odometry(kf.params, options=options)
+        self.covariance = OdometryCovariance(_parameter_covariance(kf))  # type: ignore[arg-type]
+        self.reloads = 0
+        self.reload_error: str | None = None
+        self.published = 0
+        self._prev: tuple[list[float], list[float]] | None = None
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """Module ids in the order :meth:`update` expects readings."""
+        return self.odometry.ids
+
+    def reload_if_changed(self) -> bool:
+        """Load the kinematic file again if it changed (module docstring); True if swapped."""
+        sig = _signature(self.path)
+        if sig is None or sig == self._signature:
+            return False
+        self._signature = sig
+        try:
+            kf = load_kinematics(self.path)
+            self.odometry.set_params(kf.params)
+        except (SwpcError, OSError) as exc:
+            self.reload_error = str(exc)
+            log.warning("odometry: kept the running parameters: %s", exc)
+            return False
+        self.covariance.set_parameter_covariance(_parameter_covariance(kf))  # type: ignore[arg-type]
+        self.reloads += 1
+        self.reload_error = None
+        log.info("odometry: reloaded %s", self.path)
+        return True
+
+    def update(self, t: float, theta_hat: Sequence[float], psi: Sequence[float]) -> None:
+        """One reading of all modules (module order :attr:`ids`): step, then publish."""
+        self.reload_if_changed()
+        odo = self.odometry
+        p0 = odo.pose
+        odo.update(t, theta_hat, psi)
+        th = [float(a) for a in theta_hat]
+        ps = [float(a) for a in psi]
+        prev, self._prev = self._prev, (th, ps)
+        step = odo.last
+        if prev is None or step is None or step.t != t:
+            return  # the first reading only stores
+        rows = _Geometry.of(odo.params).rows
+        qx, qy = contact_points(rows, step.dt, prev[0], th, prev[1], ps)
+        meas = measurement_covariance(qx, qy, step.weights, step.sigma)
+        J = twist_sensitivity(rows, step.dt, prev[0], th, prev[1], ps, step.weights)
+        p1 = odo.pose
+        self.covariance.step((p0.x, p0.y, p0.yaw), (p1.x, p1.y, p1.yaw), step.dt, meas, J)
+        vx, vy, om = step.twist
+        s = base_link_from_robot(PlanarState(p1.x, p1.y, p1.yaw, vx, vy, om))
+        stamp = t + self.stamp_offset
+        self._sink(ODOM_TOPIC, ODOMETRY, stamp, odometry_cdr(
+            stamp, s, ros_covariance(self.covariance.pose), ros_covariance(self.covariance.twist)
+        ))  # fmt: skip
+        self._sink(TF_TOPIC, TF_MESSAGE, stamp, tf_cdr(stamp, s))
+        self.published += 1
+
+
+__all__ = ["ODOM_TOPIC", "TF_TOPIC", "Ros2OdometryStream", "Sink"]
