@@ -279,7 +279,7 @@ def test_a_bad_new_file_keeps_the_running_parameters(tmp_path: Path) -> None:
         stream.update(t[k], th[k], ps[k])
     assert stream.reloads == 0 and stream.reload_error is not None
     assert "missing key 'frame'" in stream.reload_error
-    assert stream.odometry.params == p
+    assert stream.odometry.params.modules == p.modules  # in base_link = R: the same
     assert len(got) == 2 * (len(t) - 1)
 
 
@@ -319,3 +319,44 @@ def test_swpc_odometry_replays_a_datasets_encoders_to_a_ros2_client(
     assert codes == [0]
     assert len(got) == len(t) - 1
     assert got[-1].twist.twist.angular.z == pytest.approx(0.2, rel=1e-6)
+
+
+def test_the_stream_publishes_base_links_motion_from_the_robot_config(tmp_path: Path) -> None:
+    """A spin of R about its own origin, with base_link at (0.2, 0.1) yawed 0.3 rad in R:
+    the published twist is base_link's, ``v_b = R(-yaw_b) (v_R + omega x p_b)``, in
+    base_link's axes (decoded from the CDR with rosbags' own type store)."""
+    from swpc_hw.frames import BaseLinkPose
+    from swpc_hw.mocap import ros2_typestore
+
+    p = PAPER_CALIBRATED
+    kin = tmp_path / "kinematics.yaml"
+    save_kinematics(kin, p)
+    got: list[bytes] = []
+    bl = BaseLinkPose(x=0.2, y=0.1, yaw=0.3)
+
+    def sink(topic: str, _ty: str, _stamp: float, cdr: bytes) -> None:
+        if topic == "/odom":
+            got.append(cdr)
+
+    stream = Ros2OdometryStream(kin, sink, base_link=bl)
+    om = 0.5
+    t, th, ps, _ = make_stream(p, [(1.0, (0.0, 0.0, om))], rate=100.0, jitter=0.0)
+    for k in range(len(t)):
+        stream.update(t[k], th[k], ps[k])
+    msg = ros2_typestore().deserialize_cdr(got[-1], ODOMETRY)
+    v_r = np.array([-om * bl.y, om * bl.x])  # omega x p_b, R's axes
+    c, s = math.cos(bl.yaw), math.sin(bl.yaw)
+    v_b = np.array([[c, s], [-s, c]]) @ v_r
+    tw = msg.twist.twist
+    assert (tw.linear.x, tw.linear.y) == pytest.approx(tuple(v_b), abs=1e-9)
+    assert tw.angular.z == pytest.approx(om, abs=1e-9)
+    assert msg.child_frame_id == "base_link" and msg.header.frame_id == "odom"
+    # and without base_link, the same readings give R's own twist: a spin in place
+    plain: list[bytes] = []
+    r_stream = Ros2OdometryStream(
+        kin, lambda tp, _t, _s, b: plain.append(b) if tp == "/odom" else None
+    )
+    for k in range(len(t)):
+        r_stream.update(t[k], th[k], ps[k])
+    tw_r = ros2_typestore().deserialize_cdr(plain[-1], ODOMETRY).twist.twist
+    assert math.hypot(tw_r.linear.x, tw_r.linear.y) < 1e-9

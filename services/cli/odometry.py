@@ -54,7 +54,12 @@ def run(args: argparse.Namespace) -> int:
     publisher = ZenohRos2Publisher(session, domain_id=args.domain_id, namespace=args.namespace)
     try:
         if args.encoders:
-            stream = Ros2OdometryStream(args.kinematics, publisher)
+            base_link = None
+            if args.robot_config is not None:
+                from services.config.robot import load_robot_config
+
+                base_link = load_robot_config(args.robot_config).base_link
+            stream = Ros2OdometryStream(args.kinematics, publisher, base_link=base_link)
             _wait_subscriber(publisher, args.wait_subscriber)
             _replay(stream, args.encoders)
         else:
@@ -105,7 +110,8 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
                              can_bitrate=args.can_bitrate)
     clock = SystemClock(rate=st.external_time_scale)
     stream = Ros2OdometryStream(args.kinematics, publisher,
-                                stamp_offset=clock.wall() - clock.now())
+                                stamp_offset=clock.wall() - clock.now(),
+                                base_link=config.base_link)
     driver = robot_drives(st, config, interface=args.can_interface, channel=args.can_channel,
                           clock=clock)
     try:

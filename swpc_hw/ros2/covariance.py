@@ -45,7 +45,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 # The odometry's own step (same package layer): the contact points and the weighted solve.
 from swpc_hw.odometry import _contact_velocities, _weighted_twist
@@ -176,7 +176,7 @@ class OdometryCovariance:
 
 def parameter_covariance(
     n_modules: int,
-    covariance: Sequence[Sequence[float]] | None,
+    covariance: ArrayLike | None,
     stddevs: Sequence[Sequence[float] | None],
 ) -> FloatArray:
     """``Sigma_p`` (5N x 5N) of a kinematic file: its ``covariance``, else the ``stddev``s

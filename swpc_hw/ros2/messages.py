@@ -5,9 +5,8 @@
   in ``base_link`` with its covariance (:mod:`swpc_hw.ros2.covariance`);
 * ``tf2_msgs/msg/TFMessage`` on ``/tf``: one transform ``odom -> base_link``, the same pose.
 
-The odometry integrates the pose of its frame R (the kinematic file's frame, on the floor);
-:func:`base_link_from_robot` is the one place where the robot config's transform
-R -> base_link applies.
+The odometry integrates the pose of the frame its parameters are in: base_link
+(:func:`swpc_hw.ros2.stream.load_in_base_link`).
 """
 
 from __future__ import annotations
@@ -36,17 +35,6 @@ class PlanarState:
     vx: float
     vy: float
     omega: float
-
-
-def base_link_from_robot(state: PlanarState) -> PlanarState:
-    """The state of ``base_link`` from the state of the odometry's frame R.
-
-    Until the robot config names a transform R -> base_link, base_link *is* R (identity).
-    With a planar offset ``(x_b, y_b, yaw_b)`` of base_link in R it becomes
-    ``pose_b = pose_R (+) (x_b, y_b, yaw_b)``,
-    ``v_b = R(-yaw_b) (v_R + omega x (x_b, y_b))``, ``omega_b = omega``.
-    """
-    return state
 
 
 def stamp(t: float) -> tuple[int, int]:
@@ -121,7 +109,6 @@ __all__ = [
     "ODOM_FRAME",
     "TF_MESSAGE",
     "PlanarState",
-    "base_link_from_robot",
     "odometry_cdr",
     "stamp",
     "tf_cdr",

@@ -26,7 +26,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from swpc_hw.errors import SwpcError
-from swpc_hw.kinematic_file import KinematicFile, load_kinematics
+from swpc_hw.frames import BaseLink, to_base_link
+from swpc_hw.kinematic_file import load_kinematics
+from swpc_hw.model import FloatArray, RobotParams
 from swpc_hw.odometry import Odometry, OdometryOptions, _Geometry
 from swpc_hw.ros2.covariance import (
     OdometryCovariance,
@@ -40,7 +42,6 @@ from swpc_hw.ros2.messages import (
     ODOMETRY,
     TF_MESSAGE,
     PlanarState,
-    base_link_from_robot,
     odometry_cdr,
     tf_cdr,
 )
@@ -62,14 +63,25 @@ def _signature(path: Path) -> tuple[int, int, int] | None:
     return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
-def _parameter_covariance(kf: KinematicFile) -> object:
-    mods = kf.params.modules
+def load_in_base_link(
+    path: Path, base_link: BaseLink | None
+) -> tuple[RobotParams, FloatArray | None]:
+    """A kinematic file's parameters and covariance re-expressed in base_link
+    (:func:`swpc_hw.frames.to_base_link`): an odometry on them integrates base_link's own
+    motion, so its pose and twist are base_link's (``odom -> base_link``).  Raises
+    :class:`~swpc_hw.errors.SwpcError` / ``OSError`` / ``ValueError`` (another frame)."""
+    kf = load_kinematics(path)
+    return to_base_link(kf.params, kf.covariance, base_link)
+
+
+def _parameter_covariance(params: RobotParams, covariance: FloatArray | None) -> FloatArray:
+    mods = params.modules
     sds = [
         None if m.stddev is None else
         [m.stddev.x_s, m.stddev.y_s, m.stddev.beta, m.stddev.b, m.stddev.r]
         for m in mods
     ]  # fmt: skip
-    return parameter_covariance(len(mods), kf.covariance, sds)
+    return parameter_covariance(len(mods), covariance, sds)
 
 
 class Ros2OdometryStream:
@@ -82,14 +94,18 @@ class Ros2OdometryStream:
         *,
         stamp_offset: float = 0.0,
         options: OdometryOptions | None = None,
+        base_link: BaseLink | None = None,
     ) -> None:
+        """``base_link``: the robot config's (:func:`load_in_base_link`; None: base_link is
+        the file's frame R)."""
         self.path = Path(kinematics)
+        self.base_link = base_link
         self._sink = sink
         self.stamp_offset = float(stamp_offset)
         self._signature = _signature(self.path)
-        kf = load_kinematics(self.path)
-        self.odometry = Odometry(kf.params, options=options)
-        self.covariance = OdometryCovariance(_parameter_covariance(kf))  # type: ignore[arg-type]
+        params, cov = load_in_base_link(self.path, base_link)
+        self.odometry = Odometry(params, options=options)
+        self.covariance = OdometryCovariance(_parameter_covariance(params, cov))
         self.reloads = 0
         self.reload_error: str | None = None
         self.published = 0
@@ -107,13 +123,13 @@ class Ros2OdometryStream:
             return False
         self._signature = sig
         try:
-            kf = load_kinematics(self.path)
-            self.odometry.set_params(kf.params)
-        except (SwpcError, OSError) as exc:
+            params, cov = load_in_base_link(self.path, self.base_link)
+            self.odometry.set_params(params)
+        except (SwpcError, OSError, ValueError) as exc:
             self.reload_error = str(exc)
             log.warning("odometry: kept the running parameters: %s", exc)
             return False
-        self.covariance.set_parameter_covariance(_parameter_covariance(kf))  # type: ignore[arg-type]
+        self.covariance.set_parameter_covariance(_parameter_covariance(params, cov))
         self.reloads += 1
         self.reload_error = None
         log.info("odometry: reloaded %s", self.path)
@@ -138,7 +154,7 @@ class Ros2OdometryStream:
         p1 = odo.pose
         self.covariance.step((p0.x, p0.y, p0.yaw), (p1.x, p1.y, p1.yaw), step.dt, meas, J)
         vx, vy, om = step.twist
-        s = base_link_from_robot(PlanarState(p1.x, p1.y, p1.yaw, vx, vy, om))
+        s = PlanarState(p1.x, p1.y, p1.yaw, vx, vy, om)  # base_link's: load_in_base_link
         stamp = t + self.stamp_offset
         self._sink(ODOM_TOPIC, ODOMETRY, stamp, odometry_cdr(
             stamp, s, ros_covariance(self.covariance.pose), ros_covariance(self.covariance.twist)
