@@ -501,6 +501,13 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     wait_for("the spins", lambda: len(css(d, "#res-world polyline")) == 8)
     files = [e.text for e in d.find_elements(By.CSS_SELECTOR, "#res-files a")]
     assert {"run.mcap", "can.log", "kinematics.yaml", "dataset.zip"} <= set(files), files
+    # the ROS 2 downloads: what the page links is what the service exports
+    href = d.find_element(By.ID, "res-export-urdf").get_attribute("href")
+    assert href is not None and href.endswith(f"/calibrations/{run_id}/export?to=urdf")
+    status, body = d.execute_script(
+        "const x = new XMLHttpRequest(); x.open('GET', arguments[0], false); x.send();"
+        "return [x.status, x.responseText];", href)  # fmt: skip
+    assert status == 200 and "<robot" in body and 'joint name="steer_1"' in body, body[:300]
     check_view(d, "result", shots="06-result")
     shot(d, "06-result")
     # install, confirmed from the keyboard (Cancel has the focus first)

@@ -365,6 +365,11 @@ async function showResult(id) {
     renderComparison(cmp);
     $("res-files").replaceChildren(...files.map((f) => el("li", {},
       el("a", { href: f.url, download: `${id}-${f.name}` }, f.name), ` (${(f.size / 1024).toFixed(0)} KiB)`)));
+    for (const to of ["urdf", "ros2-params", "kinematics"]) {
+      const a = $("res-export-" + to);
+      a.href = `/calibrations/${id}/export?to=${to}`;
+      a.setAttribute("download", "");  // the name the service gives (Content-Disposition)
+    }
     $("res-plot").src = `/calibrations/${id}/plot.png`;
     $("res-foxglove").href = "#foxglove/" + id;
     renderGeometry(await api("GET", `/calibrations/${id}/geometry`));
