@@ -311,7 +311,9 @@ def step_twist(
 # --------------------------------------------------------------------------- runtime object
 
 
-def _stat_signature(path: Path) -> tuple[int, int, int] | None:
+def file_signature(path: Path) -> tuple[int, int, int] | None:
+    """``(mtime ns, size, inode)`` of a file, None if it cannot be read: a new kinematic
+    file installed by an atomic rename changes the inode."""
     try:
         st = os.stat(path)
     except OSError:
@@ -380,7 +382,7 @@ class Odometry:
         self._filtered: list[float] | None = None
         self._last: tuple[float, float, StepSolution] | None = None
         self._source: Path | None = Path(source) if source is not None else None
-        self._signature = _stat_signature(self._source) if self._source is not None else None
+        self._signature = file_signature(self._source) if self._source is not None else None
 
     # ------------------------------------------------------------------ construction / reload
 
@@ -407,7 +409,7 @@ class Odometry:
         p = Path(path) if path is not None else self._source
         if p is None:
             raise OdometryError("odometry: reload() needs a path (not loaded from a file)")
-        sig = _stat_signature(p)
+        sig = file_signature(p)
         params = load_kinematics(p).params
         self.set_params(params)
         self._source = p
@@ -422,7 +424,7 @@ class Odometry:
         """
         if self._source is None:
             return False
-        sig = _stat_signature(self._source)
+        sig = file_signature(self._source)
         if sig is None or sig == self._signature:
             return False
         self._signature = sig

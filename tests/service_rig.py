@@ -5,6 +5,7 @@ with a bus of ours on its CAN channel (:class:`Sim`), one not connected to any r
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -141,3 +142,31 @@ def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
             return
         time.sleep(0.02)
     raise AssertionError("never reached a steady spin")
+
+
+@contextmanager
+def served(app: Any, *, header_timeout: float = 5.0) -> Iterator[tuple[Any, int]]:
+    """``app`` behind the real HTTP server (uvicorn with GuardedH11) on a free loopback
+    port, in this process: ``(server, port)``; the server is stopped on exit."""
+    from services.http.server import server as http_server
+    from swpc_hw.zenoh_session import free_tcp_endpoint
+
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    srv = http_server(
+        app, host="127.0.0.1", port=port, header_timeout=header_timeout, max_connections=8,
+        log_level="warning",
+    )  # fmt: skip
+    serving = threading.Thread(target=srv.run, daemon=True)
+    serving.start()
+    deadline = time.monotonic() + 30
+    while not srv.started:
+        assert serving.is_alive() and time.monotonic() < deadline, "server did not start"
+        time.sleep(0.01)
+    try:
+        yield srv, port
+    finally:
+        srv.should_exit = True
+        serving.join(10)
+        if serving.is_alive():
+            srv.force_exit = True
+            serving.join(10)

@@ -34,7 +34,6 @@ from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.http.console.router import mcap_summary
-from services.http.server import server as http_server
 from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runtime.events import EventBus
@@ -44,9 +43,8 @@ from swpc_hw.clock import VirtualClock
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from swpc_hw.zenoh_session import free_tcp_endpoint
 from tests.fake_robot import FakeRobot
-from tests.service_rig import AUTH, TOKEN
+from tests.service_rig import AUTH, TOKEN, served
 
 TRUTH = RobotParams(robot="swpc", modules=PAPER_CALIBRATED.modules[:3])
 NOMINAL = RobotParams(robot="swpc", modules=PAPER_NOMINAL.modules[:3])
@@ -409,61 +407,31 @@ def test_an_open_event_stream_does_not_hold_up_a_sigterm(tmp_path: Path) -> None
     long as it stayed open.  Its stream now ends when the service stops."""
     rt = bare_runtime(tmp_path)
     app = create_app(rt.settings, runtime_factory=lambda _: rt)
-    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
-    srv = http_server(
-        app, host="127.0.0.1", port=port, header_timeout=5, max_connections=8,
-        log_level="warning",
-    )  # fmt: skip
-    serving = threading.Thread(target=srv.run, daemon=True)
-    serving.start()
     lines: list[str] = []
+    with served(app) as (srv, port):
 
-    def listen() -> None:
-        with httpx.stream("GET", f"http://127.0.0.1:{port}/events", timeout=30) as r:
-            lines.extend(r.iter_lines())
+        def listen() -> None:
+            with httpx.stream("GET", f"http://127.0.0.1:{port}/events", timeout=30) as r:
+                lines.extend(r.iter_lines())
 
-    listening = threading.Thread(target=listen, daemon=True)
-    try:
-        deadline = time.monotonic() + 30
-        while not srv.started:
-            assert serving.is_alive() and time.monotonic() < deadline, "server did not start"
-            time.sleep(0.01)
+        listening = threading.Thread(target=listen, daemon=True)
         listening.start()
+        deadline = time.monotonic() + 30
         while "event: live" not in lines:
             assert listening.is_alive() and time.monotonic() < deadline, lines
             time.sleep(0.01)
         srv.handle_exit(signal.SIGTERM, None)  # what the signal handler calls
-        serving.join(10)
         listening.join(10)
-        assert not serving.is_alive(), "the server still waits for the open stream"
-        assert not listening.is_alive() and app.state.stop_signal == "SIGTERM"
-    finally:
-        srv.force_exit = True
-        serving.join(10)
-
+        assert not listening.is_alive() and app.state.stop_signal == "SIGTERM", (
+            "the server still waits for the open stream"
+        )
 
 
 @contextlib.contextmanager
 def http_service(rt: Runtime) -> Iterator[str]:
-    """The app on ``rt`` behind the real HTTP server (uvicorn, GuardedH11) on a loopback
-    port, in this process; its base URL."""
-    app = create_app(rt.settings, runtime_factory=lambda _: rt)
-    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
-    srv = http_server(
-        app, host="127.0.0.1", port=port, header_timeout=5, max_connections=8,
-        log_level="warning",
-    )  # fmt: skip
-    serving = threading.Thread(target=srv.run, daemon=True)
-    serving.start()
-    deadline = time.monotonic() + 30
-    while not srv.started:
-        assert serving.is_alive() and time.monotonic() < deadline, "server did not start"
-        time.sleep(0.01)
-    try:
+    """The app on ``rt`` behind the real HTTP server, in this process; its base URL."""
+    with served(create_app(rt.settings, runtime_factory=lambda _: rt)) as (_srv, port):
         yield f"http://127.0.0.1:{port}"
-    finally:
-        srv.should_exit = True
-        serving.join(10)
 
 
 SSE = tuple[str, str, Any]

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import logging
 import socket
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,35 +16,16 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
-from swpc_hw.zenoh_session import free_tcp_endpoint
-from tests.service_rig import (
-    TOKEN,
-)
+from tests.service_rig import TOKEN, served
 
 
 @pytest.fixture()
 def server(tmp_path: Path) -> Iterator[tuple[str, int]]:
-    from services.http.server import server as make_server
-
     app = create_app(
         ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN)), runtime_factory=Runtime
     )
-    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
-    srv = make_server(
-        app, host="127.0.0.1", port=port, header_timeout=0.5, max_connections=8,
-        log_level="warning",
-    )  # fmt: skip
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not srv.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "server did not start"
-        time.sleep(0.01)
-    try:
+    with served(app, header_timeout=0.5) as (_srv, port):
         yield "127.0.0.1", port
-    finally:
-        srv.should_exit = True
-        thread.join(10)
 
 
 def closed_by_peer(sock: socket.socket, within: float) -> bool:

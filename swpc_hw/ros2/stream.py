@@ -29,7 +29,7 @@ from swpc_hw.errors import SwpcError
 from swpc_hw.frames import BaseLink, to_base_link
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.model import FloatArray, RobotParams
-from swpc_hw.odometry import Odometry, OdometryOptions, _Geometry
+from swpc_hw.odometry import Odometry, OdometryOptions, _Geometry, file_signature
 from swpc_hw.ros2.covariance import (
     OdometryCovariance,
     contact_points,
@@ -53,14 +53,6 @@ Sink = Callable[[str, str, float, bytes], None]
 
 ODOM_TOPIC = "/odom"
 TF_TOPIC = "/tf"
-
-
-def _signature(path: Path) -> tuple[int, int, int] | None:
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
 def load_in_base_link(
@@ -102,7 +94,7 @@ class Ros2OdometryStream:
         self.base_link = base_link
         self._sink = sink
         self.stamp_offset = float(stamp_offset)
-        self._signature = _signature(self.path)
+        self._signature = file_signature(self.path)
         params, cov = load_in_base_link(self.path, base_link)
         self.odometry = Odometry(params, options=options)
         self.covariance = OdometryCovariance(_parameter_covariance(params, cov))
@@ -118,7 +110,7 @@ class Ros2OdometryStream:
 
     def reload_if_changed(self) -> bool:
         """Load the kinematic file again if it changed (module docstring); True if swapped."""
-        sig = _signature(self.path)
+        sig = file_signature(self.path)
         if sig is None or sig == self._signature:
             return False
         self._signature = sig
