@@ -103,7 +103,6 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
     from services.config.timing import robot_drives
     from swpc_hw.clock import SystemClock
     from swpc_hw.ros2.stream import Ros2OdometryStream
-    from swpc_hw.validation.odometry_feed import DriverOdometry
 
     config = load_robot_config(args.robot_config)
     st = validation_settings(can_interface=args.can_interface, can_channel=args.can_channel,
@@ -116,10 +115,20 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
                           clock=clock)
     try:
         driver.configure()
-        DriverOdometry(driver, stream.odometry.params, on_update=stream.update)
+        follow_drives(driver, stream)
         print("swpc odometry: publishing /odom and /tf; Ctrl-C stops")
         with contextlib.suppress(KeyboardInterrupt):
             threading.Event().wait()
     finally:
         driver.shutdown()
     return stream
+
+
+def follow_drives(driver: Any, stream: Any) -> Any:
+    """The drives' feedback into ``stream`` (a :class:`~swpc_hw.ros2.stream.
+    Ros2OdometryStream`), one reading of all modules at a time, aligned on the modules'
+    counter clock by :class:`~swpc_hw.validation.odometry_feed.DriverOdometry`: what
+    ``swpc odometry`` does on a robot."""
+    from swpc_hw.validation.odometry_feed import DriverOdometry
+
+    return DriverOdometry(driver, stream.odometry.params, on_update=stream.update)

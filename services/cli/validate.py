@@ -157,9 +157,12 @@ def run_in_process(
     config: RobotConfig | None = None,
     settings: ServiceSettings | None = None,
     log: Callable[[str], None] | None = None,
+    observe: Callable[[Drives], object] | None = None,
 ) -> ValidationReport:
     """The drive against the in-process simulator in lockstep (``truth`` hidden in it:
-    default paper Table 4; default noise); a busy host slows it down, never changes it."""
+    default paper Table 4; default noise); a busy host slows it down, never changes it.
+    ``observe(driver)``: called once the driver is configured, to attach more listeners
+    to its feedback (e.g. ``swpc odometry``'s stream)."""
     from services.config.robot import RobotConfig
     from services.config.timing import robot_drives
     from services.runtime.simulator import in_process_simulator
@@ -178,6 +181,8 @@ def run_in_process(
     try:
         driver = robot_drives(st, cfg, interface="virtual", channel=channel, clock=clock)
         driver.configure()
+        if observe is not None:
+            observe(driver)
         sim = in_process_simulator(
             config=cfg,
             channel=channel,
