@@ -623,3 +623,38 @@ def test_a_module_with_no_path_yet_then_the_next(
     )
     assert drawn == [[0, 3], 1]
     assert severe_logs(d) == []
+
+
+def test_a_result_without_motion_capture_shows_only_what_it_has(
+    service: dict[str, Any], browser: WebDriver
+) -> None:
+    """A run without motion capture (metrology imu), started and answered over HTTP as an
+    operator's script would, then opened in the console: no empty "Spins in the world"
+    panel (there is no pose), and the summary names what it is compared with."""
+    from services.demo import operator_step
+    from tests.test_service_imu import PROTOCOL, axis_distances
+
+    auth = {"Authorization": f"Bearer {TOKEN}"}
+    with httpx.Client(base_url=service["url"], timeout=10.0) as http:
+        body = {"metrology": "imu", "references": axis_distances(),
+                "overrides": {"protocol": PROTOCOL}}  # fmt: skip
+        r = http.post("/calibrations", json=body, headers=auth)
+        assert r.status_code == 202, r.text
+        run_id = r.json()["id"]
+        deadline = time.monotonic() + 300  # a guard against a hang, never a judgement
+        while time.monotonic() < deadline:
+            st = http.get(f"/calibrations/{run_id}").json()
+            if st["state"] in ("DONE", "FAILED", "ABORTED"):
+                break
+            operator_step(http, run_id, st, auth)  # marks the floor, reads the tape
+            time.sleep(0.1)
+    assert st["state"] == "DONE", st
+    d = browser
+    d.get(f"{service['url']}/#result/{run_id}")
+    wait_for("this run's result", lambda: text(d, "res-id") == run_id)
+    wait_for("its panels", lambda: not d.find_element(By.ID, "res-world-figure").is_displayed())
+    summary = text(d, "res-summary")
+    assert "compared with" in summary and "the no file" not in summary, summary
+    check_view(d, "result")
+    shot(d, "12-result-imu")
+    assert severe_logs(d) == []
