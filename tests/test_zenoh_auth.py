@@ -70,7 +70,7 @@ def test_a_local_process_cannot_feed_the_service_poses(sim: Sim) -> None:
     users = rt.data_dir / ZENOH_USERS_FILE
     assert stat.S_IMODE(users.stat().st_mode) == 0o600
     (ep,) = rt.zenoh_endpoints
-    before = rt.mocap.counters.received
+    _, cursor = rt.mocap.samples_since(0)
     rogue = open_session(connect=[ep])
     try:
         n = deliveries(
@@ -81,7 +81,10 @@ def test_a_local_process_cannot_feed_the_service_poses(sim: Sim) -> None:
         assert n == 0
     finally:
         rogue.close()
-    assert rt.mocap.counters.received == before  # not one pose reached the ingest
+    # not one of its poses reached the ingest (the simulator's own, in flight on a busy
+    # host, may: they are not at x = 9 m)
+    rows, _ = rt.mocap.samples_since(cursor)
+    assert not (rows[:, 3] == 9.0).any(), rows
 
 
 def test_the_mocap_pcs_listener_admits_only_robots_and_takes_no_poses_from_them(
