@@ -43,6 +43,7 @@ from swpc_hw.paper_robot import PAPER_NOMINAL
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
 
 ROBOTS = [f"robot{i}" for i in range(1, 6)]
+ROUTER_FILE = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "fleet-router.json5"
 DAYS = ["2026-01-01T10:00:00.000Z", "2026-01-15T10:00:00.000Z", "2026-01-29T10:00:00.000Z"]
 WEAR = 0.05e-3
 """Wheel radius lost per week by robot<k>'s module 1, times k (m)."""
@@ -200,9 +201,9 @@ def test_a_malformed_document_is_skipped_and_counted(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
-    """A router on loopback, five robots' runtimes publishing through it."""
+    """The shipped fleet router on loopback, five robots' runtimes publishing through it."""
     ep = free_tcp_endpoint()
-    router = open_session(mode="router", listen=[ep])
+    router = open_session(mode="router", listen=[ep], config_file=str(ROUTER_FILE))
     robots: dict[str, tuple[Runtime, FleetPublisher]] = {}
     try:
         for k, name in enumerate(ROBOTS, start=1):
@@ -252,6 +253,16 @@ def test_five_robots_through_a_router_one_killed_and_the_fleet_restarted(
             assert r1["per_week"] == pytest.approx(-k * WEAR, rel=1e-9)
         beta = next(d for d in views[2]["drift"] if d["module"] == 2 and d["param"] == "beta")
         assert math.degrees(beta["change"]) == pytest.approx(2.0)
+
+        # the router routes the fleet's keys only
+        other: list[Any] = []
+        sub = session.declare_subscriber("mocap/**", lambda smp: other.append(smp))
+        _, pub2 = lab["robots"]["robot2"]
+        pub2.session.put("mocap/robot2/pose", b"x")
+        pub2.session.put(state_key("robot2"), b"{not json")  # routed, then refused
+        until("the refusal", lambda: fleet.rejected == 1)
+        assert other == []
+        sub.undeclare()
 
         # the HTTP side shows the same
         with TestClient(create_fleet_app(fleet)) as client:
