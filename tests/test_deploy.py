@@ -26,7 +26,7 @@ from swpc_hw.model import PARAM_NAMES
 from tests.service_rig import ROOT
 
 DEPLOY = ROOT / "deploy"
-UNITS = ("swpc-service.service", "swpc-sim.service")
+UNITS = ("swpc-service.service", "swpc-sim.service", "swpc-fleet.service")
 
 
 def run(*cmd: str | Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
@@ -164,9 +164,15 @@ def test_units_are_hardened(unit: str) -> None:
     assert d["User"] == ["swpc"] and d["Restart"] == ["on-failure"]
     assert d["ProtectSystem"] == ["strict"] and d["NoNewPrivileges"] == ["yes"]
     assert d["CapabilityBoundingSet"] == [""]
-    assert "AF_CAN" in d["RestrictAddressFamilies"][0].split()
-    assert all(v.startswith("+/opt/swpc/deploy/") for v in d["ExecStartPre"])
-    if unit == "swpc-service.service":
+    # the fleet view needs no CAN socket
+    assert ("AF_CAN" in d["RestrictAddressFamilies"][0].split()) == (unit != "swpc-fleet.service")
+    assert all(v.startswith("+/opt/swpc/deploy/") for v in d.get("ExecStartPre", []))
+    if unit == "swpc-fleet.service":
+        # the fleet store is the only writable path
+        assert d["StateDirectory"] == ["swpc-fleet"] and "ReadWritePaths" not in d
+        assert d["Environment"] == ["SWPC_FLEET_DATA_DIR=/var/lib/swpc-fleet"]
+        assert d["ExecStart"] == ["/opt/swpc/.venv/bin/swpc fleet --data-dir /var/lib/swpc-fleet"]
+    elif unit == "swpc-service.service":
         # the data dir is the only writable path: the state dir, nothing else
         assert d["StateDirectory"] == ["swpc"] and "ReadWritePaths" not in d
         assert d["Environment"] == ["SWPC_DATA_DIR=/var/lib/swpc"]
@@ -253,7 +259,7 @@ def test_robot_example_loads_and_documents_every_key() -> None:
 
 
 # ---------------------------------------------------------------------------- zenoh
-ZENOH_FILES = ("robot-peer.json5", "mocap-peer.json5", "lab-router.json5")
+ZENOH_FILES = ("robot-peer.json5", "mocap-peer.json5", "lab-router.json5", "fleet-router.json5")
 
 
 @pytest.mark.parametrize("name", ZENOH_FILES)
@@ -264,7 +270,7 @@ def test_zenoh_configs_load_with_scouting_off(name: str) -> None:
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
     assert json.loads(cfg.get_json("scouting/gossip/enabled")) is False
     mode = json.loads(cfg.get_json("mode"))
-    assert mode == ("router" if name == "lab-router.json5" else "peer")
+    assert mode == ("router" if name.endswith("-router.json5") else "peer")
 
 
 def test_mocap_bridge_maps_ros_pose_topics_to_our_key_space() -> None:

@@ -126,6 +126,34 @@ class ServiceSettings(BaseSettings):
         default_factory=lambda: ["mocap"],
         description="with zenoh_users_file: the users that may publish the robot's sensor keys",
     )
+    fleet_publish: bool = Field(
+        False,
+        description="publish this robot's state (the file in force, the last check, the "
+        "history of calibrations, health) to the fleet over zenoh (docs/fleet.md)",
+    )
+    fleet_robot: str | None = Field(
+        None, description="this robot's name in the fleet; unset: the robot config's robot:"
+    )
+    fleet_period: float = Field(
+        5.0,
+        gt=0,
+        le=3600,
+        description="host seconds between two publications of the state when nothing changed "
+        "(the heartbeat); a change is published within 0.5 s",
+    )
+    fleet_mode: str = Field(
+        "peer",
+        description="zenoh mode of the fleet session (peer: it retries the router in the "
+        "background, so a router that is down never stops the service)",
+    )
+    fleet_connect: list[str] = Field(
+        default_factory=list,
+        description="zenoh endpoints of the fleet's router (a session of its own, apart from "
+        "the sensors')",
+    )
+    fleet_config_file: str | None = Field(
+        None, description="zenoh JSON5 config of the fleet session"
+    )
     pose_encoding: str = Field("auto", description="native | ros2-cdr | auto")
     mocap_stale_after: float | None = Field(
         None,

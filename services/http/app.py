@@ -35,6 +35,7 @@ from services.http.console import router as console
 from services.http.deps import FiniteJSONResponse, printable
 from services.http.docs import offline_docs
 from services.http.guard import RequestGuard
+from services.runtime.fleet import FleetPublisher
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version
 from swpc_hw.heap_freeze import freeze_startup_heap
@@ -53,10 +54,16 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         rt = runtime_factory(cfg) if runtime_factory else Runtime(cfg).open()
         app.state.runtime = rt
-        freeze_startup_heap()  # no full-collection pause over the start-up heap mid-run
+        fleet: FleetPublisher | None = None
         try:
+            # SWPC_FLEET_PUBLISH: this robot's state to the fleet (its own zenoh session)
+            fleet = FleetPublisher.open(rt) if cfg.fleet_publish else None
+            app.state.fleet = fleet
+            freeze_startup_heap()  # no full-collection pause over the start-up heap mid-run
             yield
         finally:
+            if fleet is not None:
+                fleet.close()
             signal_name = getattr(app.state, "stop_signal", None)
             how = f" ({signal_name})" if signal_name else ""
             rt.close(f"the service was stopped{how} during the run")

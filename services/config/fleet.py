@@ -1,0 +1,109 @@
+"""The fleet: what a robot's service publishes about itself, and the fleet service's
+settings (docs/fleet.md).
+
+Every robot's service (``SWPC_FLEET_PUBLISH=true``) publishes its *state* (a JSON
+document, :data:`STATE_FORMAT`) on :func:`state_key` and holds a zenoh liveliness token on
+:func:`alive_key` while it runs; ``swpc fleet`` subscribes to both (:data:`STATE_KEYS`,
+:data:`ALIVE_KEYS`) through a zenoh router.  The robot and the fleet service share these
+names and nothing else.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from services.config.log_options import LogFormat, LogLevel
+from swpc_hw.errors import SwpcError
+
+STATE_FORMAT = "swpc-fleet-state/1"
+"""The ``format`` of a robot's state document (docs/fleet.md: its fields)."""
+PREFIX = "swpc/fleet"
+STATE_KEYS = f"{PREFIX}/*/state"
+"""Every robot's state (the fleet service's subscription)."""
+ALIVE_KEYS = f"{PREFIX}/*/alive"
+"""Every robot's liveliness token."""
+ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
+"""A robot's name in the fleet: one zenoh key chunk, no wildcard or separator."""
+STALE_PERIODS = 3
+"""A robot is stale after this many heartbeat periods without a message (unless
+``SWPC_FLEET_STALE_PERIODS`` says), or at once when its liveliness token goes."""
+
+
+class FleetNameError(SwpcError, ValueError):
+    """A robot name that cannot be a fleet key (names the rule)."""
+
+
+def check_robot_name(name: str) -> str:
+    if not ROBOT_NAME.match(name):
+        raise FleetNameError(
+            f"fleet robot name {name!r}: 1-63 characters of letters, digits, '_', '.', '-' "
+            "starting with a letter or digit (one zenoh key chunk; SWPC_FLEET_ROBOT or the "
+            "robot config's robot:)"
+        )
+    return name
+
+
+def state_key(robot: str) -> str:
+    return f"{PREFIX}/{check_robot_name(robot)}/state"
+
+
+def alive_key(robot: str) -> str:
+    return f"{PREFIX}/{check_robot_name(robot)}/alive"
+
+
+def robot_of_key(key: str) -> str | None:
+    """The robot named by a state or alive key (None: not a fleet key)."""
+    parts = key.split("/")
+    if len(parts) != 4 or "/".join(parts[:2]) != PREFIX or parts[3] not in ("state", "alive"):
+        return None
+    return parts[2] if ROBOT_NAME.match(parts[2]) else None
+
+
+def default_fleet_dir() -> Path:
+    """``$XDG_STATE_HOME/swpc-fleet``, else ``~/.local/state/swpc-fleet`` (as the service's
+    data dir, :func:`services.config.settings.default_data_dir`)."""
+    state = os.environ.get("XDG_STATE_HOME", "")
+    base = Path(state) if os.path.isabs(state) else Path.home() / ".local" / "state"
+    return base / "swpc-fleet"
+
+
+class FleetSettings(BaseSettings):
+    """``swpc fleet``'s settings: ``SWPC_FLEET_*`` variables, an env file, its flags."""
+
+    model_config = SettingsConfigDict(env_prefix="SWPC_FLEET_", env_file=None, extra="ignore")
+
+    host: str = Field("127.0.0.1", description="bind address of the fleet page and API")
+    port: int = Field(8090, ge=0, le=65535)
+    data_dir: Path = Field(
+        default_factory=default_fleet_dir,
+        description="the fleet store (fleet.sqlite); default $XDG_STATE_HOME/swpc-fleet",
+    )
+    mode: str = Field(
+        "client",
+        description="zenoh mode of the fleet's session: client (of the lab's router: the "
+        "robots are peers of it, and two peers linked only through a router do not hear "
+        "each other) or router (the fleet service is the router the robots connect to)",
+    )
+    connect: list[str] = Field(
+        default_factory=list, description="zenoh endpoints of the router (the robots' too)"
+    )
+    listen: list[str] = Field(
+        default_factory=list, description="zenoh endpoints to listen on (mode router)"
+    )
+    config_file: str | None = Field(
+        None, description="zenoh JSON5 config (deploy/zenoh/fleet-router.json5)"
+    )
+    stale_periods: float = Field(
+        STALE_PERIODS,
+        gt=1,
+        le=100,
+        description="a robot is stale after this many of its heartbeat periods without a "
+        "message (at once when its liveliness token goes)",
+    )
+    log_level: LogLevel = "info"
+    log_format: LogFormat = "text"
