@@ -43,16 +43,19 @@ Estimate (recursive least squares with exponential forgetting in metres driven,
 
     L <- lambda L + M^T M,   eta <- lambda eta + M^T y,   Y <- lambda Y + y^T y,
     k <- lambda k + 1                                              (effective blocks)
-    p = (L + L0)^-1 eta,   s^2 = (Y - 2 p^T eta + p^T L p) / (k (2N - 3) - 2N)
-    Cov p = s^2 (L + L0)^-1
+    p = T q,   q = (T^T L T + L0)^-1 T^T eta
+    s^2 = (Y - 2 p^T eta + p^T L p) / (k (2N - 3) - (2N - 1)),   Cov p = s^2 T (T^T L T + L0)^-1 T^T
 
-(``L0`` a ridge of 1e-9 of ``L``'s diagonal, for the directions no motion observes; the
-noise scale ``s^2`` is measured from the residuals, not assumed.)
+(``L0`` a ridge of 1e-9 of the diagonal, for the directions no motion observes; the noise
+scale ``s^2`` is measured from the residuals, not assumed.)
 
-Observability.  Every radius scaled by the same factor (``dr_i = t r_i``) is a rigid
-motion scaled, for settled casters: the odometry cannot see it (only the reference
-measurements of a check run can).  Radii are therefore reported relative to the modules'
-median: ``e_i = dr_i / r_i``, ``r-estimate_i = r_i (e_i - median_j e_j)``, a linear
+Observability.  Every radius scaled by the same factor (``dr_i = t r_i``: the direction
+``G``) is, for settled casters, the rigid motion scaled: the odometry cannot see it (only
+the reference measurements of a check run can).  Worse, ``t = -1`` (every radius zero)
+"explains" any residual, since ``M G ~ (I - H) sum g h = -y``: the estimate is kept out of
+that direction (``T``: an orthonormal basis of the complement of ``G``).  Radii are
+reported relative to the modules' median: ``e_i = dr_i / r_i``,
+``r-estimate_i = r_i (e_i - median_j e_j)``, a linear
 contrast ``c_i^T p`` given the order of the ``e_j`` (the median is one of them, or the mean
 of the middle two), with std ``sqrt(c_i^T Cov c_i)``; one wheel off shows on that wheel
 alone.  The homing errors are reported as they are: a common shift of all betas shows only
@@ -205,6 +208,16 @@ def median_contrast(eps: FloatArray, i: int) -> FloatArray:
     return c
 
 
+def gauge_complement(radii: Sequence[float]) -> FloatArray:
+    """``T`` (2N x 2N-1): an orthonormal basis of the parameters orthogonal to the common
+    radius scale ``G`` (``G_r,i = r_i``, ``G_beta,i = 0``)."""
+    m = 2 * len(radii)
+    G = np.zeros(m)
+    G[0::2] = radii
+    Q, _ = np.linalg.qr(np.column_stack([G / np.linalg.norm(G), np.eye(m)]))
+    return np.asarray(Q[:, 1:m], dtype=np.float64)
+
+
 def drift_estimates(
     ids: Sequence[int], radii: Sequence[float], L: FloatArray, eta: FloatArray, Y: float,
     k: float,
@@ -213,14 +226,15 @@ def drift_estimates(
     and the noise scale ``s^2`` (m^2 per block component)."""
     n = len(ids)
     m = 2 * n
-    d = np.diag(L).copy()
-    A = L + np.diag(1e-9 * d + 1e-300)
+    T = gauge_complement(radii)
+    Lq = T.T @ L @ T
+    A = Lq + np.diag(1e-9 * np.diag(Lq) + 1e-300)
     Ainv = np.linalg.inv(A)
-    p = Ainv @ eta
-    dof = k * (m - 3) - m
+    p = T @ (Ainv @ (T.T @ eta))
+    dof = k * (m - 3) - (m - 1)
     rss = max(Y - 2.0 * float(p @ eta) + float(p @ L @ p), 0.0)
     s2 = rss / dof if dof > 0.0 else math.inf
-    cov = s2 * Ainv
+    cov = s2 * (T @ Ainv @ T.T)
     r = np.asarray(radii, dtype=np.float64)
     eps = p[0::2] / r
     out = []
@@ -422,6 +436,7 @@ __all__ = [
     "Suspect",
     "SuspectChange",
     "drift_estimates",
+    "gauge_complement",
     "median_contrast",
     "residual_maker",
 ]
