@@ -77,6 +77,18 @@ def test_type_hashes_match_the_published_jazzy_values(ros_type: str) -> None:
         assert TYPE_HASHES[ros_type] == PUBLISHED[ros_type]
 
 
+def test_the_diagnostics_type_hash_is_what_both_implementations_compute() -> None:
+    """/diagnostics (the drift monitor's status): no published Jazzy value at hand, so the
+    two implementations' agreement is the check."""
+    from zenoh_ros2_sdk.utils import compute_type_hash_from_msg
+
+    t = "diagnostic_msgs/msg/DiagnosticArray"
+    files = msg_files(t)
+    deps = {k: v for k, v in files.items() if k != t}
+    assert _jazzy().hash_rihs01(t) == TYPE_HASHES[t]
+    assert compute_type_hash_from_msg(t, files[t], deps) == TYPE_HASHES[t]
+
+
 def test_key_expressions_and_attachment_are_rmw_zenohs() -> None:
     from zenoh_ros2_sdk.attachment import Attachment as SdkAttachment
     from zenoh_ros2_sdk.keyexpr import topic_keyexpr

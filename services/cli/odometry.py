@@ -6,14 +6,25 @@ Publishes ``nav_msgs/msg/Odometry`` on ``/odom`` and ``tf2_msgs/msg/TFMessage`` 
 installed.  Readings come from the drives' CAN feedback (``--can-interface``, through the
 robot config's driver, as ``swpc validate`` drives them) or from a recorded dataset's
 ``encoders.csv`` (``--encoders DIR``: a replay, stamps on the dataset's clock).
+
+The drift monitor watches the calibration while the robot works (``--no-drift`` turns it
+off; docs/odometry.md): a calibration suspect raised or cleared is a log line
+``event=calibration_suspect`` / ``event=calibration_suspect_cleared`` with its evidence,
+and a status on ``/diagnostics``.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from swpc_hw.drift import SuspectChange
+
+log = logging.getLogger("swpc.odometry")
 
 
 def register(sub: Any) -> None:
@@ -39,14 +50,34 @@ def register(sub: Any) -> None:
     p.add_argument("--zenoh-listen", nargs="*", default=[], metavar="ENDPOINT")
     p.add_argument("--zenoh-connect", nargs="*", default=[], metavar="ENDPOINT")
     p.add_argument("--zenoh-config", help="zenoh JSON5 config file")
+    p.add_argument("--drift", action=argparse.BooleanOptionalAction, default=True,
+                   help="watch the calibration for drift while driving (default: on)")
     p.set_defaults(func=run)
 
 
+def log_suspect(change: SuspectChange) -> str:
+    """The log line of a calibration suspect raised (WARNING) or cleared (INFO)."""
+    from services.store.logs import event
+
+    if change.raised:
+        return event(log, logging.WARNING, "calibration_suspect", **change.suspect.fields())
+    return event(log, logging.INFO, "calibration_suspect_cleared", **change.suspect.fields())
+
+
+def _drift(args: argparse.Namespace) -> dict[str, Any]:
+    """The stream's drift arguments for ``--drift`` / ``--no-drift``."""
+    from swpc_hw.drift import DriftOptions
+
+    return {"drift": DriftOptions(), "on_suspect": log_suspect} if args.drift else {}
+
+
 def run(args: argparse.Namespace) -> int:
+    from services.store.logs import configure
     from swpc_hw.ros2.publisher import ZenohRos2Publisher
     from swpc_hw.ros2.stream import Ros2OdometryStream
     from swpc_hw.zenoh_session import open_session
 
+    configure()  # swpc's lines to stderr, as swpc serve writes them
     session = open_session(
         mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
         config_file=args.zenoh_config,
@@ -59,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
                 from services.config.robot import load_robot_config
 
                 base_link = load_robot_config(args.robot_config).base_link
-            stream = Ros2OdometryStream(args.kinematics, publisher, base_link=base_link)
+            stream = Ros2OdometryStream(args.kinematics, publisher, base_link=base_link,
+                                        **_drift(args))
             _wait_subscriber(publisher, args.wait_subscriber)
             _replay(stream, args.encoders)
         else:
@@ -110,7 +142,7 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
     clock = SystemClock(rate=st.external_time_scale)
     stream = Ros2OdometryStream(args.kinematics, publisher,
                                 stamp_offset=clock.wall() - clock.now(),
-                                base_link=config.base_link)
+                                base_link=config.base_link, **_drift(args))
     driver = robot_drives(st, config, interface=args.can_interface, channel=args.can_channel,
                           clock=clock)
     try:

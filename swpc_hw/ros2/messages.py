@@ -3,7 +3,10 @@
 * ``nav_msgs/msg/Odometry`` on ``/odom``: header ``frame_id = odom``, ``child_frame_id =
   base_link``; pose of ``base_link`` in ``odom`` with its covariance, twist of ``base_link``
   in ``base_link`` with its covariance (:mod:`swpc_hw.ros2.covariance`);
-* ``tf2_msgs/msg/TFMessage`` on ``/tf``: one transform ``odom -> base_link``, the same pose.
+* ``tf2_msgs/msg/TFMessage`` on ``/tf``: one transform ``odom -> base_link``, the same pose;
+* ``diagnostic_msgs/msg/DiagnosticArray`` on ``/diagnostics`` when a calibration suspect is
+  raised or cleared (:mod:`swpc_hw.drift`): one status ``swpc: calibration``, level WARN
+  while any suspect stands (OK otherwise), a key/value per field of each suspect's evidence.
 
 The odometry integrates the pose of the frame its parameters are in: base_link
 (:func:`swpc_hw.ros2.stream.load_in_base_link`).
@@ -12,7 +15,7 @@ The odometry integrates the pose of the frame its parameters are in: base_link
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +24,8 @@ from swpc_hw.mocap import ros2_typestore
 
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+CALIBRATION_STATUS = "swpc: calibration"
 ODOM_FRAME = "odom"
 BASE_LINK = "base_link"
 
@@ -103,12 +108,35 @@ def tf_cdr(t: float, s: PlanarState) -> bytes:
     return bytes(ts.serialize_cdr(msg, TF_MESSAGE))
 
 
+def diagnostic_cdr(t: float, evidence: Sequence[Mapping[str, object]]) -> bytes:
+    """CDR ``diagnostic_msgs/msg/DiagnosticArray``: the status :data:`CALIBRATION_STATUS`,
+    WARN with ``evidence`` (each suspect's fields, keys prefixed ``<i>.``), OK if none."""
+    ts = ros2_typestore()
+    T = ts.types
+    values = [
+        T["diagnostic_msgs/msg/KeyValue"](key=f"{i}.{k}", value=str(v))
+        for i, ev in enumerate(evidence) for k, v in ev.items()
+    ]
+    status = T["diagnostic_msgs/msg/DiagnosticStatus"](
+        level=1 if evidence else 0,  # WARN / OK (a byte)
+        name=CALIBRATION_STATUS,
+        message="calibration suspect" if evidence else "calibration consistent",
+        hardware_id="",
+        values=values,
+    )
+    msg = T[DIAGNOSTIC_ARRAY](header=_header(t, ""), status=[status])
+    return bytes(ts.serialize_cdr(msg, DIAGNOSTIC_ARRAY))
+
+
 __all__ = [
     "BASE_LINK",
+    "CALIBRATION_STATUS",
+    "DIAGNOSTIC_ARRAY",
     "ODOMETRY",
     "ODOM_FRAME",
     "TF_MESSAGE",
     "PlanarState",
+    "diagnostic_cdr",
     "odometry_cdr",
     "stamp",
     "tf_cdr",

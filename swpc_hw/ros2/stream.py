@@ -13,6 +13,13 @@ the inode).  A changed file is loaded and swapped in between two steps, pose and
 kept; a file that does not load, or describes other modules, is reported once
 (:attr:`reload_error`, the log) and the old parameters stay.
 
+Drift.  Given :class:`~swpc_hw.drift.DriftOptions`, the stream feeds every step to a
+:class:`~swpc_hw.drift.DriftMonitor` (the odometry's outputs unchanged); each calibration
+suspect raised or cleared is handed to ``on_suspect`` (the caller's log line) and published
+on ``/diagnostics`` (:func:`~swpc_hw.ros2.messages.diagnostic_cdr`: every standing
+suspect's evidence).  A reloaded file restarts the monitor: its estimate is of the file's
+errors.
+
 Stamps.  Readings carry the odometry's time ``t`` (robot seconds); the messages' header
 stamps and rmw_zenoh's source timestamps are ``t + stamp_offset`` (epoch seconds minus
 robot seconds, given by the caller from its clock; 0 for a replay).
@@ -25,6 +32,7 @@ import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from swpc_hw.drift import DriftMonitor, DriftOptions, SuspectChange
 from swpc_hw.errors import SwpcError
 from swpc_hw.frames import BaseLink, to_base_link
 from swpc_hw.kinematic_file import load_kinematics
@@ -39,9 +47,11 @@ from swpc_hw.ros2.covariance import (
     twist_sensitivity,
 )
 from swpc_hw.ros2.messages import (
+    DIAGNOSTIC_ARRAY,
     ODOMETRY,
     TF_MESSAGE,
     PlanarState,
+    diagnostic_cdr,
     odometry_cdr,
     tf_cdr,
 )
@@ -53,6 +63,7 @@ Sink = Callable[[str, str, float, bytes], None]
 
 ODOM_TOPIC = "/odom"
 TF_TOPIC = "/tf"
+DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
 def load_in_base_link(
@@ -87,9 +98,11 @@ class Ros2OdometryStream:
         stamp_offset: float = 0.0,
         options: OdometryOptions | None = None,
         base_link: BaseLink | None = None,
+        drift: DriftOptions | None = None,
+        on_suspect: Callable[[SuspectChange], None] | None = None,
     ) -> None:
         """``base_link``: the robot config's (:func:`load_in_base_link`; None: base_link is
-        the file's frame R)."""
+        the file's frame R).  ``drift``: watch the calibration (module docstring)."""
         self.path = Path(kinematics)
         self.base_link = base_link
         self._sink = sink
@@ -102,6 +115,8 @@ class Ros2OdometryStream:
         self.reload_error: str | None = None
         self.published = 0
         self._prev: tuple[list[float], list[float]] | None = None
+        self.drift = DriftMonitor(params, drift) if drift is not None else None
+        self._on_suspect = on_suspect
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -122,6 +137,8 @@ class Ros2OdometryStream:
             log.warning("odometry: kept the running parameters: %s", exc)
             return False
         self.covariance.set_parameter_covariance(_parameter_covariance(params, cov))
+        if self.drift is not None:
+            self.drift.restart()
         self.reloads += 1
         self.reload_error = None
         log.info("odometry: reloaded %s", self.path)
@@ -137,6 +154,8 @@ class Ros2OdometryStream:
         ps = [float(a) for a in psi]
         prev, self._prev = self._prev, (th, ps)
         step = odo.last
+        if self.drift is not None:
+            self._watch(t, self.drift.feed(odo, th, ps))
         if prev is None or step is None or step.t != t:
             return  # the first reading only stores
         rows = _Geometry.of(odo.params).rows
@@ -155,4 +174,15 @@ class Ros2OdometryStream:
         self.published += 1
 
 
-__all__ = ["ODOM_TOPIC", "TF_TOPIC", "Ros2OdometryStream", "Sink"]
+    def _watch(self, t: float, changes: list[SuspectChange]) -> None:
+        if not changes or self.drift is None:
+            return
+        for c in changes:
+            if self._on_suspect is not None:
+                self._on_suspect(c)
+        stamp = t + self.stamp_offset
+        evidence = [s.fields() for s in self.drift.suspects.values()]
+        self._sink(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, stamp, diagnostic_cdr(stamp, evidence))
+
+
+__all__ = ["DIAGNOSTICS_TOPIC", "ODOM_TOPIC", "TF_TOPIC", "Ros2OdometryStream", "Sink"]

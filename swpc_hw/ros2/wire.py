@@ -56,6 +56,9 @@ TYPE_HASHES: dict[str, str] = {
         "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0",
     "tf2_msgs/msg/TFMessage":
         "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+    # the two implementations agree on this one; no published value checked yet
+    "diagnostic_msgs/msg/DiagnosticArray":
+        "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
 }  # fmt: skip
 
 _ATTACHMENT = struct.Struct("<qqB")
