@@ -311,7 +311,9 @@ def test_five_robots_through_a_router_one_killed_and_the_fleet_restarted(
     fleet, session = open_fleet(lab, clock)
     try:
         assert {r.robot: r.documents for r in fleet.store.robots()} == before
-        assert before == {n: 2 if n == "robot2" else 1 for n in ROBOTS}
+        # a document per state (robot2 changed once); a loaded host can add one where the
+        # health summary changed between two heartbeats
+        assert before["robot2"] >= 2 and all(before[n] >= 1 for n in ROBOTS), before
         assert {r.robot: r.last_seen for r in fleet.store.robots()}["robot1"] == seen["robot1"]
         until("the four tokens again", lambda: all(fleet.alive.get(n) for n in ROBOTS[1:]))
         view = {r["robot"]: r for r in fleet.robots()}

@@ -219,7 +219,7 @@ def test_odometry_and_tf_reach_an_independent_ros2_client_and_a_new_file_reloads
         with lock:
             tfs.append(m)
 
-    publisher = ZenohRos2Publisher(session)
+    publisher = ZenohRos2Publisher(session, block=True)  # counts every message
     # A plain zenoh subscriber on the same key for the attachments (the SDK hides them).
     atts: list[bytes] = []
     raw = session.declare_subscriber(

@@ -82,7 +82,10 @@ def run(args: argparse.Namespace) -> int:
         mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
         config_file=args.zenoh_config,
     )
-    publisher = ZenohRos2Publisher(session, domain_id=args.domain_id, namespace=args.namespace)
+    # a replay has no real time to keep: it delivers every message (the drives' odometry
+    # drops what the network cannot take, as rmw_zenoh's keep-last publishers do)
+    publisher = ZenohRos2Publisher(session, domain_id=args.domain_id, namespace=args.namespace,
+                                   block=bool(args.encoders))
     try:
         if args.encoders:
             base_link = None

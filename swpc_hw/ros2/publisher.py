@@ -13,6 +13,8 @@ from __future__ import annotations
 import uuid
 from typing import Any
 
+import zenoh
+
 from swpc_hw.ros2.wire import Attachment, node_token, publisher_token, topic_key
 
 NODE = "swpc_odometry"
@@ -23,8 +25,13 @@ class ZenohRos2Publisher:
     """rmw_zenoh publishers of one node on a zenoh session (module docstring)."""
 
     def __init__(self, session: Any, *, domain_id: int = 0, namespace: str = "",
-                 node: str = NODE) -> None:
+                 node: str = NODE, block: bool = False) -> None:
+        """``block``: a full transmission queue blocks the put (zenoh's congestion control
+        BLOCK) instead of dropping the message (DROP, the default: rmw_zenoh's for a
+        keep-last history, what odometry and TF publishers use; the odometry never waits
+        on the network).  A test that counts every message blocks."""
         self._session = session
+        self.block = block
         self.domain_id = domain_id
         self.namespace = namespace
         self.node = node
@@ -46,7 +53,11 @@ class ZenohRos2Publisher:
                 depth=DEPTHS.get(topic, 10), domain_id=self.domain_id,
                 namespace=self.namespace,
             )))  # fmt: skip
-            pub = self._session.declare_publisher(self.key(topic, ros_type))
+            pub = self._session.declare_publisher(
+                self.key(topic, ros_type),
+                congestion_control=zenoh.CongestionControl.BLOCK
+                if self.block else zenoh.CongestionControl.DROP,
+            )
             found = (pub, uuid.uuid4().bytes, [0])
             self._pubs[topic] = found
         return found
