@@ -443,7 +443,7 @@ def rollback(body: RollbackRequest, rt: Rt, request: Request) -> InstallResult:
     responses=WRITE_RESPONSES,
 )
 def install(run_id: str, rt: Rt, request: Request) -> InstallResult:
-    got = rt.result(run_id)
+    got = rt.result(run_id, "calibration")
     if got is None:
         raise HTTPException(404, f"no calibration {run_id}")
     state, doc = got

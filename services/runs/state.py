@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import datetime as _dt
 from enum import StrEnum
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -96,6 +96,9 @@ class RunStatus(BaseModel):
 
     id: str
     created: str
+    kind: Literal["calibration", "check"] = "calibration"
+    """A calibration (``/calibrations``) or a check of the file in force (``/checks``,
+    docs/check.md): the same protocol's machinery."""
     state: State = State.PENDING
     metrology: str = "mocap"
     step: str = "waiting to start"
@@ -116,6 +119,8 @@ class RunStatus(BaseModel):
     started: str | None = None
     finished: str | None = None
     installed: bool | None = None
+    verdict: Literal["consistent", "drifted"] | None = None
+    """A check once DONE: does the robot still match the file (its result says more)."""
     drive_m: float | None = None
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
     elapsed_s: float | None = None
