@@ -25,11 +25,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -266,9 +268,9 @@ def offline(seeds: int, cfg: RobotConfig) -> None:
 # ---------------------------------------------------------------------------- service
 
 
-def service_check(data: Path, truth: Path, seed: int, overrides: dict[str, Any] | None = None
-                  ) -> dict[str, Any]:  # fmt: skip
-    """One check on a service on ``truth`` (data dir ``data``, its file in force)."""
+@contextlib.contextmanager
+def service(data: Path, truth: Path, seed: int) -> Iterator[Any]:
+    """The service on the in-process simulator whose hidden truth is ``truth``: a client."""
     from fastapi.testclient import TestClient
     from pydantic import SecretStr
 
@@ -279,15 +281,15 @@ def service_check(data: Path, truth: Path, seed: int, overrides: dict[str, Any] 
         data_dir=data, token=SecretStr(TOKEN), sim_truth=truth, sim_seed=seed,
         allowed_hosts=["testserver"],
     )  # fmt: skip
-    auth = {"Authorization": f"Bearer {TOKEN}"}
     with TestClient(create_app(s)) as client:
-        r = client.post("/checks", json={"overrides": overrides or {}}, headers=auth)
-        assert r.status_code == 202, r.text
-        cid = r.json()["id"]
-        return wait(client, f"/checks/{cid}")
+        yield client
 
 
-def wait(client: Any, path: str) -> dict[str, Any]:
+def start_and_wait(client: Any, what: str, body: dict[str, Any]) -> dict[str, Any]:
+    """POST ``/<what>`` and poll it until it ends: its final status."""
+    r = client.post(f"/{what}", json=body, headers={"Authorization": f"Bearer {TOKEN}"})
+    assert r.status_code == 202, r.text
+    path = f"/{what}/{r.json()['id']}"
     deadline = time.monotonic() + 900
     while True:
         st: dict[str, Any] = client.get(path).json()
@@ -297,21 +299,18 @@ def wait(client: Any, path: str) -> dict[str, Any]:
         time.sleep(0.05)
 
 
+def service_check(
+    data: Path, truth: Path, seed: int, overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """One check on a service on ``truth`` (data dir ``data``, its file in force)."""
+    with service(data, truth, seed) as client:
+        return start_and_wait(client, "checks", {"overrides": overrides or {}})
+
+
 def service_calibration(data: Path, truth: Path, seed: int) -> dict[str, Any]:
-    from fastapi.testclient import TestClient
-    from pydantic import SecretStr
-
-    from services.config.settings import ServiceSettings
-    from services.http.app import create_app
-
-    s = ServiceSettings(
-        data_dir=data, token=SecretStr(TOKEN), sim_truth=truth, sim_seed=seed,
-        allowed_hosts=["testserver"],
-    )  # fmt: skip
-    with TestClient(create_app(s)) as client:
-        r = client.post("/calibrations", json={}, headers={"Authorization": f"Bearer {TOKEN}"})
-        assert r.status_code == 202, r.text
-        return wait(client, f"/calibrations/{r.json()['id']}")
+    """One calibration (the default protocol), installed, on a service on ``truth``."""
+    with service(data, truth, seed) as client:
+        return start_and_wait(client, "calibrations", {})
 
 
 def service_times() -> dict[str, float]:

@@ -31,7 +31,7 @@ from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
 from swpc_hw.frames import BaseLink
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
-from swpc_hw.model import RobotParams
+from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_NOMINAL
 
 
@@ -186,6 +186,12 @@ class Tolerances(BaseModel):
     radius: float = Field(0.2e-3, gt=0, description="r std dev, m")
 
 
+TOLERANCE_OF = {
+    "x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"
+}  # fmt: skip
+"""The :class:`Tolerances` (and :class:`Repeatability`) field of each parameter."""
+
+
 class Repeatability(BaseModel):
     """How much an unchanged robot's parameters differ between two days beyond the
     measurements' noise (the floor's and the tyres' state, temperature): a std dev per
@@ -199,7 +205,7 @@ class Repeatability(BaseModel):
 
     def per_parameter(self) -> list[float]:
         """In the order ``x_s, y_s, beta, b, r``."""
-        return [self.position, self.position, self.beta, self.position, self.radius]
+        return [float(getattr(self, TOLERANCE_OF[k])) for k in PARAM_NAMES]
 
 
 class CheckConfig(BaseModel):

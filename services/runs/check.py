@@ -27,7 +27,8 @@ from services.config.robot import RobotConfig
 from services.runs.metrology import Metrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunFailedError
-from swpc_hw.calibration.check import DISPLAY, CheckResult, check_dataset
+from swpc_hw.calibration.check import CheckResult, check_dataset
+from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError, DatasetError

@@ -15,7 +15,7 @@ depend on the frame of the parameters: their trend uses the points in the refere
 frame only (a calibration without motion capture is in its design-fit frame); ``b`` and
 ``r`` do not.
 
-Values are in display units (mm, deg; slopes per week): :data:`swpc_hw.calibration.check.DISPLAY`.
+Values are in display units (mm, deg; slopes per week): :data:`swpc_hw.calibration.report.DISPLAY`.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from services.config.robot import RobotConfig
-from swpc_hw.calibration.check import DISPLAY
+from services.config.robot import TOLERANCE_OF, RobotConfig
+from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.calibration.trend import linear_trend
 from swpc_hw.model import PARAM_NAMES
 
@@ -35,10 +35,6 @@ if TYPE_CHECKING:
     from services.runtime.runtime import Runtime
 
 WEEK = 7 * 86400.0
-TOLERANCE_OF = {
-    "x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"
-}  # fmt: skip
-"""The robot config's tolerance of each parameter (:class:`~services.config.robot.Tolerances`)."""
 FRAME_FREE = frozenset({"b", "r"})
 """Parameters the same in every frame of R's rigid motions."""
 

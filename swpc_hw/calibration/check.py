@@ -56,19 +56,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.calibration.parameters import BETA, N_PARAMS
+from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.errors import CalibrationError
 from swpc_hw.model import PARAM_NAMES, RobotParams, wrap_angle
 
 FloatArray = NDArray[np.float64]
-
-DISPLAY: dict[str, tuple[str, float]] = {
-    "x_s": ("mm", 1e3),
-    "y_s": ("mm", 1e3),
-    "beta": ("deg", 180.0 / math.pi),
-    "b": ("mm", 1e3),
-    "r": ("mm", 1e3),
-}
-"""Display unit and scale from SI of each parameter."""
 
 CONSISTENT = "consistent"
 DRIFTED = "drifted"

@@ -538,7 +538,7 @@ const dateOf = (t) => (t || "").slice(0, 10);
 function driftChart(p, verdicts) {
   // x: time (s since the first point), y: the value; the band reference +- tolerance
   const pts = p.points.filter((q) => q.value !== null);
-  const W = 250, H = 150, L = 8, R = 8, T = 8, B = 8;
+  const W = 250, H = 150, L = 52, R = 8, T = 8, B = 8;  // the values' labels left of L
   const e = svg("svg", { viewBox: `0 0 ${W} ${H}`, role: "img",
     "aria-label": `module ${p.module} ${p.param} over time` });
   if (!pts.length) return e;
@@ -563,7 +563,7 @@ function driftChart(p, verdicts) {
       stroke: "#8a4b00", "stroke-width": 1.5, "stroke-dasharray": "5 3" }));
   }
   const label = (y, v) => {
-    const t = svg("text", { x: W - R - 2, y, "font-size": 11, fill: "#111", "text-anchor": "end" });
+    const t = svg("text", { x: L - 4, y, "font-size": 11, fill: "#111", "text-anchor": "end" });
     t.textContent = fmt(v, p.unit === "deg" ? 4 : 3);
     e.append(t);
   };
