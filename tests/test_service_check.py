@@ -73,6 +73,9 @@ def test_no_check_without_a_file_in_force(sim: Sim) -> None:
 
 def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(sim: Sim) -> None:
     kin = sim.rt.settings.kinematics_file
+    save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
+    r = sim.client.post("/checks", json={}, headers=AUTH)
+    assert r.status_code == 409 and "in frame 'design-fit'" in r.text
     save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth, exactly
     before = sha(kin)
     st = run_check(sim.client)

@@ -57,11 +57,12 @@ class CheckStatus(RunStatus):
 
 
 def check_status(rt: Rt, run_id: str) -> dict[str, Any]:
-    got = rt.result(run_id, "check")
+    """A check's status with its result once DONE (404: no such check)."""
     st = rt.status(run_id, "check")
-    if got is None or st is None:
+    got = rt.result(run_id, "check")
+    if st is None or got is None:
         raise HTTPException(404, f"no check {run_id}")
-    return {**st, "result": got[1] if got[0] == "DONE" else None}
+    return {**st, "result": got[1] if st["state"] == "DONE" else None}
 
 
 @router.post(

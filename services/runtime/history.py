@@ -24,15 +24,13 @@ import datetime as _dt
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from services.config.robot import TOLERANCE_OF, RobotConfig
+from services.runtime.runtime import NoFileError, Runtime
 from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.calibration.trend import linear_trend
 from swpc_hw.model import PARAM_NAMES
-
-if TYPE_CHECKING:
-    from services.runtime.runtime import Runtime
 
 WEEK = 7 * 86400.0
 FRAME_FREE = frozenset({"b", "r"})
@@ -194,7 +192,7 @@ def history_document(rt: Runtime, since: str | None = None) -> dict[str, Any]:
     file: dict[str, Any] | None = None
     try:
         kf, info, _ = rt.file_in_force()
-    except Exception:  # none in force, or it does not load: the newest calibration's
+    except NoFileError:  # none in force, or it does not load: the newest calibration's
         kf = None
     if kf is not None:
         frame = kf.params.frame

@@ -408,9 +408,9 @@ class Runtime:
 
     # --------------------------------------------------------------------- runs
     def file_in_force(self) -> tuple[KinematicFile, dict[str, Any], str]:
-        """The kinematic file in force for a check: loaded, what the API says of it
-        (``name``, ``sha256``, ``run``, ``created``, ``frame``) and its text.
-        :class:`NoFileError` when there is none or it does not load."""
+        """The kinematic file in force: loaded, what the API says of it (``name``,
+        ``sha256``, ``run``, ``created``, ``frame``) and its text.  :class:`NoFileError`
+        when there is none or it does not load."""
         path = self.settings.kinematics_file
         try:
             text = path.read_text(encoding="utf-8")
@@ -458,6 +458,12 @@ class Runtime:
                 what = self.current.status.kind
                 raise RunConflictError(f"{what} {self.current.id} is still running")
             checked = self.file_in_force() if kind == "check" else None
+            if checked is not None and checked[0].params.frame != config.nominal.frame:
+                raise NoFileError(
+                    f"the kinematic file in force is in frame {checked[0].params.frame!r}: a "
+                    f"check measures in {config.nominal.frame!r} with motion capture, where "
+                    "it cannot be compared (calibrate with motion capture first)"
+                )
             budget, reserve = int(s.disk_budget), run_reserve(int(s.disk_budget))
             room = make_room(self.data_dir, budget, reserve=reserve)
             for p in room.pruned:
