@@ -131,6 +131,11 @@ CANDIDATES: list[tuple[str, dict[str, Any]]] = [
 ]  # fmt: skip
 
 
+def rep_text(cfg: RobotConfig) -> str:
+    r = cfg.check.repeatability
+    return f"{r.position * 1e3:g} mm / {math.degrees(r.beta):g} deg / {r.radius * 1e3:g} mm"
+
+
 def power(lam: float, q: float) -> float:
     from scipy.stats import ncx2
 
@@ -146,15 +151,17 @@ def design(runs: int, cfg: RobotConfig, service_times: dict[str, float]) -> None
     robots = truths(runs)
     print(
         f"[design] check protocols: the solver's covariance as the Fisher information, {runs} "
-        f"offline runs each (file: a calibration; repeatability {cfg.check.repeatability}); "
-        f"power = P(chi2_5(lambda) > {q:.2f}), smallest over the runs and the module changed"
+        f"offline runs each (file: a calibration; repeatability {rep_text(cfg)}); "
+        f"power = P(chi2_5(lambda) > {q:.2f}) and sqrt(lambda), smallest over the runs and "
+        "the module changed"
     )
-    head = f"{'protocol':<42} {'robot s':>7} " + " ".join(f"{c:>14}" for c in CASES[1:])
+    head = f"{'protocol':<42} {'robot s':>7} " + " ".join(f"{c:>16}" for c in CASES[1:])
     print(head + f" {'RMS z':>6}")
     files = [calibrate(robots[i], i) for i in range(runs)]
     chosen: list[tuple[float, str]] = []
     for name, proto in CANDIDATES:
         worst = {c: 1.0 for c in CASES[1:]}
+        root = {c: math.inf for c in CASES[1:]}
         zs = []
         for i, truth in enumerate(robots):
             try:
@@ -173,10 +180,13 @@ def design(runs: int, cfg: RobotConfig, service_times: dict[str, float]) -> None
                     dv = np.zeros(N_PARAMS)
                     for p, v in drift(c, ids[k], i).items():
                         dv[PARAM_NAMES.index(p)] = v
-                    worst[c] = min(worst[c], power(float(dv @ inv @ dv), q))
+                    lam = float(dv @ inv @ dv)
+                    worst[c] = min(worst[c], power(lam, q))
+                    root[c] = min(root[c], math.sqrt(lam))
         rms = float(np.sqrt(np.mean(np.array(zs) ** 2))) if zs else math.nan
         t = service_times.get(name, math.nan)
-        print(f"{name:<42} {t:7.1f} " + " ".join(f"{worst[c]:14.4f}" for c in CASES[1:])
+        print(f"{name:<42} {t:7.1f} "
+              + " ".join(f"{worst[c]:8.4f} ({root[c]:4.1f})" for c in CASES[1:])
               + f" {rms:6.2f}")  # fmt: skip
         if min(worst.values()) >= 0.95 and rms <= HONEST and (t <= 30 or math.isnan(t)):
             chosen.append((t, name))
@@ -242,7 +252,7 @@ def offline(seeds: int, cfg: RobotConfig) -> None:
         f"\n[offline] {seeds} seeds per case ({wall:.0f} s: calibrations {t_cal / seeds:.2f} s, "
         f"checks {t_chk / (4 * seeds):.2f} s each); check protocol {proto['angles_deg']} deg, "
         f"{proto['sweep_deg']:g} deg sweeps, every module; false alarm {c.false_alarm:g} "
-        f"(Sidak), repeatability {c.repeatability}"
+        f"(Sidak), repeatability {rep_text(cfg)}"
     )
     print(f"{'case':<16} {'rate':>6} {'only it':>8} {'its params':>10} {'other':>6} "
           f"{'bare stat':>9}")  # fmt: skip

@@ -176,3 +176,25 @@ def test_a_store_from_before_checks_opens_with_its_runs_as_calibrations(tmp_path
 def test_swpc_check_names_a_service_that_is_not_there(capsys: pytest.CaptureFixture[str]) -> None:
     code = swpc(["check", "--url", "http://127.0.0.1:9", "--token-file", "/nonexistent"])
     assert code == 2 and "--token-file" in capsys.readouterr().err
+
+
+def test_swpc_check_over_http_prints_the_verdict(
+    sim: Sim, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``swpc check`` against the service (its HTTP client is the test's, over the app):
+    the check's progress, the verdict and the table; exit status 1 for drifted."""
+    import contextlib
+
+    import httpx
+
+    save_kinematics(sim.rt.settings.kinematics_file, worn(4, -0.3e-3))
+    monkeypatch.setenv("SWPC_TOKEN", AUTH["Authorization"].split()[1])
+    monkeypatch.setattr(
+        httpx, "Client", lambda **kw: contextlib.nullcontext(sim.client)
+    )  # the service answers at the test client's address
+    assert swpc(["check", "--url", "http://testserver"]) == 1
+    out = capsys.readouterr().out
+    assert "check " in out and "started" in out and "SPIN" in out
+    assert "drifted: recalibrate module 4" in out and "module 4: chi2" in out
+    assert swpc(["check", "--overrides", "{not json"]) == 2
+    assert "--overrides: not JSON" in capsys.readouterr().err
