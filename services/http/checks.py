@@ -25,7 +25,7 @@ from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.config.robot import ConfigOverrides
+from services.config.robot import ConfigOverrides, RunKind
 from services.http.calibrations import abort_run, run_config, start_checked
 from services.http.deps import AUTH, GUARDED, Rt, problems
 from services.runs.state import RunStatus
@@ -111,7 +111,7 @@ async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
 class HistoryPoint(BaseModel):
     time: str
     run: str
-    kind: Literal["calibration", "check"]
+    kind: RunKind
     frame: str
     value: float | None
     stddev: float | None
@@ -149,7 +149,7 @@ class HistoryParameter(BaseModel):
 
 class HistoryRun(BaseModel):
     run: str
-    kind: Literal["calibration", "check"]
+    kind: RunKind
     time: str
     frame: str
     installed: bool | None

@@ -14,6 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from services.config.robot import RunKind
+
 
 class State(StrEnum):
     PENDING = "PENDING"
@@ -96,7 +98,7 @@ class RunStatus(BaseModel):
 
     id: str
     created: str
-    kind: Literal["calibration", "check"] = "calibration"
+    kind: RunKind = "calibration"
     """A calibration (``/calibrations``) or a check of the file in force (``/checks``,
     docs/check.md): the same protocol's machinery."""
     state: State = State.PENDING
