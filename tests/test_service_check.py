@@ -198,3 +198,27 @@ def test_swpc_check_over_http_prints_the_verdict(
     assert "drifted: recalibrate module 4" in out and "module 4: chi2" in out
     assert swpc(["check", "--overrides", "{not json"]) == 2
     assert "--overrides: not JSON" in capsys.readouterr().err
+
+
+def test_the_simulators_truth_is_a_kinematic_file_of_the_robots_modules(tmp_path: Path) -> None:
+    """``SWPC_SIM_TRUTH``: the in-process simulator's hidden truth (the benchmark's changed
+    robots); a file of other modules is refused when the service opens, naming both."""
+    from pydantic import SecretStr
+
+    from services.config.settings import ServiceSettings, SettingsError
+    from services.runtime.runtime import Runtime
+
+    two = PAPER_CALIBRATED.model_copy(update={"modules": PAPER_CALIBRATED.modules[:2]})
+    save_kinematics(tmp_path / "truth.yaml", two)
+    s = ServiceSettings(
+        data_dir=tmp_path / "data", token=SecretStr("t" * 20), sim_truth=tmp_path / "truth.yaml"
+    )
+    with pytest.raises(SettingsError, match=r"SWPC_SIM_TRUTH: .* has modules \[1, 2\]"):
+        Runtime(s).open()
+    save_kinematics(tmp_path / "truth.yaml", worn(1, -0.3e-3))
+    rt = Runtime(s).open()
+    try:
+        assert rt.simulator is not None
+        assert rt.simulator.truth.module(1).r == pytest.approx(PAPER_CALIBRATED.module(1).r - 3e-4)
+    finally:
+        rt.close()
