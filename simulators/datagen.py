@@ -5,8 +5,9 @@ returns a :class:`~swpc_hw.dataset.Dataset` (whose ``robot`` is the *nominal* ro
 the truth) plus ground-truth extras for tests.
 
 Timeline (time starts at 0, one continuous clock; the body starts at pose (0, 0, 0); every
-module starts at ``theta_hat = 0``, ``psi = 0``).  For each module k in id order and each
-angle ``a_m`` of ``options.angles``:
+module starts at ``theta_hat = 0``, ``psi = 0``).  For each module k in id order (or the order of
+``options.modules``, which may lock only some: a check, docs/check.md) and each angle
+``a_m`` of ``options.angles`` (one is enough for a check; a calibration needs two):
 
 1. ``m > 0`` only: **re-steer** k from ``a_{m-1}`` to ``a_m`` (``resteer_time``): its wheel
    is pinned in the fixing tool and its fork keeps its world orientation, so the body
@@ -128,6 +129,7 @@ class ExperimentOptions:
     drive_length: float = 0.0  # m, straight drive at the end (0: none)
     drive_speed: float = 0.4  # m/s, cruise speed of the straight drive
     drive_direction: float = math.pi  # rad, true steering of every wheel while driving
+    modules: tuple[int, ...] | None = None  # ids of the modules locked, in order (None: all)
     seed: int = 0
 
 
@@ -543,20 +545,23 @@ def generate_experiment(
     """Simulate the calibration experiment on ``truth``; see the module docstring."""
     t_start = time.perf_counter()
     opt = options or ExperimentOptions()
-    if len(opt.angles) < 2:
-        raise ValueError("the experiment needs at least two steering angles per module")
+    if not opt.angles:
+        raise ValueError("the experiment needs at least one steering angle per module")
     if opt.yaw_rate == 0.0:
         raise ValueError("yaw_rate must be non-zero")
     nom = nominal if nominal is not None else default_nominal(truth)
     if nom.ids != truth.ids:
         raise ValueError(f"nominal ids {nom.ids} differ from truth ids {truth.ids}")
     ids = [int(m) for m in truth.ids]
+    locked = ids if opt.modules is None else [int(m) for m in opt.modules]
+    if not set(locked) <= set(ids):
+        raise ValueError(f"modules {locked} are not all module ids of the robot {ids}")
 
     # ---------------------------------------------------------------- the motion
     tl = _Timeline(truth, opt)
     tl.rest()
-    for k in range(len(ids)):
-        tl.module(k)
+    for m in locked:
+        tl.module(ids.index(m))
     if opt.drive_length > 0:
         tl.straight_drive()
     tl.rest()

@@ -21,7 +21,7 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -31,7 +31,7 @@ from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
 from swpc_hw.frames import BaseLink
 from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
-from swpc_hw.model import RobotParams
+from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_NOMINAL
 
 
@@ -121,8 +121,9 @@ class ProtocolConfig(BaseModel):
     model_config = STRICT
 
     angles_deg: list[float] = Field(
-        default_factory=lambda: [45.0, 165.0], min_length=2, max_length=12
+        default_factory=lambda: [45.0, 165.0], min_length=1, max_length=12
     )
+    """A calibration needs two or more (:meth:`RobotConfig.run_problems`); a check, one."""
     sweep_deg: float = Field(360.0, gt=10, le=3600, description="mocap-measured sweep per spin")
     settle_time: float = Field(3.0, ge=0, description="spin time before the window opens, s")
     stop_time: float = Field(1.5, ge=0, description="time allowed to spin down, s")
@@ -185,6 +186,67 @@ class Tolerances(BaseModel):
     radius: float = Field(0.2e-3, gt=0, description="r std dev, m")
 
 
+TOLERANCE_OF = {
+    "x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"
+}  # fmt: skip
+"""The :class:`Tolerances` (and :class:`Repeatability`) field of each parameter."""
+
+
+class Repeatability(BaseModel):
+    """How much an unchanged robot's parameters differ between two days beyond the
+    measurements' noise (the floor's and the tyres' state, temperature): a std dev per
+    parameter kind added to the change's covariance of a check (docs/check.md), SI."""
+
+    model_config = STRICT
+
+    position: float = Field(0.05e-3, ge=0, description="x_s, y_s and b, m")
+    beta: float = Field(math.radians(0.02), ge=0, description="beta, rad")
+    radius: float = Field(0.02e-3, ge=0, description="r, m")
+
+    def per_parameter(self) -> list[float]:
+        """In the order ``x_s, y_s, beta, b, r``."""
+        return [float(getattr(self, TOLERANCE_OF[k])) for k in PARAM_NAMES]
+
+
+class CheckConfig(BaseModel):
+    """The check (docs/check.md): the calibration protocol with these settings in place of
+    its own, every module locked once per angle, and its test of the file in force."""
+
+    model_config = STRICT
+
+    angles_deg: list[float] = Field(
+        default_factory=lambda: [45.0], min_length=1, max_length=12,
+        description="steering angles of the locked module, deg (one is enough)",
+    )  # fmt: skip
+    sweep_deg: float = Field(60.0, gt=10, le=3600, description="yaw swept per spin, deg")
+    settle_time: float = Field(1.5, ge=0, description="spin time before the window opens, s")
+    stop_time: float = Field(1.0, ge=0, description="time allowed to spin down, s")
+    align_time: float = Field(0.5, ge=0, description="time to align the dynamic modules, s")
+    false_alarm: float = Field(
+        0.05, gt=0, lt=0.5,
+        description="probability that an unchanged robot is found drifted (Sidak over the "
+        "modules)",
+    )  # fmt: skip
+    whole_robot: float = Field(
+        0.5, gt=0, le=1,
+        description="from this fraction of the modules drifted on, the verdict is "
+        "'recalibrate the whole robot'",
+    )  # fmt: skip
+    repeatability: Repeatability = Repeatability()
+
+    def protocol(self) -> dict[str, Any]:
+        """The protocol settings it replaces (a deep-merge document)."""
+        return self.model_dump(include=set(CHECK_PROTOCOL_KEYS))
+
+
+CHECK_PROTOCOL_KEYS = frozenset(
+    {"angles_deg", "sweep_deg", "settle_time", "stop_time", "align_time"}
+)
+"""The settings of :class:`CheckConfig` that replace the protocol's for a check."""
+
+RunKind = Literal["calibration", "check"]
+
+
 class RobotConfig(BaseModel):
     model_config = STRICT
 
@@ -202,6 +264,7 @@ class RobotConfig(BaseModel):
     limits: MotionLimits = MotionLimits()
     protocol: ProtocolConfig = ProtocolConfig()
     tolerances: Tolerances = Tolerances()
+    check: CheckConfig = CheckConfig()
 
     @field_validator("nominal", mode="before")
     @classmethod
@@ -230,6 +293,10 @@ class RobotConfig(BaseModel):
         self.drives = self.drives.for_modules(ids)
         if self.protocol.modules is not None and not set(self.protocol.modules) <= set(ids):
             raise ValueError("protocol.modules must be module ids of the robot")
+        try:  # the check's protocol is valid as a protocol (its angles' spacing)
+            ProtocolConfig.model_validate({**self.protocol.model_dump(), **self.check.protocol()})
+        except ValueError as exc:
+            raise ValueError(f"check: {exc}") from None
         return self
 
     @property
@@ -250,9 +317,17 @@ class RobotConfig(BaseModel):
         """A new config with ``overrides`` deep-merged (validated like the file)."""
         return RobotConfig.model_validate(_deep_merge(self.to_document(), overrides))
 
-    def for_run(self, overrides: dict[str, Any], metrology: str = "mocap") -> RobotConfig:
-        """The config of one run: ``overrides`` deep-merged, then checked against this
-        (the service's) config.  Raises :class:`OverrideError` listing every problem:
+    def check_config(self) -> RobotConfig:
+        """The config of a check: the protocol with the check's settings in place
+        (:class:`CheckConfig`)."""
+        return self.with_overrides({"protocol": self.check.protocol()})
+
+    def for_run(
+        self, overrides: dict[str, Any], metrology: str = "mocap", kind: RunKind = "calibration"
+    ) -> RobotConfig:
+        """The config of one run of ``kind``: ``overrides`` deep-merged (into
+        :meth:`check_config` for a check), then checked against this (the service's)
+        config.  Raises :class:`OverrideError` listing every problem:
 
         * a limit or tolerance above this config's (an override may tighten, never loosen
           or remove, them), or a limit that is not per run (:data:`RUN_FIXED_LIMITS`);
@@ -263,7 +338,8 @@ class RobotConfig(BaseModel):
         Pydantic's ``ValidationError`` (a ``ValueError``) for an invalid merged config.
         """
         overrides = old_spellings(overrides)
-        run = self.with_overrides(overrides)
+        base = self.check_config() if kind == "check" else self
+        run = base.with_overrides(overrides)
         problems: list[str] = []
         for group in ("limits", "tolerances"):
             mine, theirs = getattr(self, group), getattr(run, group)
@@ -293,23 +369,36 @@ class RobotConfig(BaseModel):
             problems.append(
                 f"nominal: module ids {run.nominal.ids} are not the robot's {self.nominal.ids}"
             )
-        problems += run.run_problems(metrology)
+        problems += run.run_problems(metrology, kind)
         if problems:
             raise OverrideError(problems)
         return run
 
-    def run_problems(self, metrology: str = "mocap") -> list[str]:
-        """Why a run with this config could not succeed, found before any motion (empty
-        when none): every module locked (the solver needs spins about each), and every
-        step of the protocol possible within ``limits.step_timeout``; without motion
-        capture (``metrology="imu"``) rests long enough for the solver and a straight drive
-        that fits the step timeout and the speed limit."""
+    def run_problems(self, metrology: str = "mocap", kind: RunKind = "calibration") -> list[str]:
+        """Why a run of ``kind`` with this config could not succeed, found before any
+        motion (empty when none): for a calibration every module locked (the solver needs
+        spins about each) at two angles or more (a check starts from the file in force:
+        one angle is enough, and some modules may be left out if the solver still
+        determines every parameter, else its SOLVE says so), and every step of the
+        protocol possible within ``limits.step_timeout``; without motion capture
+        (``metrology="imu"``) rests long enough for the solver and a straight drive that
+        fits the step timeout and the speed limit; a check measures with motion capture."""
         p, lim = self.protocol, self.limits
         problems: list[str] = []
-        if metrology == "imu":
+        if kind == "check" and metrology != "mocap":
+            problems.append(
+                f"metrology: a check measures with motion capture (mocap), not {metrology} "
+                "(docs/check.md)"
+            )
+        elif metrology == "imu":
             problems += self._imu_problems()
+        if kind == "calibration" and len(p.angles_deg) < 2:
+            problems.append(
+                f"protocol.angles_deg: {len(p.angles_deg)} angle; a calibration needs two or "
+                "more (the steering axis of a module is the circle through its fixed points)"
+            )
         ids = self.nominal.ids
-        if p.modules is not None:
+        if p.modules is not None and kind == "calibration":
             missing = [m for m in ids if m not in p.modules]
             if missing:
                 problems.append(

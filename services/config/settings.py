@@ -251,6 +251,11 @@ class ServiceSettings(BaseSettings):
         "as the host can; 1: real time, to watch a run); it never faults when slower",
     )
     sim_seed: int = 1
+    sim_truth: Path | None = Field(
+        None,
+        description="in-process simulator: a kinematic file of the robot's hidden truth "
+        "(its module ids the robot config's); unset: the paper's Table 4 calibrated values",
+    )
     sim_physics_dt: float = Field(
         0.01,
         gt=0,

@@ -3,7 +3,8 @@
 Operators start a calibration, watch it and read the result; motion and write
 endpoints need the bearer token from the settings.  One router per resource:
 
-* :mod:`.calibrations` (start, list, result, plot, abort), :mod:`.answers` (the
+* :mod:`.calibrations` (start, list, result, plot, abort), :mod:`.checks` (a check of
+  the file in force, the robot's history), :mod:`.answers` (the
   operator's answers to a run that waits for them), :mod:`.kinematics` (the file in force,
   its backups, install and roll back), :mod:`.health` (``/health``, ``/metrics``), the
   operator console (:mod:`.console`) and, with the in-process simulator only,
@@ -30,7 +31,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from services.config.settings import ServiceSettings
-from services.http import answers, calibrations, health, kinematics, simulator
+from services.http import answers, calibrations, checks, health, kinematics, simulator
 from services.http.console import router as console
 from services.http.deps import FiniteJSONResponse, printable
 from services.http.docs import offline_docs
@@ -91,7 +92,7 @@ def create_app(
         detail = printable(jsonable_encoder(exc.errors()))
         return FiniteJSONResponse({"detail": detail}, status_code=422)
 
-    for module in (calibrations, answers, kinematics, health):
+    for module in (calibrations, checks, answers, kinematics, health):
         app.include_router(module.router)
     if cfg.in_process:  # never against a robot
         app.include_router(simulator.router)

@@ -29,13 +29,20 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from services.config.robot import ConfigOverrides, OverrideError, RobotConfig
+from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, RunKind
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
+from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
-from services.runtime.runtime import DiskSpaceError, NoResultError, RunConflictError, StoreError
+from services.runtime.runtime import (
+    DiskSpaceError,
+    NoFileError,
+    NoResultError,
+    RunConflictError,
+    StoreError,
+)
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.export import TARGETS, file_name, make_export, render
 from swpc_hw.kinematic_file import load_kinematics
@@ -85,11 +92,13 @@ def start_references(
     return refs
 
 
-def run_config(rt: Rt, body: StartRequest, metrology: str) -> RobotConfig:
-    """The run's robot config: the service's with the request's overrides (422 when they
-    loosen a limit or cannot succeed)."""
+def run_config(
+    rt: Rt, overrides: ConfigOverrides, metrology: str, kind: RunKind = "calibration"
+) -> RobotConfig:
+    """The run's robot config: the service's (a check's: :meth:`RobotConfig.check_config`)
+    with the request's overrides (422 when they loosen a limit or cannot succeed)."""
     try:
-        return rt.config.for_run(body.overrides.document(), metrology)
+        return rt.config.for_run(overrides.document(), metrology, kind)
     except OverrideError as exc:
         raise refused_before_motion("overrides", exc.problems) from exc
     except (ValidationError, ValueError, TypeError) as exc:
@@ -121,31 +130,45 @@ def run_config(rt: Rt, body: StartRequest, metrology: str) -> RobotConfig:
 def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a run (module docstring)."""
     metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
-    config = run_config(rt, body, metrology)
+    config = run_config(rt, body.overrides, metrology)
     refs = start_references(config, metrology, body.references)
+    run = start_checked(rt, config, body.install, metrology, refs)
+    response.headers["Location"] = f"/calibrations/{run.id}"
+    return run.status.to_dict()
+
+
+def start_checked(
+    rt: Rt,
+    config: RobotConfig,
+    install: str,
+    metrology: str,
+    refs: list[Reference],
+    kind: RunKind = "calibration",
+) -> CalibrationRun:
+    """Start a run once ``GET /health`` passes (409 naming why not; 409 while one runs,
+    507 without room, 503 when the store cannot be written; a check without a file in
+    force, 409)."""
     failing = [] if rt.running() else start_problems(rt)
     if failing:
         raise HTTPException(409, "not started: GET /health is failing: " + "; ".join(failing))
     try:
-        run = rt.start_run(config, body.install, metrology, refs)
-    except RunConflictError as exc:
+        return rt.start_run(config, install, metrology, refs, kind)
+    except (RunConflictError, NoFileError) as exc:
         raise HTTPException(409, str(exc)) from exc
     except DiskSpaceError as exc:
         raise HTTPException(507, str(exc)) from exc
     except StoreError as exc:
         raise HTTPException(503, str(exc)) from exc
-    response.headers["Location"] = f"/calibrations/{run.id}"
-    return run.status.to_dict()
 
 
 @router.get("/calibrations", response_model=list[RunStatus])
 def list_runs(rt: Rt) -> list[dict[str, Any]]:
-    return rt.list_runs()
+    return rt.list_runs("calibration")
 
 
 @router.get("/calibrations/{run_id}", response_model=RunStatus, responses=problems(404))
 def get_run(run_id: str, rt: Rt) -> dict[str, Any]:
-    st = rt.status(run_id)
+    st = rt.status(run_id, "calibration")
     if st is None:
         raise HTTPException(404, f"no calibration {run_id}")
     return st
@@ -164,15 +187,20 @@ def get_result(run_id: str, rt: Rt) -> dict[str, Any]:
     responses={**GUARDED, **problems(404, 409)},
 )
 async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
+    return await abort_run(rt, run_id, "calibration")
+
+
+async def abort_run(rt: Rt, run_id: str, kind: RunKind) -> dict[str, Any]:
+    """Abort run ``run_id`` of ``kind`` (404 unknown, 409 too late)."""
     # async: runs on the event loop itself, so stop_all() is not queued behind a
     # threadpool hand-off; only the wait for the run's thread goes to a worker
     run = rt.runs.get(run_id)
-    if run is None:
-        raise not_running(rt, run_id)
+    if run is None or run.status.kind != kind:
+        raise not_running(rt, run_id, kind)
     if not run.abort():
         st = run.status.state
         why = "it has finished" if run.finished else "it is installing its result, which stands"
-        raise HTTPException(409, f"calibration {run_id} is {st}: too late to abort ({why})")
+        raise HTTPException(409, f"{kind} {run_id} is {st}: too late to abort ({why})")
     await asyncio.to_thread(run.join, 10.0)
     return run.status.to_dict()
 

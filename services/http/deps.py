@@ -13,6 +13,7 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel
 
+from services.config.robot import RunKind
 from services.runtime.runtime import Runtime
 
 
@@ -100,20 +101,21 @@ GUARDED = problems(401, 413)
 """What a guarded route may answer before its own work: no token, a body too large."""
 
 
-def not_running(rt: Runtime, run_id: str) -> HTTPException:
-    """404 for a run never seen, 409 for one that is over (the route wants it running)."""
-    if rt.status(run_id) is None:
-        return HTTPException(404, f"no calibration {run_id}")
-    return HTTPException(409, f"calibration {run_id} is not running")
+def not_running(rt: Runtime, run_id: str, kind: RunKind = "calibration") -> HTTPException:
+    """404 for a run of ``kind`` never seen, 409 for one that is over (the route wants it
+    running)."""
+    if rt.status(run_id, kind) is None:
+        return HTTPException(404, f"no {kind} {run_id}")
+    return HTTPException(409, f"{kind} {run_id} is not running")
 
 
-def done_result(rt: Runtime, run_id: str) -> dict[str, Any]:
-    """A DONE run's result document: 404 for a run never seen, 409 for one without a
-    result."""
-    got = rt.result(run_id)
+def done_result(rt: Runtime, run_id: str, kind: RunKind = "calibration") -> dict[str, Any]:
+    """A DONE run's result document: 404 for a run of ``kind`` never seen, 409 for one
+    without a result."""
+    got = rt.result(run_id, kind)
     if got is None:
-        raise HTTPException(404, f"no calibration {run_id}")
+        raise HTTPException(404, f"no {kind} {run_id}")
     state, doc = got
     if state != "DONE" or doc is None:
-        raise HTTPException(409, f"calibration {run_id} is {state}: no result")
+        raise HTTPException(409, f"{kind} {run_id} is {state}: no result")
     return doc

@@ -44,12 +44,13 @@ from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.config.robot import Tolerances
+from services.config.robot import TOLERANCE_OF, Tolerances
 from services.http.deps import AUTH, GUARDED, FiniteJSONResponse, Problem, Rt, done_result, problems
 from services.runs.install import BACKUP_STAMP, backup_kinematics, backups, read_replaced
 from services.runs.state import now_iso
 from services.runtime.runtime import Runtime
 from services.store.logs import event
+from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.kinematic_file import (
     KinematicFile,
@@ -63,24 +64,6 @@ log = logging.getLogger("swpc.service")
 
 SIGNIFICANCE_K = 3.0
 """A change is significant when it exceeds this many standard deviations of the change."""
-
-UNITS: dict[str, tuple[str, float]] = {
-    "x_s": ("mm", 1e3),
-    "y_s": ("mm", 1e3),
-    "beta": ("deg", 180.0 / math.pi),
-    "b": ("mm", 1e3),
-    "r": ("mm", 1e3),
-}
-"""Display unit and scale from SI of each parameter."""
-
-_TOLERANCE_OF = {
-    "x_s": "position",
-    "y_s": "position",
-    "b": "position",
-    "beta": "beta",
-    "r": "radius",
-}
-
 
 class FileInfo(BaseModel):
     """One kinematic file: the one in force or a backup."""
@@ -268,8 +251,9 @@ def _write_failure(exc: Exception) -> HTTPException:
 def compare(
     run_id: str, doc: dict[str, Any], reference: KinematicFile | None, tol: Tolerances
 ) -> list[ComparisonRow]:
-    """One row per module and parameter (display units, :data:`UNITS`), against the
-    ``reference`` file (None: nominal)."""
+    """One row per module and parameter (display units,
+    :data:`~swpc_hw.calibration.report.DISPLAY`), against the ``reference`` file (None:
+    nominal)."""
     rows = []
     for m in doc["modules"]:
         ref = None
@@ -279,7 +263,7 @@ def compare(
             except (KeyError, ValueError):
                 ref = None
         for p in PARAM_NAMES:
-            unit, f = UNITS[p]
+            unit, f = DISPLAY[p]
             sd = (m.get("stddev") or {}).get(p)
             sd = None if sd is None or not math.isfinite(sd) else float(sd)
             ref_v = None if ref is None else float(getattr(ref, p))
@@ -292,7 +276,7 @@ def compare(
             if sd is not None:
                 sigma = math.hypot(sd, ref_sd or 0.0)
                 significant = abs(change) > SIGNIFICANCE_K * sigma
-            t = float(getattr(tol, _TOLERANCE_OF[p]))
+            t = float(getattr(tol, TOLERANCE_OF[p]))
             rows.append(
                 ComparisonRow(
                     module=int(m["id"]),
@@ -443,7 +427,7 @@ def rollback(body: RollbackRequest, rt: Rt, request: Request) -> InstallResult:
     responses=WRITE_RESPONSES,
 )
 def install(run_id: str, rt: Rt, request: Request) -> InstallResult:
-    got = rt.result(run_id)
+    got = rt.result(run_id, "calibration")
     if got is None:
         raise HTTPException(404, f"no calibration {run_id}")
     state, doc = got

@@ -98,7 +98,12 @@ from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
 
 class CalibrationRun(RunMachine):
     """One calibration: runs the protocol on its own thread (see the module docstring),
-    measuring the robot's motion through ``metrology`` (:mod:`services.runs.metrology`)."""
+    measuring the robot's motion through ``metrology`` (:mod:`services.runs.metrology`).
+    A check (:class:`services.runs.check.CheckRun`) is the same run with its own SOLVE
+    and WRITE."""
+
+    write_step = "writing the kinematic file"
+    """WRITE's step text."""
 
     def __init__(
         self,
@@ -190,7 +195,7 @@ class CalibrationRun(RunMachine):
     def _protocol(self) -> None:
         cfg = self.config
         m = self.metrology
-        problems = m.run_problems(cfg)
+        problems = self.run_problems()
         if problems:  # the service refuses these with 422: never reached through it
             raise RunFailedError("refused before any motion: " + "; ".join(problems))
         self.journal.open(t0=self._t0, install=self.install, created=self.status.created)
@@ -276,7 +281,7 @@ class CalibrationRun(RunMachine):
             if self._stop_reason is not None:
                 raise RunFailedError(f"{self._stop_reason} (the result is not installed)")
             raise RunAbortedError("aborted by the operator (the result is not installed)")
-        self.enter(State.WRITE, "writing the kinematic file")
+        self.enter(State.WRITE, self.write_step)
         with self.committing():  # an abort from here on is refused: the result stands
             self._write()
         with self._lock:
@@ -287,6 +292,11 @@ class CalibrationRun(RunMachine):
             {"state": "DONE", "installed": self.status.installed, "reason": ""}, self.result_doc
         )
         self.enter(State.DONE, "done")
+
+    def run_problems(self) -> list[str]:
+        """What makes this run impossible, before any motion (its metrology's view of the
+        config)."""
+        return self.metrology.run_problems(self.config)
 
     # ------------------------------------------------------------------ the steps
     def _precheck(self) -> None:

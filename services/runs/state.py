@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import datetime as _dt
 from enum import StrEnum
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
+
+from services.config.robot import RunKind
 
 
 class State(StrEnum):
@@ -96,6 +98,9 @@ class RunStatus(BaseModel):
 
     id: str
     created: str
+    kind: RunKind = "calibration"
+    """A calibration (``/calibrations``) or a check of the file in force (``/checks``,
+    docs/check.md): the same protocol's machinery."""
     state: State = State.PENDING
     metrology: str = "mocap"
     step: str = "waiting to start"
@@ -116,6 +121,8 @@ class RunStatus(BaseModel):
     started: str | None = None
     finished: str | None = None
     installed: bool | None = None
+    verdict: Literal["consistent", "drifted"] | None = None
+    """A check once DONE: does the robot still match the file (its result says more)."""
     drive_m: float | None = None
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
     elapsed_s: float | None = None

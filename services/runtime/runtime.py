@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import grp
+import hashlib
 import logging
 import os
 import secrets
@@ -37,9 +38,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from services.config.robot import RobotConfig, load_robot_config
+from services.config.robot import RobotConfig, RunKind, load_robot_config
 from services.config.settings import ServiceSettings, SettingsError
 from services.config.timing import TimingBudget, robot_drives, timing_budget
+from services.runs.check import FILE_IN_FORCE, CheckRun
 from services.runs.imu import ImuMetrology
 from services.runs.install import file_run, read_replaced
 from services.runs.metrology import Metrology
@@ -60,8 +62,13 @@ from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.drives.interface import Drives
 from swpc_hw.drives.robot_io import DrivesRobotIO
-from swpc_hw.errors import SwpcError
-from swpc_hw.kinematic_file import load_kinematics
+from swpc_hw.errors import KinematicFileError, SwpcError
+from swpc_hw.kinematic_file import (
+    KinematicFile,
+    atomic_write_text,
+    load_kinematics,
+    load_robot,
+)
 from swpc_hw.references import Reference
 from swpc_hw.zenoh_session import (
     ZenohAuth,
@@ -93,6 +100,10 @@ class DiskSpaceError(SwpcError):
 
 class NoResultError(SwpcError):
     """The run has no result to plot (not DONE)."""
+
+
+class NoFileError(SwpcError):
+    """A check needs a kinematic file in force that loads (HTTP 409)."""
 
 
 class StoreError(SwpcError):
@@ -294,6 +305,12 @@ class Runtime:
         )
         if s.in_process:
             assert isinstance(self.clock, SimClock)
+            truth = None if s.sim_truth is None else load_robot(s.sim_truth)
+            if truth is not None and truth.ids != self.config.nominal.ids:
+                raise SettingsError(
+                    f"SWPC_SIM_TRUTH: {s.sim_truth} has modules {truth.ids}, the robot "
+                    f"config {self.config.nominal.ids}"
+                )
             self.simulator = in_process_simulator(
                 config=self.config,
                 channel=channel,
@@ -301,6 +318,7 @@ class Runtime:
                 zenoh_auth=None if guard is None else ZenohAuth(SIM_USER, self._sim_password),
                 clock=self.clock,
                 seed=s.sim_seed,
+                truth=truth,
                 physics_dt=s.sim_physics_dt,
                 mocap_latency=s.sim_mocap_latency,
                 feedback_rate_hz=s.feedback_rate_hz,
@@ -389,27 +407,63 @@ class Runtime:
         event(log, logging.INFO, "imu.subscribed", key=self.config.imu_key)
 
     # --------------------------------------------------------------------- runs
+    def file_in_force(self) -> tuple[KinematicFile, dict[str, Any], str]:
+        """The kinematic file in force: loaded, what the API says of it (``name``,
+        ``sha256``, ``run``, ``created``, ``frame``) and its text.  :class:`NoFileError`
+        when there is none or it does not load."""
+        path = self.settings.kinematics_file
+        try:
+            text = path.read_text(encoding="utf-8")
+            kf = load_kinematics(path)
+        except FileNotFoundError:
+            raise NoFileError(
+                f"no kinematic file in force at {path}: nothing to check (calibrate first)"
+            ) from None
+        except (OSError, UnicodeDecodeError, KinematicFileError) as exc:
+            raise NoFileError(f"the kinematic file in force does not load: {exc}") from exc
+        prov = kf.extra.get("provenance")
+        info = {
+            "name": path.name,
+            "sha256": hashlib.sha256(text.encode()).hexdigest()[:16],
+            "run": str(prov["run"]) if isinstance(prov, dict) and prov.get("run") else None,
+            "created": kf.created or None,
+            "frame": kf.params.frame,
+        }
+        return kf, info, text
+
     def start_run(
         self,
         config: RobotConfig,
         install: str,
         metrology: str = "mocap",
         references: Sequence[Reference] = (),
+        kind: RunKind = "calibration",
     ) -> CalibrationRun:
-        """Start a run of ``config`` (already checked: :meth:`RobotConfig.for_run`) with
-        ``metrology`` (``imu``: without motion capture, with ``references``, checked:
-        :func:`services.runs.imu.reference_problems`).
+        """Start a run of ``kind`` and ``config`` (already checked:
+        :meth:`RobotConfig.for_run`) with ``metrology`` (``imu``: without motion capture,
+        with ``references``, checked: :func:`services.runs.imu.reference_problems`).  A
+        check (docs/check.md) judges the kinematic file in force as it is now (a copy in
+        its directory) and installs nothing.
 
-        Raises :class:`RunConflictError` while one runs, :class:`DiskSpaceError` when the
-        disk budget (after pruning the oldest runs' recordings) or the file system's free
-        space leaves no room for it, :class:`StoreError` when its first state cannot be
-        saved (nothing has moved; the service takes the next start once the store does).
+        Raises :class:`RunConflictError` while one runs, :class:`NoFileError` for a check
+        without a file in force that loads, :class:`DiskSpaceError` when the disk budget
+        (after pruning the oldest runs' recordings) or the file system's free space leaves
+        no room for it, :class:`StoreError` when its first state cannot be saved (nothing
+        has moved; the service takes the next start once the store does).
         """
         assert self.drives is not None
         s = self.settings
         with self.lock:
             if self.current is not None and not self.current.finished:
-                raise RunConflictError(f"calibration {self.current.id} is still running")
+                what = self.current.status.kind
+                raise RunConflictError(f"{what} {self.current.id} is still running")
+            checked = self.file_in_force() if kind == "check" else None
+            if checked is not None and checked[0].params.frame != config.nominal.frame:
+                raise NoFileError(
+                    f"the kinematic file in force is in frame {checked[0].params.frame!r}: a "
+                    f"check measures in {config.nominal.frame!r} with motion capture, where "
+                    "it cannot be compared (calibrate with motion capture first)"
+                )
             budget, reserve = int(s.disk_budget), run_reserve(int(s.disk_budget))
             room = make_room(self.data_dir, budget, reserve=reserve)
             for p in room.pruned:
@@ -433,14 +487,10 @@ class Runtime:
                 self.drives,
                 limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
             )
-            run = CalibrationRun(
-                io,
-                self.metrology(metrology, config, references),
-                config,
+            common: dict[str, Any] = dict(
                 clock=self.clock,
                 data_dir=self.data_dir,
                 kinematics_path=s.kinematics_file,
-                install=install,
                 keep_backups=s.kinematics_backups,
                 on_change=self._persist,
                 space=SpaceGuard(self.data_dir, room.allowed, int(s.min_free)),
@@ -448,10 +498,19 @@ class Runtime:
                 mcap_profile=s.mcap_profile,
                 log_after=None if self.current is None else self.current.journal.log_end(),
             )
+            measure = self.metrology(metrology, config, references)
+            run: CalibrationRun
+            if checked is None:
+                run = CalibrationRun(io, measure, config, install=install, **common)
+            else:
+                kf, info, _ = checked
+                run = CheckRun(io, measure, config, file=kf, file_info=info, **common)
             # its directory, and its raw CAN traffic beside its dataset (candump format, our
             # DBC decodes it), before it exists for anyone: nothing is left half-made
             try:
                 (run.run_dir / "dataset").mkdir(parents=True, exist_ok=True)
+                if checked is not None:  # what it judges, for `swpc check --offline`
+                    atomic_write_text(run.run_dir / FILE_IN_FORCE, checked[2])
                 self.drives.start_recording(str(run.run_dir / "dataset" / "can.log"))
             except OSError as exc:
                 self._forget_files(run)
@@ -559,36 +618,46 @@ class Runtime:
             event(log, logging.INFO, "store.recovered")
             self.store_error = None
 
-    def status(self, run_id: str) -> dict[str, Any] | None:
+    def _stored(self, run_id: str, kind: RunKind | None) -> tuple[dict[str, Any], Any] | None:
+        """``(status, result document or None)`` of a run of ``kind`` (None: any kind),
+        in memory or in the store; None if unknown (or of another kind)."""
         run = self.runs.get(run_id)
         if run is not None:
-            return run.status.to_dict()
-        got = self.store.get(run_id)
+            got: tuple[dict[str, Any], Any] | None = (run.status.to_dict(), run.result_doc)
+        else:
+            got = self.store.get(run_id)
+        if got is None or (kind is not None and got[0].get("kind", "calibration") != kind):
+            return None
+        return got
+
+    def status(self, run_id: str, kind: RunKind | None = None) -> dict[str, Any] | None:
+        """A run's status (of ``kind`` only, if given); None if unknown."""
+        got = self._stored(run_id, kind)
         return None if got is None else got[0]
 
-    def result(self, run_id: str) -> tuple[str, dict[str, Any] | None] | None:
-        """``(state, result document or None)``; None if the run is unknown."""
-        run = self.runs.get(run_id)
-        if run is not None:
-            return str(run.status.state), run.result_doc
-        got = self.store.get(run_id)
-        if got is None:
-            return None
-        return str(got[0]["state"]), got[1]
+    def result(
+        self, run_id: str, kind: RunKind | None = None
+    ) -> tuple[str, dict[str, Any] | None] | None:
+        """``(state, result document or None)``; None if the run is unknown (or not of
+        ``kind``)."""
+        got = self._stored(run_id, kind)
+        return None if got is None else (str(got[0]["state"]), got[1])
 
-    def list_runs(self) -> list[dict[str, Any]]:
-        """Every run, oldest first: the store's, with the in-memory state of this
-        service's runs over it (the store may have missed a write)."""
+    def list_runs(self, kind: RunKind | None = None) -> list[dict[str, Any]]:
+        """Every run (of ``kind`` only, if given), oldest first: the store's, with the
+        in-memory state of this service's runs over it (the store may have missed a
+        write)."""
         if self._unsaved:
             self._save_unsaved()
         try:
-            stored = list(self.store.list())
+            stored = list(self.store.list(kind))
         except Exception as exc:
             self.store_error = f"{type(exc).__name__}: {exc}"
             stored = []
         by_id = {str(st["id"]): st for st in stored}
         for rid, run in self.runs.items():
-            by_id[rid] = run.status.to_dict()
+            if kind is None or run.status.kind == kind:
+                by_id[rid] = run.status.to_dict()
         return sorted(by_id.values(), key=lambda st: str(st.get("created", "")))
 
     def run_states(self) -> dict[str, int]:
@@ -605,7 +674,7 @@ class Runtime:
         """The run's plot, rendered once and then served from ``runs/<id>/plot.png``
         (also after a restart: the result is solved again from the run's dataset).
         ``None``: no such run; :class:`NoResultError`: not DONE."""
-        st = self.status(run_id)
+        st = self.status(run_id, "calibration")
         if st is None:
             return None
         if st["state"] != "DONE":

@@ -6,8 +6,9 @@ service (:class:`swpc_hw.clock.SimClock`): a busy host slows a run down and neve
 it, so the service uses the robot's own timing windows against it, and the same seed gives
 the same run.
 
-Hidden truth: the paper's Table 4 calibrated values; the service's robot config claims
-the nominal design.  Default sensor noise: mocap 0.5 mm / 0.05 deg at 100 Hz, encoders
+Hidden truth: the paper's Table 4 calibrated values (``SWPC_SIM_TRUTH``: a kinematic file's
+instead, e.g. a worn or re-homed robot for a check, docs/check.md); the service's robot
+config claims the nominal design.  Default sensor noise: mocap 0.5 mm / 0.05 deg at 100 Hz, encoders
 2**17 counts per turn, a gyro of 0.005 deg/s/sqrt(Hz), bias 0.1 deg/s walking
 1e-4 deg/s/sqrt(s), scale error 0.3 % at 200 Hz (``SWPC_SIM_GYRO_*``).
 """

@@ -1,6 +1,8 @@
-"""Persistent run store (SQLite in the data dir): the runs, and every change of the
-kinematic file in force (:meth:`RunStore.add_change`: a run's install at its end, an
-install of a run's result, a roll-back, each with the file it replaced).
+"""Persistent run store (SQLite in the data dir): the runs (calibrations and checks,
+their ``kind``), and every change of the kinematic file in force
+(:meth:`RunStore.add_change`: a run's install at its end, an install of a run's result,
+a roll-back, each with the file it replaced).  :meth:`RunStore.finished` gives every
+finished run's result in time order: the robot's history (:mod:`services.runtime.history`).
 
 A restarted service lists past runs and their results; a run that was in progress when
 the service died is marked FAILED with the reason ``service restarted during the run`` and
@@ -30,7 +32,8 @@ CREATE TABLE IF NOT EXISTS runs (
     updated TEXT NOT NULL,
     state TEXT NOT NULL,
     status TEXT NOT NULL,
-    result TEXT
+    result TEXT,
+    kind TEXT NOT NULL DEFAULT 'calibration'
 );
 CREATE TABLE IF NOT EXISTS changes (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -64,6 +67,11 @@ class RunStore:
         try:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.executescript(_SCHEMA)
+            columns = {r[1] for r in self._db.execute("PRAGMA table_info(runs)")}
+            if "kind" not in columns:  # a store from before checks: all calibrations
+                self._db.execute(
+                    "ALTER TABLE runs ADD COLUMN kind TEXT NOT NULL DEFAULT 'calibration'"
+                )
             check = self._db.execute("PRAGMA quick_check").fetchone()
             if check is None or check[0] != "ok":
                 raise sqlite3.DatabaseError(f"quick_check: {check[0] if check else 'no answer'}")
@@ -97,12 +105,14 @@ class RunStore:
             return [r[0] for r in rows]
 
     def upsert(self, run_id: str, created: str, status: dict[str, Any]) -> None:
+        """Save a run's status (its ``kind``: ``calibration`` unless it says otherwise)."""
+        kind = str(status.get("kind") or "calibration")
         with self._lock:
             self._db.execute(
-                "INSERT INTO runs (id, created, updated, state, status) "
-                "VALUES (?, ?, datetime('now'), ?, ?) ON CONFLICT(id) DO UPDATE SET "
+                "INSERT INTO runs (id, created, updated, state, status, kind) "
+                "VALUES (?, ?, datetime('now'), ?, ?, ?) ON CONFLICT(id) DO UPDATE SET "
                 "updated = datetime('now'), state = excluded.state, status = excluded.status",
-                (run_id, created, status["state"], json.dumps(status)),
+                (run_id, created, status["state"], json.dumps(status), kind),
             )
 
     def set_result(self, run_id: str, result: dict[str, Any]) -> None:
@@ -120,10 +130,25 @@ class RunStore:
             return None
         return json.loads(row[0]), (json.loads(row[1]) if row[1] else None)
 
-    def list(self) -> Iterable[dict[str, Any]]:
+    def list(self, kind: str | None = None) -> Iterable[dict[str, Any]]:
+        """Every run's status, oldest first (of ``kind`` only, if given)."""
         with self._lock:
-            rows = self._db.execute("SELECT status FROM runs ORDER BY created").fetchall()
+            rows = self._db.execute(
+                "SELECT status FROM runs WHERE ?1 IS NULL OR kind = ?1 ORDER BY created",
+                (kind,),
+            ).fetchall()
         return [json.loads(r[0]) for r in rows]
+
+    def finished(self) -> builtins.list[tuple[dict[str, Any], dict[str, Any]]]:
+        """``(status, result)`` of every DONE run with a result, calibrations and checks,
+        in the order they finished."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT status, result FROM runs WHERE state = 'DONE' AND result IS NOT NULL"
+            ).fetchall()
+        out = [(json.loads(st), json.loads(res)) for st, res in rows]
+        out.sort(key=lambda r: str(r[0].get("finished") or r[0].get("created") or ""))
+        return out
 
     def add_change(self, change: dict[str, Any], replaced_text: str | None) -> None:
         """Record a change of the file in force (:data:`CHANGE_FIELDS`) with the text of

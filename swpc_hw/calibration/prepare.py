@@ -63,16 +63,20 @@ def encoders_in_window(
 
 
 def prepare_segments(
-    ds: Dataset, offset: float = 0.0, source: str = "dataset"
+    ds: Dataset, offset: float = 0.0, source: str = "dataset", calibration: bool = True
 ) -> list[SegmentData]:
-    """Validate the dataset and return one :class:`SegmentData` per segment."""
+    """Validate the dataset and return one :class:`SegmentData` per segment.
+
+    ``calibration``: every module locked at two angles or more (a calibration starts from
+    the fixed points' closed form); False for a check, which starts from the file in
+    force and may lock some modules at one angle (:mod:`swpc_hw.calibration.check`)."""
     seg_file = f"{source}/segments.csv"
     ids = ds.robot.ids
     if not ds.segments:
         raise DatasetError(f"{seg_file}: no segments")
     locked = {s.static_module for s in ds.segments}
     for mid in ids:
-        if mid not in locked:
+        if calibration and mid not in locked:
             raise DatasetError(f"{seg_file}: module {mid} is never locked (no segment for it)")
     out: list[SegmentData] = []
     t_all = ds.poses[:, 0]
@@ -121,7 +125,7 @@ def prepare_segments(
                     f"{where}: too few encoder samples of module {mid} in encoders.csv"
                 )
         out.append(SegmentData(row, seg, ids.index(seg.static_module), angle, poses))
-    for mid in ids:
+    for mid in ids if calibration else ():
         angles = distinct_angles([s.angle for s in out if s.segment.static_module == mid])
         if len(angles) < 2:
             raise DatasetError(

@@ -16,6 +16,8 @@ COLUMNS = (
     ("b", "b", 1e3, "mm"),
     ("r", "r", 1e3, "mm"),
 )
+DISPLAY: dict[str, tuple[str, float]] = {name: (unit, f) for name, _, f, unit in COLUMNS}
+"""Each parameter's display unit and its factor from SI."""
 
 
 def _fmt(value: float, unit: str) -> str:

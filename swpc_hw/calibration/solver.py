@@ -295,9 +295,17 @@ def fit_joint(
 
 
 def solve(
-    ds: Dataset, options: SolverOptions | None = None, source: str = "dataset"
+    ds: Dataset,
+    options: SolverOptions | None = None,
+    source: str = "dataset",
+    start: RobotParams | None = None,
 ) -> CalibrationResult:
-    """Calibrate all modules from a dataset (see the module docstring for the method)."""
+    """Calibrate all modules from a dataset (see the module docstring for the method).
+
+    ``start``: the parameters to start from instead of stage 3's closed form (a check,
+    :mod:`swpc_hw.calibration.check`: the file in force, in the dataset's frame); the
+    dataset may then lock some modules at one angle, or not at all, as long as the joint
+    problem determines every parameter (else the covariance is unknown)."""
     opts = options or SolverOptions()
     ids = ds.robot.ids
     n = len(ids)
@@ -309,12 +317,19 @@ def solve(
     plausibility.check_dataset(ds, source)
     auto = opts.time_offset == "auto"
     offset = 0.0 if auto else float(opts.time_offset)
-    segs = prepare_segments(ds, offset, source)
+    calibration = start is None
+    segs = prepare_segments(ds, offset, source, calibration)
     fits = [fit_fixed_point(sd.poses, opts.outlier_sigmas) for sd in segs]
     for sd, fit in zip(segs, fits, strict=True):
         sd.inliers = fit.inliers
     plausibility.check_fixed_points(ds, segs, fits, source)
-    X0 = closed_form_geometry(fits, segs, n)
+    if start is None:
+        X0 = closed_form_geometry(fits, segs, n)
+    else:
+        if start.ids != ids:
+            raise CalibrationError(f"{source}: start modules {start.ids} are not {ids}")
+        a = start.arrays()
+        X0 = np.column_stack([a.P_s, a.beta, a.b, np.full(n, np.nan)])
     tracks = encoder_tracks(ds)
     clock = ClockOffset(offset, None, "given")
     if auto:
@@ -325,8 +340,9 @@ def solve(
         clock = estimate_clock_offset(ds, segs, Xs, C0, tracks, opts)
         offset = clock.value
         if offset != 0.0:  # the locked angles are read at the shifted encoder times
-            for sd, again in zip(segs, prepare_segments(ds, offset, source), strict=True):
-                sd.angle = again.angle
+            again = prepare_segments(ds, offset, source, calibration)
+            for sd, shifted in zip(segs, again, strict=True):
+                sd.angle = shifted.angle
     prob = build_problem(ds, segs, fits, tracks, offset, X0, opts)
     X0[:, R] = radius_init(prob, X0)
     x, slip = fit_joint(prob, X0, opts, fits, encoder_resolution(ds, 2))

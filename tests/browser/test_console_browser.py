@@ -598,6 +598,46 @@ def test_history_and_files(service: dict[str, Any], browser: WebDriver) -> None:
     print(f"\nconsole: {metrics}")
 
 
+def test_check_button_and_verdict(service: dict[str, Any], browser: WebDriver) -> None:
+    """Check the file in force from the Run view: a check of the nominal design (rolled
+    back to above) on the simulator's robot (Table 4) finds every module drifted; its
+    verdict, then the Drift view with a chart per parameter and the check listed."""
+    d = browser
+    go(d, "run")
+    before = text(d, "run-id")
+    d.find_element(By.ID, "check").click()
+    run_id = wait_for("the check on the page", lambda: (t := text(d, "run-id")) != before and t)
+    assert text(d, "start-error") == ""
+    wait_for("the abort bar", lambda: text(d, "abort-text").startswith(f"Check {run_id}"))
+    assert d.find_element(By.ID, "start").get_attribute("disabled") is not None
+    assert wait_state(d, {"DONE", "FAILED", "ABORTED"}) == "DONE", text(d, "run-reason")
+    link = d.find_element(By.ID, "run-result-link")
+    assert link.text == "Open the verdict (drifted)"
+    link.click()
+    wait_for("the verdict", lambda: len(css(d, "#chk-rows tr")) == 20)
+    assert text(d, "chk-id") == run_id and text(d, "chk-verdict-chip") == "drifted"
+    assert "recalibrate the whole robot" in text(d, "chk-verdict")
+    assert "Judged against kinematics.yaml (not from a run)" in text(d, "chk-file")
+    rows = css(d, "#chk-module-rows tr[data-module]")
+    assert len(rows) == 4 and all("drifted" in r.text for r in rows)
+    row = d.find_element(By.CSS_SELECTOR, '#chk-rows tr[data-param="1.x_s"]')
+    cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
+    assert cells[0] == "1 x_s (mm)" and cells[1] == "215.000"  # the nominal file's value
+    check_view(d, "check", shots="12-check")
+    shot(d, "12-check")
+    go(d, "drift")
+    charts = wait_for("the drift charts", lambda: css(d, "#drift-charts figure[data-param]"))
+    assert len(charts) == 20
+    r1 = d.find_element(By.CSS_SELECTOR, '#drift-charts figure[data-param="1.r"]')
+    assert r1.find_elements(By.CSS_SELECTOR, "svg rect[width='7']")  # the check's point
+    assert r1.find_elements(By.CSS_SELECTOR, "svg circle")  # the calibration's
+    assert run_id in [r.get_attribute("data-run") for r in css(d, "#check-rows tr")]
+    assert "last check: " + run_id in text(d, "drift-summary")
+    check_view(d, "drift", shots="13-drift")
+    shot(d, "13-drift")
+    assert severe_logs(d) == []
+
+
 def test_a_module_with_no_path_yet_then_the_next(
     service: dict[str, Any], browser: WebDriver
 ) -> None:

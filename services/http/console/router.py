@@ -308,6 +308,7 @@ def hello(rt: Runtime) -> dict[str, Any]:
             for m in cfg.nominal.modules
         ],
         "protocol": cfg.protocol.model_dump(),
+        "check": cfg.check_config().protocol.model_dump(),
         "in_process_simulator": rt.simulator is not None,
         "kinematics_path": str(rt.settings.kinematics_file),
     }

@@ -21,6 +21,7 @@ const app = {
   // Start -> the new run's first update pushed by the service / its first change of state
   metrics: { firstLiveUpdateMs: null, firstChangeMs: null, statesSeen: [] },
   resultRun: null,
+  checkRun: null,
 };
 window.swpc = app;      // for the browser test (and a curious operator's console)
 
@@ -46,6 +47,9 @@ const wrapDeg = (a) => ((((a + 180) % 360) + 360) % 360) - 180;
 const duration = (s) => (s < 60 ? `${s.toFixed(0)} s` :
   `${Math.floor(s / 60)} min ${String(Math.round(s % 60)).padStart(2, "0")} s`);
 const colorOf = (module) => COLORS[(module - 1 + COLORS.length) % COLORS.length];
+// a run's resource: a calibration's /calibrations/<id>, a check's /checks/<id>
+const runPath = (st) => (st.kind === "check" ? "/checks/" : "/calibrations/") + st.id;
+const kindName = (st) => (st.kind === "check" ? "Check" : "Calibration");
 
 async function api(method, path, body) {
   const headers = {};
@@ -110,14 +114,17 @@ function confirmDialog(title, text, okLabel) {
 // ------------------------------------------------------------------ routing
 function route() {
   const [view, arg] = (location.hash.slice(1) || "run").split("/");
-  const known = ["run", "result", "history", "files", "foxglove"];
+  const known = ["run", "result", "history", "drift", "check", "files", "foxglove"];
   const v = known.includes(view) ? view : "run";
   for (const k of known) $("view-" + k).hidden = k !== v;
+  const tab = v === "check" ? "drift" : v;  // a check's verdict belongs with the drift
   for (const a of document.querySelectorAll("nav a")) {
-    if (a.dataset.view === v) a.setAttribute("aria-current", "page");
+    if (a.dataset.view === tab) a.setAttribute("aria-current", "page");
     else a.removeAttribute("aria-current");
   }
   if (v === "result") showResult(arg || app.resultRun);
+  if (v === "check") showCheck(arg || app.checkRun);
+  if (v === "drift") showDrift();
   if (v === "history") showHistory();
   if (v === "files") showFiles();
   if (v === "foxglove") showFoxglove(arg || app.resultRun);
@@ -167,12 +174,28 @@ async function start(ev) {
     $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
   }
 }
+async function startCheck() {
+  $("start-error").textContent = "";
+  if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to check"; return; }
+  $("check").disabled = $("start").disabled = true;
+  app.startAt = performance.now();
+  app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
+  app.startSeen = new Set(app.seenRuns);
+  try {
+    onRun(await api("POST", "/checks", {}), false);
+  } catch (e) {
+    app.startAt = null;
+    $("start-error").textContent = "Check not started: " + e.message;
+  } finally {
+    $("check").disabled = $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
+  }
+}
 async function abortRun() {
   const run = app.current;
   if (!run || TERMINAL.has(run.state)) return;
   $("abort").disabled = true;
   try {
-    onRun(await api("POST", `/calibrations/${run.id}/abort`), false);
+    onRun(await api("POST", `${runPath(run)}/abort`), false);
   } catch (e) {
     $("abort-text").textContent = "Abort failed: " + e.message;
   } finally {
@@ -201,20 +224,22 @@ function onRun(st, pushed) {
   }
   app.current = st;
   renderRun();
-  if (st.state === "DONE" && !location.hash.startsWith("#result")) {
+  if (st.state === "DONE" && st.kind === "check") app.checkRun = st.id;
+  else if (st.state === "DONE" && !location.hash.startsWith("#result")) {
     app.resultRun = st.id;
   }
   if (TERMINAL.has(st.state)) {
     if (!$("view-history").hidden) showHistory();
+    if (!$("view-drift").hidden) showDrift();
   }
 }
 function renderRun() {
   const st = app.current;
   const active = st && !TERMINAL.has(st.state);
   $("abort-bar").hidden = !active;
-  $("start").disabled = !!active;  // one run at a time: the service refuses a second
+  $("start").disabled = $("check").disabled = !!active;  // one run at a time: the service refuses a second
   if (!st) return;
-  $("abort-text").textContent = `Calibration ${st.id}: ${st.state}`;
+  $("abort-text").textContent = `${kindName(st)} ${st.id}: ${st.state}`;
   $("run-id").textContent = st.id;
   const s = $("run-state");
   s.textContent = st.state;
@@ -222,7 +247,8 @@ function renderRun() {
   $("run-step").textContent = st.step;
   $("run-module").textContent = st.module_index ? `${st.module_index} of ${st.modules_total} (module ${st.module})` : `– of ${st.modules_total}`;
   $("run-angle").textContent = st.angle_index ? `${st.angle_index} of ${st.angles_total}: ${fmt(st.angle_deg, 1)}°` : "–";
-  const target = app.hello ? Number($("f-sweep").value) || app.hello.protocol.sweep_deg : null;
+  const target = !app.hello ? null : st.kind === "check" ? app.hello.check.sweep_deg :
+    Number($("f-sweep").value) || app.hello.protocol.sweep_deg;
   $("run-sweep").textContent = `${fmt(st.sweep_deg, 1)}°` + (st.state === "SPIN" && target ? ` of ${target}°` : "");
   $("run-segments").textContent = String(st.segments);
   $("run-elapsed").textContent = st.elapsed_s === null ? "–" : `${duration(st.elapsed_s)} (robot time)`;
@@ -232,7 +258,8 @@ function renderRun() {
   $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
   const link = $("run-result-link");
   link.hidden = st.state !== "DONE";
-  link.href = "#result/" + st.id;
+  link.href = (st.kind === "check" ? "#check/" : "#result/") + st.id;
+  link.textContent = st.kind === "check" ? `Open the verdict (${st.verdict})` : "Open the result";
 }
 function onLive(ev) {
   app.live = ev;
@@ -460,6 +487,134 @@ function renderGeometry(geo) {
   $("res-modules").replaceChildren(...panels);
 }
 
+// ------------------------------------------------------------------ check and drift
+async function showCheck(id) {
+  $("chk-empty").hidden = !!id;
+  $("chk-body").hidden = !id;
+  if (!id) return;
+  app.checkRun = id;
+  $("chk-id").textContent = id;
+  let st;
+  try {
+    st = await api("GET", `/checks/${id}`);
+  } catch (e) {
+    $("chk-verdict").textContent = `No check ${id}: ${e.message}`;
+    return;
+  }
+  const res = st.result;
+  if (!res) {
+    $("chk-verdict").replaceChildren(el("span", { class: "state " + st.state }, st.state), " ",
+      st.reason || "no verdict yet");
+    $("chk-file").textContent = "";
+    $("chk-module-rows").replaceChildren();
+    $("chk-rows").replaceChildren();
+    return;
+  }
+  const ok = res.verdict === "consistent";
+  $("chk-verdict").replaceChildren(
+    el("span", { id: "chk-verdict-chip", class: "chip " + (ok ? "ok" : "bad") }, ok ? "consistent" : "drifted"),
+    " ", el("b", {}, ok ? "the robot matches its file" : res.action),
+    ` · ${res.drifted_modules.length} of ${res.modules.length} modules drifted · robot time ` +
+    duration(st.elapsed_s || 0));
+  const f = res.file || {};
+  $("chk-file").textContent = `Judged against ${f.name || "the file in force"}` +
+    (f.run ? ` (from run ${f.run})` : " (not from a run)") + `, sha256 ${f.sha256 || "?"}; ` +
+    `false-alarm rate ${(100 * res.false_alarm).toFixed(0)} % over the robot (Šidák: ` +
+    `${(100 * res.alpha_module).toFixed(2)} % per module).` + (res.notes.length ? " " + res.notes.join(" ") : "");
+  $("chk-module-rows").replaceChildren(...res.modules.map((m) => el("tr", { "data-module": m.id },
+    el("th", { scope: "row" }, `module ${m.id}`), el("td", { class: "num" }, fmt(m.chi2, 2)),
+    el("td", { class: "num" }, fmt(res.chi2_threshold, 2)),
+    el("td", {}, el("span", { class: "chip " + (m.drifted ? "bad" : "ok") }, m.drifted ? "drifted" : "consistent")),
+    el("td", {}, m.parameters.join(", ") || "–"))));
+  const d = (r) => (r.unit === "deg" ? 4 : 3);
+  $("chk-rows").replaceChildren(...res.table.map((r) => el("tr", { "data-param": `${r.module}.${r.param}` },
+    el("th", { scope: "row" }, `${r.module} ${r.param} `, el("span", { class: "muted" }, `(${r.unit})`)),
+    el("td", { class: "num" }, fmt(r.file, d(r))), el("td", { class: "num" }, fmt(r.check, d(r))),
+    el("td", { class: "num" }, signed(r.change, d(r))), el("td", { class: "num" }, fmt(r.stddev, d(r) + 1)),
+    el("td", { class: "num" }, signed(r.z, 1)),
+    el("td", {}, chip(r.drifted, "yes", "no", false)))));
+}
+const dateOf = (t) => (t || "").slice(0, 10);
+function driftChart(p, verdicts) {
+  // x: time (s since the first point), y: the value; the band reference +- tolerance
+  const pts = p.points.filter((q) => q.value !== null);
+  const W = 250, H = 150, L = 52, R = 8, T = 8, B = 8;  // the values' labels left of L
+  const e = svg("svg", { viewBox: `0 0 ${W} ${H}`, role: "img",
+    "aria-label": `module ${p.module} ${p.param} over time` });
+  if (!pts.length) return e;
+  const ts = pts.map((q) => Date.parse(q.time));
+  const line = p.trend ? p.trend.line.map((q) => [Date.parse(q.time), q.value]) : [];
+  const t0 = Math.min(...ts, ...line.map((q) => q[0])), t1 = Math.max(...ts, ...line.map((q) => q[0]), t0 + 1);
+  const ys = pts.flatMap((q) => [q.value - (q.stddev || 0), q.value + (q.stddev || 0)]);
+  if (p.reference !== null) ys.push(p.reference - p.tolerance, p.reference + p.tolerance);
+  for (const q of line) ys.push(q[1]);
+  let y0 = Math.min(...ys), y1 = Math.max(...ys);
+  const pad = (y1 - y0) * 0.08 || Math.abs(y0) * 1e-3 || 1;
+  y0 -= pad; y1 += pad;
+  const X = (t) => L + (W - L - R) * (t - t0) / (t1 - t0);
+  const Y = (y) => T + (H - T - B) * (y1 - y) / (y1 - y0);
+  if (p.reference !== null) {
+    e.append(svg("rect", { x: L, width: W - L - R, y: Y(p.reference + p.tolerance),
+      height: Y(p.reference - p.tolerance) - Y(p.reference + p.tolerance), fill: "#e4efe6" }));
+    e.append(svg("line", { x1: L, x2: W - R, y1: Y(p.reference), y2: Y(p.reference), stroke: "#0a6b2d", "stroke-width": 1.2 }));
+  }
+  if (line.length === 2) {
+    e.append(svg("line", { x1: X(line[0][0]), y1: Y(line[0][1]), x2: X(line[1][0]), y2: Y(line[1][1]),
+      stroke: "#8a4b00", "stroke-width": 1.5, "stroke-dasharray": "5 3" }));
+  }
+  const label = (y, v) => {
+    const t = svg("text", { x: L - 4, y, "font-size": 11, fill: "#111", "text-anchor": "end" });
+    t.textContent = fmt(v, p.unit === "deg" ? 4 : 3);
+    e.append(t);
+  };
+  label(T + 10, y1);
+  label(H - B - 2, y0);
+  pts.forEach((q, i) => {
+    const x = X(ts[i]), y = Y(q.value), s = q.stddev || 0;
+    const c = q.kind === "check" ? (verdicts[q.run] === "drifted" ? "#b3001b" : "#0a6b2d") : "#0b4fa8";
+    if (s > 0) e.append(svg("line", { x1: x, x2: x, y1: Y(q.value + s), y2: Y(q.value - s), stroke: c, "stroke-width": 1.2 }));
+    e.append(q.kind === "check"
+      ? svg("rect", { x: x - 3.5, y: y - 3.5, width: 7, height: 7, fill: "#fff", stroke: c, "stroke-width": 1.8 })
+      : svg("circle", { cx: x, cy: y, r: 3.5, fill: c }));
+  });
+  return e;
+}
+async function showDrift() {
+  const [h, checks] = await Promise.all([api("GET", "/history"), api("GET", "/checks")]);
+  const verdicts = Object.fromEntries(h.runs.map((r) => [r.run, r.verdict]));
+  const last = h.last_check;
+  const f = h.file_in_force;
+  const count = (kind, word) => {
+    const n = h.runs.filter((r) => r.kind === kind).length;
+    return `${n} ${word}${n === 1 ? "" : "s"}`;
+  };
+  $("drift-summary").replaceChildren(
+    `${count("calibration", "calibration")} and ${count("check", "check")} · file in force: ` +
+    (f ? `${f.name}${f.run ? " (from run " + f.run + ")" : ""}` : "none") + " · last check: ",
+    last ? el("a", { href: "#check/" + last.id }, `${last.id} (${last.verdict || last.state})`) : "none yet");
+  const d = (p) => (p.unit === "deg" ? 4 : 3);
+  $("drift-charts").replaceChildren(...h.parameters.map((p) => {
+    const tr = p.trend;
+    const what = !tr ? "no trend: fewer than two points" :
+      `${signed(tr.per_week, d(p) + 1)} ${p.unit}/week ± ${fmt(tr.per_week_std, d(p) + 1)}` +
+      (tr.outside ? " · outside its tolerance now" : "") +
+      (tr.leaves_tolerance ? ` · leaves ±${fmt(p.tolerance, d(p))} ${p.unit} on ${dateOf(tr.leaves_tolerance)}` :
+        " · no significant trend");
+    return el("figure", { "data-param": `${p.module}.${p.param}` },
+      el("h3", {}, `module ${p.module} ${p.param} (${p.unit})`), driftChart(p, verdicts),
+      el("figcaption", { class: "muted" }, what));
+  }));
+  if (!h.parameters.length) $("drift-charts").replaceChildren(el("p", {}, "No calibration or check finished yet."));
+  checks.reverse();
+  $("check-rows").replaceChildren(...checks.map((c) => el("tr", { "data-run": c.id },
+    el("td", {}, (c.created || "").replace("T", " ").replace("Z", "")),
+    el("td", { class: "mono" }, c.id),
+    el("td", {}, el("span", { class: "state " + c.state }, c.state)),
+    el("td", {}, c.verdict ? el("span", { class: "chip " + (c.verdict === "consistent" ? "ok" : "bad") }, c.verdict) : (c.reason || "–")),
+    el("td", {}, el("a", { href: "#check/" + c.id }, "verdict")))));
+  if (!checks.length) $("check-rows").replaceChildren(el("tr", {}, el("td", { colspan: 5 }, "none yet")));
+}
+
 // ------------------------------------------------------------------ history and files
 const CHANGES = { run: "installed by its run", install: "installed", rollback: "rolled back" };
 async function showHistory() {
@@ -567,6 +722,7 @@ function connect() {
 
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
+  $("check").addEventListener("click", startCheck);
   $("abort").addEventListener("click", abortRun);
   $("res-install").addEventListener("click", installResult);
   $("token-button").addEventListener("click", () => tokenDialog("Enter the service's bearer token (kept for this tab)."));

@@ -1,0 +1,224 @@
+"""Checks through the service (docs/check.md): POST /checks against the in-process
+simulator, the verdict, what a check never does (install), the history, the refusals, the
+store's kinds, and ``swpc check``."""
+
+from __future__ import annotations
+
+import hashlib
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from services.cli import main as swpc
+from services.store.runs import RunStore
+from swpc_hw.kinematic_file import save_kinematics
+from swpc_hw.model import RobotParams
+from swpc_hw.paper_robot import PAPER_CALIBRATED
+from tests.service_rig import AUTH, Sim, start, wait_spinning, wait_state
+
+DONE = {"DONE", "FAILED", "ABORTED"}
+
+
+def worn(module: int, dr: float) -> RobotParams:
+    """The simulator's truth (Table 4) with one wheel's radius off by ``dr``: as a file
+    in force, a robot whose wheel has changed since it was written."""
+    return PAPER_CALIBRATED.model_copy(update={"modules": [
+        m.model_copy(update={"r": m.r + dr}) if m.id == module else m
+        for m in PAPER_CALIBRATED.modules
+    ]})  # fmt: skip
+
+
+def run_check(client: TestClient, body: dict[str, Any] | None = None) -> dict[str, Any]:
+    r = client.post("/checks", json=body or {}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    cid = r.json()["id"]
+    assert r.headers["Location"] == f"/checks/{cid}" and r.json()["kind"] == "check"
+    st = wait_check(client, cid)
+    assert st["state"] == "DONE", st["reason"]
+    return st
+
+
+def wait_check(client: TestClient, cid: str) -> dict[str, Any]:
+    import time
+
+    deadline = time.monotonic() + 240
+    while True:
+        st: dict[str, Any] = client.get(f"/checks/{cid}").json()
+        if st["state"] in DONE:
+            return st
+        assert time.monotonic() < deadline, st
+        time.sleep(0.02)
+
+
+def sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_no_check_without_a_file_in_force(sim: Sim) -> None:
+    kin = sim.rt.settings.kinematics_file
+    assert not kin.exists()
+    r = sim.client.post("/checks", json={}, headers=AUTH)
+    assert r.status_code == 409 and "no kinematic file in force" in r.text
+    assert sim.client.post("/checks", json={}).status_code == 401
+    # a check measures with motion capture; overrides only tighten
+    assert sim.client.post("/checks", json={"metrology": "imu"}, headers=AUTH).status_code == 422
+    r = sim.client.post(
+        "/checks", json={"overrides": {"limits": {"max_yaw_rate": 9}}}, headers=AUTH
+    )
+    assert r.status_code == 422 and "would loosen" in r.text
+
+
+def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(sim: Sim) -> None:
+    kin = sim.rt.settings.kinematics_file
+    save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
+    r = sim.client.post("/checks", json={}, headers=AUTH)
+    assert r.status_code == 409 and "in frame 'design-fit'" in r.text
+    save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth, exactly
+    before = sha(kin)
+    st = run_check(sim.client)
+    assert st["verdict"] == "consistent" and st["installed"] is None
+    res = st["result"]
+    assert res["verdict"] == "consistent" and res["action"] == "none"
+    assert len(res["table"]) == 20 and len(res["modules"]) == 4
+    assert all(not m["drifted"] for m in res["modules"])
+    assert "taken as exact" in res["notes"][0]  # no covariance, no std dev in the file
+    # one spin about every module, within the issue's 30 s of robot time
+    assert st["segments"] == 4 and st["angles_total"] == 1 and st["elapsed_s"] <= 30
+    assert sha(kin) == before and list(kin.parent.glob("kinematics.*.yaml")) == []
+    run_dir = sim.rt.data_dir / "runs" / st["id"]
+    assert (run_dir / "file-in-force.yaml").read_bytes() == kin.read_bytes()
+    assert not (run_dir / "kinematics.yaml").exists()
+    # a check is no calibration: not listed, not found, not installable
+    cid = st["id"]
+    assert cid not in [r["id"] for r in sim.client.get("/calibrations").json()]
+    assert [r["id"] for r in sim.client.get("/checks").json()] == [cid]
+    assert sim.client.get(f"/calibrations/{cid}").status_code == 404
+    assert sim.client.get(f"/calibrations/{cid}/result").status_code == 404
+    assert sim.client.post(f"/calibrations/{cid}/install", headers=AUTH).status_code == 404
+    assert sim.client.get("/checks/nope").status_code == 404
+    assert sim.client.get("/kinematics/changes").json() == []
+
+
+def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture[str]) -> None:
+    kin = sim.rt.settings.kinematics_file
+    save_kinematics(kin, worn(2, +0.3e-3))  # the file says 0.3 mm more than the wheel has
+    st = run_check(sim.client)
+    res = st["result"]
+    assert st["verdict"] == "drifted" and res["drifted_modules"] == [2], res["summary"]
+    assert res["action"] == "recalibrate module 2"
+    assert res["modules"][1]["parameters"] == ["r"]
+    row = next(r for r in res["table"] if r["module"] == 2 and r["param"] == "r")
+    assert row["unit"] == "mm" and row["drifted"] and row["change"] == pytest.approx(-0.3, abs=0.05)
+    assert res["file"]["sha256"] == sha(kin)[:16] and res["file"]["frame"] == "R"
+    # the same verdict offline, from what the check kept
+    run_dir = sim.rt.data_dir / "runs" / st["id"]
+    assert swpc(["check", "--offline", str(run_dir)]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("drifted: recalibrate module 2") and "DRIFTED r" in out
+    # the history: both checks, per module and parameter, and the last check
+    h = sim.client.get("/history").json()
+    assert [r["kind"] for r in h["runs"]] == ["check", "check"]
+    assert h["last_check"]["id"] == st["id"] and h["last_check"]["verdict"] == "drifted"
+    assert h["last_check"]["action"] == "recalibrate module 2"
+    p = next(q for q in h["parameters"] if q["module"] == 2 and q["param"] == "r")
+    assert p["unit"] == "mm" and len(p["points"]) == 2 and p["tolerance"] == pytest.approx(0.2)
+    assert p["reference"] == pytest.approx((PAPER_CALIBRATED.module(2).r + 0.3e-3) * 1e3)
+    assert p["trend"] is not None and p["trend"]["points"] == 2
+    assert sim.client.get("/history", params={"since": "2999-01-01T00:00:00Z"}).json()[
+        "runs"
+    ] == []
+    assert sim.client.get("/history", params={"since": "yesterday"}).status_code == 422
+
+
+def test_a_check_is_a_run_one_at_a_time_and_aborts(sim: Sim) -> None:
+    r = sim.client.post("/checks", json={"overrides": {"protocol": {"sweep_deg": 1440}}},
+                        headers=AUTH)  # fmt: skip
+    assert r.status_code == 202, r.text
+    cid = r.json()["id"]
+    r = sim.client.post("/calibrations", json={}, headers=AUTH)
+    assert r.status_code == 409 and f"check {cid} is still running" in r.text
+    assert sim.client.post("/checks", json={}, headers=AUTH).status_code == 409
+    assert sim.client.post(f"/calibrations/{cid}/abort", headers=AUTH).status_code == 404
+    r = sim.client.post(f"/checks/{cid}/abort", headers=AUTH)
+    assert r.status_code == 200 and r.json()["state"] == "ABORTED"
+    assert sim.client.get(f"/checks/{cid}").json()["result"] is None
+    # and a calibration aborted by the checks' route is no check's either
+    rid = start(sim.client, {"protocol": {"sweep_deg": 1440}})
+    wait_spinning(sim.client, rid, 5.0)
+    assert sim.client.post(f"/checks/{rid}/abort", headers=AUTH).status_code == 404
+    sim.client.post(f"/calibrations/{rid}/abort", headers=AUTH)
+    assert wait_state(sim.client, rid, DONE)["state"] == "ABORTED"
+
+
+def test_a_store_from_before_checks_opens_with_its_runs_as_calibrations(tmp_path: Path) -> None:
+    path = tmp_path / "runs.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(
+        "CREATE TABLE runs (id TEXT PRIMARY KEY, created TEXT NOT NULL, updated TEXT NOT NULL,"
+        " state TEXT NOT NULL, status TEXT NOT NULL, result TEXT);"
+        "INSERT INTO runs VALUES ('old', '2026-01-01', '2026-01-01', 'DONE',"
+        " '{\"id\": \"old\", \"state\": \"DONE\", \"created\": \"2026-01-01\"}', '{}');"
+    )
+    db.commit()
+    db.close()
+    store = RunStore(path)
+    assert [r["id"] for r in store.list("calibration")] == ["old"]
+    assert list(store.list("check")) == []
+    store.upsert("c1", "2026-01-02", {"id": "c1", "state": "DONE", "kind": "check"})
+    assert [r["id"] for r in store.list("check")] == ["c1"]
+    assert [r["id"] for r in store.list()] == ["old", "c1"]
+    store.close()
+
+
+def test_swpc_check_names_a_service_that_is_not_there(capsys: pytest.CaptureFixture[str]) -> None:
+    code = swpc(["check", "--url", "http://127.0.0.1:9", "--token-file", "/nonexistent"])
+    assert code == 2 and "--token-file" in capsys.readouterr().err
+
+
+def test_swpc_check_over_http_prints_the_verdict(
+    sim: Sim, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``swpc check`` against the service (its HTTP client is the test's, over the app):
+    the check's progress, the verdict and the table; exit status 1 for drifted."""
+    import contextlib
+
+    import httpx
+
+    save_kinematics(sim.rt.settings.kinematics_file, worn(4, -0.3e-3))
+    monkeypatch.setenv("SWPC_TOKEN", AUTH["Authorization"].split()[1])
+    monkeypatch.setattr(
+        httpx, "Client", lambda **kw: contextlib.nullcontext(sim.client)
+    )  # the service answers at the test client's address
+    assert swpc(["check", "--url", "http://testserver"]) == 1
+    out = capsys.readouterr().out
+    assert "check " in out and "started" in out and "SPIN" in out
+    assert "drifted: recalibrate module 4" in out and "module 4: chi2" in out
+    assert swpc(["check", "--overrides", "{not json"]) == 2
+    assert "--overrides: not JSON" in capsys.readouterr().err
+
+
+def test_the_simulators_truth_is_a_kinematic_file_of_the_robots_modules(tmp_path: Path) -> None:
+    """``SWPC_SIM_TRUTH``: the in-process simulator's hidden truth (the benchmark's changed
+    robots); a file of other modules is refused when the service opens, naming both."""
+    from pydantic import SecretStr
+
+    from services.config.settings import ServiceSettings, SettingsError
+    from services.runtime.runtime import Runtime
+
+    two = PAPER_CALIBRATED.model_copy(update={"modules": PAPER_CALIBRATED.modules[:2]})
+    save_kinematics(tmp_path / "truth.yaml", two)
+    s = ServiceSettings(
+        data_dir=tmp_path / "data", token=SecretStr("t" * 20), sim_truth=tmp_path / "truth.yaml"
+    )
+    with pytest.raises(SettingsError, match=r"SWPC_SIM_TRUTH: .* has modules \[1, 2\]"):
+        Runtime(s).open()
+    save_kinematics(tmp_path / "truth.yaml", worn(1, -0.3e-3))
+    rt = Runtime(s).open()
+    try:
+        assert rt.simulator is not None
+        assert rt.simulator.truth.module(1).r == pytest.approx(PAPER_CALIBRATED.module(1).r - 3e-4)
+    finally:
+        rt.close()
