@@ -123,6 +123,15 @@ def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture
     assert [r["kind"] for r in h["runs"]] == ["check", "check"]
     assert h["last_check"]["id"] == st["id"] and h["last_check"]["verdict"] == "drifted"
     assert h["last_check"]["action"] == "recalibrate module 2"
+    # what the robot publishes to the fleet (docs/fleet.md) says the same
+    from services.runtime.fleet import fleet_document
+
+    doc = fleet_document(sim.rt)
+    assert doc["last_check"]["id"] == st["id"] and doc["last_check"]["verdict"] == "drifted"
+    assert doc["last_check"]["drifted_modules"] == [2]
+    assert [(c["check"], c["verdict"]) for c in doc["history"]["checks"]][-1] == (
+        st["id"], "drifted")
+    assert doc["history"]["calibrations"] == []  # checks are no calibrations
     p = next(q for q in h["parameters"] if q["module"] == 2 and q["param"] == "r")
     assert p["unit"] == "mm" and len(p["points"]) == 2 and p["tolerance"] == pytest.approx(0.2)
     assert p["reference"] == pytest.approx((PAPER_CALIBRATED.module(2).r + 0.3e-3) * 1e3)

@@ -32,6 +32,7 @@ from typing import Any
 from services.config.fleet import STATE_FORMAT, alive_key, check_robot_name, state_key
 from services.runs.state import now_iso
 from services.runtime.health import service_health
+from services.runtime.history import last_check
 from services.runtime.runtime import Runtime
 from services.store.logs import event
 from services.store.provenance import tool_version
@@ -85,9 +86,21 @@ def file_in_force(rt: Runtime) -> dict[str, Any] | None:
 def history_summary(rt: Runtime) -> dict[str, Any]:
     """Every calibration of this robot that ended with a result (DONE), oldest first:
     when it finished, the run, whether it was installed, each module's parameters and std
-    devs.  Checks (item 1-2 of issue 33) are to be added beside ``calibrations``."""
+    devs; and every check that ended (DONE): when, its id, its verdict and action."""
+    checks = []
+    for st in rt.list_runs("check"):
+        if st.get("state") != "DONE":
+            continue
+        got = rt.result(str(st["id"]), "check")
+        found = {} if got is None or got[1] is None else got[1]
+        checks.append({
+            "time": st.get("finished") or st.get("created"),
+            "check": st["id"],
+            "verdict": st.get("verdict") or found.get("verdict"),
+            "action": found.get("action"),
+        })  # fmt: skip
     out = []
-    for st in rt.list_runs():
+    for st in rt.list_runs("calibration"):
         if st.get("state") != "DONE":
             continue
         got = rt.result(str(st["id"]))
@@ -103,12 +116,12 @@ def history_summary(rt: Runtime) -> dict[str, Any]:
                 "modules": [_module(m) for m in doc["modules"]],
             }
         )
-    return {"calibrations": out}
+    return {"calibrations": out, "checks": checks}
 
 
 def fleet_document(rt: Runtime, period: float | None = None) -> dict[str, Any]:
     """This robot's state document (module docstring; docs/fleet.md lists the fields).
-    ``last_check`` is None until the service has checks."""
+    ``last_check``: :func:`services.runtime.history.last_check` (None before the first)."""
     status, health = service_health(rt)
     return {
         "format": STATE_FORMAT,
@@ -117,7 +130,7 @@ def fleet_document(rt: Runtime, period: float | None = None) -> dict[str, Any]:
         "time": now_iso(),
         "heartbeat_s": rt.settings.fleet_period if period is None else period,
         "file_in_force": file_in_force(rt),
-        "last_check": None,
+        "last_check": last_check(rt),
         "history": history_summary(rt),
         "health": {
             "status": status,
