@@ -23,7 +23,7 @@ Plain numpy and scipy; deterministic for a seed.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +84,33 @@ def mixed_segments(duration: float, seed: int) -> list[tuple[float, Twist]]:
     return out
 
 
+def caster_rates(
+    truth: RobotParams, twist: Twist
+) -> Callable[[float, FloatArray], FloatArray]:
+    """The casters' kinematics under a constant body twist ``(v_x, v_y, omega)``: ``f(t,
+    z)`` with ``z = (theta (N), psi (N))`` the true steering and rolling angles, for
+    ``scipy.integrate.solve_ivp``.  Each contact point rolls without slip: with the
+    steering axis' velocity ``c = (v_x - omega y_s, v_y + omega x_s)``::
+
+        dtheta/dt = (c_x sin theta - c_y cos theta) / b - omega
+        dpsi/dt   = (c_x cos theta + c_y sin theta) / r
+    """
+    a = truth.arrays()
+    n = a.n
+    vx, vy, om = twist
+    cx = vx - om * a.P_s[:, 1]
+    cy = vy + om * a.P_s[:, 0]
+
+    def f(_t: float, z: FloatArray) -> FloatArray:
+        q = z[:n]
+        return np.concatenate([
+            (cx * np.sin(q) - cy * np.cos(q)) / a.b - om,
+            (cx * np.cos(q) + cy * np.sin(q)) / a.r,
+        ])  # fmt: skip
+
+    return f
+
+
 def drive_readings(
     truth: RobotParams,
     segments: list[tuple[float, Twist]],
@@ -118,19 +145,8 @@ def drive_readings(
         k = max(1, round(dur * rate))
         ts = np.linspace(0.0, dur, k + 1)[1:]
         ts[:-1] += rng.uniform(-nz.jitter, nz.jitter, k - 1) / rate
-        vx, vy, om = tw
-        cx = vx - om * a.P_s[:, 1]
-        cy = vy + om * a.P_s[:, 0]
-
-        def f(_t: float, z: FloatArray, cx: FloatArray = cx, cy: FloatArray = cy,
-              om: float = om) -> FloatArray:
-            qq = z[:n]
-            return np.concatenate([
-                (cx * np.sin(qq) - cy * np.cos(qq)) / a.b - om,
-                (cx * np.cos(qq) + cy * np.sin(qq)) / a.r,
-            ])
-
-        sol = solve_ivp(f, (0.0, dur), np.concatenate([th, ps]), method="DOP853", t_eval=ts,
+        sol = solve_ivp(caster_rates(truth, tw), (0.0, dur), np.concatenate([th, ps]),
+                        method="DOP853", t_eval=ts,
                         rtol=1e-10, atol=1e-12)
         if not sol.success:
             raise RuntimeError(f"drive_readings: {sol.message}")

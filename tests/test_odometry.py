@@ -28,6 +28,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
 
+from simulators.drift_path import caster_rates
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, forward_kinematics, wrap_angle
@@ -94,19 +95,8 @@ def make_stream(
         k = max(1, round(dur * rate))
         ts = np.linspace(0.0, dur, k + 1)[1:]
         ts[:-1] += rng.uniform(-jitter, jitter, k - 1) / rate
-        vx, vy, om = tw
-        cx = vx - om * a.P_s[:, 1]
-        cy = vy + om * a.P_s[:, 0]
-
-        def f(_t: float, z: FloatArray, cx: FloatArray = cx, cy: FloatArray = cy,
-              om: float = om) -> FloatArray:
-            q = z[:n]
-            return np.concatenate([
-                (cx * np.sin(q) - cy * np.cos(q)) / a.b - om,
-                (cx * np.cos(q) + cy * np.sin(q)) / a.r,
-            ])
-
-        sol = solve_ivp(f, (0.0, dur), np.concatenate([th, ps]), method="DOP853", t_eval=ts,
+        sol = solve_ivp(caster_rates(params, tw), (0.0, dur), np.concatenate([th, ps]),
+                        method="DOP853", t_eval=ts,
                         rtol=1e-13, atol=1e-14)
         assert sol.success
         for j, tj in enumerate(ts):
