@@ -62,6 +62,10 @@ case "$base" in
     ;;
 esac
 mkdir -p /opt/swpc && mount --rbind "$ROOT" /opt/swpc
+# the results dir as the units see it, bound before the /tmp below covers a checkout
+# under /tmp (a CI clone there: the test unit's log had no path, and systemd waited)
+mkdir -p /opt/swpc-out && mount --bind "$OUT" /opt/swpc-out
+OUT=/opt/swpc-out
 # a /tmp of its own: systemd-tmpfiles empties /tmp at boot, which took the VM's
 # candump recording with it (the overlays above keep their mounts)
 mount -t tmpfs -o mode=1777 tmpfs /tmp
