@@ -20,6 +20,14 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 if [[ "${1:-}" != --pid1 ]]; then
     OUT="${1:?usage: robot-install.sh OUT}"
     : > "$OUT/robot-install.log"
+    case "$ROOT/" in
+    /tmp/*)  # the container's own /tmp covers it: its venv's scripts name paths there
+        echo "robot-install: the checkout $ROOT is under /tmp, which the container covers" \
+            "with its own /tmp (its venv's scripts would not be found): clone it elsewhere" \
+            | tee -a "$OUT/robot-install.log" >&2
+        exit 2
+        ;;
+    esac
     status=0
     timeout --kill-after=10 "${SWPC_VM_ROBOT_TIMEOUT:-900}" \
         unshare --pid --fork --mount --mount-proc --propagation private \
