@@ -42,6 +42,9 @@ FloatArray = NDArray[np.float64]
 
 DESIGN_FIT = "design-fit"
 """The ``frame:`` of a calibration aligned to its nominal robot (no motion capture)."""
+FILE_FIT = "file-fit"
+"""The ``frame:`` of a check without motion capture: fitted to the file it checks (its
+steering axes' centroid, rotation and length scale, its radii's sum), docs/check.md."""
 
 
 def design_fit_transform(P_s_from: ArrayLike, P_s_to: ArrayLike) -> tuple[float, FloatArray]:

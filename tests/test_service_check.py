@@ -63,8 +63,14 @@ def test_no_check_without_a_file_in_force(sim: Sim) -> None:
     r = sim.client.post("/checks", json={}, headers=AUTH)
     assert r.status_code == 409 and "no kinematic file in force" in r.text
     assert sim.client.post("/checks", json={}).status_code == 401
-    # a check measures with motion capture; overrides only tighten
-    assert sim.client.post("/checks", json={"metrology": "imu"}, headers=AUTH).status_code == 422
+    r = sim.client.post("/checks", json={"metrology": "imu"}, headers=AUTH)
+    assert r.status_code == 409 and "no kinematic file in force" in r.text
+    # a check does not drive (nothing to measure the drive with); overrides only tighten
+    r = sim.client.post(
+        "/checks", json={"metrology": "imu", "overrides": {"protocol": {"drive_length": 2}}},
+        headers=AUTH,
+    )  # fmt: skip
+    assert r.status_code == 422 and "a check does not drive" in r.text
     r = sim.client.post(
         "/checks", json={"overrides": {"limits": {"max_yaw_rate": 9}}}, headers=AUTH
     )
@@ -104,6 +110,8 @@ def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(sim: Sim) -> 
 
 def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture[str]) -> None:
     kin = sim.rt.settings.kinematics_file
+    save_kinematics(kin, PAPER_CALIBRATED)
+    run_check(sim.client)  # a point before: the history's trend needs two
     save_kinematics(kin, worn(2, +0.3e-3))  # the file says 0.3 mm more than the wheel has
     st = run_check(sim.client)
     res = st["result"]
@@ -120,7 +128,7 @@ def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture
     assert out.startswith("drifted: recalibrate module 2") and "DRIFTED r" in out
     # the history: both checks, per module and parameter, and the last check
     h = sim.client.get("/history").json()
-    assert [r["kind"] for r in h["runs"]] == ["check", "check"]
+    assert {r["kind"] for r in h["runs"]} == {"check"} and h["runs"][-1]["run"] == st["id"]
     assert h["last_check"]["id"] == st["id"] and h["last_check"]["verdict"] == "drifted"
     assert h["last_check"]["action"] == "recalibrate module 2"
     # what the robot publishes to the fleet (docs/fleet.md) says the same
@@ -133,13 +141,52 @@ def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture
         st["id"], "drifted")
     assert doc["history"]["calibrations"] == []  # checks are no calibrations
     p = next(q for q in h["parameters"] if q["module"] == 2 and q["param"] == "r")
-    assert p["unit"] == "mm" and len(p["points"]) == 2 and p["tolerance"] == pytest.approx(0.2)
+    in_r = [q for q in p["points"] if q["frame"] == "R"]  # other tests' checks may be there
+    assert p["unit"] == "mm" and len(in_r) >= 2 and p["tolerance"] == pytest.approx(0.2)
     assert p["reference"] == pytest.approx((PAPER_CALIBRATED.module(2).r + 0.3e-3) * 1e3)
-    assert p["trend"] is not None and p["trend"]["points"] == 2
+    assert p["trend"] is not None and p["trend"]["points"] == len(in_r)
     assert sim.client.get("/history", params={"since": "2999-01-01T00:00:00Z"}).json()[
         "runs"
     ] == []
     assert sim.client.get("/history", params={"since": "yesterday"}).status_code == 422
+
+
+def test_a_check_with_the_gyro_judges_the_robots_shape(
+    sim: Sim, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without motion capture: the gyro and the encoders, no references, no drive, no
+    operator; the file in any frame (here design-fit: a calibration without motion
+    capture); a worn wheel named, relative to the other wheels."""
+    kin = sim.rt.settings.kinematics_file
+    save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
+    st = run_check(sim.client, {"metrology": "imu"})
+    res = st["result"]
+    assert st["verdict"] == "consistent" and res["verdict"] == "consistent", res["summary"]
+    assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 30
+    assert any("shape" in n for n in res["notes"])
+    assert {e["id"] for e in res["estimate"]} == {1, 2, 3, 4}
+    assert max(m["chi2"] for m in res["modules"]) < res["chi2_threshold"]
+    save_kinematics(kin, worn(3, +0.3e-3))  # in R: the frame does not matter either
+    st = run_check(sim.client, {"metrology": "imu"})
+    res = st["result"]
+    assert st["verdict"] == "drifted" and res["drifted_modules"] == [3], res["summary"]
+    assert res["modules"][2]["parameters"] == ["r"]
+    row = next(r for r in res["table"] if r["module"] == 3 and r["param"] == "r")
+    assert row["change"] == pytest.approx(-0.3, abs=0.05) and row["drifted"]
+    others = [r for r in res["table"] if r["module"] != 3 and r["param"] == "r"]
+    assert all(abs(r["change"]) < 0.05 for r in others)  # relative to the unchanged wheels
+    # the same verdict offline from what the check kept; the history shows the gyro's
+    # checks (frame file-fit) but fits no trend to them
+    run_dir = sim.rt.data_dir / "runs" / st["id"]
+    assert not (run_dir / "dataset" / "poses.csv").exists()
+    assert swpc(["check", "--offline", str(run_dir)]) == 1
+    assert capsys.readouterr().out.startswith("drifted: recalibrate module 3")
+    h = sim.client.get("/history").json()
+    p = next(q for q in h["parameters"] if q["module"] == 3 and q["param"] == "r")
+    frames = [q["frame"] for q in p["points"]]
+    assert frames[-2:] == ["file-fit", "file-fit"]
+    in_r = frames.count("R")
+    assert (p["trend"] is None) if in_r < 2 else (p["trend"]["points"] == in_r)
 
 
 def test_a_check_is_a_run_one_at_a_time_and_aborts(sim: Sim) -> None:
@@ -201,9 +248,9 @@ def test_swpc_check_over_http_prints_the_verdict(
     monkeypatch.setattr(
         httpx, "Client", lambda **kw: contextlib.nullcontext(sim.client)
     )  # the service answers at the test client's address
-    assert swpc(["check", "--url", "http://testserver"]) == 1
+    assert swpc(["check", "--url", "http://testserver", "--metrology", "imu"]) == 1
     out = capsys.readouterr().out
-    assert "check " in out and "started" in out and "SPIN" in out
+    assert "check " in out and "started" in out and "SPIN" in out and "STILL" in out
     assert "drifted: recalibrate module 4" in out and "module 4: chi2" in out
     assert swpc(["check", "--overrides", "{not json"]) == 2
     assert "--overrides: not JSON" in capsys.readouterr().err

@@ -48,6 +48,11 @@ def register(sub: Any) -> None:
         "--token-file", help="file holding the bearer token (default: $SWPC_TOKEN, else the "
         "service's data dir's api-token)"
     )  # fmt: skip
+    p.add_argument(
+        "--metrology", choices=("mocap", "imu"),
+        help="mocap (motion capture) or imu (the gyro and the encoders: the robot's shape); "
+        "default the service's",
+    )  # fmt: skip
     p.add_argument("--overrides", help="JSON overrides of the check's protocol and limits")
     p.add_argument("--timeout", type=float, default=600.0, help="wall s to wait (default 600)")
     p.add_argument(
@@ -102,6 +107,8 @@ def over_http(args: argparse.Namespace) -> int:
             body["overrides"] = json.loads(args.overrides)
         except ValueError as exc:
             raise SwpcError(f"--overrides: not JSON: {exc}") from exc
+    if args.metrology:
+        body["metrology"] = args.metrology
     auth = {"Authorization": f"Bearer {token(args)}"}
     with httpx.Client(base_url=args.url, timeout=10.0) as http:
         try:

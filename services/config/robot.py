@@ -222,6 +222,11 @@ class CheckConfig(BaseModel):
     settle_time: float = Field(1.5, ge=0, description="spin time before the window opens, s")
     stop_time: float = Field(1.0, ge=0, description="time allowed to spin down, s")
     align_time: float = Field(0.5, ge=0, description="time to align the dynamic modules, s")
+    rest_time: float = Field(
+        MIN_REST_TIME, ge=0,
+        description="without motion capture: the robot held still before every spin and "
+        "at the end (the gyro's bias), s",
+    )  # fmt: skip
     false_alarm: float = Field(
         0.05, gt=0, lt=0.5,
         description="probability that an unchanged robot is found drifted (Sidak over the "
@@ -235,12 +240,13 @@ class CheckConfig(BaseModel):
     repeatability: Repeatability = Repeatability()
 
     def protocol(self) -> dict[str, Any]:
-        """The protocol settings it replaces (a deep-merge document)."""
-        return self.model_dump(include=set(CHECK_PROTOCOL_KEYS))
+        """The protocol settings it replaces (a deep-merge document): its own, and no
+        straight drive (a check has no references to measure)."""
+        return {**self.model_dump(include=set(CHECK_PROTOCOL_KEYS)), "drive_length": 0.0}
 
 
 CHECK_PROTOCOL_KEYS = frozenset(
-    {"angles_deg", "sweep_deg", "settle_time", "stop_time", "align_time"}
+    {"angles_deg", "sweep_deg", "settle_time", "stop_time", "align_time", "rest_time"}
 )
 """The settings of :class:`CheckConfig` that replace the protocol's for a check."""
 
@@ -382,16 +388,16 @@ class RobotConfig(BaseModel):
         determines every parameter, else its SOLVE says so), and every step of the
         protocol possible within ``limits.step_timeout``; without motion capture
         (``metrology="imu"``) rests long enough for the solver and a straight drive that
-        fits the step timeout and the speed limit; a check measures with motion capture."""
+        fits the step timeout and the speed limit; a check does not drive."""
         p, lim = self.protocol, self.limits
         problems: list[str] = []
-        if kind == "check" and metrology != "mocap":
-            problems.append(
-                f"metrology: a check measures with motion capture (mocap), not {metrology} "
-                "(docs/check.md)"
-            )
-        elif metrology == "imu":
+        if metrology == "imu":
             problems += self._imu_problems()
+        if kind == "check" and p.drive_length > 0:
+            problems.append(
+                f"protocol.drive_length: {p.drive_length:g} m; a check does not drive (it "
+                "has no references to measure): 0"
+            )
         if kind == "calibration" and len(p.angles_deg) < 2:
             problems.append(
                 f"protocol.angles_deg: {len(p.angles_deg)} angle; a calibration needs two or "

@@ -3,7 +3,8 @@
 * ``POST /checks`` (token): start a check: a short run of the calibration protocol with
   the robot config's check settings (``check``), every safety limit of a calibration,
   that judges the file in force and installs nothing (202 with its status and
-  ``Location``).  ``overrides`` as for a calibration (limits and tolerances may only be
+  ``Location``); ``metrology`` ``mocap`` or ``imu`` (the gyro: no references, the
+  robot's shape judged).  ``overrides`` as for a calibration (limits and tolerances may only be
   tightened; ``protocol`` overrides the check's protocol).  422 for overrides that cannot
   succeed (before any motion); 409 while a run goes, while ``GET /health`` fails on the
   robot or its sensors, or without a kinematic file in force that loads; 507 without room
@@ -41,7 +42,12 @@ class CheckRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     overrides: ConfigOverrides = Field(default_factory=ConfigOverrides)
-    metrology: Literal["mocap"] = "mocap"
+    metrology: Literal["mocap", "imu"] | None = Field(
+        None,
+        description="mocap (motion capture: every parameter in R) or imu (the gyro and the "
+        "wheel encoders: the robot's shape, each module against the others); default the "
+        "service's SWPC_METROLOGY",
+    )
 
 
 class CheckStatus(RunStatus):
@@ -82,8 +88,9 @@ def check_status(rt: Rt, run_id: str) -> dict[str, Any]:
 )
 def start(body: CheckRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a check (module docstring)."""
-    config = run_config(rt, body.overrides, body.metrology, "check")
-    run = start_checked(rt, config, "never", body.metrology, [], "check")
+    metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
+    config = run_config(rt, body.overrides, metrology, "check")
+    run = start_checked(rt, config, "never", metrology, [], "check")
     response.headers["Location"] = f"/checks/{run.id}"
     return run.status.to_dict()
 

@@ -55,6 +55,8 @@ def check_document(
     return {
         "check": run_id,
         **verdict.document(),
+        "metrology": result.mode,
+        "frame": result.params.frame,
         "file": file,
         "estimate": [
             {

@@ -13,7 +13,9 @@ newest calibration's), the tolerance the robot config's (``tolerances``: positio
 may have, here the largest change the file may be off by).  ``x_s``, ``y_s`` and ``beta``
 depend on the frame of the parameters: their trend uses the points in the reference's
 frame only (a calibration without motion capture is in its design-fit frame); ``b`` and
-``r`` do not.
+``r`` do not.  A check without motion capture (frame ``file-fit``: fitted to the file it
+checked, its scales the file's) is shown but enters no trend: it measures changes of the
+robot's shape, not values.
 
 Values are in display units (mm, deg; slopes per week): :data:`swpc_hw.calibration.report.DISPLAY`.
 """
@@ -30,6 +32,7 @@ from services.config.robot import TOLERANCE_OF, RobotConfig
 from services.runtime.runtime import NoFileError, Runtime
 from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.calibration.trend import linear_trend
+from swpc_hw.frames import DESIGN_FIT, FILE_FIT
 from swpc_hw.model import PARAM_NAMES
 
 WEEK = 7 * 86400.0
@@ -72,7 +75,7 @@ def point_of(status: dict[str, Any], doc: dict[str, Any]) -> Point | None:
         return None
     quality = doc.get("quality")
     imu = isinstance(quality, dict) and quality.get("mode") == "imu"
-    frame = "design-fit" if imu else "R"
+    frame = str(doc.get("frame") or (DESIGN_FIT if imu else "R"))
     modules: dict[int, dict[str, tuple[float, float]]] = {}
     for m in rows:
         sd = m.get("stddev") or {}
@@ -128,7 +131,7 @@ def parameter_series(
             used = [
                 (epoch(p.time), v * f, math.hypot(sd, rep[k]) * f)
                 for p, (v, sd) in zip(mine, values, strict=True)
-                if k in FRAME_FREE or p.frame == reference_frame
+                if p.frame != FILE_FIT and (k in FRAME_FREE or p.frame == reference_frame)
             ]
             tr = None
             if ref is not None and used:

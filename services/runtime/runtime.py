@@ -458,11 +458,16 @@ class Runtime:
                 what = self.current.status.kind
                 raise RunConflictError(f"{what} {self.current.id} is still running")
             checked = self.file_in_force() if kind == "check" else None
-            if checked is not None and checked[0].params.frame != config.nominal.frame:
+            if (
+                checked is not None
+                and metrology == "mocap"
+                and checked[0].params.frame != config.nominal.frame
+            ):
                 raise NoFileError(
                     f"the kinematic file in force is in frame {checked[0].params.frame!r}: a "
                     f"check measures in {config.nominal.frame!r} with motion capture, where "
-                    "it cannot be compared (calibrate with motion capture first)"
+                    "it cannot be compared (calibrate with motion capture first, or check "
+                    "with metrology imu)"
                 )
             budget, reserve = int(s.disk_budget), run_reserve(int(s.disk_budget))
             room = make_room(self.data_dir, budget, reserve=reserve)

@@ -6,7 +6,9 @@ solved by the joint solver started from the file in force
 every parameter with its covariance ``C_check``, independent of the file's estimate
 ``p_file`` (covariance ``C_file``, as the file states it).  Both are in the frame R of
 the motion capture's rigid body (:func:`check_dataset` refuses a file in another frame):
-a change of the robot shows as a change of its parameters, nothing else does.
+a change of the robot shows as a change of its parameters, nothing else does.  A check
+without motion capture compares the robot's shape instead
+(:mod:`swpc_hw.calibration.check_gauge`).
 
 **The change** of every parameter and its covariance (the two estimates come from
 independent data)::
@@ -344,16 +346,22 @@ def check_estimates(
         X_check, C_c, X_file, C_f, ids,
         false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability,
     )  # fmt: skip
-    if file_covariance is None:
-        stated = all(file.module(m).stddev is not None for m in ids)
-        out.notes.append(
-            "The file states std devs but no covariance: its parameters are taken as "
-            "uncorrelated."
-            if stated
-            else "The file states no uncertainty: it is taken as exact (only the check's "
-            "noise and the repeatability are judged)."
-        )
+    out.notes += file_notes(file, file_covariance, ids)
     return out
+
+
+def file_notes(file: RobotParams, file_covariance: Any, ids: list[int]) -> list[str]:
+    """What a verdict says of the file's uncertainty when it states no covariance."""
+    if file_covariance is not None:
+        return []
+    stated = all(file.module(m).stddev is not None for m in ids)
+    return [
+        "The file states std devs but no covariance: its parameters are taken as "
+        "uncorrelated."
+        if stated
+        else "The file states no uncertainty: it is taken as exact (only the check's "
+        "noise and the repeatability are judged)."
+    ]
 
 
 def check_dataset(
@@ -366,21 +374,22 @@ def check_dataset(
     repeatability: Any = None,
     source: str = "dataset",
 ) -> tuple[Any, CheckResult]:
-    """Solve a check's dataset (motion capture) from the file's parameters and judge it:
+    """Solve a check's dataset from the file's parameters and judge it:
     ``(CalibrationResult, CheckResult)``.  What ``swpc check --offline`` and a check run
-    both do.  The file must be in the dataset's frame (R)."""
+    both do.  With motion capture (``poses.csv``) the file must be in the dataset's frame
+    (R); without (``imu.csv``), :func:`check_dataset_imu`."""
     from swpc_hw.calibration.solver import SolverOptions, solve
 
     if not ds.has_poses:
-        raise CalibrationError(
-            f"{source}: no poses.csv: a check measures with motion capture (a check "
-            "without motion capture is not implemented, docs/check.md)"
-        )
+        return check_dataset_imu(
+            ds, file, file_covariance, false_alarm=false_alarm, whole_robot=whole_robot,
+            repeatability=repeatability, source=source,
+        )  # fmt: skip
     if file.frame != ds.robot.frame:
         raise CalibrationError(
             f"the file is in frame {file.frame!r}, the check measures in {ds.robot.frame!r} "
             "(the motion capture's rigid body): they cannot be compared; calibrate with "
-            "motion capture first"
+            "motion capture first, or check without motion capture (metrology imu)"
         )
     X, _ = in_order(file, None, ds.robot.ids)
     start = RobotParams.from_arrays(
@@ -392,4 +401,41 @@ def check_dataset(
         result.params, result.covariance, file, file_covariance,
         false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability,
     )  # fmt: skip
+    return result, verdict
+
+
+def check_dataset_imu(
+    ds: Any,
+    file: RobotParams,
+    file_covariance: Any,
+    *,
+    false_alarm: float = 0.05,
+    whole_robot: float = 0.5,
+    repeatability: Any = None,
+    source: str = "dataset",
+) -> tuple[Any, CheckResult]:
+    """A check without motion capture (the gyro and the encoders, no references): the
+    dataset solved fitted to the file (:func:`~swpc_hw.calibration.imu_solver.solve_imu_check`,
+    frame ``file-fit``) and judged on the robot's shape
+    (:func:`~swpc_hw.calibration.check_gauge.compare_shape`).  The file may be in any
+    frame: the comparison does not depend on it."""
+    from swpc_hw.calibration.check_gauge import compare_shape
+    from swpc_hw.calibration.imu_solver import solve_imu_check
+
+    if ds.imu is None:
+        raise CalibrationError(
+            f"{source}: neither poses.csv nor imu.csv: a check measures with motion capture "
+            "or the gyro"
+        )
+    ids = ds.robot.ids
+    X, _ = in_order(file, None, ids)
+    result = solve_imu_check(ds, X, source=source)
+    if result.covariance is None:
+        raise CalibrationError(f"{source}: the check's data do not determine its covariance")
+    X_check, _ = in_order(result.params, None, ids)
+    verdict = compare_shape(
+        X_check, result.covariance, X, stated_covariance(file, file_covariance, ids), ids,
+        false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability,
+    )  # fmt: skip
+    verdict.notes += file_notes(file, file_covariance, ids)
     return result, verdict

@@ -33,7 +33,6 @@ from scipy.linalg import null_space
 from swpc_hw.calibration.imu_problem import ImuProblem
 from swpc_hw.calibration.parameters import BETA, N_PARAMS, P_S, X_S, Y_S, R
 from swpc_hw.calibration.parameters import B as B_COL
-from swpc_hw.frames import design_fit_constraint_jacobian
 
 FloatArray = NDArray[np.float64]
 
@@ -191,10 +190,7 @@ def design_fit_std(
     information ``Fs`` of the unknowns ``idx`` (``root``: their scales):
     ``Cov = Z (Z^T F Z)^+ Z^T`` with ``Z`` the null space of the frame's conditions; a
     figure with a component along a null direction of ``Z^T F Z`` is not determined."""
-    n = prob.layout.n
-    A = np.zeros((3, prob.layout.size))
-    cols = np.array([N_PARAMS * i + c for i in range(n) for c in (X_S, Y_S)])
-    A[:, cols] = design_fit_constraint_jacobian(prob.P_nom)
+    A = prob.gauge_jacobian()
     Z = null_space(A[:, idx] / root)
     H = Z.T @ Fs @ Z
     w, V = np.linalg.eigh(H)

@@ -154,8 +154,11 @@ def build_imu_problem(
     opts: SolverOptions,
     source: str = "dataset",
     noise: NoiseLevels | None = None,
+    reference: FloatArray | None = None,
 ) -> ImuRun:
-    """Observations and weights of an IMU run (module docstring)."""
+    """Observations and weights of an IMU run (module docstring).  ``reference``: a
+    check's file parameters (N, 5): the gauge fits to its layout and fixes its scales
+    (:class:`~swpc_hw.calibration.imu_problem.ImuProblem`'s ``scale_ref``)."""
     if ds.imu is None:
         raise DatasetError(f"{source}/imu.csv: missing file (no poses.csv either)")
     imu = ds.imu
@@ -206,7 +209,8 @@ def build_imu_problem(
         knot_sigma=np.sqrt(nl.gyro_var / knots.n + nl.walk_q2 * knots.T / 12.0 + 1e-30),
         refs=refs,
         ids=ids,
-        P_nom=ds.robot.arrays().P_s,
+        P_nom=ds.robot.arrays().P_s if reference is None else reference[:, P_S].copy(),
+        scale_ref=None if reference is None else reference[:, R].copy(),
     )
     return ImuRun(prob, knots, nl, tracks, drive_refs, sig.copy())
 
@@ -265,11 +269,16 @@ def drive_set(
     return rolling_set(tracks, ids, list(range(len(ids))), np.array(theta), t, wz, basis)
 
 
-def initial_parameters(run: ImuRun, ds: Dataset, iterations: int = 8) -> FloatArray:
-    """The starting point (module docstring)."""
+def initial_parameters(
+    run: ImuRun, ds: Dataset, iterations: int = 8, start: FloatArray | None = None
+) -> FloatArray:
+    """The starting point (module docstring); ``start`` (N, 5): a check's file, its
+    ``beta`` kept."""
     prob = run.problem
     a = ds.robot.arrays()
-    X = np.column_stack([a.P_s, np.zeros(a.n), a.b, a.r])
+    X = np.column_stack([a.P_s, np.zeros(a.n), a.b, a.r]) if start is None else start.copy()
+    if start is not None:
+        iterations = 0
     st = prob.settled
     k = prob.seg_static
     for _ in range(iterations):

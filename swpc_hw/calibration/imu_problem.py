@@ -50,7 +50,15 @@ steering.  For every segment (a spin about the locked module k at reported steer
 ``gauge``
     The design-fit conditions (:func:`swpc_hw.frames.design_fit_constraints`): the data
     do not see a planar rigid motion of the frame, these three residuals fix it (at the
-    optimum they are exactly zero, whatever their weight).
+    optimum they are exactly zero, whatever their weight).  A check without references
+    (:func:`swpc_hw.calibration.imu_solver.solve_imu_check`) fits to the file's layout
+    (``P_nom`` the file's axes) and fixes the two scales the data do not see either
+    (``scale_ref``)::
+
+        sum_i a_i . (P_s,i - c_s) - sum_i |a_i|^2      (the layout's length scale, m^2)
+        sum_i r_i - sum_i r_ref,i                     (the radii's common scale, m)
+
+    with ``a_i = P_nom,i - c_nom``.
 """
 
 from __future__ import annotations
@@ -360,6 +368,9 @@ class ImuProblem:
     P_nom: FloatArray
     active: frozenset[str] = frozenset(BLOCKS)
     _stack: RollingStack | None = field(default=None, repr=False)
+    scale_ref: FloatArray | None = None
+    """A check's reference radii (N,): the two scale conditions join the gauge (module
+    docstring); None for a calibration (its references fix the scales)."""
 
     def stack(self) -> RollingStack:
         """The rolling sets stacked (built at first use; :meth:`restack` after changing a
@@ -469,6 +480,11 @@ class ImuProblem:
             cross = np.sum(arm[:, 0] * dev[..., 1] - arm[:, 1] * dev[..., 0], axis=-1)
             c_s = P.mean(axis=1) - self.P_nom.mean(axis=0)
             out["gauge"].append(np.column_stack([c_s, cross]) / GAUGE_SCALE)
+            if self.scale_ref is not None:
+                dot = np.sum(arm[:, 0] * dev[..., 0] + arm[:, 1] * dev[..., 1], axis=-1)
+                rsum = X[:, :, R].sum(axis=1) - float(self.scale_ref.sum())
+                scales = np.column_stack([dot - float(np.sum(arm * arm)), rsum])
+                out["gauge"].append(scales / GAUGE_SCALE)
         blocks = {
             b: np.concatenate(v, axis=1) if v else np.zeros((Bn, 0))
             for b, v in out.items()
@@ -547,5 +563,23 @@ class ImuProblem:
             self.layout, self.settled, self.seg_static, self.seg_angle, self.seg_sign,
             self.angle_sigma, self.spins, self.drives,
             self.knot_mean, self.knot_sigma, self.refs, self.ids, self.P_nom, frozenset(active),
-            self._stack,
+            self._stack, self.scale_ref,
         )
+
+    def gauge_jacobian(self) -> FloatArray:
+        """Jacobian (3 or 5, p) of the gauge conditions (constant: they are linear in the
+        unknowns): the design-fit rows
+        (:func:`swpc_hw.frames.design_fit_constraint_jacobian`) and, for a check, the
+        scale rows ``d/dP_s,i = a_i`` and ``d/dr_i = 1``."""
+        from swpc_hw.frames import design_fit_constraint_jacobian
+
+        n = self.layout.n
+        rows = 3 if self.scale_ref is None else 5
+        A = np.zeros((rows, self.layout.size))
+        cols = np.array([N_PARAMS * i + c for i in range(n) for c in (0, 1)])
+        A[:3, cols] = design_fit_constraint_jacobian(self.P_nom)
+        if self.scale_ref is not None:
+            arm = self.P_nom - self.P_nom.mean(axis=0)
+            A[3, cols] = arm.ravel()
+            A[4, N_PARAMS * np.arange(n) + R] = 1.0
+        return A

@@ -53,11 +53,7 @@ from swpc_hw.calibration.slip import detect_slip, mad_sigma
 from swpc_hw.calibration.uncertainty import dense_rows, long_run_covariance
 from swpc_hw.dataset import Dataset, load_dataset
 from swpc_hw.errors import CalibrationError, ImplausibleDataError
-from swpc_hw.frames import (
-    design_fit_constraint_jacobian,
-    design_fit_transform,
-    transform_parameters,
-)
+from swpc_hw.frames import FILE_FIT, design_fit_transform, transform_parameters
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -407,11 +403,7 @@ def imu_covariance(prob: ImuProblem, x: FloatArray) -> tuple[FloatArray, FloatAr
     norms = np.linalg.norm(J, axis=0)
     norms = np.where(norms > 0, norms, 1.0)
     Js = J / norms
-    A = np.zeros((3, p))
-    n = prob.layout.n
-    cols = np.array([N_PARAMS * i + c for i in range(n) for c in (0, 1)])
-    A[:, cols] = design_fit_constraint_jacobian(prob.P_nom)
-    Z = null_space(A / norms)
+    Z = null_space(prob.gauge_jacobian() / norms)
     Hz = Z.T @ (Js.T @ Js) @ Z
     w, V = np.linalg.eigh(Hz)
     if w[0] <= w[-1] * 1e-12:
@@ -454,6 +446,45 @@ def solve_imu(
     noise: NoiseLevels | None = None,
 ) -> CalibrationResult:
     """Calibrate all modules from a dataset without poses (module docstring)."""
+    return _solve(ds, options, source, noise, None)
+
+
+def solve_imu_check(
+    ds: Dataset,
+    reference: FloatArray,
+    options: SolverOptions | None = None,
+    source: str = "dataset",
+    noise: NoiseLevels | None = None,
+) -> CalibrationResult:
+    """A check's estimate from a dataset without poses and without references, started
+    from the file's parameters ``reference`` (N, 5; the dataset's module order).
+
+    The robot's own sensors fix everything but a planar rigid motion and two scales (the
+    layout's and the radii's, docs/imu.md): five gauge conditions fit the estimate to the
+    file (its centroid, its rotation, its length scale, the sum of its radii; the
+    ``gauge`` block), so that the frame of the result, ``file-fit``, is the file's
+    own up to the changes the check measures.  What it determines is the shape: every
+    parameter relative to the others.  The covariance is on the subspace the five
+    conditions leave (:func:`imu_covariance`); comparing with the file
+    (:func:`swpc_hw.calibration.check_gauge.compare_shape`) removes the same five
+    directions again, per module."""
+    X = np.asarray(reference, dtype=float)
+    if X.shape != (len(ds.robot.ids), N_PARAMS) or not np.all(np.isfinite(X)):
+        raise CalibrationError(
+            f"{source}: the file's parameters must be ({len(ds.robot.ids)}, {N_PARAMS}), finite"
+        )
+    result = _solve(ds, options, source, noise, X)
+    result.params = result.params.model_copy(update={"frame": FILE_FIT})
+    return result
+
+
+def _solve(
+    ds: Dataset,
+    options: SolverOptions | None,
+    source: str,
+    noise: NoiseLevels | None,
+    reference: FloatArray | None,
+) -> CalibrationResult:
     opts = options or SolverOptions()
     if opts.time_offset != 0.0:
         raise CalibrationError(
@@ -463,15 +494,18 @@ def solve_imu(
     if ds.imu is None:
         raise CalibrationError(f"{source}: no imu.csv: not an IMU dataset")
     plausibility.check_dataset(ds, source)
-    segs = prepare_segments(ds, 0.0, source)
-    check_references(ds, source)
+    # a check starts from the file: one steering angle per module is enough
+    segs = prepare_segments(ds, 0.0, source, calibration=reference is None)
+    if reference is None:
+        check_references(ds, source)
     coarse = build_imu_problem(
-        ds, segs, dataclasses.replace(opts, increment_interval=COARSE_INTERVAL), source, noise
-    )
-    x0 = initial_parameters(coarse, ds)
+        ds, segs, dataclasses.replace(opts, increment_interval=COARSE_INTERVAL), source, noise,
+        reference,
+    )  # fmt: skip
+    x0 = initial_parameters(coarse, ds, start=reference)
     plausibility.check_gyro_ratio(gyro_ratio(coarse.problem, x0), source)
     x0 = coarse_fit(coarse, x0, opts)
-    run = build_imu_problem(ds, segs, opts, source, noise)
+    run = build_imu_problem(ds, segs, opts, source, noise, reference)
     x, cut = fit_imu(run, x0, opts)
     x = align_design_fit(run.problem, x)
     X = x[: N_PARAMS * run.problem.layout.n].reshape(-1, N_PARAMS)
