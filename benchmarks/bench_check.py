@@ -21,6 +21,12 @@
    seed the same robot family on the in-process simulator (``SWPC_SIM_TRUTH``), one full
    calibration installed (``POST /calibrations``), then the service restarted on each
    changed truth and ``POST /checks``: verdicts, robot time, wall time.
+
+2 and 3 for each metrology of ``SWPC_BENCH_CHECK_METROLOGY`` (default ``mocap,imu``):
+``imu`` is the check with the gyro (:data:`MEMS`, the encoders, no poses, no references;
+the verdict on the robot's shape, :mod:`swpc_hw.calibration.check_gauge`), the file in
+force the same calibration with motion capture; its offline table adds the RMS z of the
+check's shape against the truth.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ import numpy as np
 
 from services.config.robot import RobotConfig
 from simulators.datagen import ExperimentOptions, generate_experiment
+from simulators.datagen_imu import GyroOptions
 from simulators.random_robots import random_robots
 from swpc_hw.calibration.check import check_estimates, stated_covariance
 from swpc_hw.calibration.parameters import N_PARAMS
@@ -47,6 +54,9 @@ from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 MOCAP = ExperimentOptions(pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05))
+MEMS = GyroOptions(noise_density=math.radians(0.014), bias=math.radians(0.5))
+"""A check with the gyro: a MEMS gyro (white noise 0.014 deg/s/sqrt(Hz), bias 0.5 deg/s,
+the default walk and 0.3 % scale error)."""
 YAW_RATE = MOCAP.yaw_rate
 CASES = ("unchanged", "r -0.3 mm", "beta +0.3 deg", "swapped")
 TOKEN = "bench-token-0123456789"
@@ -200,7 +210,25 @@ def design(runs: int, cfg: RobotConfig, service_times: dict[str, float]) -> None
 # ---------------------------------------------------------------------------- offline
 
 
-def offline(seeds: int, cfg: RobotConfig) -> None:
+def check_data(robot: RobotParams, proto: dict[str, Any], seed: int, metrology: str) -> Any:
+    """A check's dataset on ``robot``: with motion capture, or (``imu``) as the robot
+    records it without: a MEMS gyro (:data:`MEMS`), the encoders, no poses, no
+    references."""
+    if metrology == "mocap":
+        return generate_experiment(robot, check_options(proto, seed), PAPER_NOMINAL).dataset
+    from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
+
+    opts = dataclasses.replace(
+        check_options(proto, seed), pose_sigma_xy=0.0, pose_sigma_yaw=0.0,
+        rest_time=proto["rest_time"], drive_length=0.0,
+    )  # fmt: skip
+    exp = generate_imu_experiment(
+        robot, opts, MEMS, ReferenceOptions(axis_pairs=(), straight_drive=False), PAPER_NOMINAL
+    )
+    return dataclasses.replace(exp.experiment.dataset, poses=np.zeros((0, 4)))
+
+
+def offline(seeds: int, cfg: RobotConfig, metrology: str = "mocap") -> None:
     from swpc_hw.calibration.check import check_dataset
 
     c = cfg.check
@@ -213,6 +241,7 @@ def offline(seeds: int, cfg: RobotConfig) -> None:
     others = {k: 0 for k in CASES}
     bare = {k: 0 for k in CASES}
     params_named = {k: 0 for k in CASES}
+    honesty: list[np.ndarray] = []
     t0 = time.perf_counter()
     t_cal = t_chk = 0.0
     for i, truth in enumerate(robots):
@@ -224,16 +253,27 @@ def offline(seeds: int, cfg: RobotConfig) -> None:
             d = drift(case, module, i)
             robot = changed(truth, module, d) if d else truth
             t = time.perf_counter()
-            ds = generate_experiment(robot, check_options(proto, i), PAPER_NOMINAL).dataset
+            ds = check_data(robot, proto, i, metrology)
             res, v = check_dataset(
                 ds, file.params, file.covariance, false_alarm=c.false_alarm,
                 whole_robot=c.whole_robot, repeatability=rep,
             )  # fmt: skip
             t_chk += time.perf_counter() - t
-            b = check_estimates(
-                res.params, res.covariance, file.params, file.covariance,
-                false_alarm=c.false_alarm, whole_robot=c.whole_robot,
-            )  # fmt: skip
+            if metrology == "mocap":
+                b = check_estimates(
+                    res.params, res.covariance, file.params, file.covariance,
+                    false_alarm=c.false_alarm, whole_robot=c.whole_robot,
+                )  # fmt: skip
+            else:
+                from swpc_hw.calibration.check_gauge import compare_shape
+
+                assert res.covariance is not None
+                b = compare_shape(
+                    as_matrix(res.params), res.covariance, as_matrix(file.params),
+                    stated_covariance(file.params, file.covariance, ids), ids,
+                    false_alarm=c.false_alarm, whole_robot=c.whole_robot,
+                )  # fmt: skip
+                honesty.append(shape_z(res, truth if case == "unchanged" else robot))
             if case == "unchanged":
                 hits[case] += v.verdict != "consistent"
                 bare[case] += b.verdict != "consistent"
@@ -249,7 +289,8 @@ def offline(seeds: int, cfg: RobotConfig) -> None:
             params_named[case] += ok and set(mine.parameters) >= main_params
     wall = time.perf_counter() - t0
     print(
-        f"\n[offline] {seeds} seeds per case ({wall:.0f} s: calibrations {t_cal / seeds:.2f} s, "
+        f"\n[offline {metrology}] {seeds} seeds per case ({wall:.0f} s: calibrations "
+        f"{t_cal / seeds:.2f} s, "
         f"checks {t_chk / (4 * seeds):.2f} s each); check protocol {proto['angles_deg']} deg, "
         f"{proto['sweep_deg']:g} deg sweeps, every module; false alarm {c.false_alarm:g} "
         f"(Sidak), repeatability {rep_text(cfg)}"
@@ -273,6 +314,38 @@ def offline(seeds: int, cfg: RobotConfig) -> None:
         "change or more all named; other: another module named too; bare stat: the same "
         "without the repeatability"
     )
+    if honesty:
+        z = np.array(honesty)
+        print(
+            "  the check's std devs against the truth (each module's change relative to the "
+            f"others, {z.shape[0]} checks): RMS z {float(np.sqrt(np.mean(z**2))):.2f}; per "
+            "parameter " + ", ".join(
+                f"{k} {float(np.sqrt(np.mean(z[..., c] ** 2))):.2f}"
+                for c, k in enumerate(PARAM_NAMES)
+            )
+        )
+
+
+def shape_z(res: CalibrationResult, truth: RobotParams) -> np.ndarray:
+    """(N, 5) z of a check's shape against the truth: each module's error relative to the
+    others (:func:`swpc_hw.calibration.check_gauge.relative_map`) over its std dev from
+    the check's covariance alone."""
+    from swpc_hw.calibration.check_gauge import gauge_directions, module_statistic, relative_map
+
+    T = as_matrix(truth)
+    d = as_matrix(res.params) - T
+    d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    assert res.covariance is not None
+    C = res.covariance
+    G = gauge_directions(T)
+    w = 1.0 / np.maximum(np.diag(C), 1e-30)
+    n = T.shape[0]
+    out = []
+    for k in range(n):
+        L = relative_map(G, w, k, [a for a in range(n) if a != k])
+        _, e, sd = module_statistic(L, d.ravel(), C)
+        out.append(e / sd)
+    return np.array(out)
 
 
 # ---------------------------------------------------------------------------- service
@@ -310,11 +383,16 @@ def start_and_wait(client: Any, what: str, body: dict[str, Any]) -> dict[str, An
 
 
 def service_check(
-    data: Path, truth: Path, seed: int, overrides: dict[str, Any] | None = None
+    data: Path,
+    truth: Path,
+    seed: int,
+    overrides: dict[str, Any] | None = None,
+    metrology: str = "mocap",
 ) -> dict[str, Any]:
     """One check on a service on ``truth`` (data dir ``data``, its file in force)."""
     with service(data, truth, seed) as client:
-        return start_and_wait(client, "checks", {"overrides": overrides or {}})
+        body = {"overrides": overrides or {}, "metrology": metrology}
+        return start_and_wait(client, "checks", body)
 
 
 def service_calibration(data: Path, truth: Path, seed: int) -> dict[str, Any]:
@@ -338,7 +416,7 @@ def service_times() -> dict[str, float]:
     return out
 
 
-def through_service(seeds: int) -> None:
+def through_service(seeds: int, metrology: str = "mocap") -> None:
     from swpc_hw.kinematic_file import save_kinematics
 
     robots = truths(seeds)
@@ -360,7 +438,7 @@ def through_service(seeds: int) -> None:
                 d = drift(case, module, i)
                 save_kinematics(path, changed(truth, module, d) if d else truth)
                 t = time.perf_counter()
-                st = service_check(data, path, 200 + i)
+                st = service_check(data, path, 200 + i, metrology=metrology)
                 wall.append(time.perf_counter() - t)
                 assert st["state"] == "DONE", st["reason"]
                 robot_s.append(float(st["elapsed_s"]))
@@ -372,7 +450,8 @@ def through_service(seeds: int) -> None:
                 line.append(f"{case}: {res['verdict']} {res['drifted_modules']}")
             print(f"  seed {i} (module {module} changed): " + "; ".join(line), flush=True)
     print(
-        f"[service] {seeds} seeds per case through the service ({time.perf_counter() - t0:.0f} "
+        f"[service {metrology}] {seeds} seeds per case through the service "
+        f"({time.perf_counter() - t0:.0f} "
         f"s): false alarms {counts['unchanged'] / seeds:.3f}, detected "
         + ", ".join(f"{c} {counts[c] / seeds:.3f}" for c in CASES[1:])
         + f"; check robot time {min(robot_s):.1f}-{max(robot_s):.1f} s "
@@ -391,10 +470,12 @@ def main() -> None:
     if runs > 0:
         times = service_times() if service > 0 else {}
         design(runs, cfg, times)
-    if seeds > 0:
-        offline(seeds, cfg)
-    if service > 0:
-        through_service(service)
+    metrologies = os.environ.get("SWPC_BENCH_CHECK_METROLOGY", "mocap,imu").split(",")
+    for metrology in metrologies:
+        if seeds > 0:
+            offline(seeds, cfg, metrology)
+        if service > 0:
+            through_service(service, metrology)
 
 
 if __name__ == "__main__":

@@ -68,6 +68,7 @@ from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.common.keys import Keys  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
+from selenium.webdriver.support.select import Select  # noqa: E402
 
 state: dict[str, Any] = {}  # what one step leaves for the next (the tests run in order)
 
@@ -635,6 +636,18 @@ def test_check_button_and_verdict(service: dict[str, Any], browser: WebDriver) -
     assert "last check: " + run_id in text(d, "drift-summary")
     check_view(d, "drift", shots="13-drift")
     shot(d, "13-drift")
+    # the same file checked with the gyro: no motion capture, the robot's shape judged
+    go(d, "run")
+    Select(d.find_element(By.ID, "f-check-metrology")).select_by_value("imu")
+    d.find_element(By.ID, "check").click()
+    gyro_id = wait_for("the gyro's check", lambda: (t := text(d, "run-id")) != run_id and t)
+    assert wait_state(d, {"DONE", "FAILED", "ABORTED"}) == "DONE", text(d, "run-reason")
+    d.find_element(By.ID, "run-result-link").click()
+    wait_for(
+        "its verdict", lambda: text(d, "chk-id") == gyro_id and len(css(d, "#chk-rows tr")) == 20
+    )
+    assert "measured with the gyro and the wheels" in text(d, "chk-verdict")
+    assert "the robot's shape is compared with the file's" in text(d, "chk-file")
     assert severe_logs(d) == []
 
 

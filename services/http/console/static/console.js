@@ -182,7 +182,8 @@ async function startCheck() {
   app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
   app.startSeen = new Set(app.seenRuns);
   try {
-    onRun(await api("POST", "/checks", {}), false);
+    const metrology = $("f-check-metrology").value;
+    onRun(await api("POST", "/checks", metrology ? { metrology } : {}), false);
   } catch (e) {
     app.startAt = null;
     $("start-error").textContent = "Check not started: " + e.message;
@@ -515,7 +516,8 @@ async function showCheck(id) {
     el("span", { id: "chk-verdict-chip", class: "chip " + (ok ? "ok" : "bad") }, ok ? "consistent" : "drifted"),
     " ", el("b", {}, ok ? "the robot matches its file" : res.action),
     ` · ${res.drifted_modules.length} of ${res.modules.length} modules drifted · robot time ` +
-    duration(st.elapsed_s || 0));
+    duration(st.elapsed_s || 0) + (res.metrology === "imu"
+      ? " · measured with the gyro and the wheels" : " · measured with motion capture"));
   const f = res.file || {};
   $("chk-file").textContent = `Judged against ${f.name || "the file in force"}` +
     (f.run ? ` (from run ${f.run})` : " (not from a run)") + `, sha256 ${f.sha256 || "?"}; ` +
