@@ -11,7 +11,9 @@ angle, short sweeps).  Only its end differs:
   run's directory) and judged against it
   (:func:`swpc_hw.calibration.check.check_dataset`): per module and parameter the
   change, its std dev and z, per module a chi-square against a Sidak threshold, the
-  verdict.  ``swpc check --offline <run>/dataset --file <run>/file-in-force.yaml``
+  verdict.  With the gyro (metrology ``imu``: no references, no drive) the IMU solver
+  fitted to the file and the robot's shape judged
+  (:mod:`swpc_hw.calibration.check_gauge`).  ``swpc check --offline <run>/dataset --file <run>/file-in-force.yaml``
   reproduces it.
 * WRITE: nothing is installed (the file in force stays as it is): the verdict is the
   result (``GET /checks/{id}``), kept in the run store for the history.

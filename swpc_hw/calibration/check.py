@@ -235,6 +235,92 @@ class CheckResult:
         }
 
 
+def change_and_covariance(
+    check: FloatArray,
+    C_check: FloatArray,
+    file: FloatArray,
+    C_file: FloatArray,
+    n: int,
+    repeatability: Any = None,
+) -> tuple[FloatArray, FloatArray]:
+    """``(d (N, 5), Cov(d) (5N, 5N))`` of the module docstring (``beta`` wrapped); a
+    covariance that is not finite is a :class:`~swpc_hw.errors.CalibrationError`."""
+    if check.shape != (n, N_PARAMS) or file.shape != (n, N_PARAMS):
+        raise ValueError(f"estimates must be ({n}, {N_PARAMS})")
+    C = np.asarray(C_check, dtype=float) + np.asarray(C_file, dtype=float)
+    if repeatability is not None:
+        rep = np.asarray(repeatability, dtype=float).reshape(N_PARAMS)
+        C = C + np.diag(np.tile(rep**2, n))
+    if C.shape != (N_PARAMS * n, N_PARAMS * n) or not np.all(np.isfinite(C)):
+        raise CalibrationError(
+            "the check's data do not determine every parameter (its covariance is unknown): "
+            "a longer check, or one that locks every module, is needed"
+        )
+    d = check - file
+    d[:, BETA] = wrap_angle(d[:, BETA])
+    return d, C
+
+
+def chi2_of(e: FloatArray, Ce: FloatArray, what: str) -> float:
+    """``e^T Ce^-1 e``; a ``Ce`` that is not positive definite is a
+    :class:`~swpc_hw.errors.CalibrationError` naming ``what``."""
+    w, V = np.linalg.eigh(0.5 * (Ce + Ce.T))
+    if not w[0] > 1e-12 * max(float(w[-1]), 0.0) or w[-1] <= 0:
+        raise CalibrationError(
+            f"{what}: the change's covariance is not positive definite (the check does not "
+            "determine every parameter of it)"
+        )
+    a = V.T @ e
+    return float(np.sum(a * a / w))
+
+
+def judged_module(
+    mid: int, stat: float, file: FloatArray, change: FloatArray, sd: FloatArray,
+    drifted: bool, z_m: float,
+) -> tuple[ModuleCheck, list[ParameterChange]]:  # fmt: skip
+    """One module's line and table rows: its statistic, the parameters named when it
+    drifted (``|z| > z_m``, else the largest), per parameter the file's value, the check's
+    (``file + change``), the change, its std dev and z."""
+    from scipy.stats import chi2 as chi2_dist
+
+    z = change / sd
+    named: list[str] = []
+    if drifted:
+        named = [p for p, zp in zip(PARAM_NAMES, z, strict=True) if abs(zp) > z_m]
+        named = named or [PARAM_NAMES[int(np.argmax(np.abs(z)))]]
+    module = ModuleCheck(mid, stat, N_PARAMS, float(chi2_dist.sf(stat, N_PARAMS)), drifted, named)
+    rows = [
+        ParameterChange(
+            mid, p, float(file[c]), float(file[c] + change[c]), float(change[c]), float(sd[c]),
+            float(z[c]), p in named,
+        )
+        for c, p in enumerate(PARAM_NAMES)
+    ]
+    return module, rows
+
+
+def verdict_of(
+    modules: list[ModuleCheck],
+    changes: list[ParameterChange],
+    false_alarm: float,
+    whole_robot: float,
+) -> CheckResult:
+    """The verdict and action from the judged modules (module docstring)."""
+    alpha_m, q, z_m = thresholds(false_alarm, len(modules))
+    drifted_ids = [m.id for m in modules if m.drifted]
+    if not drifted_ids:
+        verdict, action = CONSISTENT, "none"
+    elif len(drifted_ids) >= whole_robot * len(modules):
+        verdict, action = DRIFTED, WHOLE_ROBOT
+    else:
+        verdict = DRIFTED
+        word = "module" if len(drifted_ids) == 1 else "modules"
+        action = f"recalibrate {word} {', '.join(map(str, drifted_ids))}"
+    return CheckResult(
+        verdict, action, drifted_ids, modules, changes, false_alarm, alpha_m, q, z_m, whole_robot
+    )
+
+
 def compare(
     check: FloatArray,
     C_check: FloatArray,
@@ -252,65 +338,19 @@ def compare(
 
     A covariance that is not finite, or a module whose ``Cov(d)`` block is not positive
     definite, is a :class:`~swpc_hw.errors.CalibrationError`: the check cannot judge."""
-    from scipy.stats import chi2 as chi2_dist
-
     n = len(ids)
-    if check.shape != (n, N_PARAMS) or file.shape != (n, N_PARAMS):
-        raise ValueError(f"estimates must be ({n}, {N_PARAMS})")
-    C = np.asarray(C_check, dtype=float) + np.asarray(C_file, dtype=float)
-    if repeatability is not None:
-        rep = np.asarray(repeatability, dtype=float).reshape(N_PARAMS)
-        C = C + np.diag(np.tile(rep**2, n))
-    if C.shape != (N_PARAMS * n, N_PARAMS * n) or not np.all(np.isfinite(C)):
-        raise CalibrationError(
-            "the check's data do not determine every parameter (its covariance is unknown): "
-            "a longer check, or one that locks every module, is needed"
-        )
-    d = check - file
-    d[:, BETA] = wrap_angle(d[:, BETA])
-    alpha_m, q, z_m = thresholds(false_alarm, n)
+    d, C = change_and_covariance(check, C_check, file, C_file, n, repeatability)
+    _, q, z_m = thresholds(false_alarm, n)
     modules: list[ModuleCheck] = []
     changes: list[ParameterChange] = []
     for i, mid in enumerate(ids):
         sl = slice(N_PARAMS * i, N_PARAMS * (i + 1))
-        block = 0.5 * (C[sl, sl] + C[sl, sl].T)
-        w, V = np.linalg.eigh(block)
-        if not w[0] > 1e-12 * max(w[-1], 0.0) or w[-1] <= 0:
-            raise CalibrationError(
-                f"module {mid}: the change's covariance is not positive definite (the check "
-                "does not determine every parameter of it)"
-            )
-        a = V.T @ d[i]
-        stat = float(np.sum(a * a / w))
-        sd = np.sqrt(np.diag(block))
-        z = d[i] / sd
-        drifted = stat > q
-        named: list[str] = []
-        if drifted:
-            named = [k for k, zk in zip(PARAM_NAMES, z, strict=True) if abs(zk) > z_m]
-            named = named or [PARAM_NAMES[int(np.argmax(np.abs(z)))]]
-        modules.append(
-            ModuleCheck(mid, stat, N_PARAMS, float(chi2_dist.sf(stat, N_PARAMS)), drifted, named)
-        )
-        for c, k in enumerate(PARAM_NAMES):
-            changes.append(
-                ParameterChange(
-                    mid, k, float(file[i, c]), float(check[i, c]), float(d[i, c]),
-                    float(sd[c]), float(z[c]), k in named,
-                )
-            )  # fmt: skip
-    drifted_ids = [m.id for m in modules if m.drifted]
-    if not drifted_ids:
-        verdict, action = CONSISTENT, "none"
-    elif len(drifted_ids) >= whole_robot * n:
-        verdict, action = DRIFTED, WHOLE_ROBOT
-    else:
-        verdict = DRIFTED
-        word = "module" if len(drifted_ids) == 1 else "modules"
-        action = f"recalibrate {word} {', '.join(map(str, drifted_ids))}"
-    return CheckResult(
-        verdict, action, drifted_ids, modules, changes, false_alarm, alpha_m, q, z_m, whole_robot
-    )
+        stat = chi2_of(d[i], C[sl, sl], f"module {mid}")
+        sd = np.sqrt(np.diag(C[sl, sl]))
+        module, rows = judged_module(mid, stat, file[i], d[i], sd, stat > q, z_m)
+        modules.append(module)
+        changes += rows
+    return verdict_of(modules, changes, false_alarm, whole_robot)
 
 
 def check_estimates(
@@ -380,11 +420,11 @@ def check_dataset(
     (R); without (``imu.csv``), :func:`check_dataset_imu`."""
     from swpc_hw.calibration.solver import SolverOptions, solve
 
+    test: dict[str, Any] = dict(
+        false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability
+    )
     if not ds.has_poses:
-        return check_dataset_imu(
-            ds, file, file_covariance, false_alarm=false_alarm, whole_robot=whole_robot,
-            repeatability=repeatability, source=source,
-        )  # fmt: skip
+        return check_dataset_imu(ds, file, file_covariance, source, test)
     if file.frame != ds.robot.frame:
         raise CalibrationError(
             f"the file is in frame {file.frame!r}, the check measures in {ds.robot.frame!r} "
@@ -397,28 +437,17 @@ def check_dataset(
         frame=ds.robot.frame,
     )  # fmt: skip
     result = solve(ds, SolverOptions(time_offset=0.0), source=source, start=start)
-    verdict = check_estimates(
-        result.params, result.covariance, file, file_covariance,
-        false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability,
-    )  # fmt: skip
-    return result, verdict
+    return result, check_estimates(result.params, result.covariance, file, file_covariance, **test)
 
 
 def check_dataset_imu(
-    ds: Any,
-    file: RobotParams,
-    file_covariance: Any,
-    *,
-    false_alarm: float = 0.05,
-    whole_robot: float = 0.5,
-    repeatability: Any = None,
-    source: str = "dataset",
+    ds: Any, file: RobotParams, file_covariance: Any, source: str, test: dict[str, Any]
 ) -> tuple[Any, CheckResult]:
     """A check without motion capture (the gyro and the encoders, no references): the
     dataset solved fitted to the file (:func:`~swpc_hw.calibration.imu_solver.solve_imu_check`,
     frame ``file-fit``) and judged on the robot's shape
-    (:func:`~swpc_hw.calibration.check_gauge.compare_shape`).  The file may be in any
-    frame: the comparison does not depend on it."""
+    (:func:`~swpc_hw.calibration.check_gauge.compare_shape` with the keywords ``test``).
+    The file may be in any frame: the comparison does not depend on it."""
     from swpc_hw.calibration.check_gauge import compare_shape
     from swpc_hw.calibration.imu_solver import solve_imu_check
 
@@ -433,9 +462,7 @@ def check_dataset_imu(
     if result.covariance is None:
         raise CalibrationError(f"{source}: the check's data do not determine its covariance")
     X_check, _ = in_order(result.params, None, ids)
-    verdict = compare_shape(
-        X_check, result.covariance, X, stated_covariance(file, file_covariance, ids), ids,
-        false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability,
-    )  # fmt: skip
+    C_file = stated_covariance(file, file_covariance, ids)
+    verdict = compare_shape(X_check, result.covariance, X, C_file, ids, **test)
     verdict.notes += file_notes(file, file_covariance, ids)
     return result, verdict

@@ -51,17 +51,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.calibration.check import (
-    CONSISTENT,
-    DRIFTED,
-    WHOLE_ROBOT,
     CheckResult,
     ModuleCheck,
     ParameterChange,
+    change_and_covariance,
+    chi2_of,
+    judged_module,
     thresholds,
+    verdict_of,
 )
 from swpc_hw.calibration.parameters import BETA, N_PARAMS
 from swpc_hw.errors import CalibrationError
-from swpc_hw.model import PARAM_NAMES, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -118,15 +118,7 @@ def module_statistic(
     is a :class:`~swpc_hw.errors.CalibrationError`."""
     e = L @ d
     Ce = L @ C @ L.T
-    Ce = 0.5 * (Ce + Ce.T)
-    w, V = np.linalg.eigh(Ce)
-    if not w[0] > 1e-12 * max(float(w[-1]), 0.0) or w[-1] <= 0:
-        raise CalibrationError(
-            "a module's change relative to the others has no determined covariance (the "
-            "check's data do not determine every parameter of it)"
-        )
-    a = V.T @ e
-    return float(np.sum(a * a / w)), e, np.sqrt(np.diag(Ce))
+    return chi2_of(e, Ce, "a module relative to the others"), e, np.sqrt(np.diag(Ce))
 
 
 def compare_shape(
@@ -144,28 +136,15 @@ def compare_shape(
     estimates (modules in the order ``ids``, SI, one gauge: the check fitted to the file),
     their (5N, 5N) covariances and the ``repeatability`` (5,) (None: zero).  The result's
     table gives per module its change relative to the other modules."""
-    from scipy.stats import chi2 as chi2_dist
-
     n = len(ids)
     if n < 2:
         raise CalibrationError("a check without motion capture needs two modules or more")
-    if check.shape != (n, N_PARAMS) or file.shape != (n, N_PARAMS):
-        raise ValueError(f"estimates must be ({n}, {N_PARAMS})")
-    C = np.asarray(C_check, dtype=float) + np.asarray(C_file, dtype=float)
-    if repeatability is not None:
-        rep = np.asarray(repeatability, dtype=float).reshape(N_PARAMS)
-        C = C + np.diag(np.tile(rep**2, n))
-    if C.shape != (N_PARAMS * n, N_PARAMS * n) or not np.all(np.isfinite(C)):
-        raise CalibrationError(
-            "the check's data do not determine every parameter (its covariance is unknown)"
-        )
-    d2 = check - file
-    d2[:, BETA] = wrap_angle(d2[:, BETA])
+    d2, C = change_and_covariance(check, C_check, file, C_file, n, repeatability)
     d = d2.ravel()
     G = gauge_directions(file)
     diag = np.diag(C).copy()
     weights = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 0.0)
-    alpha_m, q, z_m = thresholds(false_alarm, n)
+    _, q, z_m = thresholds(false_alarm, n)
     anchors = list(range(n))
     drifted: list[int] = []
     stats: dict[int, tuple[float, FloatArray, FloatArray]] = {}
@@ -187,34 +166,9 @@ def compare_shape(
     changes: list[ParameterChange] = []
     for i, mid in enumerate(ids):
         stat, e, sd = stats[i]
-        z = e / sd
-        is_drifted = i in drifted
-        named: list[str] = []
-        if is_drifted:
-            named = [p for p, zp in zip(PARAM_NAMES, z, strict=True) if abs(zp) > z_m]
-            named = named or [PARAM_NAMES[int(np.argmax(np.abs(z)))]]
-        modules.append(
-            ModuleCheck(mid, stat, N_PARAMS, float(chi2_dist.sf(stat, N_PARAMS)), is_drifted,
-                        named)
-        )  # fmt: skip
-        for c, name in enumerate(PARAM_NAMES):
-            changes.append(
-                ParameterChange(
-                    mid, name, float(file[i, c]), float(file[i, c] + e[c]), float(e[c]),
-                    float(sd[c]), float(z[c]), name in named,
-                )
-            )  # fmt: skip
-    drifted_ids = [ids[i] for i in sorted(drifted)]
-    if not drifted_ids:
-        verdict, action = CONSISTENT, "none"
-    elif len(drifted_ids) >= whole_robot * n:
-        verdict, action = DRIFTED, WHOLE_ROBOT
-    else:
-        verdict = DRIFTED
-        word = "module" if len(drifted_ids) == 1 else "modules"
-        action = f"recalibrate {word} {', '.join(map(str, drifted_ids))}"
-    out = CheckResult(
-        verdict, action, drifted_ids, modules, changes, false_alarm, alpha_m, q, z_m, whole_robot
-    )
+        module, rows = judged_module(mid, stat, file[i], e, sd, i in drifted, z_m)
+        modules.append(module)
+        changes += rows
+    out = verdict_of(modules, changes, false_alarm, whole_robot)
     out.notes.append(UNSEEN_NOTE)
     return out
