@@ -13,8 +13,8 @@ angle, short sweeps).  Only its end differs:
   change, its std dev and z, per module a chi-square against a Sidak threshold, the
   verdict.  With the gyro (metrology ``imu``: no references, no drive) the IMU solver
   fitted to the file and the robot's shape judged
-  (:mod:`swpc_hw.calibration.check_gauge`).  ``swpc check --offline <run>/dataset --file <run>/file-in-force.yaml``
-  reproduces it.
+  (:mod:`swpc_hw.calibration.check_gauge`).
+  ``swpc check --offline <run>/dataset --file <run>/file-in-force.yaml`` reproduces it.
 * WRITE: nothing is installed (the file in force stays as it is): the verdict is the
   result (``GET /checks/{id}``), kept in the run store for the history.
 """
