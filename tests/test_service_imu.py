@@ -15,6 +15,7 @@ the clean drive of this very run was refused as "every wheel slipped at once".
 from __future__ import annotations
 
 import itertools
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -114,6 +115,7 @@ def test_a_calibration_without_motion_capture_through_http(
         "metrology": "imu",
         "references": axis_distances(),
         "overrides": {"protocol": PROTOCOL},
+        "install": "never",  # compared below with a file in force in another frame
     }
     r = client.post("/calibrations", json=body, headers=AUTH)
     assert r.status_code == 202, r.text
@@ -169,3 +171,16 @@ def test_a_calibration_without_motion_capture_through_http(
     assert 'swpc_gyro_samples_total{outcome="accepted"}' in metrics
     # the tape only exists for the in-process simulator's runs, and a run that drove
     assert client.get("/simulator/tape-measure", params={"run": "nope"}).status_code == 404
+    # its verdicts in design-fit: a file in force in R, turned 3 deg and moved 5 cm from the
+    # nominal layout, is re-expressed in design-fit before the changes are taken
+    from swpc_hw.frames import transform_robot
+    from swpc_hw.kinematic_file import save_kinematics
+
+    moved = transform_robot(PAPER_CALIBRATED, math.radians(3.0), [0.05, 0.0], "R")
+    save_kinematics(rt.settings.kinematics_file, moved)
+    cmp = client.get(f"/calibrations/{run_id}/comparison").json()
+    assert cmp["frame"] == "design-fit" and cmp["reference"] == "file in force"
+    turned = float(cmp["frame_note"].split("turned ")[1].split(" deg")[0])
+    assert abs(turned + 3.0) < 0.2, cmp["frame_note"]  # Table 4's own fit: 0.07 deg
+    xs = [r for r in cmp["rows"] if r["param"] in ("x_s", "y_s")]
+    assert max(abs(r["change"]) for r in xs) < 0.5  # mm: like with like (unaligned: cm)

@@ -28,6 +28,7 @@ the backup kept, the client), ``kinematics.install_refused`` (WARNING: 409, 422)
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import errno
 import hashlib
@@ -39,6 +40,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
@@ -52,13 +54,14 @@ from services.runtime.runtime import Runtime
 from services.store.logs import event
 from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.errors import KinematicFileError
+from swpc_hw.frames import DESIGN_FIT, design_fit_transform, transform_robot
 from swpc_hw.kinematic_file import (
     KinematicFile,
     atomic_write_text,
     load_kinematics,
     parse_kinematics,
 )
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.model import PARAM_NAMES, RobotParams
 
 log = logging.getLogger("swpc.service")
 
@@ -147,6 +150,11 @@ class Comparison(BaseModel):
         None, description="the run's last install (its time, the backup of the file replaced)"
     )
     in_force: FileInfo | None
+    frame: str = Field(
+        "R", description="the frame of the result and of the comparison: R (motion capture) "
+        "or design-fit (without: the reference re-expressed in it when it is in another)"
+    )  # fmt: skip
+    frame_note: str | None = Field(None, description="how the reference was re-expressed")
     is_in_force: bool = Field(description="the file in force is this run's result")
     significance_k: float
     within_tolerance: bool
@@ -246,6 +254,33 @@ def _write_failure(exc: Exception) -> HTTPException:
         f"not installed: cannot write the kinematic file: {reason} (the file in force is "
         "untouched)",
     )
+
+
+def in_design_fit(ref: KinematicFile, nominal: RobotParams) -> tuple[KinematicFile, str]:
+    """A reference file re-expressed in the design-fit frame of a result without motion
+    capture (:func:`swpc_hw.frames.design_fit_transform` of its steering axes onto the
+    nominal ones), and a sentence saying so.  Its std devs: ``beta``, ``b``, ``r`` as they
+    are (a rotation leaves them), ``x_s`` and ``y_s`` the larger of the two (a rotated
+    coordinate's std dev is near it for the small angles of a fit)."""
+    ids = [m for m in ref.params.ids if m in nominal.ids]
+    P = np.array([[ref.params.module(m).x_s, ref.params.module(m).y_s] for m in ids])
+    Q = np.array([[nominal.module(m).x_s, nominal.module(m).y_s] for m in ids])
+    phi, t = design_fit_transform(P, Q)
+    moved = transform_robot(ref.params, phi, t, DESIGN_FIT)
+    mods = []
+    for m, old in zip(moved.modules, ref.params.modules, strict=True):
+        sd = old.stddev
+        if sd is not None:
+            s = max(sd.x_s, sd.y_s)
+            m = m.model_copy(update={"stddev": sd.model_copy(update={"x_s": s, "y_s": s})})
+        mods.append(m)
+    out = dataclasses.replace(ref, params=moved.model_copy(update={"modules": mods}))
+    note = (
+        f"the reference (frame {ref.params.frame}) re-expressed in design-fit: its steering "
+        f"axes fitted to the nominal ones, turned {math.degrees(phi):+.3f} deg and moved "
+        f"{float(np.hypot(*t)) * 1e3:.1f} mm"
+    )
+    return out, note
 
 
 def compare(
@@ -467,10 +502,17 @@ def comparison(run_id: str, rt: Rt) -> Comparison:
         reference = "file in force" if ref is not None else "nominal"
         if ref is None:
             why = "no file is in force" if info is None else "the file in force does not load"
+    quality = doc.get("quality")
+    frame = DESIGN_FIT if isinstance(quality, dict) and quality.get("mode") == "imu" else "R"
+    note = None
+    if ref is not None and frame == DESIGN_FIT and ref.params.frame != DESIGN_FIT:
+        ref, note = in_design_fit(ref, rt.config.nominal)
     return Comparison(
         run=run_id,
         reference=reference,
         reference_why=why,
+        frame=frame,
+        frame_note=note,
         replaced=replaced,
         in_force=info,
         is_in_force=info is not None and info.run == run_id,

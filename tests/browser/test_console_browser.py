@@ -187,6 +187,14 @@ def go(d: WebDriver, view: str) -> None:
     wait_for(f"view {view}", lambda: d.find_element(By.ID, f"view-{view}").is_displayed())
 
 
+def press(d: WebDriver, elem_id: str) -> None:
+    """Click a control in the middle of the window: the sticky abort bar is at its top
+    while a run goes (an operator scrolls it there too)."""
+    e = d.find_element(By.ID, elem_id)
+    d.execute_script("arguments[0].scrollIntoView({block: 'center'})", e)
+    e.click()
+
+
 def set_field(d: WebDriver, elem_id: str, value: str) -> None:
     e = d.find_element(By.ID, elem_id)
     e.clear()
@@ -214,7 +222,10 @@ def start_run(d: WebDriver, **fields: str) -> str:
             set_field(d, ids[k], v)
     before = text(d, "run-id")
     d.find_element(By.ID, "start").click()
-    run_id = wait_for("the new run on the page", lambda: (t := text(d, "run-id")) != before and t)
+    run_id = wait_for(
+        "the new run on the page",
+        lambda: ((t := text(d, "run-id")) != before and t) or text(d, "start-error"),
+    )
     assert text(d, "start-error") == ""
     return str(run_id)
 
@@ -678,36 +689,53 @@ def test_a_module_with_no_path_yet_then_the_next(
     assert severe_logs(d) == []
 
 
-def test_a_result_without_motion_capture_shows_only_what_it_has(
+def test_a_calibration_without_motion_capture_from_the_page(
     service: dict[str, Any], browser: WebDriver
 ) -> None:
-    """A run without motion capture (metrology imu), started and answered over HTTP as an
-    operator's script would, then opened in the console: no empty "Spins in the world"
-    panel (there is no pose), and the summary names what it is compared with."""
-    from services.demo import operator_step
+    """The operator's page for a run without motion capture (metrology imu): the tape's
+    six distances entered over the drawing before the start (each read twice), MARK and
+    MEASURE answered with the page's buttons (the simulator's tape read into the field),
+    then the result in the design-fit frame: no empty "Spins in the world" panel (there is
+    no pose), the reference re-expressed in design-fit."""
     from tests.test_service_imu import PROTOCOL, axis_distances
 
-    auth = {"Authorization": f"Bearer {TOKEN}"}
-    with httpx.Client(base_url=service["url"], timeout=10.0) as http:
-        body = {"metrology": "imu", "references": axis_distances(),
-                "overrides": {"protocol": PROTOCOL}}  # fmt: skip
-        r = http.post("/calibrations", json=body, headers=auth)
-        assert r.status_code == 202, r.text
-        run_id = r.json()["id"]
-        deadline = time.monotonic() + 300  # a guard against a hang, never a judgement
-        while time.monotonic() < deadline:
-            st = http.get(f"/calibrations/{run_id}").json()
-            if st["state"] in ("DONE", "FAILED", "ABORTED"):
-                break
-            operator_step(http, run_id, st, auth)  # marks the floor, reads the tape
-            time.sleep(0.1)
-    assert st["state"] == "DONE", st
     d = browser
-    d.get(f"{service['url']}/#result/{run_id}")
+    d.get(service["url"] + "/#run")
+    wait_for("the robot's layout", lambda: len(css(d, "#tape-drawing line[data-pair]")) == 6)
+    Select(d.find_element(By.ID, "f-metrology")).select_by_value("imu")
+    assert d.find_element(By.ID, "tape-fields").is_displayed()
+    lines = css(d, "#tape-drawing line[data-pair]")
+    assert sorted(ln.get_attribute("data-pair") for ln in lines) == [
+        "1-2", "1-3", "1-4", "2-3", "2-4", "3-4"]  # fmt: skip
+    for n, ref in enumerate(axis_distances() + axis_distances(seed=21)):
+        a, b = ref["modules"]
+        set_field(d, f"tape-{a}-{b}-{1 + n // 6}", f"{ref['value'] * 1e3:.1f}")
+    set_field(d, "f-drive", str(PROTOCOL["drive_length"]))
+    set_field(d, "f-rest", str(PROTOCOL["rest_time"]))
+    check_view(d, "run, tape", shots="14-tape")
+    run_id = start_run(d, install="never", **QUICK)
+    assert wait_state(d, {"MARK", "FAILED", "ABORTED"}) == "MARK", text(d, "run-reason")
+    wait_for("the operator's prompt", lambda: d.find_element(By.ID, "operator").is_displayed())
+    assert "mark the floor under module 1's steering axis" in text(d, "op-text")
+    check_view(d, "run, mark", shots="15-mark")
+    press(d, "op-continue")
+    assert wait_state(d, {"MEASURE", "FAILED", "ABORTED"}) == "MEASURE", text(d, "run-reason")
+    wait_for("the measure form", lambda: d.find_element(By.ID, "op-measure").is_displayed())
+    press(d, "op-sim-tape")
+    got = wait_for("the tape's reading", lambda: d.find_element(By.ID, "op-distance")
+                   .get_attribute("value"))  # fmt: skip
+    assert abs(float(got) - 1000.0 * PROTOCOL["drive_length"]) < 100.0, got
+    press(d, "op-send")
+    assert wait_state(d, {"DONE", "FAILED", "ABORTED"}) == "DONE", text(d, "run-reason")
+    assert text(d, "op-error") == "" and not d.find_element(By.ID, "operator").is_displayed()
+    Select(d.find_element(By.ID, "f-metrology")).select_by_value("mocap")  # the next tests'
+    d.find_element(By.ID, "run-result-link").click()
     wait_for("this run's result", lambda: text(d, "res-id") == run_id)
+    wait_for("its rows", lambda: len(css(d, "#res-rows tr")) == 20)
     wait_for("its panels", lambda: not d.find_element(By.ID, "res-world-figure").is_displayed())
     summary = text(d, "res-summary")
     assert "compared with" in summary and "the no file" not in summary, summary
+    assert text(d, "res-frame").startswith("Frame design-fit (no motion capture)")
     check_view(d, "result")
     shot(d, "12-result-imu")
     assert severe_logs(d) == []

@@ -22,6 +22,7 @@ const app = {
   metrics: { firstLiveUpdateMs: null, firstChangeMs: null, statesSeen: [] },
   resultRun: null,
   checkRun: null,
+  answered: null,       // "<run>:<state>" once the operator's answer to it was accepted
 };
 window.swpc = app;      // for the browser test (and a curious operator's console)
 
@@ -139,6 +140,8 @@ function fillDefaults(p) {
   $("f-align").value = p.align_time;
   $("f-resteer").value = p.resteer_time;
   $("f-modules").value = p.modules ? p.modules.join(", ") : "";
+  $("f-drive").value = p.drive_length;
+  $("f-rest").value = p.rest_time;
 }
 function overrides() {
   const p = app.hello.protocol;
@@ -147,6 +150,7 @@ function overrides() {
   if (angles.join() !== p.angles_deg.join()) protocol.angles_deg = angles;
   const nums = { sweep_deg: "f-sweep", settle_time: "f-settle", stop_time: "f-stop",
     align_time: "f-align", resteer_time: "f-resteer" };
+  if ($("f-metrology").value === "imu") Object.assign(nums, { drive_length: "f-drive", rest_time: "f-rest" });
   for (const [k, id] of Object.entries(nums)) {
     const v = Number($(id).value);
     if ($(id).value !== "" && v !== p[k]) protocol[k] = v;
@@ -155,10 +159,116 @@ function overrides() {
   if (mods.length) protocol.modules = mods;
   return Object.keys(protocol).length ? { protocol } : {};
 }
+// ------------------------------------------------------------------ without motion capture
+// The tape's distances between steering axes, entered before the start, over a drawing of
+// the nominal layout; each pair read twice (docs/imu-operation.md).
+function tapePairs() {
+  const ids = app.hello.modules.map((m) => m.id);
+  const out = [];
+  for (let i = 0; i < ids.length; i++) for (let j = i + 1; j < ids.length; j++) out.push([ids[i], ids[j]]);
+  return out;
+}
+function buildTape() {
+  const mods = app.hello.modules;
+  const xs = mods.map((m) => m.x_s), ys = mods.map((m) => m.y_s);
+  const pad = 40, W = 400, H = 300;
+  // the robot seen from above, its front (x of R) up: screen x = -y, screen y = -x
+  const k = Math.min((W - 2 * pad) / Math.max(1e-9, Math.max(...ys) - Math.min(...ys)),
+    (H - 2 * pad) / Math.max(1e-9, Math.max(...xs) - Math.min(...xs)));
+  const cx = (Math.max(...xs) + Math.min(...xs)) / 2, cy = (Math.max(...ys) + Math.min(...ys)) / 2;
+  const at = (m) => [W / 2 - k * (m.y_s - cy), H / 2 - k * (m.x_s - cx)];
+  const d = $("tape-drawing");
+  d.setAttribute("viewBox", `0 0 ${W} ${H}`);
+  const parts = [], labels = [];
+  for (const [a, b] of tapePairs()) {
+    const [x1, y1] = at(mods.find((m) => m.id === a)), [x2, y2] = at(mods.find((m) => m.id === b));
+    parts.push(svg("line", { x1, y1, x2, y2, "data-pair": `${a}-${b}` }));
+    // the label halfway, else a third of the way either side (the diagonals cross there)
+    const spots = [0.5, 0.3, 0.7].map((f) => [x1 + f * (x2 - x1), y1 + f * (y2 - y1)]);
+    const [lx, ly] = spots.find(([x, y]) => labels.every(([u, v]) => Math.hypot(x - u, y - v) > 30)) || spots[0];
+    labels.push([lx, ly]);
+    const t = svg("text", { x: lx + 4, y: ly - 4, class: "pair" });
+    t.textContent = `${a}–${b}`;
+    parts.push(t);
+  }
+  for (const m of mods) {
+    const [x, y] = at(m);
+    parts.push(svg("circle", { cx: x, cy: y, r: 6 }));
+    const t = svg("text", { x: x + 9, y: y + 18 });
+    t.textContent = `module ${m.id}`;
+    parts.push(t);
+  }
+  const front = svg("text", { x: W / 2 - 18, y: 16 });
+  front.textContent = "front";
+  parts.push(front);
+  d.replaceChildren(...parts);
+  $("tape-rows").replaceChildren(...tapePairs().map(([a, b]) => el("div", { class: "tape-row" },
+    el("span", {}, `${a}–${b}`),
+    ...[1, 2].map((n) => el("label", {}, `reading ${n}`,
+      el("input", { id: `tape-${a}-${b}-${n}`, type: "number", min: "1", step: "any", inputmode: "decimal",
+        "aria-label": `distance between the axes of modules ${a} and ${b}, reading ${n} (mm)` }))))));
+}
+function tapeReferences() {
+  const sd = Number($("f-tape-sd").value) / 1000;
+  const refs = [];
+  for (const [a, b] of tapePairs()) {
+    for (const n of [1, 2]) {
+      const v = $(`tape-${a}-${b}-${n}`).value;
+      if (v !== "") refs.push({ kind: "axis_distance", modules: [a, b], value: Number(v) / 1000, stddev: sd });
+    }
+  }
+  return refs;
+}
+function showMetrology() {
+  $("tape-fields").hidden = $("f-metrology").value !== "imu";
+}
+// MARK and MEASURE: what the run waits for, answered here (POST .../continue, .../references)
+function renderOperator(st) {
+  const waiting = st.kind === "calibration" && st.metrology === "imu" &&
+    (st.state === "MARK" || st.state === "MEASURE");
+  $("operator").hidden = !waiting;
+  if (!waiting) return;
+  const answered = app.answered === `${st.id}:${st.state}`;
+  $("op-text").textContent = st.step;
+  $("op-mark").hidden = st.state !== "MARK";
+  $("op-measure").hidden = st.state !== "MEASURE";
+  $("op-continue").disabled = answered;
+  $("op-send").disabled = answered;
+  $("op-sim-tape").hidden = !(app.hello && app.hello.in_process_simulator);
+  $("op-title").textContent = answered ? "Sent: the run goes on" : "The run waits for you";
+}
+async function answerRun(what, body) {
+  const st = app.current;
+  $("op-error").textContent = "";
+  try {
+    onRun(await api("POST", `/calibrations/${st.id}/${what}`, body), false);
+    app.answered = `${st.id}:${st.state}`;
+    renderOperator(app.current);
+  } catch (e) {
+    $("op-error").textContent = "Not sent: " + e.message;
+  }
+}
+async function readSimulatorTape() {
+  $("op-error").textContent = "";
+  try {
+    const t = await api("GET", `/simulator/tape-measure?run=${encodeURIComponent(app.current.id)}`);
+    $("op-distance").value = (t.value * 1000).toFixed(1);
+  } catch (e) {
+    $("op-error").textContent = "No tape reading: " + e.message;
+  }
+}
+function sendMeasurement(ev) {
+  ev.preventDefault();
+  const value = Number($("op-distance").value) / 1000, stddev = Number($("op-distance-sd").value) / 1000;
+  answerRun("references", { references: [{ kind: "straight_drive", value, stddev }] });
+}
+
 async function start(ev) {
   ev.preventDefault();
   $("start-error").textContent = "";
   const body = { overrides: overrides(), install: $("f-install").value };
+  body.metrology = $("f-metrology").value;
+  if (body.metrology === "imu") body.references = tapeReferences();
   if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
   $("start").disabled = true;
   app.startAt = performance.now();
@@ -257,6 +367,7 @@ function renderRun() {
     !active ? "–" : st.segments === 0 ? "estimated once a spin has ended" : "not estimated in this step";
   $("run-progress").value = st.progress;
   $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
+  renderOperator(st);
   const link = $("run-result-link");
   link.hidden = st.state !== "DONE";
   link.href = (st.kind === "check" ? "#check/" : "#result/") + st.id;
@@ -422,6 +533,10 @@ function renderComparison(cmp) {
     " · ", cmp.is_in_force ? el("b", { class: "yes" }, "this result is in force") :
       (cmp.installed ? "installed at the run's end, since replaced" : "not installed"),
     " · compared with " + ref + `; significant = change over ${cmp.significance_k} std devs.`);
+  $("res-frame").textContent = cmp.frame === "design-fit"
+    ? "Frame design-fit (no motion capture): the steering axes best aligned with the nominal ones" +
+      (cmp.frame_note ? `; ${cmp.frame_note}.` : ".")
+    : "Frame R: the motion capture's rigid body.";
   $("res-ref-head").textContent = { "replaced file": "Replaced", "file in force": "In force", nominal: "Reference (none)" }[cmp.reference];
   $("res-install").disabled = cmp.is_in_force;
   $("res-install-note").textContent = cmp.is_in_force ? "already the file in force" : "";
@@ -716,7 +831,12 @@ function connect() {
     const first = !app.hello;
     app.hello = JSON.parse(ev.data);
     $("robot-name").textContent = "· robot " + app.hello.robot + (app.hello.in_process_simulator ? " (simulator)" : "");
-    if (first) fillDefaults(app.hello.protocol);
+    if (first) {
+      fillDefaults(app.hello.protocol);
+      $("f-metrology").value = app.hello.metrology;
+      buildTape();
+      showMetrology();
+    }
   });
   es.addEventListener("run", (ev) => onRun(JSON.parse(ev.data), true));
   es.addEventListener("live", (ev) => onLive(JSON.parse(ev.data)));
@@ -725,6 +845,10 @@ function connect() {
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
   $("check").addEventListener("click", startCheck);
+  $("f-metrology").addEventListener("change", showMetrology);
+  $("op-continue").addEventListener("click", () => answerRun("continue"));
+  $("op-measure").addEventListener("submit", sendMeasurement);
+  $("op-sim-tape").addEventListener("click", readSimulatorTape);
   $("abort").addEventListener("click", abortRun);
   $("res-install").addEventListener("click", installResult);
   $("token-button").addEventListener("click", () => tokenDialog("Enter the service's bearer token (kept for this tab)."));
