@@ -1,6 +1,8 @@
 """Calibration runs over HTTP: start, list, watch, read the result and the plot, abort.
 
-* ``POST /calibrations`` (token): start a run (202 with its status and ``Location``).
+* ``POST /calibrations`` (token): start a run (202 with its status and ``Location``);
+  ``{"plan": "auto"}`` plans its protocol first (docs/plan.md; 422 with the reason when
+  it cannot be planned).
   Overrides may only tighten the robot config's limits and tolerances, and everything
   that can be checked before motion is: 422 otherwise, before any CAN frame; 409 while a
   run goes, or while ``GET /health`` fails on the robot or its sensors (the run would
@@ -33,6 +35,7 @@ from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, R
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
+from services.runs.plan import PLANNED_KEYS, PlanRequest, plan_for
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
@@ -43,12 +46,23 @@ from services.runtime.runtime import (
     RunConflictError,
     StoreError,
 )
+from swpc_hw.calibration.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.export import TARGETS, file_name, make_export, render
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
 
 router = APIRouter()
+
+
+class TargetsIn(BaseModel):
+    """Target std devs of a planned calibration, SI (as the robot config's tolerances)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    position: float | None = Field(None, gt=0, description="x_s, y_s, b std dev, m")
+    beta: float | None = Field(None, gt=0, description="beta std dev, rad")
+    radius: float | None = Field(None, gt=0, description="r std dev, m")
 
 
 class StartRequest(BaseModel):
@@ -64,6 +78,12 @@ class StartRequest(BaseModel):
     install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
     metrology: Literal["mocap", "imu"] | None = None
     references: list[ReferenceIn] = Field(default_factory=list)
+    plan: Literal["auto"] | None = None
+    """``auto``: the protocol is planned (docs/plan.md): the angles, sweep and pauses that
+    reach ``targets`` and keep the square path within its budget in the least robot time
+    (with motion capture only; the request's ``overrides.protocol`` may not set them)."""
+    targets: TargetsIn | None = None
+    """With ``plan``: per-kind target std devs (default: the robot config's tolerances)."""
 
 
 def refused_before_motion(where: str, problems: list[str]) -> RequestValidationError:
@@ -131,10 +151,39 @@ def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a run (module docstring)."""
     metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
     config = run_config(rt, body.overrides, metrology)
+    if body.plan == "auto":
+        config = planned_config(rt, body, metrology, config)
+    elif body.targets is not None:
+        raise refused("targets", ValueError("targets are for a planned run (plan: auto)"))
     refs = start_references(config, metrology, body.references)
     run = start_checked(rt, config, body.install, metrology, refs)
     response.headers["Location"] = f"/calibrations/{run.id}"
     return run.status.to_dict()
+
+
+def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConfig) -> RobotConfig:
+    """The run's config with the planned protocol in its overrides (422 with the reason
+    when it cannot be planned: another metrology, protocol settings the plan chooses, no
+    candidate that reaches the targets)."""
+    if metrology != "mocap":
+        raise refused("plan", ValueError(f"plan auto plans a calibration with motion capture "
+                                         f"(mocap), not {metrology}"))  # fmt: skip
+    doc = body.overrides.document()
+    taken = sorted(PLANNED_KEYS & set(doc.get("protocol", {})))
+    if taken:
+        raise refused(
+            "plan",
+            ValueError(f"plan auto chooses protocol.{', protocol.'.join(taken)}: leave them out "
+                       "of the overrides, or leave out the plan"),
+        )  # fmt: skip
+    tol, t = config.tolerances, body.targets or TargetsIn()
+    try:
+        targets = Targets(t.position or tol.position, t.beta or tol.beta, t.radius or tol.radius)
+        p = plan_for(config, PlanRequest(targets=targets))
+    except PlanError as exc:
+        raise refused("plan", ValueError(f"refused before any motion: {exc}")) from exc
+    doc.setdefault("protocol", {}).update(p.candidate.protocol())
+    return run_config(rt, ConfigOverrides.model_validate(doc), metrology)
 
 
 def start_checked(
