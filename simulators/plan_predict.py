@@ -21,6 +21,7 @@ import numpy as np
 from simulators.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
 from swpc_hw.calibration.solver import solve
+from swpc_hw.errors import CalibrationError
 from swpc_hw.model import RobotParams
 
 
@@ -52,11 +53,15 @@ def predicted_covariance(
     seeds: Sequence[int] = (0, 1),
 ) -> FloatArray:
     """(5N, 5N) covariance of candidate ``c`` on ``robot`` (modules in its order): the
-    mean over ``seeds`` of the solver's covariances (module docstring)."""
+    mean over ``seeds`` of the solver's covariances (module docstring).  A candidate the
+    generator or the solver refuses on this robot: :class:`PlanError` with the reason."""
     covs = []
     for s in seeds:
-        ds = generate_experiment(robot, experiment_options(c, noise, tm, s), robot).dataset
-        cov = solve(ds).covariance
+        try:
+            ds = generate_experiment(robot, experiment_options(c, noise, tm, s), robot).dataset
+            cov = solve(ds).covariance
+        except (ValueError, CalibrationError) as exc:  # casters never settle, data refused
+            raise PlanError(f"{c.label()}: no prediction: {exc}") from exc
         if cov is None:
             raise PlanError(f"{c.label()}: the solver gives no covariance")
         covs.append(cov)

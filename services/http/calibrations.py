@@ -165,6 +165,9 @@ def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConf
     """The run's config with the planned protocol in its overrides (422 with the reason
     when it cannot be planned: another metrology, protocol settings the plan chooses, no
     candidate that reaches the targets)."""
+    cur = rt.current
+    if rt.running() and cur is not None:  # not after seconds of planning
+        raise HTTPException(409, f"{cur.status.kind} {cur.id} is still running")
     if metrology != "mocap":
         raise refused("plan", ValueError(f"plan auto plans a calibration with motion capture "
                                          f"(mocap), not {metrology}"))  # fmt: skip

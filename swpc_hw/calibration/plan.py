@@ -356,6 +356,8 @@ class Evaluated:
     requirement, or it was left out)."""
     ratio: float = math.nan
     """:meth:`Requirement.ratio` of the prediction."""
+    failure: str = ""
+    """Why the prediction failed (a :class:`PlanError`'s reason), if it did."""
 
 
 @dataclass
@@ -447,8 +449,9 @@ def plan(
     largest is predicted first (when it falls short, so does the set), then bisection
     finds the smallest with ``requirement.ratio(predict(c)) <= 1``; the plan is the
     fastest of these.  Left out: a candidate whose spin (settle and
-    sweep) would last ``max_spin_time`` (s, the step timeout) or more.  None meets the
-    requirement: :class:`PlanError` naming the closest."""
+    sweep) would last ``max_spin_time`` (s, the step timeout) or more.  A candidate whose
+    prediction raises :class:`PlanError` falls short.  None meets the requirement:
+    :class:`PlanError` naming the closest (or the first failure, none predicted)."""
     n = len(ids)
     sweeps = sorted(float(s) for s in sweeps)
     tried: list[Evaluated] = []
@@ -465,7 +468,11 @@ def plan(
         tried += pool
 
         def meets(e: Evaluated) -> bool:
-            e.covariance = np.asarray(predict(e.candidate), dtype=float)
+            try:
+                e.covariance = np.asarray(predict(e.candidate), dtype=float)
+            except PlanError as exc:  # a design the prediction cannot solve
+                e.failure, e.ratio = str(exc), math.inf
+                return False
             e.ratio = requirement.ratio(e.covariance)
             return e.ratio <= 1.0
 
@@ -485,7 +492,11 @@ def plan(
         return Plan(best.candidate, best.robot_time, best.covariance, requirement, list(ids), tried)
     seen = [e for e in tried if e.covariance is not None]
     if not seen:
-        raise PlanError("no candidate protocol fits the limits (a spin within the step timeout)")
+        failed = [e.failure for e in tried if e.failure]
+        raise PlanError(
+            failed[0] if failed else
+            "no candidate protocol fits the limits (a spin within the step timeout)"
+        )  # fmt: skip
     closest = min(seen, key=lambda e: e.ratio)
     raise PlanError(
         f"no candidate protocol reaches the requirement: the closest "
