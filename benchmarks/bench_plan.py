@@ -16,7 +16,8 @@ config's tolerances, the square path within 0.50 mm and 0.016 deg):
    differs between seeds as between real runs, as the solver's honesty benchmark).
    Per kind the RMS error, the largest, the RMS of ``z = error / predicted std dev``
    (the plan's honesty: the goal 0.7-1.5) and of the solver's own z; the square path's
-   end error the parameter errors cause (``S dp``, RMS and largest over the seeds).
+   end error the parameter errors cause (``S dp``, CCW and CW: RMS, largest, and RMS z
+   against its predicted std dev).
 3. **Robot time through the service** (``SWPC_BENCH_PLAN_SERVICE=0`` skips): one
    calibration per protocol on the in-process simulator with the robot as its hidden
    truth: the default (``{}``) and the plan (``{"plan": "auto"}``): robot time, and the
@@ -101,13 +102,18 @@ def as_matrix(p: RobotParams) -> np.ndarray:
 
 
 def offline(
-    c: Candidate, nominal: RobotParams, truths: list[RobotParams], predicted: np.ndarray,
+    c: Candidate, nominal: RobotParams, truths: list[RobotParams], cov: np.ndarray,
     cfg: RobotConfig,
 ) -> dict[str, Any]:  # fmt: skip
-    """Errors, z and the square path's error over the seeds of protocol ``c``."""
+    """Errors, z and the square path's error over the seeds of protocol ``c`` whose
+    predicted covariance is ``cov``.  The square path's z: its end position's error (CCW
+    and CW each) over its predicted std dev ``sqrt(var x + var y)``, its heading's over
+    ``sqrt(var yaw)``."""
+    predicted = stddevs(cov)
     tm = time_model(cfg)
     S = square_path_sensitivity(nominal)
-    err, z_pred, z_solver, sq_pos, sq_head = [], [], [], [], []
+    E_sq = S @ cov @ S.T
+    err, z_pred, z_solver, sq_pos, sq_head, zsq_pos, zsq_head = [], [], [], [], [], [], []
     for i, truth in enumerate(truths):
         opts = experiment_options(c, MocapNoise(), tm, 1000 + i)
         res = solve(generate_experiment(truth, opts, nominal).dataset)
@@ -117,8 +123,11 @@ def offline(
         z_pred.append(e / predicted)
         z_solver.append(e / res.stddev_array())
         d = S @ e.ravel()
-        sq_pos.append(max(math.hypot(d[0], d[1]), math.hypot(d[3], d[4])))
-        sq_head.append(max(abs(d[2]), abs(d[5])))
+        for row in (0, 3):  # CCW, CW
+            sq_pos.append(math.hypot(d[row], d[row + 1]))
+            sq_head.append(abs(d[row + 2]))
+            zsq_pos.append(sq_pos[-1] ** 2 / (E_sq[row, row] + E_sq[row + 1, row + 1]))
+            zsq_head.append(sq_head[-1] ** 2 / E_sq[row + 2, row + 2])
     E, Zp, Zs = np.array(err), np.array(z_pred), np.array(z_solver)
     out: dict[str, Any] = {}
     for kind, cols in KINDS.items():
@@ -132,6 +141,7 @@ def offline(
     out["square"] = (
         float(np.sqrt(np.mean(np.square(sq_pos)))), float(np.max(sq_pos)),
         float(np.sqrt(np.mean(np.square(sq_head)))), float(np.max(sq_head)),
+        float(np.sqrt(np.mean(zsq_pos))), float(np.sqrt(np.mean(zsq_head))),
     )  # fmt: skip
     return out
 
@@ -139,11 +149,11 @@ def offline(
 def print_stats(
     label: str, t_pred: float, stats: dict[str, Any], sq_sd: tuple[float, float]
 ) -> None:
+    sq = stats["square"]
     print(f"  {label}: predicted robot time {t_pred:.1f} s; square path predicted sd "
-          f"{sq_sd[0] * 1e3:.3f} mm, {math.degrees(sq_sd[1]):.4f} deg; reached RMS "
-          f"{stats['square'][0] * 1e3:.3f} mm (largest {stats['square'][1] * 1e3:.3f}), "
-          f"{math.degrees(stats['square'][2]):.4f} deg (largest "
-          f"{math.degrees(stats['square'][3]):.4f})")  # fmt: skip
+          f"{sq_sd[0] * 1e3:.3f} mm, {math.degrees(sq_sd[1]):.4f} deg; reached (CCW and CW) "
+          f"RMS {sq[0] * 1e3:.3f} mm (largest {sq[1] * 1e3:.3f}), {math.degrees(sq[2]):.4f} "
+          f"deg (largest {math.degrees(sq[3]):.4f}); RMS z {sq[4]:.2f}, {sq[5]:.2f}")  # fmt: skip
     for kind in KINDS:
         f, unit = SHOW[kind]
         s = stats[kind]
@@ -231,8 +241,8 @@ def main() -> None:
         d_cov = predicted_covariance(nominal, d, MocapNoise(), tm)
         S = square_path_sensitivity(nominal)
         truths = seed_truths(truth, seeds, 100 + r)
-        d_stats = offline(d, nominal, truths, stddevs(d_cov), cfg)
-        p_stats = offline(c, nominal, truths, p.stddev, cfg)
+        d_stats = offline(d, nominal, truths, d_cov, cfg)
+        p_stats = offline(c, nominal, truths, p.covariance, cfg)
         print_stats("default", robot_time(d, 4, tm), d_stats, square_path_sd(S, d_cov))
         print_stats("planned", p.robot_time, p_stats, square_path_sd(S, p.covariance))
         if with_service:

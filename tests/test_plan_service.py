@@ -33,6 +33,11 @@ def test_a_planned_calibration_runs_the_plan_in_the_robot_time_it_predicted(sim:
         assert swept == pytest.approx(p.candidate.sweep_deg, abs=3.0)
     res = sim.client.get(f"/calibrations/{rid}/result").json()
     assert st["installed"] is True, res
+    # GET /plan: the plan before Start, as swpc plan --json gives it
+    doc = sim.client.get("/plan").json()
+    assert doc["protocol"] == p.candidate.protocol()
+    assert doc["robot_time_s"] == round(p.robot_time, 1)
+    assert [row["module"] for row in doc["predicted"]] == [1, 2, 3, 4]
 
 
 def test_a_plan_that_cannot_be_made_is_refused_with_its_reason(sim: Sim) -> None:

@@ -8,6 +8,7 @@
   run goes, or while ``GET /health`` fails on the robot or its sensors (the run would
   fail at CONNECT or PRECHECK: the detail names why), 507 without room on disk, 503 when
   the run store cannot be written.
+* ``GET /plan``: the plan ``{"plan": "auto"}`` runs, before Start (docs/plan.md).
 * ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
 * ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
 * ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
@@ -211,6 +212,18 @@ def start_checked(
         raise HTTPException(507, str(exc)) from exc
     except StoreError as exc:
         raise HTTPException(503, str(exc)) from exc
+
+
+@router.get("/plan", responses=problems(_409="the robot config cannot be planned (why)"))
+def get_plan(rt: Rt) -> dict[str, Any]:
+    """The plan of a calibration of the robot config (docs/plan.md): what
+    ``POST /calibrations {"plan": "auto"}`` without overrides runs, with its predicted
+    robot time, std devs and the requirement (mm, deg).  Seconds on its first call, then
+    kept; 409 naming why when no candidate meets the requirement."""
+    try:
+        return plan_for(rt.config).document()
+    except PlanError as exc:
+        raise HTTPException(409, f"no plan: {exc}") from exc
 
 
 @router.get("/calibrations", response_model=list[RunStatus])
