@@ -5,18 +5,36 @@ from __future__ import annotations
 
 import json
 import math
+import time
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
 from services.cli import main as swpc
 from services.config.robot import RobotConfig
 from services.runs.plan import plan_for
-from tests.service_rig import AUTH, Sim, start, wait_state
+from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
+
+
+def until_planned(sim: Sim, body: dict[str, Any]) -> Any:
+    """POST /calibrations ``body`` until its plan is made (409 "being made" meanwhile: the
+    service plans in the background); its answer then.  The deadline guards a hang."""
+    deadline = time.monotonic() + 600
+    while True:
+        r = sim.client.post("/calibrations", json=body, headers=AUTH)
+        if r.status_code != 409 or "being made" not in r.text:
+            return r
+        assert time.monotonic() < deadline, r.text
+        time.sleep(0.1)
 
 
 def test_a_planned_calibration_runs_the_plan_in_the_robot_time_it_predicted(sim: Sim) -> None:
-    rid = start(sim.client, plan="auto")
+    r = until_planned(sim, {"plan": "auto"})
+    assert r.status_code == 202, r.text
+    rid = r.json()["id"]
     st = wait_state(sim.client, rid, {"DONE", "FAILED", "ABORTED"})
     assert st["state"] == "DONE", st["reason"]
     p = plan_for(RobotConfig())  # the same plan (its prediction is kept)
@@ -33,8 +51,10 @@ def test_a_planned_calibration_runs_the_plan_in_the_robot_time_it_predicted(sim:
         assert swept == pytest.approx(p.candidate.sweep_deg, abs=3.0)
     res = sim.client.get(f"/calibrations/{rid}/result").json()
     assert st["installed"] is True, res
-    # GET /plan: the plan before Start, as swpc plan --json gives it
-    doc = sim.client.get("/plan").json()
+    # GET /plan: the plan before Start, as swpc plan --json gives it (made already)
+    r = sim.client.get("/plan")
+    assert r.status_code == 200, r.text
+    doc = r.json()
     assert doc["protocol"] == p.candidate.protocol()
     assert doc["robot_time_s"] == round(p.robot_time, 1)
     assert [row["module"] for row in doc["predicted"]] == [1, 2, 3, 4]
@@ -55,9 +75,12 @@ def test_a_plan_that_cannot_be_made_is_refused_with_its_reason(sim: Sim) -> None
     assert code == 422 and "targets are for a planned run" in text
     code, text = post({"plan": "auto", "targets": {"beta": -1}})
     assert code == 422 and "greater than 0" in text
+    r = until_planned(sim, {"plan": "auto", "targets": {"position": 1e-9}})
+    assert r.status_code == 422 and "no candidate protocol reaches the requirement" in r.text
+    assert "closest" in r.text
+    # asked again, the answer is kept: at once
     code, text = post({"plan": "auto", "targets": {"position": 1e-9}})
-    assert code == 422 and "no candidate protocol reaches the requirement" in text
-    assert "closest" in text
+    assert code == 422 and "closest" in text
     assert len(sim.client.get("/calibrations").json()) == before  # nothing started
 
 
@@ -75,3 +98,18 @@ def test_swpc_plan_prints_the_plan(capsys: pytest.CaptureFixture[str]) -> None:
     assert "square path within 0.5 mm, 0.016 deg" in out
     assert swpc(["plan", "--target-position-mm", "0.000001"]) == 2
     assert "no candidate protocol reaches the requirement" in capsys.readouterr().err
+
+
+def test_get_plan_answers_at_once_and_202_until_the_plan_is_made(tmp_path: Path) -> None:
+    with TestClient(app_without_robot(tmp_path)) as client:
+        first = client.get("/plan")  # a new service: it starts making it, answers at once
+        assert first.status_code == 202
+        assert first.json() == {"detail": "the plan is being made"}
+        deadline = time.monotonic() + 600
+        while (r := client.get("/plan")).status_code == 202:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert r.status_code == 200, r.text
+        p = plan_for(RobotConfig())
+        assert r.json()["protocol"] == p.candidate.protocol()
+        assert client.get("/plan").json() == r.json()

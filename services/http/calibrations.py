@@ -8,7 +8,8 @@
   run goes, or while ``GET /health`` fails on the robot or its sensors (the run would
   fail at CONNECT or PRECHECK: the detail names why), 507 without room on disk, 503 when
   the run store cannot be written.
-* ``GET /plan``: the plan ``{"plan": "auto"}`` runs, before Start (docs/plan.md).
+* ``GET /plan``: the plan ``{"plan": "auto"}`` runs, before Start (docs/plan.md); 202
+  while it is being made.
 * ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
 * ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
 * ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
@@ -29,14 +30,14 @@ from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException, Response
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, RunKind
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
-from services.runs.plan import PLANNED_KEYS, PlanRequest, plan_for
+from services.runs.plan import PLANNED_KEYS, PlannerBusyError, PlanRequest
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
@@ -183,9 +184,16 @@ def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConf
     tol, t = config.tolerances, body.targets or TargetsIn()
     try:
         targets = Targets(t.position or tol.position, t.beta or tol.beta, t.radius or tol.radius)
-        p = plan_for(config, PlanRequest(targets=targets))
+        p = rt.planner.get(config, PlanRequest(targets=targets))
+    except PlannerBusyError as exc:
+        raise HTTPException(409, f"not started: {exc}") from exc
     except PlanError as exc:
         raise refused("plan", ValueError(f"refused before any motion: {exc}")) from exc
+    if p is None:
+        raise HTTPException(
+            409, "not started: the plan is being made (seconds to a minute): send the same "
+            "request again then (GET /plan shows the robot config's)",
+        )  # fmt: skip
     doc.setdefault("protocol", {}).update(p.candidate.protocol())
     return run_config(rt, ConfigOverrides.model_validate(doc), metrology)
 
@@ -214,16 +222,26 @@ def start_checked(
         raise HTTPException(503, str(exc)) from exc
 
 
-@router.get("/plan", responses=problems(_409="the robot config cannot be planned (why)"))
-def get_plan(rt: Rt) -> dict[str, Any]:
+@router.get(
+    "/plan",
+    responses=problems(
+        _202="the plan is being made (ask again in a few seconds)",
+        _409="the robot config cannot be planned (why), or another plan is being made",
+    ),
+)
+def get_plan(rt: Rt) -> Any:
     """The plan of a calibration of the robot config (docs/plan.md): what
     ``POST /calibrations {"plan": "auto"}`` without overrides runs, with its predicted
-    robot time, std devs and the requirement (mm, deg).  Seconds on its first call, then
-    kept; 409 naming why when no candidate meets the requirement."""
-    try:
-        return plan_for(rt.config).document()
+    robot time, std devs and the requirement (mm, deg).  The first call starts making it
+    (202 until it is made: seconds to a minute), then it is kept; 409 naming why when no
+    candidate meets the requirement."""
+    try:  # the config of a run without overrides: the plan it runs
+        p = rt.planner.get(rt.config.for_run({}, "mocap"))
     except PlanError as exc:
         raise HTTPException(409, f"no plan: {exc}") from exc
+    if p is None:
+        return JSONResponse({"detail": "the plan is being made"}, status_code=202)
+    return p.document()
 
 
 @router.get("/calibrations", response_model=list[RunStatus])

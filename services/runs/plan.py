@@ -8,13 +8,19 @@ the step timeout, and by default the ``tolerances`` as the per-parameter targets
 prediction is :func:`simulators.plan_predict.predicted_covariance` on the nominal robot.
 ``swpc plan`` prints its answer; ``POST /calibrations {"plan": "auto"}`` runs it (the plan's
 protocol as the run's ``overrides.protocol``).
+
+A plan takes seconds to a minute of CPU (a solve per candidate predicted): the service
+makes it in the background, one at a time, and keeps it (:class:`Planner`), so that no
+request waits for it.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
 
 from services.config.robot import RobotConfig
 from simulators.plan_predict import predicted_covariance
@@ -97,6 +103,61 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
         predict, requirement, nominal.ids, pauses(config), tm,
         max_spin_time=config.limits.step_timeout,
     )  # fmt: skip
+
+
+class PlannerBusyError(PlanError):
+    """Another plan is being made (the service makes one at a time)."""
+
+
+class Planner:
+    """Plans made in the background, one at a time, the newest ``keep`` kept (with the
+    error of one that could not be made).
+
+    :meth:`get` answers at once: the plan, or None while it is being made (it starts it
+    when nothing else is being made), or raises the :class:`PlanError` it ended with, or
+    :class:`PlannerBusyError` while another is being made."""
+
+    def __init__(self, keep: int = 16) -> None:
+        self._lock = threading.Lock()
+        self._done: OrderedDict[tuple[str, PlanRequest], Plan | PlanError] = OrderedDict()
+        self._making: tuple[str, PlanRequest] | None = None
+        self._keep = keep
+
+    def get(self, config: RobotConfig, request: PlanRequest | None = None) -> Plan | None:
+        req = request or PlanRequest()
+        if req.targets is None:  # the same plan as with the tolerances given
+            tol = config.tolerances
+            req = replace(req, targets=Targets(tol.position, tol.beta, tol.radius))
+        key = (config.model_dump_json(), req)
+        with self._lock:
+            if key in self._done:
+                out = self._done[key]
+                if isinstance(out, PlanError):
+                    raise out
+                return out
+            if self._making == key:
+                return None
+            if self._making is not None:
+                raise PlannerBusyError("another plan is being made: ask again in a minute")
+            self._making = key
+        threading.Thread(
+            target=self._make, args=(key, config, req), name="swpc-plan", daemon=True
+        ).start()
+        return None
+
+    def _make(self, key: tuple[str, PlanRequest], config: RobotConfig, req: PlanRequest) -> None:
+        out: Plan | PlanError
+        try:
+            out = plan_for(config, req)
+        except PlanError as exc:
+            out = exc
+        except Exception as exc:  # a bug: its reason, not a planner stuck for ever
+            out = PlanError(f"the plan could not be made: {type(exc).__name__}: {exc}")
+        with self._lock:
+            self._done[key] = out
+            while len(self._done) > self._keep:
+                self._done.popitem(last=False)
+            self._making = None
 
 
 @functools.lru_cache(maxsize=256)
