@@ -3,8 +3,8 @@
 A calibration's std devs are set by its *design* (the steering angles of the locked
 module, the yaw swept per spin, the yaw rate, the metrology's noise); its robot time by the
 same design plus the pauses between spins.  The planner (docs/plan.md) searches a grid of
-designs in order of robot time and takes the first whose *predicted* std devs meet the
-targets.  Everything here is pure; the prediction itself (a simulated dataset of the
+designs for the fastest whose *predicted* covariance meets the requirement
+(:func:`plan`).  Everything here is pure; the prediction itself (a simulated dataset of the
 candidate, solved by the joint solver, whose sandwich covariance is the inverse Fisher
 information ``H^-1 M H^-1``, ``H = J^T J`` of the weighted residuals) is passed in as a
 function, because the simulator lives a layer above (``simulators.plan_predict``).
@@ -38,12 +38,8 @@ speed limit and ``0.2 resteer`` the hold after a re-steer (``services.runs.proto
   against the nominal design's 68.6 mm, 2.21 deg), so the calibration's own uncertainty
   keeps the 99.3 % reduction the project reports.
 
-Why the square path as a whole and not per-kind targets derived from it: the parameters'
-errors are correlated (every beta leans on the other modules' fixed points), and the
-square's error depends on their combination.  Per-kind targets that keep the budget for
-*independent* errors would be about 3 times tighter for ``beta`` and ``r`` than what the
-default protocol reaches, while its full covariance gives 0.31 mm, 0.0099 deg: within
-the budget (docs/plan.md).
+The square path is judged on the whole covariance, not through per-kind targets derived
+from it: the parameters' errors are correlated (docs/plan.md says by how much it matters).
 """
 
 from __future__ import annotations
