@@ -1,11 +1,15 @@
 """Calibration runs over HTTP: start, list, watch, read the result and the plot, abort.
 
-* ``POST /calibrations`` (token): start a run (202 with its status and ``Location``).
+* ``POST /calibrations`` (token): start a run (202 with its status and ``Location``);
+  ``{"plan": "auto"}`` plans its protocol first (docs/plan.md; 422 with the reason when
+  it cannot be planned).
   Overrides may only tighten the robot config's limits and tolerances, and everything
   that can be checked before motion is: 422 otherwise, before any CAN frame; 409 while a
   run goes, or while ``GET /health`` fails on the robot or its sensors (the run would
   fail at CONNECT or PRECHECK: the detail names why), 507 without room on disk, 503 when
   the run store cannot be written.
+* ``GET /plan``: the plan ``{"plan": "auto"}`` runs, before Start (docs/plan.md); 202
+  while it is being made.
 * ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
 * ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
 * ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
@@ -26,13 +30,14 @@ from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException, Response
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, RunKind
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
+from services.runs.plan import PLANNED_KEYS, PlannerBusyError, PlanRequest
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
@@ -43,12 +48,23 @@ from services.runtime.runtime import (
     RunConflictError,
     StoreError,
 )
+from swpc_hw.calibration.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.export import TARGETS, file_name, make_export, render
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.references import Reference
 
 router = APIRouter()
+
+
+class TargetsIn(BaseModel):
+    """Target std devs of a planned calibration, SI (as the robot config's tolerances)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    position: float | None = Field(None, gt=0, description="x_s, y_s, b std dev, m")
+    beta: float | None = Field(None, gt=0, description="beta std dev, rad")
+    radius: float | None = Field(None, gt=0, description="r std dev, m")
 
 
 class StartRequest(BaseModel):
@@ -64,6 +80,12 @@ class StartRequest(BaseModel):
     install: Literal["if-within-tolerance", "always", "never"] = "if-within-tolerance"
     metrology: Literal["mocap", "imu"] | None = None
     references: list[ReferenceIn] = Field(default_factory=list)
+    plan: Literal["auto"] | None = None
+    """``auto``: the protocol is planned (docs/plan.md): the angles, sweep and pauses that
+    reach ``targets`` and keep the square path within its budget in the least robot time
+    (with motion capture only; the request's ``overrides.protocol`` may not set them)."""
+    targets: TargetsIn | None = None
+    """With ``plan``: per-kind target std devs (default: the robot config's tolerances)."""
 
 
 def refused_before_motion(where: str, problems: list[str]) -> RequestValidationError:
@@ -131,10 +153,49 @@ def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a run (module docstring)."""
     metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
     config = run_config(rt, body.overrides, metrology)
+    if body.plan == "auto":
+        config = planned_config(rt, body, metrology, config)
+    elif body.targets is not None:
+        raise refused("targets", ValueError("targets are for a planned run (plan: auto)"))
     refs = start_references(config, metrology, body.references)
     run = start_checked(rt, config, body.install, metrology, refs)
     response.headers["Location"] = f"/calibrations/{run.id}"
     return run.status.to_dict()
+
+
+def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConfig) -> RobotConfig:
+    """The run's config with the planned protocol in its overrides (422 with the reason
+    when it cannot be planned: another metrology, protocol settings the plan chooses, no
+    candidate that reaches the targets)."""
+    cur = rt.current
+    if rt.running() and cur is not None:  # not after seconds of planning
+        raise HTTPException(409, f"{cur.status.kind} {cur.id} is still running")
+    if metrology != "mocap":
+        raise refused("plan", ValueError(f"plan auto plans a calibration with motion capture "
+                                         f"(mocap), not {metrology}"))  # fmt: skip
+    doc = body.overrides.document()
+    taken = sorted(PLANNED_KEYS & set(doc.get("protocol", {})))
+    if taken:
+        raise refused(
+            "plan",
+            ValueError(f"plan auto chooses protocol.{', protocol.'.join(taken)}: leave them out "
+                       "of the overrides, or leave out the plan"),
+        )  # fmt: skip
+    tol, t = config.tolerances, body.targets or TargetsIn()
+    try:
+        targets = Targets(t.position or tol.position, t.beta or tol.beta, t.radius or tol.radius)
+        p = rt.planner.get(config, PlanRequest(targets=targets))
+    except PlannerBusyError as exc:
+        raise HTTPException(409, f"not started: {exc}") from exc
+    except PlanError as exc:
+        raise refused("plan", ValueError(f"refused before any motion: {exc}")) from exc
+    if p is None:
+        raise HTTPException(
+            409, "not started: the plan is being made (seconds to a minute): send the same "
+            "request again then (GET /plan shows the robot config's)",
+        )  # fmt: skip
+    doc.setdefault("protocol", {}).update(p.candidate.protocol())
+    return run_config(rt, ConfigOverrides.model_validate(doc), metrology)
 
 
 def start_checked(
@@ -159,6 +220,28 @@ def start_checked(
         raise HTTPException(507, str(exc)) from exc
     except StoreError as exc:
         raise HTTPException(503, str(exc)) from exc
+
+
+@router.get(
+    "/plan",
+    responses=problems(
+        _202="the plan is being made (ask again in a few seconds)",
+        _409="the robot config cannot be planned (why), or another plan is being made",
+    ),
+)
+def get_plan(rt: Rt) -> Any:
+    """The plan of a calibration of the robot config (docs/plan.md): what
+    ``POST /calibrations {"plan": "auto"}`` without overrides runs, with its predicted
+    robot time, std devs and the requirement (mm, deg).  The first call starts making it
+    (202 until it is made: seconds to a minute), then it is kept; 409 naming why when no
+    candidate meets the requirement."""
+    try:  # the config of a run without overrides: the plan it runs
+        p = rt.planner.get(rt.config.for_run({}, "mocap"))
+    except PlanError as exc:
+        raise HTTPException(409, f"no plan: {exc}") from exc
+    if p is None:
+        return JSONResponse({"detail": "the plan is being made"}, status_code=202)
+    return p.document()
 
 
 @router.get("/calibrations", response_model=list[RunStatus])

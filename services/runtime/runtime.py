@@ -46,6 +46,7 @@ from services.runs.imu import ImuMetrology
 from services.runs.install import file_run, read_replaced
 from services.runs.metrology import Metrology
 from services.runs.mocap import MocapMetrology
+from services.runs.plan import Planner
 from services.runs.protocol import CalibrationRun
 from services.runs.recording import SpaceGuard
 from services.runs.state import TERMINAL, State, now_iso
@@ -148,6 +149,7 @@ class Runtime:
             )
         # what the settings alone decide first: an error here leaves nothing to undo
         self.timing: TimingBudget = timing_budget(settings, self.config)
+        self.planner = Planner()  # plans of {"plan": "auto"} runs, made in the background
         self.clock: Clock = (
             SimClock(max_speed=settings.sim_speed)
             if settings.in_process

@@ -712,12 +712,12 @@ def test_a_calibration_without_motion_capture_from_the_page(
         set_field(d, f"tape-{a}-{b}-{1 + n // 6}", f"{ref['value'] * 1e3:.1f}")
     set_field(d, "f-drive", str(PROTOCOL["drive_length"]))
     set_field(d, "f-rest", str(PROTOCOL["rest_time"]))
-    check_view(d, "run, tape", shots="14-tape")
+    check_view(d, "run, tape", shots="16-tape")
     run_id = start_run(d, install="never", **QUICK)
     assert wait_state(d, {"MARK", "FAILED", "ABORTED"}) == "MARK", text(d, "run-reason")
     wait_for("the operator's prompt", lambda: d.find_element(By.ID, "operator").is_displayed())
     assert "mark the floor under module 1's steering axis" in text(d, "op-text")
-    check_view(d, "run, mark", shots="15-mark")
+    check_view(d, "run, mark", shots="17-mark")
     press(d, "op-continue")
     assert wait_state(d, {"MEASURE", "FAILED", "ABORTED"}) == "MEASURE", text(d, "run-reason")
     wait_for("the measure form", lambda: d.find_element(By.ID, "op-measure").is_displayed())
@@ -739,3 +739,37 @@ def test_a_calibration_without_motion_capture_from_the_page(
     check_view(d, "result")
     shot(d, "12-result-imu")
     assert severe_logs(d) == []
+
+
+def test_the_plan_is_shown_before_start_and_runs(
+    service: dict[str, Any], browser: WebDriver
+) -> None:
+    """Ticking "Plan the protocol" shows the plan (docs/plan.md) before Start: its angles,
+    sweep, predicted robot time and targets; Start then runs it."""
+    d = browser
+    go(d, "run")
+    d.find_element(By.ID, "f-plan").click()
+    assert text(d, "plan-text").startswith(("Planning", "Planned"))
+    planned = wait_for(
+        "the plan on the page", lambda: (t := text(d, "plan-text")).startswith("Planned") and t,
+        timeout=600,
+    )  # fmt: skip
+    with httpx.Client(base_url=service["url"], timeout=10.0) as http:
+        plan = http.get("/plan").json()
+    assert f"{plan['robot_time_s']:.1f} s of robot time (predicted)" in planned
+    assert f"{plan['protocol']['sweep_deg']:g} deg sweeps" in planned
+    assert "Targets: position 0.5 mm, beta 0.2 deg, radius 0.2 mm; the square path within " \
+        "0.5 mm, 0.016 deg" in planned
+    check_view(d, "run, planned")
+    shot(d, "14-plan")
+    before = text(d, "run-id")
+    d.find_element(By.ID, "start").click()
+    run_id = wait_for("the new run on the page", lambda: (t := text(d, "run-id")) != before and t)
+    assert text(d, "start-error") == ""
+    assert wait_state(d, {"DONE", "FAILED", "ABORTED"}, timeout=300) == "DONE"
+    with httpx.Client(base_url=service["url"], timeout=10.0) as http:
+        st = http.get(f"/calibrations/{run_id}").json()
+    assert st["segments"] == 4 * len(plan["protocol"]["angles_deg"])
+    assert st["elapsed_s"] < 0.6 * 133.1  # the default protocol: 133 s of robot time
+    d.find_element(By.ID, "f-plan").click()  # as the other tests left it
+    assert text(d, "plan-text") == ""

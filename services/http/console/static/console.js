@@ -263,10 +263,45 @@ function sendMeasurement(ev) {
   answerRun("references", { references: [{ kind: "straight_drive", value, stddev }] });
 }
 
+// the plan (docs/plan.md): GET /plan is 202 while the service makes it
+function planText(p) {
+  const r = p.requirement;
+  const g = (x) => Number(x.toPrecision(3));
+  const angles = p.protocol.angles_deg.join(", ");
+  let t = `Planned: steering angles ${angles} deg, ${p.protocol.sweep_deg} deg sweeps, ` +
+    `${p.robot_time_s.toFixed(1)} s of robot time (predicted). Targets: position ` +
+    `${g(r.position_mm)} mm, beta ${g(r.beta_deg)} deg, radius ${g(r.radius_mm)} mm`;
+  if (r.square_position_mm !== null) {
+    t += `; the square path within ${g(r.square_position_mm)} mm, ` +
+      `${g(r.square_heading_deg)} deg (predicted ${p.square_position_mm.toFixed(2)} mm, ` +
+      `${p.square_heading_deg.toFixed(4)} deg)`;
+  }
+  return t + ". The protocol settings below are not used.";
+}
+async function showPlan() {
+  if (!$("f-plan").checked) { $("plan-text").textContent = ""; return; }
+  $("plan-text").textContent = "Planning (seconds to a minute)...";
+  for (;;) {
+    let r;
+    try {
+      r = await fetch("/plan");
+    } catch (e) {
+      $("plan-text").textContent = "No plan: " + e.message;
+      return;
+    }
+    const data = await r.json();
+    if (!$("f-plan").checked) return;
+    if (r.status === 202) { await new Promise((ok) => setTimeout(ok, 1000)); continue; }
+    $("plan-text").textContent = r.ok ? planText(data) : "No plan: " + data.detail;
+    return;
+  }
+}
 async function start(ev) {
   ev.preventDefault();
   $("start-error").textContent = "";
-  const body = { overrides: overrides(), install: $("f-install").value };
+  const planned = $("f-plan").checked;
+  const body = planned ? { plan: "auto", install: $("f-install").value }
+    : { overrides: overrides(), install: $("f-install").value };
   body.metrology = $("f-metrology").value;
   if (body.metrology === "imu") body.references = tapeReferences();
   if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
@@ -844,6 +879,7 @@ function connect() {
 
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
+  $("f-plan").addEventListener("change", showPlan);
   $("check").addEventListener("click", startCheck);
   $("f-metrology").addEventListener("change", showMetrology);
   $("op-continue").addEventListener("click", () => answerRun("continue"));

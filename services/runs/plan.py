@@ -1,0 +1,206 @@
+"""A calibration planned from the information it yields (docs/plan.md).
+
+:func:`plan_for` gives the planner (:func:`swpc_hw.calibration.plan.plan`) what the robot
+config says: the modules, the pauses the check uses (``check.settle_time``,
+``stop_time``, ``align_time``: shorter than a calibration's and validated through the
+service, docs/check.md) with the protocol's re-steer time, the steering's speed limit,
+the step timeout, and by default the ``tolerances`` as the per-parameter targets; the
+prediction is :func:`simulators.plan_predict.predicted_covariance` on the nominal robot.
+``swpc plan`` prints its answer; ``POST /calibrations {"plan": "auto"}`` runs it (the plan's
+protocol as the run's ``overrides.protocol``).
+
+A plan takes seconds to a minute of CPU (a solve per candidate predicted): the service
+makes it in the background, one at a time, and keeps it (:class:`Planner`), so that no
+request waits for it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+
+from services.config.robot import RobotConfig
+from simulators.plan_predict import predicted_covariance
+from swpc_hw.calibration.plan import (
+    SQUARE_BUDGET,
+    Candidate,
+    FloatArray,
+    MocapNoise,
+    Plan,
+    PlanError,
+    Requirement,
+    Targets,
+    TimeModel,
+    plan,
+    square_path_sensitivity,
+)
+from swpc_hw.model import RobotParams
+
+PLANNED_KEYS = frozenset(
+    {"angles_deg", "sweep_deg", "settle_time", "stop_time", "align_time", "resteer_time"}
+)
+"""The protocol settings a plan chooses (a request may not set them too)."""
+
+YAW_RATE_PER_TORQUE = 0.59 / 0.6
+"""rad/s per N.m: the in-process simulator's (the paper's robot) steady yaw rate over the
+spin torque (its damping is viscous: the rate is proportional to the torque), measured
+(docs/plan.md).  A real robot's: ``swpc plan --yaw-rate``."""
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """What may change a plan besides the robot config (SI; None: the default)."""
+
+    targets: Targets | None = None
+    """Per-kind targets; None: the config's ``tolerances``."""
+    budget: tuple[float, float] | None = SQUARE_BUDGET
+    """The square path's (position, heading) budget; None: not required."""
+    noise: MocapNoise = field(default_factory=MocapNoise)
+    yaw_rate: float | None = None
+    """rad/s while spinning; None: :data:`YAW_RATE_PER_TORQUE` times the spin torque."""
+
+
+def time_model(config: RobotConfig, yaw_rate: float | None = None) -> TimeModel:
+    """The robot's :class:`TimeModel` from its config (and a measured yaw rate)."""
+    lim = config.limits
+    w = yaw_rate if yaw_rate is not None else YAW_RATE_PER_TORQUE * lim.spin_torque
+    if w > lim.max_yaw_rate:
+        raise PlanError(
+            f"yaw rate {w:g} rad/s exceeds limits.max_yaw_rate {lim.max_yaw_rate:g} rad/s"
+        )
+    return TimeModel(yaw_rate=w, steer_rate=lim.max_steer_velocity)
+
+
+def pauses(config: RobotConfig) -> Candidate:
+    """The pauses a plan uses (module docstring); angles and sweep are the planner's."""
+    c, p = config.check, config.protocol
+    return Candidate((), 0.0, c.settle_time, c.stop_time, c.align_time, p.resteer_time)
+
+
+def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
+    """The plan of a calibration of ``config``'s robot with motion capture (module
+    docstring).  :class:`~swpc_hw.calibration.plan.PlanError` when no candidate meets the
+    requirement, with the closest named."""
+    req = request or PlanRequest()
+    tol = config.tolerances
+    targets = req.targets or Targets(tol.position, tol.beta, tol.radius)
+    nominal = config.nominal
+    if config.protocol.modules is not None and set(config.protocol.modules) != set(nominal.ids):
+        raise PlanError("a plan locks every module (protocol.modules must be all or unset)")
+    square = None if req.budget is None else square_path_sensitivity(nominal)
+    requirement = Requirement(targets, square, req.budget or SQUARE_BUDGET)
+    tm = time_model(config, req.yaw_rate)
+
+    key = nominal.model_dump_json()
+
+    def predict(c: Candidate) -> FloatArray:
+        return _predicted(key, c, req.noise, tm)
+
+    return plan(
+        predict, requirement, nominal.ids, pauses(config), tm,
+        max_spin_time=config.limits.step_timeout,
+    )  # fmt: skip
+
+
+class PlannerBusyError(PlanError):
+    """Another plan is being made (the service makes one at a time)."""
+
+
+class Planner:
+    """Plans made in the background, one at a time, the newest ``keep`` kept (with the
+    error of one that could not be made).
+
+    :meth:`get` answers at once: the plan, or None while it is being made (it starts it
+    when nothing else is being made), or raises the :class:`PlanError` it ended with, or
+    :class:`PlannerBusyError` while another is being made."""
+
+    def __init__(self, keep: int = 16) -> None:
+        self._lock = threading.Lock()
+        self._done: OrderedDict[tuple[str, PlanRequest], Plan | PlanError] = OrderedDict()
+        self._making: tuple[str, PlanRequest] | None = None
+        self._keep = keep
+
+    def get(self, config: RobotConfig, request: PlanRequest | None = None) -> Plan | None:
+        req = request or PlanRequest()
+        if req.targets is None:  # the same plan as with the tolerances given
+            tol = config.tolerances
+            req = replace(req, targets=Targets(tol.position, tol.beta, tol.radius))
+        key = (config.model_dump_json(), req)
+        with self._lock:
+            if key in self._done:
+                out = self._done[key]
+                if isinstance(out, PlanError):
+                    raise out
+                return out
+            if self._making == key:
+                return None
+            if self._making is not None:
+                raise PlannerBusyError("another plan is being made: ask again in a minute")
+            self._making = key
+        threading.Thread(
+            target=self._make, args=(key, config, req), name="swpc-plan", daemon=True
+        ).start()
+        return None
+
+    def _make(self, key: tuple[str, PlanRequest], config: RobotConfig, req: PlanRequest) -> None:
+        out: Plan | PlanError
+        try:
+            out = plan_for(config, req)
+        except PlanError as exc:
+            out = exc
+        except Exception as exc:  # a bug: its reason, not a planner stuck for ever
+            out = PlanError(f"the plan could not be made: {type(exc).__name__}: {exc}")
+        with self._lock:
+            self._done[key] = out
+            while len(self._done) > self._keep:
+                self._done.popitem(last=False)
+            self._making = None
+
+
+@functools.lru_cache(maxsize=256)
+def _predicted(nominal: str, c: Candidate, noise: MocapNoise, tm: TimeModel) -> FloatArray:
+    """:func:`predicted_covariance`, kept: a plan of the same robot is the same plan (the
+    prediction's seeds are fixed), and the service plans every ``plan: auto`` run."""
+    robot = RobotParams.model_validate_json(nominal)
+    return predicted_covariance(robot, c, noise, tm)
+
+
+def plan_text(p: Plan) -> str:
+    """The plan for people: the protocol, its robot time, the requirement and, per module,
+    the predicted std devs (mm, deg)."""
+    c, doc = p.candidate, p.document()
+    req = doc["requirement"]
+    lines = [
+        f"plan: steering angles {', '.join(f'{a:g}' for a in c.angles_deg)} deg, "
+        f"{c.sweep_deg:g} deg sweeps; settle {c.settle_time:g} s, stop {c.stop_time:g} s, "
+        f"align {c.align_time:g} s, re-steer {c.resteer_time:g} s",
+        f"robot time: {p.robot_time:.1f} s (predicted)",
+        f"targets: position {req['position_mm']:.4g} mm, beta {req['beta_deg']:.4g} deg, "
+        f"radius {req['radius_mm']:.4g} mm"
+        + (
+            ""
+            if req["square_position_mm"] is None
+            else f"; square path within {req['square_position_mm']:.3g} mm, "
+            f"{req['square_heading_deg']:.3g} deg"
+        ),
+    ]
+    if doc["square_position_mm"] is not None:
+        lines.append(
+            f"square path (predicted std dev): {doc['square_position_mm']:.3f} mm, "
+            f"{doc['square_heading_deg']:.4f} deg"
+        )
+    lines.append(f"{'module':>6} {'x_s mm':>9} {'y_s mm':>9} {'beta deg':>9} {'b mm':>9} "
+                 f"{'r mm':>9}")  # fmt: skip
+    for row in doc["predicted"]:
+        lines.append(
+            f"{row['module']:>6} {row['x_s_mm']:9.4f} {row['y_s_mm']:9.4f} "
+            f"{row['beta_deg']:9.5f} {row['b_mm']:9.4f} {row['r_mm']:9.5f}"
+        )
+    lines.append("candidates predicted (robot time, share of the requirement; <= 1 meets it):")
+    for t in doc["tried"]:
+        ratio = "inf" if not math.isfinite(t["ratio"]) else f"{t['ratio']:.2f}"
+        lines.append(f"  {t['protocol']:<44} {t['robot_time_s']:6.1f} s  {ratio}")
+    return "\n".join(lines)

@@ -1,0 +1,115 @@
+"""A planned calibration through the service (docs/plan.md): ``POST /calibrations
+{"plan": "auto"}`` on the in-process simulator, and its refusals; ``swpc plan``."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from services.cli import main as swpc
+from services.config.robot import RobotConfig
+from services.runs.plan import plan_for
+from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
+
+
+def until_planned(sim: Sim, body: dict[str, Any]) -> Any:
+    """POST /calibrations ``body`` until its plan is made (409 "being made" meanwhile: the
+    service plans in the background); its answer then.  The deadline guards a hang."""
+    deadline = time.monotonic() + 600
+    while True:
+        r = sim.client.post("/calibrations", json=body, headers=AUTH)
+        if r.status_code != 409 or "being made" not in r.text:
+            return r
+        assert time.monotonic() < deadline, r.text
+        time.sleep(0.1)
+
+
+def test_a_planned_calibration_runs_the_plan_in_the_robot_time_it_predicted(sim: Sim) -> None:
+    r = until_planned(sim, {"plan": "auto"})
+    assert r.status_code == 202, r.text
+    rid = r.json()["id"]
+    st = wait_state(sim.client, rid, {"DONE", "FAILED", "ABORTED"})
+    assert st["state"] == "DONE", st["reason"]
+    p = plan_for(RobotConfig())  # the same plan (its prediction is kept)
+    assert st["angles_total"] == len(p.candidate.angles_deg)
+    assert st["segments"] == 4 * len(p.candidate.angles_deg)
+    # the default protocol takes 133 s; the plan about half of it, as predicted
+    assert st["elapsed_s"] == pytest.approx(p.robot_time, rel=0.05)
+    assert st["elapsed_s"] < 0.6 * 133.1
+    ds = sim.rt.runs[rid].dataset()
+    for seg in ds.segments:  # every window sweeps the plan's sweep
+        poses = ds.poses[(ds.poses[:, 0] >= seg.start) & (ds.poses[:, 0] <= seg.end)]
+        yaw = np.unwrap(poses[:, 3])
+        swept = abs(math.degrees(float(yaw[-1] - yaw[0])))
+        assert swept == pytest.approx(p.candidate.sweep_deg, abs=3.0)
+    res = sim.client.get(f"/calibrations/{rid}/result").json()
+    assert st["installed"] is True, res
+    # GET /plan: the plan before Start, as swpc plan --json gives it (made already)
+    r = sim.client.get("/plan")
+    assert r.status_code == 200, r.text
+    doc = r.json()
+    assert doc["protocol"] == p.candidate.protocol()
+    assert doc["robot_time_s"] == round(p.robot_time, 1)
+    assert [row["module"] for row in doc["predicted"]] == [1, 2, 3, 4]
+
+
+def test_a_plan_that_cannot_be_made_is_refused_with_its_reason(sim: Sim) -> None:
+    before = len(sim.client.get("/calibrations").json())
+
+    def post(body: dict[str, object]) -> tuple[int, str]:
+        r = sim.client.post("/calibrations", json=body, headers=AUTH)
+        return r.status_code, r.text
+
+    code, text = post({"plan": "auto", "overrides": {"protocol": {"sweep_deg": 90}}})
+    assert code == 422 and "plan auto chooses protocol.sweep_deg" in text
+    code, text = post({"plan": "auto", "metrology": "imu"})
+    assert code == 422 and "motion capture" in text
+    code, text = post({"targets": {"beta": 0.001}})
+    assert code == 422 and "targets are for a planned run" in text
+    code, text = post({"plan": "auto", "targets": {"beta": -1}})
+    assert code == 422 and "greater than 0" in text
+    r = until_planned(sim, {"plan": "auto", "targets": {"position": 1e-9}})
+    assert r.status_code == 422 and "no candidate protocol reaches the requirement" in r.text
+    assert "closest" in r.text
+    # asked again, the answer is kept: at once
+    code, text = post({"plan": "auto", "targets": {"position": 1e-9}})
+    assert code == 422 and "closest" in text
+    assert len(sim.client.get("/calibrations").json()) == before  # nothing started
+
+
+def test_swpc_plan_prints_the_plan(capsys: pytest.CaptureFixture[str]) -> None:
+    assert swpc(["plan", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    p = plan_for(RobotConfig())
+    assert doc["protocol"] == p.candidate.protocol()
+    assert doc["robot_time_s"] == round(p.robot_time, 1)
+    assert doc["ratio"] <= 1.0
+    assert doc["square_position_mm"] <= 0.5 and doc["square_heading_deg"] <= 0.016
+    assert swpc(["plan"]) == 0
+    out = capsys.readouterr().out
+    assert f"robot time: {p.robot_time:.1f} s (predicted)" in out
+    assert "square path within 0.5 mm, 0.016 deg" in out
+    assert swpc(["plan", "--target-position-mm", "0.000001"]) == 2
+    assert "no candidate protocol reaches the requirement" in capsys.readouterr().err
+
+
+def test_get_plan_answers_at_once_and_202_until_the_plan_is_made(tmp_path: Path) -> None:
+    with TestClient(app_without_robot(tmp_path)) as client:
+        first = client.get("/plan")  # a new service: it starts making it, answers at once
+        assert first.status_code == 202
+        assert first.json() == {"detail": "the plan is being made"}
+        deadline = time.monotonic() + 600
+        while (r := client.get("/plan")).status_code == 202:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert r.status_code == 200, r.text
+        p = plan_for(RobotConfig())
+        assert r.json()["protocol"] == p.candidate.protocol()
+        assert client.get("/plan").json() == r.json()
