@@ -44,6 +44,7 @@ from swpc_hw.calibration.imu_build import (
     check_references,
     initial_parameters,
 )
+from swpc_hw.calibration.imu_misfit import SpinMisfit, max_cut, spin_misfit
 from swpc_hw.calibration.imu_problem import ImuProblem, RollingSet, connected_chunks
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import N_PARAMS, P_S, R, canonical_parameters
@@ -187,8 +188,9 @@ def cut_slip(
     opts: SolverOptions,
     floor: float,
     pooled: bool = False,
-) -> int:
-    """Find slip bursts, re-cut every rolling set's runs; returns the increments cut.
+) -> list[int]:
+    """Find slip bursts, re-cut every rolling set's runs; returns the increments cut in
+    every rolling set (spins, then drives).
 
     A wheel's increment whose residual against its reference (:func:`wheel_increments`)
     is beyond ``slip_sigmas`` robust sigmas of its series (and one either side) slips
@@ -252,7 +254,7 @@ def cut_slip(
                 "a wheel's samples are missing: its length cannot be followed"
             )
     prob.restack()
-    return int(slip.sum())
+    return [int(c.sum()) for c in cut]
 
 
 # ------------------------------------------------------------------ solving
@@ -282,26 +284,98 @@ def initial_weights(run: ImuRun, x: FloatArray) -> float:
 
 def fit_imu(
     run: ImuRun, x0: FloatArray, opts: SolverOptions
-) -> tuple[FloatArray, int]:
-    """IRLS: slip and noise scales alternate with the least-squares solve; at least two
-    iterations, at most ``opts.irls_iterations``, done when the cuts are the same as the
-    last iteration's and no noise scale moved by 1 %.  Returns the solution and the wheel
-    increments cut as slip."""
+) -> tuple[FloatArray, list[int], list[SpinCut]]:
+    """IRLS (:func:`irls`), then every spin's wheels tested against the geometry
+    (:func:`.imu_misfit.spin_misfit`): while the worst spin does not fit, it is cut whole
+    (its wheel readings and its gyro chunks; its settled casters stay) and the IRLS runs
+    again from there.  More than :func:`.imu_misfit.max_cut` spins not fitting is refused
+    (:class:`ImplausibleDataError` naming them).  Returns the solution, the wheel
+    increments left out in every rolling set (spins then drives: slip, or the whole spin)
+    and the spins cut."""
     prob = run.problem
-    n = prob.layout.n
     floor = initial_weights(run, x0)
     valid = [rs.present.copy() for rs in [*prob.spins, *prob.drives]]
+    x, cut = irls(run, x0, valid, opts, floor)
+    cuts: list[SpinCut] = []
+    while True:
+        X, _, _ = prob.layout.split(x)
+        levers = spin_levers(prob, x)
+        worst: tuple[int, SpinMisfit] | None = None
+        for si, (rs, g) in enumerate(zip(prob.spins, levers, strict=True)):
+            if not valid[si].any():
+                continue
+            m = spin_misfit(rs, g / X[rs.mods, R])
+            if not m.fits and (worst is None or m.z > worst[1].z):
+                worst = (si, m)
+        if worst is None:
+            for c in cuts:  # a spin cut whole: every increment it had is left out
+                cut[c.segment] = int(np.sum(c.valid[1:] & c.valid[:-1]))
+            return x, cut, cuts
+        si, m = worst
+        rs = prob.spins[si]
+        cuts.append(
+            SpinCut(
+                si, prob.ids[int(prob.seg_static[si])], float(rs.t[0]), float(rs.t[-1]),
+                m.z, m.ratio, valid[si].copy(),
+            )
+        )
+        if len(cuts) > max_cut(len(prob.spins)):
+            raise ImplausibleDataError(
+                f"at least {len(cuts)} of {len(prob.spins)} spins have wheels that do not roll "
+                "as one geometry says (a wheel slipping steadily, a caster not settled): "
+                + "; ".join(c.describe() for c in cuts)
+                + f"; at most {max_cut(len(prob.spins))} may be left out: repeat the run on a "
+                "clean, even floor"
+            )
+        valid[si][:] = False
+        floor = initial_weights(run, x)  # the weights the misfit inflated, reset
+        x, cut = irls(run, x, valid, opts, floor)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SpinCut:
+    """A spin cut whole because its wheels' ratios do not fit (:mod:`.imu_misfit`):
+    its index, the locked module, its window (s), the misfit in std devs and the ratios'
+    relative RMS change.  (Which wheel slips is not said: a fit bent by the slip spreads
+    it over the spin's wheels.)"""
+
+    segment: int
+    static_module: int
+    start: float
+    end: float
+    z: float
+    ratio: float
+    valid: BoolArray
+    """Its usable samples before the cut."""
+
+    def describe(self) -> str:
+        return (
+            f"spin about module {self.static_module} {self.start:.2f}-{self.end:.2f} s "
+            f"(its wheels' ratios {self.ratio * 100:.3f} % off, {self.z:.0f} std devs)"
+        )
+
+
+def irls(
+    run: ImuRun, x0: FloatArray, valid: list[BoolArray], opts: SolverOptions, floor: float
+) -> tuple[FloatArray, list[int]]:
+    """IRLS: slip and noise scales alternate with the least-squares solve; at least two
+    iterations, at most ``opts.irls_iterations``, done when the cuts are the same as the
+    last iteration's and no noise scale moved by 1 %.  ``valid``: every rolling set's
+    usable samples.  Returns the solution and the wheel increments cut as slip in every
+    rolling set (spins, then drives)."""
+    prob = run.problem
+    n = prob.layout.n
     st = prob.settled
     x = x0.copy()
-    cut = 0
+    cut: list[int] = []
     before: list[BoolArray] = []
     for it in range(max(2, opts.irls_iterations)):
         r_mean = float(np.mean(x[R : N_PARAMS * n : N_PARAMS]))
         cut = cut_slip(prob, valid, x, opts, r_mean * floor * math.sqrt(2.0))
         total = sum(int(np.sum(v[1:] & v[:-1])) for v in valid)
-        if cut > MAX_SLIP_FRACTION * total:
+        if sum(cut) > MAX_SLIP_FRACTION * total:
             raise ImplausibleDataError(
-                f"{cut} of {total} wheel increments disagree with the gyro: not slip but "
+                f"{sum(cut)} of {total} wheel increments disagree with the gyro: not slip but "
                 "data that do not fit the robot (robot.yaml, the segments' windows, the "
                 "gyro's axis or units)"
             )
@@ -472,14 +546,16 @@ def solve_imu(
     plausibility.check_gyro_ratio(gyro_ratio(coarse.problem, x0), source)
     x0 = coarse_fit(coarse, x0, opts)
     run = build_imu_problem(ds, segs, opts, source, noise)
-    x, cut = fit_imu(run, x0, opts)
+    x, cut, spin_cuts = fit_imu(run, x0, opts)
     x = align_design_fit(run.problem, x)
     X = x[: N_PARAMS * run.problem.layout.n].reshape(-1, N_PARAMS)
     plausibility.check_result(X, ds.robot)
     plausibility.check_gyro_scale(float(x[run.problem.layout.scale]) - 1.0)
     check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)
     cov, J, f = imu_covariance(run.problem, x)
-    return assemble_imu_result(run, ds, segs, x, cov, J, f, cut)
+    return assemble_imu_result(
+        run, ds, segs, x, cov, J, f, cut, [c.describe() for c in spin_cuts]
+    )
 
 
 def check_drives_straight(run: ImuRun, x: FloatArray, size: float, source: str) -> None:
