@@ -332,7 +332,7 @@ def test_profiled_rolling_leaves_white_noise_with_its_degrees_of_freedom() -> No
     assert np.mean(chi2) == pytest.approx(dof, rel=0.05)
 
 
-def test_a_straight_drive_during_which_the_robot_turned_is_refused(
+def test_a_drive_turn_the_wheels_did_not_make_or_too_large_is_refused(
     light: tuple[ImuExperiment, Path],
 ) -> None:
     run, _ = light
@@ -341,8 +341,13 @@ def test_a_straight_drive_during_which_the_robot_turned_is_refused(
     t0, t1 = run.experiment.drive  # the motion, between the rests
     imu = ds.imu.copy()
     inside = (imu[:, 0] > t0) & (imu[:, 0] < t1)
-    imu[inside, 1] += math.radians(0.5) / (t1 - t0)  # half a degree
-    with pytest.raises(ImplausibleDataError, match="deg: not a pure translation") as exc:
+    imu[inside, 1] += math.radians(2.5) / (t1 - t0)
+    # a turn too large for the drive's first-order arc (2 m, 0.5 mm: 1.2 deg)
+    with pytest.raises(ImplausibleDataError, match="too far from a straight line") as exc:
         solve_imu(dataclasses.replace(ds, imu=imu), source="ds")
     turned = float(str(exc.value).split("turned ")[1].split(" deg")[0])
-    assert turned == pytest.approx(0.5, abs=0.05)
+    assert turned == pytest.approx(2.5, abs=0.05)
+    # half a degree the wheels did not make
+    imu[inside, 1] -= math.radians(2.0) / (t1 - t0)
+    with pytest.raises(CalibrationError, match="the gyro and the wheels disagree"):
+        solve_imu(dataclasses.replace(ds, imu=imu), source="ds")

@@ -20,8 +20,10 @@ scale ``s = 1 + eps`` and its bias at every rest window (:mod:`.imu_problem`).  
    the conditions leave, ``Z (Z^T H Z)^-1 Z^T M Z (Z^T H Z)^-1 Z^T``; the wheels' blocks
    with a HAC middle over their nodes.  Data that leave more than the frame free are
    refused, naming the directions.
-7. **Plausibility after solving**: physical values near nominal, the gyro's scale, no
-   turn during a straight drive (:func:`check_drives_straight`).
+7. **Plausibility after solving**: physical values near nominal, the gyro's scale, a
+   straight drive whose wheels roll as one arc with the gyro's turn
+   (:func:`check_drives_fit`) and that turned little enough for its first-order model
+   (:func:`check_drives_straight`).
 """
 
 from __future__ import annotations
@@ -45,7 +47,11 @@ from swpc_hw.calibration.imu_build import (
     initial_parameters,
 )
 from swpc_hw.calibration.imu_misfit import SpinMisfit, max_cut, spin_misfit
-from swpc_hw.calibration.imu_problem import ImuProblem, RollingSet, connected_chunks
+from swpc_hw.calibration.imu_problem import (
+    ImuProblem,
+    RollingSet,
+    connected_chunks,
+)
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import N_PARAMS, P_S, R, canonical_parameters
 from swpc_hw.calibration.prepare import prepare_segments
@@ -59,6 +65,7 @@ from swpc_hw.frames import (
     design_fit_transform,
     transform_parameters,
 )
+from swpc_hw.references import AxisDistance, Reference, WheelRadius
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -82,7 +89,8 @@ def spin_levers(prob: ImuProblem, x: FloatArray) -> list[FloatArray]:
 def set_gyro_sigma(prob: ImuProblem, run: ImuRun, x: FloatArray) -> None:
     """Std dev of every chunk's gyro yaw: integrated white noise, the bias walk about the
     knots' line (both over ``s^2``) and the wheels' own yaw noise (two nodes:
-    ``2 sigma_psi^2 / |g / r|^2``)."""
+    ``2 sigma_psi^2 / |g / r|^2``); of every drive's turn: the first two and the knots'
+    mean std dev ``sigma_b`` times its duration (the bias between its rests)."""
     from swpc_hw.calibration.gyro import walk_variance
 
     X, s, _ = prob.layout.split(x)
@@ -98,6 +106,13 @@ def set_gyro_sigma(prob: ImuProblem, run: ImuRun, x: FloatArray) -> None:
             wheels = 2.0 * rs.sigma**2 / max(float(h @ h), 1e-12)
             sig.append(math.sqrt(var / (s * s) + wheels + 1e-30))
         rs.gyro_sigma = np.array(sig)
+    for rs in prob.drives:  # the turn over the whole drive (docs/imu.md, the drive's arc)
+        t_a, t_b = float(rs.t[0]), float(rs.t[-1])
+        var = nl.gyro_var * nl.gyro_dt * (t_b - t_a) + walk_variance(
+            run.knots, nl.walk_q2, t_a, t_b
+        )
+        sigma_b = float(np.mean(prob.knot_sigma))
+        rs.gyro_sigma = np.array([math.sqrt(var / (s * s) + (sigma_b * (t_b - t_a)) ** 2)])
     prob.restack()
 
 
@@ -118,7 +133,7 @@ def update_scales(prob: ImuProblem, x: FloatArray, floor: float) -> None:
     for rs, g in zip(prob.spins, spin_levers(prob, x), strict=True):
         rs.sigma = rolling_scale(prob, rs, prob.rolled(X, rs, g)[0], floor)
     for rs in prob.drives:
-        rs.sigma = rolling_scale(prob, rs, prob.rolled(X, rs, prob.drive_levers(X, rs))[0], floor)
+        rs.sigma = rolling_scale(prob, rs, prob.drive_arc(x, rs)[1], floor)
     prob.restack()
 
 
@@ -148,7 +163,7 @@ def wheel_increments(
         inc.append(scaled_residual(X[rs.mods, R][None, :] * np.diff(rs.psi, axis=0), d))
         ref.append(d)
     for rs in prob.drives:
-        d = (X[rs.mods, R] * prob.drive_levers(X, rs))[None, :] * np.diff(rs.psi, axis=0)
+        d = (X[rs.mods, R] * prob.drive_arc(x, rs)[0])[None, :] * np.diff(rs.psi, axis=0)
         med = np.median(d, axis=1, keepdims=True)
         # the wheels scaled to agree first: one far off (a radius not yet fitted, a
         # slipping start) no longer moves the median when it slips
@@ -250,8 +265,10 @@ def cut_slip(
     for rs in prob.drives:
         if rs.chunks != [(0, rs.t.size - 1)]:
             raise CalibrationError(
-                f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s: every wheel slipped at once, or "
-                "a wheel's samples are missing: its length cannot be followed"
+                f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s: its wheels disagree with each "
+                "other and the gyro's turn at once (every wheel slipped, the gyro and the "
+                "wheels disagree, or a wheel's samples are missing): its length cannot be "
+                "followed"
             )
     prob.restack()
     return [int(c.sum()) for c in cut]
@@ -310,6 +327,7 @@ def fit_imu(
         if worst is None:
             for c in cuts:  # a spin cut whole: every increment it had is left out
                 cut[c.segment] = int(np.sum(c.valid[1:] & c.valid[:-1]))
+            check_drives_fit(run, x)
             return x, cut, cuts
         si, m = worst
         rs = prob.spins[si]
@@ -330,6 +348,37 @@ def fit_imu(
         valid[si][:] = False
         floor = initial_weights(run, x)  # the weights the misfit inflated, reset
         x, cut = irls(run, x, valid, opts, floor)
+
+
+def check_drives_fit(run: ImuRun, x: FloatArray) -> None:
+    """Refuse a straight drive whose wheels do not roll as one arc
+    (:func:`.imu_misfit.spin_misfit` against the arc's levers: a wheel slipping while
+    driving), or whose turn the gyro does not confirm: the wheels' ``kappa (Y_end -
+    Y_start)`` against the gyro's beyond 5 std devs of its yaw over the drive (white
+    noise ``v dt T``, the knots' bias error ``sigma_b T``) and 0.01 deg.  A drive cannot
+    be cut: it is what fixes the radii."""
+    prob = run.problem
+    X, s, _ = prob.layout.split(x)
+    nl = run.noise
+    sigma_b = float(np.mean(prob.knot_sigma))
+    for rs in prob.drives:
+        levers, _, _, wheels_turn = prob.drive_arc(x, rs)
+        m = spin_misfit(rs, levers / X[rs.mods, R])
+        where = f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s"
+        if not m.fits:
+            raise ImplausibleDataError(
+                f"{where}: its wheels do not roll as one arc (their ratios "
+                f"{m.ratio * 100:.3f} % off, {m.z:.0f} std devs): a wheel slipped"
+            )
+        T = float(rs.t[-1] - rs.t[0])
+        gyro_turn = prob.drive_turn(x, rs)
+        sigma = math.sqrt(nl.gyro_var * nl.gyro_dt * T + (sigma_b * T) ** 2) / s
+        if abs(gyro_turn - wheels_turn) > max(5.0 * sigma, math.radians(0.01)):
+            raise ImplausibleDataError(
+                f"{where}: the gyro says the robot turned {math.degrees(gyro_turn):.3f} deg, "
+                f"the wheels {math.degrees(wheels_turn):.3f} deg: the gyro and the wheels "
+                "disagree"
+            )
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -544,6 +593,7 @@ def solve_imu(
     )
     x0 = initial_parameters(coarse, ds)
     plausibility.check_gyro_ratio(gyro_ratio(coarse.problem, x0), source)
+    check_drives_straight(coarse, x0, plausibility.robot_size(ds.robot), source)
     x0 = coarse_fit(coarse, x0, opts)
     run = build_imu_problem(ds, segs, opts, source, noise)
     x, cut, spin_cuts = fit_imu(run, x0, opts)
@@ -551,7 +601,7 @@ def solve_imu(
     X = x[: N_PARAMS * run.problem.layout.n].reshape(-1, N_PARAMS)
     plausibility.check_result(X, ds.robot)
     plausibility.check_gyro_scale(float(x[run.problem.layout.scale]) - 1.0)
-    check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)
+    check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)  # at the optimum
     cov, J, f = imu_covariance(run.problem, x)
     return assemble_imu_result(
         run, ds, segs, x, cov, J, f, cut, [c.describe() for c in spin_cuts]
@@ -559,26 +609,24 @@ def solve_imu(
 
 
 def check_drives_straight(run: ImuRun, x: FloatArray, size: float, source: str) -> None:
-    """Refuse a straight drive during which the gyro saw the robot turn: a turn ``dyaw``
-    moves points of a robot of ``size`` by up to ``size dyaw`` more or less than the
-    translation the reference assumes.  Refused beyond the reference's std dev and four
-    std devs of the gyro's yaw over the drive (white noise ``v dt T``, the knots' bias
-    error ``sigma_b T``)."""
+    """Refuse a straight drive that turned more than its first-order arc covers.
+
+    The drive's model (:mod:`.imu_problem`, ``drive``) takes the gyro's turn ``dyaw`` to
+    first order; what it leaves out is of second order: the chord of an arc of length
+    ``L`` against its along-track length, ``~dyaw^2 L / 8``, and the rotation of a point
+    ``|P| <= size`` from the origin, ``~dyaw^2 size / 2``.  Refused when those exceed a
+    quarter of the reference's std dev (0.8 deg over 4 m, with a 0.5 mm tape)."""
     prob = run.problem
-    _, s, knots = prob.layout.split(x)
-    nl = run.noise
-    sigma_b = float(np.mean(prob.knot_sigma))
     for ref, rs in zip(run.drive_refs, prob.drives, strict=True):
-        L = rs.t.size - 1
-        T = float(rs.t[-1] - rs.t[0])
-        dyaw = float(rs.gyro_yaw(s, knots, np.array([0]), np.array([L]))[0])
-        sigma = math.sqrt(nl.gyro_var * nl.gyro_dt * T + (sigma_b * T) ** 2) / s
-        if size * abs(dyaw) > max(ref.stddev, 4.0 * size * sigma):
+        dyaw = prob.drive_turn(x, rs)
+        second = dyaw * dyaw * (ref.value / 8.0 + size / 2.0)
+        if second > 0.25 * ref.stddev:
             raise ImplausibleDataError(
                 f"{source}/references.yaml: straight_drive {ref.start:g}-{ref.end:g} s: the "
-                f"gyro says the robot turned {math.degrees(dyaw):.3f} deg: not a pure "
-                f"translation (points {size * abs(dyaw) * 1e3:.2f} mm apart, the reference's "
-                f"std dev {ref.stddev * 1e3:.2f} mm)"
+                f"gyro says the robot turned {math.degrees(dyaw):.3f} deg: too far from a "
+                f"straight line (the arc's second-order terms {second * 1e3:.3f} mm, a "
+                f"quarter of the reference's std dev {ref.stddev * 1e3:.2f} mm): steer the "
+                "wheels parallel (the spins' betas) and drive on a level floor"
             )
 
 
@@ -596,6 +644,39 @@ def gyro_ratio(prob: ImuProblem, x: FloatArray) -> float:
         if abs(wheels) > 0:
             out.append(gy / wheels)
     return float(np.median(out)) if out else 1.0
+
+
+LOOSE_LENGTH = 0.05
+"""Std dev (m) of the stand-in axis distance :func:`solve_spins` gives when none is known."""
+LOOSE_RADIUS = 0.005
+"""Std dev (m) of its stand-in wheel radius."""
+
+
+def solve_spins(
+    ds: Dataset, options: SolverOptions | None = None, source: str = "dataset"
+) -> CalibrationResult:
+    """The spins alone, before any straight drive: what steers the drive.
+
+    The encoders fix the differences of ``beta`` by themselves (docs/imu.md, the Fisher
+    table: 0.5 mdeg), not the two scales (the layout's length, the wheels' radii).  The
+    dataset's own axis distances and wheel radii are used; a scale nothing fixes is held
+    loosely at the nominal robot's by a stand-in reference: the distance between the first
+    two steering axes (std dev :data:`LOOSE_LENGTH`), the first wheel's radius
+    (:data:`LOOSE_RADIUS`).  Neither moves a difference of ``beta``.  A straight drive in
+    the dataset is left out.  The result's lengths are not a calibration: only its
+    ``beta`` (design-fit frame) is meant to be used.
+    """
+    refs: list[Reference] = [
+        r for r in ds.references if isinstance(r, AxisDistance | WheelRadius)
+    ]
+    a = ds.robot.arrays()
+    ids = ds.robot.ids
+    if not any(isinstance(r, AxisDistance) for r in refs):
+        d = float(np.linalg.norm(a.P_s[0] - a.P_s[1]))
+        refs.append(AxisDistance((ids[0], ids[1]), d, LOOSE_LENGTH))
+    if not any(isinstance(r, WheelRadius) for r in refs):
+        refs.append(WheelRadius(ids[0], float(a.r[0]), LOOSE_RADIUS))
+    return solve_imu(dataclasses.replace(ds, references=refs), options, source)
 
 
 def solve_imu_directory(
