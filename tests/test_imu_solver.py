@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from swpc_hw.calibration.identifiability import analyse
 from swpc_hw.calibration.imu_problem import profiled_rolling
 from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.result import CalibrationResult
+from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import CalibrationError, ImplausibleDataError
 from swpc_hw.frames import (
     DESIGN_FIT,
@@ -267,6 +269,13 @@ def test_cli_solves_a_dataset_without_poses_in_the_design_fit_frame(
     text = capsys.readouterr().out
     assert "mode: imu" in text and "gyro: scale error" in text
     assert "straight_drive" in text and "axis_distance 1-2" in text
+    # the wheels' residuals are angles: in urad, never "mm"; every segment's increments
+    seg_lines = [ln for ln in text.splitlines() if ln.strip().startswith("segment ")]
+    assert len(seg_lines) == 8
+    for ln in seg_lines:
+        assert "rolling RMS" in ln and "urad" in ln and "rolling RMS" not in ln.split("urad")[1]
+        assert re.search(r"increments \d+/\d+", ln), ln
+        assert " mm" not in ln.split("settled RMS")[0], ln
     k = load_kinematics(out)
     assert k.params.frame == DESIGN_FIT
     assert k.covariance is not None and len(k.covariance) == 20
@@ -276,6 +285,18 @@ def test_cli_solves_a_dataset_without_poses_in_the_design_fit_frame(
     out2 = tmp_path / "p.yaml"
     assert swpc_main(["solve", str(d), "-o", str(out2), "--method", "paper"]) == 2
     assert "needs motion capture" in capsys.readouterr().err and not out2.exists()
+
+
+def test_datagen_reads_every_axis_distance_twice_by_default(tmp_path: Path) -> None:
+    """docs/imu-operation.md recommends two tape readings per pair: so does datagen."""
+    base = ["datagen", "--metrology", "imu", "--spin-duration", "3", "--drive-length", "1.5"]
+    assert swpc_main([*base, str(tmp_path / "two")]) == 0
+    assert swpc_main([*base, "--tape-readings", "1", str(tmp_path / "one")]) == 0
+    for name, n in (("two", 12), ("one", 6)):
+        refs = load_dataset(tmp_path / name).references
+        pairs = [r.modules for r in refs if isinstance(r, AxisDistance)]
+        assert len(pairs) == n and len(set(pairs)) == 6
+        assert [r.kind for r in refs].count("straight_drive") == 1
 
 
 def test_cli_takes_the_motion_capture_solver_when_poses_are_there(
