@@ -300,12 +300,13 @@ def initial_weights(run: ImuRun, x: FloatArray) -> float:
 
 
 def fit_imu(
-    run: ImuRun, x0: FloatArray, opts: SolverOptions
+    run: ImuRun, x0: FloatArray, opts: SolverOptions, coarse: ImuRun | None = None
 ) -> tuple[FloatArray, list[int], list[SpinCut]]:
     """IRLS (:func:`irls`), then every spin's wheels tested against the geometry
-    (:func:`.imu_misfit.spin_misfit`): while the worst spin does not fit, it is cut whole
-    (its wheel readings and its gyro chunks; its settled casters stay) and the IRLS runs
-    again from there.  More than :func:`.imu_misfit.max_cut` spins not fitting is refused
+    (:func:`.imu_misfit.spin_misfit`): while spins do not fit, one is cut whole
+    (:func:`trial_cut`; its wheel readings and its gyro chunks, its settled casters stay)
+    and the IRLS runs again from there with fresh weights (``coarse``: the problem the
+    trials run on).  More than :func:`.imu_misfit.max_cut` spins not fitting is refused
     (:class:`ImplausibleDataError` naming them).  Returns the solution, the wheel
     increments left out in every rolling set (spins then drives: slip, or the whole spin)
     and the spins cut."""
@@ -315,15 +316,9 @@ def fit_imu(
     x, cut = irls(run, x0, valid, opts, floor)
     cuts: list[SpinCut] = []
     while True:
-        X, _, _ = prob.layout.split(x)
-        levers = spin_levers(prob, x)
-        worst: tuple[int, SpinMisfit] | None = None
-        for si, (rs, g) in enumerate(zip(prob.spins, levers, strict=True)):
-            if not valid[si].any():
-                continue
-            m = spin_misfit(rs, g / X[rs.mods, R])
-            if not m.fits and (worst is None or m.z > worst[1].z):
-                worst = (si, m)
+        failing = misfits(prob, x, valid)
+        gone = [c.segment for c in cuts]
+        worst = trial_cut(coarse or run, x, failing, gone) if failing else None
         if worst is None:
             for c in cuts:  # a spin cut whole: every increment it had is left out
                 cut[c.segment] = int(np.sum(c.valid[1:] & c.valid[:-1]))
@@ -379,6 +374,65 @@ def check_drives_fit(run: ImuRun, x: FloatArray) -> None:
                 f"the wheels {math.degrees(wheels_turn):.3f} deg: the gyro and the wheels "
                 "disagree"
             )
+
+
+TRIAL_CUTS = 4
+"""How many of the worst spins :func:`trial_cut` tries leaving out."""
+
+
+def misfits(
+    prob: ImuProblem, x: FloatArray, valid: list[BoolArray]
+) -> list[tuple[int, SpinMisfit]]:
+    """The spins (index, misfit) that do not fit at ``x``, worst first."""
+    X, _, _ = prob.layout.split(x)
+    out = []
+    for si, (rs, g) in enumerate(zip(prob.spins, spin_levers(prob, x), strict=True)):
+        if not valid[si].any():
+            continue
+        m = spin_misfit(rs, g / X[rs.mods, R])
+        if not m.fits:
+            out.append((si, m))
+    return sorted(out, key=lambda e: -e[1].z)
+
+
+def trial_cut(
+    run: ImuRun, x: FloatArray, failing: list[tuple[int, SpinMisfit]], gone: list[int]
+) -> tuple[int, SpinMisfit]:
+    """Which of the failing spins to cut: the worst by ``z`` unless a fit bent by a large
+    slip puts the worst ``z`` elsewhere.  On ``run`` (the coarse problem: a tenth of the
+    cost), without the spins ``gone`` already cut, each of the :data:`TRIAL_CUTS` worst
+    is left out in turn for one solve from ``x`` (fresh weights); the one after whose
+    removal the fewest spins fail, then the smallest sum of their ``z^2``, is cut.  The
+    problem's samples are put back as they were."""
+    if len(failing) == 1:
+        return failing[0]
+    prob = run.problem
+    kept = [(rs.present.copy(), rs.run.copy(), list(rs.chunks)) for rs in prob.spins]
+
+    def drop(si: int) -> None:
+        prob.spins[si].present = np.zeros_like(prob.spins[si].present)
+        prob.spins[si].chunks = []
+
+    best: tuple[tuple[int, float], int] | None = None
+    for k, (si, _) in enumerate(failing[:TRIAL_CUTS]):
+        for g in [*gone, si]:
+            drop(g)
+        prob.restack()
+        initial_weights(run, x)
+        sol = least_squares(
+            prob.residuals, x, jac=prob.jacobian, method="lm", x_scale="jac",
+            xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=50,
+        )
+        valid = [rs.present for rs in prob.spins]
+        rest = misfits(prob, np.asarray(sol.x, dtype=float), valid)
+        score = (len(rest), float(sum(m.z**2 for _, m in rest)))
+        if best is None or score < best[0]:
+            best = (score, k)
+        for rs, (present, run_, chunks) in zip(prob.spins, kept, strict=True):
+            rs.present, rs.run, rs.chunks = present.copy(), run_.copy(), list(chunks)
+        prob.restack()
+    assert best is not None
+    return failing[best[1]]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -596,7 +650,7 @@ def solve_imu(
     check_drives_straight(coarse, x0, plausibility.robot_size(ds.robot), source)
     x0 = coarse_fit(coarse, x0, opts)
     run = build_imu_problem(ds, segs, opts, source, noise)
-    x, cut, spin_cuts = fit_imu(run, x0, opts)
+    x, cut, spin_cuts = fit_imu(run, x0, opts, coarse)
     x = align_design_fit(run.problem, x)
     X = x[: N_PARAMS * run.problem.layout.n].reshape(-1, N_PARAMS)
     plausibility.check_result(X, ds.robot)
