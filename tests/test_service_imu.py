@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from services.demo import parameters_digest
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration.imu_solver import solve_imu_directory
 from swpc_hw.dataset import load_dataset
@@ -65,10 +66,15 @@ def service(sim: Sim) -> tuple[TestClient, Runtime]:
 
 
 def play_operator(
-    client: TestClient, run_id: str, seen: dict[str, float], timeout: float = 300.0
+    client: TestClient,
+    run_id: str,
+    seen: dict[str, float],
+    timeout: float = 300.0,
+    think: float = 0.0,
 ) -> dict[str, Any]:
     """Watch the run as an operator; mark and measure when asked; its final status.
-    ``seen``: the wall time each state was first seen (for the figures printed)."""
+    ``seen``: the wall time each state was first seen (for the figures printed);
+    ``think``: wall seconds the operator takes before each answer."""
     deadline = time.monotonic() + timeout  # a guard against a hang, never a judgement
     done: set[str] = set()
     while time.monotonic() < deadline:
@@ -76,6 +82,8 @@ def play_operator(
         seen.setdefault(st["state"], time.monotonic())
         if st["state"] in ("DONE", "FAILED", "ABORTED"):
             return st
+        if st["state"] in ("MARK", "MEASURE") and st["state"] not in done:
+            time.sleep(think)  # a person's pace, in wall time
         if st["state"] == "MARK" and "MARK" not in done:
             done.add("MARK")
             assert "mark the floor under module 1's steering axis" in st["step"]
@@ -218,3 +226,30 @@ def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
         assert abs(f.z) < 4.0, str(f)
         limit = {"deg": np.radians(0.1), "mm": 0.5e-3}[f.unit]
         assert abs(f.error) < limit, str(f)
+
+
+def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(
+    tmp_path: Path,
+) -> None:
+    """Issue 30: simulated time flowed while the run waited for its operator, so the drive
+    started at a simulated time that depended on how fast the answer came (wall time),
+    and two demos differed.  Against the in-process simulator it now stands still: an
+    operator answering at once and one taking a second give the same parameters, bit
+    for bit."""
+    results = []
+    for name, think in (("quick", 0.0), ("slow", 1.0)):
+        with sim_service(tmp_path / name) as s:
+            body = {
+                "metrology": "imu",
+                "references": axis_distances(),
+                "overrides": {"protocol": PROTOCOL},
+            }
+            r = s.client.post("/calibrations", json=body, headers=AUTH)
+            assert r.status_code == 202, r.text
+            run_id = r.json()["id"]
+            st = play_operator(s.client, run_id, {}, think=think)
+            assert st["state"] == "DONE", st["errors"]
+            results.append(s.client.get(f"/calibrations/{run_id}/result").json())
+    quick, slow = ([[m[n] for n in NAMES] for m in res["modules"]] for res in results)
+    assert quick == slow
+    assert parameters_digest(results[0]) == parameters_digest(results[1])

@@ -55,6 +55,7 @@ import dataclasses
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -68,6 +69,7 @@ from services.runs.mocap import sweep_reached
 from services.runs.pose_motion import REST_WINDOW, SpinWindow
 from services.runs.state import RunFailedError, State
 from services.sensors.gyro import GyroIngest
+from swpc_hw.clock import SimClock
 from swpc_hw.dataset import Segment
 from swpc_hw.errors import CalibrationError, DatasetError
 from swpc_hw.model import wrap_angle
@@ -82,6 +84,8 @@ from swpc_hw.references import (
 
 COAST_LIMIT = 0.05
 """m/s: the drive's wheels are braked once they roll slower than this after the torque."""
+OPERATOR_POLL = 0.05
+"""Host seconds between two looks at an operator's answer while simulated time stands."""
 
 
 # --------------------------------------------------------------------------- references
@@ -236,7 +240,24 @@ class ImuMetrology:
             raise ValueError(f"calibration {run_id} is {state}: it takes references in MEASURE")
 
     def _wait_operator(self, run: RunSteps, done: threading.Event, what: str) -> None:
+        """Wait for the operator's answer, ``protocol.operator_timeout`` of robot time.
+
+        Against the in-process simulator (a :class:`~swpc_hw.clock.SimClock`) the run
+        waits without yielding to the clock, so simulated time stands still until the
+        answer: it arrives at the simulated instant the run asked for it, whenever the
+        person (or script) gives it, and a run is reproducible bit for bit; the timeout
+        then counts host seconds."""
         timeout = run.config.protocol.operator_timeout
+        if isinstance(run.clock, SimClock):
+            end_host = time.monotonic() + timeout
+            while not done.wait(OPERATOR_POLL):
+                run.check(False, None)
+                if time.monotonic() > end_host:
+                    raise RunFailedError(
+                        f"operator timeout: no {what} within {timeout:g} s (host time: the "
+                        "simulated robot waits with its time stopped)"
+                    )
+            return
         end = run.clock.now() + timeout
         while not done.is_set():
             run.check(False, None)
