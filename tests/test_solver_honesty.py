@@ -18,6 +18,7 @@ import pytest
 from services.cli import main as swpc_main
 from simulators.datagen import ExperimentOptions, PartialSlip, ar1_noise, generate_experiment
 from swpc_hw.calibration.baseline import solve_paper, widest_pair
+from swpc_hw.calibration.clock_offset import jackknife_std
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.calibration.plausibility import check_dataset, check_result, jitter_sigma
 from swpc_hw.calibration.prepare import prepare_segments
@@ -105,6 +106,32 @@ def test_clock_offset_estimate_and_its_std_dev_with_mocap_noise(offset: float) -
     assert abs(err) < 1e-3
     assert abs(err) < 3.0 * res.time_offset_std
     assert np.abs(z_scores(res)).max() < 4.0
+
+
+def test_a_steady_slip_widens_the_clock_offsets_std_dev_to_cover_it() -> None:
+    """Issue 30: wheel 2 slipping 0.54 % through both spins about module 1 pulls the
+    estimate on a true 0 by many sandwich std devs (-0.44 ms here, 4 s spins; -1.28 ms
+    with 12 s spins, z 17).  The modules' leave-one-out spread now is its std dev."""
+    slips = tuple(PartialSlip(2, m, 0.09, 1.0, -0.0054) for m in range(2))
+    opts = dataclasses.replace(
+        MOCAP, partial_slips=slips, rest_time=2.0, drive_length=4.0, seed=9000
+    )
+    res = solve(generate_experiment(PAPER_CALIBRATED, opts).dataset,
+                SolverOptions(time_offset="auto"))  # fmt: skip
+    assert res.time_offset_mode == "estimated" and res.time_offset_std is not None
+    assert abs(res.time_offset) > 0.3e-3  # the slip's pull, as before
+    assert abs(res.time_offset) < 2.0 * res.time_offset_std  # now covered
+    clean = dataclasses.replace(opts, partial_slips=())
+    ref = solve(generate_experiment(PAPER_CALIBRATED, clean).dataset,
+                SolverOptions(time_offset="auto"))  # fmt: skip
+    assert ref.time_offset_std is not None and ref.time_offset_std < 0.2e-3
+    assert res.time_offset_std > 4.0 * ref.time_offset_std  # 0.41 ms against 0.083 ms
+
+
+def test_jackknife_std_of_groups() -> None:
+    assert jackknife_std([1.0]) == 0.0
+    # (G - 1) / G sum (v - mean)^2 = 3/4 (3 x 0.25^2 + 0.75^2) = 0.5625
+    assert jackknife_std([0.0, 0.0, 0.0, 1.0]) == pytest.approx(0.75)
 
 
 def test_ar1_quadratic_form_is_the_matrix_product() -> None:

@@ -87,10 +87,10 @@ def test_a_run_without_motion_capture_calibrates_the_fake_robot(tmp_path: Path) 
     taken = TAKEN["imu"] = set(itertools.pairwise(rig.states))
     assert taken <= EDGES
     path = [st for st in rig.states if st in IMU_ONLY]
-    assert path == [State.STILL] * 9 + [State.STEER, State.MARK, State.DRIVE, State.MEASURE]
+    assert path == [State.STILL] * 10 + [State.STEER, State.MARK, State.DRIVE, State.MEASURE]
     assert run.status.poses == 0 and run.status.gyro_samples > 5000
     # the drive: 1 m by the nominal radii, a 1 s rest either side, between the two rests
-    assert imu.drive is not None and len(imu.rests) == 9 + 2
+    assert imu.drive is not None and len(imu.rests) == 10 + 2
     (a0, b0), (a1, b1) = imu.rests[-2:]
     assert imu.drive == (pytest.approx((a0 + b0) / 2), pytest.approx((a1 + b1) / 2))
     assert run.status.drive_m == pytest.approx(1.0, abs=0.02)

@@ -9,6 +9,7 @@ SI.  (``swpc simulate`` is its old name; ``swpc sim`` runs the virtual robot ins
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 from typing import Any
 
@@ -18,6 +19,9 @@ from services.cli._sim_options import (
     add_noise_arguments,
     gyro_options,
 )
+
+TAPE_READINGS = 2
+"""Tape readings of every distance between steering axes ``--metrology imu`` writes."""
 
 
 def register(sub: Any) -> None:
@@ -69,6 +73,13 @@ def register(sub: Any) -> None:
         default=tape_mm,
         help=f"tape-measure std dev, mm ({tape_mm:g})",
     )
+    g.add_argument(
+        "--tape-readings",
+        type=int,
+        default=TAPE_READINGS,
+        help=f"readings of every distance between steering axes ({TAPE_READINGS}: the "
+        "recommended set, docs/imu-operation.md)",
+    )
     p.set_defaults(func=run)
 
 
@@ -116,8 +127,12 @@ def run_imu(args: argparse.Namespace, truth: Any, nominal: Any, opt: Any) -> int
 
     opt = dataclasses.replace(opt, rest_time=args.rest_time, drive_length=args.drive_length)
     gyro = gyro_options(args)
+    if args.tape_readings < 1:
+        raise SystemExit("swpc datagen: error: --tape-readings needs at least 1")
     refs = ReferenceOptions(
-        stddev=args.reference_stddev * 1e-3, straight_drive=args.drive_length > 0
+        stddev=args.reference_stddev * 1e-3,
+        axis_pairs=tuple(itertools.combinations(truth.ids, 2)) * args.tape_readings,
+        straight_drive=args.drive_length > 0,
     )
     exp = generate_imu_experiment(truth, opt, gyro, refs, nominal)
     exp.save(args.output)

@@ -30,7 +30,7 @@ from services.config.robot import RobotConfig
 from services.runs.journal import RunJournal, SampleSource
 from services.runs.state import RunStatus, State
 from swpc_hw.clock import Clock
-from swpc_hw.dataset import Segment
+from swpc_hw.dataset import Dataset, Segment
 from swpc_hw.drives.robot_io import RobotIO
 
 
@@ -82,6 +82,10 @@ class RunSteps(Protocol):
 
     def add_segment(self, seg: Segment, sweep: float) -> None:
         """A finished spin's window (the solver's segment), logged and recorded."""
+        ...
+
+    def dataset(self) -> Dataset:
+        """The run's dataset as recorded so far (its directory, as written)."""
         ...
 
 

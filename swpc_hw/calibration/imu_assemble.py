@@ -4,6 +4,7 @@ covariance, the gyro's estimates, every reference's residual, quality figures.""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -105,9 +106,13 @@ def assemble_imu_result(
     cov: FloatArray,
     J: FloatArray,
     f: FloatArray,
-    cut: int,
+    cut: list[int],
+    spin_cuts: Sequence[str] = (),
 ) -> CalibrationResult:
-    """Assemble the :class:`CalibrationResult` (``mode="imu"``, frame design-fit)."""
+    """Assemble the :class:`CalibrationResult` (``mode="imu"``, frame design-fit).
+
+    ``cut``: the wheel increments left out of every rolling set (spins, then drives);
+    ``spin_cuts``: the spins cut whole, described (a note each)."""
     prob = run.problem
     lay = prob.layout
     n = lay.n
@@ -143,7 +148,10 @@ def assemble_imu_result(
         bias_walk=math.sqrt(nl.walk_q2),
         references=reference_residuals(prob, x, cov, J, f),
         block_chi2=block_chi2(prob, x),
-        notes=notes(X, cov, prob),
+        notes=[
+            *(f"{c}: cut whole, its wheels' ratios do not fit the geometry" for c in spin_cuts),
+            *notes(X, cov, prob),
+        ],
     )
     blocks = prob.with_blocks(prob.active - {"gauge"}).blocks(x)
     dof = max(f.size - (x.size - 3), 1)
@@ -164,8 +172,12 @@ def assemble_imu_result(
                 fixed_point_rms=math.nan,
                 fixed_point=(float(C[si, 0]), float(C[si, 1])),
                 increments_used=int(np.sum(rs.present[1:] & rs.present[:-1])),
-                increments_rejected=0,
-                rolling_rms=float(np.sqrt(np.mean(resid[rs.present] ** 2))),
+                increments_rejected=cut[si],
+                rolling_rms=(
+                    float(np.sqrt(np.mean(resid[rs.present] ** 2)))
+                    if rs.present.any()
+                    else math.nan
+                ),
                 settled_rms=float(np.sqrt(np.mean(settled_raw**2))) if sel.any() else None,
             )
         )
@@ -180,7 +192,7 @@ def assemble_imu_result(
         poses_used=0,
         poses_rejected=0,
         increments_used=int(sum(q.increments_used for q in seg_q)),
-        increments_rejected=cut,
+        increments_rejected=int(sum(cut)),
         reduced_chi2=float(f @ f) / dof,
         covariance=full if np.all(np.isfinite(full)) else None,
         mode="imu",

@@ -28,8 +28,9 @@ steering.  For every segment (a spin about the locked module k at reported steer
     the layout then leaves them unchanged (in distances a smaller ``r`` shrinks every
     residual, a pull on the radii that cost a quarter of the straight drive's std dev).
 ``gyro``
-    Per chunk of connected nodes ``[l_a, l_b]`` of a segment: the yaw the wheels turned,
-    ``Y_lb - Y_la``, against the gyro's::
+    Per straight drive, the wheels' turn ``kappa (Y_end - Y_start)`` against the gyro's
+    (``drive``).  Per chunk of connected nodes ``[l_a, l_b]`` of a segment: the yaw the
+    wheels turned, ``Y_lb - Y_la``, against the gyro's::
 
         (int_{t_la}^{t_lb} wz dt - sum_i b_i int phi_i dt) / s
 
@@ -43,10 +44,22 @@ steering.  For every segment (a spin about the locked module k at reported steer
     ``sigma_a`` (it moves the contact point by ``b_k da``).
 ``drive``
     The straight drive's wheels as ``spin``, with the lever of a translation along the
-    mean wheel direction ``phi``: ``g_j = cos(theta_j - phi)``, ``Y_l`` the distance.
+    mean wheel direction ``phi``: ``g_j = cos(theta_j - phi)``, ``Y_l`` the distance; and
+    its turn: wheels held at fixed angles a little apart (homing errors) move the robot on
+    an arc, ``dyaw = kappa dY``, to first order in the turn::
+
+        r_j dpsi_j = cos(theta_j - phi) dY + (P_s,j x u(theta_j)) dyaw
+                   = (cos(theta_j - phi) + kappa P_s,j x u(theta_j)) dY
+
+    (``P_w,j x u = P_s,j x u``): one lever per wheel still, the curvature ``kappa``
+    profiled out with ``Y`` and ``c`` (:func:`arc_profile`), the gyro's turn over the
+    drive its one observation in the ``gyro`` block (node by node the gyro's noise would
+    blur the wheels' ratios).
 ``axis_distance``, ``wheel_radius``, ``straight_drive``
     ``(|P_s,a - P_s,b| - value) / stddev``, ``(r_m - value) / stddev`` and
-    ``(|Y_end - Y_start| - value) / stddev`` of the drive.
+    ``(|Y_end - Y_start| |1 + kappa P_s,1 x u(phi)| - value) / stddev`` of the drive: the
+    distance the first module's steering axis travelled (``Y`` is R's origin's; the
+    turn ``dyaw`` over the drive moves the axis by ``dyaw z x P_s,1`` more).
 ``gauge``
     The design-fit conditions (:func:`swpc_hw.frames.design_fit_constraints`): the data
     do not see a planar rigid motion of the frame, these three residuals fix it (at the
@@ -214,6 +227,60 @@ def profiled_rolling(
     return np.asarray(resid, dtype=float), np.asarray(Y, dtype=float)
 
 
+ARC_STEP = 1e-3
+"""Curvature step (1/m) of :func:`arc_profile`'s derivative."""
+
+
+def arc_profile(
+    z: FloatArray,
+    g: FloatArray,
+    k: FloatArray,
+    r: FloatArray,
+    present: BoolArray,
+    run: IntArray,
+    structure: ProfileStructure,
+    e0: FloatArray,
+    y0: FloatArray,
+    sigma_w: float,
+    gamma: FloatArray,
+    sigma_g: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """A straight drive's wheels on an arc of curvature ``kappa``, profiled out.
+
+    Wheels steered at fixed angles move a rigid robot on a circle: its turn is
+    proportional to the distance, ``dyaw = kappa dY``, so every wheel still rolls in
+    proportion to ``Y`` with the lever ``(g_j + kappa k_j) / r_j`` (``g = cos(theta -
+    phi)``, ``k = P_s x u(theta)``; :data:`BLOCKS`' ``drive``).  ``kappa`` minimises::
+
+        |E(kappa)|^2 / sigma_w^2 + ((kappa (Y_end - Y_start) - gamma) / sigma_g)^2
+
+    ``E`` the profiled residuals (wheel angles of std dev ``sigma_w``), ``gamma`` the
+    gyro's turn over the drive (std dev ``sigma_g``): without the gyro a radius error
+    could pass for a curvature.  Two Gauss-Newton steps from 0, ``dE/dkappa`` a
+    difference over :data:`ARC_STEP`.  ``z`` (L, m), ``g``, ``k``, ``r`` (B, m), ``e0``,
+    ``y0``: the residuals (B, L, m) and ``Y`` (B, L) at ``kappa = 0``; ``gamma`` (B,).
+    Returns the residuals, ``Y``, ``kappa`` (B,) and the turn's weighted residual (B,).
+    """
+    kappa = np.zeros(g.shape[0])
+    e, y = e0, y0
+    wg = sigma_w / sigma_g
+    for _ in range(2):
+        h = (g + (kappa + ARC_STEP)[:, None] * k) / r
+        e1, y1 = profiled_rolling(z, h[:, None, :], present, run, structure)
+        de, dy = (e1 - e) / ARC_STEP, (y1 - y) / ARC_STEP
+        D = y[:, -1] - y[:, 0]
+        t = kappa * D - gamma
+        num = np.sum(e * de, axis=(1, 2)) + wg * wg * t * D
+        den = np.sum(de * de, axis=(1, 2)) + wg * wg * D * D
+        step = np.where(den > 0, -num / np.where(den > 0, den, 1.0), 0.0)
+        kappa = kappa + step
+        e, y = e + step[:, None, None] * de, y + step[:, None] * dy
+    h = (g + kappa[:, None] * k) / r
+    e, y = profiled_rolling(z, h[:, None, :], present, run, structure)
+    turn = (kappa * (y[:, -1] - y[:, 0]) - gamma) / sigma_g
+    return e, y, kappa, turn
+
+
 @dataclass
 class RollingSet:
     """The wheels of one segment's spin (or of the straight drive) at their nodes.
@@ -278,6 +345,8 @@ class RollingStack:
     chunk_b: IntArray
     chunk_sigma: FloatArray
     structure: ProfileStructure
+    drive_structures: list[ProfileStructure]
+    drive_gyro_sigma: FloatArray
 
 
 def stack_sets(spins: list[RollingSet], drives: list[RollingSet], n_knots: int) -> RollingStack:
@@ -319,7 +388,17 @@ def stack_sets(spins: list[RollingSet], drives: list[RollingSet], n_knots: int) 
         set_mods, theta, set_mask, np.array(first, np.int64), np.array(last, np.int64),
         len(spins), np.array(ca, np.int64), np.array(cb, np.int64), np.array(csig),
         ProfileStructure.of(present, run),
+        [drive_structure(rs) for rs in drives],
+        np.array([float(rs.gyro_sigma[0]) if rs.gyro_sigma.size else 1.0 for rs in drives]),
     )
+
+
+def drive_structure(rs: RollingSet) -> ProfileStructure:
+    """The :class:`ProfileStructure` of one rolling set alone (dense runs)."""
+    run = np.zeros_like(rs.run)
+    _, dense = np.unique(rs.run[rs.present], return_inverse=True)
+    run[rs.present] = dense
+    return ProfileStructure.of(rs.present, run)
 
 
 def settled_lever(
@@ -400,6 +479,32 @@ class ImuProblem:
         phi = math.atan2(float(np.sin(th).sum()), float(np.cos(th).sum()))
         return np.asarray(np.cos(th - phi), dtype=float)
 
+    def drive_arc(
+        self, x: FloatArray, rs: RollingSet
+    ) -> tuple[FloatArray, FloatArray, float, float]:
+        """A drive on its arc (:func:`arc_profile`): ``(levers g + kappa k (m,), residuals
+        (L, m) rad, kappa (1/m), the wheels' turn kappa (Y_end - Y_start) (rad))``."""
+        X = self.layout.split(x)[0]
+        g = self.drive_levers(X, rs)
+        th = rs.theta + X[rs.mods, BETA]
+        k = X[rs.mods, 0] * np.sin(th) - X[rs.mods, 1] * np.cos(th)
+        r = X[rs.mods, R]
+        st = drive_structure(rs)
+        e0, y0 = profiled_rolling(rs.psi, g / r, rs.present, rs.run, st)
+        sigma_g = float(rs.gyro_sigma[0]) if rs.gyro_sigma.size else 1.0
+        e, y, kappa, _ = arc_profile(
+            rs.psi, g[None], k[None], r[None], rs.present, rs.run, st, e0[None], y0[None],
+            rs.sigma, np.array([self.drive_turn(x, rs)]), sigma_g,
+        )
+        kap = float(kappa[0])
+        return g + kap * k, e[0], kap, kap * float(y[0, -1] - y[0, 0])
+
+    def drive_turn(self, x: FloatArray, rs: RollingSet) -> float:
+        """The gyro's turn (rad) over a drive, first node to last."""
+        _, s, knots = self.layout.split(x)
+        L = rs.t.size - 1
+        return float(rs.gyro_yaw(s, knots, np.array([0]), np.array([L]))[0])
+
     def rolled(self, X: FloatArray, rs: RollingSet, g: FloatArray) -> tuple[FloatArray, FloatArray]:
         """:func:`profiled_rolling` of ``psi`` with the levers ``g / r``: ``(residual (L, m)
         in rad, Y (L,))``."""
@@ -437,15 +542,35 @@ class ImuProblem:
                 G[:, :S] = settled_lever(
                     X[:, jm, P_S], X[:, jm, B_COL], C[:, :, None, :], self.seg_sign[:, None]
                 )
+            K = np.zeros_like(G)
+            lever1 = np.zeros((Bn, n_sets - S))
             for d in range(S, n_sets):  # a translation along the mean wheel direction
-                th = st.set_theta[d] + X[:, st.set_mods[d], BETA]
-                mask = st.set_mask[d]
+                jm, mask = st.set_mods[d], st.set_mask[d]
+                th = st.set_theta[d] + X[:, jm, BETA]
                 phi = np.arctan2(np.sin(th[:, mask]).sum(axis=-1), np.cos(th[:, mask]).sum(axis=-1))
                 G[:, d] = np.where(mask, np.cos(th - phi[:, None]), 0.0)
-            H = G / X[:, st.set_mods, R]
-            resid, Y = profiled_rolling(
-                st.psi, H[:, st.row_set], st.present, st.run, st.structure
-            )
+                # ... on an arc: the turn's lever P_s,j x u_j, and the first axis' P_s,1 x u_phi
+                K[:, d] = np.where(mask, X[:, jm, 0] * np.sin(th) - X[:, jm, 1] * np.cos(th), 0.0)
+                p1 = X[:, 0, P_S]
+                lever1[:, d - S] = p1[:, 0] * np.sin(phi) - p1[:, 1] * np.cos(phi)
+            r_set = X[:, st.set_mods, R]
+            H = G / r_set
+            resid, Y = profiled_rolling(st.psi, H[:, st.row_set], st.present, st.run, st.structure)
+            turned = np.zeros((Bn, n_sets - S))
+            turn_res = np.zeros((Bn, n_sets - S))
+            for d in range(S, n_sets):
+                rows = slice(int(st.set_first[d]), int(st.set_last[d]) + 1)
+                a0, a1 = int(st.set_first[d]), int(st.set_last[d])
+                gamma = (
+                    (st.I_wz[a1] - st.I_wz[a0]) - knots @ (st.W_bias[a1] - st.W_bias[a0])
+                ) / s
+                e, y, kappa, turn_res[:, d - S] = arc_profile(
+                    st.psi[rows], G[:, d], K[:, d], r_set[:, d], st.present[rows],
+                    st.run[rows], st.drive_structures[d - S], resid[:, rows], Y[:, rows],
+                    float(st.row_sigma[a0]), gamma, float(st.drive_gyro_sigma[d - S]),
+                )
+                resid[:, rows], Y[:, rows] = e, y
+                turned[:, d - S] = kappa * (y[:, -1] - y[:, 0]) * lever1[:, d - S]
             w = resid / st.row_sigma[:, None]
             if "spin" in act:
                 out["spin"].append(w[:, st.present & st.spin_rows[:, None]])
@@ -456,7 +581,9 @@ class ImuProblem:
                 dW = st.W_bias[b_] - st.W_bias[a_]
                 dyaw = ((st.I_wz[b_] - st.I_wz[a_])[None, :] - knots @ dW.T) / s[:, None]
                 out["gyro"].append((Y[:, b_] - Y[:, a_] - dyaw) / st.chunk_sigma)
-            lengths = np.abs(Y[:, st.set_last[S:]] - Y[:, st.set_first[S:]])
+            if "gyro" in act:
+                out["gyro"].append(turn_res)  # the drives' turn: the wheels' against the gyro's
+            lengths = np.abs(Y[:, st.set_last[S:]] - Y[:, st.set_first[S:]] + turned)
         if "rest" in act:
             out["rest"].append((self.knot_mean - knots) / self.knot_sigma)
         if "locked_angle" in act:
@@ -495,8 +622,9 @@ class ImuProblem:
     def jacobian(self, x: FloatArray, rel_step: float = 1e-7) -> FloatArray:
         """Jacobian of :meth:`residuals`: central differences (step
         ``rel_step max(1, |x_i|)``, every perturbed point in one batched evaluation) for
-        the geometry and the angle errors; exact for the gyro's scale and knots, in which
-        only the ``gyro`` and ``rest`` blocks are (linear in the knots and ``1 / s``)::
+        the geometry and the angle errors (and, with a straight drive, whose arc takes the
+        gyro's turn, for the gyro's scale and knots too); the spins' ``gyro`` rows and the
+        ``rest`` block exact in those (linear in the knots and ``1 / s``)::
 
             d gyro_c / d b_i = dW_ci / (s sigma_c)
             d gyro_c / d s = (dI_c - dW_c . b) / (s^2 sigma_c)
@@ -504,8 +632,9 @@ class ImuProblem:
         """
         lay = self.layout
         lin = np.zeros(x.size, dtype=bool)
-        lin[lay.scale] = True
-        lin[lay.knots] = True
+        if not self.drives:  # a drive's arc takes the gyro's turn: differences for all
+            lin[lay.scale] = True
+            lin[lay.knots] = True
         idx = np.flatnonzero(~lin)
         h = rel_step * np.maximum(1.0, np.abs(x[idx]))
         E = np.zeros((idx.size, x.size))
@@ -525,6 +654,7 @@ class ImuProblem:
                 J[rows, lay.knots] = np.diag(-1.0 / self.knot_sigma)
             elif name == "gyro" and size:
                 st = self.stack()
+                rows = slice(rows.start, rows.start + st.chunk_a.size)  # the spins' chunks
                 dW = st.W_bias[st.chunk_b] - st.W_bias[st.chunk_a]
                 dI = st.I_wz[st.chunk_b] - st.I_wz[st.chunk_a]
                 J[rows, lay.knots] = dW / (s * st.chunk_sigma[:, None])

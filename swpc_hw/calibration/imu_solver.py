@@ -20,8 +20,10 @@ scale ``s = 1 + eps`` and its bias at every rest window (:mod:`.imu_problem`).  
    the conditions leave, ``Z (Z^T H Z)^-1 Z^T M Z (Z^T H Z)^-1 Z^T``; the wheels' blocks
    with a HAC middle over their nodes.  Data that leave more than the frame free are
    refused, naming the directions.
-7. **Plausibility after solving**: physical values near nominal, the gyro's scale, no
-   turn during a straight drive (:func:`check_drives_straight`).
+7. **Plausibility after solving**: physical values near nominal, the gyro's scale, a
+   straight drive whose wheels roll as one arc with the gyro's turn
+   (:func:`check_drives_fit`) and that turned little enough for its first-order model
+   (:func:`check_drives_straight`).
 """
 
 from __future__ import annotations
@@ -44,7 +46,12 @@ from swpc_hw.calibration.imu_build import (
     check_references,
     initial_parameters,
 )
-from swpc_hw.calibration.imu_problem import ImuProblem, RollingSet, connected_chunks
+from swpc_hw.calibration.imu_misfit import SpinMisfit, max_cut, spin_misfit
+from swpc_hw.calibration.imu_problem import (
+    ImuProblem,
+    RollingSet,
+    connected_chunks,
+)
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import N_PARAMS, P_S, R, canonical_parameters
 from swpc_hw.calibration.prepare import prepare_segments
@@ -54,6 +61,7 @@ from swpc_hw.calibration.uncertainty import dense_rows, long_run_covariance
 from swpc_hw.dataset import Dataset, load_dataset
 from swpc_hw.errors import CalibrationError, ImplausibleDataError
 from swpc_hw.frames import FILE_FIT, design_fit_transform, transform_parameters
+from swpc_hw.references import AxisDistance, Reference, WheelRadius
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -77,7 +85,8 @@ def spin_levers(prob: ImuProblem, x: FloatArray) -> list[FloatArray]:
 def set_gyro_sigma(prob: ImuProblem, run: ImuRun, x: FloatArray) -> None:
     """Std dev of every chunk's gyro yaw: integrated white noise, the bias walk about the
     knots' line (both over ``s^2``) and the wheels' own yaw noise (two nodes:
-    ``2 sigma_psi^2 / |g / r|^2``)."""
+    ``2 sigma_psi^2 / |g / r|^2``); of every drive's turn: the first two and the knots'
+    mean std dev ``sigma_b`` times its duration (the bias between its rests)."""
     from swpc_hw.calibration.gyro import walk_variance
 
     X, s, _ = prob.layout.split(x)
@@ -93,6 +102,13 @@ def set_gyro_sigma(prob: ImuProblem, run: ImuRun, x: FloatArray) -> None:
             wheels = 2.0 * rs.sigma**2 / max(float(h @ h), 1e-12)
             sig.append(math.sqrt(var / (s * s) + wheels + 1e-30))
         rs.gyro_sigma = np.array(sig)
+    for rs in prob.drives:  # the turn over the whole drive (docs/imu.md, the drive's arc)
+        t_a, t_b = float(rs.t[0]), float(rs.t[-1])
+        var = nl.gyro_var * nl.gyro_dt * (t_b - t_a) + walk_variance(
+            run.knots, nl.walk_q2, t_a, t_b
+        )
+        sigma_b = float(np.mean(prob.knot_sigma))
+        rs.gyro_sigma = np.array([math.sqrt(var / (s * s) + (sigma_b * (t_b - t_a)) ** 2)])
     prob.restack()
 
 
@@ -113,7 +129,7 @@ def update_scales(prob: ImuProblem, x: FloatArray, floor: float) -> None:
     for rs, g in zip(prob.spins, spin_levers(prob, x), strict=True):
         rs.sigma = rolling_scale(prob, rs, prob.rolled(X, rs, g)[0], floor)
     for rs in prob.drives:
-        rs.sigma = rolling_scale(prob, rs, prob.rolled(X, rs, prob.drive_levers(X, rs))[0], floor)
+        rs.sigma = rolling_scale(prob, rs, prob.drive_arc(x, rs)[1], floor)
     prob.restack()
 
 
@@ -143,7 +159,7 @@ def wheel_increments(
         inc.append(scaled_residual(X[rs.mods, R][None, :] * np.diff(rs.psi, axis=0), d))
         ref.append(d)
     for rs in prob.drives:
-        d = (X[rs.mods, R] * prob.drive_levers(X, rs))[None, :] * np.diff(rs.psi, axis=0)
+        d = (X[rs.mods, R] * prob.drive_arc(x, rs)[0])[None, :] * np.diff(rs.psi, axis=0)
         med = np.median(d, axis=1, keepdims=True)
         # the wheels scaled to agree first: one far off (a radius not yet fitted, a
         # slipping start) no longer moves the median when it slips
@@ -183,8 +199,9 @@ def cut_slip(
     opts: SolverOptions,
     floor: float,
     pooled: bool = False,
-) -> int:
-    """Find slip bursts, re-cut every rolling set's runs; returns the increments cut.
+) -> list[int]:
+    """Find slip bursts, re-cut every rolling set's runs; returns the increments cut in
+    every rolling set (spins, then drives).
 
     A wheel's increment whose residual against its reference (:func:`wheel_increments`)
     is beyond ``slip_sigmas`` robust sigmas of its series (and one either side) slips
@@ -244,11 +261,13 @@ def cut_slip(
     for rs in prob.drives:
         if rs.chunks != [(0, rs.t.size - 1)]:
             raise CalibrationError(
-                f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s: every wheel slipped at once, or "
-                "a wheel's samples are missing: its length cannot be followed"
+                f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s: its wheels disagree with each "
+                "other and the gyro's turn at once (every wheel slipped, the gyro and the "
+                "wheels disagree, or a wheel's samples are missing): its length cannot be "
+                "followed"
             )
     prob.restack()
-    return int(slip.sum())
+    return [int(c.sum()) for c in cut]
 
 
 # ------------------------------------------------------------------ solving
@@ -277,27 +296,185 @@ def initial_weights(run: ImuRun, x: FloatArray) -> float:
 
 
 def fit_imu(
-    run: ImuRun, x0: FloatArray, opts: SolverOptions
-) -> tuple[FloatArray, int]:
-    """IRLS: slip and noise scales alternate with the least-squares solve; at least two
-    iterations, at most ``opts.irls_iterations``, done when the cuts are the same as the
-    last iteration's and no noise scale moved by 1 %.  Returns the solution and the wheel
-    increments cut as slip."""
+    run: ImuRun, x0: FloatArray, opts: SolverOptions, coarse: ImuRun | None = None
+) -> tuple[FloatArray, list[int], list[SpinCut]]:
+    """IRLS (:func:`irls`), then every spin's wheels tested against the geometry
+    (:func:`.imu_misfit.spin_misfit`): while spins do not fit, one is cut whole
+    (:func:`trial_cut`; its wheel readings and its gyro chunks, its settled casters stay)
+    and the IRLS runs again from there with fresh weights (``coarse``: the problem the
+    trials run on).  More than :func:`.imu_misfit.max_cut` spins not fitting is refused
+    (:class:`ImplausibleDataError` naming them).  Returns the solution, the wheel
+    increments left out in every rolling set (spins then drives: slip, or the whole spin)
+    and the spins cut."""
     prob = run.problem
-    n = prob.layout.n
     floor = initial_weights(run, x0)
     valid = [rs.present.copy() for rs in [*prob.spins, *prob.drives]]
+    x, cut = irls(run, x0, valid, opts, floor)
+    cuts: list[SpinCut] = []
+    while True:
+        failing = misfits(prob, x, valid)
+        gone = [c.segment for c in cuts]
+        worst = trial_cut(coarse or run, x, failing, gone) if failing else None
+        if worst is None:
+            for c in cuts:  # a spin cut whole: every increment it had is left out
+                cut[c.segment] = int(np.sum(c.valid[1:] & c.valid[:-1]))
+            check_drives_fit(run, x)
+            return x, cut, cuts
+        si, m = worst
+        rs = prob.spins[si]
+        cuts.append(
+            SpinCut(
+                si, prob.ids[int(prob.seg_static[si])], float(rs.t[0]), float(rs.t[-1]),
+                m.z, m.ratio, valid[si].copy(),
+            )
+        )
+        if len(cuts) > max_cut(len(prob.spins)):
+            raise ImplausibleDataError(
+                f"at least {len(cuts)} of {len(prob.spins)} spins have wheels that do not roll "
+                "as one geometry says (a wheel slipping steadily, a caster not settled): "
+                + "; ".join(c.describe() for c in cuts)
+                + f"; at most {max_cut(len(prob.spins))} may be left out: repeat the run on a "
+                "clean, even floor"
+            )
+        valid[si][:] = False
+        floor = initial_weights(run, x)  # the weights the misfit inflated, reset
+        x, cut = irls(run, x, valid, opts, floor)
+
+
+def check_drives_fit(run: ImuRun, x: FloatArray) -> None:
+    """Refuse a straight drive whose wheels do not roll as one arc
+    (:func:`.imu_misfit.spin_misfit` against the arc's levers: a wheel slipping while
+    driving), or whose turn the gyro does not confirm: the wheels' ``kappa (Y_end -
+    Y_start)`` against the gyro's beyond 5 std devs of its yaw over the drive (white
+    noise ``v dt T``, the knots' bias error ``sigma_b T``) and 0.01 deg.  A drive cannot
+    be cut: it is what fixes the radii."""
+    prob = run.problem
+    X, s, _ = prob.layout.split(x)
+    nl = run.noise
+    sigma_b = float(np.mean(prob.knot_sigma))
+    for rs in prob.drives:
+        levers, _, _, wheels_turn = prob.drive_arc(x, rs)
+        m = spin_misfit(rs, levers / X[rs.mods, R])
+        where = f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s"
+        if not m.fits:
+            raise ImplausibleDataError(
+                f"{where}: its wheels do not roll as one arc (their ratios "
+                f"{m.ratio * 100:.3f} % off, {m.z:.0f} std devs): a wheel slipped"
+            )
+        T = float(rs.t[-1] - rs.t[0])
+        gyro_turn = prob.drive_turn(x, rs)
+        sigma = math.sqrt(nl.gyro_var * nl.gyro_dt * T + (sigma_b * T) ** 2) / s
+        if abs(gyro_turn - wheels_turn) > max(5.0 * sigma, math.radians(0.01)):
+            raise ImplausibleDataError(
+                f"{where}: the gyro says the robot turned {math.degrees(gyro_turn):.3f} deg, "
+                f"the wheels {math.degrees(wheels_turn):.3f} deg: the gyro and the wheels "
+                "disagree"
+            )
+
+
+TRIAL_CUTS = 4
+"""How many of the worst spins :func:`trial_cut` tries leaving out."""
+
+
+def misfits(
+    prob: ImuProblem, x: FloatArray, valid: list[BoolArray]
+) -> list[tuple[int, SpinMisfit]]:
+    """The spins (index, misfit) that do not fit at ``x``, worst first."""
+    X, _, _ = prob.layout.split(x)
+    out = []
+    for si, (rs, g) in enumerate(zip(prob.spins, spin_levers(prob, x), strict=True)):
+        if not valid[si].any():
+            continue
+        m = spin_misfit(rs, g / X[rs.mods, R])
+        if not m.fits:
+            out.append((si, m))
+    return sorted(out, key=lambda e: -e[1].z)
+
+
+def trial_cut(
+    run: ImuRun, x: FloatArray, failing: list[tuple[int, SpinMisfit]], gone: list[int]
+) -> tuple[int, SpinMisfit]:
+    """Which of the failing spins to cut: the worst by ``z`` unless a fit bent by a large
+    slip puts the worst ``z`` elsewhere.  On ``run`` (the coarse problem: a tenth of the
+    cost), without the spins ``gone`` already cut, each of the :data:`TRIAL_CUTS` worst
+    is left out in turn for one solve from ``x`` (fresh weights); the one after whose
+    removal the fewest spins fail, then the smallest sum of their ``z^2``, is cut.  The
+    problem's samples are put back as they were."""
+    if len(failing) == 1:
+        return failing[0]
+    prob = run.problem
+    kept = [(rs.present.copy(), rs.run.copy(), list(rs.chunks)) for rs in prob.spins]
+
+    def drop(si: int) -> None:
+        prob.spins[si].present = np.zeros_like(prob.spins[si].present)
+        prob.spins[si].chunks = []
+
+    best: tuple[tuple[int, float], int] | None = None
+    for k, (si, _) in enumerate(failing[:TRIAL_CUTS]):
+        for g in [*gone, si]:
+            drop(g)
+        prob.restack()
+        initial_weights(run, x)
+        sol = least_squares(
+            prob.residuals, x, jac=prob.jacobian, method="lm", x_scale="jac",
+            xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=50,
+        )
+        valid = [rs.present for rs in prob.spins]
+        rest = misfits(prob, np.asarray(sol.x, dtype=float), valid)
+        score = (len(rest), float(sum(m.z**2 for _, m in rest)))
+        if best is None or score < best[0]:
+            best = (score, k)
+        for rs, (present, run_, chunks) in zip(prob.spins, kept, strict=True):
+            rs.present, rs.run, rs.chunks = present.copy(), run_.copy(), list(chunks)
+        prob.restack()
+    assert best is not None
+    return failing[best[1]]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SpinCut:
+    """A spin cut whole because its wheels' ratios do not fit (:mod:`.imu_misfit`):
+    its index, the locked module, its window (s), the misfit in std devs and the ratios'
+    relative RMS change.  (Which wheel slips is not said: a fit bent by the slip spreads
+    it over the spin's wheels.)"""
+
+    segment: int
+    static_module: int
+    start: float
+    end: float
+    z: float
+    ratio: float
+    valid: BoolArray
+    """Its usable samples before the cut."""
+
+    def describe(self) -> str:
+        return (
+            f"spin about module {self.static_module} {self.start:.2f}-{self.end:.2f} s "
+            f"(its wheels' ratios {self.ratio * 100:.3f} % off, {self.z:.0f} std devs)"
+        )
+
+
+def irls(
+    run: ImuRun, x0: FloatArray, valid: list[BoolArray], opts: SolverOptions, floor: float
+) -> tuple[FloatArray, list[int]]:
+    """IRLS: slip and noise scales alternate with the least-squares solve; at least two
+    iterations, at most ``opts.irls_iterations``, done when the cuts are the same as the
+    last iteration's and no noise scale moved by 1 %.  ``valid``: every rolling set's
+    usable samples.  Returns the solution and the wheel increments cut as slip in every
+    rolling set (spins, then drives)."""
+    prob = run.problem
+    n = prob.layout.n
     st = prob.settled
     x = x0.copy()
-    cut = 0
+    cut: list[int] = []
     before: list[BoolArray] = []
     for it in range(max(2, opts.irls_iterations)):
         r_mean = float(np.mean(x[R : N_PARAMS * n : N_PARAMS]))
         cut = cut_slip(prob, valid, x, opts, r_mean * floor * math.sqrt(2.0))
         total = sum(int(np.sum(v[1:] & v[:-1])) for v in valid)
-        if cut > MAX_SLIP_FRACTION * total:
+        if sum(cut) > MAX_SLIP_FRACTION * total:
             raise ImplausibleDataError(
-                f"{cut} of {total} wheel increments disagree with the gyro: not slip but "
+                f"{sum(cut)} of {total} wheel increments disagree with the gyro: not slip but "
                 "data that do not fit the robot (robot.yaml, the segments' windows, the "
                 "gyro's axis or units)"
             )
@@ -504,39 +681,40 @@ def _solve(
     )  # fmt: skip
     x0 = initial_parameters(coarse, ds, start=reference)
     plausibility.check_gyro_ratio(gyro_ratio(coarse.problem, x0), source)
+    check_drives_straight(coarse, x0, plausibility.robot_size(ds.robot), source)
     x0 = coarse_fit(coarse, x0, opts)
     run = build_imu_problem(ds, segs, opts, source, noise, reference)
-    x, cut = fit_imu(run, x0, opts)
+    x, cut, spin_cuts = fit_imu(run, x0, opts, coarse)
     x = align_design_fit(run.problem, x)
     X = x[: N_PARAMS * run.problem.layout.n].reshape(-1, N_PARAMS)
     plausibility.check_result(X, ds.robot)
     plausibility.check_gyro_scale(float(x[run.problem.layout.scale]) - 1.0)
-    check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)
+    check_drives_straight(run, x, plausibility.robot_size(ds.robot), source)  # at the optimum
     cov, J, f = imu_covariance(run.problem, x)
-    return assemble_imu_result(run, ds, segs, x, cov, J, f, cut)
+    return assemble_imu_result(
+        run, ds, segs, x, cov, J, f, cut, [c.describe() for c in spin_cuts]
+    )
 
 
 def check_drives_straight(run: ImuRun, x: FloatArray, size: float, source: str) -> None:
-    """Refuse a straight drive during which the gyro saw the robot turn: a turn ``dyaw``
-    moves points of a robot of ``size`` by up to ``size dyaw`` more or less than the
-    translation the reference assumes.  Refused beyond the reference's std dev and four
-    std devs of the gyro's yaw over the drive (white noise ``v dt T``, the knots' bias
-    error ``sigma_b T``)."""
+    """Refuse a straight drive that turned more than its first-order arc covers.
+
+    The drive's model (:mod:`.imu_problem`, ``drive``) takes the gyro's turn ``dyaw`` to
+    first order; what it leaves out is of second order: the chord of an arc of length
+    ``L`` against its along-track length, ``~dyaw^2 L / 8``, and the rotation of a point
+    ``|P| <= size`` from the origin, ``~dyaw^2 size / 2``.  Refused when those exceed a
+    quarter of the reference's std dev (0.8 deg over 4 m, with a 0.5 mm tape)."""
     prob = run.problem
-    _, s, knots = prob.layout.split(x)
-    nl = run.noise
-    sigma_b = float(np.mean(prob.knot_sigma))
     for ref, rs in zip(run.drive_refs, prob.drives, strict=True):
-        L = rs.t.size - 1
-        T = float(rs.t[-1] - rs.t[0])
-        dyaw = float(rs.gyro_yaw(s, knots, np.array([0]), np.array([L]))[0])
-        sigma = math.sqrt(nl.gyro_var * nl.gyro_dt * T + (sigma_b * T) ** 2) / s
-        if size * abs(dyaw) > max(ref.stddev, 4.0 * size * sigma):
+        dyaw = prob.drive_turn(x, rs)
+        second = dyaw * dyaw * (ref.value / 8.0 + size / 2.0)
+        if second > 0.25 * ref.stddev:
             raise ImplausibleDataError(
                 f"{source}/references.yaml: straight_drive {ref.start:g}-{ref.end:g} s: the "
-                f"gyro says the robot turned {math.degrees(dyaw):.3f} deg: not a pure "
-                f"translation (points {size * abs(dyaw) * 1e3:.2f} mm apart, the reference's "
-                f"std dev {ref.stddev * 1e3:.2f} mm)"
+                f"gyro says the robot turned {math.degrees(dyaw):.3f} deg: too far from a "
+                f"straight line (the arc's second-order terms {second * 1e3:.3f} mm, a "
+                f"quarter of the reference's std dev {ref.stddev * 1e3:.2f} mm): steer the "
+                "wheels parallel (the spins' betas) and drive on a level floor"
             )
 
 
@@ -554,6 +732,39 @@ def gyro_ratio(prob: ImuProblem, x: FloatArray) -> float:
         if abs(wheels) > 0:
             out.append(gy / wheels)
     return float(np.median(out)) if out else 1.0
+
+
+LOOSE_LENGTH = 0.05
+"""Std dev (m) of the stand-in axis distance :func:`solve_spins` gives when none is known."""
+LOOSE_RADIUS = 0.005
+"""Std dev (m) of its stand-in wheel radius."""
+
+
+def solve_spins(
+    ds: Dataset, options: SolverOptions | None = None, source: str = "dataset"
+) -> CalibrationResult:
+    """The spins alone, before any straight drive: what steers the drive.
+
+    The encoders fix the differences of ``beta`` by themselves (docs/imu.md, the Fisher
+    table: 0.5 mdeg), not the two scales (the layout's length, the wheels' radii).  The
+    dataset's own axis distances and wheel radii are used; a scale nothing fixes is held
+    loosely at the nominal robot's by a stand-in reference: the distance between the first
+    two steering axes (std dev :data:`LOOSE_LENGTH`), the first wheel's radius
+    (:data:`LOOSE_RADIUS`).  Neither moves a difference of ``beta``.  A straight drive in
+    the dataset is left out.  The result's lengths are not a calibration: only its
+    ``beta`` (design-fit frame) is meant to be used.
+    """
+    refs: list[Reference] = [
+        r for r in ds.references if isinstance(r, AxisDistance | WheelRadius)
+    ]
+    a = ds.robot.arrays()
+    ids = ds.robot.ids
+    if not any(isinstance(r, AxisDistance) for r in refs):
+        d = float(np.linalg.norm(a.P_s[0] - a.P_s[1]))
+        refs.append(AxisDistance((ids[0], ids[1]), d, LOOSE_LENGTH))
+    if not any(isinstance(r, WheelRadius) for r in refs):
+        refs.append(WheelRadius(ids[0], float(a.r[0]), LOOSE_RADIUS))
+    return solve_imu(dataclasses.replace(ds, references=refs), options, source)
 
 
 def solve_imu_directory(

@@ -67,8 +67,8 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
     if q.imu is not None:
         lines += imu_lines(q)
         lines.append(
-            f"wheel increments used {q.increments_used} (rejected as slip "
-            f"{q.increments_rejected}); reduced chi2 {chi2}"
+            f"wheel increments used {q.increments_used} (left out {q.increments_rejected}: "
+            f"slip, spins cut whole); reduced chi2 {chi2}"
         )
     else:
         lines.append(
@@ -85,11 +85,17 @@ def format_table(result: CalibrationResult, truth: RobotParams | None = None) ->
             f"{name} {value * 1e3:.4f} mm"
             for name, value in (
                 ("fixed-point RMS", s.fixed_point_rms),
-                ("rolling RMS", s.rolling_rms),
+                ("rolling RMS", None if q.imu is not None else s.rolling_rms),
                 ("settled RMS", s.settled_rms),
             )
             if _known(value)
         ]
+        if q.imu is not None:  # the wheels' residuals are angles there (rad)
+            if _known(s.rolling_rms):
+                figures.insert(0, f"rolling RMS {s.rolling_rms * 1e6:.2f} urad")
+            figures.append(
+                f"increments {s.increments_used}/{s.increments_used + s.increments_rejected}"
+            )
         if _known(s.noise_inflation):
             figures.append(f"noise correlation x{s.noise_inflation:.2f}")
         if q.imu is None:

@@ -31,7 +31,8 @@ class SegmentQuality:
     increments_used: int = 0
     increments_rejected: int = 0
     rolling_rms: float | None = None
-    """RMS of the cumulative rolling residuals ``r psi - G`` of the clean runs (m)."""
+    """RMS of the cumulative rolling residuals ``r psi - G`` of the clean runs (m); of the
+    wheels' profiled residuals (rad) in an IMU calibration (NaN for a spin cut whole)."""
     settled_rms: float | None = None
     """RMS of the settled-caster residuals of the dynamic modules (m)."""
     noise_inflation: float | None = None
