@@ -720,7 +720,7 @@ def test_the_plan_is_shown_before_start_and_runs(
     assert "Targets: position 0.5 mm, beta 0.2 deg, radius 0.2 mm; the square path within " \
         "0.5 mm, 0.016 deg" in planned
     check_view(d, "run, planned")
-    shot(d, "16-plan")
+    shot(d, "14-plan")
     before = text(d, "run-id")
     d.find_element(By.ID, "start").click()
     run_id = wait_for("the new run on the page", lambda: (t := text(d, "run-id")) != before and t)

@@ -155,42 +155,6 @@ function overrides() {
   if (mods.length) protocol.modules = mods;
   return Object.keys(protocol).length ? { protocol } : {};
 }
-async function start(ev) {
-  ev.preventDefault();
-  $("start-error").textContent = "";
-  const body = { overrides: overrides(), install: $("f-install").value };
-  if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
-  if ($("f-plan").checked) { delete body.overrides; body.plan = "auto"; }  // docs/plan.md
-  $("start").disabled = true;
-  app.startAt = performance.now();
-  app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
-  app.startSeen = new Set(app.seenRuns);
-  try {
-    const st = await api("POST", "/calibrations", body);
-    onRun(st, false);
-  } catch (e) {
-    app.startAt = null;
-    $("start-error").textContent = "Not started: " + e.message;
-  } finally {
-    $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
-  }
-}
-async function startCheck() {
-  $("start-error").textContent = "";
-  if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to check"; return; }
-  $("check").disabled = $("start").disabled = true;
-  app.startAt = performance.now();
-  app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
-  app.startSeen = new Set(app.seenRuns);
-  try {
-    onRun(await api("POST", "/checks", {}), false);
-  } catch (e) {
-    app.startAt = null;
-    $("start-error").textContent = "Check not started: " + e.message;
-  } finally {
-    $("check").disabled = $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
-  }
-}
 // the plan (docs/plan.md): GET /plan is 202 while the service makes it
 function planText(p) {
   const r = p.requirement;
@@ -222,6 +186,43 @@ async function showPlan() {
     if (r.status === 202) { await new Promise((ok) => setTimeout(ok, 1000)); continue; }
     $("plan-text").textContent = r.ok ? planText(data) : "No plan: " + data.detail;
     return;
+  }
+}
+async function start(ev) {
+  ev.preventDefault();
+  $("start-error").textContent = "";
+  const planned = $("f-plan").checked;
+  const body = planned ? { plan: "auto", install: $("f-install").value }
+    : { overrides: overrides(), install: $("f-install").value };
+  if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
+  $("start").disabled = true;
+  app.startAt = performance.now();
+  app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
+  app.startSeen = new Set(app.seenRuns);
+  try {
+    const st = await api("POST", "/calibrations", body);
+    onRun(st, false);
+  } catch (e) {
+    app.startAt = null;
+    $("start-error").textContent = "Not started: " + e.message;
+  } finally {
+    $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
+  }
+}
+async function startCheck() {
+  $("start-error").textContent = "";
+  if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to check"; return; }
+  $("check").disabled = $("start").disabled = true;
+  app.startAt = performance.now();
+  app.metrics.firstLiveUpdateMs = app.metrics.firstChangeMs = null;
+  app.startSeen = new Set(app.seenRuns);
+  try {
+    onRun(await api("POST", "/checks", {}), false);
+  } catch (e) {
+    app.startAt = null;
+    $("start-error").textContent = "Check not started: " + e.message;
+  } finally {
+    $("check").disabled = $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
   }
 }
 async function abortRun() {
