@@ -15,7 +15,8 @@ from fastapi.testclient import TestClient
 
 from services.cli import main as swpc
 from services.config.robot import RobotConfig
-from services.runs.plan import plan_for
+from services.runs.plan import Planner, PlannerBusyError, PlanRequest, plan_for
+from swpc_hw.calibration.plan import MocapNoise, PlanError, Targets
 from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
 
 
@@ -113,3 +114,24 @@ def test_get_plan_answers_at_once_and_202_until_the_plan_is_made(tmp_path: Path)
         p = plan_for(RobotConfig())
         assert r.json()["protocol"] == p.candidate.protocol()
         assert client.get("/plan").json() == r.json()
+
+
+def test_no_plan_is_started_during_a_run_and_a_made_one_is_kept() -> None:
+    planner = Planner()
+    with pytest.raises(PlannerBusyError, match="between runs"):
+        planner.get(RobotConfig(), start=False)
+    # a plan that cannot be made: its reason, kept and given again at once
+    # (a noise of its own: no prediction kept from another test, so it takes a while)
+    hopeless = PlanRequest(
+        targets=Targets(1e-12, 1e-12, 1e-12), budget=None, noise=MocapNoise(sigma_xy=0.6e-3)
+    )
+    assert planner.get(RobotConfig(), hopeless) is None  # being made now
+    with pytest.raises(PlannerBusyError, match="another plan is being made"):
+        planner.get(RobotConfig())
+    deadline = time.monotonic() + 600
+    with pytest.raises(PlanError, match="no candidate protocol reaches the requirement"):
+        while planner.get(RobotConfig(), hopeless) is None:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    with pytest.raises(PlanError, match="closest"):
+        planner.get(RobotConfig(), hopeless, start=False)  # kept: no new plan needed

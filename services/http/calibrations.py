@@ -234,9 +234,12 @@ def get_plan(rt: Rt) -> Any:
     ``POST /calibrations {"plan": "auto"}`` without overrides runs, with its predicted
     robot time, std devs and the requirement (mm, deg).  The first call starts making it
     (202 until it is made: seconds to a minute), then it is kept; 409 naming why when no
-    candidate meets the requirement."""
-    try:  # the config of a run without overrides: the plan it runs
-        p = rt.planner.get(rt.config.for_run({}, "mocap"))
+    candidate meets the requirement, or while a run goes and it is not made yet (a plan
+    takes CPU a run needs)."""
+    try:  # the config of a run without overrides: the plan it runs; none started in a run
+        p = rt.planner.get(rt.config.for_run({}, "mocap"), start=not rt.running())
+    except OverrideError as exc:
+        raise HTTPException(409, f"no plan: the robot config cannot run: {exc}") from exc
     except PlanError as exc:
         raise HTTPException(409, f"no plan: {exc}") from exc
     if p is None:

@@ -123,7 +123,11 @@ class Planner:
         self._making: tuple[str, PlanRequest] | None = None
         self._keep = keep
 
-    def get(self, config: RobotConfig, request: PlanRequest | None = None) -> Plan | None:
+    def get(
+        self, config: RobotConfig, request: PlanRequest | None = None, *, start: bool = True
+    ) -> Plan | None:
+        """``start=False``: a plan not made yet is not started either
+        (:class:`PlannerBusyError`): no plan takes CPU from a run."""
         req = request or PlanRequest()
         if req.targets is None:  # the same plan as with the tolerances given
             tol = config.tolerances
@@ -139,6 +143,8 @@ class Planner:
                 return None
             if self._making is not None:
                 raise PlannerBusyError("another plan is being made: ask again in a minute")
+            if not start:
+                raise PlannerBusyError("plans are made between runs: ask again after this one")
             self._making = key
         threading.Thread(
             target=self._make, args=(key, config, req), name="swpc-plan", daemon=True
