@@ -36,7 +36,6 @@ import httpx
 import pytest
 from PIL import Image
 
-from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.paper_robot import PAPER_NOMINAL
 from swpc_hw.zenoh_session import free_tcp_endpoint
@@ -206,18 +205,10 @@ def start_run(d: WebDriver, **fields: str) -> str:
         "align": "f-align",
         "resteer": "f-resteer",
         "angles": "f-angles",
-        "rest": "f-rest",
-        "drive": "f-drive",
     }
     for k, v in fields.items():
         if k == "install":
             d.find_element(By.CSS_SELECTOR, f'#f-install option[value="{v}"]').click()
-        elif k == "metrology":
-            d.find_element(By.CSS_SELECTOR, f'#f-metrology option[value="{v}"]').click()
-        elif k == "tape":  # "a-b-k=mm;..." the tape's readings
-            for entry in v.split(";"):
-                key, mm = entry.split("=")
-                set_field(d, f"tape-{key}", mm)
         else:
             set_field(d, ids[k], v)
     before = text(d, "run-id")
@@ -706,71 +697,4 @@ def test_a_result_without_motion_capture_shows_only_what_it_has(
     assert "compared with" in summary and "the no file" not in summary, summary
     check_view(d, "result")
     shot(d, "12-result-imu")
-    assert severe_logs(d) == []
-
-
-def press(d: WebDriver, elem_id: str) -> None:
-    """Click a button after scrolling it to the middle of the window (the abort bar
-    stays on top of the page's first lines)."""
-    e = d.find_element(By.ID, elem_id)
-    d.execute_script("arguments[0].scrollIntoView({block: 'center'})", e)
-    e.click()
-
-
-def test_a_run_without_motion_capture_from_the_console(
-    service: dict[str, Any], browser: WebDriver
-) -> None:
-    """Issue 30: the operator's page for a run without motion capture.  The tape's
-    readings entered before the start, under a drawing of which axes (every pair, twice);
-    MARK and MEASURE as prompts with a button and a field; DONE with the twelve readings
-    and the drive's measurement in its dataset."""
-    from tests.test_service_imu import PROTOCOL, axis_distances
-
-    d = browser
-    d.get(service["url"] + "/#run")
-    wait_for("the event stream", lambda: text(d, "link-state") == "live")
-    d.execute_script("sessionStorage.setItem('swpc-token', arguments[0])", TOKEN)
-    d.find_element(By.CSS_SELECTOR, '#f-metrology option[value="imu"]').click()
-    wait_for("the tape's drawing", lambda: d.find_element(By.ID, "tape-set").is_displayed())
-    lines = d.find_elements(By.CSS_SELECTOR, "#tape-drawing line")
-    assert len(lines) == 6  # the 4 sides and 2 diagonals of a 4-module robot
-    assert len(d.find_elements(By.CSS_SELECTOR, "#tape-rows input")) == 12
-    check_view(d, "run, tape", shots="13-imu-tape")
-    readings = []
-    for i, ref in enumerate(axis_distances()):
-        a, b = ref["modules"]
-        for k, extra in ((1, 0.0), (2, 0.2 * (-1) ** i)):  # the second reading a little off
-            readings.append(f"{a}-{b}-{k}={ref['value'] * 1e3 + extra:.2f}")
-    run_id = start_run(
-        d, install="never", metrology="imu", tape=";".join(readings),
-        sweep=str(PROTOCOL["sweep_deg"]), settle="1", stop="0.5", align="0.5", resteer="1.5",
-        rest=str(PROTOCOL["rest_time"]), drive=str(PROTOCOL["drive_length"]),
-    )  # fmt: skip
-    wait_state(d, {"MARK"}, timeout=300)
-    wait_for("the MARK prompt", lambda: d.find_element(By.ID, "op-prompt").is_displayed())
-    assert "mark the floor under module 1" in text(d, "op-text")
-    assert not d.find_element(By.ID, "op-distance").is_displayed()
-    shot(d, "14-imu-mark")
-    press(d, "op-continue")
-    wait_state(d, {"MEASURE"}, timeout=300)
-    wait_for("the MEASURE prompt", lambda: d.find_element(By.ID, "op-distance").is_displayed())
-    assert not d.find_element(By.ID, "op-continue").is_displayed()
-    press(d, "op-submit")  # nothing typed yet: refused on the page
-    assert "give the distance" in text(d, "op-error")
-    with httpx.Client(base_url=service["url"], timeout=10.0) as http:
-        tape = http.get("/simulator/tape-measure", params={"run": run_id}).json()
-    set_field(d, "op-distance", f"{tape['value'] * 1e3:.2f}")
-    shot(d, "15-imu-measure")
-    press(d, "op-submit")
-    assert wait_state(d, {"DONE", "FAILED", "ABORTED"}, timeout=300) == "DONE", text(
-        d, "run-reason"
-    )
-    assert not d.find_element(By.ID, "op-prompt").is_displayed()
-    with httpx.Client(base_url=service["url"], timeout=10.0) as http:
-        res = http.get(f"/calibrations/{run_id}/result").json()
-    refs = load_dataset(res["dataset_dir"]).references
-    kinds = [r.kind for r in refs]
-    assert kinds.count("axis_distance") == 12 and kinds[-1] == "straight_drive"
-    assert abs(refs[-1].value - round(tape["value"], 5)) < 1e-5
-    assert all(r.stddev == pytest.approx(0.5e-3) for r in refs)
     assert severe_logs(d) == []

@@ -132,8 +132,6 @@ function route() {
 
 // ------------------------------------------------------------------ start / abort
 function fillDefaults(p) {
-  $("f-rest").value = p.rest_time;
-  $("f-drive").value = p.drive_length;
   $("f-angles").value = p.angles_deg.join(", ");
   $("f-sweep").value = p.sweep_deg;
   $("f-settle").value = p.settle_time;
@@ -149,7 +147,6 @@ function overrides() {
   if (angles.join() !== p.angles_deg.join()) protocol.angles_deg = angles;
   const nums = { sweep_deg: "f-sweep", settle_time: "f-settle", stop_time: "f-stop",
     align_time: "f-align", resteer_time: "f-resteer" };
-  if ($("f-metrology").value === "imu") Object.assign(nums, { rest_time: "f-rest", drive_length: "f-drive" });
   for (const [k, id] of Object.entries(nums)) {
     const v = Number($(id).value);
     if ($(id).value !== "" && v !== p[k]) protocol[k] = v;
@@ -162,10 +159,6 @@ async function start(ev) {
   ev.preventDefault();
   $("start-error").textContent = "";
   const body = { overrides: overrides(), install: $("f-install").value };
-  if ($("f-metrology").value === "imu") {
-    body.metrology = "imu";
-    body.references = tapeReferences();
-  }
   if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
   $("start").disabled = true;
   app.startAt = performance.now();
@@ -181,76 +174,6 @@ async function start(ev) {
     $("start").disabled = !!app.current && !TERMINAL.has(app.current.state);
   }
 }
-// ------------------------------------------------------------------ the tape (no mocap)
-function pairs() {
-  const ids = app.hello.modules.map((m) => m.id), out = [];
-  for (let i = 0; i < ids.length; i++) for (let j = i + 1; j < ids.length; j++) out.push([ids[i], ids[j]]);
-  return out;
-}
-function fillTape() {
-  // which axes to measure: every pair, drawn seen from above with the robot's front up
-  const mods = app.hello.modules, g = $("tape-drawing");
-  g.replaceChildren();
-  const pt = (m) => [-m.y_s, -m.x_s];
-  const xs = mods.map((m) => pt(m)[0]), ys = mods.map((m) => pt(m)[1]);
-  const pad = 0.08, x0 = Math.min(...xs) - pad, y0 = Math.min(...ys) - pad;
-  g.setAttribute("viewBox", `${x0} ${y0} ${Math.max(...xs) + pad - x0} ${Math.max(...ys) + pad - y0}`);
-  const byId = Object.fromEntries(mods.map((m) => [m.id, m]));
-  const rows = $("tape-rows");
-  rows.replaceChildren();
-  for (const [a, b] of pairs()) {
-    const [ax, ay] = pt(byId[a]), [bx, by] = pt(byId[b]);
-    g.append(svg("line", { x1: ax, y1: ay, x2: bx, y2: by }));
-    // a third of the way from the first axis: the diagonals' labels apart
-    const label = svg("text", { x: ax + (bx - ax) / 3, y: ay + (by - ay) / 3, "text-anchor": "middle" });
-    label.textContent = `${a}-${b}`;
-    g.append(label);
-    rows.append(el("tr", {}, el("th", { scope: "row" }, `${a}–${b}`),
-      ...[1, 2].map((k) => el("td", {}, el("input", { id: `tape-${a}-${b}-${k}`, type: "number",
-        min: "0", step: "any", "aria-label": `axes ${a}-${b}, reading ${k} (mm)` })))));
-  }
-  for (const m of mods) {
-    const [x, y] = pt(m);
-    g.append(svg("circle", { cx: x, cy: y, r: 0.025, class: "axis" }));
-    const t = svg("text", { x, y: y + 0.02, "text-anchor": "middle", fill: "#fff" });
-    t.textContent = String(m.id);
-    g.append(t);
-  }
-}
-function tapeReferences() {
-  const sd = Number($("f-tape-sd").value) / 1000, out = [];
-  for (const [a, b] of pairs()) for (const k of [1, 2]) {
-    const v = $(`tape-${a}-${b}-${k}`).value;
-    if (v !== "") out.push({ kind: "axis_distance", modules: [a, b], value: Number(v) / 1000, stddev: sd });
-  }
-  return out;
-}
-async function answerRun(what) {
-  const st = app.current;
-  $("op-error").textContent = "";
-  if (!(await ensureToken())) { $("op-error").textContent = "a token is needed to answer"; return; }
-  try {
-    if (what === "continue") {
-      onRun(await api("POST", `${runPath(st)}/continue`), false);
-    } else {
-      const v = $("op-distance").value;
-      if (v === "") { $("op-error").textContent = "give the distance between the floor marks"; return; }
-      const ref = { kind: "straight_drive", value: Number(v) / 1000, stddev: Number($("f-tape-sd").value) / 1000 };
-      onRun(await api("POST", `${runPath(st)}/references`, { references: [ref] }), false);
-    }
-  } catch (e) {
-    $("op-error").textContent = "Not accepted: " + e.message;
-  }
-}
-function renderPrompt(st) {
-  const waits = st && (st.state === "MARK" || st.state === "MEASURE") && !TERMINAL.has(st.state);
-  $("op-prompt").hidden = !waits;
-  if (!waits) return;
-  $("op-text").textContent = st.step;
-  $("op-continue").hidden = st.state !== "MARK";
-  $("op-measure").hidden = $("op-submit").hidden = st.state !== "MEASURE";
-}
-
 async function startCheck() {
   $("start-error").textContent = "";
   if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to check"; return; }
@@ -337,7 +260,6 @@ function renderRun() {
   link.hidden = st.state !== "DONE";
   link.href = (st.kind === "check" ? "#check/" : "#result/") + st.id;
   link.textContent = st.kind === "check" ? `Open the verdict (${st.verdict})` : "Open the result";
-  renderPrompt(st);
 }
 function onLive(ev) {
   app.live = ev;
@@ -792,7 +714,7 @@ function connect() {
     const first = !app.hello;
     app.hello = JSON.parse(ev.data);
     $("robot-name").textContent = "· robot " + app.hello.robot + (app.hello.in_process_simulator ? " (simulator)" : "");
-    if (first) { fillDefaults(app.hello.protocol); fillTape(); }
+    if (first) fillDefaults(app.hello.protocol);
   });
   es.addEventListener("run", (ev) => onRun(JSON.parse(ev.data), true));
   es.addEventListener("live", (ev) => onLive(JSON.parse(ev.data)));
@@ -801,9 +723,6 @@ function connect() {
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
   $("check").addEventListener("click", startCheck);
-  $("f-metrology").addEventListener("change", () => { $("tape-set").hidden = $("f-metrology").value !== "imu"; });
-  $("op-continue").addEventListener("click", () => answerRun("continue"));
-  $("op-submit").addEventListener("click", () => answerRun("references"));
   $("abort").addEventListener("click", abortRun);
   $("res-install").addEventListener("click", installResult);
   $("token-button").addEventListener("click", () => tokenDialog("Enter the service's bearer token (kept for this tab)."));
