@@ -23,10 +23,12 @@ so beside ``z`` the misfit must also exceed a relative size: the RMS of the rati
 relative changes ``sqrt(mean_j (h_free,j / h_model,j / k_c - 1)^2)`` with the common
 scale ``k_c`` removed (median of the ratios), :data:`MIN_RATIO_MISFIT`.
 
-:func:`spin_misfits` computes both for every spin; the solver
-(:func:`swpc_hw.calibration.imu_solver.fit_imu`) cuts the worst spin whole (its wheel
-readings; its settled casters stay) while one is beyond both, and refuses the dataset
-when more than :data:`MAX_CUT_FRACTION` of the spins would go.
+:func:`spin_misfit` computes both for one spin; the solver
+(:func:`swpc_hw.calibration.imu_solver.fit_imu`) cuts one spin whole (its wheel
+readings; its settled casters stay; which one by trial,
+:func:`swpc_hw.calibration.imu_solver.trial_cut`) while any is beyond both, refuses the
+dataset when more than :func:`max_cut` spins would go, and tests a straight drive's
+wheels the same way against its arc (a drive is never cut).
 """
 
 from __future__ import annotations

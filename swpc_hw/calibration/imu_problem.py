@@ -260,6 +260,7 @@ def arc_profile(
     difference over :data:`ARC_STEP`.  ``z`` (L, m), ``g``, ``k``, ``r`` (B, m), ``e0``,
     ``y0``: the residuals (B, L, m) and ``Y`` (B, L) at ``kappa = 0``; ``gamma`` (B,).
     Returns the residuals, ``Y``, ``kappa`` (B,) and the turn's weighted residual (B,).
+    ``sigma_g`` infinite: the wheels alone (the gyro's block left out).
     """
     kappa = np.zeros(g.shape[0])
     e, y = e0, y0
@@ -567,7 +568,8 @@ class ImuProblem:
                 e, y, kappa, turn_res[:, d - S] = arc_profile(
                     st.psi[rows], G[:, d], K[:, d], r_set[:, d], st.present[rows],
                     st.run[rows], st.drive_structures[d - S], resid[:, rows], Y[:, rows],
-                    float(st.row_sigma[a0]), gamma, float(st.drive_gyro_sigma[d - S]),
+                    float(st.row_sigma[a0]), gamma,
+                    float(st.drive_gyro_sigma[d - S]) if "gyro" in act else math.inf,
                 )
                 resid[:, rows], Y[:, rows] = e, y
                 turned[:, d - S] = kappa * (y[:, -1] - y[:, 0]) * lever1[:, d - S]

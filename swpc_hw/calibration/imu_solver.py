@@ -314,7 +314,7 @@ def fit_imu(
     while True:
         failing = misfits(prob, x, valid)
         gone = [c.segment for c in cuts]
-        worst = trial_cut(coarse or run, x, failing, gone) if failing else None
+        worst = trial_cut(coarse or run, x, failing, gone, prob) if failing else None
         if worst is None:
             for c in cuts:  # a spin cut whole: every increment it had is left out
                 cut[c.segment] = int(np.sum(c.valid[1:] & c.valid[:-1]))
@@ -392,14 +392,19 @@ def misfits(
 
 
 def trial_cut(
-    run: ImuRun, x: FloatArray, failing: list[tuple[int, SpinMisfit]], gone: list[int]
+    run: ImuRun,
+    x: FloatArray,
+    failing: list[tuple[int, SpinMisfit]],
+    gone: list[int],
+    judge: ImuProblem | None = None,
 ) -> tuple[int, SpinMisfit]:
     """Which of the failing spins to cut: the worst by ``z`` unless a fit bent by a large
     slip puts the worst ``z`` elsewhere.  On ``run`` (the coarse problem: a tenth of the
     cost), without the spins ``gone`` already cut, each of the :data:`TRIAL_CUTS` worst
     is left out in turn for one solve from ``x`` (fresh weights); the one after whose
-    removal the fewest spins fail, then the smallest sum of their ``z^2``, is cut.  The
-    problem's samples are put back as they were."""
+    removal the fewest spins fail, then the smallest sum of their ``z^2`` (judged on
+    ``judge``'s spins, the fine problem's: a coarse spin's few nodes blur ``z``), is cut.
+    The problem's samples are put back as they were."""
     if len(failing) == 1:
         return failing[0]
     prob = run.problem
@@ -419,8 +424,12 @@ def trial_cut(
             prob.residuals, x, jac=prob.jacobian, method="lm", x_scale="jac",
             xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=50,
         )
-        valid = [rs.present for rs in prob.spins]
-        rest = misfits(prob, np.asarray(sol.x, dtype=float), valid)
+        jp = judge or prob
+        valid = [
+            rs.present if i not in (*gone, si) else np.zeros_like(rs.present)
+            for i, rs in enumerate(jp.spins)
+        ]
+        rest = misfits(jp, np.asarray(sol.x, dtype=float), valid)
         score = (len(rest), float(sum(m.z**2 for _, m in rest)))
         if best is None or score < best[0]:
             best = (score, k)
