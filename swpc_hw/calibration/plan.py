@@ -187,7 +187,7 @@ def stddevs(covariance: FloatArray) -> FloatArray:
 def worst_ratio(sd: FloatArray, targets: Targets) -> float:
     """``max_i,k sd_i,k / target_k`` over an (N, 5) matrix of std devs (NaN: infinite)."""
     r = np.asarray(sd, dtype=float) / targets.per_parameter()[None, :]
-    return math.inf if not np.all(np.isfinite(r)) else float(r.max())
+    return math.inf if not np.all(np.isfinite(r)) else float(np.max(r))
 
 
 def worst_per_kind(sd: FloatArray) -> dict[str, float]:
