@@ -203,6 +203,19 @@ def homing_truth() -> RobotParams:
     return RobotParams.from_arrays(PAPER_CALIBRATED.ids, a.P_s, HOMING, a.b, a.r)
 
 
+def calibrate_without_mocap(client: TestClient, think: float = 0.0) -> dict[str, Any]:
+    """A calibration without motion capture (the six distances, :data:`PROTOCOL`), the
+    operator played (answering after ``think`` s); its result once DONE."""
+    body = {"metrology": "imu", "references": axis_distances(), "overrides": {"protocol": PROTOCOL}}
+    r = client.post("/calibrations", json=body, headers=AUTH)
+    assert r.status_code == 202, r.text
+    run_id = r.json()["id"]
+    st = play_operator(client, run_id, {}, think=think)
+    assert st["state"] == "DONE", st["errors"]
+    result: dict[str, Any] = client.get(f"/calibrations/{run_id}/result").json()
+    return result
+
+
 def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -214,17 +227,7 @@ def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
     save_kinematics(truth, homing_truth())
     caplog.set_level(logging.INFO, logger="swpc.run")
     with sim_service(tmp_path / "data", sim_truth=truth) as s:
-        body = {
-            "metrology": "imu",
-            "references": axis_distances(),
-            "overrides": {"protocol": PROTOCOL},
-        }
-        r = s.client.post("/calibrations", json=body, headers=AUTH)
-        assert r.status_code == 202, r.text
-        run_id = r.json()["id"]
-        st = play_operator(s.client, run_id, {})
-        assert st["state"] == "DONE", st["errors"]
-        res = s.client.get(f"/calibrations/{run_id}/result").json()
+        res = calibrate_without_mocap(s.client)
         k = load_kinematics(Path(res["run_kinematics_path"]))
     steer = [m for m in caplog.messages if "event=run.steer" in m]
     assert len(steer) == 1 and "betas=measured" in steer[0], steer
@@ -253,17 +256,7 @@ def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(
     results = []
     for name, think in (("quick", 0.0), ("slow", 1.0)):
         with sim_service(tmp_path / name) as s:
-            body = {
-                "metrology": "imu",
-                "references": axis_distances(),
-                "overrides": {"protocol": PROTOCOL},
-            }
-            r = s.client.post("/calibrations", json=body, headers=AUTH)
-            assert r.status_code == 202, r.text
-            run_id = r.json()["id"]
-            st = play_operator(s.client, run_id, {}, think=think)
-            assert st["state"] == "DONE", st["errors"]
-            results.append(s.client.get(f"/calibrations/{run_id}/result").json())
+            results.append(calibrate_without_mocap(s.client, think))
     quick, slow = ([[m[n] for n in NAMES] for m in res["modules"]] for res in results)
     assert quick == slow
     assert parameters_digest(results[0]) == parameters_digest(results[1])
