@@ -133,3 +133,24 @@ def test_a_gyro_check_finds_a_re_homed_axis_against_a_file_in_any_frame() -> Non
     assert out.drifted == [4] and out.modules[3].parameters == ["beta"], out.summary
     row = next(c for c in out.changes if c.module == 4 and c.param == "beta")
     assert math.degrees(row.change) == pytest.approx(0.3, abs=0.03)
+
+
+def test_a_gyro_check_of_a_file_from_a_calibration_without_motion_capture() -> None:
+    """The file from the IMU calibration (design-fit, its covariance singular along the
+    frame's three rigid directions): each module's relative change has a determined
+    covariance all the same; unchanged consistent, a worn wheel named alone."""
+    from swpc_hw.calibration.imu_solver import solve_imu
+
+    exp = generate_imu_experiment(PAPER_CALIBRATED, nominal=PAPER_NOMINAL)
+    cal = solve_imu(dataclasses.replace(exp.experiment.dataset, poses=np.zeros((0, 4))))
+    assert cal.params.frame == "design-fit" and cal.covariance is not None
+    rep = [0.05e-3, 0.05e-3, math.radians(0.02), 0.05e-3, 0.02e-3]
+    _, same = check_dataset(imu_check(PAPER_CALIBRATED, 31), cal.params, cal.covariance,
+                            repeatability=rep)  # fmt: skip
+    assert same.verdict == CONSISTENT, same.summary
+    worn = PAPER_CALIBRATED.model_copy(update={"modules": [
+        m.model_copy(update={"r": m.r - 0.3e-3}) if m.id == 3 else m
+        for m in PAPER_CALIBRATED.modules
+    ]})  # fmt: skip
+    _, out = check_dataset(imu_check(worn, 31), cal.params, cal.covariance, repeatability=rep)
+    assert out.drifted == [3] and out.modules[2].parameters == ["r"], out.summary
