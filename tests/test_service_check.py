@@ -190,6 +190,7 @@ def test_a_check_with_the_gyro_judges_the_robots_shape(
 
 
 def test_a_check_is_a_run_one_at_a_time_and_aborts(sim: Sim) -> None:
+    save_kinematics(sim.rt.settings.kinematics_file, PAPER_CALIBRATED)  # a file to check
     r = sim.client.post("/checks", json={"overrides": {"protocol": {"sweep_deg": 1440}}},
                         headers=AUTH)  # fmt: skip
     assert r.status_code == 202, r.text

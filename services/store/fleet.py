@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from services.store.sqlite import open_database
 from swpc_hw.errors import SwpcError
 
 _SCHEMA = """
@@ -70,17 +71,10 @@ class StoredDocument:
 class FleetStore:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         try:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.executescript(_SCHEMA)
-            check = self._db.execute("PRAGMA quick_check").fetchone()
-            if check is None or check[0] != "ok":
-                raise sqlite3.DatabaseError(f"quick_check: {check[0] if check else 'no answer'}")
+            self._db = open_database(self.path, _SCHEMA)
         except sqlite3.DatabaseError as exc:
-            self._db.close()
             raise FleetStoreError(
                 f"{self.path}: the fleet store is damaged ({exc}); move it aside and start "
                 "again: the robots publish their state again, with their whole history of "

@@ -21,6 +21,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from services.store.sqlite import open_database
 from swpc_hw.errors import SwpcError
 
 TERMINAL = ("DONE", "FAILED", "ABORTED")
@@ -58,26 +59,21 @@ class RunStoreError(SwpcError):
     """The run store cannot be opened: damaged, or not a database (module docstring)."""
 
 
+def _add_kind(db: sqlite3.Connection) -> None:
+    """A store from before checks: every run a calibration."""
+    columns = {r[1] for r in db.execute("PRAGMA table_info(runs)")}
+    if "kind" not in columns:
+        db.execute("ALTER TABLE runs ADD COLUMN kind TEXT NOT NULL DEFAULT 'calibration'")
+    db.execute("SELECT count(*) FROM runs").fetchone()
+
+
 class RunStore:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         try:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.executescript(_SCHEMA)
-            columns = {r[1] for r in self._db.execute("PRAGMA table_info(runs)")}
-            if "kind" not in columns:  # a store from before checks: all calibrations
-                self._db.execute(
-                    "ALTER TABLE runs ADD COLUMN kind TEXT NOT NULL DEFAULT 'calibration'"
-                )
-            check = self._db.execute("PRAGMA quick_check").fetchone()
-            if check is None or check[0] != "ok":
-                raise sqlite3.DatabaseError(f"quick_check: {check[0] if check else 'no answer'}")
-            self._db.execute("SELECT count(*) FROM runs").fetchone()
+            self._db = open_database(self.path, _SCHEMA, _add_kind)
         except sqlite3.DatabaseError as exc:
-            self._db.close()
             raise RunStoreError(
                 f"{self.path}: the run store is damaged ({exc}); move it aside (mv "
                 f"{self.path} {self.path}.damaged) and start again: a new store is made, and "
