@@ -32,7 +32,7 @@ from swpc_hw.dataset import load_dataset
 from swpc_hw.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED
-from tests.frame_free import frame_free
+from tests.frame_free import Figure, frame_free
 from tests.service_rig import AUTH, Sim, sim_service
 
 NAMES = PARAM_NAMES
@@ -143,12 +143,7 @@ def test_a_calibration_without_motion_capture_through_http(
     solve = seen["DONE"] - seen.get("SOLVE", seen["DONE"])
     print(f"\ncalibration without motion capture through HTTP: {wall:.1f} s wall "
           f"({solve:.1f} s of it solving and writing), {robot:.1f} s of robot time")  # fmt: skip
-    for f in figures:
-        print(f"  {f}")
-    for f in figures:
-        assert abs(f.z) < 4.0, str(f)
-        limit = {"deg": np.radians(0.1), "mm": 0.5e-3}[f.unit]
-        assert abs(f.error) < limit, str(f)
+    assert_near_the_truth(figures)
     # the recorded dataset: no poses, the gyro and every reference; swpc solve agrees
     ds = load_dataset(res["dataset_dir"])
     assert ds.is_imu and not (Path(res["dataset_dir"]) / "poses.csv").exists()
@@ -203,6 +198,17 @@ def homing_truth() -> RobotParams:
     return RobotParams.from_arrays(PAPER_CALIBRATED.ids, a.P_s, HOMING, a.b, a.r)
 
 
+def assert_near_the_truth(figures: list[Figure]) -> None:
+    """Every frame-free figure printed, within 4 of its std devs of the truth and within
+    0.1 deg or 0.5 mm of it."""
+    for f in figures:
+        print(f"  {f}")
+    for f in figures:
+        assert abs(f.z) < 4.0, str(f)
+        limit = {"deg": np.radians(0.1), "mm": 0.5e-3}[f.unit]
+        assert abs(f.error) < limit, str(f)
+
+
 def calibrate_without_mocap(client: TestClient, think: float = 0.0) -> dict[str, Any]:
     """A calibration without motion capture (the six distances, :data:`PROTOCOL`), the
     operator played (answering after ``think`` s); its result once DONE."""
@@ -237,12 +243,7 @@ def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
     )  # the spins alone: the differences of beta to 0.01 deg
     assert k.covariance is not None
     figures = frame_free(k.params, np.array(k.covariance), homing_truth())
-    for f in figures:
-        print(f"  {f}")
-    for f in figures:
-        assert abs(f.z) < 4.0, str(f)
-        limit = {"deg": np.radians(0.1), "mm": 0.5e-3}[f.unit]
-        assert abs(f.error) < limit, str(f)
+    assert_near_the_truth(figures)
 
 
 def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(
