@@ -66,8 +66,12 @@ from swpc_hw.model import (
     trailing_steering_angle,
     true_steering_angle,
 )
+from swpc_hw.validation.options import SquareOptions
 
 FloatArray = NDArray[np.float64]
+_SQUARE = SquareOptions()
+"""The square of ``swpc validate``: its side, speed and corner yaw rate are the defaults
+of :func:`square_path_end`."""
 
 KINDS = ("position", "beta", "radius")
 KIND_OF = {"x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"}
@@ -232,9 +236,9 @@ def square_path_end(
     truth: RobotArrays,
     direction: int,
     *,
-    side: float = 2.5,
-    speed: float = 0.2,
-    turn_rate: float = 0.3,
+    side: float = _SQUARE.side,
+    speed: float = _SQUARE.speed,
+    turn_rate: float = _SQUARE.yaw_rate,
 ) -> FloatArray:
     """True end pose ``(x, y, yaw - direction 2 pi)`` of the idealised square (module
     docstring) driven with ``file`` on ``truth``; ``direction`` +1 CCW, -1 CW.  Zero when
