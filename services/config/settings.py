@@ -316,6 +316,11 @@ class ServiceSettings(BaseSettings):
         return 1.0 if self.in_process else self.time_scale
 
     @property
+    def run_metrology(self) -> Literal["mocap", "imu"]:
+        """A run's metrology when its request names none (``metrology``'s rule)."""
+        return "imu" if self.metrology == "imu" else "mocap"
+
+    @property
     def kinematics_file(self) -> Path:
         return self.kinematics_path or self.data_dir / "kinematics.yaml"
 

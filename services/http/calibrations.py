@@ -151,7 +151,7 @@ def run_config(
 )
 def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a run (module docstring)."""
-    metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
+    metrology = body.metrology or rt.settings.run_metrology
     config = run_config(rt, body.overrides, metrology)
     if body.plan == "auto":
         config = planned_config(rt, body, metrology, config)

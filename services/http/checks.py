@@ -88,7 +88,7 @@ def check_status(rt: Rt, run_id: str) -> dict[str, Any]:
 )
 def start(body: CheckRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a check (module docstring)."""
-    metrology = body.metrology or ("imu" if rt.settings.metrology == "imu" else "mocap")
+    metrology = body.metrology or rt.settings.run_metrology
     config = run_config(rt, body.overrides, metrology, "check")
     run = start_checked(rt, config, "never", metrology, [], "check")
     response.headers["Location"] = f"/checks/{run.id}"

@@ -311,7 +311,7 @@ def hello(rt: Runtime) -> dict[str, Any]:
         "check": cfg.check_config().protocol.model_dump(),
         "in_process_simulator": rt.simulator is not None,
         "kinematics_path": str(rt.settings.kinematics_file),
-        "metrology": "imu" if rt.settings.metrology == "imu" else "mocap",
+        "metrology": rt.settings.run_metrology,
     }
 
 
