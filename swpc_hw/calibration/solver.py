@@ -25,6 +25,7 @@ Unknowns: for every module i, ``x_s, y_s, beta, b, r`` (5N, :mod:`.parameters`).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -294,6 +295,18 @@ def fit_joint(
 # ------------------------------------------------------------------ the solve
 
 
+@dataclass(frozen=True)
+class JointSolution:
+    """A solve with what it was solved from: the joint problem, the flat solution ``x``
+    and the segments' fixed-point fits (the covariance's parts, e.g. per segment:
+    :func:`~swpc_hw.calibration.covariance.segment_terms`)."""
+
+    result: CalibrationResult
+    problem: JointProblem
+    x: FloatArray
+    fits: list[FixedPointFit]
+
+
 def solve(
     ds: Dataset,
     options: SolverOptions | None = None,
@@ -306,6 +319,16 @@ def solve(
     :mod:`swpc_hw.calibration.check`: the file in force, in the dataset's frame); the
     dataset may then lock some modules at one angle, or not at all, as long as the joint
     problem determines every parameter (else the covariance is unknown)."""
+    return solve_joint(ds, options, source, start).result
+
+
+def solve_joint(
+    ds: Dataset,
+    options: SolverOptions | None = None,
+    source: str = "dataset",
+    start: RobotParams | None = None,
+) -> JointSolution:
+    """:func:`solve`, keeping the problem it solved (:class:`JointSolution`)."""
     opts = options or SolverOptions()
     ids = ds.robot.ids
     n = len(ids)
@@ -371,7 +394,7 @@ def solve(
         }
     )
     inc_rej = int(slip.sum())
-    return CalibrationResult(
+    result = CalibrationResult(
         params=params,
         nominal=ds.robot,
         segments=segment_quality(prob, segs, fits, x, ids, slip),
@@ -385,6 +408,7 @@ def solve(
         reduced_chi2=float(f @ f) / dof,
         covariance=cov if np.all(np.isfinite(cov)) else None,
     )
+    return JointSolution(result, prob, x, fits)
 
 
 def segment_quality(
