@@ -19,8 +19,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from simulators.datagen import ExperimentOptions, generate_experiment
+from swpc_hw.calibration.forecast import SpinInformation, spin_information
 from swpc_hw.calibration.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
-from swpc_hw.calibration.solver import solve
+from swpc_hw.calibration.solver import solve, solve_joint
 from swpc_hw.errors import CalibrationError
 from swpc_hw.model import RobotParams
 
@@ -66,3 +67,18 @@ def predicted_covariance(
             raise PlanError(f"{c.label()}: the solver gives no covariance")
         covs.append(cov)
     return np.asarray(np.mean(covs, axis=0), dtype=float)
+
+
+def predicted_spins(
+    robot: RobotParams, c: Candidate, noise: MocapNoise, tm: TimeModel, seed: int = 0
+) -> list[SpinInformation]:
+    """Every spin's share of the information of candidate ``c`` on ``robot``, in the run's
+    order (:func:`swpc_hw.calibration.forecast.spin_information`): what sequential
+    stopping forecasts the spins to come with.  :class:`PlanError` as
+    :func:`predicted_covariance`."""
+    try:
+        ds = generate_experiment(robot, experiment_options(c, noise, tm, seed), robot).dataset
+        solution = solve_joint(ds)
+    except (ValueError, CalibrationError) as exc:
+        raise PlanError(f"{c.label()}: no prediction: {exc}") from exc
+    return spin_information(solution, math.radians(c.sweep_deg))
