@@ -17,7 +17,7 @@ from services.cli import main as swpc
 from services.config.robot import RobotConfig
 from services.runs.plan import Planner, PlannerBusyError, PlanRequest, plan_for
 from swpc_hw.calibration.plan import MocapNoise, PlanError, Targets
-from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
+from tests.service_rig import AUTH, Sim, app_without_robot
 
 
 def until_planned(sim: Sim, body: dict[str, Any]) -> Any:
@@ -32,26 +32,50 @@ def until_planned(sim: Sim, body: dict[str, Any]) -> Any:
         time.sleep(0.1)
 
 
-def test_a_planned_calibration_runs_the_plan_in_the_robot_time_it_predicted(sim: Sim) -> None:
+def test_a_planned_calibration_stops_each_spin_once_its_forecast_meets_the_plan(
+    sim: Sim,
+) -> None:
     r = until_planned(sim, {"plan": "auto"})
     assert r.status_code == 202, r.text
     rid = r.json()["id"]
-    st = wait_state(sim.client, rid, {"DONE", "FAILED", "ABORTED"})
-    assert st["state"] == "DONE", st["reason"]
     p = plan_for(RobotConfig())  # the same plan (its prediction is kept)
+    # the operator sees the std devs forecast during the run
+    forecasts: list[dict[str, Any]] = []
+    st = r.json()
+    assert st["forecast"]["targets"] == p.requirement.document()
+    assert st["forecast"]["ratio"] == pytest.approx(p.ratio, rel=0.1)  # the plan's
+    deadline = time.monotonic() + 240
+    while st["state"] not in {"DONE", "FAILED", "ABORTED"}:
+        assert time.monotonic() < deadline, st
+        time.sleep(0.01)
+        st = sim.client.get(f"/calibrations/{rid}").json()
+        if st["forecast"] is not None and (not forecasts or forecasts[-1] != st["forecast"]):
+            forecasts.append(st["forecast"])
+    assert st["state"] == "DONE", st["reason"]
     assert st["angles_total"] == len(p.candidate.angles_deg)
     assert st["segments"] == 4 * len(p.candidate.angles_deg)
-    # the default protocol takes 133 s; the plan about half of it, as predicted
-    assert st["elapsed_s"] == pytest.approx(p.robot_time, rel=0.05)
-    assert st["elapsed_s"] < 0.6 * 133.1
+    assert len(forecasts) >= 8  # judged during every spin
+    assert st["forecast"]["ratio"] <= 1.0  # the last spin ended on a forecast that meets it
+    # the simulator's poses are as noisy as the plan assumes: the spins end near their
+    # planned sweep, some (whose module the plan over-serves) well before
+    assert st["elapsed_s"] < p.robot_time
+    assert st["elapsed_s"] > 0.5 * p.robot_time
     ds = sim.rt.runs[rid].dataset()
-    for seg in ds.segments:  # every window sweeps the plan's sweep
+    swept = []
+    for seg in ds.segments:
         poses = ds.poses[(ds.poses[:, 0] >= seg.start) & (ds.poses[:, 0] <= seg.end)]
         yaw = np.unwrap(poses[:, 3])
-        swept = abs(math.degrees(float(yaw[-1] - yaw[0])))
-        assert swept == pytest.approx(p.candidate.sweep_deg, abs=3.0)
+        swept.append(abs(math.degrees(float(yaw[-1] - yaw[0]))))
+    assert min(swept) >= 29.0 and max(swept) <= 2 * p.candidate.sweep_deg + 3.0, swept
+    assert sum(swept) < 8 * p.candidate.sweep_deg
     res = sim.client.get(f"/calibrations/{rid}/result").json()
     assert st["installed"] is True, res
+    # what the solver says of the data: within the plan's targets
+    tol = RobotConfig().tolerances
+    for m in res["modules"]:
+        sd = m["stddev"]
+        assert max(sd["x_s"], sd["y_s"], sd["b"]) <= 1.3 * tol.position, m
+        assert sd["beta"] <= 1.3 * tol.beta and sd["r"] <= 1.3 * tol.radius, m
     # GET /plan: the plan before Start, as swpc plan --json gives it (made already)
     r = sim.client.get("/plan")
     assert r.status_code == 200, r.text

@@ -37,7 +37,7 @@ from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, R
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
-from services.runs.plan import PLANNED_KEYS, PlannerBusyError, PlanRequest
+from services.runs.plan import PLANNED_KEYS, PlannerBusyError, PlanRequest, stopping_for
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
@@ -48,6 +48,7 @@ from services.runtime.runtime import (
     RunConflictError,
     StoreError,
 )
+from swpc_hw.calibration.forecast import Stopping
 from swpc_hw.calibration.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.export import TARGETS, file_name, make_export, render
@@ -153,20 +154,23 @@ def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
     """Start a run (module docstring)."""
     metrology = body.metrology or rt.settings.run_metrology
     config = run_config(rt, body.overrides, metrology)
+    stopping = None
     if body.plan == "auto":
-        config = planned_config(rt, body, metrology, config)
+        config, stopping = planned_config(rt, body, metrology, config)
     elif body.targets is not None:
         raise refused("targets", ValueError("targets are for a planned run (plan: auto)"))
     refs = start_references(config, metrology, body.references)
-    run = start_checked(rt, config, body.install, metrology, refs)
+    run = start_checked(rt, config, body.install, metrology, refs, stopping=stopping)
     response.headers["Location"] = f"/calibrations/{run.id}"
     return run.status.to_dict()
 
 
-def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConfig) -> RobotConfig:
-    """The run's config with the planned protocol in its overrides (422 with the reason
-    when it cannot be planned: another metrology, protocol settings the plan chooses, no
-    candidate that reaches the targets)."""
+def planned_config(
+    rt: Rt, body: StartRequest, metrology: str, config: RobotConfig
+) -> tuple[RobotConfig, Stopping]:
+    """The run's config with the planned protocol in its overrides, and its sequential
+    stopping (422 with the reason when it cannot be planned: another metrology, protocol
+    settings the plan chooses, no candidate that reaches the targets)."""
     cur = rt.current
     if rt.running() and cur is not None:  # not after seconds of planning
         raise HTTPException(409, f"{cur.status.kind} {cur.id} is still running")
@@ -184,7 +188,9 @@ def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConf
     tol, t = config.tolerances, body.targets or TargetsIn()
     try:
         targets = Targets(t.position or tol.position, t.beta or tol.beta, t.radius or tol.radius)
-        p = rt.planner.get(config, PlanRequest(targets=targets))
+        request = PlanRequest(targets=targets)
+        p = rt.planner.get(config, request)
+        stopping = None if p is None else stopping_for(config, p, request)
     except PlannerBusyError as exc:
         raise HTTPException(409, f"not started: {exc}") from exc
     except PlanError as exc:
@@ -195,7 +201,8 @@ def planned_config(rt: Rt, body: StartRequest, metrology: str, config: RobotConf
             "request again then (GET /plan shows the robot config's)",
         )  # fmt: skip
     doc.setdefault("protocol", {}).update(p.candidate.protocol())
-    return run_config(rt, ConfigOverrides.model_validate(doc), metrology)
+    assert stopping is not None
+    return run_config(rt, ConfigOverrides.model_validate(doc), metrology), stopping
 
 
 def start_checked(
@@ -205,6 +212,7 @@ def start_checked(
     metrology: str,
     refs: list[Reference],
     kind: RunKind = "calibration",
+    stopping: Stopping | None = None,
 ) -> CalibrationRun:
     """Start a run once ``GET /health`` passes (409 naming why not; 409 while one runs,
     507 without room, 503 when the store cannot be written; a check without a file in
@@ -213,7 +221,7 @@ def start_checked(
     if failing:
         raise HTTPException(409, "not started: GET /health is failing: " + "; ".join(failing))
     try:
-        return rt.start_run(config, install, metrology, refs, kind)
+        return rt.start_run(config, install, metrology, refs, kind, stopping)
     except (RunConflictError, NoFileError) as exc:
         raise HTTPException(409, str(exc)) from exc
     except DiskSpaceError as exc:

@@ -9,7 +9,10 @@ spin went (:mod:`services.runs.metrology`).
   ``rest_yaw_rate``.
 * SPIN: the yaw of the poses, unwrapped, from ``settle_time`` after the torque on
   (:class:`~services.runs.pose_motion.SpinWindow`); the segment ends once it has swept
-  ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run.
+  ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run.  A planned run
+  (``plan: auto``) stops sequentially instead (:class:`SequentialSpins`, docs/plan.md):
+  every :data:`JUDGE_STEP` of sweep the poses so far are fitted and the forecast
+  (:mod:`swpc_hw.calibration.forecast`) says whether the spin may end.
 """
 
 from __future__ import annotations
@@ -18,23 +21,33 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from services.config.robot import RobotConfig
 from services.runs.journal import SampleSource
 from services.runs.metrology import RunSteps
 from services.runs.pose_motion import REST_WINDOW, SpinWindow, motion_rates
-from services.runs.state import RunFailedError, State
+from services.runs.state import Forecast, RunFailedError, State
 from services.sensors.mocap import MocapIngest
+from swpc_hw.calibration.forecast import JUDGE_STEP, Judgement, SpinSoFar, Stopping, so_far
 from swpc_hw.dataset import Segment
+from swpc_hw.model import FloatArray
+
+
+def within_rate_limit(run: RunSteps, spin: SpinWindow) -> None:
+    """A yaw rate above ``limits.max_yaw_rate`` fails the run."""
+    limits = run.config.limits
+    if spin.rate is not None and abs(spin.rate) > limits.max_yaw_rate:
+        raise RunFailedError(
+            f"yaw rate {spin.rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
+        )
 
 
 def sweep_reached(run: RunSteps, spin: SpinWindow, done: int, total: int) -> float | None:
     """Judge a spin at a poll: the yaw-rate limit, the operator's progress; the sweep once
     ``sweep_deg`` is reached (None before)."""
-    limits, target = run.config.limits, math.radians(run.config.protocol.sweep_deg)
-    if spin.rate is not None and abs(spin.rate) > limits.max_yaw_rate:
-        raise RunFailedError(
-            f"yaw rate {spin.rate:.2f} rad/s exceeds the limit {limits.max_yaw_rate:g}"
-        )
+    target = math.radians(run.config.protocol.sweep_deg)
+    within_rate_limit(run, spin)
     if spin.start is None:
         return None
     sweep = spin.sweep
@@ -44,6 +57,54 @@ def sweep_reached(run: RunSteps, spin: SpinWindow, done: int, total: int) -> flo
     return sweep if sweep >= target else None
 
 
+def forecast_status(j: Judgement, stopping: Stopping) -> Forecast:
+    """What the run's status shows of a judgement."""
+    return Forecast(**j.document(stopping.requirement), targets=stopping.requirement.document())
+
+
+class SequentialSpins:
+    """A planned run's spins, each ended by the forecast (module docstring); what the
+    spins done gave is kept for the next ones' forecasts."""
+
+    def __init__(self, stopping: Stopping) -> None:
+        self.stopping = stopping
+        self.done: list[SpinSoFar] = []
+        self._judged = -math.inf
+
+    def begin(self) -> None:
+        self._judged = -math.inf
+
+    def judge(
+        self, run: RunSteps, spin: SpinWindow, poses: FloatArray, done: int, total: int
+    ) -> float | None:
+        """Judge the spin at a poll (``poses``: its window's ``t, x, y, yaw`` so far): the
+        yaw-rate limit, the forecast every :data:`JUDGE_STEP`; the sweep once the spin
+        may end (None before)."""
+        within_rate_limit(run, spin)
+        if spin.start is None:
+            return None
+        i = len(self.done)
+        if i >= len(self.stopping.spins):
+            raise RunFailedError(f"spin {i + 1}: the plan has {len(self.stopping.spins)}")
+        sweep, top = spin.sweep, self.stopping.max_sweep(i)
+        planned = self.stopping.spins[i].sweep
+        run.set_status(
+            sweep_deg=math.degrees(sweep),
+            progress=min((done + min(sweep / planned, 1.0)) / total, 1.0),
+        )
+        if (sweep - self._judged < JUDGE_STEP and sweep < top) or poses.shape[0] < 10:
+            return None
+        self._judged = sweep
+        rows = np.column_stack([poses[:, 0], poses[:, 1], poses[:, 2], np.unwrap(poses[:, 3])])
+        now = so_far(rows, sweep)
+        j = self.stopping.judge([*self.done, now])
+        run.set_status(forecast=forecast_status(j, self.stopping))
+        if not j.stop:
+            return None
+        self.done.append(now)
+        return sweep
+
+
 class MocapMetrology:
     """The poses of the robot's rigid body R on ``mocap/<robot>/pose`` (module docstring)."""
 
@@ -51,9 +112,11 @@ class MocapMetrology:
     sensor_name = "mocap"
     samples_field = "poses"
 
-    def __init__(self, mocap: MocapIngest, key: str) -> None:
+    def __init__(self, mocap: MocapIngest, key: str, stopping: Stopping | None = None) -> None:
         self.mocap = mocap
         self.key = key
+        self.sequential = None if stopping is None else SequentialSpins(stopping)
+        """A planned run's sequential stopping (None: every spin sweeps ``sweep_deg``)."""
         self._resets = mocap.counters.clock_resets  # at the run's start
         self.drive: tuple[float, float] | None = None  # it never drives straight
 
@@ -65,7 +128,14 @@ class MocapMetrology:
         return config.run_problems(self.name)
 
     def start_fields(self) -> dict[str, Any]:
-        return {}
+        return {} if self.sequential is None else {"stopping": "sequential"}
+
+    def forecast(self) -> Forecast | None:
+        """The plan's forecast before any spin (a planned run), for the run's status."""
+        if self.sequential is None:
+            return None
+        st = self.sequential.stopping
+        return forecast_status(st.before(), st)
 
     def precheck(self) -> list[str]:
         problems = []
@@ -133,12 +203,23 @@ class MocapMetrology:
             run.clock.now(), run.config.protocol.settle_time, latest.t_host, latest.yaw
         )
         deadline = run.deadline()
+        seq = self.sequential
+        if seq is not None:
+            seq.begin()
         while True:
             run.check(True, deadline)
             p = self.mocap.latest()
             assert p is not None
             spin.add(p.t_host, p.yaw)
-            sweep = sweep_reached(run, spin, done, total)
+            if seq is None:
+                sweep = sweep_reached(run, spin, done, total)
+            else:
+                window = (
+                    np.zeros((0, 4))
+                    if spin.start is None
+                    else self.mocap.samples(since_host=spin.start)[:, 2:6]
+                )
+                sweep = seq.judge(run, spin, window, done, total)
             if spin.start is not None:
                 run.set_status(poses=self.mocap.counters.accepted)
             if sweep is not None:

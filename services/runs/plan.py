@@ -23,7 +23,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
 from services.config.robot import RobotConfig
-from simulators.plan_predict import predicted_covariance
+from simulators.plan_predict import predicted_covariance, predicted_spins
+from swpc_hw.calibration.forecast import SpinInformation, Stopping
 from swpc_hw.calibration.plan import (
     SQUARE_BUDGET,
     Candidate,
@@ -105,6 +106,15 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
     )  # fmt: skip
 
 
+def stopping_for(config: RobotConfig, p: Plan, request: PlanRequest | None = None) -> Stopping:
+    """The sequential stopping of a run of plan ``p`` (docs/plan.md): the plan's spins
+    from a simulated run of it (kept, like the prediction) and its requirement."""
+    req = request or PlanRequest()
+    tm = time_model(config, req.yaw_rate)
+    spins = _spins(config.nominal.model_dump_json(), p.candidate, req.noise, tm)
+    return Stopping(spins, p.requirement)
+
+
 class PlannerBusyError(PlanError):
     """Another plan is being made (the service makes one at a time)."""
 
@@ -155,6 +165,7 @@ class Planner:
         out: Plan | PlanError
         try:
             out = plan_for(config, req)
+            stopping_for(config, out, req)  # kept: a run of it starts at once
         except PlanError as exc:
             out = exc
         except Exception as exc:  # a bug: its reason, not a planner stuck for ever
@@ -172,6 +183,15 @@ def _predicted(nominal: str, c: Candidate, noise: MocapNoise, tm: TimeModel) -> 
     prediction's seeds are fixed), and the service plans every ``plan: auto`` run."""
     robot = RobotParams.model_validate_json(nominal)
     return predicted_covariance(robot, c, noise, tm)
+
+
+@functools.lru_cache(maxsize=16)
+def _spins(
+    nominal: str, c: Candidate, noise: MocapNoise, tm: TimeModel
+) -> tuple[SpinInformation, ...]:
+    """:func:`predicted_spins`, kept (as :func:`_predicted`)."""
+    robot = RobotParams.model_validate_json(nominal)
+    return tuple(predicted_spins(robot, c, noise, tm))
 
 
 def plan_text(p: Plan) -> str:

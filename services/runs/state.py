@@ -93,6 +93,24 @@ class PersistError(RunFailedError):
     """The run's state could not be saved (the run store): the run ends FAILED."""
 
 
+class Forecast(BaseModel):
+    """A planned run's std devs forecast from its data so far (sequential stopping,
+    docs/plan.md): the worst per kind over the modules and the square path's, against the
+    plan's targets (mm, deg)."""
+
+    position_mm: float | None = None
+    beta_deg: float | None = None
+    radius_mm: float | None = None
+    square_position_mm: float | None = None
+    square_heading_deg: float | None = None
+    ratio: float | None = None
+    """The spin in progress: the largest std dev over its target on what the spin informs
+    (<= 1: met, the spin may end); before the first spin: the plan's on everything."""
+    targets: dict[str, float | None] = Field(default_factory=dict)
+    """The plan's requirement (``position_mm``, ``beta_deg``, ``radius_mm``,
+    ``square_position_mm``, ``square_heading_deg``)."""
+
+
 class RunStatus(BaseModel):
     """What an operator sees of a run (``GET /calibrations/{id}``)."""
 
@@ -127,6 +145,9 @@ class RunStatus(BaseModel):
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
     elapsed_s: float | None = None
     """Robot time since the run started (s)."""
+    forecast: Forecast | None = None
+    """A planned run (``plan: auto``): its std devs forecast from the data so far, updated
+    during every spin; None otherwise."""
     remaining_s: float | None = None
     """Robot time the steps left of the protocol's plan should take (s), estimated
     (:meth:`services.runs.machine.RunMachine.remaining`); None when it cannot be: before

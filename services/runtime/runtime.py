@@ -60,6 +60,7 @@ from services.store.logs import event
 from services.store.runs import RunStore
 from simulators.datagen_imu import GyroOptions
 from simulators.virtual_robot import VirtualRobot
+from swpc_hw.calibration.forecast import Stopping
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.drives.interface import Drives
 from swpc_hw.drives.robot_io import DrivesRobotIO
@@ -440,10 +441,12 @@ class Runtime:
         metrology: str = "mocap",
         references: Sequence[Reference] = (),
         kind: RunKind = "calibration",
+        stopping: Stopping | None = None,
     ) -> CalibrationRun:
         """Start a run of ``kind`` and ``config`` (already checked:
         :meth:`RobotConfig.for_run`) with ``metrology`` (``imu``: without motion capture,
-        with ``references``, checked: :func:`services.runs.imu.reference_problems`).  A
+        with ``references``, checked: :func:`services.runs.imu.reference_problems`);
+        ``stopping``: a planned run's sequential stopping (motion capture only).  A
         check (docs/check.md) judges the kinematic file in force as it is now (a copy in
         its directory) and installs nothing.
 
@@ -505,13 +508,15 @@ class Runtime:
                 mcap_profile=s.mcap_profile,
                 log_after=None if self.current is None else self.current.journal.log_end(),
             )
-            measure = self.metrology(metrology, config, references)
+            measure = self.metrology(metrology, config, references, stopping)
             run: CalibrationRun
             if checked is None:
                 run = CalibrationRun(io, measure, config, install=install, **common)
             else:
                 kf, info, _ = checked
                 run = CheckRun(io, measure, config, file=kf, file_info=info, **common)
+            if isinstance(measure, MocapMetrology):
+                run.status.forecast = measure.forecast()
             # its directory, and its raw CAN traffic beside its dataset (candump format, our
             # DBC decodes it), before it exists for anyone: nothing is left half-made
             try:
@@ -544,13 +549,20 @@ class Runtime:
         shutil.rmtree(run.run_dir, ignore_errors=True)
 
     def metrology(
-        self, name: str, config: RobotConfig, references: Sequence[Reference] = ()
+        self,
+        name: str,
+        config: RobotConfig,
+        references: Sequence[Reference] = (),
+        stopping: Stopping | None = None,
     ) -> Metrology:
-        """A new run's metrology on this service's sensors: ``mocap`` (motion capture) or
-        ``imu`` (the gyro, the encoders and ``references``)."""
+        """A new run's metrology on this service's sensors: ``mocap`` (motion capture,
+        with a planned run's ``stopping``) or ``imu`` (the gyro, the encoders and
+        ``references``)."""
         if name == "imu":
+            if stopping is not None:
+                raise ValueError("sequential stopping needs motion capture")
             return ImuMetrology(self.gyro, config, references)
-        return MocapMetrology(self.mocap, config.pose_key)
+        return MocapMetrology(self.mocap, config.pose_key, stopping)
 
     def _persist(self, run: CalibrationRun) -> None:
         """Save a run's state (its on_change); a failure is kept (health, the runs list
