@@ -766,10 +766,28 @@ def test_the_plan_is_shown_before_start_and_runs(
     d.find_element(By.ID, "start").click()
     run_id = wait_for("the new run on the page", lambda: (t := text(d, "run-id")) != before and t)
     assert text(d, "start-error") == ""
+    # during a spin: the std devs forecast from the data so far, against the targets
+    wait_for(
+        "a spin judged by its forecast",
+        lambda: "This spin ends once" in text(d, "forecast-note"), timeout=120,
+    )  # fmt: skip
+    wait_for(  # its rows are drawn anew at every live update: read until not stale
+        "the forecast's rows",
+        lambda: "mm" in text(d, "forecast-position") and "°" in text(d, "forecast-beta"),
+    )  # fmt: skip
+    assert text(d, "run-sweep").endswith("°")  # no "of 360°": the forecast ends the spin
+    shot(d, "18-forecast")
     assert wait_state(d, {"DONE", "FAILED", "ABORTED"}, timeout=300) == "DONE"
     with httpx.Client(base_url=service["url"], timeout=10.0) as http:
         st = http.get(f"/calibrations/{run_id}").json()
     assert st["segments"] == 4 * len(plan["protocol"]["angles_deg"])
     assert st["elapsed_s"] < 0.6 * 133.1  # the default protocol: 133 s of robot time
+    f = st["forecast"]  # the last judgement, as the page shows it
+    wait_for("the last forecast", lambda: "After 8 spins" in text(d, "forecast-note"))
+    row = wait_for("the radius row", lambda: text(d, "forecast-radius"))
+    shown = [float(w) for w in row.split() if w.replace(".", "", 1).isdigit()]
+    assert shown[0] == pytest.approx(f["radius_mm"], rel=5e-3), row  # forecast, target
+    assert shown[1] == pytest.approx(f["targets"]["radius_mm"], rel=5e-3), row
+    assert f["ratio"] <= 1.0
     d.find_element(By.ID, "f-plan").click()  # as the other tests left it
     assert text(d, "plan-text") == ""

@@ -395,18 +395,54 @@ function renderRun() {
   $("run-angle").textContent = st.angle_index ? `${st.angle_index} of ${st.angles_total}: ${fmt(st.angle_deg, 1)}°` : "–";
   const target = !app.hello ? null : st.kind === "check" ? app.hello.check.sweep_deg :
     Number($("f-sweep").value) || app.hello.protocol.sweep_deg;
-  $("run-sweep").textContent = `${fmt(st.sweep_deg, 1)}°` + (st.state === "SPIN" && target ? ` of ${target}°` : "");
+  // a planned run's spin ends by its forecast (below), not at a set sweep
+  $("run-sweep").textContent = `${fmt(st.sweep_deg, 1)}°` +
+    (st.state === "SPIN" && target && !st.forecast ? ` of ${target}°` : "");
   $("run-segments").textContent = String(st.segments);
   $("run-elapsed").textContent = st.elapsed_s === null ? "–" : `${duration(st.elapsed_s)} (robot time)`;
   $("run-remaining").textContent = st.remaining_s !== null ? `about ${duration(st.remaining_s)}` :
     !active ? "–" : st.segments === 0 ? "estimated once a spin has ended" : "not estimated in this step";
   $("run-progress").value = st.progress;
+  renderForecast(st);
   $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
   renderOperator(st);
   const link = $("run-result-link");
   link.hidden = st.state !== "DONE";
   link.href = (st.kind === "check" ? "#check/" : "#result/") + st.id;
   link.textContent = st.kind === "check" ? `Open the verdict (${st.verdict})` : "Open the result";
+}
+// a planned run's std devs, forecast from its data so far (docs/plan.md, sequential stopping)
+const FORECAST_ROWS = [
+  ["position", "x_s, y_s, b", "position_mm", "mm"],
+  ["beta", "homing error beta", "beta_deg", "°"],
+  ["radius", "wheel radius r", "radius_mm", "mm"],
+  ["square-position", "square path, end position", "square_position_mm", "mm"],
+  ["square-heading", "square path, end heading", "square_heading_deg", "°"],
+];
+function renderForecast(st) {
+  const f = st.forecast;
+  $("forecast").hidden = !f;
+  if (!f) return;
+  const sig = (x) => (x === null || x === undefined || !isFinite(x) ? "–" : x.toPrecision(3));
+  const rows = FORECAST_ROWS.filter(([, , key]) => f.targets[key] !== null && f.targets[key] !== undefined)
+    .map(([id, name, key, unit]) => {
+      const share = f[key] === null ? null : f[key] / f.targets[key];
+      return el("tr", { id: `forecast-${id}` },
+        el("th", { scope: "row" }, name),
+        el("td", { class: "num" }, `${sig(f[key])} ${unit}`),
+        el("td", { class: "num" }, `${sig(f.targets[key])} ${unit}`),
+        el("td", {}, el("meter", { min: "0", max: "2", low: "0.999", high: "1", optimum: "0",
+          value: String(share === null ? 2 : Math.min(share, 2)),
+          "aria-label": `${name}: ${share === null ? "unknown" : Math.round(100 * share) + " %"} of its target` }),
+          ` ${share === null ? "–" : Math.round(100 * share) + " %"}`));
+    });
+  $("forecast-rows").replaceChildren(...rows);
+  const ratio = f.ratio === null ? "–" : `${Math.round(100 * f.ratio)} %`;
+  $("forecast-note").textContent = st.state === "SPIN" ?
+    `This spin ends once what it measures is within its targets (now ${ratio}), ` +
+    "between 30° and twice its planned sweep." :
+    st.segments === 0 ? `The plan's prediction: ${ratio} of the targets at most.` :
+    `After ${st.segments} spins: the spins to come as planned.`;
 }
 function onLive(ev) {
   app.live = ev;
