@@ -32,6 +32,7 @@ import os
 import tempfile
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -39,10 +40,11 @@ import numpy as np
 
 from benchmarks.bench_check import TOKEN, start_and_wait
 from services.config.robot import RobotConfig
-from services.runs.plan import plan_for, time_model
+from services.runs.plan import plan_for, stopping_for, time_model
 from simulators.datagen import generate_experiment
 from simulators.plan_predict import experiment_options, predicted_covariance
 from simulators.random_robots import random_robots
+from swpc_hw.calibration.forecast import Stopping, forecast_covariance, replay
 from swpc_hw.calibration.plan import (
     Candidate,
     MocapNoise,
@@ -103,20 +105,35 @@ def as_matrix(p: RobotParams) -> np.ndarray:
 
 def offline(
     c: Candidate, nominal: RobotParams, truths: list[RobotParams], cov: np.ndarray,
-    cfg: RobotConfig,
+    cfg: RobotConfig, stopping: Stopping | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """Errors, z and the square path's error over the seeds of protocol ``c`` whose
     predicted covariance is ``cov``.  The square path's z: its end position's error (CCW
     and CW each) over its predicted std dev ``sqrt(var x + var y)``, its heading's over
-    ``sqrt(var yaw)``."""
-    predicted = stddevs(cov)
+    ``sqrt(var yaw)``.  With ``stopping``: every spin recorded to its most sweep and cut
+    where sequential stopping ends it (:func:`swpc_hw.calibration.forecast.replay`); the
+    z then against each seed's final forecast, and ``robot_time`` the seeds' robot times
+    (the plan's, less the sweep not spun at the time model's yaw rate)."""
     tm = time_model(cfg)
     S = square_path_sensitivity(nominal)
-    E_sq = S @ cov @ S.T
     err, z_pred, z_solver, sq_pos, sq_head, zsq_pos, zsq_head = [], [], [], [], [], [], []
+    times = []
     for i, truth in enumerate(truths):
-        opts = experiment_options(c, MocapNoise(), tm, 1000 + i)
-        res = solve(generate_experiment(truth, opts, nominal).dataset)
+        if stopping is None:
+            opts = experiment_options(c, MocapNoise(), tm, 1000 + i)
+            res = solve(generate_experiment(truth, opts, nominal).dataset)
+            seed_cov = cov
+        else:
+            longest = replace(c, sweep_deg=stopping.extension * c.sweep_deg + 5.0)
+            opts = experiment_options(longest, MocapNoise(), tm, 1000 + i)
+            ds = generate_experiment(truth, opts, nominal).dataset
+            cut, got = replay(ds, stopping)
+            res = solve(replace(ds, segments=cut))
+            seed_cov = forecast_covariance(stopping.spins, got)
+            unspun = sum(s.sweep - g.sweep for s, g in zip(stopping.spins, got, strict=True))
+            times.append(robot_time(c, len(nominal.ids), tm) - unspun / tm.yaw_rate)
+        predicted = stddevs(seed_cov)
+        E_sq = S @ seed_cov @ S.T
         e = as_matrix(res.params) - as_matrix(truth)
         e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
         err.append(e)
@@ -128,6 +145,7 @@ def offline(
             sq_head.append(abs(d[row + 2]))
             zsq_pos.append(sq_pos[-1] ** 2 / (E_sq[row, row] + E_sq[row + 1, row + 1]))
             zsq_head.append(sq_head[-1] ** 2 / E_sq[row + 2, row + 2])
+    predicted = stddevs(cov)
     E, Zp, Zs = np.array(err), np.array(z_pred), np.array(z_solver)
     out: dict[str, Any] = {}
     for kind, cols in KINDS.items():
@@ -143,6 +161,7 @@ def offline(
         float(np.sqrt(np.mean(np.square(sq_head)))), float(np.max(sq_head)),
         float(np.sqrt(np.mean(zsq_pos))), float(np.sqrt(np.mean(zsq_head))),
     )  # fmt: skip
+    out["robot_time"] = times
     return out
 
 
@@ -150,6 +169,10 @@ def print_stats(
     label: str, t_pred: float, stats: dict[str, Any], sq_sd: tuple[float, float]
 ) -> None:
     sq = stats["square"]
+    if stats["robot_time"]:
+        t = stats["robot_time"]
+        print(f"  {label}: robot time {np.mean(t):.1f} s on average ({min(t):.1f}-{max(t):.1f})"
+              f" of the plan's {t_pred:.1f} s")  # fmt: skip
     print(f"  {label}: predicted robot time {t_pred:.1f} s; square path predicted sd "
           f"{sq_sd[0] * 1e3:.3f} mm, {math.degrees(sq_sd[1]):.4f} deg; reached (CCW and CW) "
           f"RMS {sq[0] * 1e3:.3f} mm (largest {sq[1] * 1e3:.3f}), {math.degrees(sq[2]):.4f} "
@@ -193,7 +216,7 @@ def through_service(nominal: RobotParams, truth: RobotParams) -> list[str]:
         save_kinematics(data / "truth.yaml", truth)
         save_kinematics(data / "nominal.yaml", nominal)
         (data / "robot.yaml").write_text("nominal: nominal.yaml\n", encoding="utf-8")
-        for label, body in (("default", {}), ("planned", {"plan": "auto"})):
+        for label, body in (("default", {}), ("planned (sequential stopping)", {"plan": "auto"})):
             with service(data, data / "truth.yaml", data / "robot.yaml") as client:
                 st = start_and_wait(client, "calibrations", {**body, "install": "never"})
             if st["state"] != "DONE":
@@ -245,6 +268,10 @@ def main() -> None:
         p_stats = offline(c, nominal, truths, p.covariance, cfg)
         print_stats("default", robot_time(d, 4, tm), d_stats, square_path_sd(S, d_cov))
         print_stats("planned", p.robot_time, p_stats, square_path_sd(S, p.covariance))
+        stopping = stopping_for(cfg, p)
+        s_stats = offline(c, nominal, truths, p.covariance, cfg, stopping)
+        print_stats("planned, sequential stopping", p.robot_time, s_stats,
+                    square_path_sd(S, p.covariance))  # fmt: skip
         if with_service:
             for line in through_service(nominal, truth):
                 print(f"  through the service, {line}", flush=True)
