@@ -125,9 +125,13 @@ def test_a_spin_ends_between_its_least_and_its_most_sweep(
     early = SpinSoFar(0.9 * MIN_SWEEP, s0.fixed_covariance, s0.sigma)
     at_min = SpinSoFar(MIN_SWEEP, s0.fixed_covariance, s0.sigma)
     assert not loose.judge([early]).stop  # met, but not swept enough
-    assert loose.judge([at_min]).stop
-    assert not tight.judge([dataclasses.replace(at_min, sweep=1.9 * s0.sweep)]).stop
-    assert tight.judge([dataclasses.replace(at_min, sweep=2.0 * s0.sweep)]).stop
+    assert loose.judge([at_min]).why == "met"
+    long = dataclasses.replace(at_min, sweep=1.9 * s0.sweep)
+    assert not tight.judge([long]).stop
+    assert tight.judge([dataclasses.replace(long, sweep=2.0 * s0.sweep)]).why == "most sweep"
+    # the time it may take (the run's step timeout, with a margin) ends it too
+    assert not tight.judge([long], spin_time=47.9, max_spin_time=48.0).stop
+    assert tight.judge([long], spin_time=48.0, max_spin_time=48.0).why == "spin time"
     # what a spin is judged on: its locked module's geometry and the others' radii
     mask = informed(spins[2], 4)
     assert mask[spins[2].module, :4].all() and not mask[spins[2].module, R]

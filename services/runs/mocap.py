@@ -17,6 +17,7 @@ spin went (:mod:`services.runs.metrology`).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -57,6 +58,11 @@ def sweep_reached(run: RunSteps, spin: SpinWindow, done: int, total: int) -> flo
     return sweep if sweep >= target else None
 
 
+SPIN_TIME_SHARE = 0.8
+"""The share of ``limits.step_timeout`` a planned run's spin may last before it ends
+unmet (the run fails at the step timeout: ending the spin keeps its data)."""
+
+
 def forecast_status(j: Judgement, stopping: Stopping) -> Forecast:
     """What the run's status shows of a judgement."""
     return Forecast(**j.document(stopping.requirement), targets=stopping.requirement.document())
@@ -75,10 +81,11 @@ class SequentialSpins:
         self._judged = -math.inf
 
     def judge(
-        self, run: RunSteps, spin: SpinWindow, poses: FloatArray, done: int, total: int
+        self, run: RunSteps, k: int, spin: SpinWindow, poses: FloatArray, done: int, total: int
     ) -> float | None:
-        """Judge the spin at a poll (``poses``: its window's ``t, x, y, yaw`` so far): the
-        yaw-rate limit, the forecast every :data:`JUDGE_STEP`; the sweep once the spin
+        """Judge the spin about module ``k`` at a poll (``poses``: its window's ``t, x, y,
+        yaw`` so far): the yaw-rate limit, the forecast every :data:`JUDGE_STEP` (the spin
+        may last :data:`SPIN_TIME_SHARE` of the step timeout); the sweep once the spin
         may end (None before)."""
         within_rate_limit(run, spin)
         if spin.start is None:
@@ -86,6 +93,12 @@ class SequentialSpins:
         i = len(self.done)
         if i >= len(self.stopping.spins):
             raise RunFailedError(f"spin {i + 1}: the plan has {len(self.stopping.spins)}")
+        ids = run.config.nominal.ids
+        if ids[self.stopping.spins[i].module] != k:
+            raise RunFailedError(
+                f"spin {i + 1} locks module {k}; the plan's locks module "
+                f"{ids[self.stopping.spins[i].module]}"
+            )
         sweep, top = spin.sweep, self.stopping.max_sweep(i)
         planned = self.stopping.spins[i].sweep
         run.set_status(
@@ -97,11 +110,18 @@ class SequentialSpins:
         self._judged = sweep
         rows = np.column_stack([poses[:, 0], poses[:, 1], poses[:, 2], np.unwrap(poses[:, 3])])
         now = so_far(rows, sweep)
-        j = self.stopping.judge([*self.done, now])
+        spin_time = run.clock.now() - spin.t_spin
+        most = SPIN_TIME_SHARE * run.config.limits.step_timeout
+        j = self.stopping.judge([*self.done, now], spin_time, most)
         run.set_status(forecast=forecast_status(j, self.stopping))
         if not j.stop:
             return None
         self.done.append(now)
+        level = logging.INFO if j.why == "met" else logging.WARNING
+        run.event(
+            level, "run.spin_judged", spin=i + 1, module=k, sweep_deg=round(math.degrees(sweep), 1),
+            planned_deg=round(math.degrees(planned), 1), ratio=round(j.ratio, 3), why=j.why,
+        )  # fmt: skip
         return sweep
 
 
@@ -219,7 +239,7 @@ class MocapMetrology:
                     if spin.start is None
                     else self.mocap.samples(since_host=spin.start)[:, 2:6]
                 )
-                sweep = seq.judge(run, spin, window, done, total)
+                sweep = seq.judge(run, k, spin, window, done, total)
             if spin.start is not None:
                 run.set_status(poses=self.mocap.counters.accepted)
             if sweep is not None:

@@ -177,6 +177,10 @@ class Judgement:
     covariance: FloatArray
     ratio: float
     stop: bool
+    why: str = ""
+    """Why the spin ends: ``met`` (the forecast meets the requirement), ``most sweep``
+    (``extension`` times its planned sweep), ``spin time`` (the time it may take is up);
+    empty while it goes on."""
 
     def document(self, requirement: Requirement) -> dict[str, float | None]:
         """The forecast's worst std dev per kind and the square path's (mm, deg), and the
@@ -246,16 +250,26 @@ class Stopping:
         cov = forecast_covariance(self.spins, [])
         return Judgement(cov, self.ratio(cov), False)
 
-    def judge(self, so_far: Sequence[SpinSoFar]) -> Judgement:
-        """Judge the spin in progress, ``so_far[-1]`` (the ones before it done)."""
+    def judge(
+        self, so_far: Sequence[SpinSoFar], spin_time: float = 0.0, max_spin_time: float = math.inf
+    ) -> Judgement:
+        """Judge the spin in progress, ``so_far[-1]`` (the ones before it done), which has
+        lasted ``spin_time`` of the ``max_spin_time`` it may (s; the run's step timeout
+        with a margin: the spin ends before the run would fail)."""
         i = len(so_far) - 1
         if i < 0:
             raise CalibrationError("judge: no spin in progress")
         cov = forecast_covariance(self.spins, so_far)
         ratio = self.ratio(cov, informed(self.spins[i], self.n))
         sweep = so_far[-1].sweep
-        stop = sweep >= self.max_sweep(i) or (sweep >= self.min_sweep and ratio <= 1.0)
-        return Judgement(cov, ratio, stop)
+        why = ""
+        if sweep >= self.min_sweep and ratio <= 1.0:
+            why = "met"
+        elif sweep >= self.max_sweep(i):
+            why = "most sweep"
+        elif spin_time >= max_spin_time:
+            why = "spin time"
+        return Judgement(cov, ratio, bool(why), why)
 
 
 def so_far(poses: FloatArray, sweep: float) -> SpinSoFar:
