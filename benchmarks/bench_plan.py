@@ -65,7 +65,7 @@ def default_protocol(cfg: RobotConfig) -> Candidate:
     p = cfg.protocol
     return Candidate(
         tuple(p.angles_deg), p.sweep_deg, p.settle_time, p.stop_time, p.align_time,
-        p.resteer_time,
+        p.resteer_time, cfg.limits.spin_torque,
     )  # fmt: skip
 
 
