@@ -171,7 +171,7 @@ def test_the_plan_chooses_the_spin_torque_too() -> None:
     torques = spin_torques(0.6, 2.0, 1.2, tm)
     p = plan(predict, req, IDS, PAUSES, tm, torques=torques)
     pool = candidates(PAUSES, torques=torques)
-    assert len(pool) == 3 * 2 * 16
+    assert len(pool) == 3 * 2 * 21  # angle sets, torques, sweeps
     meeting = [c for c in pool if req.ratio(by_sweep_per_second(c)) <= 1.0]
     fastest = min(meeting, key=lambda c: robot_time(c, 4, tm))
     assert p.candidate == fastest and p.candidate.spin_torque == 1.03
@@ -188,7 +188,7 @@ def test_the_plan_chooses_the_spin_torque_too() -> None:
 
 
 def test_a_requirement_no_candidate_meets_names_the_closest() -> None:
-    with pytest.raises(PlanError, match=r"closest \(angles 45, 165, 285 deg, 360 deg sweeps"):
+    with pytest.raises(PlanError, match=r"closest \(angles 45, 165, 285 deg, 720 deg sweeps"):
         plan(synthetic, Requirement(Targets(1e-9, 1e-9, 1e-9)), IDS, PAUSES, TimeModel())
     # spins longer than the step timeout are never tried
     with pytest.raises(PlanError, match="within the step timeout"):

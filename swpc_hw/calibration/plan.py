@@ -388,8 +388,11 @@ chord), three 120 deg apart.  Every module gets the same set (the protocol's
 ``angles_deg``)."""
 
 SWEEPS: tuple[float, ...] = (30.0, 45.0, 60.0, 75.0, 90.0, 105.0, 120.0, 135.0, 150.0, 165.0,
-                             180.0, 210.0, 240.0, 270.0, 300.0, 360.0)  # fmt: skip
-"""The sweeps tried (deg of yaw per spin)."""
+                             180.0, 210.0, 240.0, 270.0, 300.0, 360.0, 420.0, 480.0, 540.0,
+                             600.0, 720.0)  # fmt: skip
+"""The sweeps tried (deg of yaw per spin).  Beyond a turn: at the fastest spin torque a
+window of 360 deg lasts 6.2 s, and the default protocol's own std devs need windows as
+long as its own (10.6 s at 0.59 rad/s, docs/plan.md)."""
 
 
 @dataclass
