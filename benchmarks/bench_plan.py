@@ -195,6 +195,8 @@ def through_service(nominal: RobotParams, truth: RobotParams) -> list[str]:
         (data / "robot.yaml").write_text("nominal: nominal.yaml\n", encoding="utf-8")
         for label, body in (("default", {}), ("planned", {"plan": "auto"})):
             with service(data, data / "truth.yaml", data / "robot.yaml") as client:
+                while body and client.get("/plan").status_code == 202:  # being made
+                    time.sleep(0.1)
                 st = start_and_wait(client, "calibrations", {**body, "install": "never"})
             if st["state"] != "DONE":
                 out.append(f"{label}: {st['state']} ({st['reason']})")
