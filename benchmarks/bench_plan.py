@@ -67,7 +67,7 @@ def default_protocol(cfg: RobotConfig) -> Candidate:
     p = cfg.protocol
     return Candidate(
         tuple(p.angles_deg), p.sweep_deg, p.settle_time, p.stop_time, p.align_time,
-        p.resteer_time,
+        p.resteer_time, cfg.limits.spin_torque,
     )  # fmt: skip
 
 
@@ -131,7 +131,7 @@ def offline(
             res = solve(replace(ds, segments=cut))
             seed_cov = forecast_covariance(stopping.spins, got)
             unspun = sum(s.sweep - g.sweep for s, g in zip(stopping.spins, got, strict=True))
-            times.append(robot_time(c, len(nominal.ids), tm) - unspun / tm.yaw_rate)
+            times.append(robot_time(c, len(nominal.ids), tm) - unspun / tm.yaw_rate(c.spin_torque))
         predicted = stddevs(seed_cov)
         E_sq = S @ seed_cov @ S.T
         e = as_matrix(res.params) - as_matrix(truth)
@@ -218,6 +218,8 @@ def through_service(nominal: RobotParams, truth: RobotParams) -> list[str]:
         (data / "robot.yaml").write_text("nominal: nominal.yaml\n", encoding="utf-8")
         for label, body in (("default", {}), ("planned (sequential stopping)", {"plan": "auto"})):
             with service(data, data / "truth.yaml", data / "robot.yaml") as client:
+                while body and client.get("/plan").status_code == 202:  # being made
+                    time.sleep(0.1)
                 st = start_and_wait(client, "calibrations", {**body, "install": "never"})
             if st["state"] != "DONE":
                 out.append(f"{label}: {st['state']} ({st['reason']})")

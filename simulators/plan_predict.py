@@ -30,12 +30,13 @@ def experiment_options(
     c: Candidate, noise: MocapNoise, tm: TimeModel, seed: int = 0
 ) -> ExperimentOptions:
     """The offline experiment of candidate ``c``: its angles, a window of ``sweep`` at the
-    time model's yaw rate, its settle and align times, the metrology's noise."""
+    time model's yaw rate at its spin torque, its settle and align times, the metrology's
+    noise."""
     return dataclasses.replace(
         ExperimentOptions(),
         angles=tuple(math.radians(a) for a in c.angles_deg),
-        yaw_rate=tm.yaw_rate,
-        spin_duration=math.radians(c.sweep_deg) / tm.yaw_rate,
+        yaw_rate=tm.yaw_rate(c.spin_torque),
+        spin_duration=tm.window(c),
         settle_time=c.settle_time,
         align_time=c.align_time,
         pose_rate=noise.rate,

@@ -37,8 +37,8 @@ from swpc_hw.calibration.uncertainty import sandwich_covariance
 from swpc_hw.dataset import Dataset
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
-PLAN = Candidate((45.0, 165.0), 165.0, 1.5, 1.0, 0.5, 2.5)
-"""The default requirement's plan on the paper's robot (docs/plan.md)."""
+PLAN = Candidate((45.0, 165.0), 165.0, 1.5, 1.0, 0.5, 2.5, 0.6)
+"""The default requirement's plan on the paper's robot at the config's spin torque."""
 TM = TimeModel()
 NOISE = MocapNoise()
 

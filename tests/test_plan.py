@@ -9,9 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from simulators.plan_predict import predicted_covariance
+from simulators.plan_predict import experiment_options, predicted_covariance
 from swpc_hw.calibration.plan import (
     ANGLE_SETS,
+    YAW_RATE_MARGIN,
     Candidate,
     MocapNoise,
     PlanError,
@@ -21,6 +22,7 @@ from swpc_hw.calibration.plan import (
     candidates,
     plan,
     robot_time,
+    spin_torques,
     square_path_end,
     square_path_sd,
     square_path_sensitivity,
@@ -29,9 +31,9 @@ from swpc_hw.calibration.plan import (
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 IDS = [1, 2, 3, 4]
-DEFAULT = Candidate((45.0, 165.0), 360.0, 3.0, 1.5, 1.0, 2.5)
-"""The robot config's default protocol."""
-PAUSES = Candidate((), 0.0, 1.5, 1.0, 0.5, 2.5)
+DEFAULT = Candidate((45.0, 165.0), 360.0, 3.0, 1.5, 1.0, 2.5, 0.6)
+"""The robot config's default protocol (at its spin torque)."""
+PAUSES = Candidate((), 0.0, 1.5, 1.0, 0.5, 2.5, 0.6)
 SD = np.array([1e-5, 1e-5, 2e-5, 3e-6, 1e-6])  # x_s, y_s, beta, b, r at 360 deg, 2 angles
 
 
@@ -43,6 +45,42 @@ def test_the_default_protocol_takes_the_robot_time_the_service_measured() -> Non
     assert robot_time(DEFAULT, 4, TimeModel()) - robot_time(short, 4, TimeModel()) == (
         pytest.approx(8 * math.pi / 0.59)
     )
+
+
+def test_a_faster_spin_torque_shortens_every_window_in_proportion() -> None:
+    tm = TimeModel()
+    assert tm.yaw_rate(0.6) == pytest.approx(0.59)  # the simulator's, measured
+    fast = replace(DEFAULT, spin_torque=1.03)
+    assert tm.yaw_rate(1.03) == pytest.approx(1.0128, abs=1e-4)
+    # 8 windows of 360 deg, each 2 pi / omega: 85.2 s at 0.59 rad/s, 49.6 s at 1.013 rad/s
+    saved = robot_time(DEFAULT, 4, tm) - robot_time(fast, 4, tm)
+    assert saved == pytest.approx(8 * 2 * math.pi * (1 / 0.59 - 1 / tm.yaw_rate(1.03)))
+    assert saved == pytest.approx(35.6, abs=0.1)
+    # the lead's predictions (docs/history/2026-11-27-plan.md): 45 and 165 deg at 1.0 rad/s
+    # with the check's pauses, 360 deg sweeps 79.9 s, 720 deg 130.1 s
+    one = replace(
+        PAUSES, angles_deg=(45.0, 165.0), sweep_deg=360.0, spin_torque=1.0 / tm.rate_per_torque
+    )
+    assert robot_time(one, 4, tm) == pytest.approx(79.9, abs=0.1)
+    assert robot_time(replace(one, sweep_deg=720.0), 4, tm) == pytest.approx(130.1, abs=0.1)
+
+
+def test_the_spin_torques_tried_stay_under_the_limits_and_never_slow_the_spin() -> None:
+    tm = TimeModel()  # 0.983 rad/s per N.m
+    # the robot config's limits: 0.6 N.m, max_wheel_torque 2.0 N.m, max_yaw_rate 1.2 rad/s:
+    # the yaw rate may take 85 % of the limit, 1.02 rad/s: 1.037 N.m, rounded down
+    assert YAW_RATE_MARGIN == 0.85
+    assert spin_torques(0.6, 2.0, 1.2, tm) == (1.03, 0.6)
+    assert tm.yaw_rate(1.03) <= YAW_RATE_MARGIN * 1.2 < tm.yaw_rate(1.04)
+    # the wheel's torque limit binds first
+    assert spin_torques(0.6, 0.8, 1.2, tm) == (0.8, 0.6)
+    # a tighter yaw-rate limit: 0.85 x 0.9 rad/s at 0.983 rad/s per N.m, 0.778 N.m
+    assert spin_torques(0.6, 2.0, 0.9, tm) == (0.77, 0.6)
+    # never slower than the config's: its torque alone when nothing faster fits
+    assert spin_torques(0.6, 2.0, 0.7, tm) == (0.6,)  # 0.605 N.m rounds down to 0.60
+    assert spin_torques(1.1, 2.0, 1.2, tm) == (1.1,)  # 1.08 rad/s: above the margin, kept
+    # a real robot's rate per torque (swpc plan --yaw-rate 0.45 at 0.6 N.m): 0.75 rad/s/N.m
+    assert spin_torques(0.6, 2.0, 1.2, TimeModel(rate_per_torque=0.45 / 0.6)) == (1.36, 0.6)
 
 
 def test_the_square_path_closes_with_the_true_file_and_not_with_the_design() -> None:
@@ -109,11 +147,48 @@ def test_the_plan_is_the_fastest_candidate_that_meets_the_targets() -> None:
     assert tighter.robot_time > p.robot_time
     doc = p.document()
     assert doc["protocol"]["sweep_deg"] == fastest.sweep_deg
+    assert doc["spin_torque_nm"] == 0.6 and doc["yaw_rate_rad_s"] == pytest.approx(0.59)
     assert [row["module"] for row in doc["predicted"]] == IDS
 
 
+def by_sweep_per_second(c: Candidate) -> np.ndarray:
+    """A covariance that shrinks as the yaw swept grows and as the window's samples grow
+    (a faster spin sweeps more in the same time)."""
+    seconds = math.radians(c.sweep_deg) / TimeModel().yaw_rate(c.spin_torque)
+    scale = (360.0 / c.sweep_deg) ** 1.0 * (4.0 / seconds) ** 0.5 * 2.0 / len(c.angles_deg)
+    return np.diag(np.tile((SD * scale) ** 2, 4))
+
+
+def test_the_plan_chooses_the_spin_torque_too() -> None:
+    tm = TimeModel()
+    req = Requirement(Targets(position=3e-5, beta=6e-5, radius=3e-6))
+    calls: list[Candidate] = []
+
+    def predict(c: Candidate) -> np.ndarray:
+        calls.append(c)
+        return by_sweep_per_second(c)
+
+    torques = spin_torques(0.6, 2.0, 1.2, tm)
+    p = plan(predict, req, IDS, PAUSES, tm, torques=torques)
+    pool = candidates(PAUSES, torques=torques)
+    assert len(pool) == 3 * 2 * 21  # angle sets, torques, sweeps
+    meeting = [c for c in pool if req.ratio(by_sweep_per_second(c)) <= 1.0]
+    fastest = min(meeting, key=lambda c: robot_time(c, 4, tm))
+    assert p.candidate == fastest and p.candidate.spin_torque == 1.03
+    assert p.yaw_rate == pytest.approx(1.0128, abs=1e-4)
+    slow = plan(by_sweep_per_second, req, IDS, PAUSES, tm)  # the config's torque only
+    assert slow.candidate.spin_torque == 0.6
+    assert p.robot_time < 0.85 * slow.robot_time
+    # the search per (angles, torque), the fastest torque first: the slower torque's pairs
+    # cost one prediction each (their largest sweep faster than the plan falls short)
+    assert len(calls) <= 12
+    assert p.candidate.overrides() == {
+        "protocol": p.candidate.protocol(), "limits": {"spin_torque": 1.03}
+    }  # fmt: skip
+
+
 def test_a_requirement_no_candidate_meets_names_the_closest() -> None:
-    with pytest.raises(PlanError, match=r"closest \(angles 45, 165, 285 deg, 360 deg sweeps"):
+    with pytest.raises(PlanError, match=r"closest \(angles 45, 165, 285 deg, 720 deg sweeps"):
         plan(synthetic, Requirement(Targets(1e-9, 1e-9, 1e-9)), IDS, PAUSES, TimeModel())
     # spins longer than the step timeout are never tried
     with pytest.raises(PlanError, match="within the step timeout"):
@@ -132,6 +207,22 @@ def test_the_square_path_budget_is_a_requirement_too() -> None:
     assert Requirement(loose).ratio(cov) < 1e-3
     ratio = Requirement(loose, S, (pos / 2, head * 4)).ratio(cov)
     assert ratio == pytest.approx(2.0)
+
+
+def test_the_prediction_spins_at_the_candidates_yaw_rate() -> None:
+    tm = TimeModel()
+    c = replace(PAUSES, angles_deg=(45.0, 165.0), sweep_deg=180.0)
+    fast = replace(c, spin_torque=1.03)
+    opts = experiment_options(fast, MocapNoise(), tm)
+    assert opts.yaw_rate == pytest.approx(1.0128, abs=1e-4)
+    assert opts.yaw_rate * opts.spin_duration == pytest.approx(math.pi)  # the sweep
+    sd = stddevs(predicted_covariance(PAPER_NOMINAL, c, MocapNoise(), tm, seeds=(0,)))
+    sd_fast = stddevs(predicted_covariance(PAPER_NOMINAL, fast, MocapNoise(), tm, seeds=(0,)))
+    # the same sweep in 0.6 / 1.03 of the time: x_s, y_s, beta, r grow about as the square
+    # root of the samples lost (1.31), b hardly (the settled casters pin it)
+    ratio = sd_fast / sd
+    assert np.all((ratio[:, [0, 1, 2, 4]] > 1.2) & (ratio[:, [0, 1, 2, 4]] < 1.6))
+    assert np.all((ratio[:, 3] > 0.9) & (ratio[:, 3] < 1.15))
 
 
 def test_the_prediction_is_the_solvers_covariance_and_shrinks_with_the_sweep() -> None:

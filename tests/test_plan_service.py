@@ -17,7 +17,7 @@ from services.cli import main as swpc
 from services.config.robot import RobotConfig
 from services.runs.plan import Planner, PlannerBusyError, PlanRequest, plan_for
 from swpc_hw.calibration.plan import MocapNoise, PlanError, Targets
-from tests.service_rig import AUTH, Sim, app_without_robot
+from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
 
 
 def until_planned(sim: Sim, body: dict[str, Any]) -> Any:
@@ -54,18 +54,32 @@ def test_a_planned_calibration_stops_each_spin_once_its_forecast_meets_the_plan(
     assert st["state"] == "DONE", st["reason"]
     assert st["angles_total"] == len(p.candidate.angles_deg)
     assert st["segments"] == 4 * len(p.candidate.angles_deg)
+    # the plan spins faster than the config's 0.6 N.m: 1.03 N.m, 1.013 rad/s predicted
+    # (85 % of limits.max_yaw_rate 1.2 rad/s), and the run spins at it
+    assert p.candidate.spin_torque == 1.03
+    assert sim.rt.runs[rid].config.limits.spin_torque == 1.03
     assert len(forecasts) >= 8  # judged during every spin
     assert st["forecast"]["ratio"] <= 1.0  # the last spin ended on a forecast that meets it
     # the simulator's poses are as noisy as the plan assumes: the spins end near their
-    # planned sweep, some (whose module the plan over-serves) well before
-    assert st["elapsed_s"] < p.robot_time
-    assert st["elapsed_s"] > 0.5 * p.robot_time
+    # planned sweep, some (whose module the plan over-serves) well before; the default
+    # protocol takes 133 s
+    assert 0.5 * p.robot_time < st["elapsed_s"] < p.robot_time
     ds = sim.rt.runs[rid].dataset()
     swept = []
     for seg in ds.segments:
         poses = ds.poses[(ds.poses[:, 0] >= seg.start) & (ds.poses[:, 0] <= seg.end)]
         yaw = np.unwrap(poses[:, 3])
         swept.append(abs(math.degrees(float(yaw[-1] - yaw[0]))))
+        # the window's yaw rate: 0.99-1.05 rad/s (the pivot differs per module and angle),
+        # within 5 % of the prediction and under the limit, over 0.1 s as well
+        rate = abs(float(yaw[-1] - yaw[0]) / float(poses[-1, 0] - poses[0, 0]))
+        assert rate == pytest.approx(p.yaw_rate, rel=0.05)
+        fast = np.abs(np.diff(yaw[::10]) / np.diff(poses[::10, 0]))
+        assert fast.max() < 0.95 * 1.2
+        for m, e in ds.encoders.items():  # the casters have settled: steady in the window
+            if m != seg.static_module:
+                steer = e[(e[:, 0] >= seg.start) & (e[:, 0] <= seg.end), 1]
+                assert math.degrees(float(np.ptp(np.unwrap(steer)))) < 0.05
     assert min(swept) >= 29.0 and max(swept) <= 2 * p.candidate.sweep_deg + 3.0, swept
     assert sum(swept) < 8 * p.candidate.sweep_deg
     res = sim.client.get(f"/calibrations/{rid}/result").json()
@@ -81,8 +95,21 @@ def test_a_planned_calibration_stops_each_spin_once_its_forecast_meets_the_plan(
     assert r.status_code == 200, r.text
     doc = r.json()
     assert doc["protocol"] == p.candidate.protocol()
+    assert doc["spin_torque_nm"] == 1.03 and doc["yaw_rate_rad_s"] == pytest.approx(1.013)
     assert doc["robot_time_s"] == round(p.robot_time, 1)
     assert [row["module"] for row in doc["predicted"]] == [1, 2, 3, 4]
+
+
+def test_a_run_that_tightens_the_yaw_rate_limit_gets_a_plan_within_it(sim: Sim) -> None:
+    # limits.max_yaw_rate 0.9 rad/s: 85 % of it at 0.983 rad/s per N.m is 0.778 N.m
+    body = {"plan": "auto", "overrides": {"limits": {"max_yaw_rate": 0.9}}, "install": "never"}
+    r = until_planned(sim, body)
+    assert r.status_code == 202, r.text
+    rid = r.json()["id"]
+    limits = sim.rt.runs[rid].config.limits
+    assert (limits.spin_torque, limits.max_yaw_rate) == (0.77, 0.9)
+    assert sim.client.post(f"/calibrations/{rid}/abort", headers=AUTH).status_code == 200
+    assert wait_state(sim.client, rid, {"DONE", "FAILED", "ABORTED"})["state"] == "ABORTED"
 
 
 def test_a_plan_that_cannot_be_made_is_refused_with_its_reason(sim: Sim) -> None:
@@ -94,6 +121,11 @@ def test_a_plan_that_cannot_be_made_is_refused_with_its_reason(sim: Sim) -> None
 
     code, text = post({"plan": "auto", "overrides": {"protocol": {"sweep_deg": 90}}})
     assert code == 422 and "plan auto chooses protocol.sweep_deg" in text
+    # the spin torque is the plan's too (a slower one tightens the limit, and still is)
+    code, text = post({"plan": "auto", "overrides": {"limits": {"spin_torque": 0.5}}})
+    assert code == 422 and "plan auto chooses limits.spin_torque" in text
+    code, text = post({"overrides": {"limits": {"spin_torque": 1.03}}})  # without a plan
+    assert code == 422 and "limits.spin_torque: 1.03 would loosen" in text
     code, text = post({"plan": "auto", "metrology": "imu"})
     assert code == 422 and "motion capture" in text
     code, text = post({"targets": {"beta": 0.001}})
@@ -114,12 +146,14 @@ def test_swpc_plan_prints_the_plan(capsys: pytest.CaptureFixture[str]) -> None:
     doc = json.loads(capsys.readouterr().out)
     p = plan_for(RobotConfig())
     assert doc["protocol"] == p.candidate.protocol()
+    assert doc["spin_torque_nm"] == p.candidate.spin_torque == 1.03
     assert doc["robot_time_s"] == round(p.robot_time, 1)
     assert doc["ratio"] <= 1.0
     assert doc["square_position_mm"] <= 0.5 and doc["square_heading_deg"] <= 0.016
     assert swpc(["plan"]) == 0
     out = capsys.readouterr().out
     assert f"robot time: {p.robot_time:.1f} s (predicted)" in out
+    assert "spin torque: 1.03 N.m (yaw rate 1.01 rad/s, predicted)" in out
     assert "square path within 0.5 mm, 0.016 deg" in out
     assert swpc(["plan", "--target-position-mm", "0.000001"]) == 2
     assert "no candidate protocol reaches the requirement" in capsys.readouterr().err

@@ -1,8 +1,9 @@
 """``swpc plan``: the calibration protocol that reaches the targets in the least robot time.
 
-Prints the plan (steering angles, sweep, pauses), its predicted robot time, the
-requirement (per-kind targets, the square path's budget) and each module's predicted
-std devs, then every candidate predicted on the way (docs/plan.md).  ``--json`` prints
+Prints the plan (steering angles, sweep, pauses, spin torque and its predicted yaw
+rate), its predicted robot time, the requirement (per-kind targets, the square path's
+budget) and each module's predicted std devs, then every candidate predicted on the way
+(docs/plan.md).  ``--json`` prints
 the same as a document.  ``POST /calibrations {"plan": "auto"}`` runs it.  Exit status 2
 (one line on stderr) when no candidate reaches the requirement, naming the closest.
 """
@@ -20,7 +21,8 @@ def register(sub: Any) -> None:
         "plan",
         help="plan a calibration: the protocol reaching the targets in the least robot time",
         description=(
-            "Choose the steering angles and sweep of a calibration with motion capture from "
+            "Choose the steering angles, sweep and spin torque of a calibration with motion "
+            "capture from "
             "the Fisher information each candidate yields (its simulated data solved by the "
             "joint solver, on the nominal robot), the fastest whose predicted std devs meet "
             "the targets and keep the square path within its budget. See docs/plan.md."
@@ -45,8 +47,8 @@ def register(sub: Any) -> None:
     p.add_argument("--rho", type=float, default=0.0, help="mocap noise AR(1) coefficient (0)")
     p.add_argument(
         "--yaw-rate", type=float,
-        help="the robot's yaw rate while spinning, rad/s (default: the simulator's at the "
-        "config's spin torque)",
+        help="the robot's yaw rate while spinning at the config's limits.spin_torque, rad/s "
+        "(default: the simulator's); other spin torques' in proportion",
     )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
     p.set_defaults(func=run)

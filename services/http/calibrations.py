@@ -82,9 +82,9 @@ class StartRequest(BaseModel):
     metrology: Literal["mocap", "imu"] | None = None
     references: list[ReferenceIn] = Field(default_factory=list)
     plan: Literal["auto"] | None = None
-    """``auto``: the protocol is planned (docs/plan.md): the angles, sweep and pauses that
-    reach ``targets`` and keep the square path within its budget in the least robot time
-    (with motion capture only; the request's ``overrides.protocol`` may not set them)."""
+    """``auto``: the protocol is planned (docs/plan.md): the angles, sweep, pauses and spin
+    torque that reach ``targets`` and keep the square path within its budget in the least
+    robot time (with motion capture only; the request's ``overrides`` may not set them)."""
     targets: TargetsIn | None = None
     """With ``plan``: per-kind target std devs (default: the robot config's tolerances)."""
 
@@ -116,12 +116,23 @@ def start_references(
 
 
 def run_config(
-    rt: Rt, overrides: ConfigOverrides, metrology: str, kind: RunKind = "calibration"
+    rt: Rt,
+    overrides: ConfigOverrides,
+    metrology: str,
+    kind: RunKind = "calibration",
+    *,
+    spin_torque: float | None = None,
 ) -> RobotConfig:
     """The run's robot config: the service's (a check's: :meth:`RobotConfig.check_config`)
-    with the request's overrides (422 when they loosen a limit or cannot succeed)."""
+    with the request's overrides (422 when they loosen a limit or cannot succeed).
+    ``spin_torque``: a plan's (:func:`planned_config`): the overrides are checked against
+    the service's config with it as ``limits.spin_torque`` (a plan may spin faster than the
+    robot config; its other limits bound the plan's choice and stay limits)."""
+    base = rt.config
+    if spin_torque is not None:
+        base = base.with_overrides({"limits": {"spin_torque": spin_torque}})
     try:
-        return rt.config.for_run(overrides.document(), metrology, kind)
+        return base.for_run(overrides.document(), metrology, kind)
     except OverrideError as exc:
         raise refused_before_motion("overrides", exc.problems) from exc
     except (ValidationError, ValueError, TypeError) as exc:
@@ -168,9 +179,12 @@ def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
 def planned_config(
     rt: Rt, body: StartRequest, metrology: str, config: RobotConfig
 ) -> tuple[RobotConfig, Stopping]:
-    """The run's config with the planned protocol in its overrides, and its sequential
-    stopping (422 with the reason when it cannot be planned: another metrology, protocol
-    settings the plan chooses, no candidate that reaches the targets)."""
+    """The run's config with the plan's overrides (its protocol and spin torque) in the
+    request's, and its sequential stopping (422 with the reason when it cannot be
+    planned: another metrology, settings the plan chooses, no candidate that reaches the
+    targets).  The plan's spin torque may be above the robot config's
+    ``limits.spin_torque``: the plan chose it within the run's ``max_wheel_torque`` and
+    ``max_yaw_rate`` (docs/plan.md), which stay limits."""
     cur = rt.current
     if rt.running() and cur is not None:  # not after seconds of planning
         raise HTTPException(409, f"{cur.status.kind} {cur.id} is still running")
@@ -178,12 +192,13 @@ def planned_config(
         raise refused("plan", ValueError(f"plan auto plans a calibration with motion capture "
                                          f"(mocap), not {metrology}"))  # fmt: skip
     doc = body.overrides.document()
-    taken = sorted(PLANNED_KEYS & set(doc.get("protocol", {})))
+    given = {f"{g}.{k}" for g, v in doc.items() if isinstance(v, dict) for k in v}
+    taken = sorted(PLANNED_KEYS & given)
     if taken:
         raise refused(
             "plan",
-            ValueError(f"plan auto chooses protocol.{', protocol.'.join(taken)}: leave them out "
-                       "of the overrides, or leave out the plan"),
+            ValueError(f"plan auto chooses {', '.join(taken)}: leave them out of the "
+                       "overrides, or leave out the plan"),
         )  # fmt: skip
     tol, t = config.tolerances, body.targets or TargetsIn()
     try:
@@ -200,9 +215,12 @@ def planned_config(
             409, "not started: the plan is being made (seconds to a minute): send the same "
             "request again then (GET /plan shows the robot config's)",
         )  # fmt: skip
-    doc.setdefault("protocol", {}).update(p.candidate.protocol())
+    for group, settings in p.candidate.overrides().items():
+        doc.setdefault(group, {}).update(settings)
     assert stopping is not None
-    return run_config(rt, ConfigOverrides.model_validate(doc), metrology), stopping
+    config = run_config(rt, ConfigOverrides.model_validate(doc), metrology,
+                        spin_torque=p.candidate.spin_torque)  # fmt: skip
+    return config, stopping
 
 
 def start_checked(

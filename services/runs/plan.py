@@ -3,11 +3,14 @@
 :func:`plan_for` gives the planner (:func:`swpc_hw.calibration.plan.plan`) what the robot
 config says: the modules, the pauses the check uses (``check.settle_time``,
 ``stop_time``, ``align_time``: shorter than a calibration's and validated through the
-service, docs/check.md) with the protocol's re-steer time, the steering's speed limit,
-the step timeout, and by default the ``tolerances`` as the per-parameter targets; the
+service, docs/check.md) with the protocol's re-steer time, the spin torques within the
+limits (:func:`swpc_hw.calibration.plan.spin_torques`: the config's ``spin_torque`` and the
+fastest under ``max_wheel_torque`` and ``max_yaw_rate``), the steering's speed limit, the
+step timeout, and by default the ``tolerances`` as the per-parameter targets; the
 prediction is :func:`simulators.plan_predict.predicted_covariance` on the nominal robot.
 ``swpc plan`` prints its answer; ``POST /calibrations {"plan": "auto"}`` runs it (the plan's
-protocol as the run's ``overrides.protocol``).
+:meth:`~swpc_hw.calibration.plan.Candidate.overrides`, its protocol and spin torque, as the
+run's).
 
 A plan takes seconds to a minute of CPU (a solve per candidate predicted): the service
 makes it in the background, one at a time, and keeps it (:class:`Planner`), so that no
@@ -36,19 +39,18 @@ from swpc_hw.calibration.plan import (
     Targets,
     TimeModel,
     plan,
+    spin_torques,
     square_path_sensitivity,
 )
 from swpc_hw.model import RobotParams
 
 PLANNED_KEYS = frozenset(
-    {"angles_deg", "sweep_deg", "settle_time", "stop_time", "align_time", "resteer_time"}
+    f"{group}.{name}"
+    for group, names in Candidate((), 0.0, 0.0, 0.0, 0.0, 0.0, 1.0).overrides().items()
+    for name in names
 )
-"""The protocol settings a plan chooses (a request may not set them too)."""
-
-YAW_RATE_PER_TORQUE = 0.59 / 0.6
-"""rad/s per N.m: the in-process simulator's (the paper's robot) steady yaw rate over the
-spin torque (its damping is viscous: the rate is proportional to the torque), measured
-(docs/plan.md).  A real robot's: ``swpc plan --yaw-rate``."""
+"""The robot config settings a plan chooses, ``group.name`` (a request may not set them
+too): those of :meth:`Candidate.overrides`."""
 
 
 @dataclass(frozen=True)
@@ -61,24 +63,37 @@ class PlanRequest:
     """The square path's (position, heading) budget; None: not required."""
     noise: MocapNoise = field(default_factory=MocapNoise)
     yaw_rate: float | None = None
-    """rad/s while spinning; None: :data:`YAW_RATE_PER_TORQUE` times the spin torque."""
+    """rad/s while spinning at the config's ``limits.spin_torque`` (a run's segments give
+    it: the sweep over the window's length); None: the in-process simulator's
+    (:attr:`TimeModel.rate_per_torque`).  Other torques' in proportion."""
 
 
 def time_model(config: RobotConfig, yaw_rate: float | None = None) -> TimeModel:
-    """The robot's :class:`TimeModel` from its config (and a measured yaw rate)."""
+    """The robot's :class:`TimeModel` from its config (and a measured yaw rate at its spin
+    torque)."""
     lim = config.limits
-    w = yaw_rate if yaw_rate is not None else YAW_RATE_PER_TORQUE * lim.spin_torque
+    tm = TimeModel(steer_rate=lim.max_steer_velocity)
+    if yaw_rate is not None:
+        if not (math.isfinite(yaw_rate) and yaw_rate > 0):
+            raise PlanError(f"yaw rate must be positive and finite (got {yaw_rate})")
+        tm = replace(tm, rate_per_torque=yaw_rate / lim.spin_torque)
+    w = tm.yaw_rate(lim.spin_torque)
     if w > lim.max_yaw_rate:
         raise PlanError(
-            f"yaw rate {w:g} rad/s exceeds limits.max_yaw_rate {lim.max_yaw_rate:g} rad/s"
+            f"yaw rate {w:g} rad/s at limits.spin_torque {lim.spin_torque:g} N.m exceeds "
+            f"limits.max_yaw_rate {lim.max_yaw_rate:g} rad/s"
         )
-    return TimeModel(yaw_rate=w, steer_rate=lim.max_steer_velocity)
+    return tm
 
 
 def pauses(config: RobotConfig) -> Candidate:
-    """The pauses a plan uses (module docstring); angles and sweep are the planner's."""
+    """The pauses a plan uses (module docstring) at the config's spin torque; angles,
+    sweep and spin torque are the planner's."""
     c, p = config.check, config.protocol
-    return Candidate((), 0.0, c.settle_time, c.stop_time, c.align_time, p.resteer_time)
+    return Candidate(
+        (), 0.0, c.settle_time, c.stop_time, c.align_time, p.resteer_time,
+        config.limits.spin_torque,
+    )  # fmt: skip
 
 
 def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
@@ -94,6 +109,8 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
     square = None if req.budget is None else square_path_sensitivity(nominal)
     requirement = Requirement(targets, square, req.budget or SQUARE_BUDGET)
     tm = time_model(config, req.yaw_rate)
+    lim = config.limits
+    torques = spin_torques(lim.spin_torque, lim.max_wheel_torque, lim.max_yaw_rate, tm)
 
     key = nominal.model_dump_json()
 
@@ -101,8 +118,8 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
         return _predicted(key, c, req.noise, tm)
 
     return plan(
-        predict, requirement, nominal.ids, pauses(config), tm,
-        max_spin_time=config.limits.step_timeout,
+        predict, requirement, nominal.ids, pauses(config), tm, torques=torques,
+        max_spin_time=lim.step_timeout,
     )  # fmt: skip
 
 
@@ -203,6 +220,7 @@ def plan_text(p: Plan) -> str:
         f"plan: steering angles {', '.join(f'{a:g}' for a in c.angles_deg)} deg, "
         f"{c.sweep_deg:g} deg sweeps; settle {c.settle_time:g} s, stop {c.stop_time:g} s, "
         f"align {c.align_time:g} s, re-steer {c.resteer_time:g} s",
+        f"spin torque: {c.spin_torque:g} N.m (yaw rate {p.yaw_rate:.2f} rad/s, predicted)",
         f"robot time: {p.robot_time:.1f} s (predicted)",
         f"targets: position {req['position_mm']:.4g} mm, beta {req['beta_deg']:.4g} deg, "
         f"radius {req['radius_mm']:.4g} mm"
@@ -228,5 +246,5 @@ def plan_text(p: Plan) -> str:
     lines.append("candidates predicted (robot time, share of the requirement; <= 1 meets it):")
     for t in doc["tried"]:
         ratio = "inf" if not math.isfinite(t["ratio"]) else f"{t['ratio']:.2f}"
-        lines.append(f"  {t['protocol']:<44} {t['robot_time_s']:6.1f} s  {ratio}")
+        lines.append(f"  {t['protocol']:<54} {t['robot_time_s']:6.1f} s  {ratio}")
     return "\n".join(lines)

@@ -1,13 +1,14 @@
 """Plan a calibration: the protocol that reaches target std devs in the least robot time.
 
 A calibration's std devs are set by its *design* (the steering angles of the locked
-module, the yaw swept per spin, the yaw rate, the metrology's noise); its robot time by the
-same design plus the pauses between spins.  The planner (docs/plan.md) searches a grid of
-designs for the fastest whose *predicted* covariance meets the requirement
-(:func:`plan`).  Everything here is pure; the prediction itself (a simulated dataset of the
-candidate, solved by the joint solver, whose sandwich covariance is the inverse Fisher
-information ``H^-1 M H^-1``, ``H = J^T J`` of the weighted residuals) is passed in as a
-function, because the simulator lives a layer above (``simulators.plan_predict``).
+module, the yaw swept per spin, the spin torque and so the yaw rate, the metrology's
+noise); its robot time by the same design plus the pauses between spins.  The planner
+(docs/plan.md) searches a grid of designs for the fastest whose *predicted* covariance
+meets the requirement (:func:`plan`).  Everything here is pure; the prediction itself (a
+simulated dataset of the candidate, solved by the joint solver, whose sandwich covariance
+is the inverse Fisher information ``H^-1 M H^-1``, ``H = J^T J`` of the weighted
+residuals) is passed in as a function, because the simulator lives a layer above
+(``simulators.plan_predict``).
 
 **Robot time** of a candidate on ``N`` modules (:func:`robot_time`; the constants of
 :class:`TimeModel` are measured on the in-process simulator, docs/plan.md)::
@@ -15,9 +16,13 @@ function, because the simulator lives a layer above (``simulators.plan_predict``
     T = t_start + N align + (N - 1) t_lock
         + N sum_m (settle + sweep / omega + stop)                   (every spin)
         + N sum_{m>0} (|a_m - a_m-1| / steer_rate + 0.2 resteer)     (every re-steer)
+    omega = k tau
 
-with ``omega`` the robot's yaw rate under the spin torque, ``steer_rate`` the steering's
-speed limit and ``0.2 resteer`` the hold after a re-steer (``services.runs.protocol``).
+with ``omega`` the robot's yaw rate while spinning, ``tau`` the candidate's spin torque
+(the wheel torque of the dynamic modules) and ``k`` the robot's yaw rate per unit spin
+torque (its damping is viscous: the steady rate is proportional to the torque),
+``steer_rate`` the steering's speed limit and ``0.2 resteer`` the hold after a re-steer
+(``services.runs.protocol``).  The spin torques a plan may choose: :func:`spin_torques`.
 
 **What a plan must reach** (:class:`Requirement`), both on the predicted covariance
 ``Sigma`` (5N, 5N) of the candidate:
@@ -126,7 +131,8 @@ class MocapNoise:
 
 @dataclass(frozen=True)
 class Candidate:
-    """One protocol design: what the robot config's ``protocol`` section holds."""
+    """One protocol design: what the robot config's ``protocol`` section holds, and the
+    spin torque (its ``limits.spin_torque``)."""
 
     angles_deg: tuple[float, ...]
     sweep_deg: float
@@ -134,6 +140,8 @@ class Candidate:
     stop_time: float
     align_time: float
     resteer_time: float
+    spin_torque: float
+    """N.m: the wheel torque of the dynamic modules while spinning."""
 
     def protocol(self) -> dict[str, Any]:
         """The robot config's ``protocol`` overrides that run it."""
@@ -146,18 +154,24 @@ class Candidate:
             "resteer_time": self.resteer_time,
         }
 
+    def overrides(self) -> dict[str, Any]:
+        """The robot config overrides that run it: its ``protocol`` and its
+        ``limits.spin_torque``."""
+        return {"protocol": self.protocol(), "limits": {"spin_torque": self.spin_torque}}
+
     def label(self) -> str:
         angles = ", ".join(f"{a:g}" for a in self.angles_deg)
-        return f"angles {angles} deg, {self.sweep_deg:g} deg sweeps"
+        return f"angles {angles} deg, {self.sweep_deg:g} deg sweeps, {self.spin_torque:g} N.m"
 
 
 @dataclass(frozen=True)
 class TimeModel:
     """Robot time of a protocol (module docstring).  Defaults: measured on the in-process
-    simulator (paper's robot, spin torque 0.6 N.m, docs/plan.md)."""
+    simulator (paper's robot, docs/plan.md)."""
 
-    yaw_rate: float = 0.59
-    """rad/s: the robot's yaw rate while spinning (the window lasts ``sweep / yaw_rate``)."""
+    rate_per_torque: float = 0.59 / 0.6
+    """rad/s per N.m: ``k``, the robot's steady yaw rate while spinning over the spin
+    torque (the simulator's: 0.59 rad/s at 0.6 N.m)."""
     steer_rate: float = 3.0
     """rad/s: the steering's speed in a re-steer (the limits' ``max_steer_velocity``)."""
     start: float = 1.0
@@ -166,14 +180,47 @@ class TimeModel:
     """s: RELEASE of a module and LOCK of the next."""
 
     def __post_init__(self) -> None:
-        if not (self.yaw_rate > 0 and self.steer_rate > 0 and self.start >= 0 and self.lock >= 0):
-            raise PlanError("time model: yaw_rate and steer_rate > 0, start and lock >= 0")
+        if not (self.rate_per_torque > 0 and self.steer_rate > 0 and self.start >= 0
+                and self.lock >= 0):  # fmt: skip
+            raise PlanError("time model: rate_per_torque and steer_rate > 0, start and lock >= 0")
+
+    def yaw_rate(self, spin_torque: float) -> float:
+        """rad/s: ``omega = k tau``, the robot's yaw rate at ``spin_torque`` (N.m)."""
+        return self.rate_per_torque * spin_torque
+
+    def window(self, c: Candidate) -> float:
+        """s: how long candidate ``c``'s window lasts, ``sweep / omega``."""
+        return math.radians(c.sweep_deg) / self.yaw_rate(c.spin_torque)
+
+
+YAW_RATE_MARGIN = 0.85
+"""The largest share of ``limits.max_yaw_rate`` a plan's predicted yaw rate may take: the
+run fails above the limit, and a real robot's yaw rate at a given spin torque varies
+about the predicted one (its damping changes with the floor, the tyres, the battery)."""
+
+TORQUE_STEP = 0.01
+"""N.m: the fastest spin torque is rounded down to it (a torque people read)."""
+
+
+def spin_torques(
+    spin_torque: float, max_wheel_torque: float, max_yaw_rate: float, tm: TimeModel
+) -> tuple[float, ...]:
+    """The spin torques a plan tries, fastest first: the largest within the limits
+    (``<= max_wheel_torque``, its yaw rate ``<= YAW_RATE_MARGIN max_yaw_rate``, rounded
+    down to :data:`TORQUE_STEP`) and the config's ``spin_torque``, only the config's when
+    it is already that fast.  Never slower than the config's: at a given robot time a
+    slower spin sweeps less yaw in the same window (as many mocap samples, a shorter
+    arc), so it never reaches more."""
+    fastest = min(max_wheel_torque, YAW_RATE_MARGIN * max_yaw_rate / tm.rate_per_torque)
+    fastest = math.floor(fastest / TORQUE_STEP + 1e-9) * TORQUE_STEP
+    fastest = round(fastest, 6)
+    return (fastest, spin_torque) if fastest > spin_torque else (spin_torque,)
 
 
 def robot_time(c: Candidate, n_modules: int, tm: TimeModel) -> float:
     """Predicted robot time (s) of candidate ``c`` on ``n_modules`` (module docstring)."""
     m = len(c.angles_deg)
-    spin = c.settle_time + math.radians(c.sweep_deg) / tm.yaw_rate + c.stop_time
+    spin = c.settle_time + tm.window(c) + c.stop_time
     resteer = sum(
         abs(math.radians(b - a)) / tm.steer_rate + 0.2 * c.resteer_time
         for a, b in zip(c.angles_deg[:-1], c.angles_deg[1:], strict=True)
@@ -341,8 +388,11 @@ chord), three 120 deg apart.  Every module gets the same set (the protocol's
 ``angles_deg``)."""
 
 SWEEPS: tuple[float, ...] = (30.0, 45.0, 60.0, 75.0, 90.0, 105.0, 120.0, 135.0, 150.0, 165.0,
-                             180.0, 210.0, 240.0, 270.0, 300.0, 360.0)  # fmt: skip
-"""The sweeps tried (deg of yaw per spin)."""
+                             180.0, 210.0, 240.0, 270.0, 300.0, 360.0, 420.0, 480.0, 540.0,
+                             600.0, 720.0)  # fmt: skip
+"""The sweeps tried (deg of yaw per spin).  Beyond a turn: at the fastest spin torque a
+window of 360 deg lasts 6.2 s, and the default protocol's own std devs need windows as
+long as its own (10.6 s at 0.59 rad/s, docs/plan.md)."""
 
 
 @dataclass
@@ -370,7 +420,13 @@ class Plan:
     """(5N, 5N) predicted covariance, modules in the robot's order (SI)."""
     requirement: Requirement
     ids: list[int]
+    time_model: TimeModel
     tried: list[Evaluated] = field(default_factory=list)
+
+    @property
+    def yaw_rate(self) -> float:
+        """rad/s: the predicted yaw rate at the plan's spin torque."""
+        return self.time_model.yaw_rate(self.candidate.spin_torque)
 
     @property
     def stddev(self) -> FloatArray:
@@ -388,6 +444,8 @@ class Plan:
         sq = self.requirement.square_sd(self.covariance)
         return {
             "protocol": self.candidate.protocol(),
+            "spin_torque_nm": self.candidate.spin_torque,
+            "yaw_rate_rad_s": round(self.yaw_rate, 3),
             "robot_time_s": round(self.robot_time, 1),
             "requirement": self.requirement.document(),
             "ratio": self.ratio,
@@ -420,14 +478,19 @@ def candidates(
     pauses: Candidate,
     angle_sets: Iterable[Sequence[float]] = ANGLE_SETS,
     sweeps: Iterable[float] = SWEEPS,
+    torques: Iterable[float] | None = None,
 ) -> list[Candidate]:
-    """Every design of the grid with ``pauses``' settle, stop, align and re-steer times."""
+    """Every design of the grid with ``pauses``' settle, stop, align and re-steer times,
+    at each of ``torques`` (None: ``pauses``' spin torque)."""
     sweeps = list(sweeps)
+    taus = [pauses.spin_torque] if torques is None else list(torques)
     return [
-        replace(pauses, angles_deg=tuple(float(a) for a in angles), sweep_deg=float(s))
+        replace(pauses, angles_deg=tuple(float(a) for a in angles), sweep_deg=float(s),
+                spin_torque=float(t))
         for angles in angle_sets
+        for t in taus
         for s in sweeps
-    ]
+    ]  # fmt: skip
 
 
 def plan(
@@ -439,29 +502,32 @@ def plan(
     *,
     angle_sets: Iterable[Sequence[float]] = ANGLE_SETS,
     sweeps: Iterable[float] = SWEEPS,
+    torques: Iterable[float] | None = None,
     max_spin_time: float | None = None,
 ) -> Plan:
     """The fastest candidate whose predicted covariance meets ``requirement``.
 
     ``predict(c)`` returns the (5N, 5N) covariance of candidate ``c`` (modules in ``ids``
-    order).  At a given set of angles the std devs shrink as the sweep grows, and so does
-    the robot time: per set, among the sweeps faster than the best plan so far, the
-    largest is predicted first (when it falls short, so does the set), then bisection
-    finds the smallest with ``requirement.ratio(predict(c)) <= 1``; the plan is the
-    fastest of these.  Left out: a candidate whose spin (settle and
-    sweep) would last ``max_spin_time`` (s, the step timeout) or more.  A candidate whose
+    order).  Candidates: every set of ``angle_sets`` at every spin torque of ``torques``
+    (None: ``pauses``' spin torque; :func:`spin_torques`) and every sweep.  At a given set
+    of angles and torque the std devs shrink as the sweep grows, and the robot time grows:
+    per (set, torque), the fastest torque first, among the sweeps faster than the best
+    plan so far, the largest is predicted first (when it falls short, so does the pair),
+    then bisection finds the smallest with ``requirement.ratio(predict(c)) <= 1``; the
+    plan is the fastest of these.  Left out: a candidate whose spin (settle and sweep)
+    would last ``max_spin_time`` (s, the step timeout) or more.  A candidate whose
     prediction raises :class:`PlanError` falls short.  None meets the requirement:
     :class:`PlanError` naming the closest (or the first failure, none predicted)."""
     n = len(ids)
     sweeps = sorted(float(s) for s in sweeps)
+    taus = sorted((pauses.spin_torque,) if torques is None else torques, reverse=True)
     tried: list[Evaluated] = []
     best: Evaluated | None = None
-    for angles in angle_sets:
+    for angles, tau in ((a, t) for a in angle_sets for t in taus):
         pool = [
             Evaluated(c, robot_time(c, n, time_model))
-            for c in candidates(pauses, [angles], sweeps)
-            if max_spin_time is None
-            or c.settle_time + math.radians(c.sweep_deg) / time_model.yaw_rate < max_spin_time
+            for c in candidates(pauses, [angles], sweeps, [tau])
+            if max_spin_time is None or c.settle_time + time_model.window(c) < max_spin_time
         ]
         if best is not None:
             pool = [e for e in pool if e.robot_time < best.robot_time]
@@ -476,7 +542,7 @@ def plan(
             e.ratio = requirement.ratio(e.covariance)
             return e.ratio <= 1.0
 
-        if not pool or not meets(pool[-1]):  # not even the largest sweep: none of the set
+        if not pool or not meets(pool[-1]):  # not even the largest sweep: none of the pair
             continue
         best = pool[-1]
         lo, hi = 0, len(pool) - 2
@@ -489,7 +555,10 @@ def plan(
     tried.sort(key=lambda e: e.robot_time)
     if best is not None:
         assert best.covariance is not None
-        return Plan(best.candidate, best.robot_time, best.covariance, requirement, list(ids), tried)
+        return Plan(
+            best.candidate, best.robot_time, best.covariance, requirement, list(ids),
+            time_model, tried,
+        )  # fmt: skip
     seen = [e for e in tried if e.covariance is not None]
     if not seen:
         failed = [e.failure for e in tried if e.failure]
