@@ -8,18 +8,27 @@ covariance is ``H^-1 M H^-1`` with ``H = J^T J`` of its weighted residuals: the 
 Fisher information of the design, the correlation of the noise included
 (docs/solver-uncertainty.md).  Its std devs do not depend on the noise draw beyond the
 estimate of the noise's size, so a few seeds' variances are averaged (``seeds``).
+
+Without motion capture (``metrology: imu``, :func:`predicted_imu_covariance`) the
+candidate's run with its rests and straight drive, the gyro and the tape's readings
+(:mod:`simulators.datagen_imu`), and the IMU solver's covariance in the ``design-fit``
+frame.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from simulators.datagen import ExperimentOptions, generate_experiment
+from simulators.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
 from swpc_hw.calibration.forecast import SpinInformation, spin_information
+from swpc_hw.calibration.imu_solver import imu_covariance
+from swpc_hw.calibration.parameters import N_PARAMS
 from swpc_hw.calibration.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
 from swpc_hw.calibration.solver import solve, solve_joint
 from swpc_hw.errors import CalibrationError
@@ -83,3 +92,61 @@ def predicted_spins(
     except (ValueError, CalibrationError) as exc:
         raise PlanError(f"{c.label()}: no prediction: {exc}") from exc
     return spin_information(solution, math.radians(c.sweep_deg))
+
+
+# ------------------------------------------------------------------ without motion capture
+
+
+TAPE_READINGS = 2
+"""Tape readings per pair of steering axes the prediction assumes (docs/imu-operation.md)."""
+
+
+def imu_experiment_options(c: Candidate, tm: TimeModel) -> ExperimentOptions:
+    """The offline experiment of candidate ``c`` without motion capture: as
+    :func:`experiment_options` (no poses needed), with its rests (``rest_time``) and its
+    straight drive (``drive_length`` at the time model's ``drive_speed``)."""
+    if c.rest_time is None or c.drive_length is None:
+        raise PlanError(f"{c.label()}: a candidate without motion capture has a rest and a drive")
+    return dataclasses.replace(
+        IMU_PROTOCOL,
+        angles=tuple(math.radians(a) for a in c.angles_deg),
+        yaw_rate=tm.yaw_rate(c.spin_torque),
+        spin_duration=tm.window(c),
+        settle_time=c.settle_time,
+        align_time=c.align_time,
+        rest_time=c.rest_time,
+        drive_length=c.drive_length,
+        drive_speed=tm.drive_speed,
+    )
+
+
+def tape_readings(ids: Sequence[int], readings: int = TAPE_READINGS) -> ReferenceOptions:
+    """The tape's references of a run: ``readings`` per pair of modules (the operator's
+    procedure, docs/imu-operation.md: every pair read twice), the straight drive, 0.5 mm."""
+    pairs = tuple(p for p in itertools.combinations(ids, 2) for _ in range(readings))
+    return ReferenceOptions(axis_pairs=pairs)
+
+
+def predicted_imu_covariance(
+    robot: RobotParams,
+    c: Candidate,
+    gyro: GyroOptions,
+    tm: TimeModel,
+    references: ReferenceOptions | None = None,
+) -> FloatArray:
+    """(5N, 5N) covariance of candidate ``c`` without motion capture on ``robot`` (modules
+    in its order), in the ``design-fit`` frame the run's result reports: the IMU
+    solver's covariance (:func:`swpc_hw.calibration.imu_solver.imu_covariance`) at the
+    truth of the candidate's noiseless run (:func:`simulators.datagen_imu.fisher_setup`:
+    the gyro's white noise and walk, the encoders' quantization and the tape's std dev as
+    weights).  A solve of a noisy run gives the same std devs within 0.5 %
+    (docs/plan.md) at three times the CPU, and needs no seed.  :class:`PlanError` as
+    :func:`predicted_covariance`."""
+    refs = references or tape_readings(robot.ids)
+    n = N_PARAMS * len(robot.ids)
+    try:
+        run, x = fisher_setup(robot, imu_experiment_options(c, tm), gyro, refs, robot)
+        cov = imu_covariance(run.problem, x)[0]
+    except (ValueError, CalibrationError) as exc:
+        raise PlanError(f"{c.label()}: no prediction: {exc}") from exc
+    return np.asarray(cov[:n, :n], dtype=float)

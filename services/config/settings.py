@@ -316,6 +316,18 @@ class ServiceSettings(BaseSettings):
         return 1.0 if self.in_process else self.time_scale
 
     @property
+    def sim_gyro(self) -> GyroOptions:
+        """The in-process simulator's gyro (``sim_gyro_*``), also the gyro a plan without
+        motion capture assumes (docs/plan.md)."""
+        return GyroOptions.from_human(
+            self.sim_gyro_rate,
+            self.sim_gyro_noise,
+            self.sim_gyro_bias,
+            self.sim_gyro_bias_walk,
+            self.sim_gyro_scale_error,
+        )
+
+    @property
     def run_metrology(self) -> Literal["mocap", "imu"]:
         """A run's metrology when its request names none (``metrology``'s rule)."""
         return "imu" if self.metrology == "imu" else "mocap"

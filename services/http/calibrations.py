@@ -37,7 +37,13 @@ from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, R
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
-from services.runs.plan import PLANNED_KEYS, PlannerBusyError, PlanRequest, stopping_for
+from services.runs.plan import (
+    PlannerBusyError,
+    PlanRequest,
+    default_budget,
+    planned_keys,
+    stopping_for,
+)
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems
@@ -84,7 +90,8 @@ class StartRequest(BaseModel):
     plan: Literal["auto"] | None = None
     """``auto``: the protocol is planned (docs/plan.md): the angles, sweep, pauses and spin
     torque that reach ``targets`` and keep the square path within its budget in the least
-    robot time (with motion capture only; the request's ``overrides`` may not set them)."""
+    robot time (without motion capture the rests and the drive too; the request's
+    ``overrides`` may not set them)."""
     targets: TargetsIn | None = None
     """With ``plan``: per-kind target std devs (default: the robot config's tolerances)."""
 
@@ -178,22 +185,20 @@ def start(body: StartRequest, rt: Rt, response: Response) -> dict[str, Any]:
 
 def planned_config(
     rt: Rt, body: StartRequest, metrology: str, config: RobotConfig
-) -> tuple[RobotConfig, Stopping]:
-    """The run's config with the plan's overrides (its protocol and spin torque) in the
-    request's, and its sequential stopping (422 with the reason when it cannot be
-    planned: another metrology, settings the plan chooses, no candidate that reaches the
+) -> tuple[RobotConfig, Stopping | None]:
+    """The run's config with the plan's overrides (its protocol and spin torque; without
+    motion capture its rests and drive too) in the request's, and its sequential stopping
+    (motion capture only: a run without it sweeps its planned sweep; 422 with the reason
+    when it cannot be planned: settings the plan chooses, no candidate that reaches the
     targets).  The plan's spin torque may be above the robot config's
     ``limits.spin_torque``: the plan chose it within the run's ``max_wheel_torque`` and
     ``max_yaw_rate`` (docs/plan.md), which stay limits."""
     cur = rt.current
     if rt.running() and cur is not None:  # not after seconds of planning
         raise HTTPException(409, f"{cur.status.kind} {cur.id} is still running")
-    if metrology != "mocap":
-        raise refused("plan", ValueError(f"plan auto plans a calibration with motion capture "
-                                         f"(mocap), not {metrology}"))  # fmt: skip
     doc = body.overrides.document()
     given = {f"{g}.{k}" for g, v in doc.items() if isinstance(v, dict) for k in v}
-    taken = sorted(PLANNED_KEYS & given)
+    taken = sorted(planned_keys(metrology) & given)
     if taken:
         raise refused(
             "plan",
@@ -203,9 +208,11 @@ def planned_config(
     tol, t = config.tolerances, body.targets or TargetsIn()
     try:
         targets = Targets(t.position or tol.position, t.beta or tol.beta, t.radius or tol.radius)
-        request = PlanRequest(targets=targets)
+        request = plan_request(rt, metrology, targets)
         p = rt.planner.get(config, request)
-        stopping = None if p is None else stopping_for(config, p, request)
+        stopping = (
+            stopping_for(config, p, request) if p is not None and metrology == "mocap" else None
+        )
     except PlannerBusyError as exc:
         raise HTTPException(409, f"not started: {exc}") from exc
     except PlanError as exc:
@@ -217,10 +224,18 @@ def planned_config(
         )  # fmt: skip
     for group, settings in p.candidate.overrides().items():
         doc.setdefault(group, {}).update(settings)
-    assert stopping is not None
     config = run_config(rt, ConfigOverrides.model_validate(doc), metrology,
                         spin_torque=p.candidate.spin_torque)  # fmt: skip
     return config, stopping
+
+
+def plan_request(rt: Rt, metrology: str, targets: Targets | None = None) -> PlanRequest:
+    """The plan request of a run with ``metrology``: the square path's default budget of
+    that metrology; without motion capture the service's gyro (``sim_gyro_*``)."""
+    return PlanRequest(
+        targets=targets, budget=default_budget(metrology), metrology=metrology,
+        gyro=rt.settings.sim_gyro,
+    )  # fmt: skip
 
 
 def start_checked(
@@ -255,15 +270,17 @@ def start_checked(
         _409="the robot config cannot be planned (why), or another plan is being made",
     ),
 )
-def get_plan(rt: Rt) -> Any:
+def get_plan(rt: Rt, metrology: Literal["mocap", "imu"] | None = None) -> Any:
     """The plan of a calibration of the robot config (docs/plan.md): what
-    ``POST /calibrations {"plan": "auto"}`` without overrides runs, with its predicted
+    ``POST /calibrations {"plan": "auto"}`` without overrides runs (``metrology``: as the
+    request's, default the service's), with its predicted
     robot time, std devs and the requirement (mm, deg).  The first call starts making it
     (202 until it is made: seconds to a minute), then it is kept; 409 naming why when no
     candidate meets the requirement, or while a run goes and it is not made yet (a plan
     takes CPU a run needs)."""
     try:  # the config of a run without overrides: the plan it runs; none started in a run
-        p = rt.planner.get(rt.config.for_run({}, "mocap"), start=not rt.running())
+        m = metrology or rt.settings.run_metrology
+        p = rt.planner.get(rt.config.for_run({}, m), plan_request(rt, m), start=not rt.running())
     except OverrideError as exc:
         raise HTTPException(409, f"no plan: the robot config cannot run: {exc}") from exc
     except PlanError as exc:

@@ -25,9 +25,15 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
-from services.config.robot import RobotConfig
-from simulators.plan_predict import predicted_covariance, predicted_spins
+from services.config.robot import MAX_DRIVE_LENGTH, MIN_REST_TIME, RobotConfig
+from simulators.datagen_imu import GyroOptions
+from simulators.plan_predict import (
+    predicted_covariance,
+    predicted_imu_covariance,
+    predicted_spins,
+)
 from swpc_hw.calibration.forecast import SpinInformation, Stopping
+from swpc_hw.calibration.imu_solver import COARSE_INTERVAL
 from swpc_hw.calibration.plan import (
     SQUARE_BUDGET,
     Candidate,
@@ -51,6 +57,32 @@ PLANNED_KEYS = frozenset(
 )
 """The robot config settings a plan chooses, ``group.name`` (a request may not set them
 too): those of :meth:`Candidate.overrides`."""
+IMU_PLANNED_KEYS = PLANNED_KEYS | {"protocol.rest_time", "protocol.drive_length"}
+"""Those a plan without motion capture chooses: the rests and the drive too."""
+
+REST_TIMES = (MIN_REST_TIME, 2.0 * MIN_REST_TIME)
+"""s: the rests a plan without motion capture tries (the shortest the solver takes, and
+the protocol's default)."""
+MIN_IMU_WINDOW = 1.25 * COARSE_INTERVAL
+"""s: the shortest window a plan without motion capture spins: the IMU solver's first,
+coarse solve needs a wheel increment per spin (one per ``COARSE_INTERVAL``; a 30 deg
+window of 0.52 s at 1.01 rad/s failed the run), with a margin."""
+DRIVE_LENGTHS = (1.0, 2.0, 4.0)
+"""m: the straight drives a plan without motion capture tries (within
+``MAX_DRIVE_LENGTH`` and the step timeout at ``limits.max_drive_speed``)."""
+
+
+def default_budget(metrology: str) -> tuple[float, float] | None:
+    """The square path's budget a plan for ``metrology`` requires by default: with motion
+    capture :data:`SQUARE_BUDGET`; without it none (docs/plan.md: in ``design-fit`` the
+    square's error is that of the layout's length scale, which only the tape fixes: 8.5
+    times the budget whatever the robot does)."""
+    return None if metrology == "imu" else SQUARE_BUDGET
+
+
+def planned_keys(metrology: str) -> frozenset[str]:
+    """The settings a plan for ``metrology`` chooses."""
+    return IMU_PLANNED_KEYS if metrology == "imu" else PLANNED_KEYS
 
 
 @dataclass(frozen=True)
@@ -66,6 +98,11 @@ class PlanRequest:
     """rad/s while spinning at the config's ``limits.spin_torque`` (a run's segments give
     it: the sweep over the window's length); None: the in-process simulator's
     (:attr:`TimeModel.rate_per_torque`).  Other torques' in proportion."""
+    metrology: str = "mocap"
+    """``mocap`` or ``imu`` (the gyro and the tape: rests and a straight drive too)."""
+    gyro: GyroOptions = field(default_factory=GyroOptions)
+    """Without motion capture: the gyro's noise the prediction assumes (the service's
+    ``sim_gyro_*`` settings, by default :class:`GyroOptions`')."""
 
 
 def time_model(config: RobotConfig, yaw_rate: float | None = None) -> TimeModel:
@@ -113,6 +150,19 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
     torques = spin_torques(lim.spin_torque, lim.max_wheel_torque, lim.max_yaw_rate, tm)
 
     key = nominal.model_dump_json()
+    if req.metrology == "imu":
+        base = pauses(config)
+
+        def predict_imu(c: Candidate) -> FloatArray:
+            return _predicted_imu(key, c, req.gyro, tm)
+
+        return plan(
+            predict_imu, requirement, nominal.ids, base, tm, torques=torques,
+            max_spin_time=lim.step_timeout, variants=imu_variants(config, base),
+            min_window=MIN_IMU_WINDOW,
+        )  # fmt: skip
+    if req.metrology != "mocap":
+        raise PlanError(f"no plan for metrology {req.metrology} (mocap or imu)")
 
     def predict(c: Candidate) -> FloatArray:
         return _predicted(key, c, req.noise, tm)
@@ -121,6 +171,23 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
         predict, requirement, nominal.ids, pauses(config), tm, torques=torques,
         max_spin_time=lim.step_timeout,
     )  # fmt: skip
+
+
+def imu_variants(config: RobotConfig, base: Candidate) -> list[Candidate]:
+    """``base`` with every rest of :data:`REST_TIMES` and drive of :data:`DRIVE_LENGTHS`
+    the limits allow (a drive between two rests within ``limits.step_timeout`` at
+    ``limits.max_drive_speed``, as the run checks), the shortest first."""
+    lim = config.limits
+    out = [
+        replace(base, rest_time=r, drive_length=d)
+        for r in REST_TIMES
+        for d in DRIVE_LENGTHS
+        if d <= MAX_DRIVE_LENGTH and 2 * r + d / lim.max_drive_speed < lim.step_timeout
+        and r < lim.step_timeout
+    ]  # fmt: skip
+    if not out:
+        raise PlanError("no rest and straight drive fits limits.step_timeout")
+    return out
 
 
 def stopping_for(config: RobotConfig, p: Plan, request: PlanRequest | None = None) -> Stopping:
@@ -182,7 +249,8 @@ class Planner:
         out: Plan | PlanError
         try:
             out = plan_for(config, req)
-            stopping_for(config, out, req)  # kept: a run of it starts at once
+            if req.metrology == "mocap":  # sequential stopping is motion capture's
+                stopping_for(config, out, req)  # kept: a run of it starts at once
         except PlanError as exc:
             out = exc
         except Exception as exc:  # a bug: its reason, not a planner stuck for ever
@@ -200,6 +268,13 @@ def _predicted(nominal: str, c: Candidate, noise: MocapNoise, tm: TimeModel) -> 
     prediction's seeds are fixed), and the service plans every ``plan: auto`` run."""
     robot = RobotParams.model_validate_json(nominal)
     return predicted_covariance(robot, c, noise, tm)
+
+
+@functools.lru_cache(maxsize=256)
+def _predicted_imu(nominal: str, c: Candidate, gyro: GyroOptions, tm: TimeModel) -> FloatArray:
+    """:func:`predicted_imu_covariance` (the tape as the operator reads it), kept."""
+    robot = RobotParams.model_validate_json(nominal)
+    return predicted_imu_covariance(robot, c, gyro, tm)
 
 
 @functools.lru_cache(maxsize=16)
@@ -220,6 +295,14 @@ def plan_text(p: Plan) -> str:
         f"plan: steering angles {', '.join(f'{a:g}' for a in c.angles_deg)} deg, "
         f"{c.sweep_deg:g} deg sweeps; settle {c.settle_time:g} s, stop {c.stop_time:g} s, "
         f"align {c.align_time:g} s, re-steer {c.resteer_time:g} s",
+        *(
+            [
+                f"without motion capture: rests {c.rest_time:g} s, straight drive "
+                f"{c.drive_length:g} m"
+            ]
+            if c.imu
+            else []
+        ),
         f"spin torque: {c.spin_torque:g} N.m (yaw rate {p.yaw_rate:.2f} rad/s, predicted)",
         f"robot time: {p.robot_time:.1f} s (predicted)",
         f"targets: position {req['position_mm']:.4g} mm, beta {req['beta_deg']:.4g} deg, "

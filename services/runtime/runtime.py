@@ -58,7 +58,6 @@ from services.store.disk import make_room, run_reserve
 from services.store.locks import ChannelLock, DataDirLock
 from services.store.logs import event
 from services.store.runs import RunStore
-from simulators.datagen_imu import GyroOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.calibration.forecast import Stopping
 from swpc_hw.clock import Clock, SimClock, SystemClock
@@ -325,13 +324,7 @@ class Runtime:
                 physics_dt=s.sim_physics_dt,
                 mocap_latency=s.sim_mocap_latency,
                 feedback_rate_hz=s.feedback_rate_hz,
-                gyro=GyroOptions.from_human(
-                    s.sim_gyro_rate,
-                    s.sim_gyro_noise,
-                    s.sim_gyro_bias,
-                    s.sim_gyro_bias_walk,
-                    s.sim_gyro_scale_error,
-                ),
+                gyro=s.sim_gyro,
             )
             self.simulator.start()
         self._opened = True

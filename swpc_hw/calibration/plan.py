@@ -18,7 +18,16 @@ residuals) is passed in as a function, because the simulator lives a layer above
         + N sum_{m>0} (|a_m - a_m-1| / steer_rate + 0.2 resteer)     (every re-steer)
     omega = k tau
 
-with ``omega`` the robot's yaw rate while spinning, ``tau`` the candidate's spin torque
+and without motion capture (``metrology: imu``: rests of ``rest_time`` before every
+spin, after the last, around the straight drive of ``drive_length``)::
+
+    T_imu = T + (N sum_m 1 + 3) rest + drive_length / v_drive + t_drive
+
+with ``v_drive`` the drive's cruise speed and ``t_drive`` the STEER for it and its ramp
+and coast (without a drive, one rest at the end and no ``t_drive``).  The operator's
+floor mark and tape reading (MARK, MEASURE) are not robot motion: the robot waits
+braked, and the in-process simulator's time stands still; they are not counted.  Then
+``omega`` is the robot's yaw rate while spinning, ``tau`` the candidate's spin torque
 (the wheel torque of the dynamic modules) and ``k`` the robot's yaw rate per unit spin
 torque (its damping is viscous: the steady rate is proportional to the torque),
 ``steer_rate`` the steering's speed limit and ``0.2 resteer`` the hold after a re-steer
@@ -142,10 +151,20 @@ class Candidate:
     resteer_time: float
     spin_torque: float
     """N.m: the wheel torque of the dynamic modules while spinning."""
+    rest_time: float | None = None
+    """s: without motion capture, the rest before every spin, around the drive and at the
+    end (the gyro's bias); None: with motion capture (no rests)."""
+    drive_length: float | None = None
+    """m: without motion capture, the straight drive; None: with motion capture."""
+
+    @property
+    def imu(self) -> bool:
+        """A run without motion capture (``metrology: imu``): rests and a drive."""
+        return self.rest_time is not None
 
     def protocol(self) -> dict[str, Any]:
         """The robot config's ``protocol`` overrides that run it."""
-        return {
+        out: dict[str, Any] = {
             "angles_deg": list(self.angles_deg),
             "sweep_deg": self.sweep_deg,
             "settle_time": self.settle_time,
@@ -153,6 +172,9 @@ class Candidate:
             "align_time": self.align_time,
             "resteer_time": self.resteer_time,
         }
+        if self.imu:
+            out |= {"rest_time": self.rest_time, "drive_length": self.drive_length}
+        return out
 
     def overrides(self) -> dict[str, Any]:
         """The robot config overrides that run it: its ``protocol`` and its
@@ -161,7 +183,10 @@ class Candidate:
 
     def label(self) -> str:
         angles = ", ".join(f"{a:g}" for a in self.angles_deg)
-        return f"angles {angles} deg, {self.sweep_deg:g} deg sweeps, {self.spin_torque:g} N.m"
+        out = f"angles {angles} deg, {self.sweep_deg:g} deg sweeps, {self.spin_torque:g} N.m"
+        if self.imu:
+            out += f", rests {self.rest_time:g} s, drive {self.drive_length:g} m"
+        return out
 
 
 @dataclass(frozen=True)
@@ -178,11 +203,21 @@ class TimeModel:
     """s: CONNECT, PRECHECK, REST and the first LOCK, and the first spin's ramp."""
     lock: float = 0.6
     """s: RELEASE of a module and LOCK of the next."""
+    drive_speed: float = 0.325
+    """m/s: without motion capture, the straight drive's cruise speed (the simulator's at
+    the limits' ``drive_torque`` of 0.6 N.m)."""
+    drive_extra: float = 1.85
+    """s: without motion capture, STEER for the drive and the drive's ramp up and coast
+    down beyond ``drive_length / drive_speed``."""
 
     def __post_init__(self) -> None:
         if not (self.rate_per_torque > 0 and self.steer_rate > 0 and self.start >= 0
-                and self.lock >= 0):  # fmt: skip
-            raise PlanError("time model: rate_per_torque and steer_rate > 0, start and lock >= 0")
+                and self.lock >= 0 and self.drive_speed > 0
+                and self.drive_extra >= 0):  # fmt: skip
+            raise PlanError(
+                "time model: rate_per_torque, steer_rate and drive_speed > 0, start, lock "
+                "and drive_extra >= 0"
+            )
 
     def yaw_rate(self, spin_torque: float) -> float:
         """rad/s: ``omega = k tau``, the robot's yaw rate at ``spin_torque`` (N.m)."""
@@ -226,7 +261,13 @@ def robot_time(c: Candidate, n_modules: int, tm: TimeModel) -> float:
         for a, b in zip(c.angles_deg[:-1], c.angles_deg[1:], strict=True)
     )
     per_module = c.align_time + m * spin + resteer
-    return tm.start + n_modules * per_module + (n_modules - 1) * tm.lock
+    t = tm.start + n_modules * per_module + (n_modules - 1) * tm.lock
+    if c.rest_time is not None and c.drive_length is not None:  # without motion capture
+        rests = n_modules * m + (3 if c.drive_length > 0 else 1)
+        t += rests * c.rest_time
+        if c.drive_length > 0:
+            t += c.drive_length / tm.drive_speed + tm.drive_extra
+    return t
 
 
 def stddevs(covariance: FloatArray) -> FloatArray:
@@ -504,6 +545,8 @@ def plan(
     sweeps: Iterable[float] = SWEEPS,
     torques: Iterable[float] | None = None,
     max_spin_time: float | None = None,
+    variants: Sequence[Candidate] | None = None,
+    min_window: float = 0.0,
 ) -> Plan:
     """The fastest candidate whose predicted covariance meets ``requirement``.
 
@@ -515,7 +558,10 @@ def plan(
     plan so far, the largest is predicted first (when it falls short, so does the pair),
     then bisection finds the smallest with ``requirement.ratio(predict(c)) <= 1``; the
     plan is the fastest of these.  Left out: a candidate whose spin (settle and sweep)
-    would last ``max_spin_time`` (s, the step timeout) or more.  A candidate whose
+    would last ``max_spin_time`` (s, the step timeout) or more, or whose window would be
+    shorter than ``min_window`` (s).  ``variants``: other
+    pauses than ``pauses`` to try, each with every set, torque and sweep (without motion
+    capture: the rests and the drive, the shortest first).  A candidate whose
     prediction raises :class:`PlanError` falls short.  None meets the requirement:
     :class:`PlanError` naming the closest (or the first failure, none predicted)."""
     n = len(ids)
@@ -523,11 +569,13 @@ def plan(
     taus = sorted((pauses.spin_torque,) if torques is None else torques, reverse=True)
     tried: list[Evaluated] = []
     best: Evaluated | None = None
-    for angles, tau in ((a, t) for a in angle_sets for t in taus):
+    groups = [(a, t, v) for a in angle_sets for t in taus for v in (variants or [pauses])]
+    for angles, tau, var in groups:
         pool = [
             Evaluated(c, robot_time(c, n, time_model))
-            for c in candidates(pauses, [angles], sweeps, [tau])
-            if max_spin_time is None or c.settle_time + time_model.window(c) < max_spin_time
+            for c in candidates(var, [angles], sweeps, [tau])
+            if (max_spin_time is None or c.settle_time + time_model.window(c) < max_spin_time)
+            and time_model.window(c) >= min_window
         ]
         if best is not None:
             pool = [e for e in pool if e.robot_time < best.robot_time]
