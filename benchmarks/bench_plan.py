@@ -169,6 +169,7 @@ def print_stats(
     label: str, t_pred: float, stats: dict[str, Any], sq_sd: tuple[float, float]
 ) -> None:
     sq = stats["square"]
+    source = "final forecast" if stats["robot_time"] else "plan's sd"
     if stats["robot_time"]:
         t = stats["robot_time"]
         print(f"  {label}: robot time {np.mean(t):.1f} s on average ({min(t):.1f}-{max(t):.1f})"
@@ -181,7 +182,7 @@ def print_stats(
         f, unit = SHOW[kind]
         s = stats[kind]
         print(f"    {kind:<8} worst predicted sd {s['sd_pred'] * f:8.5f} {unit}, error RMS "
-              f"{s['rms'] * f:8.5f}, largest {s['max'] * f:8.5f}; RMS z (plan's sd) "
+              f"{s['rms'] * f:8.5f}, largest {s['max'] * f:8.5f}; RMS z ({source}) "
               f"{s['z_pred']:.2f}, (solver's) {s['z_solver']:.2f}")  # fmt: skip
 
 
