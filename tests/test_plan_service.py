@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 from services.cli import main as swpc
 from services.config.robot import RobotConfig
 from services.runs.plan import Planner, PlannerBusyError, PlanRequest, plan_for
+from swpc_hw.calibration.forecast import MIN_SWEEP
 from swpc_hw.calibration.plan import MocapNoise, PlanError, Targets
 from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
 
@@ -80,7 +81,8 @@ def test_a_planned_calibration_stops_each_spin_once_its_forecast_meets_the_plan(
             if m != seg.static_module:
                 steer = e[(e[:, 0] >= seg.start) & (e[:, 0] <= seg.end), 1]
                 assert math.degrees(float(np.ptp(np.unwrap(steer)))) < 0.05
-    assert min(swept) >= 29.0 and max(swept) <= 2 * p.candidate.sweep_deg + 3.0, swept
+    least = math.degrees(MIN_SWEEP) - 1.0
+    assert min(swept) >= least and max(swept) <= 2 * p.candidate.sweep_deg + 3.0, swept
     assert sum(swept) < 8 * p.candidate.sweep_deg
     res = sim.client.get(f"/calibrations/{rid}/result").json()
     assert st["installed"] is True, res

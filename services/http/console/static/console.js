@@ -440,7 +440,7 @@ function renderForecast(st) {
   const ratio = f.ratio === null ? "–" : `${Math.round(100 * f.ratio)} %`;
   $("forecast-note").textContent = st.state === "SPIN" ?
     `This spin ends once what it measures is within its targets (now ${ratio}), ` +
-    "between 30° and twice its planned sweep." :
+    "or at twice its planned sweep." :
     st.segments === 0 ? `The plan's prediction: ${ratio} of the targets at most.` :
     `After ${st.segments} spins: the spins to come as planned.`;
 }
