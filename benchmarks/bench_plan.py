@@ -63,11 +63,13 @@ KINDS = {"position": [0, 1, 3], "beta": [2], "radius": [4]}
 SHOW = {"position": (1e3, "mm"), "beta": (180.0 / math.pi, "deg"), "radius": (1e3, "mm")}
 
 
-def default_protocol(cfg: RobotConfig) -> Candidate:
+def default_protocol(cfg: RobotConfig, imu: bool = False) -> Candidate:
+    """The robot config's own protocol as a candidate (``imu``: with its rests and drive)."""
     p = cfg.protocol
     return Candidate(
         tuple(p.angles_deg), p.sweep_deg, p.settle_time, p.stop_time, p.align_time,
-        p.resteer_time, cfg.limits.spin_torque,
+        p.resteer_time, cfg.limits.spin_torque, p.rest_time if imu else None,
+        p.drive_length if imu else None,
     )  # fmt: skip
 
 

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.bench_check import TOKEN
+from benchmarks.bench_plan import KINDS, SHOW, default_protocol
 from services.config.robot import RobotConfig
 from services.runs.plan import PlanRequest, plan_for, time_model
 from simulators.datagen_imu import GyroOptions, generate_imu_experiment
@@ -39,17 +40,6 @@ from swpc_hw.calibration.plan import Candidate, FloatArray, robot_time, stddevs
 from swpc_hw.frames import design_fit_transform, transform_parameters
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-
-KINDS = {"position": [0, 1, 3], "beta": [2], "radius": [4]}
-SHOW = {"position": (1e3, "mm"), "beta": (180.0 / math.pi, "deg"), "radius": (1e3, "mm")}
-
-
-def default_protocol(cfg: RobotConfig) -> Candidate:
-    p = cfg.protocol
-    return Candidate(
-        tuple(p.angles_deg), p.sweep_deg, p.settle_time, p.stop_time, p.align_time,
-        p.resteer_time, cfg.limits.spin_torque, p.rest_time, p.drive_length,
-    )  # fmt: skip
 
 
 def in_design_fit(params: RobotParams, nominal: RobotParams) -> FloatArray:
@@ -164,7 +154,7 @@ def main() -> None:
     print(f"[plan_imu] paper's robot, default requirement (tolerances), {seeds} seeds; plan "
           f"{p.candidate.label()} ({time.perf_counter() - t0:.1f} s to plan, {n_pred} "
           "candidates predicted)")  # fmt: skip
-    d = default_protocol(cfg)
+    d = default_protocol(cfg, imu=True)
     tm = time_model(cfg)
     d_cov = predicted_imu_covariance(PAPER_NOMINAL, d, GyroOptions(), tm)
     print_offline("default", robot_time(d, 4, tm), offline(d, cfg, PAPER_CALIBRATED, d_cov, seeds))

@@ -35,6 +35,19 @@ from swpc_hw.errors import CalibrationError
 from swpc_hw.model import RobotParams
 
 
+def spins_of(base: ExperimentOptions, c: Candidate, tm: TimeModel) -> ExperimentOptions:
+    """``base`` spinning as candidate ``c``: its angles, a window of its sweep at the time
+    model's yaw rate at its spin torque, its settle and align times."""
+    return dataclasses.replace(
+        base,
+        angles=tuple(math.radians(a) for a in c.angles_deg),
+        yaw_rate=tm.yaw_rate(c.spin_torque),
+        spin_duration=tm.window(c),
+        settle_time=c.settle_time,
+        align_time=c.align_time,
+    )
+
+
 def experiment_options(
     c: Candidate, noise: MocapNoise, tm: TimeModel, seed: int = 0
 ) -> ExperimentOptions:
@@ -42,12 +55,7 @@ def experiment_options(
     time model's yaw rate at its spin torque, its settle and align times, the metrology's
     noise."""
     return dataclasses.replace(
-        ExperimentOptions(),
-        angles=tuple(math.radians(a) for a in c.angles_deg),
-        yaw_rate=tm.yaw_rate(c.spin_torque),
-        spin_duration=tm.window(c),
-        settle_time=c.settle_time,
-        align_time=c.align_time,
+        spins_of(ExperimentOptions(), c, tm),
         pose_rate=noise.rate,
         pose_sigma_xy=noise.sigma_xy,
         pose_sigma_yaw=noise.sigma_yaw,
@@ -108,12 +116,7 @@ def imu_experiment_options(c: Candidate, tm: TimeModel) -> ExperimentOptions:
     if c.rest_time is None or c.drive_length is None:
         raise PlanError(f"{c.label()}: a candidate without motion capture has a rest and a drive")
     return dataclasses.replace(
-        IMU_PROTOCOL,
-        angles=tuple(math.radians(a) for a in c.angles_deg),
-        yaw_rate=tm.yaw_rate(c.spin_torque),
-        spin_duration=tm.window(c),
-        settle_time=c.settle_time,
-        align_time=c.align_time,
+        spins_of(IMU_PROTOCOL, c, tm),
         rest_time=c.rest_time,
         drive_length=c.drive_length,
         drive_speed=tm.drive_speed,
