@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -81,12 +81,13 @@ class SequentialSpins:
         self._judged = -math.inf
 
     def judge(
-        self, run: RunSteps, k: int, spin: SpinWindow, poses: FloatArray, done: int, total: int
-    ) -> float | None:
-        """Judge the spin about module ``k`` at a poll (``poses``: its window's ``t, x, y,
-        yaw`` so far): the yaw-rate limit, the forecast every :data:`JUDGE_STEP` (the spin
-        may last :data:`SPIN_TIME_SHARE` of the step timeout); the sweep once the spin
-        may end (None before)."""
+        self, run: RunSteps, k: int, spin: SpinWindow, window: Callable[[float], FloatArray],
+        done: int, total: int,
+    ) -> float | None:  # fmt: skip
+        """Judge the spin about module ``k`` at a poll (``window(start)``: the poses ``t, x,
+        y, yaw`` since ``start``, read only when a judgement is due): the yaw-rate limit,
+        the forecast every :data:`JUDGE_STEP` (the spin may last :data:`SPIN_TIME_SHARE`
+        of the step timeout); the sweep once the spin may end (None before)."""
         within_rate_limit(run, spin)
         if spin.start is None:
             return None
@@ -105,7 +106,10 @@ class SequentialSpins:
             sweep_deg=math.degrees(sweep),
             progress=min((done + min(sweep / planned, 1.0)) / total, 1.0),
         )
-        if (sweep - self._judged < JUDGE_STEP and sweep < top) or poses.shape[0] < 10:
+        if sweep - self._judged < JUDGE_STEP and sweep < top:
+            return None
+        poses = window(spin.start)
+        if poses.shape[0] < 10:
             return None
         self._judged = sweep
         rows = np.column_stack([poses[:, 0], poses[:, 1], poses[:, 2], np.unwrap(poses[:, 3])])
@@ -149,6 +153,10 @@ class MocapMetrology:
 
     def start_fields(self) -> dict[str, Any]:
         return {} if self.sequential is None else {"stopping": "sequential"}
+
+    def _window(self, start: float) -> FloatArray:
+        """The poses ``t, x, y, yaw`` sampled since ``start`` (run clock)."""
+        return self.mocap.samples(since_host=start)[:, 2:6]
 
     def forecast(self) -> Forecast | None:
         """The plan's forecast before any spin (a planned run), for the run's status."""
@@ -234,12 +242,7 @@ class MocapMetrology:
             if seq is None:
                 sweep = sweep_reached(run, spin, done, total)
             else:
-                window = (
-                    np.zeros((0, 4))
-                    if spin.start is None
-                    else self.mocap.samples(since_host=spin.start)[:, 2:6]
-                )
-                sweep = seq.judge(run, k, spin, window, done, total)
+                sweep = seq.judge(run, k, spin, self._window, done, total)
             if spin.start is not None:
                 run.set_status(poses=self.mocap.counters.accepted)
             if sweep is not None:

@@ -233,20 +233,8 @@ class Stopping:
         return self.extension * self.spins[i].sweep
 
     def ratio(self, covariance: FloatArray, mask: BoolArray | None = None) -> float:
-        """The requirement's ratio (:meth:`Requirement.ratio`) on the parameters of
-        ``mask`` (all: None) and the square path."""
-        sd = stddevs(covariance)
-        r = sd / self.requirement.targets.per_parameter()[None, :]
-        if mask is not None:
-            r = np.where(mask, r, 0.0)
-        if not np.all(np.isfinite(r)):
-            return math.inf
-        out = float(np.max(r))
-        sq = self.requirement.square_sd(covariance)
-        if sq is not None:
-            b = self.requirement.budget
-            out = max(out, sq[0] / b[0], sq[1] / b[1])
-        return out
+        """:meth:`Requirement.ratio` on the parameters of ``mask`` (all: None)."""
+        return self.requirement.ratio(covariance, mask)
 
     def before(self) -> Judgement:
         """The plan's own forecast, before any spin."""

@@ -276,9 +276,12 @@ def stddevs(covariance: FloatArray) -> FloatArray:
     return np.asarray(np.sqrt(d).reshape(-1, N_PARAMS), dtype=float)
 
 
-def worst_ratio(sd: FloatArray, targets: Targets) -> float:
-    """``max_i,k sd_i,k / target_k`` over an (N, 5) matrix of std devs (NaN: infinite)."""
+def worst_ratio(sd: FloatArray, targets: Targets, mask: NDArray[np.bool_] | None = None) -> float:
+    """``max_i,k sd_i,k / target_k`` over an (N, 5) matrix of std devs (NaN: infinite),
+    on the parameters of ``mask`` (N, 5) only when given."""
     r = np.asarray(sd, dtype=float) / targets.per_parameter()[None, :]
+    if mask is not None:
+        r = np.where(mask, r, 0.0)
     return math.inf if not np.all(np.isfinite(r)) else float(np.max(r))
 
 
@@ -405,10 +408,10 @@ class Requirement:
             return (math.inf, math.inf)
         return square_path_sd(self.square, covariance)
 
-    def ratio(self, covariance: FloatArray) -> float:
-        """The largest of ``sd / target`` (every parameter) and ``square sd / budget``:
-        at most 1 when the covariance meets the requirement."""
-        r = worst_ratio(stddevs(covariance), self.targets)
+    def ratio(self, covariance: FloatArray, mask: NDArray[np.bool_] | None = None) -> float:
+        """The largest of ``sd / target`` (every parameter, or those of ``mask``) and
+        ``square sd / budget``: at most 1 when the covariance meets the requirement."""
+        r = worst_ratio(stddevs(covariance), self.targets, mask)
         sq = self.square_sd(covariance)
         if sq is not None:
             r = max(r, sq[0] / self.budget[0], sq[1] / self.budget[1])
