@@ -145,7 +145,9 @@ def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
 
 
 @contextmanager
-def served(app: Any, *, header_timeout: float = 5.0) -> Iterator[tuple[Any, int]]:
+def served(
+    app: Any, *, header_timeout: float = 5.0, max_connections: int = 8
+) -> Iterator[tuple[Any, int]]:
     """``app`` behind the real HTTP server (uvicorn with GuardedH11) on a free loopback
     port, in this process: ``(server, port)``; the server is stopped on exit."""
     from services.http.server import server as http_server
@@ -153,7 +155,7 @@ def served(app: Any, *, header_timeout: float = 5.0) -> Iterator[tuple[Any, int]
 
     port = int(free_tcp_endpoint().rsplit(":", 1)[1])
     srv = http_server(
-        app, host="127.0.0.1", port=port, header_timeout=header_timeout, max_connections=8,
+        app, host="127.0.0.1", port=port, header_timeout=header_timeout, max_connections=max_connections,
         log_level="warning",
     )  # fmt: skip
     serving = threading.Thread(target=srv.run, daemon=True)

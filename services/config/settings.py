@@ -15,7 +15,7 @@ import socket
 from pathlib import Path
 from typing import Literal
 
-from pydantic import ByteSize, Field, SecretStr, field_validator
+from pydantic import ByteSize, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.config.log_options import LogFormat, LogLevel
@@ -76,7 +76,21 @@ class ServiceSettings(BaseSettings):
         "(and stay idle between requests) before it is closed",
     )
     max_connections: int = Field(
-        128, ge=4, le=8192, description="open HTTP connections at most; more are closed"
+        128,
+        ge=4,
+        le=8192,
+        description="open HTTP connections at most; beyond it the one idle longest, else the "
+        "oldest event stream, else the oldest read in progress is closed for the new one",
+    )
+    max_streams: int = Field(
+        32,
+        ge=2,
+        description="open event streams (GET /events) at most, at most half of "
+        "max_connections: the rest stay for control (abort, /health); half of them for "
+        "clients without the token",
+    )
+    streams_per_client: int = Field(
+        4, ge=1, description="open event streams without the token at most, per client address"
     )
     log_level: LogLevel = Field(
         "info",
@@ -292,6 +306,15 @@ class ServiceSettings(BaseSettings):
     sim_gyro_scale_error: float = Field(
         _GYRO[4], gt=-50, lt=50, description="in-process simulator: gyro scale error, %"
     )
+
+    @model_validator(mode="after")
+    def _streams_leave_room(self) -> ServiceSettings:
+        if self.max_streams > self.max_connections // 2:
+            raise ValueError(
+                f"max_streams {self.max_streams} is over half of max_connections "
+                f"{self.max_connections}: event streams would leave no room for an abort"
+            )
+        return self
 
     @field_validator("log_level", "log_format", mode="before")
     @classmethod

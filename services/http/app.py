@@ -33,9 +33,11 @@ from fastapi.responses import JSONResponse
 from services.config.settings import ServiceSettings
 from services.http import answers, calibrations, checks, health, kinematics, simulator
 from services.http.console import router as console
+from services.http.control import limit_route_threads
 from services.http.deps import FiniteJSONResponse, printable
 from services.http.docs import offline_docs
 from services.http.guard import RequestGuard
+from services.http.streams import StreamGate
 from services.runtime.fleet import FleetPublisher
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version
@@ -53,6 +55,7 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        limit_route_threads()
         rt = runtime_factory(cfg) if runtime_factory else Runtime(cfg).open()
         app.state.runtime = rt
         fleet: FleetPublisher | None = None
@@ -79,6 +82,7 @@ def create_app(
         redoc_url=None,
     )
     app.state.token = cfg.ensure_token()
+    app.state.streams = StreamGate(cfg.max_streams, cfg.streams_per_client)
     app.add_middleware(
         RequestGuard,
         token=lambda: str(app.state.token),

@@ -23,7 +23,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import re
 from pathlib import Path
 from typing import Any, Literal
@@ -35,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, RunKind
 from services.http.answers import ReferenceIn, entries, refused
+from services.http.control import ABORT, run_in
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.runs.imu import parse_references, reference_problems
 from services.runs.plan import (
@@ -322,7 +322,7 @@ async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
 async def abort_run(rt: Rt, run_id: str, kind: RunKind) -> dict[str, Any]:
     """Abort run ``run_id`` of ``kind`` (404 unknown, 409 too late)."""
     # async: runs on the event loop itself, so stop_all() is not queued behind a
-    # threadpool hand-off; only the wait for the run's thread goes to a worker
+    # threadpool hand-off; only the wait for the run's thread goes to a thread of its own
     run = rt.runs.get(run_id)
     if run is None or run.status.kind != kind:
         raise not_running(rt, run_id, kind)
@@ -330,7 +330,7 @@ async def abort_run(rt: Rt, run_id: str, kind: RunKind) -> dict[str, Any]:
         st = run.status.state
         why = "it has finished" if run.finished else "it is installing its result, which stands"
         raise HTTPException(409, f"{kind} {run_id} is {st}: too late to abort ({why})")
-    await asyncio.to_thread(run.join, 10.0)
+    await run_in(ABORT, run.join, 10.0)
     return run.status.to_dict()
 
 

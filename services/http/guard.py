@@ -115,6 +115,17 @@ def _is_json(scope: Scope) -> bool:
     return True  # FastAPI reads a body without a content type as JSON
 
 
+def has_token(scope: Scope, token: str) -> bool:
+    """The request's ``Authorization`` is ``Bearer <token>`` (compared in constant time)."""
+    for k, v in scope.get("headers", []):
+        if k == b"authorization":
+            scheme, _, cred = v.decode("latin-1").partition(" ")
+            return scheme.lower() == "bearer" and bool(
+                secrets.compare_digest(cred.strip().encode(), token.encode())
+            )
+    return False
+
+
 async def _reply(send: Send, status: int, doc: Any, headers: dict[str, str] | None = None) -> None:
     body = json.dumps(doc).encode()
     raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
@@ -156,13 +167,7 @@ class RequestGuard:
         return None
 
     def _authorised(self, scope: Scope) -> bool:
-        for k, v in scope.get("headers", []):
-            if k == b"authorization":
-                scheme, _, cred = v.decode("latin-1").partition(" ")
-                return scheme.lower() == "bearer" and bool(
-                    secrets.compare_digest(cred.strip().encode(), self.token().encode())
-                )
-        return False
+        return has_token(scope, self.token())
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

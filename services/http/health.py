@@ -4,9 +4,10 @@ renders)."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
 
+from services.http.control import HEALTH, run_in
 from services.http.deps import FiniteJSONResponse, Rt
 from services.http.metrics import render_metrics
 from services.runtime.health import service_health
@@ -18,13 +19,14 @@ router = APIRouter()
     "/health",
     responses={503: {"description": "failing: a calibration cannot start or go on"}},
 )
-def health(rt: Rt) -> FiniteJSONResponse:
-    """``ok`` / ``degraded`` (200) or ``failing`` (503), with the problems."""
-    state, doc = service_health(rt)
+async def health(rt: Rt) -> FiniteJSONResponse:
+    """``ok`` / ``degraded`` (200) or ``failing`` (503), with the problems (judged in
+    threads of its own: :mod:`services.http.control`)."""
+    state, doc = await run_in(HEALTH, service_health, rt)
     return FiniteJSONResponse(doc, status_code=503 if state == "failing" else 200)
 
 
 @router.get("/metrics", response_class=PlainTextResponse)
-def metrics(rt: Rt) -> PlainTextResponse:
-    body, content_type = render_metrics(rt)
+def metrics(rt: Rt, request: Request) -> PlainTextResponse:
+    body, content_type = render_metrics(rt, request.app.state.streams)
     return PlainTextResponse(body, media_type=content_type)

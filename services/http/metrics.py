@@ -24,6 +24,7 @@ from prometheus_client.metrics_core import (
     Metric,
 )
 
+from services.http.streams import StreamGate
 from services.runtime.health import service_health
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version
@@ -74,8 +75,9 @@ def _time(text: Any) -> float | None:
 
 
 class RuntimeCollector:
-    def __init__(self, rt: Runtime) -> None:
+    def __init__(self, rt: Runtime, streams: StreamGate | None = None) -> None:
         self.rt = rt
+        self.streams = streams
 
     def collect(self) -> Iterator[Metric]:
         rt = self.rt
@@ -145,13 +147,25 @@ class RuntimeCollector:
             buckets=cum,
             sum_value=sum(durations),
         )
+        if self.streams is not None:
+            open_ = GaugeMetricFamily(
+                "swpc_http_streams", "open event streams (GET /events)", labels=["token"]
+            )
+            with_token, without = self.streams.counts()
+            open_.add_metric(["yes"], with_token)
+            open_.add_metric(["no"], without)
+            yield open_
+            yield CounterMetricFamily(
+                "swpc_http_streams_refused", "event streams refused 429 (a cap reached)",
+                self.streams.refused,
+            )  # fmt: skip
         status, _doc = service_health(rt)
         yield GaugeMetricFamily(
             "swpc_health", "0 ok, 1 degraded, 2 failing (GET /health)", HEALTH[status]
         )
 
 
-def render_metrics(rt: Runtime) -> tuple[bytes, str]:
+def render_metrics(rt: Runtime, streams: StreamGate | None = None) -> tuple[bytes, str]:
     reg = CollectorRegistry()
-    reg.register(RuntimeCollector(rt))
+    reg.register(RuntimeCollector(rt, streams))
     return generate_latest(reg), CONTENT_TYPE_LATEST

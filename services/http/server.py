@@ -9,9 +9,20 @@ every failed accept).  :class:`GuardedH11` adds:
 * a head timeout: a connection must send a complete request within ``header_timeout``
   host seconds of connecting (or of its first byte after an idle keep-alive), else it is
   closed;
-* a connection cap: beyond ``max_connections`` open connections, the one idle longest
-  (no request in progress) is closed to make room, so a new client (``/health``) is
-  served at once; with none idle, the new connection is closed.
+* a connection cap: beyond ``max_connections`` open connections, or beyond a quarter of
+  them from one client address (:attr:`GuardedH11.per_client`, 8 at least: a client
+  flooding the service closes only its own), one is closed to make room for the new one, so that a
+  new client (an abort, ``/health``) is served: the one idle
+  longest after a response (kept alive), else the oldest that has sent no whole request
+  for :data:`GRACE` s, else the oldest event stream (the browser reconnects and resumes it
+  by ``Last-Event-ID``), else the oldest read in progress (a GET or HEAD: a slow reader of
+  a download).  A connection younger than :data:`GRACE` that is still sending its first
+  request is never the one closed (asyncio accepts connections in batches: in a flood, a
+  client's connection would otherwise be closed by the ones accepted after it before its
+  request was read); nor is one carrying a request that may change something (each with
+  the token).  With none to close, the new connection is closed.  Event streams are also
+  bounded where they begin, to fewer than the cap
+  (:class:`services.http.streams.StreamGate`).
 
 The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and files.
 
@@ -33,7 +44,7 @@ import re
 import signal
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import h11
@@ -43,6 +54,9 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 from swpc_hw.errors import SwpcError
 
 MAX_HEADER_BYTES = 16 << 10
+GRACE = 1.0
+"""Host seconds a new connection has to send its first request before the cap may close
+it for another."""
 
 
 class ListenError(SwpcError):
@@ -76,25 +90,60 @@ class GuardedH11(H11Protocol):
 
     header_timeout = 10.0
     max_connections = 128
+    stream_paths: frozenset[str] = frozenset({"/events"})
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         self._head: asyncio.TimerHandle | None = None
         self._idle_since: float | None = time.monotonic()
+        self._busy_since = 0.0
+        self._served = False  # a response was sent on it: idle now means kept alive
         super().connection_made(transport)
-        if len(self.connections) > self.max_connections:
-            idle = [
-                c
-                for c in self.connections
-                if isinstance(c, GuardedH11) and c is not self and c._idle_since is not None
-            ]
-            if idle:
-                oldest = min(idle, key=lambda c: c._idle_since or 0.0)
-                oldest.transport.close()
-                self.connections.discard(oldest)
-            else:
-                self.transport.close()
-                return
+        self._peer = self.client[0] if self.client else ""
+        mine = [c for c in self.connections if isinstance(c, GuardedH11) and c._peer == self._peer]
+        for over, among in (
+            (len(mine) > self.per_client, mine),
+            (len(self.connections) > self.max_connections, self.connections),
+        ):
+            if over:
+                victim = self._victim(among)
+                if victim is None:
+                    self.transport.close()
+                    return
+                victim.transport.close()
+                self.connections.discard(victim)
         self._arm()
+
+    @property
+    def per_client(self) -> int:
+        """Open connections one client address holds at most: a quarter of the cap (8 at
+        least)."""
+        return max(8, self.max_connections // 4)
+
+    def _eviction_rank(self, now: float) -> tuple[int, float] | None:
+        """How readily this connection is closed for a new one (lower first, then the
+        oldest), or None when it is not (module docstring)."""
+        if self._idle_since is not None:
+            if self._served:
+                return (0, self._idle_since)
+            return (1, self._idle_since) if now - self._idle_since >= GRACE else None
+        scope = self.scope
+        if scope is None:  # no request parsed: not reached (idle until it is)
+            return None
+        if scope.get("path") in self.stream_paths:
+            return (2, self._busy_since)
+        if scope.get("method") in ("GET", "HEAD"):
+            return (3, self._busy_since)
+        return None
+
+    def _victim(self, among: Iterable[Any]) -> GuardedH11 | None:
+        now = time.monotonic()
+        ranked = [
+            (rank, c)
+            for c in among
+            if isinstance(c, GuardedH11) and c is not self
+            and (rank := c._eviction_rank(now)) is not None
+        ]  # fmt: skip
+        return min(ranked, key=lambda rc: rc[0])[1] if ranked else None
 
     def _arm(self) -> None:
         if self._head is None:
@@ -115,11 +164,14 @@ class GuardedH11(H11Protocol):
         super().data_received(data)
         if self.conn.their_state in (h11.DONE, h11.MUST_CLOSE, h11.CLOSED, h11.ERROR):
             self._disarm()
+            if self._idle_since is not None:
+                self._busy_since = time.monotonic()
             self._idle_since = None
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
         self._idle_since = time.monotonic()
+        self._served = True
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()

@@ -45,6 +45,8 @@ from mcap.reader import make_reader
 from pydantic import BaseModel, Field
 
 from services.http.deps import Problem, Rt, done_result, problems
+from services.http.guard import has_token
+from services.http.streams import StreamGate, StreamRefusedError, Ticket
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL
 from services.runtime.health import simulated_time_still
@@ -339,15 +341,29 @@ def _followed(rt: Rt, run: str | None = None) -> str | None:
     return run
 
 
+async def _admitted(request: Request) -> Ticket:
+    """A place for the stream (:class:`services.http.streams.StreamGate`), else 429."""
+    gate: StreamGate = request.app.state.streams
+    client = request.client.host if request.client else "unknown"
+    try:
+        return gate.admit(client, has_token(request.scope, str(request.app.state.token)))
+    except StreamRefusedError as exc:
+        raise HTTPException(429, str(exc), headers={"Retry-After": str(RETRY_MS // 1000)}) from None
+
+
 @router.get("/events", include_in_schema=False, response_class=EventSourceResponse)
 async def events(
     request: Request,
     rt: Rt,
     run: Annotated[str | None, Depends(_followed)],
+    ticket: Annotated[Ticket, Depends(_admitted)],
     last_event_id: Annotated[str | None, Header()] = None,
 ) -> AsyncIterator[ServerSentEvent]:
-    async for ev in _stream(request, rt, run, last_event_id):
-        yield ev
+    try:
+        async for ev in _stream(request, rt, run, last_event_id, ticket):
+            yield ev
+    finally:
+        ticket.release()
 
 
 class _Sender:
@@ -404,7 +420,7 @@ class _Sender:
 
 
 async def _stream(
-    request: Request, rt: Runtime, only: str | None, last_event_id: str | None
+    request: Request, rt: Runtime, only: str | None, last_event_id: str | None, ticket: Ticket
 ) -> AsyncIterator[ServerSentEvent]:
     loop = asyncio.get_running_loop()
     cur = _LiveCursor()
@@ -421,7 +437,7 @@ async def _stream(
         for ev in first:
             yield ev
         next_live = loop.time()
-        while not send.ended and not _stopping(request):
+        while not send.ended and not _stopping(request) and not ticket.evicted:
             await sub.wait(timeout=max(0.0, next_live - loop.time()))
             for ev in send.catch_up(bus.since(send.last)):
                 yield ev
