@@ -386,6 +386,18 @@ def test_page_loads_offline_and_the_token_is_asked_once(
     state["abort_run"] = run_id
     assert d.execute_script("return sessionStorage.getItem('swpc-token')") == TOKEN
     assert text(d, "token-button") == "Token set ✓"
+    # the page's event stream now carries the token (the service keeps room for it)
+    wait_for("the stream with the token", lambda: streams(service) == {"yes": 1, "no": 0})
+    wait_for("the event stream", lambda: text(d, "link-state") == "live")
+
+
+def streams(service: dict[str, Any]) -> dict[str, int]:
+    """The service's open event streams, with the token and without (``/metrics``)."""
+    out = {}
+    for line in httpx.get(service["url"] + "/metrics", timeout=10).text.splitlines():
+        if line.startswith("swpc_http_streams{"):
+            out[line.split('token="')[1].split('"')[0]] = int(float(line.rsplit(" ", 1)[1]))
+    return out
 
 
 def test_live_view_advances_and_abort_ends_aborted(

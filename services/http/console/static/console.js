@@ -98,6 +98,7 @@ async function ensureToken() {
 }
 function updateTokenButton() {
   $("token-button").textContent = sessionStorage.getItem(TOKEN_KEY) ? "Token set ✓" : "Enter token";
+  if (app.stream) connect();  // the stream with the token now (or without it)
 }
 function confirmDialog(title, text, okLabel) {
   const dlg = $("confirm-dialog");
@@ -893,24 +894,93 @@ async function showFoxglove(id) {
 }
 
 // ------------------------------------------------------------------ event stream
-function connect() {
-  const es = new EventSource("/events");
-  const state = $("link-state");
-  es.onopen = () => { state.textContent = "live"; state.className = "pill ok"; };
-  es.onerror = () => { state.textContent = "reconnecting…"; state.className = "pill bad"; };
-  es.addEventListener("hello", (ev) => {
-    const first = !app.hello;
-    app.hello = JSON.parse(ev.data);
-    $("robot-name").textContent = "· robot " + app.hello.robot + (app.hello.in_process_simulator ? " (simulator)" : "");
-    if (first) {
-      fillDefaults(app.hello.protocol);
-      $("f-metrology").value = app.hello.metrology;
-      buildTape();
-      showMetrology();
+// With the token the stream is read with fetch (EventSource cannot send a header): the
+// service keeps room for the operator's streams, and a client without the token holds
+// only a few. Without it, EventSource. Either way: named events, ids, Last-Event-ID when
+// it reconnects, the service's retry.
+function openStream(url, token, handlers, onState) {
+  if (!token) {
+    const es = new EventSource(url);
+    es.onopen = () => onState(true);
+    es.onerror = () => onState(false);
+    for (const [name, fn] of Object.entries(handlers)) es.addEventListener(name, (ev) => fn(ev.data));
+    return { token, close: () => es.close() };
+  }
+  let closed = false, lastId = null, retry = 1000, ctrl = null;
+  const dispatch = (ev) => { if (ev.data.length && handlers[ev.name]) handlers[ev.name](ev.data.join("\n")); };
+  function field(ev, line) {
+    if (line.startsWith(":")) return;
+    const c = line.indexOf(":");
+    const name = c < 0 ? line : line.slice(0, c);
+    let v = c < 0 ? "" : line.slice(c + 1);
+    if (v.startsWith(" ")) v = v.slice(1);
+    if (name === "data") ev.data.push(v);
+    else if (name === "event") ev.name = v;
+    else if (name === "id") lastId = v;
+    else if (name === "retry" && /^\d+$/.test(v)) retry = Number(v);
+  }
+  async function read(r) {
+    const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
+    let buf = "", ev = { name: "message", data: [] };
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) return;
+      buf += value;
+      let nl;
+      while ((nl = buf.search(/[\r\n]/)) >= 0) {
+        if (buf[nl] === "\r" && nl === buf.length - 1) break;  // its \n may follow
+        const line = buf.slice(0, nl);
+        buf = buf.slice(nl + (buf[nl] === "\r" && buf[nl + 1] === "\n" ? 2 : 1));
+        if (line === "") { dispatch(ev); ev = { name: "message", data: [] }; } else field(ev, line);
+      }
     }
-  });
-  es.addEventListener("run", (ev) => onRun(JSON.parse(ev.data), true));
-  es.addEventListener("live", (ev) => onLive(JSON.parse(ev.data)));
+  }
+  (async () => {
+    while (!closed) {
+      ctrl = new AbortController();
+      try {
+        const headers = { Authorization: "Bearer " + token, Accept: "text/event-stream" };
+        if (lastId !== null) headers["Last-Event-ID"] = lastId;
+        const r = await fetch(url, { headers, signal: ctrl.signal, cache: "no-store" });
+        if (!r.ok || !r.body) throw new Error("HTTP " + r.status);
+        onState(true);
+        await read(r);
+      } catch (e) {
+        if (closed) return;
+      }
+      onState(false);
+      await new Promise((resolve) => setTimeout(resolve, retry));
+    }
+  })();
+  return { token, close: () => { closed = true; if (ctrl) ctrl.abort(); } };
+}
+
+function connect() {
+  const token = sessionStorage.getItem(TOKEN_KEY);
+  if (app.stream) {
+    if (app.stream.token === token) return;
+    app.stream.close();
+  }
+  const state = $("link-state");
+  const onState = (live) => {
+    state.textContent = live ? "live" : "reconnecting…";
+    state.className = live ? "pill ok" : "pill bad";
+  };
+  app.stream = openStream("/events", token, {
+    hello: (data) => {
+      const first = !app.hello;
+      app.hello = JSON.parse(data);
+      $("robot-name").textContent = "· robot " + app.hello.robot + (app.hello.in_process_simulator ? " (simulator)" : "");
+      if (first) {
+        fillDefaults(app.hello.protocol);
+        $("f-metrology").value = app.hello.metrology;
+        buildTape();
+        showMetrology();
+      }
+    },
+    run: (data) => onRun(JSON.parse(data), true),
+    live: (data) => onLive(JSON.parse(data)),
+  }, onState);
 }
 
 document.addEventListener("DOMContentLoaded", () => {
