@@ -155,8 +155,8 @@ def served(
 
     port = int(free_tcp_endpoint().rsplit(":", 1)[1])
     srv = http_server(
-        app, host="127.0.0.1", port=port, header_timeout=header_timeout, max_connections=max_connections,
-        log_level="warning",
+        app, host="127.0.0.1", port=port, header_timeout=header_timeout,
+        max_connections=max_connections, log_level="warning",
     )  # fmt: skip
     serving = threading.Thread(target=srv.run, daemon=True)
     serving.start()

@@ -176,24 +176,26 @@ def test_a_client_flooding_connections_closes_only_its_own(tmp_path: Path) -> No
     on connections it keeps alive meanwhile."""
     settings = ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN))
     cap = 32
-    with served(create_app(settings), max_connections=cap) as (_srv, port):
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as mine:
+    with (
+        served(create_app(settings), max_connections=cap) as (_srv, port),
+        httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as mine,
+    ):
+        assert mine.get("/health").status_code in (200, 503)
+        flood = []
+        for i in range(5 * cap):
+            s = socket.create_connection(("127.0.0.1", port), 10, ("127.0.0.2", 0))
+            if i % 2:
+                s.sendall(b"GET /calibrations HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            flood.append(s)
+        try:
+            # this client's kept-alive connection is still there, and served
             assert mine.get("/health").status_code in (200, 503)
-            flood = []
-            for i in range(5 * cap):
-                s = socket.create_connection(("127.0.0.1", port), 10, ("127.0.0.2", 0))
-                if i % 2:
-                    s.sendall(b"GET /calibrations HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
-                flood.append(s)
-            try:
-                # this client's kept-alive connection is still there, and served
-                assert mine.get("/health").status_code in (200, 503)
-                assert mine.get("/calibrations").status_code == 200
-                open_ = [s for s in flood if not closed(s)]
-                assert len(open_) <= cap // 4, len(open_)
-            finally:
-                for s in flood:
-                    s.close()
+            assert mine.get("/calibrations").status_code == 200
+            open_ = [s for s in flood if not closed(s)]
+            assert len(open_) <= cap // 4, len(open_)
+        finally:
+            for s in flood:
+                s.close()
 
 
 def closed(s: socket.socket) -> bool:
