@@ -102,14 +102,16 @@ def test_a_stream_with_the_token_takes_the_place_of_one_without(
     service: tuple[str, int],
 ) -> None:
     base, port = service
-    anonymous = [open_stream(port) for _ in range(2)]
-    mine = [open_stream(port, token=True) for _ in range(4)]
+    anonymous: list[socket.socket] = []
+    mine: list[socket.socket] = []
     try:
-        assert all(head(s).startswith(b"HTTP/1.1 200") for s in anonymous)
-        assert all(head(s).startswith(b"HTTP/1.1 200") for s in mine)  # 2 of them evict
+        for streams, token, n in ((anonymous, False, 2), (mine, True, 4)):
+            for _ in range(n):  # one after another, each answered before the next
+                streams.append(open_stream(port, token))
+                assert head(streams[-1]).startswith(b"HTTP/1.1 200")  # 2 of mine evict
         # the streams without the token end (within a live period); the operator's go on
         for s in anonymous:
-            s.settimeout(5.0)
+            s.settimeout(20.0)
             while s.recv(65536):
                 pass
         assert all(still_streaming(s) for s in mine)
