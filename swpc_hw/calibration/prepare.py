@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.dataset import Dataset, Segment
 from swpc_hw.errors import DatasetError
+from swpc_hw.files.dataset import Dataset, Segment
 
 FloatArray = NDArray[np.float64]
 
@@ -69,7 +69,7 @@ def prepare_segments(
 
     ``calibration``: every module locked at two angles or more (a calibration starts from
     the fixed points' closed form); False for a check, which starts from the file in
-    force and may lock some modules at one angle (:mod:`swpc_hw.calibration.check`)."""
+    force and may lock some modules at one angle (:mod:`swpc_hw.calibration.check.verdict`)."""
     seg_file = f"{source}/segments.csv"
     ids = ds.robot.ids
     if not ds.segments:

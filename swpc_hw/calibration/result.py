@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.calibration.parameters import PARAM_NAMES
-from swpc_hw.model import RobotParams
+from swpc_hw.robot.model import RobotParams
 
 FloatArray = NDArray[np.float64]
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.model import wrap_angle
+from swpc_hw.robot.model import wrap_angle
 from swpc_hw.validation.options import Direction, SquareOptions
 
 FloatArray = NDArray[np.float64]
