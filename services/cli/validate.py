@@ -216,7 +216,7 @@ def run_in_process(
 
 def _labels(args: argparse.Namespace) -> list[str]:
     """A name for each ``--kinematics`` file (one-line error if they do not match)."""
-    from swpc_hw.validation.options import ValidationError
+    from swpc_hw.validation.errors import ValidationError
 
     paths: list[str] = args.kinematics
     if args.label is not None:
@@ -285,7 +285,7 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         if args.truth is not None:
-            from swpc_hw.validation.options import ValidationError
+            from swpc_hw.validation.errors import ValidationError
 
             raise ValidationError("--truth is for the in-process simulator: a robot's truth "
                                   "is its motion capture")

@@ -36,10 +36,10 @@ Imports numpy and the CAN driver; zenoh only through a session object that the c
 opens; matplotlib only inside :meth:`ValidationReport.plot`.
 """
 
-from swpc_hw.onboard.square_path import Leg, follow_step, square_plan
+from swpc_hw.onboard.square_path import Direction, Leg, SquareOptions, follow_step, square_plan
 from swpc_hw.validation.drive import SquareDrive, prepare_driver, validate
+from swpc_hw.validation.errors import ValidationError
 from swpc_hw.validation.odometry_feed import DriverOdometry
-from swpc_hw.validation.options import Direction, SquareOptions, ValidationError
 from swpc_hw.validation.report import RunResult, ValidationReport, to_start_frame
 from swpc_hw.validation.truth import ZenohTruth, mocap_decoder, sim_truth_decoder
 

@@ -14,7 +14,7 @@ from swpc_hw.can import FeedbackSample
 from swpc_hw.drives.interface import Drives
 from swpc_hw.onboard.odometry import Odometry, OdometryOptions
 from swpc_hw.robot.model import RobotParams
-from swpc_hw.validation.options import ValidationError
+from swpc_hw.validation.errors import ValidationError
 
 FloatArray = NDArray[np.float64]
 

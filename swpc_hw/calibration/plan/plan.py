@@ -70,6 +70,7 @@ from swpc_hw.calibration.parameters import BETA, N_PARAMS, PARAM_NAMES
 from swpc_hw.calibration.parameters import B as B_COL
 from swpc_hw.calibration.parameters import R as R_COL
 from swpc_hw.errors import CalibrationError
+from swpc_hw.onboard.square_path import SquareOptions
 from swpc_hw.robot.model import (
     RobotArrays,
     RobotParams,
@@ -80,7 +81,6 @@ from swpc_hw.robot.model import (
     trailing_steering_angle,
     true_steering_angle,
 )
-from swpc_hw.validation.options import SquareOptions
 
 FloatArray = NDArray[np.float64]
 _SQUARE = SquareOptions()
