@@ -25,11 +25,10 @@ from numpy.typing import NDArray
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.gyro import bias
 from swpc_hw.calibration.gyro.problem import ImuLayout, ImuProblem, RollingSet, connected_chunks
-from swpc_hw.calibration.mocap.solver import settled_steering
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import BETA, P_S, R
 from swpc_hw.calibration.parameters import B as B_COL
-from swpc_hw.calibration.prepare import LOCK_TOL, SegmentData
+from swpc_hw.calibration.prepare import LOCK_TOL, SegmentData, settled_steering
 from swpc_hw.calibration.problem import SettledObservations
 from swpc_hw.calibration.rolling import EncoderTrack, decimate, encoder_resolution, encoder_tracks
 from swpc_hw.errors import CalibrationError, DatasetError

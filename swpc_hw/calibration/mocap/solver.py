@@ -47,7 +47,11 @@ from swpc_hw.calibration.parameters import (
     canonical_parameters,
 )
 from swpc_hw.calibration.parameters import B as B_COL
-from swpc_hw.calibration.prepare import SegmentData, encoders_in_window, prepare_segments
+from swpc_hw.calibration.prepare import (
+    SegmentData,
+    prepare_segments,
+    settled_steering,
+)
 from swpc_hw.calibration.problem import (
     FixedPointObservations,
     JointProblem,
@@ -66,11 +70,11 @@ from swpc_hw.calibration.rolling import (
     rolling_increments,
     rolling_levers,
 )
-from swpc_hw.calibration.slip import detect_slip, mad_sigma
+from swpc_hw.calibration.slip import detect_slip
 from swpc_hw.calibration.uncertainty import stddev_of
 from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset, load_dataset
-from swpc_hw.robot.model import ModuleStddev, RobotParams, contact_point, wrap_angle
+from swpc_hw.robot.model import ModuleStddev, RobotParams, contact_point
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -100,33 +104,6 @@ def closed_form_geometry(fits: list[FixedPointFit], segs: list[SegmentData], n: 
         P_s, b, beta = geo.steering_circle_fit(pts, angles)
         X[i, P_S], X[i, BETA], X[i, B_COL] = P_s, beta, b
     return X
-
-
-def settled_steering(
-    ds: Dataset, segs: list[SegmentData], offset: float, floor: float
-) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
-    """Settled reported steering of every (segment, dynamic module): median and its spread.
-
-    The median is taken on angles unwrapped around the first sample (a caster settled
-    near +-pi reports both signs).  Returns ``(seg, mod, theta, sigma_theta)``.
-    """
-    seg, mod, theta, sig = [], [], [], []
-    for si, sd in enumerate(segs):
-        for j, mid in enumerate(ds.robot.ids):
-            if j == sd.static:
-                continue
-            th = encoders_in_window(ds, mid, sd.segment.start, sd.segment.end, offset)[:, 1]
-            th = th[0] + wrap_angle(th - th[0])
-            seg.append(si)
-            mod.append(j)
-            theta.append(float(np.median(th)))
-            sig.append(max(mad_sigma(th), floor))
-    return (
-        np.array(seg, dtype=np.int64),
-        np.array(mod, dtype=np.int64),
-        np.array(theta),
-        np.array(sig),
-    )
 
 
 def rolling_nodes(
