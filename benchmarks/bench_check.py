@@ -117,7 +117,7 @@ def check_run(
     truth: RobotParams, protocol: dict[str, Any], seed: int, file: CalibrationResult
 ) -> CalibrationResult:
     """A check's estimate on ``truth``, solved from the file's parameters."""
-    from swpc_hw.calibration.check.verdict import check_dataset
+    from swpc_hw.calibration.check.dataset_check import check_dataset
 
     ds = generate_experiment(truth, check_options(protocol, seed), PAPER_NOMINAL).dataset
     result, _ = check_dataset(ds, file.params, file.covariance)
@@ -229,7 +229,7 @@ def check_data(robot: RobotParams, proto: dict[str, Any], seed: int, metrology: 
 
 
 def offline(seeds: int, cfg: RobotConfig, metrology: str = "mocap") -> None:
-    from swpc_hw.calibration.check.verdict import check_dataset
+    from swpc_hw.calibration.check.dataset_check import check_dataset
 
     c = cfg.check
     proto = cfg.check_config().protocol.model_dump()

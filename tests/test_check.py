@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from simulators.datagen import ExperimentOptions, generate_experiment
+from swpc_hw.calibration.check.dataset_check import check_dataset
 from swpc_hw.calibration.check.trend import linear_trend
 from swpc_hw.calibration.check.verdict import (
     CONSISTENT,
     DRIFTED,
     WHOLE_ROBOT,
-    check_dataset,
     check_estimates,
     compare,
     sidak,

@@ -11,8 +11,9 @@ import pytest
 
 from simulators.datagen import ExperimentOptions
 from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
+from swpc_hw.calibration.check.dataset_check import check_dataset
 from swpc_hw.calibration.check.shape import compare_shape, gauge_directions, relative_map
-from swpc_hw.calibration.check.verdict import CONSISTENT, DRIFTED, check_dataset, thresholds
+from swpc_hw.calibration.check.verdict import CONSISTENT, DRIFTED, thresholds
 from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset
 from swpc_hw.robot.frames import transform_parameters

@@ -154,7 +154,7 @@ def _detail(r: Any) -> str:
 def offline(args: argparse.Namespace) -> int:
     from services.config.robot import RobotConfig, load_robot_config
     from services.runs.check import FILE_IN_FORCE
-    from swpc_hw.calibration.check.verdict import check_dataset
+    from swpc_hw.calibration.check.dataset_check import check_dataset
     from swpc_hw.errors import SwpcError
     from swpc_hw.files.dataset import load_dataset
     from swpc_hw.files.kinematic_file import load_kinematics

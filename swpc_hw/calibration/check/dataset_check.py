@@ -9,7 +9,7 @@ from typing import Any
 
 from swpc_hw.calibration.check.shape import compare_shape
 from swpc_hw.calibration.check.verdict import (
-    CheckResult,
+    CheckVerdict,
     check_estimates,
     file_notes,
     in_order,
@@ -30,9 +30,9 @@ def check_dataset(
     whole_robot: float = 0.5,
     repeatability: Any = None,
     source: str = "dataset",
-) -> tuple[Any, CheckResult]:
+) -> tuple[Any, CheckVerdict]:
     """Solve a check's dataset from the file's parameters and judge it:
-    ``(CalibrationResult, CheckResult)``.  What ``swpc check --offline`` and a check run
+    ``(CalibrationResult, CheckVerdict)``.  What ``swpc check --offline`` and a check run
     both do.  With motion capture (``poses.csv``) the file must be in the dataset's frame
     (R); without (``imu.csv``), :func:`check_dataset_imu`."""
     test: dict[str, Any] = dict(
@@ -57,7 +57,7 @@ def check_dataset(
 
 def check_dataset_imu(
     ds: Any, file: RobotParams, file_covariance: Any, source: str, test: dict[str, Any]
-) -> tuple[Any, CheckResult]:
+) -> tuple[Any, CheckVerdict]:
     """A check without motion capture (the gyro and the encoders, no references): the
     dataset solved fitted to the file (:func:`~swpc_hw.calibration.gyro.solver.solve_imu_check`,
     frame ``file-fit``) and judged on the robot's shape

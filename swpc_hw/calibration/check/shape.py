@@ -51,7 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.calibration.check.verdict import (
-    CheckResult,
+    CheckVerdict,
     ModuleCheck,
     ParameterChange,
     change_and_covariance,
@@ -131,7 +131,7 @@ def compare_shape(
     false_alarm: float = 0.05,
     whole_robot: float = 0.5,
     repeatability: Any = None,
-) -> CheckResult:
+) -> CheckVerdict:
     """The verdict of a check without motion capture (module docstring) from the (N, 5)
     estimates (modules in the order ``ids``, SI, one gauge: the check fitted to the file),
     their (5N, 5N) covariances and the ``repeatability`` (5,) (None: zero).  The result's

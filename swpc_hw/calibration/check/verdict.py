@@ -5,8 +5,9 @@ solved by the joint solver started from the file in force
 (:func:`swpc_hw.calibration.mocap.solver.solve` with ``start``): an estimate ``p_check`` of
 every parameter with its covariance ``C_check``, independent of the file's estimate
 ``p_file`` (covariance ``C_file``, as the file states it).  Both are in the frame R of
-the motion capture's rigid body (:func:`check_dataset` refuses a file in another frame):
-a change of the robot shows as a change of its parameters, nothing else does.  A check
+the motion capture's rigid body
+(:func:`~swpc_hw.calibration.check.dataset_check.check_dataset` refuses a file in another
+frame): a change of the robot shows as a change of its parameters, nothing else does.  A check
 without motion capture compares the robot's shape instead
 (:mod:`swpc_hw.calibration.check.shape`).
 
@@ -111,7 +112,7 @@ def in_order(
 def stated_covariance(params: RobotParams, covariance: Any, ids: list[int]) -> FloatArray:
     """The covariance a file states, in the order ``ids``: its ``covariance``, else its
     std devs (no correlation), else zero (the file taken as exact: a check then judges
-    its own noise only, and says so, :attr:`CheckResult.notes`)."""
+    its own noise only, and says so, :attr:`CheckVerdict.notes`)."""
     X, C = in_order(params, covariance, ids)
     if C is not None and np.all(np.isfinite(C)):
         return C
@@ -168,7 +169,7 @@ class ModuleCheck:
 
 
 @dataclass
-class CheckResult:
+class CheckVerdict:
     """A check's verdict (module docstring)."""
 
     verdict: str
@@ -304,7 +305,7 @@ def verdict_of(
     changes: list[ParameterChange],
     false_alarm: float,
     whole_robot: float,
-) -> CheckResult:
+) -> CheckVerdict:
     """The verdict and action from the judged modules (module docstring)."""
     alpha_m, q, z_m = thresholds(false_alarm, len(modules))
     drifted_ids = [m.id for m in modules if m.drifted]
@@ -316,7 +317,7 @@ def verdict_of(
         verdict = DRIFTED
         word = "module" if len(drifted_ids) == 1 else "modules"
         action = f"recalibrate {word} {', '.join(map(str, drifted_ids))}"
-    return CheckResult(
+    return CheckVerdict(
         verdict, action, drifted_ids, modules, changes, false_alarm, alpha_m, q, z_m, whole_robot
     )
 
@@ -331,7 +332,7 @@ def compare(
     false_alarm: float = 0.05,
     whole_robot: float = 0.5,
     repeatability: Any = None,
-) -> CheckResult:
+) -> CheckVerdict:
     """The check's verdict (module docstring) from the (N, 5) estimates ``check`` and
     ``file`` (modules in the order ``ids``, SI), their (5N, 5N) covariances and the
     ``repeatability`` std devs (5,) of ``x_s, y_s, beta, b, r`` (None: zero).
@@ -362,7 +363,7 @@ def check_estimates(
     false_alarm: float = 0.05,
     whole_robot: float = 0.5,
     repeatability: Any = None,
-) -> CheckResult:
+) -> CheckVerdict:
     """:func:`compare` of a check's parameters against a file's, after the gauge checks:
     the same robot frame (a file in another frame, e.g. ``design-fit``, cannot be compared
     with a check in R) and the same modules.  The file's covariance as it states it
@@ -402,67 +403,3 @@ def file_notes(file: RobotParams, file_covariance: Any, ids: list[int]) -> list[
         else "The file states no uncertainty: it is taken as exact (only the check's "
         "noise and the repeatability are judged)."
     ]
-
-
-def check_dataset(
-    ds: Any,
-    file: RobotParams,
-    file_covariance: Any,
-    *,
-    false_alarm: float = 0.05,
-    whole_robot: float = 0.5,
-    repeatability: Any = None,
-    source: str = "dataset",
-) -> tuple[Any, CheckResult]:
-    """Solve a check's dataset from the file's parameters and judge it:
-    ``(CalibrationResult, CheckResult)``.  What ``swpc check --offline`` and a check run
-    both do.  With motion capture (``poses.csv``) the file must be in the dataset's frame
-    (R); without (``imu.csv``), :func:`check_dataset_imu`."""
-    from swpc_hw.calibration.mocap.solver import SolverOptions, solve
-
-    test: dict[str, Any] = dict(
-        false_alarm=false_alarm, whole_robot=whole_robot, repeatability=repeatability
-    )
-    if not ds.has_poses:
-        return check_dataset_imu(ds, file, file_covariance, source, test)
-    if file.frame != ds.robot.frame:
-        raise CalibrationError(
-            f"the file is in frame {file.frame!r}, the check measures in {ds.robot.frame!r} "
-            "(the motion capture's rigid body): they cannot be compared; calibrate with "
-            "motion capture first, or check without motion capture (metrology imu)"
-        )
-    X, _ = in_order(file, None, ds.robot.ids)
-    start = RobotParams.from_arrays(
-        ds.robot.ids, X[:, :2], X[:, 2], X[:, 3], X[:, 4], robot=ds.robot.robot,
-        frame=ds.robot.frame,
-    )  # fmt: skip
-    result = solve(ds, SolverOptions(time_offset=0.0), source=source, start=start)
-    return result, check_estimates(result.params, result.covariance, file, file_covariance, **test)
-
-
-def check_dataset_imu(
-    ds: Any, file: RobotParams, file_covariance: Any, source: str, test: dict[str, Any]
-) -> tuple[Any, CheckResult]:
-    """A check without motion capture (the gyro and the encoders, no references): the
-    dataset solved fitted to the file (:func:`~swpc_hw.calibration.gyro.solver.solve_imu_check`,
-    frame ``file-fit``) and judged on the robot's shape
-    (:func:`~swpc_hw.calibration.check.shape.compare_shape` with the keywords ``test``).
-    The file may be in any frame: the comparison does not depend on it."""
-    from swpc_hw.calibration.check.shape import compare_shape
-    from swpc_hw.calibration.gyro.solver import solve_imu_check
-
-    if ds.imu is None:
-        raise CalibrationError(
-            f"{source}: neither poses.csv nor imu.csv: a check measures with motion capture "
-            "or the gyro"
-        )
-    ids = ds.robot.ids
-    X, _ = in_order(file, None, ids)
-    result = solve_imu_check(ds, X, source=source)
-    if result.covariance is None:
-        raise CalibrationError(f"{source}: the check's data do not determine its covariance")
-    X_check, _ = in_order(result.params, None, ids)
-    C_file = stated_covariance(file, file_covariance, ids)
-    verdict = compare_shape(X_check, result.covariance, X, C_file, ids, **test)
-    verdict.notes += file_notes(file, file_covariance, ids)
-    return result, verdict
