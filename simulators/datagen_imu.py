@@ -41,7 +41,7 @@ import numpy as np
 from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
 from simulators.physics import FloatArray
 from swpc_hw.calibration.gyro.build import ImuRun, NoiseLevels, build_imu_problem
-from swpc_hw.calibration.gyro.solver import initial_weights
+from swpc_hw.calibration.gyro.weights import initial_weights
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.files.dataset import Dataset, save_dataset

@@ -26,7 +26,7 @@ import numpy as np
 
 from simulators.datagen import ExperimentOptions, generate_experiment
 from simulators.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
-from swpc_hw.calibration.gyro.solver import imu_covariance
+from swpc_hw.calibration.gyro.covariance import imu_covariance
 from swpc_hw.calibration.mocap.solver import solve, solve_joint
 from swpc_hw.calibration.parameters import N_PARAMS
 from swpc_hw.calibration.plan.forecast import SpinInformation, spin_information
@@ -139,7 +139,7 @@ def predicted_imu_covariance(
 ) -> FloatArray:
     """(5N, 5N) covariance of candidate ``c`` without motion capture on ``robot`` (modules
     in its order), in the ``design-fit`` frame the run's result reports: the IMU
-    solver's covariance (:func:`swpc_hw.calibration.gyro.solver.imu_covariance`) at the
+    solver's covariance (:func:`swpc_hw.calibration.gyro.covariance.imu_covariance`) at the
     truth of the candidate's noiseless run (:func:`simulators.datagen_imu.fisher_setup`:
     the gyro's white noise and walk, the encoders' quantization and the tape's std dev as
     weights).  A solve of a noisy run gives the same std devs within 0.5 %

@@ -22,7 +22,7 @@ from simulators.datagen_imu import (
     fisher_setup,
     generate_imu_experiment,
 )
-from swpc_hw.calibration.gyro.problem import profiled_rolling
+from swpc_hw.calibration.gyro.rolling_sets import profiled_rolling
 from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.calibration.plan.identifiability import analyse
 from swpc_hw.calibration.result import CalibrationResult

@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.gyro import bias
-from swpc_hw.calibration.gyro.problem import ImuLayout, ImuProblem, RollingSet, connected_chunks
+from swpc_hw.calibration.gyro.problem import ImuLayout, ImuProblem
+from swpc_hw.calibration.gyro.rolling_sets import RollingSet, connected_chunks
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import BETA, P_S, R
 from swpc_hw.calibration.parameters import B as B_COL

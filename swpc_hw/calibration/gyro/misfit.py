@@ -4,13 +4,13 @@ A burst of slip shows in a few wheel increments (:mod:`.slip`); a wheel that sli
 steadily over a whole spin (a low-friction patch: 0.4 % for 12 s) does not, it only
 changes that wheel's rolling ratio in that spin.  The spin's wheels still share one yaw,
 so what the geometry fixes is the ratios of their levers: in one spin the wheel angles
-roll as (:mod:`.imu_problem`, ``spin``)::
+roll as (:mod:`.problem`, ``spin``)::
 
     psi_jl = c_j + h_j Y_l,      h_j = g_j / r_j
 
 with ``h`` from the calibration (the model) or, freely, any ``h`` (the spin alone: only
 the ratios ``h_j / h_1`` count, ``Y`` absorbs a common scale).  With ``RSS_model`` and
-``RSS_free`` the profiled residuals' sums of squares (:func:`.imu_problem.profiled_rolling`)
+``RSS_free`` the profiled residuals' sums of squares (:func:`.rolling_sets.profiled_rolling`)
 and ``nu`` the free fit's degrees of freedom, a spin that fits leaves::
 
     chi2 = (RSS_model - RSS_free) / (RSS_free / nu)  ~  chi2(m - 1)
@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from swpc_hw.calibration.gyro.problem import ProfileStructure, RollingSet, profiled_rolling
+from swpc_hw.calibration.gyro.rolling_sets import ProfileStructure, RollingSet, profiled_rolling
 
 FloatArray = NDArray[np.float64]
 

@@ -1,13 +1,13 @@
 """Calibration without motion capture: encoders, a gyro and tape-measure references.
 
 Unknowns: every module's ``x_s, y_s, beta, b, r`` in the ``design-fit`` frame, the gyro's
-scale ``s = 1 + eps`` and its bias at every rest window (:mod:`.imu_problem`).  Stages:
+scale ``s = 1 + eps`` and its bias at every rest window (:mod:`.problem`).  Stages:
 
 1. **Checks**: clocks (:func:`.plausibility.check_dataset`), the segments
    (:func:`.prepare.prepare_segments`, the gyro's turn instead of the poses'), the
    references (refused when nothing fixes the radii or the length scale), rest windows
    before and after every segment.
-2. **Build** (:mod:`.imu_build`): noise levels, observations, the start.
+2. **Build** (:mod:`.build`): noise levels, observations, the start.
 3. **Units**: the gyro's yaw against the wheels' over every segment
    (:func:`.plausibility.check_gyro_ratio`: deg/s, a reversed axis, another sensor).
 4. **Robust joint least squares** (:func:`fit_imu`): slip bursts found on the wheel
@@ -34,7 +34,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import null_space
 from scipy.optimize import least_squares
 
 from swpc_hw.calibration import plausibility
@@ -46,18 +45,21 @@ from swpc_hw.calibration.gyro.build import (
     check_references,
     initial_parameters,
 )
+from swpc_hw.calibration.gyro.covariance import imu_covariance
 from swpc_hw.calibration.gyro.misfit import SpinMisfit, max_cut, spin_misfit
-from swpc_hw.calibration.gyro.problem import (
-    ImuProblem,
-    RollingSet,
-    connected_chunks,
+from swpc_hw.calibration.gyro.problem import ImuProblem
+from swpc_hw.calibration.gyro.weights import (
+    MAX_SLIP_FRACTION,
+    cut_slip,
+    initial_weights,
+    set_gyro_sigma,
+    spin_levers,
+    update_scales,
 )
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import N_PARAMS, P_S, R, canonical_parameters
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.calibration.result import CalibrationResult
-from swpc_hw.calibration.slip import detect_slip, mad_sigma
-from swpc_hw.calibration.uncertainty import dense_rows, long_run_covariance
 from swpc_hw.errors import CalibrationError, ImplausibleDataError
 from swpc_hw.files.dataset import Dataset, load_dataset
 from swpc_hw.files.references import AxisDistance, Reference, WheelRadius
@@ -68,241 +70,16 @@ BoolArray = NDArray[np.bool_]
 
 COARSE_INTERVAL = 1.0
 """Node spacing (s) of the first, coarse solve."""
-MAX_SLIP_FRACTION = 0.1
-"""More wheel increments than this fraction disagreeing with the gyro is no slip: refused."""
-
-
-# ------------------------------------------------------------------ weights
-
-
-def spin_levers(prob: ImuProblem, x: FloatArray) -> list[FloatArray]:
-    """The lever of every module of every segment at ``x``."""
-    X, _, _ = prob.layout.split(x)
-    C = prob.contact_points(x)
-    return [prob.spin_levers(X, C, rs, s) for s, rs in enumerate(prob.spins)]
-
-
-def set_gyro_sigma(prob: ImuProblem, run: ImuRun, x: FloatArray) -> None:
-    """Std dev of every chunk's gyro yaw: integrated white noise, the bias walk about the
-    knots' line (both over ``s^2``) and the wheels' own yaw noise (two nodes:
-    ``2 sigma_psi^2 / |g / r|^2``); of every drive's turn: the first two and the knots'
-    mean std dev ``sigma_b`` times its duration (the bias between its rests)."""
-    from swpc_hw.calibration.gyro.bias import walk_variance
-
-    X, s, _ = prob.layout.split(x)
-    nl = run.noise
-    for rs, g in zip(prob.spins, spin_levers(prob, x), strict=True):
-        h = g / X[rs.mods, R]
-        sig = []
-        for la, lb in rs.chunks:
-            t_a, t_b = float(rs.t[la]), float(rs.t[lb])
-            var = nl.gyro_var * nl.gyro_dt * (t_b - t_a) + walk_variance(
-                run.knots, nl.walk_q2, t_a, t_b
-            )
-            wheels = 2.0 * rs.sigma**2 / max(float(h @ h), 1e-12)
-            sig.append(math.sqrt(var / (s * s) + wheels + 1e-30))
-        rs.gyro_sigma = np.array(sig)
-    for rs in prob.drives:  # the turn over the whole drive (docs/imu.md, the drive's arc)
-        t_a, t_b = float(rs.t[0]), float(rs.t[-1])
-        var = nl.gyro_var * nl.gyro_dt * (t_b - t_a) + walk_variance(
-            run.knots, nl.walk_q2, t_a, t_b
-        )
-        sigma_b = float(np.mean(prob.knot_sigma))
-        rs.gyro_sigma = np.array([math.sqrt(var / (s * s) + (sigma_b * (t_b - t_a)) ** 2)])
-    prob.restack()
-
-
-def rolling_scale(prob: ImuProblem, rs: RollingSet, resid: FloatArray, floor: float) -> float:
-    """Noise std dev (rad) of a wheel angle at a node from a set's profiled residuals:
-    ``sqrt(sum e^2 / dof)``, ``dof = sum_l (m_l - 1) - (runs - chunks)``, floored."""
-    cnt = rs.present.sum(axis=1)
-    n_run = np.unique(rs.run[rs.present]).size
-    dof = int(np.sum(np.maximum(cnt - 1, 0))) - (n_run - len(rs.chunks))
-    if dof <= 0:
-        return max(rs.sigma, floor)
-    return max(math.sqrt(float(np.sum(resid[rs.present] ** 2)) / dof), floor)
-
-
-def update_scales(prob: ImuProblem, x: FloatArray, floor: float) -> None:
-    """Every rolling set's noise scale from its residuals at ``x``."""
-    X, _, _ = prob.layout.split(x)
-    for rs, g in zip(prob.spins, spin_levers(prob, x), strict=True):
-        rs.sigma = rolling_scale(prob, rs, prob.rolled(X, rs, g)[0], floor)
-    for rs in prob.drives:
-        rs.sigma = rolling_scale(prob, rs, prob.drive_arc(x, rs)[1], floor)
-    prob.restack()
-
-
-# ------------------------------------------------------------------ slip
-
-
-def wheel_increments(
-    prob: ImuProblem, x: FloatArray
-) -> tuple[list[FloatArray], list[FloatArray]]:
-    """Every rolling set's wheel increments against a reference, ``(d - k ref, ref)``
-    (L-1, m).
-
-    A segment's wheels against the gyro: ``d = r dpsi``, ``ref = g dyaw`` with the gyro's
-    yaw (:meth:`RollingSet.gyro_yaw`).  A straight drive's (no rotation for the gyro to
-    see) against each other: ``d = r cos(theta - phi) dpsi``, the distance each wheel says
-    the robot moved, and ``ref`` the median of the wheels' at that increment.  ``k`` per
-    wheel is the median of ``d / ref`` where the reference moves: a radius or lever still
-    off (a slipping drive's start) scales a wheel's increments, a slip burst does not
-    follow the reference.  Spins first, then drives.
-    """
-    X, s, knots = prob.layout.split(x)
-    inc, ref = [], []
-    for rs, g in zip(prob.spins, spin_levers(prob, x), strict=True):
-        L = rs.t.size
-        dyaw = rs.gyro_yaw(s, knots, np.arange(L - 1), np.arange(1, L))
-        d = g[None, :] * dyaw[:, None]
-        inc.append(scaled_residual(X[rs.mods, R][None, :] * np.diff(rs.psi, axis=0), d))
-        ref.append(d)
-    for rs in prob.drives:
-        d = (X[rs.mods, R] * prob.drive_arc(x, rs)[0])[None, :] * np.diff(rs.psi, axis=0)
-        med = np.median(d, axis=1, keepdims=True)
-        # the wheels scaled to agree first: one far off (a radius not yet fitted, a
-        # slipping start) no longer moves the median when it slips
-        med = np.median(d / wheel_scales(d, med), axis=1, keepdims=True)
-        med = np.broadcast_to(med, d.shape)
-        inc.append(scaled_residual(d, med))
-        ref.append(med)
-    return inc, ref
-
-
-def wheel_scales(d: FloatArray, ref: FloatArray) -> FloatArray:
-    """``k`` (m,) per column: the median of ``d / ref`` where ``|ref|`` is over a tenth of
-    its largest (1 without such rows)."""
-    r = np.broadcast_to(ref, d.shape)
-    k = np.ones(d.shape[1])
-    for c in range(d.shape[1]):
-        moving = np.abs(r[:, c]) > 0.1 * np.abs(r[:, c]).max()
-        if moving.any():
-            k[c] = float(np.median(d[moving, c] / r[moving, c]))
-    return k
-
-
-def scaled_residual(d: FloatArray, ref: FloatArray) -> FloatArray:
-    """``d - k ref`` per column with ``k`` of :func:`wheel_scales`."""
-    return np.asarray(d - wheel_scales(d, ref)[None, :] * ref, dtype=float)
-
-
-MIN_JUDGED_INCREMENTS = 3
-"""A series (one wheel in one rolling set) needs this many increments to be judged for
-slip in the pooled screen."""
-
-
-def cut_slip(
-    prob: ImuProblem,
-    valid: list[BoolArray],
-    x: FloatArray,
-    opts: SolverOptions,
-    floor: float,
-    pooled: bool = False,
-) -> list[int]:
-    """Find slip bursts, re-cut every rolling set's runs; returns the increments cut in
-    every rolling set (spins, then drives).
-
-    A wheel's increment whose residual against its reference (:func:`wheel_increments`)
-    is beyond ``slip_sigmas`` robust sigmas of its series (and one either side) slips
-    (:func:`.slip.detect_slip`, bursts only: see docs/imu.md).  A slip starts a
-    new run of that wheel (its constant jumps); runs of one node are dropped.  A straight
-    drive must stay one connected run of nodes (its length is end minus start).
-    ``pooled``: one robust sigma for all increments (the coarse problem's series are too
-    short for their own).
-    """
-    sets = [*prob.spins, *prob.drives]
-    inc, ref = wheel_increments(prob, x)
-    flat_inc, flat_ref, ser, t, where = [], [], [], [], []
-    k = 0
-    for si, (rs, v) in enumerate(zip(sets, valid, strict=True)):
-        ok = v[1:] & v[:-1]
-        for c in range(rs.mods.size):
-            sel = np.flatnonzero(ok[:, c])
-            flat_inc.append(inc[si][sel, c])
-            flat_ref.append(ref[si][sel, c])
-            ser.append(np.full(sel.size, k))
-            t.append(rs.t[sel])
-            where += [(si, c, int(i)) for i in sel]
-            k += 1
-    all_inc, all_ser = np.concatenate(flat_inc), np.concatenate(ser).astype(np.int64)
-    if pooled:  # few increments per series: one robust scale for all
-        # a series' own scale k (wheel_increments) fits its only increment exactly: series
-        # of one or two increments say nothing of the noise and cannot show a burst (short
-        # sweeps: their zeros took the pooled sigma to 0 and cut a clean drive)
-        judged = np.bincount(all_ser, minlength=k)[all_ser] >= MIN_JUDGED_INCREMENTS
-        sigma = max(mad_sigma(all_inc[judged]), floor)
-        bad = judged & (np.abs(all_inc) > opts.slip_sigmas * sigma)
-        slip = bad.copy()
-        same = all_ser[1:] == all_ser[:-1]
-        slip[1:] |= bad[:-1] & same
-        slip[:-1] |= bad[1:] & same
-    else:
-        slip = detect_slip(
-            all_inc, np.concatenate(flat_ref), all_ser, np.concatenate(t),
-            opts.slip_sigmas, opts.drift_chunk, math.inf, np.full(k, 1e-3), floor,
-        )
-    cut = [np.zeros((rs.t.size - 1, rs.mods.size), dtype=bool) for rs in sets]
-    for (si, c, i), bad in zip(where, slip.tolist(), strict=True):
-        cut[si][i, c] = bad
-    for rs, v, cu in zip(sets, valid, cut, strict=True):
-        brk = np.vstack([np.zeros((1, rs.mods.size), dtype=np.int64), np.cumsum(cu, axis=0)])
-        key = brk * rs.mods.size + np.arange(rs.mods.size)[None, :]
-        present = v.copy()
-        _, inv, counts = np.unique(key[present], return_inverse=True, return_counts=True)
-        keep = counts[inv] >= 2
-        idx = np.flatnonzero(present.ravel())
-        present.ravel()[idx[~keep]] = False
-        _, dense = np.unique(key[present], return_inverse=True)
-        run = np.zeros_like(key)
-        run[present] = dense
-        rs.present, rs.run = present, run
-        rs.chunks = connected_chunks(present, run)
-    for rs in prob.drives:
-        if rs.chunks != [(0, rs.t.size - 1)]:
-            raise CalibrationError(
-                f"straight drive {rs.t[0]:g}-{rs.t[-1]:g} s: its wheels disagree with each "
-                "other and the gyro's turn at once (every wheel slipped, the gyro and the "
-                "wheels disagree, or a wheel's samples are missing): its length cannot be "
-                "followed"
-            )
-    prob.restack()
-    return [int(c.sum()) for c in cut]
-
-
-# ------------------------------------------------------------------ solving
-
-
-def initial_weights(run: ImuRun, x: FloatArray) -> float:
-    """Weights from the noise levels at ``x``; returns the wheel angles' floor (rad).
-
-    A wheel angle at a node: ``sigma_wheel`` (every rolling set); a settled caster:
-    ``max(|g|, 0.05 m) sigma_theta`` (its steering's std dev times its lever, as with
-    motion capture); every gyro chunk (:func:`set_gyro_sigma`).
-    """
-    prob = run.problem
-    floor = max(run.noise.wheel, 1e-15)
-    for rs in [*prob.spins, *prob.drives]:
-        rs.sigma = floor
-    st = prob.settled
-    levers = spin_levers(prob, x)
-    lever = [
-        abs(float(levers[si][list(prob.spins[si].mods).index(j)]))
-        for si, j in zip(st.seg.tolist(), st.mod.tolist(), strict=True)
-    ]
-    st.sigma = np.maximum(np.array(lever), 0.05) * run.theta_sigma
-    set_gyro_sigma(prob, run, x)
-    return floor
 
 
 def fit_imu(
     run: ImuRun, x0: FloatArray, opts: SolverOptions, coarse: ImuRun | None = None
 ) -> tuple[FloatArray, list[int], list[SpinCut]]:
     """IRLS (:func:`irls`), then every spin's wheels tested against the geometry
-    (:func:`.imu_misfit.spin_misfit`): while spins do not fit, one is cut whole
+    (:func:`.misfit.spin_misfit`): while spins do not fit, one is cut whole
     (:func:`trial_cut`; its wheel readings and its gyro chunks, its settled casters stay)
     and the IRLS runs again from there with fresh weights (``coarse``: the problem the
-    trials run on).  More than :func:`.imu_misfit.max_cut` spins not fitting is refused
+    trials run on).  More than :func:`.misfit.max_cut` spins not fitting is refused
     (:class:`ImplausibleDataError` naming them).  Returns the solution, the wheel
     increments left out in every rolling set (spins then drives: slip, or the whole spin)
     and the spins cut."""
@@ -343,7 +120,7 @@ def fit_imu(
 
 def check_drives_fit(run: ImuRun, x: FloatArray) -> None:
     """Refuse a straight drive whose wheels do not roll as one arc
-    (:func:`.imu_misfit.spin_misfit` against the arc's levers: a wheel slipping while
+    (:func:`.misfit.spin_misfit` against the arc's levers: a wheel slipping while
     driving), or whose turn the gyro does not confirm: the wheels' ``kappa (Y_end -
     Y_start)`` against the gyro's beyond 5 std devs of its yaw over the drive (white
     noise ``v dt T``, the knots' bias error ``sigma_b T``) and 0.01 deg.  A drive cannot
@@ -442,7 +219,7 @@ def trial_cut(
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SpinCut:
-    """A spin cut whole because its wheels' ratios do not fit (:mod:`.imu_misfit`):
+    """A spin cut whole because its wheels' ratios do not fit (:mod:`.misfit`):
     its index, the locked module, its window (s), the misfit in std devs and the ratios'
     relative RMS change.  (Which wheel slips is not said: a fit bent by the slip spreads
     it over the spin's wheels.)"""
@@ -547,81 +324,6 @@ def align_design_fit(prob: ImuProblem, x: FloatArray) -> FloatArray:
     return out
 
 
-# ------------------------------------------------------------------ covariance
-
-
-def rolling_middle(rs: RollingSet, J: FloatArray, f: FloatArray) -> FloatArray:
-    """HAC long-run covariance of a rolling set's scores, the modules of a node summed."""
-    node = np.broadcast_to(np.arange(rs.t.size)[:, None], rs.present.shape)[rs.present]
-    S = dense_rows(node, J * f[:, None])
-    present = np.zeros(S.shape[0], dtype=bool)
-    present[node] = True
-    return long_run_covariance(S, present)[0]
-
-
-def imu_covariance(prob: ImuProblem, x: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """``(Cov, J, f)``: the covariance of all unknowns in the design-fit frame, and the
-    Jacobian and residuals of the data blocks (the gauge block left out).
-
-    ``Cov = Z (Z^T H Z)^-1 Z^T M Z (Z^T H Z)^-1 Z^T`` with ``H = J^T J``, ``Z`` a basis of
-    the null space of the design-fit conditions' Jacobian, ``M`` the scores' covariance:
-    HAC over the nodes for the wheels' blocks (``spin`` per segment, ``drive``),
-    ``J_b^T J_b`` for the others (independent residuals of known std dev).  Computed in
-    parameters scaled to unit Jacobian columns.  A singular ``Z^T H Z`` raises
-    :class:`CalibrationError` naming the least determined parameters.
-    """
-    data = prob.with_blocks(prob.active - {"gauge"})
-    J = data.jacobian(x)
-    f = data.residuals(x)
-    sl = data.block_slices(x)
-    p = x.size
-    M = np.zeros((p, p))
-    for name, s in sl.items():
-        Jb, fb = J[s], f[s]
-        if name not in ("spin", "drive"):
-            M += Jb.T @ Jb
-            continue
-        i = 0
-        for rs in prob.spins if name == "spin" else prob.drives:
-            k = int(rs.present.sum())
-            M += rolling_middle(rs, Jb[i : i + k], fb[i : i + k])
-            i += k
-    norms = np.linalg.norm(J, axis=0)
-    norms = np.where(norms > 0, norms, 1.0)
-    Js = J / norms
-    Z = null_space(prob.gauge_jacobian() / norms)
-    Hz = Z.T @ (Js.T @ Js) @ Z
-    w, V = np.linalg.eigh(Hz)
-    if w[0] <= w[-1] * 1e-12:
-        weak = Z @ V[:, 0]
-        raise CalibrationError(
-            "the data do not determine the calibration in the design-fit frame: a direction "
-            f"with no information moves {undetermined_names(prob, weak)}"
-        )
-    Hi = (V / w) @ V.T
-    G = Z @ Hi @ Z.T
-    cov = G @ (M / np.outer(norms, norms)) @ G
-    cov = cov / np.outer(norms, norms)
-    return 0.5 * (cov + cov.T), J, f
-
-
-def parameter_names(prob: ImuProblem) -> list[str]:
-    """Names of the unknowns: ``x_s[1]``..., ``s``, ``bias[1]``..."""
-    from swpc_hw.calibration.parameters import PARAM_NAMES
-
-    lay = prob.layout
-    names = [f"{k}[{mid}]" for mid in prob.ids for k in PARAM_NAMES]
-    knots = [f"bias[{i + 1}]" for i in range(lay.n_knots)]
-    return [*names, "gyro scale", *knots, *[f"da[{i + 1}]" for i in range(lay.n_segments)]]
-
-
-def undetermined_names(prob: ImuProblem, v: FloatArray, top: int = 4) -> str:
-    """The unknowns with the largest share of a (scaled) direction ``v``."""
-    names = parameter_names(prob)
-    order = np.argsort(-np.abs(v))[:top]
-    return ", ".join(names[i] for i in order)
-
-
 # ------------------------------------------------------------------ the solve
 
 
@@ -708,7 +410,7 @@ def _solve(
 def check_drives_straight(run: ImuRun, x: FloatArray, size: float, source: str) -> None:
     """Refuse a straight drive that turned more than its first-order arc covers.
 
-    The drive's model (:mod:`.imu_problem`, ``drive``) takes the gyro's turn ``dyaw`` to
+    The drive's model (:mod:`.problem`, ``drive``) takes the gyro's turn ``dyaw`` to
     first order; what it leaves out is of second order: the chord of an arc of length
     ``L`` against its along-track length, ``~dyaw^2 L / 8``, and the rotation of a point
     ``|P| <= size`` from the origin, ``~dyaw^2 size / 2``.  Refused when those exceed a
