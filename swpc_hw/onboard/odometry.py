@@ -115,19 +115,28 @@ class OdometryStep:
     iterations: int
 
 
+Row = tuple[float, float, float, float, float, float]
+"""One module for the hot path: ``x_s, y_s, beta, b, r`` and ``r / (12 b)``."""
+
+
+def geometry_row(x_s: float, y_s: float, beta: float, b: float, r: float) -> Row:
+    """A module's :data:`Row`: its five parameters and the steering curvature's factor
+    ``r / (12 b)`` of ``theta_e`` (module docstring)."""
+    return (x_s, y_s, beta, b, r, r / (12.0 * b))
+
+
 @dataclass(frozen=True)
 class _Geometry:
     """Parameters as plain float tuples, in module (file) order, for the hot path."""
 
     params: RobotParams
     ids: tuple[int, ...]
-    rows: tuple[tuple[float, float, float, float, float, float], ...]  # x_s, y_s, beta, b, r, r/12b
+    rows: tuple[Row, ...]
 
     @classmethod
     def of(cls, params: RobotParams) -> _Geometry:
         rows = tuple(
-            (float(m.x_s), float(m.y_s), float(m.beta), float(m.b), float(m.r),
-             float(m.r) / (12.0 * float(m.b)))
+            geometry_row(float(m.x_s), float(m.y_s), float(m.beta), float(m.b), float(m.r))
             for m in params.modules
         )
         return cls(params=params, ids=tuple(params.ids), rows=rows)

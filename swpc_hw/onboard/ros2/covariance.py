@@ -48,10 +48,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 # The odometry's own step (same package layer): the contact points and the weighted solve.
-from swpc_hw.onboard.odometry import _contact_velocities, _weighted_twist
+from swpc_hw.onboard.odometry import Row, _contact_velocities, _weighted_twist, geometry_row
+from swpc_hw.robot.model import PARAM_NAMES
 
 FloatArray = NDArray[np.float64]
-Row = tuple[float, float, float, float, float, float]
 
 UNESTIMATED_VARIANCE = 1.0e6
 """Variance of the components a planar odometry does not estimate (ROS convention: large)."""
@@ -60,11 +60,7 @@ PLANAR = (0, 1, 5)
 """Indices of x, y, yaw (pose) and v_x, v_y, omega_z (twist) in ROS's 6 x 6 covariances."""
 
 _MIN_WEIGHT = 1e-6
-_PARAMS = 5  # x_s, y_s, beta, b, r (the kinematic file's order)
-
-
-def _row(x_s: float, y_s: float, beta: float, b: float, r: float) -> Row:
-    return (x_s, y_s, beta, b, r, r / (12.0 * b))
+_PARAMS = len(PARAM_NAMES)  # x_s, y_s, beta, b, r (the kinematic file's order)
 
 
 def measurement_covariance(
@@ -103,7 +99,7 @@ def twist_sensitivity(
             p = list(row[:_PARAMS])
             p[k] += eps
             rs = list(rows)
-            rs[i] = _row(*p)
+            rs[i] = geometry_row(*p)
             J[:, _PARAMS * i + k] = (twist(rs) - base) / eps
     return J
 
