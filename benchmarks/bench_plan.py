@@ -46,15 +46,8 @@ from simulators.plan_predict import experiment_options, predicted_covariance
 from simulators.random_robots import random_robots
 from swpc_hw.calibration.mocap.solver import solve
 from swpc_hw.calibration.plan.forecast import Stopping, forecast_covariance, replay
-from swpc_hw.calibration.plan.plan import (
-    Candidate,
-    MocapNoise,
-    Plan,
-    robot_time,
-    square_path_sd,
-    square_path_sensitivity,
-    stddevs,
-)
+from swpc_hw.calibration.plan.plan import Candidate, MocapNoise, Plan, robot_time, stddevs
+from swpc_hw.calibration.plan.square_error import square_path_sd, square_path_sensitivity
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL

@@ -30,9 +30,9 @@ from swpc_hw.calibration.plan.plan import (
     Requirement,
     Targets,
     TimeModel,
-    square_path_sensitivity,
     stddevs,
 )
+from swpc_hw.calibration.plan.square_error import square_path_sensitivity
 from swpc_hw.calibration.uncertainty import sandwich_covariance
 from swpc_hw.files.dataset import Dataset
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL

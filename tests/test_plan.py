@@ -23,10 +23,12 @@ from swpc_hw.calibration.plan.plan import (
     plan,
     robot_time,
     spin_torques,
+    stddevs,
+)
+from swpc_hw.calibration.plan.square_error import (
     square_path_end,
     square_path_sd,
     square_path_sensitivity,
-    stddevs,
 )
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 

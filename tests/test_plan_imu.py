@@ -21,15 +21,11 @@ from simulators.plan_predict import (
 )
 from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.calibration.plan.identifiability import gauge_directions
-from swpc_hw.calibration.plan.plan import (
+from swpc_hw.calibration.plan.plan import Candidate, Targets, TimeModel, robot_time, stddevs
+from swpc_hw.calibration.plan.square_error import (
     SQUARE_BUDGET,
-    Candidate,
-    Targets,
-    TimeModel,
-    robot_time,
     square_path_sd,
     square_path_sensitivity,
-    stddevs,
 )
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from tests.service_rig import AUTH, Sim

@@ -31,7 +31,7 @@ from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.kinematic_file import kinematics_document, load_robot, parse_kinematics
 from swpc_hw.robot.frames import BaseLink
-from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.model import KIND_OF, PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
 
@@ -186,9 +186,7 @@ class Tolerances(BaseModel):
     radius: float = Field(0.2e-3, gt=0, description="r std dev, m")
 
 
-TOLERANCE_OF = {
-    "x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"
-}  # fmt: skip
+TOLERANCE_OF = KIND_OF
 """The :class:`Tolerances` (and :class:`Repeatability`) field of each parameter."""
 
 

@@ -35,7 +35,6 @@ from simulators.plan_predict import (
 from swpc_hw.calibration.gyro.solver import COARSE_INTERVAL
 from swpc_hw.calibration.plan.forecast import SpinInformation, Stopping
 from swpc_hw.calibration.plan.plan import (
-    SQUARE_BUDGET,
     Candidate,
     FloatArray,
     MocapNoise,
@@ -46,8 +45,8 @@ from swpc_hw.calibration.plan.plan import (
     TimeModel,
     plan,
     spin_torques,
-    square_path_sensitivity,
 )
+from swpc_hw.calibration.plan.square_error import SQUARE_BUDGET, square_path_sensitivity
 from swpc_hw.robot.model import RobotParams
 
 PLANNED_KEYS = frozenset(

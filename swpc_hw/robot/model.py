@@ -31,6 +31,11 @@ PARAM_NAMES = ("x_s", "y_s", "beta", "b", "r")
 """One module's parameters, in the one order everything uses: a module's row of arrays
 and covariances, the kinematic file's keys and its ``covariance.order``."""
 
+PARAM_KINDS = ("position", "beta", "radius")
+"""The kinds a tolerance, a plan's target and a check's repeatability are stated per."""
+KIND_OF = {"x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"}
+"""The kind of each parameter (:data:`PARAM_KINDS`)."""
+
 
 def _finite(value: float) -> float:
     if not math.isfinite(value):

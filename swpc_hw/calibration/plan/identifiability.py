@@ -1,7 +1,7 @@
 """What an experiment without motion capture determines: its Fisher information.
 
-For weighted residuals ``f(x)`` (unit noise) of the IMU problem
-(:mod:`.imu_problem`) the Fisher information of the unknowns is ``F = J^T J`` at the
+For weighted residuals ``f(x)`` (unit noise) of the IMU problem (:mod:`.gyro.problem`)
+the Fisher information of the unknowns is ``F = J^T J`` at the
 truth (:func:`fisher_information`).  Every direction ``v`` with ``F v = 0`` is one the data
 cannot see.  Expected ones (:func:`gauge_directions`), for ``x = [X, s, b, da]``:
 

@@ -12,21 +12,14 @@ differences (:func:`square_path_sensitivity`); the end error's std devs are thos
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.calibration.parameters import BETA, N_PARAMS, PARAM_NAMES
+from swpc_hw.calibration.parameters import BETA, N_PARAMS
 from swpc_hw.calibration.parameters import B as B_COL
-from swpc_hw.calibration.parameters import R as R_COL
-from swpc_hw.errors import CalibrationError
 from swpc_hw.onboard.square_path import SquareOptions
 from swpc_hw.robot.model import (
-    KIND_OF,
-    PARAM_KINDS,
     RobotArrays,
     RobotParams,
     contact_point,
