@@ -312,7 +312,7 @@ def solve_joint(
     if not ds.has_poses:
         raise CalibrationError(
             f"{source}: no poses: the motion-capture solver needs poses.csv "
-            "(imu.csv: use the IMU solver, imu_solver.solve_imu)"
+            "(imu.csv: use the IMU solver, gyro.solver.solve_imu)"
         )
     plausibility.check_dataset(ds, source)
     auto = opts.time_offset == "auto"
