@@ -125,10 +125,8 @@ def transform_robot(params: RobotParams, phi: float, t: ArrayLike, frame: str) -
     covariance with :func:`transform_covariance` instead.
     """
     a = params.arrays()
-    Y = transform_parameters(np.column_stack([a.P_s, a.beta, a.b, a.r]), phi, t)
-    return RobotParams.from_arrays(
-        a.ids, Y[:, 0:2], Y[:, 2], Y[:, 3], Y[:, 4], robot=params.robot, frame=frame
-    )
+    Y = transform_parameters(a.matrix(), phi, t)
+    return RobotParams.from_matrix(a.ids, Y, robot=params.robot, frame=frame)
 
 
 def design_fit_constraints(P_s: ArrayLike, P_nom: ArrayLike) -> FloatArray:

@@ -59,6 +59,16 @@ class ModuleStddev(BaseModel):
     b: NonNegativeFinite
     r: NonNegativeFinite
 
+    def values(self) -> tuple[float, ...]:
+        """The five std devs in the order of :data:`PARAM_NAMES`."""
+        return tuple(float(getattr(self, k)) for k in PARAM_NAMES)
+
+    @classmethod
+    def of(cls, values: ArrayLike) -> ModuleStddev:
+        """From five std devs in the order of :data:`PARAM_NAMES`."""
+        v = np.asarray(values, dtype=float).reshape(-1)
+        return cls(**{k: float(v[c]) for c, k in enumerate(PARAM_NAMES)})
+
 
 class ModuleParams(BaseModel):
     """Kinematic parameters of one caster module (SI units, robot frame R)."""
@@ -72,6 +82,10 @@ class ModuleParams(BaseModel):
     b: PositiveFinite
     r: PositiveFinite
     stddev: ModuleStddev | None = None
+
+    def values(self) -> tuple[float, ...]:
+        """The five parameters in the order of :data:`PARAM_NAMES`."""
+        return tuple(float(getattr(self, k)) for k in PARAM_NAMES)
 
 
 @dataclass(frozen=True)
@@ -87,6 +101,10 @@ class RobotArrays:
     @property
     def n(self) -> int:
         return int(self.ids.shape[0])
+
+    def matrix(self) -> FloatArray:
+        """(N, 5): one row per module, the columns in the order of :data:`PARAM_NAMES`."""
+        return np.column_stack([self.P_s, self.beta, self.b, self.r])
 
 
 class RobotParams(BaseModel):
@@ -153,18 +171,13 @@ class RobotParams(BaseModel):
         ids_a = np.asarray(ids, dtype=np.int64)
         P = np.asarray(P_s, dtype=float).reshape(-1, 2)
         be, bb, rr = (np.asarray(a, dtype=float).reshape(-1) for a in (beta, b, r))
-        sd = None if stddev is None else np.asarray(stddev, dtype=float).reshape(-1, 5)
+        n_par = len(PARAM_NAMES)
+        sd = None if stddev is None else np.asarray(stddev, dtype=float).reshape(-1, n_par)
         modules = []
         for i, mid in enumerate(ids_a):
             std = None
             if sd is not None:
-                std = ModuleStddev(
-                    x_s=float(sd[i, 0]),
-                    y_s=float(sd[i, 1]),
-                    beta=float(sd[i, 2]),
-                    b=float(sd[i, 3]),
-                    r=float(sd[i, 4]),
-                )
+                std = ModuleStddev.of(sd[i])
             modules.append(
                 ModuleParams(
                     id=int(mid),
@@ -177,6 +190,23 @@ class RobotParams(BaseModel):
                 )
             )
         return cls(robot=robot, frame=frame, modules=modules)
+
+    @classmethod
+    def from_matrix(
+        cls,
+        ids: ArrayLike,
+        X: ArrayLike,
+        *,
+        robot: str = "swpc",
+        frame: str = "R",
+        stddev: ArrayLike | None = None,
+    ) -> RobotParams:
+        """Build from an (N, 5) matrix, columns in the order of :data:`PARAM_NAMES`
+        (:meth:`RobotArrays.matrix`); ``stddev`` (N, 5) likewise."""
+        M = np.asarray(X, dtype=float).reshape(-1, len(PARAM_NAMES))
+        return cls.from_arrays(
+            ids, M[:, 0:2], M[:, 2], M[:, 3], M[:, 4], robot=robot, frame=frame, stddev=stddev
+        )
 
 
 # --------------------------------------------------------------------------- geometry

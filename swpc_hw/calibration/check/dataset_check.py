@@ -47,10 +47,7 @@ def check_dataset(
             "motion capture first, or check without motion capture (metrology imu)"
         )
     X, _ = in_order(file, None, ds.robot.ids)
-    start = RobotParams.from_arrays(
-        ds.robot.ids, X[:, :2], X[:, 2], X[:, 3], X[:, 4], robot=ds.robot.robot,
-        frame=ds.robot.frame,
-    )  # fmt: skip
+    start = RobotParams.from_matrix(ds.robot.ids, X, robot=ds.robot.robot, frame=ds.robot.frame)
     result = solve(ds, SolverOptions(time_offset=0.0), source=source, start=start)
     return result, check_estimates(result.params, result.covariance, file, file_covariance, **test)
 

@@ -100,7 +100,7 @@ def in_order(
     missing = sorted(set(ids) - set(params.ids))
     if missing:
         raise CalibrationError(f"the file has no module {missing[0]} (it has {params.ids})")
-    X = np.array([[getattr(params.module(m), k) for k in PARAM_NAMES] for m in ids])
+    X = np.array([params.module(m).values() for m in ids])
     if covariance is None:
         return X, None
     C = np.asarray(covariance, dtype=float)
@@ -120,7 +120,7 @@ def stated_covariance(params: RobotParams, covariance: Any, ids: list[int]) -> F
     for i, m in enumerate(ids):
         s = params.module(m).stddev
         if s is not None:
-            sd[i] = [getattr(s, k) for k in PARAM_NAMES]
+            sd[i] = s.values()
     return np.diag(sd.ravel() ** 2)
 
 

@@ -11,8 +11,7 @@ from numpy.typing import NDArray
 
 from swpc_hw.calibration.gyro.build import ImuRun
 from swpc_hw.calibration.gyro.problem import ImuProblem
-from swpc_hw.calibration.parameters import BETA, N_PARAMS, P_S, PARAM_NAMES, R
-from swpc_hw.calibration.parameters import B as B_COL
+from swpc_hw.calibration.parameters import N_PARAMS, P_S, PARAM_NAMES, R
 from swpc_hw.calibration.prepare import SegmentData
 from swpc_hw.calibration.result import (
     BiasKnot,
@@ -119,10 +118,7 @@ def assemble_imu_result(
     X, s, knots = lay.split(x)
     std_all = stddev_of(cov)
     std = std_all[: N_PARAMS * n].reshape(n, N_PARAMS)
-    params = RobotParams.from_arrays(
-        prob.ids, X[:, P_S], X[:, BETA], X[:, B_COL], X[:, R],
-        robot=ds.robot.robot, frame=DESIGN_FIT,
-    )
+    params = RobotParams.from_matrix(prob.ids, X, robot=ds.robot.robot, frame=DESIGN_FIT)
     params = params.model_copy(
         update={
             "modules": [

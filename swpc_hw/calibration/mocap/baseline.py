@@ -136,9 +136,7 @@ def solve_paper(
     r = np.array([float(np.median(v)) if v else np.nan for v in radii])
     X = np.column_stack([P_s, beta, b, r])
     plausibility.check_result(X, ds.robot)
-    params = RobotParams.from_arrays(
-        ids, P_s, beta, b, r, robot=ds.robot.robot, frame=ds.robot.frame
-    )
+    params = RobotParams.from_matrix(ids, X, robot=ds.robot.robot, frame=ds.robot.frame)
     quality = [
         SegmentQuality(
             row=s.row,

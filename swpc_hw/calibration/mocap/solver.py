@@ -354,9 +354,7 @@ def solve_joint(
     cov, f = joint_covariance(prob, x, fits)
     std = as_matrix(stddev_of(cov), n)
     dof = max(f.size - x.size, 1)
-    params = RobotParams.from_arrays(
-        ids, X[:, P_S], X[:, BETA], X[:, B_COL], X[:, R], robot=ds.robot.robot, frame=ds.robot.frame
-    )
+    params = RobotParams.from_matrix(ids, X, robot=ds.robot.robot, frame=ds.robot.frame)
     # a module whose uncertainty is not known carries no stddev (never a 0 = "exact")
     params = params.model_copy(
         update={

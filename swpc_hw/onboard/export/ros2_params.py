@@ -71,7 +71,9 @@ def _std(g: np.ndarray, exp: Export) -> str:
     if exp.covariance is not None:
         return f"std dev {math.sqrt(max(float(g @ exp.covariance @ g), 0.0)):.3g} m"
     if all(m.stddev is not None for m in exp.params.modules):
-        var = np.array([getattr(m.stddev, k) ** 2 for m in exp.params.modules for k in PARAM_NAMES])
+        var = np.array(
+            [v**2 for m in exp.params.modules if m.stddev is not None for v in m.stddev.values()]
+        )
         return f"std dev {math.sqrt(float(g**2 @ var)):.3g} m (modules taken as independent)"
     return "std dev unknown"
 
@@ -99,7 +101,7 @@ def render_ros2_params(exp: Export) -> str:
     g_wb = grad({fl: 0.5, fr: 0.5, rl: -0.5, rr: -0.5}, 0)
     g_tw = grad({fl: 0.5, rl: 0.5, fr: -0.5, rr: -0.5}, 1)
     g_r = grad({i: 1.0 / n for i in range(n)}, 4)
-    X = np.column_stack([a.P_s, a.beta, a.b, a.r]).reshape(-1)
+    X = a.matrix().reshape(-1)
     wheelbase, trackwidth, radius = float(g_wb @ X), float(g_tw @ X), float(g_r @ X)
     c = [float(v) for v in a.P_s.mean(axis=0)]
 

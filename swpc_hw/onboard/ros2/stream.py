@@ -81,7 +81,7 @@ def _parameter_covariance(params: RobotParams, covariance: FloatArray | None) ->
     mods = params.modules
     sds = [
         None if m.stddev is None else
-        [m.stddev.x_s, m.stddev.y_s, m.stddev.beta, m.stddev.b, m.stddev.r]
+        list(m.stddev.values())
         for m in mods
     ]  # fmt: skip
     return parameter_covariance(len(mods), covariance, sds)
