@@ -12,14 +12,16 @@ scale ``s = 1 + eps`` and its bias at every rest window (:mod:`.problem`).  Stag
    (:func:`.plausibility.check_gyro_ratio`: deg/s, a reversed axis, another sensor).
 4. **Robust joint least squares** (:func:`fit_imu`): slip bursts found on the wheel
    increments against the gyro's (:func:`.slip.detect_slip`) cut the wheels' runs; each
-   block's noise scale is re-estimated; a trust-region solve per iteration.
+   block's noise scale is re-estimated (both in :mod:`.weights`); a trust-region solve per
+   iteration.
 5. **The frame**: the three design-fit conditions are residuals of the problem (the data
    do not see a rigid motion of the frame, so they hold exactly at the optimum); the
    result is then aligned exactly (:func:`swpc_hw.robot.frames.design_fit_transform`).
-6. **Covariance** in that frame (:func:`imu_covariance`): the sandwich on the subspace
-   the conditions leave, ``Z (Z^T H Z)^-1 Z^T M Z (Z^T H Z)^-1 Z^T``; the wheels' blocks
-   with a HAC middle over their nodes.  Data that leave more than the frame free are
-   refused, naming the directions.
+6. **Covariance** in that frame (:func:`imu_covariance`, :mod:`.covariance`): the
+   sandwich on the subspace the conditions leave,
+   ``Z (Z^T H Z)^-1 Z^T M Z (Z^T H Z)^-1 Z^T``; the wheels' blocks with a HAC middle over
+   their nodes.  Data that leave more than the frame free are refused, naming the
+   directions.
 7. **Plausibility after solving**: physical values near nominal, the gyro's scale, a
    straight drive whose wheels roll as one arc with the gyro's turn
    (:func:`check_drives_fit`) and that turned little enough for its first-order model
