@@ -24,7 +24,7 @@
 
 2 and 3 for each metrology of ``SWPC_BENCH_CHECK_METROLOGY`` (default ``mocap,imu``):
 ``imu`` is the check with the gyro (:data:`MEMS`, the encoders, no poses, no references;
-the verdict on the robot's shape, :mod:`swpc_hw.calibration.check_gauge`), the file in
+the verdict on the robot's shape, :mod:`swpc_hw.calibration.check.shape`), the file in
 force the same calibration with motion capture; its offline table adds the RMS z of the
 check's shape against the truth.
 """
@@ -47,11 +47,11 @@ from services.config.robot import RobotConfig
 from simulators.datagen import ExperimentOptions, generate_experiment
 from simulators.datagen_imu import GyroOptions
 from simulators.random_robots import random_robots
-from swpc_hw.calibration.check import check_estimates, stated_covariance
+from swpc_hw.calibration.check.verdict import check_estimates, stated_covariance
+from swpc_hw.calibration.mocap.solver import CalibrationResult, solve
 from swpc_hw.calibration.parameters import N_PARAMS
-from swpc_hw.calibration.solver import CalibrationResult, solve
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 MOCAP = ExperimentOptions(pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05))
 MEMS = GyroOptions(noise_density=math.radians(0.014), bias=math.radians(0.5))
@@ -117,7 +117,7 @@ def check_run(
     truth: RobotParams, protocol: dict[str, Any], seed: int, file: CalibrationResult
 ) -> CalibrationResult:
     """A check's estimate on ``truth``, solved from the file's parameters."""
-    from swpc_hw.calibration.check import check_dataset
+    from swpc_hw.calibration.check.dataset_check import check_dataset
 
     ds = generate_experiment(truth, check_options(protocol, seed), PAPER_NOMINAL).dataset
     result, _ = check_dataset(ds, file.params, file.covariance)
@@ -153,7 +153,7 @@ def power(lam: float, q: float) -> float:
 
 
 def design(runs: int, cfg: RobotConfig, service_times: dict[str, float]) -> None:
-    from swpc_hw.calibration.check import thresholds
+    from swpc_hw.calibration.check.verdict import thresholds
 
     rep = np.array(cfg.check.repeatability.per_parameter())
     ids = PAPER_CALIBRATED.ids
@@ -229,7 +229,7 @@ def check_data(robot: RobotParams, proto: dict[str, Any], seed: int, metrology: 
 
 
 def offline(seeds: int, cfg: RobotConfig, metrology: str = "mocap") -> None:
-    from swpc_hw.calibration.check import check_dataset
+    from swpc_hw.calibration.check.dataset_check import check_dataset
 
     c = cfg.check
     proto = cfg.check_config().protocol.model_dump()
@@ -265,7 +265,7 @@ def offline(seeds: int, cfg: RobotConfig, metrology: str = "mocap") -> None:
                     false_alarm=c.false_alarm, whole_robot=c.whole_robot,
                 )  # fmt: skip
             else:
-                from swpc_hw.calibration.check_gauge import compare_shape
+                from swpc_hw.calibration.check.shape import compare_shape
 
                 assert res.covariance is not None
                 b = compare_shape(
@@ -328,9 +328,9 @@ def offline(seeds: int, cfg: RobotConfig, metrology: str = "mocap") -> None:
 
 def shape_z(res: CalibrationResult, truth: RobotParams) -> np.ndarray:
     """(N, 5) z of a check's shape against the truth: each module's error relative to the
-    others (:func:`swpc_hw.calibration.check_gauge.relative_map`) over its std dev from
+    others (:func:`swpc_hw.calibration.check.shape.relative_map`) over its std dev from
     the check's covariance alone."""
-    from swpc_hw.calibration.check_gauge import gauge_directions, module_statistic, relative_map
+    from swpc_hw.calibration.check.shape import gauge_directions, module_statistic, relative_map
 
     T = as_matrix(truth)
     d = as_matrix(res.params) - T
@@ -403,7 +403,7 @@ def service_calibration(data: Path, truth: Path, seed: int) -> dict[str, Any]:
 
 def service_times() -> dict[str, float]:
     """Robot time of one check of each design candidate, the file in force the truth."""
-    from swpc_hw.kinematic_file import save_kinematics
+    from swpc_hw.files.kinematic_file import save_kinematics
 
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -417,7 +417,7 @@ def service_times() -> dict[str, float]:
 
 
 def through_service(seeds: int, metrology: str = "mocap") -> None:
-    from swpc_hw.kinematic_file import save_kinematics
+    from swpc_hw.files.kinematic_file import save_kinematics
 
     robots = truths(seeds)
     ids = PAPER_CALIBRATED.ids

@@ -32,7 +32,7 @@ from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.cia402.driver import Cia402Driver
 from swpc_hw.drives.config import Cia402Drives
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 BITRATES = (500_000, 1_000_000)
 SPIN_S = 10.0

@@ -17,7 +17,7 @@ import statistics
 import time
 
 from simulators.drift_path import mixed_segments, observe_drive, with_error
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 SEEDS = 10
 CAP_S = 1200.0

@@ -5,7 +5,7 @@
    1e-4 deg/s/sqrt(s) bias walk, references 0.5 mm): rank, null space, condition number
    and the std devs of what odometry needs, for the encoders alone, with the gyro, with
    each kind of reference and with the chosen set
-   (:mod:`swpc_hw.calibration.identifiability`).
+   (:mod:`swpc_hw.calibration.plan.identifiability`).
 2. **Accuracy and honesty** over seeds, default gyro (bias 0.1 deg/s, scale error 0.3 %)
    and references (0.5 mm): truth = Table 4 (every seed other noise), and random robots
    with the paper's spread (P_s +-30 %, beta +-30 deg, b and r +-10 %, robot.yaml the
@@ -37,14 +37,14 @@ from simulators.datagen_imu import (
     generate_imu_experiment,
 )
 from simulators.random_robots import random_robots
-from swpc_hw.calibration.identifiability import analyse
-from swpc_hw.calibration.imu_solver import solve_imu
+from swpc_hw.calibration.gyro.solver import solve_imu
+from swpc_hw.calibration.mocap.solver import solve
+from swpc_hw.calibration.plan.identifiability import analyse
 from swpc_hw.calibration.result import CalibrationResult
-from swpc_hw.calibration.solver import solve
-from swpc_hw.frames import design_fit_transform, transform_parameters
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from swpc_hw.references import AxisDistance, WheelRadius
+from swpc_hw.files.references import AxisDistance, WheelRadius
+from swpc_hw.robot.frames import design_fit_transform, transform_parameters
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 DEG = 180.0 / math.pi
 FREE = ("d_beta", "b", "distance", "r")

@@ -38,10 +38,10 @@ from simulators.datagen_imu import (
     ReferenceOptions,
     generate_imu_experiment,
 )
-from swpc_hw.calibration.imu_solver import solve_imu
+from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.errors import CalibrationError
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 DEG = math.pi / 180.0
 HOMING = 3.0 * DEG

@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from swpc_hw.model import RobotParams
+from swpc_hw.robot.model import RobotParams
 
 DEG = math.pi / 180.0
 
@@ -39,7 +39,7 @@ DEG = math.pi / 180.0
 def robots(count: int) -> list[tuple[str, RobotParams]]:
     """Table 4, then ``count - 1`` random robots with build deviations (module docstring)."""
     from simulators.random_robots import random_robots
-    from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
     out = [("table 4", PAPER_CALIBRATED)]
     batch = random_robots(
@@ -55,8 +55,8 @@ def calibrate(truth: RobotParams, seed: int) -> tuple[RobotParams, RobotParams]:
     """The mocap and the IMU calibration of one simulated run of ``truth``."""
     from simulators.datagen_imu import IMU_PROTOCOL, generate_imu_experiment
     from swpc_hw.calibration import solve
-    from swpc_hw.calibration.imu_solver import solve_imu
-    from swpc_hw.paper_robot import PAPER_NOMINAL
+    from swpc_hw.calibration.gyro.solver import solve_imu
+    from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
     opts = dataclasses.replace(
         IMU_PROTOCOL, pose_rate=100.0, pose_sigma_xy=0.5e-3,
@@ -69,7 +69,7 @@ def calibrate(truth: RobotParams, seed: int) -> tuple[RobotParams, RobotParams]:
 def main() -> None:
     from services.cli.validate import run_in_process
     from services.config.robot import RobotConfig
-    from swpc_hw.paper_robot import PAPER_NOMINAL
+    from swpc_hw.robot.paper_robot import PAPER_NOMINAL
     from swpc_hw.validation import SquareOptions
 
     count = int(os.environ.get("SWPC_BENCH_VALIDATION_ROBOTS", "3"))

@@ -14,9 +14,9 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.odometry import Odometry, OdometryOptions
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.twist_controller import settled_steering, settled_wheel_rates
+from swpc_hw.onboard.odometry import Odometry, OdometryOptions
+from swpc_hw.onboard.twist_controller import settled_steering, settled_wheel_rates
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 FloatArray = NDArray[np.float64]
 N_UPDATES = 10000

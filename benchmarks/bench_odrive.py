@@ -30,7 +30,7 @@ from simulators.sim_options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.factory import open_drives
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 SECONDS = 20.0
 BITRATES = (500_000, 1_000_000)

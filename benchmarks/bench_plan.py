@@ -44,20 +44,13 @@ from services.runs.plan import plan_for, stopping_for, time_model
 from simulators.datagen import generate_experiment
 from simulators.plan_predict import experiment_options, predicted_covariance
 from simulators.random_robots import random_robots
-from swpc_hw.calibration.forecast import Stopping, forecast_covariance, replay
-from swpc_hw.calibration.plan import (
-    Candidate,
-    MocapNoise,
-    Plan,
-    robot_time,
-    square_path_sd,
-    square_path_sensitivity,
-    stddevs,
-)
-from swpc_hw.calibration.solver import solve
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.calibration.mocap.solver import solve
+from swpc_hw.calibration.plan.forecast import Stopping, forecast_covariance, replay
+from swpc_hw.calibration.plan.plan import Candidate, MocapNoise, Plan, robot_time, stddevs
+from swpc_hw.calibration.plan.square_error import square_path_sd, square_path_sensitivity
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 KINDS = {"position": [0, 1, 3], "beta": [2], "radius": [4]}
 SHOW = {"position": (1e3, "mm"), "beta": (180.0 / math.pi, "deg"), "radius": (1e3, "mm")}
@@ -113,7 +106,7 @@ def offline(
     predicted covariance is ``cov``.  The square path's z: its end position's error (CCW
     and CW each) over its predicted std dev ``sqrt(var x + var y)``, its heading's over
     ``sqrt(var yaw)``.  With ``stopping``: every spin recorded to its most sweep and cut
-    where sequential stopping ends it (:func:`swpc_hw.calibration.forecast.replay`); the
+    where sequential stopping ends it (:func:`swpc_hw.calibration.plan.forecast.replay`); the
     z then against each seed's final forecast, and ``robot_time`` the seeds' robot times
     (the plan's, less the sweep not spun at the time model's yaw rate)."""
     tm = time_model(cfg)
@@ -210,7 +203,7 @@ def through_service(nominal: RobotParams, truth: RobotParams) -> list[str]:
     """One calibration with the default protocol and one with ``plan: auto`` on the robot:
     per run its state, robot time and its result against the truth (largest |z| per kind
     with the run's own std devs, and the square path's end error ``S dp``)."""
-    from swpc_hw.kinematic_file import load_kinematics
+    from swpc_hw.files.kinematic_file import load_kinematics
 
     S = square_path_sensitivity(nominal)
     out = []

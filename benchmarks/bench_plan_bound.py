@@ -34,7 +34,7 @@ from benchmarks.bench_plan import default_protocol
 from services.config.robot import RobotConfig
 from services.runs.plan import pauses, time_model
 from simulators.plan_predict import predicted_covariance
-from swpc_hw.calibration.plan import (
+from swpc_hw.calibration.plan.plan import (
     SWEEPS,
     Candidate,
     FloatArray,
@@ -50,7 +50,7 @@ from swpc_hw.calibration.plan import (
     stddevs,
     worst_per_kind,
 )
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
 LONG_SWEEPS = (*SWEEPS, *(720.0 + 90.0 * k for k in range(1, 9)))
 """The planner's sweeps and longer ones, up to 1440 deg (the bound's)."""

@@ -35,11 +35,11 @@ from services.config.robot import RobotConfig
 from services.runs.plan import PlanRequest, plan_for, time_model
 from simulators.datagen_imu import GyroOptions, generate_imu_experiment
 from simulators.plan_predict import imu_experiment_options, predicted_imu_covariance, tape_readings
-from swpc_hw.calibration.imu_solver import solve_imu
-from swpc_hw.calibration.plan import Candidate, FloatArray, robot_time, stddevs
-from swpc_hw.frames import design_fit_transform, transform_parameters
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.calibration.gyro.solver import solve_imu
+from swpc_hw.calibration.plan.plan import Candidate, FloatArray, robot_time, stddevs
+from swpc_hw.robot.frames import design_fit_transform, transform_parameters
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 
 def in_design_fit(params: RobotParams, nominal: RobotParams) -> FloatArray:
@@ -100,7 +100,7 @@ def through_service(truth: RobotParams, body: dict[str, Any]) -> tuple[str, floa
 
     from services.config.settings import ServiceSettings
     from services.http.app import create_app
-    from swpc_hw.kinematic_file import save_kinematics
+    from swpc_hw.files.kinematic_file import save_kinematics
 
     auth = {"Authorization": f"Bearer {TOKEN}"}
     a = truth.arrays()

@@ -35,8 +35,8 @@ from firmware_protocol.codec import ControlMode
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.sensors.mocap import MocapIngest
-from swpc_hw.mocap import PoseEncoding, PoseSample, encode_pose
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.sensors.mocap import PoseEncoding, PoseSample, encode_pose
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 TOKEN = "bench-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -185,7 +185,7 @@ def end_to_end() -> None:
             wall = time.monotonic() - t0
             robot = clock.now()
             res = client.get(f"/calibrations/{rid}/result").json() if st["state"] == "DONE" else {}
-    from swpc_hw.paper_robot import PAPER_CALIBRATED
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
     worst_mm, worst_deg = 0.0, 0.0
     for m in res.get("modules", []):

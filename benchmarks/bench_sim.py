@@ -31,7 +31,7 @@ from firmware_protocol.codec import Axis, ControlMode
 from simulators.mocap_sim import MocapOptions
 from simulators.sim_options import SimOptions
 from simulators.virtual_robot import VirtualRobot
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 
 class _Receiver:

@@ -39,11 +39,11 @@ import numpy as np
 from simulators.datagen import ExperimentOptions, PartialSlip, generate_experiment
 from simulators.random_robots import batch_experiment, random_robots
 from swpc_hw.calibration import geometry as geo
-from swpc_hw.calibration.baseline import solve_paper
-from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
-from swpc_hw.dataset import Dataset
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.calibration.mocap.baseline import solve_paper
+from swpc_hw.calibration.mocap.solver import CalibrationResult, SolverOptions, solve
+from swpc_hw.files.dataset import Dataset
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NAMES = PARAM_NAMES
 DISPLAY = np.array([1e3, 1e3, 180.0 / math.pi, 1e3, 1e3])  # mm, mm, deg, mm, mm

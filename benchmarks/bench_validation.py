@@ -3,7 +3,7 @@
 1. Calibrated file: the seed experiment simulated on the paper's Table 4 robot with the
    in-process default mocap noise (0.5 mm / 0.05 deg at 100 Hz, encoders 2**17 counts/turn,
    :func:`simulators.datagen.generate_experiment`), solved offline
-   (:func:`swpc_hw.calibration.solve`); nominal = :data:`swpc_hw.paper_robot.PAPER_NOMINAL`.
+   (:func:`swpc_hw.calibration.solve`); nominal = :data:`swpc_hw.robot.paper_robot.PAPER_NOMINAL`.
 2. The validation drive (:mod:`swpc_hw.validation`) on the in-process simulator (truth =
    Table 4): 2.5 m square, CW and CCW, 4 runs each, 0.2 m/s, each file used for control and
    odometry; prints the per-run errors and the Table-5-like comparison, writes
@@ -22,7 +22,7 @@ import os
 import time
 from pathlib import Path
 
-from swpc_hw.model import RobotParams
+from swpc_hw.robot.model import RobotParams
 
 OUT = Path("out/validation")
 
@@ -31,7 +31,7 @@ def offline_calibrated(seed: int = 0) -> RobotParams:
     """Table 4 robot, seed experiment with the in-process default noise, solved offline."""
     from simulators.datagen import ExperimentOptions, generate_experiment
     from swpc_hw.calibration import solve
-    from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
     opt = ExperimentOptions(
         pose_rate=100.0, pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05), seed=seed
@@ -42,8 +42,8 @@ def offline_calibrated(seed: int = 0) -> RobotParams:
 
 def main() -> None:
     from services.cli.validate import run_in_process
-    from swpc_hw.kinematic_file import save_kinematics
-    from swpc_hw.paper_robot import PAPER_NOMINAL
+    from swpc_hw.files.kinematic_file import save_kinematics
+    from swpc_hw.robot.paper_robot import PAPER_NOMINAL
     from swpc_hw.validation import SquareOptions
 
     side = float(os.environ.get("SWPC_BENCH_VALIDATION_SIDE", "2.5"))
@@ -59,7 +59,7 @@ def main() -> None:
         log=lambda m: print(m, flush=True),
     )
     wall = time.perf_counter() - t0
-    report.files = {"nominal": "swpc_hw.paper_robot.PAPER_NOMINAL",
+    report.files = {"nominal": "swpc_hw.robot.paper_robot.PAPER_NOMINAL",
                     "calibrated": str(OUT / "kinematics-offline.yaml")}
     table = report.table()
     print()

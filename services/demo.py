@@ -39,9 +39,9 @@ import httpx
 
 from services.cli._sim_options import add_metrology_argument
 from swpc_hw.blas_threads import single_blas_thread
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
 
 def _free_port() -> int:
@@ -136,8 +136,8 @@ def operator_step(
 def design_fit_truth(result: dict[str, Any]) -> RobotParams:
     """The simulator's truth in the design-fit frame of a result without motion capture
     (as ``swpc solve --truth`` re-expresses it)."""
-    from swpc_hw.frames import design_fit_transform, transform_robot
-    from swpc_hw.paper_robot import PAPER_NOMINAL
+    from swpc_hw.robot.frames import design_fit_transform, transform_robot
+    from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
     phi, t = design_fit_transform(PAPER_CALIBRATED.arrays().P_s, PAPER_NOMINAL.arrays().P_s)
     return transform_robot(PAPER_CALIBRATED, phi, t, result.get("frame", "design-fit"))

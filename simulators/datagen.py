@@ -1,7 +1,7 @@
 """Simulated calibration experiment (docs/model-and-frames.md, "The calibration experiment").
 
 :func:`generate_experiment` plays the whole seed method on a hidden *truth* robot and
-returns a :class:`~swpc_hw.dataset.Dataset` (whose ``robot`` is the *nominal* robot, never
+returns a :class:`~swpc_hw.files.dataset.Dataset` (whose ``robot`` is the *nominal* robot, never
 the truth) plus ground-truth extras for tests.
 
 Timeline (time starts at 0, one continuous clock; the body starts at pose (0, 0, 0); every
@@ -72,10 +72,10 @@ from simulators.physics import (
     spin_angle,
     trailing_about_pivot,
 )
-from swpc_hw.dataset import Dataset, Segment, save_dataset
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import RobotParams, contact_point, rot, wrap_angle
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.files.dataset import Dataset, Segment, save_dataset
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.model import RobotParams, contact_point, rot, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
 

@@ -40,15 +40,15 @@ import numpy as np
 
 from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
 from simulators.physics import FloatArray
-from swpc_hw.calibration.imu_build import ImuRun, NoiseLevels, build_imu_problem
-from swpc_hw.calibration.imu_solver import initial_weights
+from swpc_hw.calibration.gyro.build import ImuRun, NoiseLevels, build_imu_problem
+from swpc_hw.calibration.gyro.weights import initial_weights
 from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.prepare import prepare_segments
-from swpc_hw.dataset import Dataset, save_dataset
-from swpc_hw.frames import design_fit_transform, transform_parameters
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import RobotParams, rot
-from swpc_hw.references import AxisDistance, Reference, StraightDrive, WheelRadius
+from swpc_hw.files.dataset import Dataset, save_dataset
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.files.references import AxisDistance, Reference, StraightDrive, WheelRadius
+from swpc_hw.robot.frames import design_fit_transform, transform_parameters
+from swpc_hw.robot.model import RobotParams, rot
 
 _DEG = math.pi / 180.0
 
@@ -234,7 +234,7 @@ def fisher_setup(
     (encoders unquantized, gyro without noise or walk, exact references), built with the
     noise levels of the sensors as simulated (encoders of ``counts_per_rev`` counts, the
     ``gyro``'s white noise and walk, the references' std dev): the Jacobian at the truth,
-    in the design-fit frame, is the experiment's (:mod:`swpc_hw.calibration.identifiability`).
+    in the design-fit frame, is the experiment's (:mod:`swpc_hw.calibration.plan.identifiability`).
     Returns the built problem (weights set) and the true unknowns.
     """
     opt = options or IMU_PROTOCOL

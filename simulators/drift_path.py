@@ -31,10 +31,10 @@ from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
 from scipy.signal import lfilter
 
-from swpc_hw.drift import DriftMonitor, DriftOptions, SuspectChange
-from swpc_hw.model import RobotParams
-from swpc_hw.odometry import Odometry
-from swpc_hw.twist_controller import settled_steering
+from swpc_hw.onboard.drift import DriftMonitor, DriftOptions, SuspectChange
+from swpc_hw.onboard.odometry import Odometry
+from swpc_hw.onboard.twist_controller import settled_steering
+from swpc_hw.robot.model import RobotParams
 
 FloatArray = NDArray[np.float64]
 Twist = tuple[float, float, float]
@@ -186,7 +186,7 @@ def with_error(params: RobotParams, module: int, *, dr: float = 0.0,
 
 @dataclass(frozen=True)
 class DriftRun:
-    """What a :class:`~swpc_hw.drift.DriftMonitor` made of a drive: every suspect change,
+    """What a :class:`~swpc_hw.onboard.drift.DriftMonitor` made of a drive: every suspect change,
     the metres and hours driven, and the monitor at the end."""
 
     changes: list[SuspectChange]

@@ -10,7 +10,7 @@ error)::
 
 (:func:`gyro_reading`, :meth:`GyroSim.sample`; ``dt = 1 / rate``).  Every sample is
 published at once on ``imu/<robot>/data`` as a CDR ``sensor_msgs/msg/Imu``
-(:mod:`swpc_hw.imu`), byte for byte what zenoh-bridge-ros2dds forwards from a ROS 2 IMU
+(:mod:`swpc_hw.sensors.gyro`), byte for byte what zenoh-bridge-ros2dds forwards from a ROS 2 IMU
 driver, stamped like the poses (lockstep: the simulated clock's wall stamp of the sample;
 ``swpc sim``: the host's wall clock at sampling).  In lockstep every publication is
 announced to the simulated clock (:func:`simulators.mocap_sim.lockstep_put`).
@@ -37,9 +37,9 @@ from simulators.datagen_imu import GyroOptions
 from simulators.mocap_sim import SampleGrid, listened, lockstep_put
 from simulators.physics import FloatArray
 from swpc_hw.clock import SimClock
-from swpc_hw.imu import IMU_ENCODING, GyroSample, encode_imu
-from swpc_hw.model import rot
+from swpc_hw.robot.model import rot
 from swpc_hw.row_ring import RowRing
+from swpc_hw.sensors.gyro import IMU_ENCODING, GyroSample, encode_imu
 
 MAX_GYRO_RATE_HZ = 2000.0
 

@@ -1,9 +1,9 @@
 """Simulated motion capture over zenoh, and the simulator's ground-truth channel.
 
 Mocap (what the service uses): poses of R in W on ``mocap/<robot>/pose`` at ``rate``
-(100 Hz default, up to 2 kHz) in one of the two encodings of :mod:`swpc_hw.mocap`:
+(100 Hz default, up to 2 kHz) in one of the two encodings of :mod:`swpc_hw.sensors.mocap`:
 
-* ``native`` (``application/x-swpc-pose``, 72 bytes, layout in :mod:`swpc_hw.mocap`);
+* ``native`` (``application/x-swpc-pose``, 72 bytes, layout in :mod:`swpc_hw.sensors.mocap`);
 * ``ros2-cdr`` (``application/cdr``): a CDR ``geometry_msgs/msg/PoseStamped`` serialised by
   rosbags, byte for byte what zenoh-bridge-ros2dds forwards from a ROS 2 mocap driver.
 
@@ -43,7 +43,7 @@ import zenoh
 
 from simulators.physics import FloatArray
 from swpc_hw.clock import SimClock
-from swpc_hw.mocap import PoseEncoding, PoseSample, encode_pose, zenoh_encoding_name
+from swpc_hw.sensors.mocap import PoseEncoding, PoseSample, encode_pose, zenoh_encoding_name
 
 MAX_RATE_HZ = 2000.0
 

@@ -55,7 +55,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from swpc_hw.model import (
+from swpc_hw.robot.model import (
     RobotArrays,
     contact_point,
     contact_velocity,

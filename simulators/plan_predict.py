@@ -2,7 +2,7 @@
 
 :func:`predicted_stddevs` plays the candidate on the robot the planner knows (the robot
 config's nominal robot: the truth is unknown before calibrating) with the metrology's
-noise (:class:`~swpc_hw.calibration.plan.MocapNoise`), through the offline generator
+noise (:class:`~swpc_hw.calibration.plan.plan.MocapNoise`), through the offline generator
 (:mod:`simulators.datagen`), and solves it with the joint solver.  The solver's
 covariance is ``H^-1 M H^-1`` with ``H = J^T J`` of its weighted residuals: the inverse
 Fisher information of the design, the correlation of the noise included
@@ -26,13 +26,13 @@ import numpy as np
 
 from simulators.datagen import ExperimentOptions, generate_experiment
 from simulators.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
-from swpc_hw.calibration.forecast import SpinInformation, spin_information
-from swpc_hw.calibration.imu_solver import imu_covariance
+from swpc_hw.calibration.gyro.covariance import imu_covariance
+from swpc_hw.calibration.mocap.solver import solve, solve_joint
 from swpc_hw.calibration.parameters import N_PARAMS
-from swpc_hw.calibration.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
-from swpc_hw.calibration.solver import solve, solve_joint
+from swpc_hw.calibration.plan.forecast import SpinInformation, spin_information
+from swpc_hw.calibration.plan.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
 from swpc_hw.errors import CalibrationError
-from swpc_hw.model import RobotParams
+from swpc_hw.robot.model import RobotParams
 
 
 def spins_of(base: ExperimentOptions, c: Candidate, tm: TimeModel) -> ExperimentOptions:
@@ -91,7 +91,7 @@ def predicted_spins(
     robot: RobotParams, c: Candidate, noise: MocapNoise, tm: TimeModel, seed: int = 0
 ) -> list[SpinInformation]:
     """Every spin's share of the information of candidate ``c`` on ``robot``, in the run's
-    order (:func:`swpc_hw.calibration.forecast.spin_information`): what sequential
+    order (:func:`swpc_hw.calibration.plan.forecast.spin_information`): what sequential
     stopping forecasts the spins to come with.  :class:`PlanError` as
     :func:`predicted_covariance`."""
     try:
@@ -139,7 +139,7 @@ def predicted_imu_covariance(
 ) -> FloatArray:
     """(5N, 5N) covariance of candidate ``c`` without motion capture on ``robot`` (modules
     in its order), in the ``design-fit`` frame the run's result reports: the IMU
-    solver's covariance (:func:`swpc_hw.calibration.imu_solver.imu_covariance`) at the
+    solver's covariance (:func:`swpc_hw.calibration.gyro.covariance.imu_covariance`) at the
     truth of the candidate's noiseless run (:func:`simulators.datagen_imu.fisher_setup`:
     the gyro's white noise and walk, the encoders' quantization and the tape's std dev as
     weights).  A solve of a noisy run gives the same std devs within 0.5 %

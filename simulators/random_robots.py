@@ -25,8 +25,8 @@ from typing import NamedTuple
 import numpy as np
 
 from simulators.physics import FloatArray, settled_trailing
-from swpc_hw.model import RobotParams, contact_point, wrap_angle
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.robot.model import RobotParams, contact_point, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
 

@@ -21,7 +21,7 @@ projected on ``u_i = u(theta_i)`` and ``n_i = n(theta_i)`` is linear in ``xi``::
   point to the floor (the seed's fixing tool) and the body can only pivot about it;
 * wheel RATE (VELOCITY/POSITION): ``U_i xi = r psi_dot_cmd`` is a **soft** row, and so is
   the module's lateral row if its steering is driven: with every module driven, ``xi`` is
-  the least-squares twist of the true model (:func:`swpc_hw.model.forward_kinematics`);
+  the least-squares twist of the true model (:func:`swpc_hw.robot.model.forward_kinematics`);
   commands computed with wrong parameters leave residuals, i.e. slip and drift;
 * wheel TORQUE or PASSIVE (FREE, disabled, fault): the wheel rolls without slip
   (``psi_dot = U_i xi / r_i``) and enters the body **dynamics** below;
@@ -66,12 +66,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from simulators.physics import FloatArray, se2_step
-from swpc_hw.model import (
+from swpc_hw.robot.model import (
     RobotArrays,
     RobotParams,
     contact_point,
 )
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 
 class WheelDrive(enum.Enum):
@@ -129,7 +129,7 @@ def constraint_rows(arrays: RobotArrays, theta: ArrayLike) -> tuple[FloatArray, 
 
     ``U_i = (u_x, u_y, P_w,i x u_i)``, ``N_i = (n_x, n_y, P_w,i x n_i)`` so that
     ``U_i . xi = (v + omega x P_w,i) . u_i`` and likewise for ``n``; with
-    ``P_w = P_s + b u`` (:func:`swpc_hw.model.contact_point`), ``u = (cos, sin)``,
+    ``P_w = P_s + b u`` (:func:`swpc_hw.robot.model.contact_point`), ``u = (cos, sin)``,
     ``n = (sin, -cos)`` written out (this runs every physics step).
     """
     th = np.asarray(theta, dtype=float)

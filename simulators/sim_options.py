@@ -13,8 +13,8 @@ from simulators.imu_sim import check_gyro
 from simulators.mocap_sim import MocapOptions
 from simulators.robot_physics import PhysicsOptions
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives
-from swpc_hw.kinematic_file import kinematics_document
-from swpc_hw.model import RobotParams
+from swpc_hw.files.kinematic_file import kinematics_document
+from swpc_hw.robot.model import RobotParams
 
 
 @dataclass(frozen=True)

@@ -96,9 +96,9 @@ from simulators.robot_physics import (
 from simulators.sim_options import SimOptions, SimStats, params_document
 from simulators.virtual_drives import VirtualDrive, virtual_drives
 from swpc_hw.clock import SimClock, SystemClock, next_instant
-from swpc_hw.model import RobotParams, wrap_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.zenoh_session import ZenohAuth, open_session
+from swpc_hw.robot.model import RobotParams, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.zenoh_session import ZenohAuth, open_session
 
 # --------------------------------------------------------------------------- simulator
 

@@ -8,7 +8,7 @@ that moves only when the state machine sleeps on its :class:`swpc_hw.clock.Virtu
   point ``C = P_s + b u(theta)``; with it and a driven wheel the body spins about C at
   ``spin_rate`` (counter-clockwise for a negative wheel torque, as the protocol drives):
   ``v = -omega x C``;
-* every free caster trails exactly (:func:`swpc_hw.model.trailing_steering_angle`) and
+* every free caster trails exactly (:func:`swpc_hw.robot.model.trailing_steering_angle`) and
   every rolling wheel turns ``dpsi = (v + omega x P_w) . u / r dt``;
 * a position-held steering moves to its target at ``steer_rate``;
 * the encoders report the angles quantised to ``counts`` per turn (2**17, the simulator's);
@@ -37,9 +37,9 @@ from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from simulators.physics import se2_step
 from swpc_hw.clock import VirtualClock
-from swpc_hw.imu import GyroSample, encode_imu
-from swpc_hw.mocap import PoseSample, encode_native
-from swpc_hw.model import FloatArray, RobotParams, nearest_turn, trailing_steering_angle
+from swpc_hw.robot.model import FloatArray, RobotParams, nearest_turn, trailing_steering_angle
+from swpc_hw.sensors.gyro import GyroSample, encode_imu
+from swpc_hw.sensors.mocap import PoseSample, encode_native
 
 
 @dataclass

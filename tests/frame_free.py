@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from swpc_hw.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 
 NAMES = PARAM_NAMES
 

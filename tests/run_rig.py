@@ -20,9 +20,9 @@ from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
 from simulators.imu_sim import axis_travel
 from swpc_hw.clock import VirtualClock
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from swpc_hw.references import AxisDistance, Reference
+from swpc_hw.files.references import AxisDistance, Reference
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.fake_robot import FakeRobot
 
 # three modules (N >= 2 is allowed) and three angles: every edge of TRANSITIONS, quickly

@@ -151,7 +151,7 @@ def served(
     """``app`` behind the real HTTP server (uvicorn with GuardedH11) on a free loopback
     port, in this process: ``(server, port)``; the server is stopped on exit."""
     from services.http.server import server as http_server
-    from swpc_hw.zenoh_session import free_tcp_endpoint
+    from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
     port = int(free_tcp_endpoint().rsplit(":", 1)[1])
     srv = http_server(

@@ -26,7 +26,7 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.service_rig import TOKEN
 
 #: no 5xx, and every response matches the schema (status code, content type, headers, body)

@@ -1,4 +1,4 @@
-"""A check's test statistic and a parameter's trend (swpc_hw.calibration.check, .trend),
+"""A check's test statistic and a parameter's trend (swpc_hw.calibration.check.verdict, .trend),
 and a check solved offline from the file in force (docs/check.md)."""
 
 from __future__ import annotations
@@ -10,21 +10,21 @@ import numpy as np
 import pytest
 
 from simulators.datagen import ExperimentOptions, generate_experiment
-from swpc_hw.calibration.check import (
+from swpc_hw.calibration.check.dataset_check import check_dataset
+from swpc_hw.calibration.check.trend import linear_trend
+from swpc_hw.calibration.check.verdict import (
     CONSISTENT,
     DRIFTED,
     WHOLE_ROBOT,
-    check_dataset,
     check_estimates,
     compare,
     sidak,
     stated_covariance,
     thresholds,
 )
-from swpc_hw.calibration.trend import linear_trend
 from swpc_hw.errors import CalibrationError
-from swpc_hw.model import PARAM_NAMES, ModuleStddev
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.robot.model import PARAM_NAMES, ModuleStddev
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 IDS = [1, 2, 3, 4]
 SD = np.array([1e-4, 1e-4, 2e-4, 5e-5, 2e-5])  # x_s, y_s, beta, b, r
@@ -162,7 +162,7 @@ NOISE = ExperimentOptions(pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05
 def test_a_check_solved_from_the_file_finds_a_worn_wheel_and_only_it() -> None:
     """Offline, the check's shape (every module locked once at 45 deg, 90 deg sweeps): the
     file in force a calibration of the truth, the robot's module 3 wheel 0.3 mm smaller."""
-    from swpc_hw.calibration.solver import solve
+    from swpc_hw.calibration.mocap.solver import solve
 
     cal = solve(generate_experiment(PAPER_CALIBRATED, dataclasses.replace(NOISE, seed=5),
                                     PAPER_NOMINAL).dataset)  # fmt: skip
@@ -199,7 +199,7 @@ def test_a_check_without_any_metrology_or_in_another_frame_is_refused() -> None:
 
 
 def test_the_calibration_still_needs_two_angles_and_every_module() -> None:
-    from swpc_hw.calibration.solver import solve
+    from swpc_hw.calibration.mocap.solver import solve
     from swpc_hw.errors import DatasetError
 
     one = dataclasses.replace(NOISE, angles=(math.radians(45.0),), spin_duration=2.0)

@@ -1,4 +1,4 @@
-"""A check without motion capture (swpc_hw.calibration.check_gauge, imu_solver's
+"""A check without motion capture (swpc_hw.calibration.check.shape, imu_solver's
 solve_imu_check): the robot's shape against the file's, docs/check.md."""
 
 from __future__ import annotations
@@ -11,13 +11,14 @@ import pytest
 
 from simulators.datagen import ExperimentOptions
 from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
-from swpc_hw.calibration.check import CONSISTENT, DRIFTED, check_dataset, thresholds
-from swpc_hw.calibration.check_gauge import compare_shape, gauge_directions, relative_map
-from swpc_hw.dataset import Dataset
+from swpc_hw.calibration.check.dataset_check import check_dataset
+from swpc_hw.calibration.check.shape import compare_shape, gauge_directions, relative_map
+from swpc_hw.calibration.check.verdict import CONSISTENT, DRIFTED, thresholds
 from swpc_hw.errors import CalibrationError
-from swpc_hw.frames import transform_parameters
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.dataset import Dataset
+from swpc_hw.robot.frames import transform_parameters
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 IDS = [1, 2, 3, 4]
 SD = np.array([1e-4, 1e-4, 2e-4, 5e-5, 2e-5])  # x_s, y_s, beta, b, r
@@ -139,7 +140,7 @@ def test_a_gyro_check_of_a_file_from_a_calibration_without_motion_capture() -> N
     """The file from the IMU calibration (design-fit, its covariance singular along the
     frame's three rigid directions): each module's relative change has a determined
     covariance all the same; unchanged consistent, a worn wheel named alone."""
-    from swpc_hw.calibration.imu_solver import solve_imu
+    from swpc_hw.calibration.gyro.solver import solve_imu
 
     exp = generate_imu_experiment(PAPER_CALIBRATED, nominal=PAPER_NOMINAL)
     cal = solve_imu(dataclasses.replace(exp.experiment.dataset, poses=np.zeros((0, 4))))

@@ -46,7 +46,7 @@ from swpc_hw.drives.cia402.tracking import (
     supervise,
 )
 from swpc_hw.drives.config import Cia402Drives
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 HOST = 127
 

@@ -30,9 +30,9 @@ from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
 from swpc_hw.clock import Clock
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import PARAM_NAMES as NAMES
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.model import PARAM_NAMES as NAMES
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import AUTH, QUICK_PROTOCOL, SHORT, TOKEN, start, wait_state
 
 RPDO1 = cia402.RPDO_BASE[0]

@@ -40,9 +40,9 @@ from services.runtime.events import EventBus
 from services.runtime.runtime import Runtime
 from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.fake_robot import FakeRobot
 from tests.service_rig import AUTH, TOKEN, served
 

@@ -12,10 +12,10 @@ import pytest
 
 from simulators.datagen import Experiment, ExperimentOptions, PartialSlip, generate_experiment
 from simulators.random_robots import batch_experiment, random_robots
-from swpc_hw.dataset import load_dataset
-from swpc_hw.kinematic_file import load_robot
-from swpc_hw.model import rot, wrap_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_robot
+from swpc_hw.robot.model import rot, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NOISELESS = ExperimentOptions(counts_per_rev=None)
 

@@ -22,7 +22,7 @@ import pytest
 import yaml
 from pydantic import BaseModel
 
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.robot.model import PARAM_NAMES
 from tests.service_rig import ROOT
 
 DEPLOY = ROOT / "deploy"
@@ -238,7 +238,7 @@ def test_sysctl_makes_room_for_the_drivers_receive_buffer() -> None:
 
 def test_robot_example_loads_and_documents_every_key() -> None:
     from services.config.robot import RobotConfig, load_robot_config
-    from swpc_hw.paper_robot import PAPER_NOMINAL
+    from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
     path = DEPLOY / "robot.example.yaml"
     cfg = load_robot_config(path)
@@ -287,7 +287,7 @@ def test_lab_router_routes_each_robot_its_poses_and_denies_the_rest(tmp_path: Pa
     """The router file on loopback: mocap PC and robot connect to it as in the README."""
     import zenoh
 
-    from swpc_hw.zenoh_session import free_tcp_endpoint, zenoh_config
+    from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, zenoh_config
 
     ep = free_tcp_endpoint()
     rcfg = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "lab-router.json5"))

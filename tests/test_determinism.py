@@ -18,7 +18,7 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.demo import parameters_digest
 from services.http.app import create_app
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.robot.model import PARAM_NAMES
 from tests.service_rig import AUTH, TOKEN
 
 # every module, two angles, the shortest spins the solver takes: the whole protocol

@@ -1,4 +1,4 @@
-"""The drift monitor (swpc_hw.drift): running estimate of each module's r and beta error
+"""The drift monitor (swpc_hw.onboard.drift): running estimate of each module's r and beta error
 from the odometry of normal driving, and the calibration suspect it raises.
 
 Readings: :mod:`simulators.drift_path` (exact no-slip casters on a true robot, a mixed path
@@ -24,7 +24,8 @@ from simulators.drift_path import (
     observe_drive,
     with_error,
 )
-from swpc_hw.drift import (
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.onboard.drift import (
     DriftError,
     DriftMonitor,
     DriftOptions,
@@ -32,12 +33,11 @@ from swpc_hw.drift import (
     median_contrast,
     residual_maker,
 )
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.mocap import ros2_typestore
-from swpc_hw.odometry import OdometryStep
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.ros2.messages import DIAGNOSTIC_ARRAY
-from swpc_hw.ros2.stream import DIAGNOSTICS_TOPIC, Ros2OdometryStream
+from swpc_hw.onboard.odometry import OdometryStep
+from swpc_hw.onboard.ros2.messages import DIAGNOSTIC_ARRAY
+from swpc_hw.onboard.ros2.stream import DIAGNOSTICS_TOPIC, Ros2OdometryStream
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.mocap import ros2_typestore
 
 FILE = PAPER_CALIBRATED
 NOISELESS = PathNoise(counts=0, slip_std=0.0, bursts_per_minute=0.0, jitter=0.0)

@@ -14,19 +14,19 @@ import numpy as np
 import pytest
 import yaml
 
-from swpc_hw.export import make_export, render
-from swpc_hw.export.ros2_params import render_ros2_params
-from swpc_hw.export.urdf import render_urdf
-from swpc_hw.frames import BASE_LINK, BaseLinkPose, to_base_link, transform_parameters
-from swpc_hw.kinematic_file import (
+from swpc_hw.files.kinematic_file import (
     KinematicFile,
     kinematics_document,
     load_kinematics,
     parse_kinematics,
     save_kinematics,
 )
-from swpc_hw.model import PARAM_NAMES, RobotParams, contact_point, true_steering_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.onboard.export import make_export, render
+from swpc_hw.onboard.export.ros2_params import render_ros2_params
+from swpc_hw.onboard.export.urdf import render_urdf
+from swpc_hw.robot.frames import BASE_LINK, BaseLinkPose, to_base_link, transform_parameters
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams, contact_point, true_steering_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 CREATED = "2026-11-01T10:00:00Z"
 POSE = BaseLinkPose(x=0.03, y=-0.02, yaw=0.25)

@@ -37,10 +37,10 @@ from services.store.fleet import FleetStore
 from services.store.runs import RunStore
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.clock import VirtualClock
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import ModuleStddev, RobotParams
-from swpc_hw.paper_robot import PAPER_NOMINAL
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.model import ModuleStddev, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 ROBOTS = [f"robot{i}" for i in range(1, 6)]
 ROUTER_FILE = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "fleet-router.json5"

@@ -1,4 +1,4 @@
-"""Sequential stopping (swpc_hw.calibration.forecast, docs/plan.md): the spins' shares of
+"""Sequential stopping (swpc_hw.calibration.plan.forecast, docs/plan.md): the spins' shares of
 the solver's covariance, the forecast from the data so far, and the rule on recorded runs
 of the paper's robot."""
 
@@ -12,8 +12,10 @@ import pytest
 
 from simulators.datagen import generate_experiment
 from simulators.plan_predict import experiment_options, predicted_spins
-from swpc_hw.calibration.covariance import segment_terms
-from swpc_hw.calibration.forecast import (
+from swpc_hw.calibration.mocap.covariance import segment_terms
+from swpc_hw.calibration.mocap.solver import solve, solve_joint
+from swpc_hw.calibration.parameters import BETA, X_S, R
+from swpc_hw.calibration.plan.forecast import (
     MIN_SWEEP,
     SpinInformation,
     SpinSoFar,
@@ -22,20 +24,18 @@ from swpc_hw.calibration.forecast import (
     informed,
     replay,
 )
-from swpc_hw.calibration.parameters import BETA, X_S, R
-from swpc_hw.calibration.plan import (
+from swpc_hw.calibration.plan.plan import (
     Candidate,
     MocapNoise,
     Requirement,
     Targets,
     TimeModel,
-    square_path_sensitivity,
     stddevs,
 )
-from swpc_hw.calibration.solver import solve, solve_joint
+from swpc_hw.calibration.plan.square_error import square_path_sensitivity
 from swpc_hw.calibration.uncertainty import sandwich_covariance
-from swpc_hw.dataset import Dataset
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.dataset import Dataset
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 PLAN = Candidate((45.0, 165.0), 165.0, 1.5, 1.0, 0.5, 2.5, 0.6)
 """The default requirement's plan on the paper's robot at the config's spin torque."""

@@ -21,7 +21,7 @@ from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.service_rig import (
     AUTH,
     SHORT_STEPS,

@@ -28,10 +28,10 @@ from simulators.imu_sim import (
     tape_measure,
 )
 from swpc_hw.clock import VirtualClock
-from swpc_hw.imu import GyroSample, ImuDecodeError, decode_imu, encode_imu
-from swpc_hw.mocap import PoseSample, encode_cdr, encode_native
-from swpc_hw.model import rot
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.robot.model import rot
+from swpc_hw.sensors.gyro import GyroSample, ImuDecodeError, decode_imu, encode_imu
+from swpc_hw.sensors.mocap import PoseSample, encode_cdr, encode_native
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 DEG = math.pi / 180.0
 
@@ -117,7 +117,7 @@ def test_imu_message_round_trips_through_cdr() -> None:
     assert back.t == pytest.approx(g.t, abs=1e-9)
     assert (back.wz, back.wx, back.wy, back.frame_id) == (-0.25, 0.01, -0.02, "imu_link")
     assert back.wz_variance == 2e-6
-    from swpc_hw.mocap import ros2_typestore
+    from swpc_hw.sensors.mocap import ros2_typestore
 
     msg = ros2_typestore().deserialize_cdr(b, "sensor_msgs/msg/Imu")
     assert msg.orientation_covariance[0] == -1.0  # REP 145: not provided

@@ -19,24 +19,24 @@ from simulators.datagen_imu import (
     generate_imu_experiment,
     yaw_rate,
 )
-from swpc_hw.calibration.gyro import rest_windows
-from swpc_hw.dataset import load_dataset, save_dataset
+from swpc_hw.calibration.gyro.bias import rest_windows
 from swpc_hw.errors import DatasetError
-from swpc_hw.frames import (
-    design_fit_constraints,
-    design_fit_transform,
-    transform_covariance,
-    transform_parameters,
-)
-from swpc_hw.model import rot
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.references import (
+from swpc_hw.files.dataset import load_dataset, save_dataset
+from swpc_hw.files.references import (
     AxisDistance,
     StraightDrive,
     WheelRadius,
     load_references,
     parse_references,
 )
+from swpc_hw.robot.frames import (
+    design_fit_constraints,
+    design_fit_transform,
+    transform_covariance,
+    transform_parameters,
+)
+from swpc_hw.robot.model import rot
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 FAST = dataclasses.replace(
     IMU_PROTOCOL, spin_duration=4.0, drive_length=2.0, encoder_rate=100.0

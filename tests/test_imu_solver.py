@@ -22,22 +22,22 @@ from simulators.datagen_imu import (
     fisher_setup,
     generate_imu_experiment,
 )
-from swpc_hw.calibration.identifiability import analyse
-from swpc_hw.calibration.imu_problem import profiled_rolling
-from swpc_hw.calibration.imu_solver import solve_imu
+from swpc_hw.calibration.gyro.rolling_sets import profiled_rolling
+from swpc_hw.calibration.gyro.solver import solve_imu
+from swpc_hw.calibration.plan.identifiability import analyse
 from swpc_hw.calibration.result import CalibrationResult
-from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import CalibrationError, ImplausibleDataError
-from swpc_hw.frames import (
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_kinematics
+from swpc_hw.files.references import AxisDistance
+from swpc_hw.robot.frames import (
     DESIGN_FIT,
     design_fit_constraints,
     design_fit_transform,
     transform_parameters,
 )
-from swpc_hw.kinematic_file import load_kinematics
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from swpc_hw.references import AxisDistance
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 SHORT = dataclasses.replace(IMU_PROTOCOL, spin_duration=6.0)
 EXACT = dataclasses.replace(SHORT, counts_per_rev=None)

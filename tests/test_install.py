@@ -13,7 +13,7 @@ import pytest
 import services.runs.install as install_module
 from services.runs.install import backup_kinematics, backups
 from services.runs.state import State
-from swpc_hw.kinematic_file import save_kinematics
+from swpc_hw.files.kinematic_file import save_kinematics
 from tests.run_rig import NOMINAL, Rig
 from tests.service_rig import AUTH, Sim
 

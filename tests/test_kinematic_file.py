@@ -11,14 +11,14 @@ import pytest
 import yaml
 
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.kinematic_file import (
+from swpc_hw.files.kinematic_file import (
     kinematics_document,
     load_kinematics,
     parse_kinematics,
     save_kinematics,
 )
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 
 def doc() -> dict[str, Any]:

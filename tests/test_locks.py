@@ -13,7 +13,7 @@ from pydantic import SecretStr
 
 from services.config.settings import ServiceSettings
 from services.runtime.runtime import Runtime
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.service_rig import TOKEN
 
 

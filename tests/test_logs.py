@@ -22,7 +22,7 @@ from pydantic import ValidationError
 
 from services.config.settings import ServiceSettings
 from services.store.logs import JsonFormatter, TextFormatter, event, formatter, journald_stream
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.service_rig import TOKEN
 
 TIME = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}[+-]\d\d:\d\d"

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from swpc_hw.mocap import (
+from swpc_hw.sensors.mocap import (
     PoseDecodeError,
     PoseEncoding,
     PoseSample,
@@ -18,7 +18,7 @@ from swpc_hw.mocap import (
     encode_native,
     encode_pose,
 )
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 
 def test_native_exact_bytes() -> None:

@@ -10,8 +10,8 @@ import pytest
 
 from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
-from swpc_hw.mocap import PoseEncoding, PoseSample, encode_cdr, encode_native, encode_pose
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.sensors.mocap import PoseEncoding, PoseSample, encode_cdr, encode_native, encode_pose
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 
 def native(t: float, x: float = 0.0, yaw: float = 0.0) -> bytes:

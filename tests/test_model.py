@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from swpc_hw.model import (
+from swpc_hw.robot.model import (
     RobotParams,
     contact_point,
     cross_z,
@@ -17,7 +17,7 @@ from swpc_hw.model import (
     trailing_steering_angle,
     wrap_angle,
 )
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 
 def random_robot(rng: np.random.Generator, n: int) -> RobotParams:

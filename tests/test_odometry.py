@@ -1,4 +1,5 @@
-"""Odometry (swpc_hw.odometry) and the twist controller helper (swpc_hw.twist_controller).
+"""Odometry (swpc_hw.onboard.odometry) and the twist controller helper
+(swpc_hw.onboard.twist_controller).
 
 Encoder streams are generated here from the exact no-slip model: a piecewise-constant body
 twist, the pose from the SE(2) exponential (analytic), and per module the steering/wheel
@@ -30,18 +31,16 @@ from scipy.integrate import solve_ivp
 
 from simulators.drift_path import caster_rates
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import RobotParams, forward_kinematics, wrap_angle
-from swpc_hw.odometry import (
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.onboard.odometry import (
     Odometry,
     OdometryError,
     OdometryOptions,
     se2_exp_step,
     step_twist,
 )
-from swpc_hw.odometry_log import integrate_log, synchronize_encoders
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from swpc_hw.twist_controller import (
+from swpc_hw.onboard.odometry_log import integrate_log, synchronize_encoders
+from swpc_hw.onboard.twist_controller import (
     ControllerError,
     TwistController,
     saturation_scale,
@@ -49,6 +48,8 @@ from swpc_hw.twist_controller import (
     settled_wheel_rates,
     twist_rates,
 )
+from swpc_hw.robot.model import RobotParams, forward_kinematics, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import ROOT
 
 FloatArray = NDArray[np.float64]
@@ -411,7 +412,8 @@ def test_the_odometry_needs_only_the_base_dependencies() -> None:
     code = (
         "import sys, json, importlib.metadata as md\n"
         "before = set(sys.modules)  # the interpreter's start-up (site's .pth files)\n"
-        "import swpc_hw.odometry, swpc_hw.twist_controller, swpc_hw.kinematic_file\n"
+        "import swpc_hw.onboard.odometry, swpc_hw.onboard.twist_controller\n"
+        "import swpc_hw.files.kinematic_file\n"
         "dists = md.packages_distributions()\n"
         "tops = {m.split('.')[0] for m in set(sys.modules) - before}\n"
         "tops -= set(sys.stdlib_module_names)\n"

@@ -349,7 +349,7 @@ def test_a_frame_queued_before_the_simulator_slows_down_takes_effect_at_once() -
     held the proof's frames back until the service had given up on them."""
     from simulators.sim_options import SimOptions
     from simulators.virtual_robot import VirtualRobot
-    from swpc_hw.paper_robot import PAPER_CALIBRATED
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
     channel = f"odrive-slow-{uuid.uuid4().hex[:8]}"
     drives = ODriveDrives(firmware="0.5")

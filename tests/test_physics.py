@@ -18,7 +18,7 @@ from simulators.physics import (
     trailing_about_pivot,
     twist_about_pivot,
 )
-from swpc_hw.model import (
+from swpc_hw.robot.model import (
     contact_point,
     cross_z,
     inverse_kinematics,
@@ -26,7 +26,7 @@ from swpc_hw.model import (
     steering_direction,
     wrap_angle,
 )
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 A = PAPER_CALIBRATED.arrays()
 

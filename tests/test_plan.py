@@ -1,4 +1,4 @@
-"""The planner (swpc_hw.calibration.plan, docs/plan.md): robot time, the square path's
+"""The planner (swpc_hw.calibration.plan.plan, docs/plan.md): robot time, the square path's
 sensitivity, the search, and the prediction of a candidate's std devs."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from simulators.plan_predict import experiment_options, predicted_covariance
-from swpc_hw.calibration.plan import (
+from swpc_hw.calibration.plan.plan import (
     ANGLE_SETS,
     YAW_RATE_MARGIN,
     Candidate,
@@ -23,12 +23,14 @@ from swpc_hw.calibration.plan import (
     plan,
     robot_time,
     spin_torques,
+    stddevs,
+)
+from swpc_hw.calibration.plan.square_error import (
     square_path_end,
     square_path_sd,
     square_path_sensitivity,
-    stddevs,
 )
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 IDS = [1, 2, 3, 4]
 DEFAULT = Candidate((45.0, 165.0), 360.0, 3.0, 1.5, 1.0, 2.5, 0.6)

@@ -19,19 +19,15 @@ from simulators.plan_predict import (
     predicted_imu_covariance,
     tape_readings,
 )
-from swpc_hw.calibration.identifiability import gauge_directions
-from swpc_hw.calibration.imu_solver import solve_imu
-from swpc_hw.calibration.plan import (
+from swpc_hw.calibration.gyro.solver import solve_imu
+from swpc_hw.calibration.plan.identifiability import gauge_directions
+from swpc_hw.calibration.plan.plan import Candidate, Targets, TimeModel, robot_time, stddevs
+from swpc_hw.calibration.plan.square_error import (
     SQUARE_BUDGET,
-    Candidate,
-    Targets,
-    TimeModel,
-    robot_time,
     square_path_sd,
     square_path_sensitivity,
-    stddevs,
 )
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from tests.service_rig import AUTH, Sim
 from tests.test_service_imu import axis_distances, play_operator
 

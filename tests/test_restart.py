@@ -6,8 +6,8 @@ from pathlib import Path
 
 from fastapi.testclient import TestClient
 
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from tests.service_rig import (
     AUTH,
     app_without_robot,

@@ -20,19 +20,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.ros2.covariance import (
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.onboard.ros2.covariance import (
     OdometryCovariance,
     measurement_covariance,
     twist_sensitivity,
 )
-from swpc_hw.ros2.messages import ODOMETRY, TF_MESSAGE
-from swpc_hw.ros2.publisher import ZenohRos2Publisher
-from swpc_hw.ros2.stream import Ros2OdometryStream
-from swpc_hw.ros2.wire import TYPE_HASHES, Attachment, topic_key
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.onboard.ros2.messages import ODOMETRY, TF_MESSAGE
+from swpc_hw.onboard.ros2.publisher import ZenohRos2Publisher
+from swpc_hw.onboard.ros2.stream import Ros2OdometryStream
+from swpc_hw.onboard.ros2.wire import TYPE_HASHES, Attachment, topic_key
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 from tests.test_odometry import make_stream
 
 # Published for ROS 2 Jazzy (docs/ros2.md names where): std_msgs/String in rmw_zenoh's
@@ -125,7 +125,7 @@ def test_a_wheel_radius_error_grows_the_pose_covariance_with_the_distance() -> N
     p = PAPER_CALIBRATED
     v, rate, dur = 0.3, 100.0, 5.0
     t, th, ps, _ = make_stream(p, [(dur, (v, 0.0, 0.0))], rate=rate, jitter=0.0)
-    from swpc_hw.odometry import Odometry, _Geometry
+    from swpc_hw.onboard.odometry import Odometry, _Geometry
 
     sr = 1e-4
     n_mod = len(p.modules)
@@ -301,7 +301,7 @@ def test_swpc_odometry_replays_a_datasets_encoders_to_a_ros2_client(
     """``swpc odometry --encoders DIR`` on loopback: one /odom message per reading after
     the first, received by the independent client."""
     from services.cli import main
-    from swpc_hw.dataset import Dataset, Segment, save_dataset
+    from swpc_hw.files.dataset import Dataset, Segment, save_dataset
 
     p = PAPER_CALIBRATED
     kin = tmp_path / "kinematics.yaml"
@@ -337,8 +337,8 @@ def test_the_stream_publishes_base_links_motion_from_the_robot_config(tmp_path: 
     """A spin of R about its own origin, with base_link at (0.2, 0.1) yawed 0.3 rad in R:
     the published twist is base_link's, ``v_b = R(-yaw_b) (v_R + omega x p_b)``, in
     base_link's axes (decoded from the CDR with rosbags' own type store)."""
-    from swpc_hw.frames import BaseLinkPose
-    from swpc_hw.mocap import ros2_typestore
+    from swpc_hw.robot.frames import BaseLinkPose
+    from swpc_hw.sensors.mocap import ros2_typestore
 
     p = PAPER_CALIBRATED
     kin = tmp_path / "kinematics.yaml"
@@ -383,7 +383,7 @@ def test_swpc_odometry_follows_the_drives_on_can_while_the_robot_drives(
     pose it publishes follows the square the simulator's truth drove."""
     from services.cli.odometry import follow_drives
     from services.cli.validate import run_in_process, validation_settings
-    from swpc_hw.mocap import ros2_typestore
+    from swpc_hw.sensors.mocap import ros2_typestore
     from swpc_hw.validation import SquareOptions
 
     kin = tmp_path / "kinematics.yaml"

@@ -20,10 +20,10 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.runs.state import State
 from services.runtime.runtime import Runtime
-from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from tests.run_rig import Rig
 from tests.service_rig import (
     TOKEN,

@@ -16,9 +16,9 @@ from typing import Any
 import pytest
 
 from services.runs.state import State
-from swpc_hw.dataset import load_dataset
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from tests.run_rig import Rig
 from tests.service_rig import ROOT
 
@@ -146,8 +146,8 @@ DISK_FULL = textwrap.dedent(
     from pathlib import Path
     sys.path.insert(0, {root!r})
     from tests.run_rig import Rig
-    from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-    from swpc_hw.paper_robot import PAPER_NOMINAL
+    from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+    from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
     d = Path(sys.argv[1])
     save_kinematics(d / "kinematics.yaml", PAPER_NOMINAL, created="2026-01-01T00:00:00Z")

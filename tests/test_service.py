@@ -32,12 +32,12 @@ from fastapi.testclient import TestClient
 from firmware_protocol import codec
 from firmware_protocol.codec import ControlMode
 from services.runtime.runtime import Runtime
-from swpc_hw.calibration.solver import solve_directory
+from swpc_hw.calibration.mocap.solver import solve_directory
 from swpc_hw.clock import Clock
-from swpc_hw.dataset import load_dataset
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.model import PARAM_NAMES
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.model import PARAM_NAMES
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import (
     AUTH,
     QUICK_PROTOCOL,

@@ -14,9 +14,9 @@ from fastapi.testclient import TestClient
 
 from services.cli import main as swpc
 from services.store.runs import RunStore
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.service_rig import AUTH, Sim, start, wait_spinning, wait_state
 
 DONE = {"DONE", "FAILED", "ABORTED"}

@@ -27,11 +27,11 @@ from fastapi.testclient import TestClient
 
 from services.demo import parameters_digest
 from services.runtime.runtime import Runtime
-from swpc_hw.calibration.imu_solver import solve_imu_directory
-from swpc_hw.dataset import load_dataset
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
+from swpc_hw.calibration.gyro.solver import solve_imu_directory
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.frame_free import Figure, frame_free
 from tests.service_rig import AUTH, Sim, sim_service
 
@@ -177,7 +177,7 @@ def test_a_calibration_without_motion_capture_through_http(
     assert client.get("/simulator/tape-measure", params={"run": "nope"}).status_code == 404
     # its verdicts in design-fit: a file in force in R, turned 3 deg and moved 5 cm from the
     # nominal layout, is re-expressed in design-fit before the changes are taken
-    from swpc_hw.frames import transform_robot
+    from swpc_hw.robot.frames import transform_robot
 
     moved = transform_robot(PAPER_CALIBRATED, math.radians(3.0), [0.05, 0.0], "R")
     save_kinematics(rt.settings.kinematics_file, moved)

@@ -40,10 +40,10 @@ from simulators.virtual_robot import VirtualRobot
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.config import SwpcDrives
-from swpc_hw.imu import decode_imu
-from swpc_hw.mocap import PoseEncoding, decode_pose
-from swpc_hw.model import RobotParams, rot
-from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.robot.model import RobotParams, rot
+from swpc_hw.sensors.gyro import decode_imu
+from swpc_hw.sensors.mocap import PoseEncoding, decode_pose
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 DEG = math.pi / 180.0
 

@@ -24,9 +24,9 @@ from simulators.robot_physics import (
     prioritized_twist,
 )
 from simulators.virtual_controller import AxisModel, VirtualController
-from swpc_hw.mocap import decode_pose, encode_cdr
-from swpc_hw.model import RobotParams, forward_kinematics, inverse_kinematics, wrap_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.robot.model import RobotParams, forward_kinematics, inverse_kinematics, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.sensors.mocap import decode_pose, encode_cdr
 
 TRUTH = PAPER_CALIBRATED
 A = TRUTH.arrays()

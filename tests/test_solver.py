@@ -12,12 +12,12 @@ import pytest
 from services.cli import main as swpc_main
 from simulators.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration import geometry as geo
-from swpc_hw.calibration.baseline import solve_paper
-from swpc_hw.calibration.solver import SolverOptions, canonical_parameters, solve
-from swpc_hw.dataset import load_dataset
-from swpc_hw.kinematic_file import load_kinematics
-from swpc_hw.model import PARAM_NAMES, RobotParams, contact_point
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.calibration.mocap.baseline import solve_paper
+from swpc_hw.calibration.mocap.solver import SolverOptions, canonical_parameters, solve
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_kinematics
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams, contact_point
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NAMES = PARAM_NAMES
 NOISELESS = ExperimentOptions(counts_per_rev=None, spin_duration=6.0)
@@ -247,7 +247,7 @@ def test_bad_data_is_a_one_line_error_exit_2_and_no_output(
 
 
 def test_dataset_round_trip(dataset_dir: Path, tmp_path: Path) -> None:
-    from swpc_hw.dataset import save_dataset
+    from swpc_hw.files.dataset import save_dataset
 
     ds = load_dataset(dataset_dir)
     save_dataset(tmp_path / "copy", ds)
@@ -259,8 +259,8 @@ def test_dataset_round_trip(dataset_dir: Path, tmp_path: Path) -> None:
 
 
 def test_the_paper_method_table_has_no_nan_and_one_turn_angles() -> None:
+    from swpc_hw.calibration.mocap.solver import CalibrationResult, SegmentQuality
     from swpc_hw.calibration.report import format_table
-    from swpc_hw.calibration.solver import CalibrationResult, SegmentQuality
 
     seg = SegmentQuality(0, 1, math.radians(405.0), 100, 0, math.nan, (0.0, 0.0), math.nan)
     res = CalibrationResult(

@@ -17,19 +17,19 @@ import pytest
 
 from services.cli import main as swpc_main
 from simulators.datagen import ExperimentOptions, PartialSlip, ar1_noise, generate_experiment
-from swpc_hw.calibration.baseline import solve_paper, widest_pair
-from swpc_hw.calibration.clock_offset import jackknife_std
 from swpc_hw.calibration.fixed_point import fit_fixed_point
+from swpc_hw.calibration.mocap.baseline import solve_paper, widest_pair
+from swpc_hw.calibration.mocap.clock_offset import jackknife_std
+from swpc_hw.calibration.mocap.solver import SolverOptions, solve
+from swpc_hw.calibration.mocap.yaw_noise import score_variance
 from swpc_hw.calibration.plausibility import check_dataset, check_result, jitter_sigma
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.calibration.rolling import RollingSeries
-from swpc_hw.calibration.solver import SolverOptions, solve
 from swpc_hw.calibration.uncertainty import ar1_quadratic_form, long_run_covariance
-from swpc_hw.calibration.yaw_noise import score_variance
-from swpc_hw.dataset import Dataset, save_dataset
 from swpc_hw.errors import ImplausibleDataError, ImplausibleResultError
-from swpc_hw.model import PARAM_NAMES, RobotParams, wrap_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.dataset import Dataset, save_dataset
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams, wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 NAMES = PARAM_NAMES
 MOCAP = ExperimentOptions(
@@ -300,7 +300,7 @@ def test_a_sorted_file_of_a_jumped_clock_is_refused_by_its_fixed_points() -> Non
 
 
 def test_jitter_measures_the_white_pose_noise(run_dir: Path) -> None:
-    from swpc_hw.dataset import load_dataset
+    from swpc_hw.files.dataset import load_dataset
 
     sd = prepare_segments(load_dataset(run_dir))[0]
     assert jitter_sigma(sd.poses[:, 0], sd.poses[:, 1]) == pytest.approx(0.5e-3, rel=0.15)

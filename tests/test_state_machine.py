@@ -23,10 +23,10 @@ from services.runs.imu import ImuMetrology
 from services.runs.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL, TRANSITIONS, State
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.mocap import PoseSample, encode_native
-from swpc_hw.model import PARAM_NAMES
-from swpc_hw.references import WheelRadius
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.files.references import WheelRadius
+from swpc_hw.robot.model import PARAM_NAMES
+from swpc_hw.sensors.mocap import PoseSample, encode_native
 from tests.frame_free import frame_free
 from tests.run_rig import NOMINAL, TRUTH, Rig, axis_distances, stopped_after
 

@@ -16,9 +16,9 @@ import pytest
 
 from swpc_hw.can.config import CanConfig
 from swpc_hw.can.driver import CanDriver, FeedbackSample
-from swpc_hw.kinematic_file import load_robot
-from swpc_hw.model import wrap_angle
-from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.files.kinematic_file import load_robot
+from swpc_hw.robot.model import wrap_angle
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.validation import (
     DriverOdometry,
     Leg,
@@ -175,7 +175,7 @@ def test_validate_names_the_files_and_refuses_what_it_cannot_do(
 
     from services.cli import main
     from services.cli.validate import _labels
-    from swpc_hw.kinematic_file import save_kinematics
+    from swpc_hw.files.kinematic_file import save_kinematics
 
     def args(**kw: object) -> argparse.Namespace:
         base: dict[str, object] = {"label": None, "compare": "nominal", "compare_label": "nominal"}

@@ -1,5 +1,5 @@
 """Only authenticated peers publish the robot's poses and gyro: zenoh's own user-password
-authentication and access control (swpc_hw/zenoh_session.py), on loopback, as the
+authentication and access control (swpc_hw/sensors/zenoh_session.py), on loopback, as the
 service, its in-process simulator and the deploy configs set them up."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import Any
 import pytest
 
 from services.runtime.runtime import ZENOH_USERS_FILE
-from swpc_hw.mocap import PoseSample, encode_native
-from swpc_hw.zenoh_session import ZenohAuth, free_tcp_endpoint, open_session, publishers_acl
+from swpc_hw.sensors.mocap import PoseSample, encode_native
+from swpc_hw.sensors.zenoh_session import ZenohAuth, free_tcp_endpoint, open_session, publishers_acl
 from tests.service_rig import Sim
 
 KEY = "mocap/swpc/pose"
@@ -94,7 +94,7 @@ def test_the_mocap_pcs_listener_admits_only_robots_and_takes_no_poses_from_them(
     poses; an anonymous peer is not admitted; no robot can publish poses into it."""
     import zenoh
 
-    from swpc_hw.zenoh_session import zenoh_config
+    from swpc_hw.sensors.zenoh_session import zenoh_config
 
     root = Path(__file__).resolve().parents[1]
     users = tmp_path / "zenoh-users.txt"
@@ -153,7 +153,7 @@ def test_health_names_a_refused_zenoh_link_and_the_right_password_clears_it(
     from services.config.settings import ServiceSettings
     from services.http.app import create_app
     from services.runtime.runtime import Runtime
-    from swpc_hw.zenoh_session import zenoh_config
+    from swpc_hw.sensors.zenoh_session import zenoh_config
     from tests.service_rig import TOKEN
 
     root = Path(__file__).resolve().parents[1]

@@ -154,10 +154,10 @@ def _detail(r: Any) -> str:
 def offline(args: argparse.Namespace) -> int:
     from services.config.robot import RobotConfig, load_robot_config
     from services.runs.check import FILE_IN_FORCE
-    from swpc_hw.calibration.check import check_dataset
-    from swpc_hw.dataset import load_dataset
+    from swpc_hw.calibration.check.dataset_check import check_dataset
     from swpc_hw.errors import SwpcError
-    from swpc_hw.kinematic_file import load_kinematics
+    from swpc_hw.files.dataset import load_dataset
+    from swpc_hw.files.kinematic_file import load_kinematics
 
     d = Path(args.offline)
     dataset, file = d, args.file

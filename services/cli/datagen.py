@@ -85,8 +85,8 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from simulators.datagen import ExperimentOptions, generate_experiment
-    from swpc_hw.kinematic_file import load_robot
-    from swpc_hw.paper_robot import PAPER_CALIBRATED
+    from swpc_hw.files.kinematic_file import load_robot
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
     nominal = load_robot(args.nominal) if args.nominal else None

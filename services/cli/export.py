@@ -37,8 +37,8 @@ def register(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from services.config.robot import load_robot_config
     from swpc_hw.errors import SwpcError
-    from swpc_hw.export import make_export, render
-    from swpc_hw.kinematic_file import atomic_write_text, load_kinematics
+    from swpc_hw.files.kinematic_file import atomic_write_text, load_kinematics
+    from swpc_hw.onboard.export import make_export, render
 
     kf = load_kinematics(args.file)
     base_link = load_robot_config(args.robot_config).base_link if args.robot_config else None

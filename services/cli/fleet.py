@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from services.http.server import listen_socket, server
     from services.store.fleet import FleetStore
     from services.store.logs import configure, event
-    from swpc_hw.zenoh_session import open_session
+    from swpc_hw.sensors.zenoh_session import open_session
 
     if args.env_file is not None and not Path(args.env_file).is_file():
         raise SettingsError(f"--env-file {args.env_file}: no such file")

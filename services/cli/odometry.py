@@ -2,7 +2,7 @@
 
 Publishes ``nav_msgs/msg/Odometry`` on ``/odom`` and ``tf2_msgs/msg/TFMessage`` on ``/tf``
 (``odom -> base_link``) at the odometry's update rate, on rmw_zenoh's keys
-(:mod:`swpc_hw.ros2`; docs/ros2.md), and reloads the kinematic file when a new one is
+(:mod:`swpc_hw.onboard.ros2`; docs/ros2.md), and reloads the kinematic file when a new one is
 installed.  Readings come from the drives' CAN feedback (``--can-interface``, through the
 robot config's driver, as ``swpc validate`` drives them) or from a recorded dataset's
 ``encoders.csv`` (``--encoders DIR``: a replay, stamps on the dataset's clock).
@@ -22,7 +22,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from swpc_hw.drift import SuspectChange
+    from swpc_hw.onboard.drift import SuspectChange
 
 log = logging.getLogger("swpc.odometry")
 
@@ -66,16 +66,16 @@ def log_suspect(change: SuspectChange) -> str:
 
 def _drift(args: argparse.Namespace) -> dict[str, Any]:
     """The stream's drift arguments for ``--drift`` / ``--no-drift``."""
-    from swpc_hw.drift import DriftOptions
+    from swpc_hw.onboard.drift import DriftOptions
 
     return {"drift": DriftOptions(), "on_suspect": log_suspect} if args.drift else {}
 
 
 def run(args: argparse.Namespace) -> int:
     from services.store.logs import configure
-    from swpc_hw.ros2.publisher import ZenohRos2Publisher
-    from swpc_hw.ros2.stream import Ros2OdometryStream
-    from swpc_hw.zenoh_session import open_session
+    from swpc_hw.onboard.ros2.publisher import ZenohRos2Publisher
+    from swpc_hw.onboard.ros2.stream import Ros2OdometryStream
+    from swpc_hw.sensors.zenoh_session import open_session
 
     configure()  # swpc's lines to stderr, as swpc serve writes them
     session = open_session(
@@ -112,7 +112,7 @@ def _wait_subscriber(publisher: Any, limit: float) -> None:
     """Until a subscriber of ``/odom`` matches (a replay has no message to lose), at most
     ``limit`` seconds."""
     from swpc_hw.clock import SystemClock
-    from swpc_hw.ros2.messages import ODOMETRY
+    from swpc_hw.onboard.ros2.messages import ODOMETRY
 
     clock = SystemClock()
     end = clock.now() + limit
@@ -121,8 +121,8 @@ def _wait_subscriber(publisher: Any, limit: float) -> None:
 
 
 def _replay(stream: Any, directory: str) -> None:
-    from swpc_hw.dataset import load_dataset
-    from swpc_hw.odometry_log import synchronize_encoders
+    from swpc_hw.files.dataset import load_dataset
+    from swpc_hw.onboard.odometry_log import synchronize_encoders
 
     ds = load_dataset(directory)
     t, th, ps = synchronize_encoders(ds.encoders, stream.ids)
@@ -137,7 +137,7 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
     from services.config.robot import load_robot_config
     from services.config.timing import robot_drives
     from swpc_hw.clock import SystemClock
-    from swpc_hw.ros2.stream import Ros2OdometryStream
+    from swpc_hw.onboard.ros2.stream import Ros2OdometryStream
 
     config = load_robot_config(args.robot_config)
     st = validation_settings(can_interface=args.can_interface, can_channel=args.can_channel,
@@ -160,7 +160,7 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
 
 
 def follow_drives(driver: Any, stream: Any) -> Any:
-    """The drives' feedback into ``stream`` (a :class:`~swpc_hw.ros2.stream.
+    """The drives' feedback into ``stream`` (a :class:`~swpc_hw.onboard.ros2.stream.
     Ros2OdometryStream`), one reading of all modules at a time, aligned on the modules'
     counter clock by :class:`~swpc_hw.validation.odometry_feed.DriverOdometry`: what
     ``swpc odometry`` does on a robot."""

@@ -170,9 +170,9 @@ def run(args: argparse.Namespace) -> int:
     from simulators.robot_physics import PhysicsOptions
     from simulators.sim_options import SimOptions
     from simulators.virtual_robot import VirtualRobot
+    from swpc_hw.files.kinematic_file import load_robot
     from swpc_hw.heap_freeze import freeze_startup_heap
-    from swpc_hw.kinematic_file import load_robot
-    from swpc_hw.paper_robot import PAPER_CALIBRATED
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
     opt = SimOptions(

@@ -57,13 +57,13 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from swpc_hw.calibration.baseline import solve_paper
-    from swpc_hw.calibration.imu_solver import solve_imu
+    from swpc_hw.calibration.gyro.solver import solve_imu
+    from swpc_hw.calibration.mocap.baseline import solve_paper
+    from swpc_hw.calibration.mocap.solver import SolverOptions, solve
     from swpc_hw.calibration.report import format_table
-    from swpc_hw.calibration.solver import SolverOptions, solve
-    from swpc_hw.dataset import load_dataset
     from swpc_hw.errors import CalibrationError
-    from swpc_hw.kinematic_file import load_robot, save_kinematics
+    from swpc_hw.files.dataset import load_dataset
+    from swpc_hw.files.kinematic_file import load_robot, save_kinematics
 
     if args.method == "paper" and args.time_offset == "auto":
         raise CalibrationError(
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         result = solve(ds, SolverOptions(time_offset=args.time_offset), source=args.dataset)
     if truth is not None and result.params.frame != truth.frame:
-        from swpc_hw.frames import design_fit_transform, transform_robot
+        from swpc_hw.robot.frames import design_fit_transform, transform_robot
 
         phi, t = design_fit_transform(truth.arrays().P_s, ds.robot.arrays().P_s)
         truth = transform_robot(truth, phi, t, result.params.frame)
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     if args.robot:
         params = params.model_copy(update={"robot": args.robot})
     from services.store.provenance import UNITS, dataset_sha256, provenance
-    from swpc_hw.model import PARAM_NAMES
+    from swpc_hw.robot.model import PARAM_NAMES
 
     extra = {
         "provenance": provenance(

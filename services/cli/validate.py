@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from services.config.robot import RobotConfig
     from services.config.settings import ServiceSettings
     from swpc_hw.drives.interface import Drives
-    from swpc_hw.model import RobotParams
+    from swpc_hw.robot.model import RobotParams
     from swpc_hw.validation import SquareOptions, ValidationReport
 
 
@@ -168,7 +168,7 @@ def run_in_process(
     from services.runtime.simulator import in_process_simulator
     from simulators.mocap_sim import truth_pose_key
     from swpc_hw.clock import SimClock
-    from swpc_hw.zenoh_session import free_tcp_endpoint, open_session
+    from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
     cfg = config or RobotConfig()
     st = settings or validation_settings()
@@ -216,7 +216,7 @@ def run_in_process(
 
 def _labels(args: argparse.Namespace) -> list[str]:
     """A name for each ``--kinematics`` file (one-line error if they do not match)."""
-    from swpc_hw.validation.options import ValidationError
+    from swpc_hw.validation.errors import ValidationError
 
     paths: list[str] = args.kinematics
     if args.label is not None:
@@ -237,7 +237,7 @@ def _files(
     args: argparse.Namespace, config: RobotConfig
 ) -> tuple[list[tuple[str, RobotParams]], dict[str, str]]:
     """The files in report order (the reference first) and where each came from."""
-    from swpc_hw.kinematic_file import load_robot
+    from swpc_hw.files.kinematic_file import load_robot
 
     files: list[tuple[str, RobotParams]] = []
     where: dict[str, str] = {}
@@ -277,7 +277,7 @@ def run(args: argparse.Namespace) -> int:
             f"files: {', '.join(lab for lab, _ in files)}")
         truth = None
         if args.truth is not None:
-            from swpc_hw.kinematic_file import load_robot
+            from swpc_hw.files.kinematic_file import load_robot
 
             truth = load_robot(args.truth)
         report = run_in_process(
@@ -285,13 +285,13 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         if args.truth is not None:
-            from swpc_hw.validation.options import ValidationError
+            from swpc_hw.validation.errors import ValidationError
 
             raise ValidationError("--truth is for the in-process simulator: a robot's truth "
                                   "is its motion capture")
         from services.config.timing import robot_drives
         from swpc_hw.clock import SystemClock
-        from swpc_hw.zenoh_session import open_session
+        from swpc_hw.sensors.zenoh_session import open_session
 
         st = validation_settings(
             can_interface=args.can_interface, can_channel=args.can_channel,

@@ -29,10 +29,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from swpc_hw.can.config import DEFAULT_WATCHDOG_MS
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
-from swpc_hw.frames import BaseLink
-from swpc_hw.kinematic_file import kinematics_document, load_robot, parse_kinematics
-from swpc_hw.model import PARAM_NAMES, RobotParams
-from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.files.kinematic_file import kinematics_document, load_robot, parse_kinematics
+from swpc_hw.robot.frames import BaseLink
+from swpc_hw.robot.model import KIND_OF, PARAM_NAMES, RobotParams
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
 
 class RobotConfigError(SwpcError, ValueError):
@@ -105,7 +105,7 @@ MAX_DRIVE_LENGTH = 20.0
 """m: the longest straight drive a run may ask for (the floor space it needs)."""
 MIN_REST_TIME = 1.0
 """s: the shortest rest the IMU solver finds (0.5 s still, trimmed 0.1 s at both
-ends, swpc_hw.calibration.gyro) with a margin."""
+ends, swpc_hw.calibration.gyro.bias) with a margin."""
 MIN_ANGLE_SEPARATION_DEG = 10.0
 
 
@@ -186,9 +186,7 @@ class Tolerances(BaseModel):
     radius: float = Field(0.2e-3, gt=0, description="r std dev, m")
 
 
-TOLERANCE_OF = {
-    "x_s": "position", "y_s": "position", "b": "position", "beta": "beta", "r": "radius"
-}  # fmt: skip
+TOLERANCE_OF = KIND_OF
 """The :class:`Tolerances` (and :class:`Repeatability`) field of each parameter."""
 
 

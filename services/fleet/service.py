@@ -25,7 +25,7 @@ from services.fleet.view import summary
 from services.store.fleet import FleetStore
 from services.store.logs import event
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.robot.model import PARAM_NAMES
 
 log = logging.getLogger("swpc.fleet")
 MAX_DOCUMENT_BYTES = 4 << 20

@@ -16,7 +16,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.robot.model import PARAM_NAMES
 
 WEEK_S = 7 * 86400.0
 

@@ -54,12 +54,12 @@ from services.runtime.runtime import (
     RunConflictError,
     StoreError,
 )
-from swpc_hw.calibration.forecast import Stopping
-from swpc_hw.calibration.plan import PlanError, Targets
+from swpc_hw.calibration.plan.forecast import Stopping
+from swpc_hw.calibration.plan.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
-from swpc_hw.export import TARGETS, file_name, make_export, render
-from swpc_hw.kinematic_file import load_kinematics
-from swpc_hw.references import Reference
+from swpc_hw.files.kinematic_file import load_kinematics
+from swpc_hw.files.references import Reference
+from swpc_hw.onboard.export import TARGETS, file_name, make_export, render
 
 router = APIRouter()
 

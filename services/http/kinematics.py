@@ -54,14 +54,14 @@ from services.runtime.runtime import Runtime
 from services.store.logs import event
 from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.frames import DESIGN_FIT, design_fit_transform, transform_robot
-from swpc_hw.kinematic_file import (
+from swpc_hw.files.kinematic_file import (
     KinematicFile,
     atomic_write_text,
     load_kinematics,
     parse_kinematics,
 )
-from swpc_hw.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.frames import DESIGN_FIT, design_fit_transform, transform_robot
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 
 log = logging.getLogger("swpc.service")
 
@@ -258,7 +258,7 @@ def _write_failure(exc: Exception) -> HTTPException:
 
 def in_design_fit(ref: KinematicFile, nominal: RobotParams) -> tuple[KinematicFile, str]:
     """A reference file re-expressed in the design-fit frame of a result without motion
-    capture (:func:`swpc_hw.frames.design_fit_transform` of its steering axes onto the
+    capture (:func:`swpc_hw.robot.frames.design_fit_transform` of its steering axes onto the
     nominal ones), and a sentence saying so.  Its std devs: ``beta``, ``b``, ``r`` as they
     are (a rotation leaves them), ``x_s`` and ``y_s`` the larger of the two (a rotated
     coordinate's std dev is near it for the small angles of a fit)."""

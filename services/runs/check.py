@@ -9,11 +9,11 @@ angle, short sweeps).  Only its end differs:
 * SOLVE: the recorded dataset is solved by the joint solver started from the file in
   force (a snapshot taken at the check's start, kept as ``file-in-force.yaml`` in the
   run's directory) and judged against it
-  (:func:`swpc_hw.calibration.check.check_dataset`): per module and parameter the
-  change, its std dev and z, per module a chi-square against a Sidak threshold, the
+  (:func:`swpc_hw.calibration.check.dataset_check.check_dataset`): per module and parameter
+  the change, its std dev and z, per module a chi-square against a Sidak threshold, the
   verdict.  With the gyro (metrology ``imu``: no references, no drive) the IMU solver
   fitted to the file and the robot's shape judged
-  (:mod:`swpc_hw.calibration.check_gauge`).
+  (:mod:`swpc_hw.calibration.check.shape`).
   ``swpc check --offline <run>/dataset --file <run>/file-in-force.yaml`` reproduces it.
 * WRITE: nothing is installed (the file in force stays as it is): the verdict is the
   result (``GET /checks/{id}``), kept in the run store for the history.
@@ -29,13 +29,14 @@ from services.config.robot import RobotConfig
 from services.runs.metrology import Metrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunFailedError
-from swpc_hw.calibration.check import CheckResult, check_dataset
+from swpc_hw.calibration.check.dataset_check import check_dataset
+from swpc_hw.calibration.check.verdict import CheckVerdict
 from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError, DatasetError
-from swpc_hw.kinematic_file import KinematicFile
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.files.kinematic_file import KinematicFile
+from swpc_hw.robot.model import PARAM_NAMES
 
 FILE_IN_FORCE = "file-in-force.yaml"
 """In a check's run directory: the kinematic file in force when it started."""
@@ -44,13 +45,13 @@ FILE_IN_FORCE = "file-in-force.yaml"
 def check_document(
     run_id: str,
     result: CalibrationResult,
-    verdict: CheckResult,
+    verdict: CheckVerdict,
     config: RobotConfig,
     *,
     file: dict[str, Any],
     run_dir: Path,
 ) -> dict[str, Any]:
-    """``GET /checks/{id}``'s ``result``: the verdict (:meth:`CheckResult.document`), the
+    """``GET /checks/{id}``'s ``result``: the verdict (:meth:`CheckVerdict.document`), the
     file it judged, the check's estimate with its std devs (SI, the history's), the
     repeatability used and the solver's quality figures."""
     sd = result.stddev_array()
@@ -96,7 +97,7 @@ class CheckRun(CalibrationRun):
         self.status.kind = "check"
         self.file = file
         self.file_info = file_info
-        self.verdict: CheckResult | None = None
+        self.verdict: CheckVerdict | None = None
 
     def run_problems(self) -> list[str]:
         return self.config.run_problems(self.metrology.name, "check")
@@ -107,7 +108,7 @@ class CheckRun(CalibrationRun):
         return {"kind": "check", **fields, "file": self.file_info.get("name")}
 
     def _solve(self) -> None:
-        from swpc_hw.dataset import load_dataset
+        from swpc_hw.files.dataset import load_dataset
 
         run_dir = self.journal.close_dataset(self.metrology.sensor, self.robot)
         c = self.config.check

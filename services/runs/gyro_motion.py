@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from swpc_hw.model import FloatArray
+from swpc_hw.robot.model import FloatArray
 
 
 class RecentRows:

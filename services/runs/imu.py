@@ -21,7 +21,7 @@ solver needs (docs/imu.md, and the simulated protocol
 * SPIN: as with motion capture; the sweep and the yaw-rate limit come from the gyro's
   rate minus the bias of the STILL before (:class:`~services.runs.gyro_motion.GyroYaw`).
 * STILL, then STEER: still for ``rest_time`` (the rest after the last spin), the spins solved alone
-  (:func:`swpc_hw.calibration.imu_solver.solve_spins`) for every module's ``beta``, then
+  (:func:`swpc_hw.calibration.gyro.solver.solve_spins`) for every module's ``beta``, then
   every module steered to the straight drive's direction by them (the wheel trailing its
   axis for a drive along ``protocol.drive_heading_deg`` in R), wheels braked.  Steered by
   the nominal ``beta`` a robot with homing errors of a few degrees drives with its
@@ -70,10 +70,9 @@ from services.runs.pose_motion import REST_WINDOW, SpinWindow
 from services.runs.state import RunFailedError, State
 from services.sensors.gyro import GyroIngest
 from swpc_hw.clock import SimClock
-from swpc_hw.dataset import Segment
 from swpc_hw.errors import CalibrationError, DatasetError
-from swpc_hw.model import wrap_angle
-from swpc_hw.references import (
+from swpc_hw.files.dataset import Segment
+from swpc_hw.files.references import (
     AxisDistance,
     Reference,
     StraightDrive,
@@ -81,6 +80,7 @@ from swpc_hw.references import (
     parse_reference,
     reference_label,
 )
+from swpc_hw.robot.model import wrap_angle
 
 COAST_LIMIT = 0.05
 """m/s: the drive's wheels are braked once they roll slower than this after the torque."""
@@ -97,7 +97,7 @@ def parse_references(
     drive: tuple[float, float] | None = None,
     where: str = "references",
 ) -> list[Reference]:
-    """The request's references as :mod:`swpc_hw.references` entries.  A ``straight_drive``
+    """The request's references as :mod:`swpc_hw.files.references` entries.  A ``straight_drive``
     has no times here: the run's ``drive`` ``(start, end)`` are its times, and it is
     refused without one.  :class:`~swpc_hw.errors.DatasetError` names the entry."""
     out: list[Reference] = []
@@ -394,11 +394,11 @@ class ImuMetrology:
 
     def _spin_betas(self, run: RunSteps) -> tuple[list[float], str]:
         """Every module's ``beta`` as the spins just recorded say
-        (:func:`swpc_hw.calibration.imu_solver.solve_spins`: their differences to ~1 mdeg,
+        (:func:`swpc_hw.calibration.gyro.solver.solve_spins`: their differences to ~1 mdeg,
         all that keeps the wheels of a drive parallel), and ``"measured"``; the nominal
         ones and ``"nominal"`` when the spins cannot be solved (the reason an event: the
         final solve will judge the same data)."""
-        from swpc_hw.calibration.imu_solver import solve_spins
+        from swpc_hw.calibration.gyro.solver import solve_spins
 
         run.record(force=True)
         try:

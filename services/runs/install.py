@@ -21,19 +21,19 @@ from typing import Any
 import numpy as np
 
 from services.config.robot import RobotConfig, Tolerances
+from swpc_hw.calibration.mocap.solver import CalibrationResult, SolverOptions, solve
 from swpc_hw.calibration.report import result_rows
-from swpc_hw.calibration.solver import CalibrationResult, SolverOptions, solve
-from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import CalibrationError, KinematicFileError
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.model import PARAM_NAMES
 
 
 def solve_run(run_dir: Path) -> CalibrationResult:
     """Solve the dataset the run wrote under ``run_dir`` with the solver its files call
     for, as ``swpc solve`` does (no ``poses.csv`` but ``imu.csv``: the IMU solver).
     A solver failure names the kept dataset and the command that reproduces it."""
-    from swpc_hw.calibration.imu_solver import solve_imu
+    from swpc_hw.calibration.gyro.solver import solve_imu
 
     directory = run_dir / "dataset"
     try:

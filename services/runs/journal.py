@@ -32,9 +32,9 @@ from services.runs.recording import RunRecording, SpaceGuard, json_bytes
 from services.store.logs import event
 from services.store.provenance import UNITS, config_sha256, provenance
 from swpc_hw.clock import Clock
-from swpc_hw.dataset import Segment
-from swpc_hw.model import FloatArray
-from swpc_hw.references import Reference
+from swpc_hw.files.dataset import Segment
+from swpc_hw.files.references import Reference
+from swpc_hw.robot.model import FloatArray
 
 log = logging.getLogger("swpc.run")
 

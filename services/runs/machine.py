@@ -46,8 +46,8 @@ from services.runs.state import (
     now_iso,
 )
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
-from swpc_hw.dataset import Segment
 from swpc_hw.drives.robot_io import RobotIO
+from swpc_hw.files.dataset import Segment
 
 
 class RunMachine:

@@ -63,9 +63,9 @@ from typing import IO, Any
 import numpy as np
 from mcap.writer import Writer
 
-from swpc_hw.dataset import Dataset
 from swpc_hw.errors import SwpcError
-from swpc_hw.model import FloatArray
+from swpc_hw.files.dataset import Dataset
+from swpc_hw.robot.model import FloatArray
 
 _TIME = {
     "type": "object",
@@ -166,7 +166,7 @@ class _Ros2:
     """The ``ros2`` profile's messages: rosbags' type store, CDR."""
 
     def __init__(self) -> None:
-        from swpc_hw.mocap import ros2_typestore
+        from swpc_hw.sensors.mocap import ros2_typestore
 
         self.ts = ros2_typestore()
         self.T = self.ts.types
@@ -315,7 +315,7 @@ class McapRecorder:
         if self._gyro is None:
             self._gyro = self._channel("/imu/gyro", GYRO, "sensor_msgs/msg/Imu")
         if self._ros2 is not None:
-            from swpc_hw.imu import GyroSample, encode_imu
+            from swpc_hw.sensors.gyro import GyroSample, encode_imu
 
             for t, wz in rows.tolist():
                 ns = self.ns(t)

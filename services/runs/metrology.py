@@ -30,8 +30,8 @@ from services.config.robot import RobotConfig
 from services.runs.journal import RunJournal, SampleSource
 from services.runs.state import RunStatus, State
 from swpc_hw.clock import Clock
-from swpc_hw.dataset import Dataset, Segment
 from swpc_hw.drives.robot_io import RobotIO
+from swpc_hw.files.dataset import Dataset, Segment
 
 
 class RunSteps(Protocol):

@@ -12,7 +12,7 @@ spin went (:mod:`services.runs.metrology`).
   ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run.  A planned run
   (``plan: auto``) stops sequentially instead (:class:`SequentialSpins`, docs/plan.md):
   every :data:`JUDGE_STEP` of sweep the poses so far are fitted and the forecast
-  (:mod:`swpc_hw.calibration.forecast`) says whether the spin may end.
+  (:mod:`swpc_hw.calibration.plan.forecast`) says whether the spin may end.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from services.runs.metrology import RunSteps
 from services.runs.pose_motion import REST_WINDOW, SpinWindow, motion_rates
 from services.runs.state import Forecast, RunFailedError, State
 from services.sensors.mocap import MocapIngest
-from swpc_hw.calibration.forecast import JUDGE_STEP, Judgement, SpinSoFar, Stopping, so_far
-from swpc_hw.dataset import Segment
-from swpc_hw.model import FloatArray
+from swpc_hw.calibration.plan.forecast import JUDGE_STEP, Judgement, SpinSoFar, Stopping, so_far
+from swpc_hw.files.dataset import Segment
+from swpc_hw.robot.model import FloatArray
 
 
 def within_rate_limit(run: RunSteps, spin: SpinWindow) -> None:

@@ -1,15 +1,15 @@
 """A calibration planned from the information it yields (docs/plan.md).
 
-:func:`plan_for` gives the planner (:func:`swpc_hw.calibration.plan.plan`) what the robot
+:func:`plan_for` gives the planner (:func:`swpc_hw.calibration.plan.plan.plan`) what the robot
 config says: the modules, the pauses the check uses (``check.settle_time``,
 ``stop_time``, ``align_time``: shorter than a calibration's and validated through the
 service, docs/check.md) with the protocol's re-steer time, the spin torques within the
-limits (:func:`swpc_hw.calibration.plan.spin_torques`: the config's ``spin_torque`` and the
+limits (:func:`swpc_hw.calibration.plan.plan.spin_torques`: the config's ``spin_torque`` and the
 fastest under ``max_wheel_torque`` and ``max_yaw_rate``), the steering's speed limit, the
 step timeout, and by default the ``tolerances`` as the per-parameter targets; the
 prediction is :func:`simulators.plan_predict.predicted_covariance` on the nominal robot.
 ``swpc plan`` prints its answer; ``POST /calibrations {"plan": "auto"}`` runs it (the plan's
-:meth:`~swpc_hw.calibration.plan.Candidate.overrides`, its protocol and spin torque, as the
+:meth:`~swpc_hw.calibration.plan.plan.Candidate.overrides`, its protocol and spin torque, as the
 run's).
 
 A plan takes seconds to a minute of CPU (a solve per candidate predicted): the service
@@ -32,10 +32,9 @@ from simulators.plan_predict import (
     predicted_imu_covariance,
     predicted_spins,
 )
-from swpc_hw.calibration.forecast import SpinInformation, Stopping
-from swpc_hw.calibration.imu_solver import COARSE_INTERVAL
-from swpc_hw.calibration.plan import (
-    SQUARE_BUDGET,
+from swpc_hw.calibration.gyro.solver import COARSE_INTERVAL
+from swpc_hw.calibration.plan.forecast import SpinInformation, Stopping
+from swpc_hw.calibration.plan.plan import (
     Candidate,
     FloatArray,
     MocapNoise,
@@ -46,9 +45,9 @@ from swpc_hw.calibration.plan import (
     TimeModel,
     plan,
     spin_torques,
-    square_path_sensitivity,
 )
-from swpc_hw.model import RobotParams
+from swpc_hw.calibration.plan.square_error import SQUARE_BUDGET, square_path_sensitivity
+from swpc_hw.robot.model import RobotParams
 
 PLANNED_KEYS = frozenset(
     f"{group}.{name}"
@@ -135,7 +134,7 @@ def pauses(config: RobotConfig) -> Candidate:
 
 def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
     """The plan of a calibration of ``config``'s robot with motion capture (module
-    docstring).  :class:`~swpc_hw.calibration.plan.PlanError` when no candidate meets the
+    docstring).  :class:`~swpc_hw.calibration.plan.plan.PlanError` when no candidate meets the
     requirement, with the closest named."""
     req = request or PlanRequest()
     tol = config.tolerances

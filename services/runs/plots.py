@@ -7,8 +7,8 @@ import io
 import numpy as np
 
 from swpc_hw.calibration import geometry as geo
-from swpc_hw.calibration.solver import CalibrationResult
-from swpc_hw.dataset import Dataset
+from swpc_hw.calibration.mocap.solver import CalibrationResult
+from swpc_hw.files.dataset import Dataset
 
 
 def calibration_plot(ds: Dataset, result: CalibrationResult) -> bytes:

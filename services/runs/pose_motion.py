@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from swpc_hw.model import FloatArray, wrap_angle
+from swpc_hw.robot.model import FloatArray, wrap_angle
 
 REST_WINDOW = 0.5
 """s of robot time over which the robot must be still before a module is locked."""

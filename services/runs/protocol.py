@@ -88,12 +88,12 @@ from services.runs.state import (
     now_iso,
 )
 from services.store.provenance import dataset_sha256
-from swpc_hw.calibration.solver import CalibrationResult
+from swpc_hw.calibration.mocap.solver import CalibrationResult
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
-from swpc_hw.dataset import Dataset, load_dataset
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
-from swpc_hw.model import contact_point, trailing_steering_angle, wrap_angle
+from swpc_hw.files.dataset import Dataset, load_dataset
+from swpc_hw.robot.model import contact_point, trailing_steering_angle, wrap_angle
 
 
 class CalibrationRun(RunMachine):

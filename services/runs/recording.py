@@ -8,7 +8,7 @@ format of ``docs/dataset-format.md``: ``robot.yaml``, ``poses.csv``, ``encoders.
 (:meth:`RunRecording.flush`, every half second of robot time), each handed to the OS in
 one write: a service killed mid-run keeps everything up to its last flush, and
 ``swpc solve <run>/dataset`` reads it.  The rows are formatted exactly as
-:func:`swpc_hw.dataset.save_dataset` formats them, so what the run solves (it loads the
+:func:`swpc_hw.files.dataset.save_dataset` formats them, so what the run solves (it loads the
 directory) is what a later ``swpc solve`` solves.
 
 Disk: every flush checks the run's bytes against what the disk budget leaves it and the
@@ -31,17 +31,17 @@ from typing import IO, Any
 import numpy as np
 
 from services.runs.mcap import McapRecorder
-from swpc_hw.dataset import (
+from swpc_hw.errors import SwpcError
+from swpc_hw.files.dataset import (
     ENCODERS_COLUMNS,
     IMU_COLUMNS,
     POSES_COLUMNS,
     SEGMENTS_COLUMNS,
     Segment,
 )
-from swpc_hw.errors import SwpcError
-from swpc_hw.kinematic_file import save_kinematics
-from swpc_hw.model import FloatArray, RobotParams
-from swpc_hw.references import Reference, save_references
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.files.references import Reference, save_references
+from swpc_hw.robot.model import FloatArray, RobotParams
 
 POSE_FORMAT = "%.6f,%.9f,%.9f,%.9f\n"
 GYRO_FORMAT = "%.6f,%.10f\n"

@@ -38,8 +38,8 @@ from services.store.logs import event
 from services.store.provenance import tool_version
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.errors import SwpcError
-from swpc_hw.model import PARAM_NAMES
-from swpc_hw.zenoh_session import open_session
+from swpc_hw.robot.model import PARAM_NAMES
+from swpc_hw.sensors.zenoh_session import open_session
 
 log = logging.getLogger("swpc.fleet")
 POLL_S = 0.5

@@ -30,7 +30,7 @@ from services.runtime.runtime import Runtime
 from services.store.disk import run_reserve
 from swpc_hw.can.types import Lifecycle
 from swpc_hw.errors import KinematicFileError
-from swpc_hw.zenoh_session import linked_sessions
+from swpc_hw.sensors.zenoh_session import linked_sessions
 
 MIB = 1 << 20
 

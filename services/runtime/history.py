@@ -6,7 +6,7 @@ The points are the run store's finished runs (:meth:`services.store.runs.RunStor
 and this service's runs in memory over them): a DONE calibration's estimate (installed or
 not: it measured the robot all the same) and a DONE check's, each at the time it finished,
 with its std devs.  Per module and parameter the trend is the weighted line of
-:func:`swpc_hw.calibration.trend.linear_trend` and the date it leaves
+:func:`swpc_hw.calibration.check.trend.linear_trend` and the date it leaves
 ``reference +- tolerance``: the reference is the file in force's value (none in force: the
 newest calibration's), the tolerance the robot config's (``tolerances``: position for
 ``x_s``, ``y_s``, ``b``; ``beta``; ``radius`` for ``r``; the largest std dev a calibration
@@ -30,10 +30,10 @@ from typing import Any
 
 from services.config.robot import TOLERANCE_OF, RobotConfig
 from services.runtime.runtime import NoFileError, Runtime
+from swpc_hw.calibration.check.trend import linear_trend
 from swpc_hw.calibration.report import DISPLAY
-from swpc_hw.calibration.trend import linear_trend
-from swpc_hw.frames import DESIGN_FIT, FILE_FIT
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.robot.frames import DESIGN_FIT, FILE_FIT
+from swpc_hw.robot.model import PARAM_NAMES
 
 WEEK = 7 * 86400.0
 FRAME_FREE = frozenset({"b", "r"})

@@ -59,19 +59,19 @@ from services.store.locks import ChannelLock, DataDirLock
 from services.store.logs import event
 from services.store.runs import RunStore
 from simulators.virtual_robot import VirtualRobot
-from swpc_hw.calibration.forecast import Stopping
+from swpc_hw.calibration.plan.forecast import Stopping
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.drives.interface import Drives
 from swpc_hw.drives.robot_io import DrivesRobotIO
 from swpc_hw.errors import KinematicFileError, SwpcError
-from swpc_hw.kinematic_file import (
+from swpc_hw.files.kinematic_file import (
     KinematicFile,
     atomic_write_text,
     load_kinematics,
     load_robot,
 )
-from swpc_hw.references import Reference
-from swpc_hw.zenoh_session import (
+from swpc_hw.files.references import Reference
+from swpc_hw.sensors.zenoh_session import (
     ZenohAuth,
     connect_endpoints,
     free_tcp_endpoint,
@@ -332,7 +332,7 @@ class Runtime:
 
     def _zenoh_guard(self, listen: list[str], connect: list[str]) -> ZenohAuth | None:
         """Who may connect to this service's zenoh session, and publish its robot's sensor
-        keys (zenoh's authentication and access control, :mod:`swpc_hw.zenoh_session`):
+        keys (zenoh's authentication and access control, :mod:`swpc_hw.sensors.zenoh_session`):
 
         * against the in-process simulator on its own loopback endpoint: the simulator
           only, with a password made for this run of the service (kept in a file of the
@@ -697,8 +697,8 @@ class Runtime:
                 return path
             from services.runs.install import solve_run
             from services.runs.plots import calibration_plot
-            from swpc_hw.dataset import load_dataset
-            from swpc_hw.kinematic_file import atomic_write_bytes
+            from swpc_hw.files.dataset import load_dataset
+            from swpc_hw.files.kinematic_file import atomic_write_bytes
 
             run = self.runs.get(run_id)
             result = run.result if run is not None else None
@@ -715,7 +715,7 @@ class Runtime:
         if not os.path.lexists(path):  # a dangling link is there, and unreadable
             return None
         k = load_kinematics(path)
-        from swpc_hw.kinematic_file import kinematics_document
+        from swpc_hw.files.kinematic_file import kinematics_document
 
         doc = kinematics_document(k.params, created=k.created, extra=k.extra)
         doc["path"] = str(path)

@@ -25,9 +25,9 @@ from simulators.mocap_sim import MocapOptions
 from simulators.sim_options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
-from swpc_hw.model import RobotParams
-from swpc_hw.paper_robot import PAPER_CALIBRATED
-from swpc_hw.zenoh_session import ZenohAuth
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.zenoh_session import ZenohAuth
 
 DEFAULT_MOCAP = MocapOptions(rate=100.0, sigma_xy=0.5e-3, sigma_yaw=math.radians(0.05))
 

@@ -1,6 +1,6 @@
 """Gyro ingest: a zenoh subscriber on the robot's IMU key (``imu/<robot>/data``).
 
-Every payload is a CDR ``sensor_msgs/msg/Imu`` (:mod:`swpc_hw.imu`: what
+Every payload is a CDR ``sensor_msgs/msg/Imu`` (:mod:`swpc_hw.sensors.gyro`: what
 zenoh-bridge-ros2dds forwards from a ROS 2 IMU driver, and what the simulators publish);
 its z angular velocity (rad/s, the yaw rate of R) is kept with its stamp mapped onto the
 service clock by :meth:`~swpc_hw.clock.Clock.from_wall` (the stamps are wall time: the
@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 from services.sensors.ingest import Ingest, IngestCounters
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
-from swpc_hw.imu import ImuDecodeError, decode_imu
+from swpc_hw.sensors.gyro import ImuDecodeError, decode_imu
 
 #: columns of :meth:`GyroIngest.samples`
 COLUMNS = ("t_source", "t_recv", "t_host", "wz")

@@ -42,7 +42,13 @@ from numpy.typing import NDArray
 
 from services.sensors.ingest import Ingest, IngestCounters
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
-from swpc_hw.mocap import PoseDecodeError, PoseEncoding, PoseSample, decode_pose, detect_encoding
+from swpc_hw.sensors.mocap import (
+    PoseDecodeError,
+    PoseEncoding,
+    PoseSample,
+    decode_pose,
+    detect_encoding,
+)
 
 FloatArray = NDArray[np.float64]
 

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.uncertainty import dense_rows, grid_index, long_run_covariance
-from swpc_hw.model import rot
+from swpc_hw.robot.model import rot
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -7,7 +7,7 @@ about the locked module k the body point ``C_R`` (the contact point, in R) stays
 
     p_i + R(yaw_i) C_R = C_W                      (fixed point, every pose i)
     C_R = P_s,k + b_k u(a + beta_k)               (contact point of the locked module:
-                                                   :func:`swpc_hw.model.contact_point`)
+                                                   :func:`swpc_hw.robot.model.contact_point`)
     (P_w,j - C_R) . u(theta_j) = 0                 (settled free caster j)
     r_j dpsi_j = ((P_w,j - C_R) x u(theta_j)) dyaw  (rolling of free caster j)
 """
@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from swpc_hw.model import contact_point, cross2, rot, steering_direction, wrap_angle
+from swpc_hw.robot.model import contact_point, cross2, rot, steering_direction, wrap_angle
 
 FloatArray = NDArray[np.float64]
 

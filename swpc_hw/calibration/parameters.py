@@ -1,7 +1,7 @@
 """The solver's unknowns: one row per module, one named column per parameter.
 
 ``X`` is an (N, 5) matrix, row i = module i in robot order, columns in the order of
-:data:`swpc_hw.model.PARAM_NAMES` (``x_s, y_s, beta, b, r``).  The least-squares vector
+:data:`swpc_hw.robot.model.PARAM_NAMES` (``x_s, y_s, beta, b, r``).  The least-squares vector
 ``x`` is ``X`` flattened row by row.  Code indexes the columns by these names, never by number::
 
     X[j, P_S]      steering axis P_s,j (2,)        X[j, BETA]   homing error beta_j
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.robot.model import PARAM_NAMES
 
 __all__ = ["PARAM_NAMES"]  # the column names, in column order (re-exported)
 

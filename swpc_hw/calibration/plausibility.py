@@ -36,9 +36,9 @@ from swpc_hw.calibration.fixed_point import FixedPointFit, robust_fixed_point
 from swpc_hw.calibration.parameters import P_S, PARAM_NAMES, R
 from swpc_hw.calibration.parameters import B as B_COL
 from swpc_hw.calibration.prepare import SegmentData
-from swpc_hw.dataset import Dataset
 from swpc_hw.errors import ImplausibleDataError, ImplausibleResultError
-from swpc_hw.model import RobotParams, contact_point
+from swpc_hw.files.dataset import Dataset
+from swpc_hw.robot.model import RobotParams, contact_point
 
 FloatArray = NDArray[np.float64]
 

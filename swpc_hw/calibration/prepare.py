@@ -13,10 +13,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.dataset import Dataset, Segment
+from swpc_hw.calibration.slip import mad_sigma
 from swpc_hw.errors import DatasetError
+from swpc_hw.files.dataset import Dataset, Segment
+from swpc_hw.robot.model import wrap_angle
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 MIN_POSES = 10
 MIN_ROTATION = np.deg2rad(10.0)
@@ -69,7 +72,7 @@ def prepare_segments(
 
     ``calibration``: every module locked at two angles or more (a calibration starts from
     the fixed points' closed form); False for a check, which starts from the file in
-    force and may lock some modules at one angle (:mod:`swpc_hw.calibration.check`)."""
+    force and may lock some modules at one angle (:mod:`swpc_hw.calibration.check.verdict`)."""
     seg_file = f"{source}/segments.csv"
     ids = ds.robot.ids
     if not ds.segments:
@@ -154,3 +157,30 @@ def distinct_angles(angles: list[float], tol: float = float(ANGLE_CLUSTER_TOL)) 
         if not reps or abs(a - reps[-1]) > tol:
             reps.append(a)
     return reps
+
+
+def settled_steering(
+    ds: Dataset, segs: list[SegmentData], offset: float, floor: float
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """Settled reported steering of every (segment, dynamic module): median and its spread.
+
+    The median is taken on angles unwrapped around the first sample (a caster settled
+    near +-pi reports both signs).  Returns ``(seg, mod, theta, sigma_theta)``.
+    """
+    seg, mod, theta, sig = [], [], [], []
+    for si, sd in enumerate(segs):
+        for j, mid in enumerate(ds.robot.ids):
+            if j == sd.static:
+                continue
+            th = encoders_in_window(ds, mid, sd.segment.start, sd.segment.end, offset)[:, 1]
+            th = th[0] + wrap_angle(th - th[0])
+            seg.append(si)
+            mod.append(j)
+            theta.append(float(np.median(th)))
+            sig.append(max(mad_sigma(th), floor))
+    return (
+        np.array(seg, dtype=np.int64),
+        np.array(mod, dtype=np.int64),
+        np.array(theta),
+        np.array(sig),
+    )

@@ -2,7 +2,7 @@
 
 For every segment s (spin about the locked module k at reported steering ``a_s``) the
 model's contact point is ``C_s(X) = P_s,k + b_k u(a_s + beta_k)``
-(:func:`swpc_hw.model.contact_point`).  The blocks:
+(:func:`swpc_hw.robot.model.contact_point`).  The blocks:
 
 **fixed point** (one 2-vector per segment)
     ``W_s (C_s(X) - C_hat_s)``: the stage-1 fixed point, weighted by the inverse of its
@@ -27,7 +27,7 @@ from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.parameters import BETA, P_S, as_matrix
 from swpc_hw.calibration.parameters import B as B_COL
 from swpc_hw.calibration.rolling import RollingSeries, cumulative_rolling_residuals
-from swpc_hw.model import contact_point
+from swpc_hw.robot.model import contact_point
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -6,7 +6,7 @@ import math
 from typing import TypeGuard
 
 from swpc_hw.calibration.result import CalibrationResult
-from swpc_hw.model import ModuleParams, RobotParams
+from swpc_hw.robot.model import ModuleParams, RobotParams
 
 #: name, attribute, factor to display unit, unit
 COLUMNS = (

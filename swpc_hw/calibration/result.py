@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.calibration.parameters import PARAM_NAMES
-from swpc_hw.model import RobotParams
+from swpc_hw.calibration.parameters import N_PARAMS
+from swpc_hw.robot.model import RobotParams
 
 FloatArray = NDArray[np.float64]
 
@@ -144,7 +144,7 @@ class CalibrationResult:
         rows = []
         for m in self.params.modules:
             s = m.stddev
-            rows.append([math.nan] * 5 if s is None else [getattr(s, k) for k in PARAM_NAMES])
+            rows.append([math.nan] * N_PARAMS if s is None else list(s.values()))
         return np.array(rows, dtype=float)
 
     def quality_document(self) -> dict[str, object]:

@@ -28,7 +28,7 @@ from scipy.interpolate import CubicSpline
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.parameters import BETA, P_S, R
 from swpc_hw.calibration.parameters import B as B_COL
-from swpc_hw.dataset import Dataset
+from swpc_hw.files.dataset import Dataset
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -19,7 +19,7 @@ from firmware_protocol.codec import Axis
 from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.can.errors import NodeError
 from swpc_hw.drives.interface import Drives
-from swpc_hw.model import nearest_turn
+from swpc_hw.robot.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
 

@@ -2,9 +2,10 @@
 
 The robot drives a square of side ``L`` (default 2.5 m) with a 90 deg turn in place at each
 corner, clockwise and counter-clockwise, ``runs`` times each, at about 0.2 m/s, with one
-kinematic file used for *both* control (:class:`swpc_hw.twist_controller.TwistController`) and
-odometry (:class:`swpc_hw.odometry.Odometry`); the end pose of the odometry is compared
-with the true end pose (simulator truth key, or motion capture on a real robot).  Doing
+kinematic file used for *both* control
+(:class:`swpc_hw.onboard.twist_controller.TwistController`) and odometry
+(:class:`swpc_hw.onboard.odometry.Odometry`); the end pose of the odometry is compared with
+the true end pose (simulator truth key, or motion capture on a real robot).  Doing
 this for the nominal and the calibrated file shows what calibration buys.
 
 Everything goes through CAN exactly as on the robot:
@@ -17,7 +18,7 @@ Everything goes through CAN exactly as on the robot:
   ``psi`` per module, timed by the frames' bus time stamps on the driver's clock), one
   update per feedback cycle of all modules;
 * truth: :class:`ZenohTruth` on the simulator's ``sim/<robot>/truth/pose`` (JSON) or on
-  the motion-capture pose key ``mocap/<robot>/pose`` (:func:`swpc_hw.mocap.decode_pose`),
+  the motion-capture pose key ``mocap/<robot>/pose`` (:func:`swpc_hw.sensors.mocap.decode_pose`),
   averaged over a still window at the start and end of every run.
 
 Path following happens in the odometry frame (the robot believes its odometry, as it would
@@ -26,7 +27,7 @@ of one run are ``e_p = |p_odo,end - p_true,end|`` and
 ``e_yaw = |wrap(yaw_odo,end - yaw_true,end)|``; the report gives their means per file and
 direction (mean absolute errors, as the paper).
 
-The follower is :mod:`swpc_hw.validation.plan`; the odometry feed
+The follower is :mod:`swpc_hw.onboard.square_path`; the odometry feed
 :mod:`swpc_hw.validation.odometry_feed`; the truth :mod:`swpc_hw.validation.truth`; the
 results :mod:`swpc_hw.validation.report`; the drive :mod:`swpc_hw.validation.drive`.
 Time is the driver's clock (:mod:`swpc_hw.clock`).
@@ -35,10 +36,10 @@ Imports numpy and the CAN driver; zenoh only through a session object that the c
 opens; matplotlib only inside :meth:`ValidationReport.plot`.
 """
 
+from swpc_hw.onboard.square_path import Direction, Leg, SquareOptions, follow_step, square_plan
 from swpc_hw.validation.drive import SquareDrive, prepare_driver, validate
+from swpc_hw.validation.errors import ValidationError
 from swpc_hw.validation.odometry_feed import DriverOdometry
-from swpc_hw.validation.options import Direction, SquareOptions, ValidationError
-from swpc_hw.validation.plan import Leg, follow_step, square_plan
 from swpc_hw.validation.report import RunResult, ValidationReport, to_start_frame
 from swpc_hw.validation.truth import ZenohTruth, mocap_decoder, sim_truth_decoder
 

@@ -11,12 +11,12 @@ import numpy as np
 from firmware_protocol.codec import Axis
 from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.drives.interface import Drives
-from swpc_hw.model import RobotParams
-from swpc_hw.odometry import OdometryOptions
-from swpc_hw.twist_controller import TwistController
+from swpc_hw.onboard.odometry import OdometryOptions
+from swpc_hw.onboard.square_path import Direction, Leg, SquareOptions, follow_step, square_plan
+from swpc_hw.onboard.twist_controller import TwistController
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.validation.errors import ValidationError
 from swpc_hw.validation.odometry_feed import DriverOdometry
-from swpc_hw.validation.options import Direction, SquareOptions, ValidationError
-from swpc_hw.validation.plan import Leg, follow_step, square_plan
 from swpc_hw.validation.report import RunResult, ValidationReport, to_start_frame
 from swpc_hw.validation.truth import ZenohTruth
 

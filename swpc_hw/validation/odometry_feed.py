@@ -12,9 +12,9 @@ from numpy.typing import NDArray
 
 from swpc_hw.can import FeedbackSample
 from swpc_hw.drives.interface import Drives
-from swpc_hw.model import RobotParams
-from swpc_hw.odometry import Odometry, OdometryOptions
-from swpc_hw.validation.options import ValidationError
+from swpc_hw.onboard.odometry import Odometry, OdometryOptions
+from swpc_hw.robot.model import RobotParams
+from swpc_hw.validation.errors import ValidationError
 
 FloatArray = NDArray[np.float64]
 
@@ -37,7 +37,7 @@ class DriverOdometry:
     track ``(t, x, y, yaw)`` and the slip indicator of each update are kept for the report.
     ``on_update(t, theta_hat, psi)``, when given, receives every aligned reading that was
     integrated (module order of ``params``), in the same thread: e.g. the ROS 2 stream of
-    ``swpc odometry`` (:class:`swpc_hw.ros2.stream.Ros2OdometryStream`).
+    ``swpc odometry`` (:class:`swpc_hw.onboard.ros2.stream.Ros2OdometryStream`).
     """
 
     def __init__(

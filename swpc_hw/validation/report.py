@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.model import wrap_angle
-from swpc_hw.validation.options import Direction, SquareOptions
+from swpc_hw.onboard.square_path import Direction, SquareOptions
+from swpc_hw.robot.model import wrap_angle
 
 FloatArray = NDArray[np.float64]
 

@@ -13,8 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, wait_until
-from swpc_hw.mocap import decode_pose
-from swpc_hw.validation.options import ValidationError
+from swpc_hw.sensors.mocap import decode_pose
+from swpc_hw.validation.errors import ValidationError
 
 FloatArray = NDArray[np.float64]
 

@@ -36,9 +36,9 @@ import httpx
 import pytest
 from PIL import Image
 
-from swpc_hw.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.paper_robot import PAPER_NOMINAL
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
 CHROMIUM = Path(os.environ.get("SWPC_CHROMIUM", "/usr/bin/chromium"))
 CHROMEDRIVER = Path(os.environ.get("SWPC_CHROMEDRIVER", "/usr/bin/chromedriver"))

@@ -22,7 +22,7 @@ from typing import Any
 import httpx
 import pytest
 
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.browser.test_console_browser import SHOTS, browser, shot, wait_for
 
 assert browser  # the fixture, imported for the tests below

@@ -52,9 +52,9 @@ from services.runs.state import TERMINAL
 from services.runtime.health import simulated_time_still
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration import geometry as geo
-from swpc_hw.dataset import load_dataset
 from swpc_hw.errors import SwpcError
-from swpc_hw.model import PARAM_NAMES
+from swpc_hw.files.dataset import load_dataset
+from swpc_hw.robot.model import PARAM_NAMES
 
 STATIC = Path(__file__).parent / "static"
 _ASSETS = {

@@ -1,0 +1,127 @@
+"""The square path's end error predicted from a calibration's covariance (what a plan must
+keep within :data:`SQUARE_BUDGET`; :mod:`swpc_hw.calibration.plan.plan`'s docstring).
+
+With the file ``p + dp`` driving a robot whose truth is ``p`` (commands and odometry both
+from the file), the true end pose of an idealised square (legs of ``side`` along the
+body's x at ``speed``, turns in place of 90 deg at ``turn_rate``, every twist constant,
+:func:`square_path_end`) moves by ``e = S dp`` to first order, ``S`` by central
+differences (:func:`square_path_sensitivity`); the end error's std devs are those of
+``S Sigma S^T`` (:func:`square_path_sd`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from swpc_hw.calibration.parameters import BETA, N_PARAMS
+from swpc_hw.calibration.parameters import B as B_COL
+from swpc_hw.onboard.square_path import SquareOptions
+from swpc_hw.robot.model import (
+    RobotArrays,
+    RobotParams,
+    contact_point,
+    contact_velocity,
+    forward_kinematics,
+    steering_direction,
+    trailing_steering_angle,
+    true_steering_angle,
+)
+
+FloatArray = NDArray[np.float64]
+_SQUARE = SquareOptions()
+"""The square of ``swpc validate``: its side, speed and corner yaw rate are the defaults
+of :func:`square_path_end`."""
+
+SQUARE_BUDGET = (0.50e-3, math.radians(0.016))
+"""(m, rad): the calibrated file's end error on the square path (docs/figures.md)."""
+
+
+def _step(pose: FloatArray, twist: FloatArray, T: float) -> FloatArray:
+    """Pose after a constant body twist ``(v_x, v_y, omega)`` for ``T`` s (SE(2) exp)."""
+    vx, vy, w = (float(t) for t in twist)
+    a = w * T
+    if abs(a) < 1e-12:
+        dx, dy = vx * T, vy * T
+    else:
+        s, c1 = math.sin(a), 1.0 - math.cos(a)
+        dx, dy = (s * vx - c1 * vy) / w, (c1 * vx + s * vy) / w
+    c, s_ = math.cos(pose[2]), math.sin(pose[2])
+    return np.array([pose[0] + c * dx - s_ * dy, pose[1] + s_ * dx + c * dy, pose[2] + a])
+
+
+def _executed(file: RobotArrays, truth: RobotArrays, v: FloatArray, omega: float) -> FloatArray:
+    """The true twist when the file commands ``(v, omega)``: steering at the file's trailing
+    angle, wheel rates from the file's inverse kinematics, the truth's forward kinematics."""
+    theta_hat = trailing_steering_angle(file, v, omega)
+    theta = true_steering_angle(theta_hat, file.beta)
+    P_w = contact_point(file.P_s, file.b, theta)
+    vel = contact_velocity(v[None, :], np.full(file.n, omega), P_w)
+    psi_dot = np.einsum("ij,ij->i", vel, steering_direction(theta)) / file.r
+    twist, _ = forward_kinematics(truth, theta_hat, np.zeros(file.n), psi_dot)
+    return twist
+
+
+def square_path_end(
+    file: RobotArrays,
+    truth: RobotArrays,
+    direction: int,
+    *,
+    side: float = _SQUARE.side,
+    speed: float = _SQUARE.speed,
+    turn_rate: float = _SQUARE.yaw_rate,
+) -> FloatArray:
+    """True end pose ``(x, y, yaw - direction 2 pi)`` of the idealised square (module
+    docstring) driven with ``file`` on ``truth``; ``direction`` +1 CCW, -1 CW.  Zero when
+    ``file == truth``."""
+    line = _executed(file, truth, np.array([speed, 0.0]), 0.0)
+    turn = _executed(file, truth, np.zeros(2), direction * turn_rate)
+    pose = np.zeros(3)
+    for _ in range(4):
+        pose = _step(pose, line, side / speed)
+        pose = _step(pose, turn, (math.pi / 2) / turn_rate)
+    pose[2] -= direction * 2.0 * math.pi
+    return pose
+
+
+def _with(a: RobotArrays, i: int, c: int, d: float) -> RobotArrays:
+    P_s, beta, b, r = a.P_s.copy(), a.beta.copy(), a.b.copy(), a.r.copy()
+    if c < 2:
+        P_s[i, c] += d
+    elif c == BETA:
+        beta[i] += d
+    elif c == B_COL:
+        b[i] += d
+    else:
+        r[i] += d
+    return RobotArrays(a.ids, P_s, beta, b, r)
+
+
+def square_path_sensitivity(params: RobotParams, **square: float) -> FloatArray:
+    """``S`` (6, 5N): the end pose of the CCW then the CW square (``x, y, yaw`` each) per
+    unit error of every file parameter (modules in ``params`` order, columns ``x_s, y_s,
+    beta, b, r``), by central differences of :func:`square_path_end` about ``params``."""
+    a = params.arrays()
+    n = a.n
+    S = np.zeros((6, N_PARAMS * n))
+    for i in range(n):
+        for c in range(N_PARAMS):
+            h = 1e-6 if c == BETA else 1e-7
+            for row, d in ((0, 1), (3, -1)):
+                plus = square_path_end(_with(a, i, c, h), a, d, **square)
+                minus = square_path_end(_with(a, i, c, -h), a, d, **square)
+                S[row : row + 3, N_PARAMS * i + c] = (plus - minus) / (2 * h)
+    return S
+
+
+def square_path_sd(S: FloatArray, covariance: FloatArray) -> tuple[float, float]:
+    """``(position, heading)`` std devs (m, rad) of the square's end error for parameter
+    ``covariance`` (5N, 5N): ``S Sigma S^T``, the larger of the two directions."""
+    E = S @ covariance @ S.T
+    pos = max(math.sqrt(max(E[0, 0] + E[1, 1], 0.0)), math.sqrt(max(E[3, 3] + E[4, 4], 0.0)))
+    head = math.sqrt(max(E[2, 2], E[5, 5], 0.0))
+    return pos, head
+
+

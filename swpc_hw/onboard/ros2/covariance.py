@@ -1,0 +1,199 @@
+"""Covariances of the odometry's pose and twist, for ``nav_msgs/msg/Odometry``.
+
+Two sources, kept apart because they behave differently over time:
+
+1. **Wheel readings (white, per step).**  Each module's encoder velocity ``g_i`` is taken as
+   isotropic noise of standard deviation ``sigma / sqrt(w_i)``: ``sigma`` is the
+   odometry's residual scale of that step (``scale_abs + scale_rel * rms|g|``,
+   :class:`~swpc_hw.onboard.odometry.OdometryOptions`) and ``w_i`` its slip weight (IRLS, 1 =
+   trusted, -> 0 = slipping).  The weighted least-squares twist then has::
+
+       Sigma_meas = sigma^2 (A^T W A)^-1,   A_i = [[1, 0, -Q_y,i], [0, 1, Q_x,i]],  W = diag(w_i)
+
+   (``Q_i``: the wheel's effective contact point of the step).  A slipping wheel adds no
+   information, so the twist's covariance grows while it slips.
+
+2. **Calibration (systematic).**  The kinematic file's parameter covariance ``Sigma_p``
+   (``covariance``, else the ``stddev``s squared, else none) through the twist's sensitivity
+   ``J = d twist / d p`` (3 x 5N, forward differences through the odometry's own weighted
+   step, at its slip weights)::
+
+       Sigma_twist = Sigma_meas + J Sigma_p J^T
+
+Pose (world frame ``odom``, first order).  Over a step of length ``h`` from yaw ``psi_0``
+with world displacement ``(dx, dy)`` and mid-step heading ``psi_m``::
+
+    F = [[1, 0, -dy], [0, 1, dx], [0, 0, 1]],   G = [[R(psi_m), 0], [0, 1]]
+    P <- F P F^T + h^2 G Sigma_meas G^T        (white part, accumulates as a random walk)
+    S <- F S + h G J                           (3 x 5N: pose sensitivity to the parameters)
+    Sigma_pose = P + S Sigma_p S^T
+
+A calibration error is the same at every step, so its pose error grows with the distance,
+not its square root: ``S`` carries it exactly to first order.  When a new kinematic file is
+installed, the part accumulated so far is frozen into ``P`` (``P += S Sigma_p S^T``) and
+``S`` restarts at zero.
+
+Not modelled (and not claimed): wheel-ground contact beyond the slip weights, the time
+delay between modules, and motion out of the floor plane.  z, roll and pitch (pose) and
+v_z, omega_x, omega_y (twist) are not estimated: their variances are
+:data:`UNESTIMATED_VARIANCE`, their covariances 0.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+# The odometry's own step (same package layer): the contact points and the weighted solve.
+from swpc_hw.onboard.odometry import Row, _contact_velocities, _weighted_twist, geometry_row
+from swpc_hw.robot.model import PARAM_NAMES
+
+FloatArray = NDArray[np.float64]
+
+UNESTIMATED_VARIANCE = 1.0e6
+"""Variance of the components a planar odometry does not estimate (ROS convention: large)."""
+
+PLANAR = (0, 1, 5)
+"""Indices of x, y, yaw (pose) and v_x, v_y, omega_z (twist) in ROS's 6 x 6 covariances."""
+
+_MIN_WEIGHT = 1e-6
+_PARAMS = len(PARAM_NAMES)  # x_s, y_s, beta, b, r (the kinematic file's order)
+
+
+def measurement_covariance(
+    qx: Sequence[float], qy: Sequence[float], weights: Sequence[float], sigma: float
+) -> FloatArray:
+    """``Sigma_meas = sigma^2 (A^T W A)^-1`` of the twist (module docstring), 3 x 3."""
+    N = np.zeros((3, 3))
+    for x, y, w in zip(qx, qy, weights, strict=True):
+        w = max(float(w), _MIN_WEIGHT)
+        a1 = np.array([1.0, 0.0, -y])
+        a2 = np.array([0.0, 1.0, x])
+        N += w * (np.outer(a1, a1) + np.outer(a2, a2))
+    return np.asarray(sigma * sigma * np.linalg.inv(N), dtype=np.float64)
+
+
+def twist_sensitivity(
+    rows: Sequence[Row],
+    dt: float,
+    theta_hat0: Sequence[float],
+    theta_hat1: Sequence[float],
+    psi0: Sequence[float],
+    psi1: Sequence[float],
+    weights: Sequence[float],
+) -> FloatArray:
+    """``J = d twist / d p`` (3 x 5N; p = modules in order, each x_s, y_s, beta, b, r) of
+    the weighted step at fixed weights, by forward differences (step 1e-7 in SI units)."""
+    def twist(rs: Sequence[Row]) -> FloatArray:
+        qx, qy, gx, gy, _ = _contact_velocities(rs, dt, theta_hat0, theta_hat1, psi0, psi1)
+        return np.array(_weighted_twist(weights, qx, qy, gx, gy))
+
+    base = twist(rows)
+    J = np.zeros((3, _PARAMS * len(rows)))
+    eps = 1e-7
+    for i, row in enumerate(rows):
+        for k in range(_PARAMS):
+            p = list(row[:_PARAMS])
+            p[k] += eps
+            rs = list(rows)
+            rs[i] = geometry_row(*p)
+            J[:, _PARAMS * i + k] = (twist(rs) - base) / eps
+    return J
+
+
+def contact_points(
+    rows: Sequence[Row],
+    dt: float,
+    theta_hat0: Sequence[float],
+    theta_hat1: Sequence[float],
+    psi0: Sequence[float],
+    psi1: Sequence[float],
+) -> tuple[list[float], list[float]]:
+    """Each wheel's effective contact point ``Q_i`` of the step (swpc_hw.onboard.odometry)."""
+    qx, qy, _, _, _ = _contact_velocities(rows, dt, theta_hat0, theta_hat1, psi0, psi1)
+    return qx, qy
+
+
+def ros_covariance(planar: FloatArray) -> list[float]:
+    """A 3 x 3 (x, y, yaw) covariance as ROS's row-major 6 x 6 (x, y, z, rx, ry, rz)."""
+    out = np.zeros((6, 6))
+    for k in (2, 3, 4):
+        out[k, k] = UNESTIMATED_VARIANCE
+    for a, ia in enumerate(PLANAR):
+        for b, ib in enumerate(PLANAR):
+            out[ia, ib] = planar[a, b]
+    return [float(v) for v in out.ravel()]
+
+
+class OdometryCovariance:
+    """The pose and twist covariances of a running odometry (module docstring)."""
+
+    def __init__(self, parameter_covariance: FloatArray) -> None:
+        self._sp = np.asarray(parameter_covariance, dtype=np.float64)
+        n = self._sp.shape[0]
+        self._P = np.zeros((3, 3))
+        self._S = np.zeros((3, n))
+        self.twist = np.zeros((3, 3))
+
+    @property
+    def pose(self) -> FloatArray:
+        """``Sigma_pose = P + S Sigma_p S^T`` (x, y, yaw in ``odom``), 3 x 3."""
+        return np.asarray(self._P + self._S @ self._sp @ self._S.T, dtype=np.float64)
+
+    def set_parameter_covariance(self, parameter_covariance: FloatArray) -> None:
+        """A new kinematic file: freeze the systematic part so far into ``P``, restart ``S``."""
+        sp = np.asarray(parameter_covariance, dtype=np.float64)
+        self._P = self.pose
+        self._sp = sp
+        self._S = np.zeros((3, sp.shape[0]))
+
+    def step(
+        self,
+        pose0: tuple[float, float, float],
+        pose1: tuple[float, float, float],
+        dt: float,
+        meas: FloatArray,
+        J: FloatArray,
+    ) -> None:
+        """Propagate over one odometry step (twist parts ``meas`` = Sigma_meas and ``J``)."""
+        x0, y0, yaw0 = pose0
+        x1, y1, yaw1 = pose1
+        F = np.array([[1.0, 0.0, -(y1 - y0)], [0.0, 1.0, x1 - x0], [0.0, 0.0, 1.0]])
+        m = 0.5 * (yaw0 + yaw1)
+        c, s = math.cos(m), math.sin(m)
+        G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        self._P = F @ self._P @ F.T + dt * dt * (G @ meas @ G.T)
+        self._S = F @ self._S + dt * (G @ J)
+        self.twist = meas + J @ self._sp @ J.T
+
+
+def parameter_covariance(
+    n_modules: int,
+    covariance: ArrayLike | None,
+    stddevs: Sequence[Sequence[float] | None],
+) -> FloatArray:
+    """``Sigma_p`` (5N x 5N) of a kinematic file: its ``covariance``, else the ``stddev``s
+    squared on the diagonal (modules without stddev: 0), else zeros."""
+    if covariance is not None:
+        return np.asarray(covariance, dtype=np.float64).reshape(_PARAMS * n_modules,
+                                                                _PARAMS * n_modules)
+    d = np.zeros(_PARAMS * n_modules)
+    for i, sd in enumerate(stddevs):
+        if sd is not None:
+            d[_PARAMS * i:_PARAMS * (i + 1)] = np.square(np.asarray(sd, dtype=np.float64))
+    return np.diag(d)
+
+
+__all__ = [
+    "PLANAR",
+    "UNESTIMATED_VARIANCE",
+    "OdometryCovariance",
+    "contact_points",
+    "measurement_covariance",
+    "parameter_covariance",
+    "ros_covariance",
+    "twist_sensitivity",
+]
