@@ -29,14 +29,14 @@ import time
 
 import numpy as np
 
-from simulators.datagen_imu import (
+from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
     GyroOptions,
     ReferenceOptions,
     fisher_setup,
     generate_imu_experiment,
 )
-from simulators.random_robots import random_robots
+from simulators.offline.random_robots import random_robots
 from swpc_hw.calibration.identifiability import analyse
 from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.result import CalibrationResult

@@ -35,7 +35,7 @@ import numpy as np
 
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
-from simulators.physics import se2_step
+from simulators.physics.core import se2_step
 from swpc_hw.clock import VirtualClock
 from swpc_hw.imu import GyroSample, encode_imu
 from swpc_hw.mocap import PoseSample, encode_native

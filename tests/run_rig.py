@@ -18,7 +18,7 @@ from services.runs.protocol import CalibrationRun
 from services.runs.state import State
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
-from simulators.imu_sim import axis_travel
+from simulators.sensors.gyro import axis_travel
 from swpc_hw.clock import VirtualClock
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL

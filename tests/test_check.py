@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from simulators.datagen import ExperimentOptions, generate_experiment
+from simulators.offline.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration.check import (
     CONSISTENT,
     DRIFTED,

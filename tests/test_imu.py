@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from services.sensors.gyro import GyroIngest
-from simulators.datagen_imu import GyroOptions
-from simulators.imu_sim import (
+from simulators.offline.datagen_imu import GyroOptions
+from simulators.sensors.gyro import (
     GyroSim,
     PoseHistory,
     axis_travel,
@@ -92,7 +92,7 @@ def test_gyro_settings_no_gyro_has_are_refused() -> None:
     ):
         with pytest.raises(ValueError, match=words):
             check_gyro(bad)
-    from simulators.sim_options import SimOptions
+    from simulators.options import SimOptions
 
     with pytest.raises(ValueError, match="gyro rate"):
         SimOptions(gyro=GyroOptions(rate=-1.0))

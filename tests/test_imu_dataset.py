@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from simulators.datagen_imu import (
+from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
     GyroOptions,
     ImuExperiment,

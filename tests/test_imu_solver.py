@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from services.cli import main as swpc_main
-from simulators.datagen import PartialSlip
-from simulators.datagen_imu import (
+from simulators.offline.datagen import PartialSlip
+from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
     GyroOptions,
     ImuExperiment,

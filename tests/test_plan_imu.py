@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from services.config.robot import RobotConfig
-from services.runs.plan import MIN_IMU_WINDOW, PlanRequest, plan_for, time_model
-from simulators.datagen_imu import GyroOptions, fisher_setup, generate_imu_experiment
-from simulators.plan_predict import (
+from services.plan.planner import MIN_IMU_WINDOW, PlanRequest, plan_for, time_model
+from services.plan.predict import (
     imu_experiment_options,
     predicted_imu_covariance,
     tape_readings,
 )
+from simulators.offline.datagen_imu import GyroOptions, fisher_setup, generate_imu_experiment
 from swpc_hw.calibration.identifiability import gauge_directions
 from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.plan import (

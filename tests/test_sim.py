@@ -32,10 +32,10 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
-from simulators.datagen_imu import GyroOptions
-from simulators.imu_sim import imu_key
-from simulators.mocap_sim import MocapOptions, pose_key, truth_params_key, truth_pose_key
-from simulators.sim_options import SimOptions
+from simulators.offline.datagen_imu import GyroOptions
+from simulators.options import SimOptions
+from simulators.sensors.gyro import imu_key
+from simulators.sensors.mocap import MocapOptions, pose_key, truth_params_key, truth_pose_key
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock

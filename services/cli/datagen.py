@@ -55,7 +55,7 @@ def register(sub: Any) -> None:
         "--metrology imu writes imu.csv and references.yaml instead of poses.csv, from a "
         "run with rests and a straight drive (docs/imu.md)",
     )
-    from simulators.datagen_imu import IMU_PROTOCOL, ReferenceOptions
+    from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions
 
     rest, drive = IMU_PROTOCOL.rest_time, IMU_PROTOCOL.drive_length
     tape_mm = ReferenceOptions.stddev * 1e3
@@ -84,7 +84,7 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from simulators.datagen import ExperimentOptions, generate_experiment
+    from simulators.offline.datagen import ExperimentOptions, generate_experiment
     from swpc_hw.kinematic_file import load_robot
     from swpc_hw.paper_robot import PAPER_CALIBRATED
 
@@ -123,7 +123,7 @@ def run_imu(args: argparse.Namespace, truth: Any, nominal: Any, opt: Any) -> int
     """``--metrology imu``: the run with rests and a drive, written without poses.csv."""
     import dataclasses
 
-    from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
+    from simulators.offline.datagen_imu import ReferenceOptions, generate_imu_experiment
 
     opt = dataclasses.replace(opt, rest_time=args.rest_time, drive_length=args.drive_length)
     gyro = gyro_options(args)

@@ -19,7 +19,7 @@ from pydantic import ByteSize, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.config.log_options import LogFormat, LogLevel
-from simulators.datagen_imu import GyroOptions
+from simulators.offline.datagen_imu import GyroOptions
 from swpc_hw.errors import SwpcError
 
 _GYRO = GyroOptions().human()

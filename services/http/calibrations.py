@@ -36,14 +36,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, RunKind
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
-from services.runs.imu import parse_references, reference_problems
-from services.runs.plan import (
+from services.plan.planner import (
     PlannerBusyError,
     PlanRequest,
     default_budget,
     planned_keys,
     stopping_for,
 )
+from services.runs.imu import parse_references, reference_problems
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
 from services.runtime.health import start_problems

@@ -4,7 +4,7 @@
 without motion capture: the protocol of :mod:`services.runs.protocol` reads the gyro
 (:mod:`services.sensors.gyro`) where it would read the poses, and gains the steps the IMU
 solver needs (docs/imu.md, and the simulated protocol
-:data:`simulators.datagen_imu.IMU_PROTOCOL`)::
+:data:`simulators.offline.datagen_imu.IMU_PROTOCOL`)::
 
     PENDING -> CONNECT -> PRECHECK -> REST -> LOCK -> ALIGN -> FREE -> STILL -> SPIN -> STOP
     STOP    -> RESTEER -> STILL -> SPIN ... | RELEASE

@@ -41,12 +41,12 @@ from typing import Any
 from services.config.robot import RobotConfig, RunKind, load_robot_config
 from services.config.settings import ServiceSettings, SettingsError
 from services.config.timing import TimingBudget, robot_drives, timing_budget
+from services.plan.planner import Planner
 from services.runs.check import FILE_IN_FORCE, CheckRun
 from services.runs.imu import ImuMetrology
 from services.runs.install import file_run, read_replaced
 from services.runs.metrology import Metrology
 from services.runs.mocap import MocapMetrology
-from services.runs.plan import Planner
 from services.runs.protocol import CalibrationRun
 from services.runs.recording import SpaceGuard
 from services.runs.state import TERMINAL, State, now_iso

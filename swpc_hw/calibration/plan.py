@@ -8,7 +8,7 @@ meets the requirement (:func:`plan`).  Everything here is pure; the prediction i
 simulated dataset of the candidate, solved by the joint solver, whose sandwich covariance
 is the inverse Fisher information ``H^-1 M H^-1``, ``H = J^T J`` of the weighted
 residuals) is passed in as a function, because the simulator lives a layer above
-(``simulators.plan_predict``).
+(``services.plan.predict``).
 
 **Robot time** of a candidate on ``N`` modules (:func:`robot_time`; the constants of
 :class:`TimeModel` are measured on the in-process simulator, docs/plan.md)::

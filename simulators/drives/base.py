@@ -1,13 +1,13 @@
 """What one controller axis does to the physics: the virtual controller's state and mode
-turned into a drive of :class:`simulators.robot_physics.RobotPhysics`, and encoder quantisation."""
+turned into a drive of :class:`simulators.physics.robot.RobotPhysics`, and encoder quantisation."""
 
 from __future__ import annotations
 
 import math
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode
-from simulators.robot_physics import ModuleDrive, SteerDrive, WheelDrive
-from simulators.virtual_controller import AxisModel
+from simulators.drives.swpc import AxisModel
+from simulators.physics.robot import ModuleDrive, SteerDrive, WheelDrive
 
 HOMING_SPEED = 0.5
 """Steering speed while homing (rad/s), as the virtual controller's own axis model."""

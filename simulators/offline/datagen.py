@@ -12,7 +12,7 @@ module starts at ``theta_hat = 0``, ``psi = 0``).  For each module k in id order
 1. ``m > 0`` only: **re-steer** k from ``a_{m-1}`` to ``a_m`` (``resteer_time``): its wheel
    is pinned in the fixing tool and its fork keeps its world orientation, so the body
    rotates about ``P_s,k`` by ``-(a_m - a_{m-1})`` (raised-cosine profile) while the free
-   casters trail (exact integration, :func:`simulators.physics.trailing_about_pivot`).
+   casters trail (exact integration, :func:`simulators.physics.core.trailing_about_pivot`).
 2. **align** (``align_time``, body still, wheels do not turn, steering scrubs): k steers to
    ``theta_hat = a_m``; every other module steers to the common true direction
    ``u_c = -sign(omega) z x (G - C) / |G - C|`` (``G`` centroid of the steering axes,
@@ -29,11 +29,11 @@ run ends with a **straight drive**: every wheel steered to the true angle
 ``drive_direction``, a rest, a pure translation along ``-u(drive_direction)`` of
 ``drive_length`` metres (speed ramps of ``ramp_time``, cruise ``drive_speed``) and a rest
 (without a drive, a final rest).  The rests are where a gyro's bias is seen
-(:mod:`simulators.datagen_imu`).
+(:mod:`simulators.offline.datagen_imu`).
 
 Integration: every motion above is a rotation about a body point fixed in the world, for
 which the free-caster dynamics have the closed-form solution of
-:func:`simulators.physics.trailing_about_pivot`; it is evaluated at every sample time, so
+:func:`simulators.physics.core.trailing_about_pivot`; it is evaluated at every sample time, so
 there is no step error and no Python loop over time steps (a default run takes ~0.03 s).
 :func:`simulators.physics.rk4_step` integrates the same dynamics numerically and the tests
 check both agree.  ``integration_dt`` is the time grid on which the settle is searched.
@@ -64,7 +64,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from simulators.physics import (
+from simulators.physics.core import (
     FloatArray,
     pose_about_pivot,
     settled_trailing,

@@ -2,7 +2,7 @@
 
 The virtual robot (:mod:`simulators.virtual_robot`) moves the physics and hands every CAN
 frame to every module's :class:`VirtualDrive`; each kind turns frames into its drives'
-state and that state into a drive of the physics (:func:`simulators.axis_drives.axis_drive`'s
+state and that state into a drive of the physics (:func:`simulators.drives.base.axis_drive`'s
 ``(kind, value)``: passive, a rate, a brake, a wheel torque), and reads the encoders the
 physics writes back.  :func:`virtual_drives` is the one place that knows the kinds (as
 :func:`swpc_hw.drives.factory.open_drives` on the host side).
@@ -21,9 +21,9 @@ import can
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ErrorFlag, Frame
-from simulators import cia402_drive
-from simulators.axis_drives import axis_drive
-from simulators.virtual_controller import VirtualController
+from simulators.drives import cia402
+from simulators.drives.base import axis_drive
+from simulators.drives.swpc import VirtualController
 from swpc_hw.drives.config import DrivesConfig, ODriveDrives, SwpcDrives
 
 
@@ -69,7 +69,7 @@ class VirtualDrive(Protocol):
         self, axis: Axis, position: float, dt: float, position_tau: float
     ) -> tuple[str, float]:
         """What ``axis`` does to the physics over the next ``dt`` (``position``: where it
-        is now): :func:`simulators.axis_drives.axis_drive`'s ``(kind, value)``."""
+        is now): :func:`simulators.drives.base.axis_drive`'s ``(kind, value)``."""
         ...
 
     def sense(
@@ -94,7 +94,7 @@ def message(frame: Frame) -> can.Message:
 
 
 class SwpcVirtualDrive:
-    """swpc's own firmware (:class:`~simulators.virtual_controller.VirtualController`):
+    """swpc's own firmware (:class:`~simulators.drives.swpc.VirtualController`):
     one dual-axis controller on one node."""
 
     def __init__(self, controller: VirtualController) -> None:
@@ -190,7 +190,7 @@ def _swpc(
 
 
 def _odrive(config: DrivesConfig, module: int, **kwargs: Any) -> VirtualDrive:
-    from simulators.virtual_odrive import odrive_virtual_drive
+    from simulators.drives.odrive import odrive_virtual_drive
 
     assert isinstance(config, ODriveDrives)
     return odrive_virtual_drive(config, module, **kwargs)
@@ -198,7 +198,7 @@ def _odrive(config: DrivesConfig, module: int, **kwargs: Any) -> VirtualDrive:
 
 BUILDERS: dict[str, Callable[..., VirtualDrive]] = {
     "swpc": _swpc,
-    "cia402": cia402_drive.build,
+    "cia402": cia402.build,
     "odrive": _odrive,
 }
 """kind -> builder of one module's virtual drives."""

@@ -3,7 +3,7 @@
 :func:`predicted_stddevs` plays the candidate on the robot the planner knows (the robot
 config's nominal robot: the truth is unknown before calibrating) with the metrology's
 noise (:class:`~swpc_hw.calibration.plan.MocapNoise`), through the offline generator
-(:mod:`simulators.datagen`), and solves it with the joint solver.  The solver's
+(:mod:`simulators.offline.datagen`), and solves it with the joint solver.  The solver's
 covariance is ``H^-1 M H^-1`` with ``H = J^T J`` of its weighted residuals: the inverse
 Fisher information of the design, the correlation of the noise included
 (docs/solver-uncertainty.md).  Its std devs do not depend on the noise draw beyond the
@@ -11,7 +11,7 @@ estimate of the noise's size, so a few seeds' variances are averaged (``seeds``)
 
 Without motion capture (``metrology: imu``, :func:`predicted_imu_covariance`) the
 candidate's run with its rests and straight drive, the gyro and the tape's readings
-(:mod:`simulators.datagen_imu`), and the IMU solver's covariance in the ``design-fit``
+(:mod:`simulators.offline.datagen_imu`), and the IMU solver's covariance in the ``design-fit``
 frame.
 """
 
@@ -24,8 +24,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from simulators.datagen import ExperimentOptions, generate_experiment
-from simulators.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
+from simulators.offline.datagen import ExperimentOptions, generate_experiment
+from simulators.offline.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
 from swpc_hw.calibration.forecast import SpinInformation, spin_information
 from swpc_hw.calibration.imu_solver import imu_covariance
 from swpc_hw.calibration.parameters import N_PARAMS
@@ -140,7 +140,7 @@ def predicted_imu_covariance(
     """(5N, 5N) covariance of candidate ``c`` without motion capture on ``robot`` (modules
     in its order), in the ``design-fit`` frame the run's result reports: the IMU
     solver's covariance (:func:`swpc_hw.calibration.imu_solver.imu_covariance`) at the
-    truth of the candidate's noiseless run (:func:`simulators.datagen_imu.fisher_setup`:
+    truth of the candidate's noiseless run (:func:`simulators.offline.datagen_imu.fisher_setup`:
     the gyro's white noise and walk, the encoders' quantization and the tape's std dev as
     weights).  A solve of a noisy run gives the same std devs within 0.5 %
     (docs/plan.md) at three times the CPU, and needs no seed.  :class:`PlanError` as

@@ -1,6 +1,6 @@
 """Simulated IMU calibration run: the robot's gyro and tape-measure references.
 
-:func:`generate_imu_experiment` runs :func:`simulators.datagen.generate_experiment`
+:func:`generate_imu_experiment` runs :func:`simulators.offline.datagen.generate_experiment`
 with rests and a straight drive (:data:`IMU_PROTOCOL`), then adds what a robot
 without motion capture records (docs/dataset-format.md, "Without motion capture"):
 
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
-from simulators.physics import FloatArray
+from simulators.offline.datagen import Experiment, ExperimentOptions, generate_experiment
+from simulators.physics.core import FloatArray
 from swpc_hw.calibration.imu_build import ImuRun, NoiseLevels, build_imu_problem
 from swpc_hw.calibration.imu_solver import initial_weights
 from swpc_hw.calibration.options import SolverOptions
