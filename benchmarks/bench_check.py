@@ -45,11 +45,11 @@ import numpy as np
 
 from services.config.robot import RobotConfig
 from simulators.offline.datagen import ExperimentOptions, generate_experiment
-from simulators.offline.datagen_imu import GyroOptions
 from simulators.offline.random_robots import random_robots
 from swpc_hw.calibration.check import check_estimates, stated_covariance
 from swpc_hw.calibration.parameters import N_PARAMS
 from swpc_hw.calibration.solver import CalibrationResult, solve
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 

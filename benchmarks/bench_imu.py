@@ -31,7 +31,6 @@ import numpy as np
 
 from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
-    GyroOptions,
     ReferenceOptions,
     fisher_setup,
     generate_imu_experiment,
@@ -42,6 +41,7 @@ from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.result import CalibrationResult
 from swpc_hw.calibration.solver import solve
 from swpc_hw.frames import design_fit_transform, transform_parameters
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.references import AxisDistance, WheelRadius

@@ -33,14 +33,10 @@ import numpy as np
 
 from benchmarks.bench_imu import FREE, UNIT, errors_and_z
 from simulators.offline.datagen import PartialSlip
-from simulators.offline.datagen_imu import (
-    IMU_PROTOCOL,
-    GyroOptions,
-    ReferenceOptions,
-    generate_imu_experiment,
-)
+from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions, generate_imu_experiment
 from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.errors import CalibrationError
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 

@@ -34,10 +34,11 @@ from benchmarks.bench_plan import KINDS, SHOW, default_protocol
 from services.config.robot import RobotConfig
 from services.plan.planner import PlanRequest, plan_for, time_model
 from services.plan.predict import imu_experiment_options, predicted_imu_covariance, tape_readings
-from simulators.offline.datagen_imu import GyroOptions, generate_imu_experiment
+from simulators.offline.datagen_imu import generate_imu_experiment
 from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.plan import Candidate, FloatArray, robot_time, stddevs
 from swpc_hw.frames import design_fit_transform, transform_parameters
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 

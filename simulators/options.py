@@ -8,11 +8,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from firmware_protocol import codec
-from simulators.offline.datagen_imu import GyroOptions
 from simulators.physics.robot import PhysicsOptions
 from simulators.sensors.gyro import check_gyro
 from simulators.sensors.mocap import MocapOptions
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.imu import GyroOptions
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams
 

@@ -84,8 +84,8 @@ import can
 import numpy as np
 
 from firmware_protocol.codec import Axis, ErrorFlag
-from simulators.drives.base import module_drive, quantize
-from simulators.drives.factory import VirtualDrive, virtual_drives
+from simulators.drives.base import VirtualDrive, module_drive, quantize
+from simulators.drives.factory import virtual_drives
 from simulators.options import SimOptions, SimStats, params_document
 from simulators.physics.core import FloatArray, se2_step
 from simulators.physics.robot import (

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from services.sensors.gyro import GyroIngest
-from simulators.offline.datagen_imu import GyroOptions
 from simulators.sensors.gyro import (
     GyroSim,
     PoseHistory,
@@ -28,7 +27,7 @@ from simulators.sensors.gyro import (
     tape_measure,
 )
 from swpc_hw.clock import VirtualClock
-from swpc_hw.imu import GyroSample, ImuDecodeError, decode_imu, encode_imu
+from swpc_hw.imu import GyroOptions, GyroSample, ImuDecodeError, decode_imu, encode_imu
 from swpc_hw.mocap import PoseSample, encode_cdr, encode_native
 from swpc_hw.model import rot
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session

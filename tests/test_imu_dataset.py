@@ -13,7 +13,6 @@ import pytest
 
 from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
-    GyroOptions,
     ImuExperiment,
     ReferenceOptions,
     generate_imu_experiment,
@@ -28,6 +27,7 @@ from swpc_hw.frames import (
     transform_covariance,
     transform_parameters,
 )
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import rot
 from swpc_hw.paper_robot import PAPER_CALIBRATED
 from swpc_hw.references import (

@@ -16,7 +16,6 @@ from services.cli import main as swpc_main
 from simulators.offline.datagen import PartialSlip
 from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
-    GyroOptions,
     ImuExperiment,
     ReferenceOptions,
     fisher_setup,
@@ -34,6 +33,7 @@ from swpc_hw.frames import (
     design_fit_transform,
     transform_parameters,
 )
+from swpc_hw.imu import GyroOptions
 from swpc_hw.kinematic_file import load_kinematics
 from swpc_hw.model import RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL

@@ -18,7 +18,7 @@ from services.plan.predict import (
     predicted_imu_covariance,
     tape_readings,
 )
-from simulators.offline.datagen_imu import GyroOptions, fisher_setup, generate_imu_experiment
+from simulators.offline.datagen_imu import fisher_setup, generate_imu_experiment
 from swpc_hw.calibration.identifiability import gauge_directions
 from swpc_hw.calibration.imu_solver import solve_imu
 from swpc_hw.calibration.plan import (
@@ -31,6 +31,7 @@ from swpc_hw.calibration.plan import (
     square_path_sensitivity,
     stddevs,
 )
+from swpc_hw.imu import GyroOptions
 from swpc_hw.paper_robot import PAPER_NOMINAL
 from tests.service_rig import AUTH, Sim
 from tests.test_service_imu import axis_distances, play_operator

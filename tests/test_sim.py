@@ -32,7 +32,6 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
-from simulators.offline.datagen_imu import GyroOptions
 from simulators.options import SimOptions
 from simulators.sensors.gyro import imu_key
 from simulators.sensors.mocap import MocapOptions, pose_key, truth_params_key, truth_pose_key
@@ -40,7 +39,7 @@ from simulators.virtual_robot import VirtualRobot
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.config import SwpcDrives
-from swpc_hw.imu import decode_imu
+from swpc_hw.imu import GyroOptions, decode_imu
 from swpc_hw.mocap import PoseEncoding, decode_pose
 from swpc_hw.model import RobotParams, rot
 from swpc_hw.zenoh_session import free_tcp_endpoint, open_session

@@ -10,8 +10,8 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
-from simulators.drives.base import axis_drive, quantize
-from simulators.drives.swpc import AxisModel, VirtualController
+from simulators.drives.base import AxisModel, axis_drive, quantize
+from simulators.drives.swpc import VirtualController
 from simulators.physics.core import caster_rates, settled_trailing
 from simulators.physics.robot import (
     FREE_MODULE,

@@ -18,8 +18,8 @@ def add_noise_arguments(p: Any) -> None:
 
 
 def add_gyro_arguments(g: Any) -> None:
-    """The simulated z gyro (:class:`simulators.offline.datagen_imu.GyroOptions`, its defaults)."""
-    from simulators.offline.datagen_imu import GyroOptions
+    """The simulated z gyro (:class:`swpc_hw.imu.GyroOptions`, its defaults)."""
+    from swpc_hw.imu import GyroOptions
 
     rate, noise, bias, walk, scale = GyroOptions().human()
     g.add_argument("--gyro-rate", type=float, default=rate, help=f"gyro samples /s ({rate:g})")
@@ -36,8 +36,8 @@ def add_gyro_arguments(g: Any) -> None:
 
 
 def gyro_options(args: argparse.Namespace) -> Any:
-    """The :class:`~simulators.offline.datagen_imu.GyroOptions` of :func:`add_gyro_arguments`."""
-    from simulators.offline.datagen_imu import GyroOptions
+    """The :class:`~swpc_hw.imu.GyroOptions` of :func:`add_gyro_arguments`."""
+    from swpc_hw.imu import GyroOptions
 
     return GyroOptions.from_human(
         args.gyro_rate, args.gyro_noise, args.gyro_bias, args.gyro_bias_walk, args.gyro_scale_error

@@ -19,8 +19,8 @@ from pydantic import ByteSize, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.config.log_options import LogFormat, LogLevel
-from simulators.offline.datagen_imu import GyroOptions
 from swpc_hw.errors import SwpcError
+from swpc_hw.imu import GyroOptions
 
 _GYRO = GyroOptions().human()
 """The in-process simulator's gyro by default: GyroOptions' defaults, in human units."""

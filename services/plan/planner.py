@@ -31,7 +31,6 @@ from services.plan.predict import (
     predicted_imu_covariance,
     predicted_spins,
 )
-from simulators.offline.datagen_imu import GyroOptions
 from swpc_hw.calibration.forecast import SpinInformation, Stopping
 from swpc_hw.calibration.imu_solver import COARSE_INTERVAL
 from swpc_hw.calibration.plan import (
@@ -48,6 +47,7 @@ from swpc_hw.calibration.plan import (
     spin_torques,
     square_path_sensitivity,
 )
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import RobotParams
 
 PLANNED_KEYS = frozenset(

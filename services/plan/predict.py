@@ -25,13 +25,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from simulators.offline.datagen import ExperimentOptions, generate_experiment
-from simulators.offline.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
+from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions, fisher_setup
 from swpc_hw.calibration.forecast import SpinInformation, spin_information
 from swpc_hw.calibration.imu_solver import imu_covariance
 from swpc_hw.calibration.parameters import N_PARAMS
 from swpc_hw.calibration.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
 from swpc_hw.calibration.solver import solve, solve_joint
 from swpc_hw.errors import CalibrationError
+from swpc_hw.imu import GyroOptions
 from swpc_hw.model import RobotParams
 
 

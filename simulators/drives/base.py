@@ -1,13 +1,37 @@
-"""What one controller axis does to the physics: the virtual controller's state and mode
-turned into a drive of :class:`simulators.physics.robot.RobotPhysics`, and encoder quantisation."""
+"""What the virtual drives of every kind share: the interface the virtual robot drives them
+through (:class:`VirtualDrive`), one axis' state (:class:`AxisModel`), what that state does to
+the physics (:func:`axis_drive`: a drive of :class:`simulators.physics.robot.RobotPhysics`)
+and encoder quantisation."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any, Protocol
 
-from firmware_protocol.codec import Axis, AxisState, ControlMode
-from simulators.drives.swpc import AxisModel
+import can
+
+from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Frame
 from simulators.physics.robot import ModuleDrive, SteerDrive, WheelDrive
+
+
+@dataclass
+class AxisModel:
+    """State of one axis of a virtual controller (SI units)."""
+
+    state: AxisState = AxisState.DISABLED
+    mode: ControlMode = ControlMode.FREE
+    setpoint: float = 0.0
+    errors: int = 0
+    position: float = 0.0
+    velocity: float = 0.0
+    torque: float = 0.0
+    max_torque: float = 5.0
+    max_velocity: float = 40.0
+    inertia: float = 0.01
+    friction: float = 0.02
+    hold_target: float = 0.0
+
 
 HOMING_SPEED = 0.5
 """Steering speed while homing (rad/s), as the virtual controller's own axis model."""
@@ -65,3 +89,69 @@ def quantize(x: float, counts: int) -> float:
         return x
     q = 2.0 * math.pi / counts
     return round(x / q) * q
+
+
+class VirtualDrive(Protocol):
+    """One module's drives (steering and wheel) on the bus."""
+
+    @property
+    def homed(self) -> bool:
+        """The steering has been homed (its reported angle is ``theta - beta``)."""
+        ...
+
+    muted: bool
+    """Heartbeat loss: the drives send nothing while muted."""
+
+    @property
+    def sensor_position(self) -> float:
+        """The steering's power-up coordinate of the homing reference (rad)."""
+        ...
+
+    heartbeats: int
+    feedback_frames: int
+    """Heartbeats and feedback frames sent (counters)."""
+
+    def receive(self, msg: can.Message, now: float) -> list[can.Message]:
+        """A frame from the bus (every frame: the drive keeps what is its own) at simulated
+        time ``now``; the frames it answers with."""
+        ...
+
+    def step(self, now: float) -> list[can.Message]:
+        """The drives' own logic at ``now`` (watchdogs, homing, heartbeats, feedback)."""
+        ...
+
+    def next_due(self) -> float:
+        """The next simulated time :meth:`step` has something to do."""
+        ...
+
+    def feedback_rate(self) -> float:
+        """The rate of its free-running feedback (Hz; 0: none, or on SYNC): the virtual
+        robot's tick is never longer than its period."""
+        ...
+
+    def drive(
+        self, axis: Axis, position: float, dt: float, position_tau: float
+    ) -> tuple[str, float]:
+        """What ``axis`` does to the physics over the next ``dt`` (``position``: where it
+        is now): :func:`simulators.drives.base.axis_drive`'s ``(kind, value)``."""
+        ...
+
+    def sense(
+        self, axis: Axis, position: float, velocity: float, torque: float | None
+    ) -> None:
+        """The encoder's reading after a tick; ``torque``: the torque applied (0 passive or
+        braked), None for an axis in a rate loop (the drive estimates its own)."""
+        ...
+
+    def inject_fault(self, axis: Axis, error: ErrorFlag) -> list[can.Message]:
+        """Latch a hardware error on ``axis`` (as the drive reports it on its bus)."""
+        ...
+
+    def params(self) -> dict[str, Any]:
+        """What the truth document says of these drives (kind, nodes)."""
+        ...
+
+
+def message(frame: Frame) -> can.Message:
+    """A classic 11-bit data frame."""
+    return can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)

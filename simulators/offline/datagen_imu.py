@@ -46,6 +46,7 @@ from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.dataset import Dataset, save_dataset
 from swpc_hw.frames import design_fit_transform, transform_parameters
+from swpc_hw.imu import GyroOptions
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, rot
 from swpc_hw.references import AxisDistance, Reference, StraightDrive, WheelRadius
@@ -55,35 +56,6 @@ _DEG = math.pi / 180.0
 IMU_PROTOCOL = ExperimentOptions(rest_time=2.0, drive_length=4.0)
 """The default protocol without motion capture: the seed experiment with 2 s rests (the
 gyro's bias) and a 4 m straight drive at the end (the wheel radii)."""
-
-
-@dataclass(frozen=True)
-class GyroOptions:
-    """A z gyro fixed to R (SI: rad/s, rad/s/sqrt(Hz), rad/s/sqrt(s))."""
-
-    rate: float = 200.0
-    noise_density: float = 0.005 * _DEG
-    bias: float = 0.1 * _DEG
-    bias_walk: float = 1e-4 * _DEG
-    scale_error: float = 0.003
-
-    @classmethod
-    def from_human(
-        cls, rate: float, noise: float, bias: float, bias_walk: float, scale_error: float
-    ) -> GyroOptions:
-        """From the units people write (the command line's, the settings'): Hz,
-        deg/s/sqrt(Hz), deg/s, deg/s/sqrt(s) and %."""
-        return cls(rate, noise * _DEG, bias * _DEG, bias_walk * _DEG, scale_error / 100.0)
-
-    def human(self) -> tuple[float, float, float, float, float]:
-        """``(rate, noise, bias, bias_walk, scale_error)`` in :meth:`from_human`'s units."""
-        return (
-            self.rate,
-            self.noise_density / _DEG,
-            self.bias / _DEG,
-            self.bias_walk / _DEG,
-            self.scale_error * 100.0,
-        )
 
 
 @dataclass(frozen=True)

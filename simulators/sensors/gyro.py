@@ -2,7 +2,7 @@
 
 Gyro: a z gyro fixed to R, sampled at simulated times ``k / rate`` from the physics' true
 yaw rate, with the model of :func:`simulators.offline.datagen_imu.simulate_gyro` and its settings
-(:class:`~simulators.offline.datagen_imu.GyroOptions`: rate, noise density, bias, bias walk, scale
+(:class:`~swpc_hw.imu.GyroOptions`: rate, noise density, bias, bias walk, scale
 error)::
 
     wz_k = (1 + scale_error) omega(t_k) + bias_k + n_k
@@ -33,11 +33,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from simulators.offline.datagen_imu import GyroOptions
 from simulators.physics.core import FloatArray
 from simulators.sensors.mocap import SampleGrid, listened, lockstep_put
 from swpc_hw.clock import SimClock
-from swpc_hw.imu import IMU_ENCODING, GyroSample, encode_imu
+from swpc_hw.imu import IMU_ENCODING, GyroOptions, GyroSample, encode_imu
 from swpc_hw.model import rot
 from swpc_hw.row_ring import RowRing
 
