@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from services.config.robot import RobotConfig
-from services.runs.imu import ImuMetrology
-from services.runs.mocap import MocapMetrology
+from services.runs.metrology.imu import ImuMetrology
+from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import State
 from services.sensors.gyro import GyroIngest

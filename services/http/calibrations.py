@@ -43,17 +43,17 @@ from services.plan.planner import (
     planned_keys,
     stopping_for,
 )
-from services.runs.imu import parse_references, reference_problems
+from services.runs.metrology.imu import parse_references, reference_problems
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
-from services.runtime.health import start_problems
-from services.runtime.runtime import (
+from services.runtime.errors import (
     DiskSpaceError,
     NoFileError,
     NoResultError,
     RunConflictError,
     StoreError,
 )
+from services.runtime.health import start_problems
 from swpc_hw.calibration.forecast import Stopping
 from swpc_hw.calibration.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
