@@ -37,7 +37,7 @@ from typing import Any
 
 import httpx
 
-from services.cli._sim_options import add_metrology_argument
+from services.cli import add_metrology_argument
 from swpc_hw.blas_threads import single_blas_thread
 from swpc_hw.model import PARAM_NAMES, RobotParams
 from swpc_hw.paper_robot import PAPER_CALIBRATED

@@ -13,7 +13,7 @@ import itertools
 import math
 from typing import Any
 
-from services.cli._sim_options import (
+from services.cli import (
     add_gyro_arguments,
     add_metrology_argument,
     add_noise_arguments,

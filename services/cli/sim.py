@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any
 
-from services.cli._sim_options import add_gyro_arguments, add_noise_arguments, gyro_options
+from services.cli import add_gyro_arguments, add_noise_arguments, gyro_options
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
