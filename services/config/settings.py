@@ -139,7 +139,8 @@ class ServiceSettings(BaseSettings):
         gt=0,
         le=3600,
         description="host seconds between two publications of the state when nothing changed "
-        "(the heartbeat); a change is published within 0.5 s",
+        "(the fleet period; each such publication is a repeat); a change is published "
+        "within 0.5 s",
     )
     fleet_mode: str = Field(
         "peer",
