@@ -25,6 +25,9 @@ TAPE_READINGS = 2
 
 
 def register(sub: Any) -> None:
+    from swpc_hw.protocol import DEFAULT_PROTOCOL
+
+    angles = DEFAULT_PROTOCOL.angles_deg
     p = sub.add_parser(
         "datagen",
         aliases=["simulate"],
@@ -39,8 +42,9 @@ def register(sub: Any) -> None:
     p.add_argument("--truth", help="kinematic file of the truth (default: paper Table 4)")
     p.add_argument("--nominal", help="kinematic file written as robot.yaml (default: design)")
     p.add_argument(
-        "--angles", type=float, nargs="+", default=[45.0, 165.0], metavar="DEG",
-        help="steering angles of the locked module (deg, >= 2; default 45 165)",
+        "--angles", type=float, nargs="+", default=list(angles), metavar="DEG",
+        help="steering angles of the locked module (deg, >= 2; default "
+        + " ".join(f"{a:g}" for a in angles) + ")",
     )
     p.add_argument("--yaw-rate", type=float, default=0.5, help="rad/s, <0 clockwise (0.5)")
     p.add_argument("--spin-duration", type=float, default=12.0, help="s per segment (12)")

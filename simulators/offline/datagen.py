@@ -74,6 +74,7 @@ from swpc_hw.dataset import Dataset, Segment, save_dataset
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, contact_point, rot, wrap_angle
 from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 
 _DEG = math.pi / 180.0
 
@@ -97,17 +98,23 @@ class PartialSlip:
 
 @dataclass(frozen=True)
 class ExperimentOptions:
-    """Settings of a simulated experiment (SI units; everything random is seeded by ``seed``)."""
+    """Settings of a simulated experiment (SI units; everything random is seeded by ``seed``).
+    The protocol's defaults are :data:`swpc_hw.protocol.DEFAULT_PROTOCOL`'s but for two
+    pauses, ``settle_time`` and ``resteer_time``, shorter (their docstrings)."""
 
-    angles: tuple[float, ...] = (45.0 * _DEG, 165.0 * _DEG)
+    angles: tuple[float, ...] = tuple(a * _DEG for a in DEFAULT_PROTOCOL.angles_deg)
     yaw_rate: float = 0.5  # rad/s, > 0 counter-clockwise
     spin_duration: float = 12.0  # s of steady spin recorded per segment
-    settle_time: float = 2.0  # s, minimum steady spin before the window
+    settle_time: float = 2.0
+    """s, least steady spin before the window: the generator's own, below DEFAULT_PROTOCOL's
+    (the window opens only once the casters settled, which a robot cannot see)."""
     settle_tol: float = 1e-10  # rad, max caster error at window start (noiseless physics)
     max_settle: float = 120.0  # s, give up (ValueError) if casters settle slower
     ramp_time: float = 1.0  # s, yaw-rate ramp up / down
-    align_time: float = 1.0  # s, steering alignment before each spin
-    resteer_time: float = 2.0  # s, re-steering the locked module
+    align_time: float = DEFAULT_PROTOCOL.align_time  # s, steering alignment before each spin
+    resteer_time: float = 2.0
+    """s, re-steering the locked module: the generator's own, below DEFAULT_PROTOCOL's (its
+    runs' timelines, and the tests and figures measured on them, are these)."""
     pose_rate: float = 100.0  # Hz
     encoder_rate: float = 200.0  # Hz
     counts_per_rev: int | None = 2**17  # encoder quantization (both axes); None = off

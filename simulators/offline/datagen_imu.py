@@ -49,13 +49,16 @@ from swpc_hw.frames import design_fit_transform, transform_parameters
 from swpc_hw.imu import GyroOptions
 from swpc_hw.kinematic_file import save_kinematics
 from swpc_hw.model import RobotParams, rot
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 from swpc_hw.references import AxisDistance, Reference, StraightDrive, WheelRadius
 
 _DEG = math.pi / 180.0
 
-IMU_PROTOCOL = ExperimentOptions(rest_time=2.0, drive_length=4.0)
-"""The default protocol without motion capture: the seed experiment with 2 s rests (the
-gyro's bias) and a 4 m straight drive at the end (the wheel radii)."""
+IMU_PROTOCOL = ExperimentOptions(
+    rest_time=DEFAULT_PROTOCOL.rest_time, drive_length=DEFAULT_PROTOCOL.drive_length
+)
+"""The default protocol without motion capture: the seed experiment with the default
+protocol's rests (the gyro's bias) and straight drive at the end (the wheel radii)."""
 
 
 @dataclass(frozen=True)

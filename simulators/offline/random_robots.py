@@ -27,8 +27,11 @@ import numpy as np
 from simulators.physics.core import FloatArray, settled_trailing
 from swpc_hw.model import RobotParams, contact_point, wrap_angle
 from swpc_hw.paper_robot import PAPER_NOMINAL
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 
 _DEG = math.pi / 180.0
+DEFAULT_ANGLES = tuple(math.radians(a) for a in DEFAULT_PROTOCOL.angles_deg)
+"""The default protocol's steering angles (rad)."""
 
 
 class BatchRobots(NamedTuple):
@@ -101,7 +104,7 @@ def batch_experiment(
     beta: FloatArray,
     b: FloatArray,
     r: FloatArray,
-    angles: tuple[float, ...] = (45.0 * _DEG, 165.0 * _DEG),
+    angles: tuple[float, ...] = DEFAULT_ANGLES,
     n_poses: int = 36,
     sweep: float = 2.0 * math.pi,
     seed: int = 0,

@@ -80,6 +80,7 @@ from swpc_hw.model import (
     trailing_steering_angle,
     true_steering_angle,
 )
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 from swpc_hw.validation.options import SquareOptions
 
 FloatArray = NDArray[np.float64]
@@ -426,7 +427,9 @@ class Requirement:
         }
 
 
-ANGLE_SETS: tuple[tuple[float, ...], ...] = ((45.0, 165.0), (45.0, 225.0), (45.0, 165.0, 285.0))
+ANGLE_SETS: tuple[tuple[float, ...], ...] = (
+    DEFAULT_PROTOCOL.angles_deg, (45.0, 225.0), (45.0, 165.0, 285.0)
+)
 """The steering angles tried (deg): the default pair, a pair 180 deg apart (the longest
 chord), three 120 deg apart.  Every module gets the same set (the protocol's
 ``angles_deg``)."""
