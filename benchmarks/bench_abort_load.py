@@ -40,7 +40,7 @@ from benchmarks.bench_service import StopWatch
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.http.server import server as http_server
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
 TOKEN = "bench-token-0123456789"
 LOAD_ADDRESS = "127.0.0.2"

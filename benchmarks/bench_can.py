@@ -25,7 +25,7 @@ import numpy as np
 
 from firmware_protocol import busload, codec
 from firmware_protocol.codec import Axis, Command, ControlMode
-from simulators.virtual_controller import ControllerEmulator, VirtualController
+from simulators.drives.swpc import ControllerEmulator, VirtualController
 from swpc_hw.can import CanConfig, CanDriver, Lifecycle
 
 FRAME_LIMIT = 1e6 / busload.frame_bits(8)

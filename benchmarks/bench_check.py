@@ -44,14 +44,14 @@ from typing import Any
 import numpy as np
 
 from services.config.robot import RobotConfig
-from simulators.datagen import ExperimentOptions, generate_experiment
-from simulators.datagen_imu import GyroOptions
-from simulators.random_robots import random_robots
+from simulators.offline.datagen import ExperimentOptions, generate_experiment
+from simulators.offline.random_robots import random_robots
 from swpc_hw.calibration.check.verdict import check_estimates, stated_covariance
 from swpc_hw.calibration.mocap.solver import CalibrationResult, solve
 from swpc_hw.calibration.parameters import N_PARAMS
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.sensors.gyro import GyroOptions
 
 MOCAP = ExperimentOptions(pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05))
 MEMS = GyroOptions(noise_density=math.radians(0.014), bias=math.radians(0.5))
@@ -216,7 +216,7 @@ def check_data(robot: RobotParams, proto: dict[str, Any], seed: int, metrology: 
     references."""
     if metrology == "mocap":
         return generate_experiment(robot, check_options(proto, seed), PAPER_NOMINAL).dataset
-    from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
+    from simulators.offline.datagen_imu import ReferenceOptions, generate_imu_experiment
 
     opts = dataclasses.replace(
         check_options(proto, seed), pose_sigma_xy=0.0, pose_sigma_yaw=0.0,

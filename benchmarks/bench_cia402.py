@@ -1,7 +1,7 @@
 """Bus load of a CiA 402 robot at the robot's rates: 4 modules, 8 single-axis drives.
 
 The host (:mod:`swpc_hw.drives.cia402`) and the virtual robot's CiA 402 drives
-(:mod:`simulators.cia402_drive`) in lockstep on python-can's virtual bus, with the
+(:mod:`simulators.drives.cia402`) in lockstep on python-can's virtual bus, with the
 service's robot timing (:func:`services.config.timing.bus_config` for a robot: feedback
 (SYNC) 200 Hz, the host's heartbeat every ``T_ref`` = 20 ms, the drives' every 0.1 s):
 set-up, homing, then a spin (module 1 locked: steering and wheel in cyclic synchronous
@@ -27,7 +27,7 @@ from firmware_protocol.codec import Axis
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
 from services.config.timing import bus_config
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.cia402.driver import Cia402Driver

@@ -3,10 +3,10 @@ alarms per hour on a correct robot (``python -m benchmarks drift``).
 
 The paper's calibrated robot is the kinematic file; the true robot is that file with one
 module's wheel radius -0.3 mm (or its homing error +0.3 deg), the module taking turns over
-the seeds.  The path: :func:`simulators.drift_path.mixed_segments` (straights, arcs,
+the seeds.  The path: :func:`simulators.offline.drift_path.mixed_segments` (straights, arcs,
 strafes, spins, stops at several speeds) read at 200 Hz (the robot config's feedback
 rate) with 2^17-count encoders, slip noise 0.2 % and a slip burst (5 %, 0.3 s) per wheel a
-minute (:class:`simulators.drift_path.PathNoise`).  Detection runs stop at the first
+minute (:class:`simulators.offline.drift_path.PathNoise`).  Detection runs stop at the first
 suspect raised (cap: 20 min of driving); "right" is the drifted module and parameter.
 """
 
@@ -16,7 +16,7 @@ import math
 import statistics
 import time
 
-from simulators.drift_path import mixed_segments, observe_drive, with_error
+from simulators.offline.drift_path import mixed_segments, observe_drive, with_error
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 SEEDS = 10

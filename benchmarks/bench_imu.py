@@ -29,14 +29,13 @@ import time
 
 import numpy as np
 
-from simulators.datagen_imu import (
+from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
-    GyroOptions,
     ReferenceOptions,
     fisher_setup,
     generate_imu_experiment,
 )
-from simulators.random_robots import random_robots
+from simulators.offline.random_robots import random_robots
 from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.calibration.mocap.solver import solve
 from swpc_hw.calibration.plan.identifiability import analyse
@@ -45,6 +44,7 @@ from swpc_hw.files.references import AxisDistance, WheelRadius
 from swpc_hw.robot.frames import design_fit_transform, transform_parameters
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.sensors.gyro import GyroOptions
 
 DEG = 180.0 / math.pi
 FREE = ("d_beta", "b", "distance", "r")

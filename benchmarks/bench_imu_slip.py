@@ -1,6 +1,7 @@
 """Calibration without motion capture on robots that slip or are far from home (issue 30).
 
-Two families of simulated runs of the IMU protocol (:data:`simulators.datagen_imu.IMU_PROTOCOL`,
+Two families of simulated runs of the IMU protocol
+(:data:`simulators.offline.datagen_imu.IMU_PROTOCOL`,
 default gyro, the recommended references: the six axis distances each read twice and the
 4 m drive, at 0.5 mm; 2^17-count encoders),
 ``SWPC_BENCH_SEEDS`` seeds each (default 20; ``SWPC_BENCH_FAMILIES=slip`` or ``homing``
@@ -31,17 +32,13 @@ import time
 import numpy as np
 
 from benchmarks.bench_imu import FREE, UNIT, errors_and_z
-from simulators.datagen import PartialSlip
-from simulators.datagen_imu import (
-    IMU_PROTOCOL,
-    GyroOptions,
-    ReferenceOptions,
-    generate_imu_experiment,
-)
+from simulators.offline.datagen import PartialSlip
+from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions, generate_imu_experiment
 from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.errors import CalibrationError
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.sensors.gyro import GyroOptions
 
 DEG = math.pi / 180.0
 HOMING = 3.0 * DEG

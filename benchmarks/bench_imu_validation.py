@@ -5,7 +5,7 @@ deviations: steering axes within 1 % of the design (~2 mm), homing errors within
 1.5 deg, offsets and radii within 2 %; nominal = the paper's design):
 
 1. one simulated calibration run with the IMU protocol (rests, spins, a 4 m
-   straight drive; :func:`simulators.datagen_imu.generate_imu_experiment`), motion
+   straight drive; :func:`simulators.offline.datagen_imu.generate_imu_experiment`), motion
    capture of the same run at the in-process default noise (0.5 mm / 0.05 deg, 100 Hz),
    the default gyro (bias 0.1 deg/s, scale error 0.3 %, 0.005 deg/s/sqrt(Hz)) and every
    axis distance plus the drive taped with 0.5 mm std dev;
@@ -38,7 +38,7 @@ DEG = math.pi / 180.0
 
 def robots(count: int) -> list[tuple[str, RobotParams]]:
     """Table 4, then ``count - 1`` random robots with build deviations (module docstring)."""
-    from simulators.random_robots import random_robots
+    from simulators.offline.random_robots import random_robots
     from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
     out = [("table 4", PAPER_CALIBRATED)]
@@ -53,7 +53,7 @@ def robots(count: int) -> list[tuple[str, RobotParams]]:
 
 def calibrate(truth: RobotParams, seed: int) -> tuple[RobotParams, RobotParams]:
     """The mocap and the IMU calibration of one simulated run of ``truth``."""
-    from simulators.datagen_imu import IMU_PROTOCOL, generate_imu_experiment
+    from simulators.offline.datagen_imu import IMU_PROTOCOL, generate_imu_experiment
     from swpc_hw.calibration import solve
     from swpc_hw.calibration.gyro.solver import solve_imu
     from swpc_hw.robot.paper_robot import PAPER_NOMINAL

@@ -26,7 +26,7 @@ from firmware_protocol.odrive import can_simple as cs
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
 from services.config.timing import bus_config, timing_budget
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.factory import open_drives

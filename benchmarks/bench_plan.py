@@ -1,12 +1,13 @@
 """The planner's benchmark (issue 34: the same accuracy in less robot time; docs/plan.md).
 
 For the paper's robot (nominal: the design, truth: Table 4) and ``SWPC_BENCH_PLAN_RANDOM``
-random robots (default 3; ``simulators.random_robots`` as the paper's Table 3: ``P_s``
+random robots (default 3; ``simulators.offline.random_robots`` as the paper's Table 3: ``P_s``
 +-30 %, ``beta`` +-30 deg, ``b`` and ``r`` +-10 % of the design; nominal: the truth
-rounded as ``simulators.datagen.default_nominal`` does), with the default requirement (the robot
+rounded as ``simulators.offline.datagen.default_nominal`` does), with the default requirement (the
+robot
 config's tolerances, the square path within 0.50 mm and 0.016 deg):
 
-1. **The plan**: ``services.runs.plan.plan_for`` on the robot's config, its predicted
+1. **The plan**: ``services.plan.planner.plan_for`` on the robot's config, its predicted
    robot time and std devs, and the default protocol's (4 modules x 45 and 165 deg x
    360 deg sweeps, settle 3 s, stop 1.5 s) predicted the same way.
 2. **Errors reached, offline**: ``SWPC_BENCH_PLAN_SEEDS`` seeds (default 20) of each
@@ -40,10 +41,10 @@ import numpy as np
 
 from benchmarks.bench_check import TOKEN, start_and_wait
 from services.config.robot import RobotConfig
-from services.runs.plan import plan_for, stopping_for, time_model
-from simulators.datagen import generate_experiment
-from simulators.plan_predict import experiment_options, predicted_covariance
-from simulators.random_robots import random_robots
+from services.plan.planner import plan_for, stopping_for, time_model
+from services.plan.predict import experiment_options, predicted_covariance
+from simulators.offline.datagen import generate_experiment
+from simulators.offline.random_robots import random_robots
 from swpc_hw.calibration.mocap.solver import solve
 from swpc_hw.calibration.plan.forecast import Stopping, forecast_covariance, replay
 from swpc_hw.calibration.plan.plan import Candidate, MocapNoise, Plan, robot_time, stddevs
@@ -77,7 +78,7 @@ def robots(n_random: int) -> list[tuple[str, RobotParams, RobotParams]]:
 
 
 def rounded(truth: RobotParams) -> RobotParams:
-    """A random robot's nominal: :func:`simulators.datagen.default_nominal`'s rounding
+    """A random robot's nominal: :func:`simulators.offline.datagen.default_nominal`'s rounding
     (``beta = 0``, ``P_s`` to 5 mm, ``b`` and ``r`` to 1 mm), whatever its ids."""
     a = truth.arrays()
     return RobotParams.from_arrays(

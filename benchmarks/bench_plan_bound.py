@@ -2,7 +2,7 @@
 time at equal or better worst-case std devs (docs/plan.md, *Measured*).
 
 On the paper's robot (nominal: the design), with the prediction of ``swpc plan``
-(``simulators.plan_predict``, mocap 0.5 mm / 0.05 deg, white):
+(``services.plan.predict``, mocap 0.5 mm / 0.05 deg, white):
 
 1. **The default protocol** (45 and 165 deg, 360 deg sweeps, settle 3 s, stop 1.5 s,
    align 1 s, at the config's spin torque): its robot time and worst predicted std dev
@@ -32,8 +32,8 @@ from dataclasses import replace
 
 from benchmarks.bench_plan import default_protocol
 from services.config.robot import RobotConfig
-from services.runs.plan import pauses, time_model
-from simulators.plan_predict import predicted_covariance
+from services.plan.planner import pauses, time_model
+from services.plan.predict import predicted_covariance
 from swpc_hw.calibration.plan.plan import (
     SWEEPS,
     Candidate,

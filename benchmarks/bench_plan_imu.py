@@ -3,11 +3,11 @@
 On the paper's robot (nominal: the design, truth: Table 4), the default requirement (the
 robot config's tolerances; no square path, docs/plan.md says why):
 
-1. **The plan** (``services.runs.plan.plan_for`` with ``metrology="imu"``), its predicted
+1. **The plan** (``services.plan.planner.plan_for`` with ``metrology="imu"``), its predicted
    robot time and std devs, and the default protocol's (45 and 165 deg, 360 deg sweeps,
    settle 3 s, stop 1.5 s, rests 2 s, a 4 m drive) predicted the same way.
 2. **Honesty, offline**: ``SWPC_BENCH_PLAN_SEEDS`` seeds (default 20) of each protocol
-   through ``simulators.datagen_imu`` (the gyro as the service's defaults, two tape
+   through ``simulators.offline.datagen_imu`` (the gyro as the service's defaults, two tape
    readings per pair of steering axes and the drive's, 0.5 mm) solved by the IMU
    solver; per kind the RMS error, the RMS of ``z = error / predicted std dev`` (the
    goal 0.7-1.5) and of the solver's own z, in the ``design-fit`` frame (the truth
@@ -32,14 +32,15 @@ import numpy as np
 from benchmarks.bench_check import TOKEN
 from benchmarks.bench_plan import KINDS, SHOW, default_protocol
 from services.config.robot import RobotConfig
-from services.runs.plan import PlanRequest, plan_for, time_model
-from simulators.datagen_imu import GyroOptions, generate_imu_experiment
-from simulators.plan_predict import imu_experiment_options, predicted_imu_covariance, tape_readings
+from services.plan.planner import PlanRequest, plan_for, time_model
+from services.plan.predict import imu_experiment_options, predicted_imu_covariance, tape_readings
+from simulators.offline.datagen_imu import generate_imu_experiment
 from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.calibration.plan.plan import Candidate, FloatArray, robot_time, stddevs
 from swpc_hw.robot.frames import design_fit_transform, transform_parameters
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.sensors.gyro import GyroOptions
 
 
 def in_design_fit(params: RobotParams, nominal: RobotParams) -> FloatArray:

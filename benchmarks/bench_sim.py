@@ -28,8 +28,8 @@ import can
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode
-from simulators.mocap_sim import MocapOptions
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
+from simulators.sensors.mocap import MocapOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 

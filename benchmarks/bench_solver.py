@@ -2,7 +2,8 @@
 
 1. The paper's Table 3, noiseless: 10,000 random robots (P_s within +-30 % of design,
    beta within +-30 deg, b and r within +-10 %), exact rotation data from
-   ``simulators.random_robots``, solved by the closed-form geometry vectorised over all trials.
+   ``simulators.offline.random_robots``, solved by the closed-form geometry vectorised over all
+   trials.
    Plus the full joint solver on generator runs of a subset of those robots.
 2. Noisy accuracy, truth = paper Table 4: mocap 0.5 mm / 0.05 deg at 100 Hz, encoders
    2^17 counts/rev, 20 seeds: RMSE of the paper's literal procedure and of the joint
@@ -36,8 +37,8 @@ import time
 
 import numpy as np
 
-from simulators.datagen import ExperimentOptions, PartialSlip, generate_experiment
-from simulators.random_robots import batch_experiment, random_robots
+from simulators.offline.datagen import ExperimentOptions, PartialSlip, generate_experiment
+from simulators.offline.random_robots import batch_experiment, random_robots
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.mocap.baseline import solve_paper
 from swpc_hw.calibration.mocap.solver import CalibrationResult, SolverOptions, solve

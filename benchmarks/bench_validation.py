@@ -2,7 +2,7 @@
 
 1. Calibrated file: the seed experiment simulated on the paper's Table 4 robot with the
    in-process default mocap noise (0.5 mm / 0.05 deg at 100 Hz, encoders 2**17 counts/turn,
-   :func:`simulators.datagen.generate_experiment`), solved offline
+   :func:`simulators.offline.datagen.generate_experiment`), solved offline
    (:func:`swpc_hw.calibration.solve`); nominal = :data:`swpc_hw.robot.paper_robot.PAPER_NOMINAL`.
 2. The validation drive (:mod:`swpc_hw.validation`) on the in-process simulator (truth =
    Table 4): 2.5 m square, CW and CCW, 4 runs each, 0.2 m/s, each file used for control and
@@ -29,7 +29,7 @@ OUT = Path("out/validation")
 
 def offline_calibrated(seed: int = 0) -> RobotParams:
     """Table 4 robot, seed experiment with the in-process default noise, solved offline."""
-    from simulators.datagen import ExperimentOptions, generate_experiment
+    from simulators.offline.datagen import ExperimentOptions, generate_experiment
     from swpc_hw.calibration import solve
     from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 

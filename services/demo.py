@@ -37,7 +37,7 @@ from typing import Any
 
 import httpx
 
-from services.cli._sim_options import add_metrology_argument
+from services.cli import add_metrology_argument
 from swpc_hw.blas_threads import single_blas_thread
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
@@ -97,7 +97,7 @@ def tape_references(seed: int, stddev: float | None = None) -> list[dict[str, An
 
     import numpy as np
 
-    from simulators.datagen_imu import ReferenceOptions
+    from simulators.offline.datagen_imu import ReferenceOptions
 
     stddev = ReferenceOptions.stddev if stddev is None else stddev
     rng = np.random.default_rng([seed, 20])
@@ -376,7 +376,7 @@ about 2 by chance alone)."""
 
 def run_offline_demo(out: Path, seed: int) -> int:
     from services.cli import main as swpc_main
-    from simulators.datagen import ExperimentOptions, generate_experiment
+    from simulators.offline.datagen import ExperimentOptions, generate_experiment
 
     opts = ExperimentOptions(
         pose_sigma_xy=0.5e-3,

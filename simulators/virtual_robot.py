@@ -1,9 +1,10 @@
 """The virtual SWPC robot: controllers on CAN + physics + motion capture, on a simulated clock.
 
 :class:`VirtualRobot` stands in for the robot's motor controllers (one
-:class:`simulators.virtual_controller.VirtualController` per module, speaking the DBC's frames on
+:class:`simulators.drives.swpc.VirtualController` per module, speaking the DBC's frames on
 any python-can bus) and for the motion-capture system (poses over zenoh, see
-:mod:`simulators.mocap_sim`); :class:`simulators.robot_physics.RobotPhysics` moves the hidden true
+:mod:`simulators.sensors.mocap`); :class:`simulators.physics.robot.RobotPhysics` moves the hidden
+true
 robot under what the controllers do.  It runs in one thread started by :meth:`start` and
 ended by :meth:`stop` (idempotent), on a bus and a zenoh session that the caller gives or
 that it opens itself (:meth:`VirtualRobot.open`, used by ``swpc sim`` and by the service's
@@ -13,7 +14,7 @@ Every tick of simulated time (``physics_dt``, at most 5 ms by default, and never
 the fastest feedback period the host has set, so 2 ms at 500 Hz):
 
 1. each module's axes are turned into drives from their controller's state and mode
-   (:func:`simulators.axis_drives.axis_drive`): FREE/disabled/fault -> passive, HOLD ->
+   (:func:`simulators.drives.base.axis_drive`): FREE/disabled/fault -> passive, HOLD ->
    locked (a held wheel is braked), POSITION -> a first-order loop on the true position
    (time constant ``position_tau``, clamped to MaxVelocity), VELOCITY -> the setpoint,
    TORQUE -> a wheel torque (a steering torque drives the steering through ``J dv/dt =
@@ -64,7 +65,7 @@ divides it by ``s``, and must take receive times when the simulator slows its cl
 Fault injection: :meth:`VirtualRobot.mute` (heartbeat loss: the node sends nothing),
 :meth:`VirtualRobot.inject_fault` (a latched hardware error and its FaultReport),
 ``bus_error_rate`` (error frames, or on buses that cannot send them, frames with an
-unknown id), slip bursts (:class:`simulators.robot_physics.PhysicsOptions`) and the mocap
+unknown id), slip bursts (:class:`simulators.physics.robot.PhysicsOptions`) and the mocap
 options (noise, dropouts, outliers, latency, clock offset).
 """
 
@@ -83,18 +84,18 @@ import can
 import numpy as np
 
 from firmware_protocol.codec import Axis, ErrorFlag
-from simulators.axis_drives import module_drive, quantize
-from simulators.imu_sim import GyroSim, PoseHistory, axis_travel, tape_measure
-from simulators.mocap_sim import MocapSim, TruthPublisher
-from simulators.physics import FloatArray, se2_step
-from simulators.robot_physics import (
+from simulators.drives.base import VirtualDrive, module_drive, quantize
+from simulators.drives.factory import virtual_drives
+from simulators.options import SimOptions, SimStats, params_document
+from simulators.physics.core import FloatArray, se2_step
+from simulators.physics.robot import (
     ModuleDrive,
     RobotPhysics,
     SteerDrive,
     WheelDrive,
 )
-from simulators.sim_options import SimOptions, SimStats, params_document
-from simulators.virtual_drives import VirtualDrive, virtual_drives
+from simulators.sensors.gyro import GyroSim, PoseHistory, axis_travel, tape_measure
+from simulators.sensors.mocap import MocapSim, TruthPublisher
 from swpc_hw.clock import SimClock, SystemClock, next_instant
 from swpc_hw.robot.model import RobotParams, wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED

@@ -36,7 +36,7 @@ from typing import Any
 
 import can
 
-from simulators.virtual_controller import ControllerEmulator, VirtualController
+from simulators.drives.swpc import ControllerEmulator, VirtualController
 from swpc_hw.can import CanConfig, CanDriver, ModuleState
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
-from simulators.physics import se2_step
+from simulators.physics.core import se2_step
 from swpc_hw.clock import VirtualClock
 from swpc_hw.robot.model import FloatArray, RobotParams, nearest_turn, trailing_steering_angle
 from swpc_hw.sensors.gyro import GyroSample, encode_imu

@@ -12,13 +12,13 @@ from typing import Any
 import numpy as np
 
 from services.config.robot import RobotConfig
-from services.runs.imu import ImuMetrology
-from services.runs.mocap import MocapMetrology
+from services.runs.metrology.imu import ImuMetrology
+from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import State
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
-from simulators.imu_sim import axis_travel
+from simulators.sensors.gyro import axis_travel
 from swpc_hw.clock import VirtualClock
 from swpc_hw.files.references import AxisDistance, Reference
 from swpc_hw.robot.model import RobotParams

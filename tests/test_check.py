@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from simulators.datagen import ExperimentOptions, generate_experiment
+from simulators.offline.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration.check.dataset_check import check_dataset
 from swpc_hw.calibration.check.trend import linear_trend
 from swpc_hw.calibration.check.verdict import (

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from simulators.datagen import ExperimentOptions
-from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
+from simulators.offline.datagen import ExperimentOptions
+from simulators.offline.datagen_imu import ReferenceOptions, generate_imu_experiment
 from swpc_hw.calibration.check.dataset_check import check_dataset
 from swpc_hw.calibration.check.shape import compare_shape, gauge_directions, relative_map
 from swpc_hw.calibration.check.verdict import CONSISTENT, DRIFTED, thresholds

@@ -4,7 +4,7 @@
 * the host (``swpc_hw.drives.cia402``) against :class:`canopen.LocalNode` -- canopen's own
   slave with the same EDS, a few lines here playing the drive's statusword from CiA 402's
   table -- on python-can's ``virtual`` bus in real time;
-* the virtual drive (``simulators.cia402_drive``) against canopen's own 402 master
+* the virtual drive (``simulators.drives.cia402``) against canopen's own 402 master
   (:class:`canopen.BaseNode402`) in real time;
 * the two against each other in lockstep (the in-process simulator's clock): activation,
   homing, motion, and the drives' own dead-man when the host stops.
@@ -30,7 +30,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.can.config import CanConfig
 from swpc_hw.can.errors import LifecycleError, NodeError

@@ -2,7 +2,7 @@
 
 The same service, state machine and simulator as ``tests/test_service.py``; the robot
 config says ``drives: cia402``, so the host is :mod:`swpc_hw.drives.cia402` and the
-virtual robot's drives are :mod:`simulators.cia402_drive`.  A whole calibration reaches
+virtual robot's drives are :mod:`simulators.drives.cia402`.  A whole calibration reaches
 DONE, and every fault the swpc tests stop on (heartbeat lost, a drive's fault as EMCY,
 bus-off, stale motion capture, abort, a step timeout) stops every axis first: RPDO 1 with
 controlword *disable voltage* (0) and target torque 0 to all eight drives.  Each test

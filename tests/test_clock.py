@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import COINCIDENT_S, SimClock, VirtualClock, next_instant
 

@@ -34,7 +34,7 @@ from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.http.console.router import mcap_summary
-from services.runs.mocap import MocapMetrology
+from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runtime.events import EventBus
 from services.runtime.runtime import Runtime

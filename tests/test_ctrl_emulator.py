@@ -17,7 +17,7 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode, Frame
-from simulators.virtual_controller import VirtualController
+from simulators.drives.swpc import VirtualController
 from tests.service_rig import ROOT
 
 C_DIR = ROOT / "firmware_protocol" / "c"

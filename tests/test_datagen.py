@@ -10,8 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simulators.datagen import Experiment, ExperimentOptions, PartialSlip, generate_experiment
-from simulators.random_robots import batch_experiment, random_robots
+from simulators.offline.datagen import (
+    Experiment,
+    ExperimentOptions,
+    PartialSlip,
+    generate_experiment,
+)
+from simulators.offline.random_robots import batch_experiment, random_robots
 from swpc_hw.files.dataset import load_dataset
 from swpc_hw.files.kinematic_file import load_robot
 from swpc_hw.robot.model import rot, wrap_angle

@@ -1,7 +1,7 @@
 """The drift monitor (swpc_hw.onboard.drift): running estimate of each module's r and beta error
 from the odometry of normal driving, and the calibration suspect it raises.
 
-Readings: :mod:`simulators.drift_path` (exact no-slip casters on a true robot, a mixed path
+Readings: :mod:`simulators.offline.drift_path` (exact no-slip casters on a true robot, a mixed path
 of straights, arcs, strafes, spins and stops, 200 Hz); "noiseless" has no quantization,
 slip or jitter, "noisy" the defaults (2^17 counts, 0.2 % slip, slip bursts).  The file is
 the paper's calibrated robot.
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from services.cli.odometry import log_suspect
-from simulators.drift_path import (
+from simulators.offline.drift_path import (
     PathNoise,
     drive_readings,
     mixed_segments,

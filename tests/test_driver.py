@@ -21,7 +21,7 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, Command, ControlMode, ErrorFlag, HomingState
-from simulators.virtual_controller import ControllerEmulator, VirtualController
+from simulators.drives.swpc import ControllerEmulator, VirtualController
 from swpc_hw.can import (
     CanBusError,
     CanCommandError,

@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from simulators.datagen import generate_experiment
-from simulators.plan_predict import experiment_options, predicted_spins
+from services.plan.predict import experiment_options, predicted_spins
+from simulators.offline.datagen import generate_experiment
 from swpc_hw.calibration.mocap.covariance import segment_terms
 from swpc_hw.calibration.mocap.solver import solve, solve_joint
 from swpc_hw.calibration.parameters import BETA, X_S, R

@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 
 from services.sensors.gyro import GyroIngest
-from simulators.datagen_imu import GyroOptions
-from simulators.imu_sim import (
+from simulators.sensors.gyro import (
     GyroSim,
     PoseHistory,
     axis_travel,
@@ -29,7 +28,7 @@ from simulators.imu_sim import (
 )
 from swpc_hw.clock import VirtualClock
 from swpc_hw.robot.model import rot
-from swpc_hw.sensors.gyro import GyroSample, ImuDecodeError, decode_imu, encode_imu
+from swpc_hw.sensors.gyro import GyroOptions, GyroSample, ImuDecodeError, decode_imu, encode_imu
 from swpc_hw.sensors.mocap import PoseSample, encode_cdr, encode_native
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
@@ -92,7 +91,7 @@ def test_gyro_settings_no_gyro_has_are_refused() -> None:
     ):
         with pytest.raises(ValueError, match=words):
             check_gyro(bad)
-    from simulators.sim_options import SimOptions
+    from simulators.options import SimOptions
 
     with pytest.raises(ValueError, match="gyro rate"):
         SimOptions(gyro=GyroOptions(rate=-1.0))

@@ -11,9 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from simulators.datagen_imu import (
+from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
-    GyroOptions,
     ImuExperiment,
     ReferenceOptions,
     generate_imu_experiment,
@@ -37,6 +36,7 @@ from swpc_hw.robot.frames import (
 )
 from swpc_hw.robot.model import rot
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.gyro import GyroOptions
 
 FAST = dataclasses.replace(
     IMU_PROTOCOL, spin_duration=4.0, drive_length=2.0, encoder_rate=100.0

@@ -13,10 +13,9 @@ import numpy as np
 import pytest
 
 from services.cli import main as swpc_main
-from simulators.datagen import PartialSlip
-from simulators.datagen_imu import (
+from simulators.offline.datagen import PartialSlip
+from simulators.offline.datagen_imu import (
     IMU_PROTOCOL,
-    GyroOptions,
     ImuExperiment,
     ReferenceOptions,
     fisher_setup,
@@ -38,6 +37,7 @@ from swpc_hw.robot.frames import (
 )
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+from swpc_hw.sensors.gyro import GyroOptions
 
 SHORT = dataclasses.replace(IMU_PROTOCOL, spin_duration=6.0)
 EXACT = dataclasses.replace(SHORT, counts_per_rev=None)

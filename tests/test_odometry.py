@@ -29,7 +29,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
 
-from simulators.drift_path import caster_rates
+from simulators.offline.drift_path import caster_rates
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.onboard.odometry import (

@@ -23,7 +23,7 @@ import pytest
 from firmware_protocol import codec as swpc_codec
 from firmware_protocol.codec import Axis, ErrorFlag
 from firmware_protocol.odrive import can_simple as cs
-from simulators.virtual_odrive import VirtualODriveAxis, odrive_virtual_drive
+from simulators.drives.odrive import VirtualODriveAxis, odrive_virtual_drive
 from swpc_hw.can.config import CanConfig
 from swpc_hw.can.errors import NodeError
 from swpc_hw.can.types import DriverStats
@@ -347,7 +347,7 @@ def test_a_frame_queued_before_the_simulator_slows_down_takes_effect_at_once() -
     up.  A command queued just before (a burst: the watchdog proof's frames) must still take
     effect at its arrival, not after the stall has been simulated: in the VM, a 1.5 s stall
     held the proof's frames back until the service had given up on them."""
-    from simulators.sim_options import SimOptions
+    from simulators.options import SimOptions
     from simulators.virtual_robot import VirtualRobot
     from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 

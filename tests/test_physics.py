@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from simulators.physics import (
+from simulators.physics.core import (
     caster_rates,
     pose_about_pivot,
     rk4_step,

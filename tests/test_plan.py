@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from simulators.plan_predict import experiment_options, predicted_covariance
+from services.plan.predict import experiment_options, predicted_covariance
 from swpc_hw.calibration.plan.plan import (
     ANGLE_SETS,
     YAW_RATE_MARGIN,

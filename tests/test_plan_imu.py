@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from services.config.robot import RobotConfig
-from services.runs.plan import MIN_IMU_WINDOW, PlanRequest, plan_for, time_model
-from simulators.datagen_imu import GyroOptions, fisher_setup, generate_imu_experiment
-from simulators.plan_predict import (
+from services.plan.planner import MIN_IMU_WINDOW, PlanRequest, plan_for, time_model
+from services.plan.predict import (
     imu_experiment_options,
     predicted_imu_covariance,
     tape_readings,
 )
+from simulators.offline.datagen_imu import fisher_setup, generate_imu_experiment
 from swpc_hw.calibration.gyro.solver import solve_imu
 from swpc_hw.calibration.plan.identifiability import gauge_directions
 from swpc_hw.calibration.plan.plan import Candidate, Targets, TimeModel, robot_time, stddevs
@@ -28,6 +28,7 @@ from swpc_hw.calibration.plan.square_error import (
     square_path_sensitivity,
 )
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from swpc_hw.sensors.gyro import GyroOptions
 from tests.service_rig import AUTH, Sim
 from tests.test_service_imu import axis_distances, play_operator
 

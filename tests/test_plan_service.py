@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from services.cli import main as swpc
 from services.config.robot import RobotConfig
-from services.runs.plan import Planner, PlannerBusyError, PlanRequest, plan_for
+from services.plan.planner import Planner, PlannerBusyError, PlanRequest, plan_for
 from swpc_hw.calibration.plan.forecast import MIN_SWEEP
 from swpc_hw.calibration.plan.plan import MocapNoise, PlanError, Targets
 from tests.service_rig import AUTH, Sim, app_without_robot, wait_state

@@ -111,7 +111,8 @@ def test_a_long_lived_service_keeps_a_bounded_number_of_runs_in_memory(
     from pydantic import SecretStr
 
     from services.config.settings import ServiceSettings
-    from services.runtime.runtime import RUNS_IN_MEMORY, Runtime
+    from services.runtime.records import RUNS_IN_MEMORY
+    from services.runtime.runtime import Runtime
 
     rt = Runtime(ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN)))
     try:

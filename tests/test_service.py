@@ -253,7 +253,7 @@ def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed
 
 
 def test_motion_rates_are_least_squares_slopes() -> None:
-    from services.runs.pose_motion import motion_rates
+    from services.runs.metrology.pose_motion import motion_rates
 
     rng = np.random.default_rng(3)
     t = np.sort(rng.uniform(10.0, 10.5, 60))

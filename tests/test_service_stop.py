@@ -26,7 +26,7 @@ import httpx
 from firmware_protocol import codec
 from firmware_protocol.codec import ControlMode
 from services.store.runs import RunStore
-from swpc_hw.zenoh_session import free_tcp_endpoint
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.service_rig import AUTH, SHORT, TOKEN, wait_spinning
 
 STOP_TIMEOUT = 20.0

@@ -32,16 +32,15 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
-from simulators.datagen_imu import GyroOptions
-from simulators.imu_sim import imu_key
-from simulators.mocap_sim import MocapOptions, pose_key, truth_params_key, truth_pose_key
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
+from simulators.sensors.gyro import imu_key
+from simulators.sensors.mocap import MocapOptions, pose_key, truth_params_key, truth_pose_key
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
 from swpc_hw.drives.config import SwpcDrives
 from swpc_hw.robot.model import RobotParams, rot
-from swpc_hw.sensors.gyro import decode_imu
+from swpc_hw.sensors.gyro import GyroOptions, decode_imu
 from swpc_hw.sensors.mocap import PoseEncoding, decode_pose
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 

@@ -1,4 +1,5 @@
-"""Virtual robot physics (simulators.robot_physics) and mocap corruption (simulators.mocap_sim)."""
+"""Virtual robot physics (simulators.physics.robot) and mocap corruption
+(simulators.sensors.mocap)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,10 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
-from simulators.axis_drives import axis_drive, quantize
-from simulators.mocap_sim import MocapOptions, MocapSim, corrupt_pose
-from simulators.physics import caster_rates, settled_trailing
-from simulators.robot_physics import (
+from simulators.drives.base import AxisModel, axis_drive, quantize
+from simulators.drives.swpc import VirtualController
+from simulators.physics.core import caster_rates, settled_trailing
+from simulators.physics.robot import (
     FREE_MODULE,
     DriveArrays,
     ModuleDrive,
@@ -23,7 +24,7 @@ from simulators.robot_physics import (
     module_rates,
     prioritized_twist,
 )
-from simulators.virtual_controller import AxisModel, VirtualController
+from simulators.sensors.mocap import MocapOptions, MocapSim, corrupt_pose
 from swpc_hw.robot.model import RobotParams, forward_kinematics, inverse_kinematics, wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.sensors.mocap import decode_pose, encode_cdr

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from services.cli import main as swpc_main
-from simulators.datagen import ExperimentOptions, generate_experiment
+from simulators.offline.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.mocap.baseline import solve_paper
 from swpc_hw.calibration.mocap.solver import SolverOptions, canonical_parameters, solve

@@ -16,7 +16,12 @@ import numpy as np
 import pytest
 
 from services.cli import main as swpc_main
-from simulators.datagen import ExperimentOptions, PartialSlip, ar1_noise, generate_experiment
+from simulators.offline.datagen import (
+    ExperimentOptions,
+    PartialSlip,
+    ar1_noise,
+    generate_experiment,
+)
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.calibration.mocap.baseline import solve_paper, widest_pair
 from swpc_hw.calibration.mocap.clock_offset import jackknife_std

@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from services.runs.imu import ImuMetrology
-from services.runs.mocap import MocapMetrology
+from services.runs.metrology.imu import ImuMetrology
+from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL, TRANSITIONS, State
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
@@ -374,7 +374,7 @@ def test_without_mocap_the_gyro_judges_the_yaw_rate_and_the_wheels_the_drive_spe
 def test_references_that_cannot_fix_the_scale_or_the_radii_refuse_the_run(tmp_path: Path) -> None:
     """Defence in depth (the API refuses these with 422): FAILED before CONNECT, nothing
     sent to the robot."""
-    from services.runs.imu import reference_problems
+    from services.runs.metrology.imu import reference_problems
 
     rig = Rig(tmp_path, {"protocol": {"drive_length": 0.0}}, "imu")
     rig.references = []
@@ -535,7 +535,7 @@ def test_terminal_states_have_no_way_out() -> None:
 def test_spin_window_unwraps_measures_its_rate_and_opens_once_settled() -> None:
     """The spin's pure core: fed 10 s of poses at 100 Hz turning at 0.5 rad/s through the
     +-pi wrap, its window opens at the first pose 1 s (settle_time) after the torque."""
-    from services.runs.pose_motion import SpinWindow
+    from services.runs.metrology.pose_motion import SpinWindow
 
     w = SpinWindow(t_spin=10.0, settle_time=1.0, t0=10.0, yaw0=3.0)
     assert w.sweep == 0.0 and w.rate is None

@@ -70,7 +70,7 @@ C_EMULATOR = ROOT / "build" / "swpc-ctrl-emu"
 
 
 def emulate(args: argparse.Namespace) -> int:
-    from simulators.virtual_controller import ControllerEmulator, VirtualController
+    from simulators.drives.swpc import ControllerEmulator, VirtualController
 
     ctrls = [VirtualController(n, rate_hz=args.rate) for n in NODES]
     with ControllerEmulator(ctrls, interface="socketcan", channel=args.channel):

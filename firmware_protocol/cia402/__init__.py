@@ -6,7 +6,7 @@ drive must have: ``docs/drives.md``), the 402 power state machine (statusword ->
 state, controlword commands, the drive's transitions), the modes of operation, the PDO
 mapping swpc configures, and the names of EMCY error codes.
 
-The host (``swpc_hw/drives/cia402/``) and the virtual drive (``simulators/cia402_drive.py``)
+The host (``swpc_hw/drives/cia402/``) and the virtual drive (``simulators/drives/cia402.py``)
 both take these from here; SDO, PDO, NMT and EMCY themselves are the ``canopen``
 library's.  Objects by CiA 301 / CiA 402 (IEC 61800-7-201) index.
 """

@@ -4,7 +4,8 @@ Every module here whose name does not start with ``_`` is a subcommand (discover
 start-up, as cantools discovers its subparsers): it defines ``register(subparsers) ->
 None``, which adds its parser and sets ``func(args) -> int`` as default.  Heavy imports
 stay inside ``func`` so that ``swpc --help`` is fast.  Add a subcommand by adding a
-module.
+module.  The options several commands share are here (:func:`add_noise_arguments`,
+:func:`add_gyro_arguments`, :func:`add_metrology_argument`).
 
 Errors the user can act on (bad input, a file, a CAN interface that cannot be opened)
 are one line on stderr, ``swpc <command>: error: ...``, and exit status 2; a bug keeps
@@ -19,6 +20,7 @@ import importlib.util
 import pkgutil
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from firmware_protocol.errors import FirmwareProtocolError
 from swpc_hw.errors import SwpcError
@@ -90,6 +92,66 @@ def one_line(exc: BaseException) -> str:
         return f"{where}{exc.strerror}"
     text = " ".join(str(exc).split())
     return text or type(exc).__name__
+
+
+# ---------------------------------------------------------- options several commands share
+# the commands that simulate (``swpc datagen``, ``swpc sim``) and the demo, in human units
+
+
+def add_noise_arguments(p: Any) -> None:
+    """Mocap noise, dropouts, outliers and wheel slip (mm and degrees on the command line)."""
+    p.add_argument("--pose-sigma-xy", type=float, default=0.0, help="pose noise, mm (0)")
+    p.add_argument("--pose-sigma-yaw", type=float, default=0.0, help="yaw noise, deg (0)")
+    p.add_argument("--dropout", type=float, default=0.0, help="fraction of poses dropped")
+    p.add_argument("--outliers", type=float, default=0.0, help="fraction of outlier poses")
+    p.add_argument("--outlier-magnitude", type=float, default=50.0, help="outlier jump, mm")
+    p.add_argument("--slip-rate", type=float, default=0.0, help="slip bursts /s per wheel")
+
+
+def add_gyro_arguments(g: Any) -> None:
+    """The simulated z gyro (:class:`swpc_hw.sensors.gyro.GyroOptions`, its defaults)."""
+    from swpc_hw.sensors.gyro import GyroOptions
+
+    rate, noise, bias, walk, scale = GyroOptions().human()
+    g.add_argument("--gyro-rate", type=float, default=rate, help=f"gyro samples /s ({rate:g})")
+    g.add_argument(
+        "--gyro-noise", type=float, default=noise, help=f"white noise, deg/s/sqrt(Hz) ({noise:g})"
+    )
+    g.add_argument("--gyro-bias", type=float, default=bias, help=f"bias, deg/s ({bias:g})")
+    g.add_argument(
+        "--gyro-bias-walk", type=float, default=walk, help=f"bias walk, deg/s/sqrt(s) ({walk:g})"
+    )
+    g.add_argument(
+        "--gyro-scale-error", type=float, default=scale, help=f"scale error, %% ({scale:g})"
+    )
+
+
+def gyro_options(args: argparse.Namespace) -> Any:
+    """The :class:`~swpc_hw.sensors.gyro.GyroOptions` of :func:`add_gyro_arguments`."""
+    from swpc_hw.sensors.gyro import GyroOptions
+
+    return GyroOptions.from_human(
+        args.gyro_rate, args.gyro_noise, args.gyro_bias, args.gyro_bias_walk, args.gyro_scale_error
+    )
+
+
+METROLOGIES = ("mocap", "imu")
+"""What measures the robot's motion: motion capture, or the IMU's gyro with the encoders
+and a tape measure (the API's ``metrology``)."""
+
+
+def add_metrology_argument(p: Any) -> None:
+    """``--metrology mocap|imu`` (``--mocap-free``: the old spelling of ``imu``)."""
+    p.add_argument(
+        "--metrology",
+        choices=METROLOGIES,
+        default="mocap",
+        help="what measures the robot's motion: motion capture (mocap) or the gyro, the "
+        "encoders and a tape (imu)",
+    )
+    p.add_argument(
+        "--mocap-free", dest="metrology", action="store_const", const="imu", help=argparse.SUPPRESS
+    )
 
 
 if __name__ == "__main__":

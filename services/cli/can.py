@@ -98,7 +98,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.live import Live
 
-    from simulators.virtual_controller import ControllerEmulator, VirtualController
+    from simulators.drives.swpc import ControllerEmulator, VirtualController
     from swpc_hw.can import CanConfig, CanConfigError, CanDriver
 
     try:

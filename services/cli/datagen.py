@@ -13,7 +13,7 @@ import itertools
 import math
 from typing import Any
 
-from services.cli._sim_options import (
+from services.cli import (
     add_gyro_arguments,
     add_metrology_argument,
     add_noise_arguments,
@@ -25,6 +25,9 @@ TAPE_READINGS = 2
 
 
 def register(sub: Any) -> None:
+    from swpc_hw.protocol import DEFAULT_PROTOCOL
+
+    angles = DEFAULT_PROTOCOL.angles_deg
     p = sub.add_parser(
         "datagen",
         aliases=["simulate"],
@@ -39,8 +42,9 @@ def register(sub: Any) -> None:
     p.add_argument("--truth", help="kinematic file of the truth (default: paper Table 4)")
     p.add_argument("--nominal", help="kinematic file written as robot.yaml (default: design)")
     p.add_argument(
-        "--angles", type=float, nargs="+", default=[45.0, 165.0], metavar="DEG",
-        help="steering angles of the locked module (deg, >= 2; default 45 165)",
+        "--angles", type=float, nargs="+", default=list(angles), metavar="DEG",
+        help="steering angles of the locked module (deg, >= 2; default "
+        + " ".join(f"{a:g}" for a in angles) + ")",
     )
     p.add_argument("--yaw-rate", type=float, default=0.5, help="rad/s, <0 clockwise (0.5)")
     p.add_argument("--spin-duration", type=float, default=12.0, help="s per segment (12)")
@@ -55,7 +59,7 @@ def register(sub: Any) -> None:
         "--metrology imu writes imu.csv and references.yaml instead of poses.csv, from a "
         "run with rests and a straight drive (docs/imu.md)",
     )
-    from simulators.datagen_imu import IMU_PROTOCOL, ReferenceOptions
+    from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions
 
     rest, drive = IMU_PROTOCOL.rest_time, IMU_PROTOCOL.drive_length
     tape_mm = ReferenceOptions.stddev * 1e3
@@ -84,7 +88,7 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from simulators.datagen import ExperimentOptions, generate_experiment
+    from simulators.offline.datagen import ExperimentOptions, generate_experiment
     from swpc_hw.files.kinematic_file import load_robot
     from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
@@ -123,7 +127,7 @@ def run_imu(args: argparse.Namespace, truth: Any, nominal: Any, opt: Any) -> int
     """``--metrology imu``: the run with rests and a drive, written without poses.csv."""
     import dataclasses
 
-    from simulators.datagen_imu import ReferenceOptions, generate_imu_experiment
+    from simulators.offline.datagen_imu import ReferenceOptions, generate_imu_experiment
 
     opt = dataclasses.replace(opt, rest_time=args.rest_time, drive_length=args.drive_length)
     gyro = gyro_options(args)

@@ -33,7 +33,8 @@ def register(sub: Any) -> None:
     p.add_argument("--zenoh-connect", dest="connect", nargs="*", metavar="ENDPOINT")
     p.add_argument("--zenoh-config", dest="config_file", help="zenoh JSON5 config file")
     p.add_argument("--stale-periods", type=float,
-                   help="heartbeats missed before a robot is stale (default 3)")
+                   help="fleet periods without a message before a robot is stale "
+                        "(default 3)")
     p.add_argument("--log-level", type=str.lower, choices=LOG_LEVELS)
     p.add_argument("--log-format", type=str.lower, choices=LOG_FORMATS)
     p.set_defaults(func=run)

@@ -62,7 +62,7 @@ def register(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from services.config.robot import RobotConfig, load_robot_config
     from services.config.settings import ServiceSettings
-    from services.runs.plan import PlanRequest, default_budget, plan_for, plan_text
+    from services.plan.planner import PlanRequest, default_budget, plan_for, plan_text
     from swpc_hw.calibration.plan.plan import MocapNoise, PlanError, Targets
     from swpc_hw.calibration.plan.square_error import SQUARE_BUDGET
 

@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any
 
-from services.cli._sim_options import add_gyro_arguments, add_noise_arguments, gyro_options
+from services.cli import add_gyro_arguments, add_noise_arguments, gyro_options
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -79,7 +79,7 @@ def register(sub: Any) -> None:
         default=5.0,
         help="longest physics step, ms (5; shorter when the feedback rate asks for it)",
     )
-    from simulators.sim_options import SimOptions
+    from simulators.options import SimOptions
 
     rate, watchdog = SimOptions.feedback_rate_hz, SimOptions.watchdog_ms
     p.add_argument(
@@ -166,9 +166,9 @@ def sim_drives(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from simulators.mocap_sim import MocapOptions
-    from simulators.robot_physics import PhysicsOptions
-    from simulators.sim_options import SimOptions
+    from simulators.options import SimOptions
+    from simulators.physics.robot import PhysicsOptions
+    from simulators.sensors.mocap import MocapOptions
     from simulators.virtual_robot import VirtualRobot
     from swpc_hw.files.kinematic_file import load_robot
     from swpc_hw.heap_freeze import freeze_startup_heap

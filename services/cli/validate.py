@@ -166,7 +166,7 @@ def run_in_process(
     from services.config.robot import RobotConfig
     from services.config.timing import robot_drives
     from services.runtime.simulator import in_process_simulator
-    from simulators.mocap_sim import truth_pose_key
+    from simulators.sensors.mocap import truth_pose_key
     from swpc_hw.clock import SimClock
     from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -20,8 +21,11 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from services.config.log_options import LogFormat, LogLevel
 from swpc_hw.errors import SwpcError
 
-STATE_FORMAT = "swpc-fleet-state/1"
+STATE_FORMAT = "swpc-fleet-state/2"
 """The ``format`` of a robot's state document (docs/fleet.md: its fields)."""
+STATE_FORMAT_1 = "swpc-fleet-state/1"
+"""The format before: the same fields, the fleet period named ``heartbeat_s`` (the word of
+the drives' CAN heartbeat); still read, from robots not yet updated and from the store."""
 PREFIX = "swpc/fleet"
 STATE_KEYS = f"{PREFIX}/*/state"
 """Every robot's state (the fleet service's subscription)."""
@@ -30,8 +34,20 @@ ALIVE_KEYS = f"{PREFIX}/*/alive"
 ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 """A robot's name in the fleet: one zenoh key chunk, no wildcard or separator."""
 STALE_PERIODS = 3
-"""A robot is stale after this many heartbeat periods without a message (unless
+"""A robot is stale after this many of its fleet periods without a message (unless
 ``SWPC_FLEET_STALE_PERIODS`` says), or at once when its liveliness token goes."""
+
+
+def fleet_period(doc: dict[str, Any]) -> Any:
+    """The fleet period a state document states (s, as sent: :func:`check_document
+    <services.fleet.service.check_document>` checks it): ``fleet_period_s``, or
+    ``heartbeat_s`` in a :data:`STATE_FORMAT_1` document."""
+    return doc.get("heartbeat_s" if doc.get("format") == STATE_FORMAT_1 else "fleet_period_s")
+
+
+def fleet_period_field(doc: dict[str, Any]) -> str:
+    """The name of the fleet period's field in ``doc``'s format."""
+    return "heartbeat_s" if doc.get("format") == STATE_FORMAT_1 else "fleet_period_s"
 
 
 class FleetNameError(SwpcError, ValueError):
@@ -102,7 +118,7 @@ class FleetSettings(BaseSettings):
         STALE_PERIODS,
         gt=1,
         le=100,
-        description="a robot is stale after this many of its heartbeat periods without a "
+        description="a robot is stale after this many of its fleet periods without a "
         "message (at once when its liveliness token goes)",
     )
     log_level: LogLevel = "info"

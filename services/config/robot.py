@@ -30,6 +30,7 @@ from swpc_hw.can.config import DEFAULT_WATCHDOG_MS
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.kinematic_file import kinematics_document, load_robot, parse_kinematics
+from swpc_hw.protocol import DEFAULT_PROTOCOL as _DEFAULT
 from swpc_hw.robot.frames import BaseLink
 from swpc_hw.robot.model import KIND_OF, PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
@@ -116,28 +117,37 @@ def _circular_gap(a: float, b: float) -> float:
 
 
 class ProtocolConfig(BaseModel):
-    """The calibration protocol (angles in degrees, times in seconds)."""
+    """The calibration protocol (angles in degrees, times in seconds); its defaults are
+    :data:`swpc_hw.protocol.DEFAULT_PROTOCOL`."""
 
     model_config = STRICT
 
     angles_deg: list[float] = Field(
-        default_factory=lambda: [45.0, 165.0], min_length=1, max_length=12
+        default_factory=lambda: list(_DEFAULT.angles_deg), min_length=1, max_length=12
     )
     """A calibration needs two or more (:meth:`RobotConfig.run_problems`); a check, one."""
-    sweep_deg: float = Field(360.0, gt=10, le=3600, description="mocap-measured sweep per spin")
-    settle_time: float = Field(3.0, ge=0, description="spin time before the window opens, s")
-    stop_time: float = Field(1.5, ge=0, description="time allowed to spin down, s")
-    align_time: float = Field(1.0, ge=0, description="time to align the dynamic modules, s")
-    resteer_time: float = Field(2.5, gt=0, description="time to re-steer the locked module, s")
+    sweep_deg: float = Field(
+        _DEFAULT.sweep_deg, gt=10, le=3600, description="mocap-measured sweep per spin"
+    )
+    settle_time: float = Field(
+        _DEFAULT.settle_time, ge=0, description="spin time before the window opens, s"
+    )
+    stop_time: float = Field(_DEFAULT.stop_time, ge=0, description="time allowed to spin down, s")
+    align_time: float = Field(
+        _DEFAULT.align_time, ge=0, description="time to align the dynamic modules, s"
+    )
+    resteer_time: float = Field(
+        _DEFAULT.resteer_time, gt=0, description="time to re-steer the locked module, s"
+    )
     modules: list[int] | None = Field(None, description="modules to lock (default all)")
     rest_time: float = Field(
-        2.0,
+        _DEFAULT.rest_time,
         ge=0,
         description="without motion capture: the robot held still before every spin, "
         "around the straight drive and at the end (the gyro's bias), s",
     )
     drive_length: float = Field(
-        4.0,
+        _DEFAULT.drive_length,
         ge=0,
         le=MAX_DRIVE_LENGTH,
         description="without motion capture: the straight drive at the end, m (0: none; "

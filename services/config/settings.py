@@ -19,8 +19,8 @@ from pydantic import ByteSize, Field, SecretStr, field_validator, model_validato
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.config.log_options import LogFormat, LogLevel
-from simulators.datagen_imu import GyroOptions
 from swpc_hw.errors import SwpcError
+from swpc_hw.sensors.gyro import GyroOptions
 
 _GYRO = GyroOptions().human()
 """The in-process simulator's gyro by default: GyroOptions' defaults, in human units."""
@@ -153,7 +153,8 @@ class ServiceSettings(BaseSettings):
         gt=0,
         le=3600,
         description="host seconds between two publications of the state when nothing changed "
-        "(the heartbeat); a change is published within 0.5 s",
+        "(the fleet period; each such publication is a repeat); a change is published "
+        "within 0.5 s",
     )
     fleet_mode: str = Field(
         "peer",

@@ -8,7 +8,7 @@ and never stops the service.  Time is the injected clock's wall time (epoch seco
 a document was received, and the ``now`` the status is judged at (:mod:`.view`).
 
 Liveliness is not kept in the store: after a restart a robot's token is unknown (None)
-until zenoh reports it, and its status is judged by its heartbeats alone until then.
+until zenoh reports it, and its status is judged by its fleet period alone until then.
 """
 
 from __future__ import annotations
@@ -20,7 +20,15 @@ import math
 import threading
 from typing import Any
 
-from services.config.fleet import ALIVE_KEYS, STATE_FORMAT, STATE_KEYS, robot_of_key
+from services.config.fleet import (
+    ALIVE_KEYS,
+    STATE_FORMAT,
+    STATE_FORMAT_1,
+    STATE_KEYS,
+    fleet_period,
+    fleet_period_field,
+    robot_of_key,
+)
 from services.fleet.view import summary
 from services.store.fleet import FleetStore
 from services.store.logs import event
@@ -59,7 +67,7 @@ def _modules(mods: Any, where: str) -> None:
 
 def check_document(robot: str, payload: bytes) -> dict[str, Any]:
     """The state document of ``robot`` in ``payload``; :class:`DocumentError` saying what
-    is wrong (not JSON, another format, another robot's name, a bad heartbeat, a
+    is wrong (not JSON, another format, another robot's name, a bad fleet period, a
     calibration without run or modules, a parameter that is not a finite number)."""
     if len(payload) > MAX_DOCUMENT_BYTES:
         raise DocumentError(f"{len(payload)} bytes, more than {MAX_DOCUMENT_BYTES}")
@@ -69,13 +77,15 @@ def check_document(robot: str, payload: bytes) -> dict[str, Any]:
         raise DocumentError(f"not JSON: {exc}") from None
     if not isinstance(doc, dict):
         raise DocumentError("not a JSON object")
-    if doc.get("format") != STATE_FORMAT:
+    if doc.get("format") not in (STATE_FORMAT, STATE_FORMAT_1):
         raise DocumentError(f"format {doc.get('format')!r}, expected {STATE_FORMAT!r}")
     if doc.get("robot") != robot:
         raise DocumentError(f"robot {doc.get('robot')!r} published on {robot!r}'s key")
-    hb = doc.get("heartbeat_s")
-    if not (isinstance(hb, int | float) and math.isfinite(hb) and hb > 0):
-        raise DocumentError(f"heartbeat_s {hb!r}: a positive number of seconds is needed")
+    period = fleet_period(doc)
+    if not (isinstance(period, int | float) and math.isfinite(period) and period > 0):
+        raise DocumentError(
+            f"{fleet_period_field(doc)} {period!r}: a positive number of seconds is needed"
+        )
     fif = doc.get("file_in_force")
     if fif is not None:
         if not isinstance(fif, dict):

@@ -3,7 +3,7 @@ the time: its status (live or stale) and the drift of its parameters.
 
 * Status: ``stale`` when its liveliness token went (the robot's zenoh session closed or
   its process died: at once) or when no message came for ``stale_periods`` of its own
-  heartbeat periods (a service that hangs with its session open); else ``live``.
+  fleet periods (a service that hangs with its session open); else ``live``.
 * Drift: each module's parameters across the robot's calibrations (merged by run from
   every document kept, so a calibration is never lost when a robot's history is cut or
   its store replaced), first and last, the change, and the change per week.
@@ -16,6 +16,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+from services.config.fleet import fleet_period
 from swpc_hw.robot.model import PARAM_NAMES
 
 WEEK_S = 7 * 86400.0
@@ -40,15 +41,15 @@ def epoch(text: str) -> float | None:
 
 
 def status(
-    last_seen: float, alive: bool | None, heartbeat_s: float, now: float, stale_periods: float
+    last_seen: float, alive: bool | None, period: float, now: float, stale_periods: float
 ) -> tuple[str, str | None]:
     """``(live | stale, why stale)``; ``alive``: its liveliness token (None: unknown)."""
     age = now - last_seen
     if alive is False:
         return "stale", "its liveliness token went (session closed or process ended)"
-    if age > stale_periods * heartbeat_s:
+    if age > stale_periods * period:
         return "stale", (
-            f"no message for {age:.0f} s ({stale_periods:g} heartbeats of {heartbeat_s:g} s)"
+            f"no message for {age:.0f} s ({stale_periods:g} fleet periods of {period:g} s)"
         )
     return "live", None
 
@@ -117,7 +118,7 @@ def summary(
 ) -> dict[str, Any]:
     """One robot in the fleet view (``points``: with each parameter's series)."""
     last = docs[-1]
-    st, why = status(last_seen, alive, float(last["heartbeat_s"]), now, stale_periods)
+    st, why = status(last_seen, alive, float(fleet_period(last)), now, stale_periods)
     fif = last.get("file_in_force") or {}
     check = last.get("last_check")
     cals = calibrations(docs)
@@ -133,7 +134,7 @@ def summary(
         "age_s": max(0.0, now - last_seen),
         "first_seen": iso(first_seen),
         "version": last.get("version"),
-        "heartbeat_s": last["heartbeat_s"],
+        "fleet_period_s": fleet_period(last),
         "file_in_force": None
         if not fif
         else {"created": fif.get("created"), "run": fif.get("run"), "error": fif.get("error")},

@@ -36,24 +36,24 @@ from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, R
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.control import ABORT, run_in
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
-from services.runs.imu import parse_references, reference_problems
-from services.runs.plan import (
+from services.plan.planner import (
     PlannerBusyError,
     PlanRequest,
     default_budget,
     planned_keys,
     stopping_for,
 )
+from services.runs.metrology.imu import parse_references, reference_problems
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunStatus
-from services.runtime.health import start_problems
-from services.runtime.runtime import (
+from services.runtime.errors import (
     DiskSpaceError,
     NoFileError,
     NoResultError,
     RunConflictError,
     StoreError,
 )
+from services.runtime.health import start_problems
 from swpc_hw.calibration.plan.forecast import Stopping
 from swpc_hw.calibration.plan.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError

@@ -18,7 +18,7 @@ from fastapi import APIRouter, HTTPException, Query
 from pydantic import BaseModel
 
 from services.http.deps import Rt, problems
-from simulators.datagen_imu import ReferenceOptions
+from simulators.offline.datagen_imu import ReferenceOptions
 
 router = APIRouter()
 

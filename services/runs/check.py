@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from services.config.robot import RobotConfig
-from services.runs.metrology import Metrology
+from services.runs.metrology.base import Metrology
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunFailedError
 from swpc_hw.calibration.check.dataset_check import check_dataset

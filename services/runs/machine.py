@@ -33,7 +33,7 @@ from typing import Any
 
 from services.config.robot import RobotConfig
 from services.runs.journal import RunJournal
-from services.runs.metrology import Metrology
+from services.runs.metrology.base import Metrology
 from services.runs.recording import RecordingError
 from services.runs.state import (
     TERMINAL,
@@ -68,7 +68,7 @@ class RunMachine:
     ) -> None:
         self.robot = robot
         self.metrology = metrology
-        """What measures the robot's motion (:mod:`services.runs.metrology`)."""
+        """What measures the robot's motion (:mod:`services.runs.metrology.base`)."""
         self.config = config
         self.clock = clock
         self.status = RunStatus(id=uuid.uuid4().hex[:12], created=now_iso())

@@ -33,9 +33,9 @@ One place to read it — :data:`TRANSITIONS`::
   backup) unless the std devs exceed the configured tolerances (then reported only,
   unless the request said ``install: always``).
 
-The metrology (:mod:`services.runs.metrology`) is a part of the run, not a subclass:
-motion capture (:mod:`services.runs.mocap`), or the IMU's gyro, the encoders and a tape
-(:mod:`services.runs.imu`), which adds STILL before every spin and STEER, MARK, DRIVE and
+The metrology (:mod:`services.runs.metrology.base`) is a part of the run, not a subclass:
+motion capture (:mod:`services.runs.metrology.mocap`), or the IMU's gyro, the encoders and a tape
+(:mod:`services.runs.metrology.imu`), which adds STILL before every spin and STEER, MARK, DRIVE and
 MEASURE after the last module (the transitions above list them).
 
 Any fault (driver fault event, stale motion sensor during motion, yaw rate above the
@@ -79,7 +79,7 @@ from services.config.settings import KINEMATICS_BACKUPS
 from services.runs.install import solve_run, within_tolerance, write_result
 from services.runs.journal import RunJournal
 from services.runs.machine import RunMachine
-from services.runs.metrology import Metrology
+from services.runs.metrology.base import Metrology
 from services.runs.recording import SpaceGuard
 from services.runs.state import (
     RunAbortedError,
@@ -98,7 +98,7 @@ from swpc_hw.robot.model import contact_point, trailing_steering_angle, wrap_ang
 
 class CalibrationRun(RunMachine):
     """One calibration: runs the protocol on its own thread (see the module docstring),
-    measuring the robot's motion through ``metrology`` (:mod:`services.runs.metrology`).
+    measuring the robot's motion through ``metrology`` (:mod:`services.runs.metrology.base`).
     A check (:class:`services.runs.check.CheckRun`) is the same run with its own SOLVE
     and WRITE."""
 
@@ -188,7 +188,7 @@ class CalibrationRun(RunMachine):
         return self.metrology.waits_for(self.status.state)
 
     def answer(self, what: str, entries: Sequence[dict[str, Any]] = ()) -> None:
-        """The operator's answer (:meth:`services.runs.metrology.Metrology.answer`)."""
+        """The operator's answer (:meth:`services.runs.metrology.base.Metrology.answer`)."""
         self.metrology.answer(self.id, self.status.state, what, entries)
 
     # ------------------------------------------------------------------ protocol

@@ -2,7 +2,7 @@
 sees of a run (:class:`RunStatus`) and the errors that end one.
 
 The protocol that walks these states is :mod:`services.runs.protocol` (with motion
-capture) and :mod:`services.runs.imu` (without: the states STILL, STEER, MARK, DRIVE and
+capture) and :mod:`services.runs.metrology.imu` (without: the states STILL, STEER, MARK, DRIVE and
 MEASURE are its own).
 """
 

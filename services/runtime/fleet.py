@@ -13,7 +13,8 @@ liveliness token ``swpc/fleet/<robot>/alive`` while it runs:
 
 * on a change, within :data:`POLL_S` host seconds: a run's state changed (the runtime's
   event bus counts them) or the file in force was replaced (its modification time);
-* else every ``SWPC_FLEET_PERIOD`` host seconds (the heartbeat), the document as it is.
+* else every ``SWPC_FLEET_PERIOD`` host seconds (the fleet period), the document as it is
+  (a repeat).
 
 Nothing here runs on a run's thread or blocks one: the run only counts an event, which the
 publisher reads; a failure to build or put is logged and the publisher goes on.
@@ -128,7 +129,7 @@ def fleet_document(rt: Runtime, period: float | None = None) -> dict[str, Any]:
         "robot": robot_name(rt),
         "version": tool_version(),
         "time": now_iso(),
-        "heartbeat_s": rt.settings.fleet_period if period is None else period,
+        "fleet_period_s": rt.settings.fleet_period if period is None else period,
         "file_in_force": file_in_force(rt),
         "last_check": last_check(rt),
         "history": history_summary(rt),
@@ -188,7 +189,7 @@ class FleetPublisher:
         return self.rt.events.published, mtime
 
     def due(self) -> bool:
-        """A change since the last publication, or a heartbeat period gone."""
+        """A change since the last publication, or a fleet period gone (a repeat)."""
         return self._fingerprint() != self._seen or (
             self.clock.now() - self._last >= self.period
         )
@@ -209,7 +210,7 @@ class FleetPublisher:
                     self.publish()
                 except Exception as exc:  # the fleet never takes the service down
                     self.failures += 1
-                    self._last = self.clock.now()  # retried at the next heartbeat
+                    self._last = self.clock.now()  # retried at the next repeat
                     event(log, logging.WARNING, "fleet.publish_failed", error=str(exc))
             self._stop.wait(min(POLL_S, self.period))
 

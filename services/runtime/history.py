@@ -29,7 +29,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.config.robot import TOLERANCE_OF, RobotConfig
-from services.runtime.runtime import NoFileError, Runtime
+from services.runtime.errors import NoFileError
+from services.runtime.runtime import Runtime
 from swpc_hw.calibration.check.trend import linear_trend
 from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.robot.frames import DESIGN_FIT, FILE_FIT

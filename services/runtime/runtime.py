@@ -22,7 +22,6 @@ in-memory state, saved again once the store takes writes.
 from __future__ import annotations
 
 import contextlib
-import errno
 import grp
 import hashlib
 import logging
@@ -41,16 +40,24 @@ from typing import Any
 from services.config.robot import RobotConfig, RunKind, load_robot_config
 from services.config.settings import ServiceSettings, SettingsError
 from services.config.timing import TimingBudget, robot_drives, timing_budget
+from services.plan.planner import Planner
 from services.runs.check import FILE_IN_FORCE, CheckRun
-from services.runs.imu import ImuMetrology
-from services.runs.install import file_run, read_replaced
-from services.runs.metrology import Metrology
-from services.runs.mocap import MocapMetrology
-from services.runs.plan import Planner
+from services.runs.metrology.base import Metrology
+from services.runs.metrology.imu import ImuMetrology
+from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runs.recording import SpaceGuard
-from services.runs.state import TERMINAL, State, now_iso
+from services.runs.state import TERMINAL, now_iso
+from services.runtime.errors import (
+    DiskSpaceError,
+    NoFileError,
+    NoResultError,
+    RunConflictError,
+    StoreError,
+    room_error,
+)
 from services.runtime.events import EventBus
+from services.runtime.records import RunRecords
 from services.runtime.simulator import in_process_simulator
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest
@@ -63,7 +70,7 @@ from swpc_hw.calibration.plan.forecast import Stopping
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.drives.interface import Drives
 from swpc_hw.drives.robot_io import DrivesRobotIO
-from swpc_hw.errors import KinematicFileError, SwpcError
+from swpc_hw.errors import KinematicFileError
 from swpc_hw.files.kinematic_file import (
     KinematicFile,
     atomic_write_text,
@@ -80,48 +87,12 @@ from swpc_hw.sensors.zenoh_session import (
 )
 
 SWITCH_INTERVAL_S = 0.001
-RUNS_IN_MEMORY = 8
-"""Finished runs the runtime keeps in memory beside the current one (the others are read
-from the run store)."""
 SIM_USER = "simulator"
 """The in-process simulator's zenoh user: the only publisher of the robot's sensor keys."""
 ZENOH_USERS_FILE = ".zenoh-users"
 """In the data dir while the in-process simulator runs: its zenoh credential (0600)."""
 log = logging.getLogger("swpc.service")
 MIB = 1 << 20
-
-
-class RunConflictError(RuntimeError):
-    """A calibration is already running."""
-
-
-class DiskSpaceError(SwpcError):
-    """No room for a run: the disk budget or the file system's free space (HTTP 507)."""
-
-
-class NoResultError(SwpcError):
-    """The run has no result to plot (not DONE)."""
-
-
-class NoFileError(SwpcError):
-    """A check needs a kinematic file in force that loads (HTTP 409)."""
-
-
-class StoreError(SwpcError):
-    """The run store, or the data dir where a run keeps its files, cannot be written: no
-    run starts (HTTP 503)."""
-
-
-def room_error(path: Path, exc: OSError) -> SwpcError:
-    """Why a run's directory or files could not be made: no room (ENOSPC, EDQUOT: bytes
-    or inodes, 507) or another failure of the data dir (503)."""
-    what = exc.strerror or str(exc)
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return DiskSpaceError(
-            f"no room for the run's files: {path}: {what} (no bytes or no inodes left on the "
-            "data dir's file system): no run started"
-        )
-    return StoreError(f"the data dir cannot keep a run: {path}: {what}: no run started")
 
 
 def give_group(path: Path, gid: int, bits: int) -> None:
@@ -136,7 +107,7 @@ def give_group(path: Path, gid: int, bits: int) -> None:
         os.chmod(path, mode | bits)
 
 
-class Runtime:
+class Runtime(RunRecords):
     """Owns every long-lived resource of the service; :meth:`close` is idempotent."""
 
     def __init__(self, settings: ServiceSettings, config: RobotConfig | None = None) -> None:
@@ -438,7 +409,7 @@ class Runtime:
     ) -> CalibrationRun:
         """Start a run of ``kind`` and ``config`` (already checked:
         :meth:`RobotConfig.for_run`) with ``metrology`` (``imu``: without motion capture,
-        with ``references``, checked: :func:`services.runs.imu.reference_problems`);
+        with ``references``, checked: :func:`services.runs.metrology.imu.reference_problems`);
         ``stopping``: a planned run's sequential stopping (motion capture only).  A
         check (docs/check.md) judges the kinematic file in force as it is now (a copy in
         its directory) and installs nothing.
@@ -556,127 +527,6 @@ class Runtime:
                 raise ValueError("sequential stopping needs motion capture")
             return ImuMetrology(self.gyro, config, references)
         return MocapMetrology(self.mocap, config.pose_key, stopping)
-
-    def _persist(self, run: CalibrationRun) -> None:
-        """Save a run's state (its on_change); a failure is kept (health, the runs list
-        shows the in-memory state) and raised, so that a run still going fails."""
-        if run.finished and self.drives is not None and run is self.current:
-            err = self.drives.stop_recording()
-            if err is not None:
-                run.status.errors.append(f"CAN recording stopped early: {err}")
-        try:
-            self.store.upsert(run.id, run.status.created, run.status.to_dict())
-            if run.status.state is State.DONE and run.result_doc is not None:
-                self.store.set_result(run.id, run.result_doc)
-                if run.status.installed:
-                    self._record_install(run)
-        except Exception as exc:
-            self._unsaved.add(run.id)
-            if self.store_error is None:
-                event(log, logging.ERROR, "store.write_failed", run=run.id, error=str(exc))
-            self.store_error = f"{type(exc).__name__}: {exc}"
-            raise
-        finally:  # the console's event stream: saved or not, as the runs list shows it
-            self.events.publish({"type": "run", "run": run.status.to_dict()})
-        self._unsaved.discard(run.id)
-        if run.finished:
-            self._retire()
-
-    def _record_install(self, run: CalibrationRun) -> None:
-        """A run installed its result at its end: a change of the file in force, with
-        the file it replaced (its backup, made just before)."""
-        b = run.backup
-        self.store.add_change(
-            {
-                "time": run.status.finished or now_iso(),
-                "action": "run",
-                "run": run.id,
-                "file": f"runs/{run.id}/kinematics.yaml",
-                "replaced": None if b is None else b.name,
-                "replaced_run": None if b is None else file_run(b),
-            },
-            read_replaced(b),
-        )
-
-    def _retire(self) -> None:
-        """Keep in memory the current run and the :data:`RUNS_IN_MEMORY` newest finished
-        ones (and any whose state the store has yet to take): the rest are read from the
-        store, so a service that runs for months holds a bounded number of runs."""
-        with self.lock:
-            finished = [
-                r for r in self.runs.values()
-                if r.finished and r is not self.current and r.id not in self._unsaved
-            ]  # fmt: skip
-            finished.sort(key=lambda r: r.status.created)
-            for r in finished[: max(0, len(finished) - RUNS_IN_MEMORY)]:
-                del self.runs[r.id]
-
-    def _save_unsaved(self) -> None:
-        """Save again the runs whose last save failed (once the store takes writes)."""
-        for rid in list(self._unsaved):
-            run = self.runs.get(rid)
-            if run is None:
-                self._unsaved.discard(rid)
-                continue
-            try:
-                self.store.upsert(run.id, run.status.created, run.status.to_dict())
-                if run.status.state is State.DONE and run.result_doc is not None:
-                    self.store.set_result(run.id, run.result_doc)
-            except Exception as exc:
-                self.store_error = f"{type(exc).__name__}: {exc}"
-                return
-            self._unsaved.discard(rid)
-        if not self._unsaved and self.store_error is not None:
-            event(log, logging.INFO, "store.recovered")
-            self.store_error = None
-
-    def _stored(self, run_id: str, kind: RunKind | None) -> tuple[dict[str, Any], Any] | None:
-        """``(status, result document or None)`` of a run of ``kind`` (None: any kind),
-        in memory or in the store; None if unknown (or of another kind)."""
-        run = self.runs.get(run_id)
-        if run is not None:
-            got: tuple[dict[str, Any], Any] | None = (run.status.to_dict(), run.result_doc)
-        else:
-            got = self.store.get(run_id)
-        if got is None or (kind is not None and got[0].get("kind", "calibration") != kind):
-            return None
-        return got
-
-    def status(self, run_id: str, kind: RunKind | None = None) -> dict[str, Any] | None:
-        """A run's status (of ``kind`` only, if given); None if unknown."""
-        got = self._stored(run_id, kind)
-        return None if got is None else got[0]
-
-    def result(
-        self, run_id: str, kind: RunKind | None = None
-    ) -> tuple[str, dict[str, Any] | None] | None:
-        """``(state, result document or None)``; None if the run is unknown (or not of
-        ``kind``)."""
-        got = self._stored(run_id, kind)
-        return None if got is None else (str(got[0]["state"]), got[1])
-
-    def list_runs(self, kind: RunKind | None = None) -> list[dict[str, Any]]:
-        """Every run (of ``kind`` only, if given), oldest first: the store's, with the
-        in-memory state of this service's runs over it (the store may have missed a
-        write)."""
-        if self._unsaved:
-            self._save_unsaved()
-        try:
-            stored = list(self.store.list(kind))
-        except Exception as exc:
-            self.store_error = f"{type(exc).__name__}: {exc}"
-            stored = []
-        by_id = {str(st["id"]): st for st in stored}
-        for rid, run in self.runs.items():
-            if kind is None or run.status.kind == kind:
-                by_id[rid] = run.status.to_dict()
-        return sorted(by_id.values(), key=lambda st: str(st.get("created", "")))
-
-    def run_states(self) -> dict[str, int]:
-        counts: dict[str, int] = {str(s): 0 for s in State}
-        for st in self.list_runs():
-            counts[str(st["state"])] = counts.get(str(st["state"]), 0) + 1
-        return counts
 
     # ------------------------------------------------------------------ plot, kinematics
     def plot_path(self, run_id: str) -> Path:

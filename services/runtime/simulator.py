@@ -20,13 +20,13 @@ import math
 from collections.abc import Sequence
 
 from services.config.robot import RobotConfig
-from simulators.datagen_imu import GyroOptions
-from simulators.mocap_sim import MocapOptions
-from simulators.sim_options import SimOptions
+from simulators.options import SimOptions
+from simulators.sensors.mocap import MocapOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from swpc_hw.sensors.gyro import GyroOptions
 from swpc_hw.sensors.zenoh_session import ZenohAuth
 
 DEFAULT_MOCAP = MocapOptions(rate=100.0, sigma_xy=0.5e-3, sigma_yaw=math.radians(0.05))
@@ -49,7 +49,7 @@ def in_process_simulator(
 ) -> VirtualRobot:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
     service's zenoh endpoint (it connects to ``zenoh_endpoints``), and its gyro
-    (``gyro``, default :class:`~simulators.datagen_imu.GyroOptions`), master of ``clock``.
+    (``gyro``, default :class:`~swpc_hw.sensors.gyro.GyroOptions`), master of ``clock``.
     (Publishing on the service's own session instead was measured slower: 10 % more CPU
     for the demo, the ingest's callback then runs in the master's put.)"""
     if truth is None:

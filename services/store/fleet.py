@@ -2,7 +2,7 @@
 documents, append-only, and when each robot was last heard.
 
 A document is kept when it differs from the robot's last one in anything but its
-``time`` (the heartbeat repeats the same state: it only moves ``last_seen``).  So the
+``time`` (a repeat, the same state published again: it only moves ``last_seen``).  So the
 store holds each robot's history of states, each once, and a restarted fleet service
 lists every robot as it last was, with when it was last heard.  Checked when it opens
 (``quick_check``), as the run store: a damaged one is :class:`FleetStoreError`, one line
@@ -38,7 +38,7 @@ CREATE TABLE IF NOT EXISTS documents (
 CREATE INDEX IF NOT EXISTS documents_robot ON documents (robot, seq);
 """
 VOLATILE = ("time",)
-"""A document's fields left out of its digest: what changes at every heartbeat."""
+"""A document's fields left out of its digest: what changes at every repeat."""
 
 
 class FleetStoreError(SwpcError):
@@ -57,7 +57,7 @@ class RobotRow:
     first_seen: float
     """Epoch seconds (the fleet's wall clock) of its first message."""
     last_seen: float
-    """Epoch seconds of its last message (a heartbeat too)."""
+    """Epoch seconds of its last message (a repeat too)."""
     documents: int
 
 

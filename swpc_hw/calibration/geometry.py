@@ -206,7 +206,7 @@ def settled_angle(P_s: ArrayLike, b: ArrayLike, C: ArrayLike, omega_sign: ArrayL
 
         cos x* = -b / |q|,  sin x* = -sign(omega) sqrt(1 - b^2 / |q|^2),  theta* = alpha + x*
 
-    (the generator's physics, :func:`simulators.physics.settled_trailing`, by the same
+    (the generator's physics, :func:`simulators.physics.core.settled_trailing`, by the same
     equations).  Wrapped to (-pi, pi].
     """
     q = np.asarray(P_s, dtype=float) - np.asarray(C, dtype=float)

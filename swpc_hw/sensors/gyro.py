@@ -21,10 +21,42 @@ from swpc_hw.sensors.mocap import CDR_ENCODING, ros2_typestore
 
 IMU = "sensor_msgs/msg/Imu"
 IMU_ENCODING = CDR_ENCODING
+_DEG = math.pi / 180.0
 
 
 class ImuDecodeError(SwpcError, ValueError):
     """An IMU payload could not be decoded."""
+
+
+@dataclass(frozen=True)
+class GyroOptions:
+    """A z gyro fixed to R (SI: rad/s, rad/s/sqrt(Hz), rad/s/sqrt(s)): the simulator's
+    (:mod:`simulators.offline.datagen_imu` has its model) and the one a plan without motion
+    capture assumes.  The defaults: a pessimistic MEMS gyro, slow thermal drift included."""
+
+    rate: float = 200.0
+    noise_density: float = 0.005 * _DEG
+    bias: float = 0.1 * _DEG
+    bias_walk: float = 1e-4 * _DEG
+    scale_error: float = 0.003
+
+    @classmethod
+    def from_human(
+        cls, rate: float, noise: float, bias: float, bias_walk: float, scale_error: float
+    ) -> GyroOptions:
+        """From the units people write (the command line's, the settings'): Hz,
+        deg/s/sqrt(Hz), deg/s, deg/s/sqrt(s) and %."""
+        return cls(rate, noise * _DEG, bias * _DEG, bias_walk * _DEG, scale_error / 100.0)
+
+    def human(self) -> tuple[float, float, float, float, float]:
+        """``(rate, noise, bias, bias_walk, scale_error)`` in :meth:`from_human`'s units."""
+        return (
+            self.rate,
+            self.noise_density / _DEG,
+            self.bias / _DEG,
+            self.bias_walk / _DEG,
+            self.scale_error * 100.0,
+        )
 
 
 @dataclass(frozen=True)

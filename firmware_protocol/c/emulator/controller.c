@@ -1,6 +1,6 @@
 /*
  * The SWPC controller's state machine (see controller.h): a line-by-line port of
- * simulators/virtual_controller.py's VirtualController (handle, _apply, step, _advance,
+ * simulators/drives/swpc.py's VirtualController (handle, _apply, step, _advance,
  * _integrate, heartbeat, _feedback, _fault), without its test hooks (muted, lose).
  */
 #define _DEFAULT_SOURCE

@@ -1,6 +1,6 @@
 /*
  * The SWPC controller's state machine in C, transport-free: the same semantics as
- * simulators/virtual_controller.py (VirtualController), on the pack/unpack code generated
+ * simulators/drives/swpc.py (VirtualController), on the pack/unpack code generated
  * from firmware_protocol/swpc.dbc (../swpc.h).  Feed it host frames with ctrl_handle()
  * and advance time with ctrl_step(); both append the frames the controller sends to an
  * output list.  Times are seconds on any monotonic axis (doubles, as in Python).

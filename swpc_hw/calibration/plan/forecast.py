@@ -23,7 +23,7 @@ progress, ``Cov_s`` from their own poses (the fixed point fitted to the poses so
 the noise as it really is), ``q_s`` from their sweep so far and ``nu_s`` from that
 fit's residuals; for the spins to come,
 the plan's prediction (:class:`SpinInformation`, from a simulated run of the plan:
-``simulators.plan_predict``).  Everything else (``G_s``, ``B_s``, ``R_s``) is the plan's,
+``services.plan.predict``).  Everything else (``G_s``, ``B_s``, ``R_s``) is the plan's,
 linearised at the nominal robot.
 
 **The rule** (:meth:`Stopping.judge`): spin ``i`` ends once it has swept ``min_sweep``

@@ -8,7 +8,7 @@ meets the requirement (:func:`plan`).  Everything here is pure; the prediction i
 simulated dataset of the candidate, solved by the joint solver, whose sandwich covariance
 is the inverse Fisher information ``H^-1 M H^-1``, ``H = J^T J`` of the weighted
 residuals) is passed in as a function, because the simulator lives a layer above
-(``simulators.plan_predict``).
+(``services.plan.predict``).
 
 **Robot time** of a candidate on ``N`` modules (:func:`robot_time`; the constants of
 :class:`TimeModel` are measured on the in-process simulator, docs/plan.md)::
@@ -74,6 +74,7 @@ from swpc_hw.calibration.plan.square_error import (
     square_path_sd,
 )
 from swpc_hw.errors import CalibrationError
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 from swpc_hw.robot.model import (
     KIND_OF,
     PARAM_KINDS,
@@ -322,7 +323,9 @@ class Requirement:
         }
 
 
-ANGLE_SETS: tuple[tuple[float, ...], ...] = ((45.0, 165.0), (45.0, 225.0), (45.0, 165.0, 285.0))
+ANGLE_SETS: tuple[tuple[float, ...], ...] = (
+    DEFAULT_PROTOCOL.angles_deg, (45.0, 225.0), (45.0, 165.0, 285.0)
+)
 """The steering angles tried (deg): the default pair, a pair 180 deg apart (the longest
 chord), three 120 deg apart.  Every module gets the same set (the protocol's
 ``angles_deg``)."""

@@ -29,7 +29,7 @@ projected on ``u_i = u(theta_i)`` and ``n_i = n(theta_i)`` is linear in ``xi``::
   whose wheel is not braked/driven, a mismatch ``N_i xi - b theta_dot`` scrubs the tyre
   sideways against a viscous lateral force;
 * steering PASSIVE (FREE, disabled, fault): a free caster trails,
-  ``b theta_dot = N_i xi`` (:func:`simulators.physics.caster_rates`).
+  ``b theta_dot = N_i xi`` (:func:`simulators.physics.core.caster_rates`).
 
 Twist solution (:func:`prioritized_twist`): the hard rows are solved in least squares,
 the soft rows in least squares within the null space of the hard ones, and the
@@ -65,7 +65,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from simulators.physics import FloatArray, se2_step
+from simulators.physics.core import FloatArray, se2_step
 from swpc_hw.robot.model import (
     RobotArrays,
     RobotParams,
@@ -254,7 +254,7 @@ def module_rates(
     """``(theta_dot, psi_dot)`` of every module under the body twist ``twist``.
 
     Passive steering trails and passive / torque wheels roll, exactly as
-    :func:`simulators.physics.caster_rates` (written out here without its array stacking,
+    :func:`simulators.physics.core.caster_rates` (written out here without its array stacking,
     this runs four times per step; the tests check both agree)::
 
         b theta_dot = (v + omega x P_w) . n(theta),   r psi_dot = (v + omega x P_w) . u(theta)

@@ -7,7 +7,7 @@ service, docs/check.md) with the protocol's re-steer time, the spin torques with
 limits (:func:`swpc_hw.calibration.plan.plan.spin_torques`: the config's ``spin_torque`` and the
 fastest under ``max_wheel_torque`` and ``max_yaw_rate``), the steering's speed limit, the
 step timeout, and by default the ``tolerances`` as the per-parameter targets; the
-prediction is :func:`simulators.plan_predict.predicted_covariance` on the nominal robot.
+prediction is :func:`services.plan.predict.predicted_covariance` on the nominal robot.
 ``swpc plan`` prints its answer; ``POST /calibrations {"plan": "auto"}`` runs it (the plan's
 :meth:`~swpc_hw.calibration.plan.plan.Candidate.overrides`, its protocol and spin torque, as the
 run's).
@@ -26,8 +26,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
 from services.config.robot import MAX_DRIVE_LENGTH, MIN_REST_TIME, RobotConfig
-from simulators.datagen_imu import GyroOptions
-from simulators.plan_predict import (
+from services.plan.predict import (
     predicted_covariance,
     predicted_imu_covariance,
     predicted_spins,
@@ -48,6 +47,7 @@ from swpc_hw.calibration.plan.plan import (
 )
 from swpc_hw.calibration.plan.square_error import SQUARE_BUDGET, square_path_sensitivity
 from swpc_hw.robot.model import RobotParams
+from swpc_hw.sensors.gyro import GyroOptions
 
 PLANNED_KEYS = frozenset(
     f"{group}.{name}"

@@ -11,7 +11,7 @@ Samples are taken at simulated times ``k / rate`` and stamped with the *mocap cl
 ``t_mocap = stamp + clock_offset``, where ``stamp`` is the simulated time of the sample
 unless the simulator gives another (:class:`simulators.virtual_robot.VirtualRobot` gives the
 host's wall clock at sampling, see its ``mocap_clock``).  Options model a real system (the
-generator's noise options, :class:`simulators.datagen.ExperimentOptions`, are the template):
+generator's noise options, :class:`simulators.offline.datagen.ExperimentOptions`, are the template):
 Gaussian noise on x, y and yaw, dropouts (a sample is not sent), outliers (a jump of
 ``outlier_magnitude`` in a random direction and ``outlier_magnitude / 0.25`` rad of yaw),
 and a transport latency (a sample is published ``latency`` simulated seconds after its
@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from simulators.physics import FloatArray
+from simulators.physics.core import FloatArray
 from swpc_hw.clock import SimClock
 from swpc_hw.sensors.mocap import PoseEncoding, PoseSample, encode_pose, zenoh_encoding_name
 

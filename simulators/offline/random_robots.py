@@ -11,7 +11,7 @@ Sign conventions (docs/model-and-frames.md):
   static module by ``dyaw = sweep`` (``sweep > 0``: counter-clockwise);
 * the free casters have settled on the trailing side: ``(P_w,j - C) . u(theta_j) = 0`` and
   ``omega sin(theta_j - alpha_j) < 0`` with ``alpha_j`` the direction of ``P_s,j - C``
-  (:func:`simulators.physics.settled_trailing`);
+  (:func:`simulators.physics.core.settled_trailing`);
 * a trailing wheel turns backwards in this convention: ``r_j dpsi_j = -D_j |dyaw|`` with
   ``D_j = |P_w,j - C|`` (the signed rolling distance of the contact point along ``u``).
 """
@@ -24,11 +24,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from simulators.physics import FloatArray, settled_trailing
+from simulators.physics.core import FloatArray, settled_trailing
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 from swpc_hw.robot.model import RobotParams, contact_point, wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
 _DEG = math.pi / 180.0
+DEFAULT_ANGLES = tuple(math.radians(a) for a in DEFAULT_PROTOCOL.angles_deg)
+"""The default protocol's steering angles (rad)."""
 
 
 class BatchRobots(NamedTuple):
@@ -101,7 +104,7 @@ def batch_experiment(
     beta: FloatArray,
     b: FloatArray,
     r: FloatArray,
-    angles: tuple[float, ...] = (45.0 * _DEG, 165.0 * _DEG),
+    angles: tuple[float, ...] = DEFAULT_ANGLES,
     n_poses: int = 36,
     sweep: float = 2.0 * math.pi,
     seed: int = 0,
@@ -111,7 +114,7 @@ def batch_experiment(
     ``C[t,k,m] = P_s[t,k] + b[t,k] u(angles[m] + beta[t,k])``; pose ``i`` of a segment:
     ``yaw_i = yaw0 + sweep i / (K - 1)``, ``p_i = C_W - R(yaw_i) C`` with random ``yaw0 ~
     U(-pi, pi)`` and ``C_W ~ U(-1, 1)^2`` m (from ``seed``).  Settled casters and wheel
-    increments from :func:`simulators.physics.settled_trailing`:
+    increments from :func:`simulators.physics.core.settled_trailing`:
     ``dpsi_j = -D_j |sweep| / r_j``.
     """
     P = np.asarray(P_s, dtype=float)

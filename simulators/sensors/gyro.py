@@ -1,8 +1,8 @@
 """The virtual robot's gyro over zenoh, and the simulator's tape measure.
 
 Gyro: a z gyro fixed to R, sampled at simulated times ``k / rate`` from the physics' true
-yaw rate, with the model of :func:`simulators.datagen_imu.simulate_gyro` and its settings
-(:class:`~simulators.datagen_imu.GyroOptions`: rate, noise density, bias, bias walk, scale
+yaw rate, with the model of :func:`simulators.offline.datagen_imu.simulate_gyro` and its settings
+(:class:`~swpc_hw.sensors.gyro.GyroOptions`: rate, noise density, bias, bias walk, scale
 error)::
 
     wz_k = (1 + scale_error) omega(t_k) + bias_k + n_k
@@ -13,7 +13,7 @@ published at once on ``imu/<robot>/data`` as a CDR ``sensor_msgs/msg/Imu``
 (:mod:`swpc_hw.sensors.gyro`), byte for byte what zenoh-bridge-ros2dds forwards from a ROS 2 IMU
 driver, stamped like the poses (lockstep: the simulated clock's wall stamp of the sample;
 ``swpc sim``: the host's wall clock at sampling).  In lockstep every publication is
-announced to the simulated clock (:func:`simulators.mocap_sim.lockstep_put`).
+announced to the simulated clock (:func:`simulators.sensors.mocap.lockstep_put`).
 
 Tape measure: what an operator measures with a tape between two floor marks, from the
 simulator's truth: the distance the steering axis of the robot's first module travelled
@@ -33,13 +33,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from simulators.datagen_imu import GyroOptions
-from simulators.mocap_sim import SampleGrid, listened, lockstep_put
-from simulators.physics import FloatArray
+from simulators.physics.core import FloatArray
+from simulators.sensors.mocap import SampleGrid, listened, lockstep_put
 from swpc_hw.clock import SimClock
 from swpc_hw.robot.model import rot
 from swpc_hw.row_ring import RowRing
-from swpc_hw.sensors.gyro import IMU_ENCODING, GyroSample, encode_imu
+from swpc_hw.sensors.gyro import IMU_ENCODING, GyroOptions, GyroSample, encode_imu
 
 MAX_GYRO_RATE_HZ = 2000.0
 

@@ -22,8 +22,8 @@ Time is the virtual robot's: the library's periodic sends (the heartbeat produce
 encoder counts (the same config as the host's), the drive's rated torque (0x6076).
 
 The physics is the same as the swpc kind's: an axis becomes an
-:class:`~simulators.virtual_controller.AxisModel` (state, mode, setpoint, limits) for
-:func:`simulators.axis_drives.axis_drive`.  An enabled axis in a torque mode with target
+:class:`~simulators.drives.base.AxisModel` (state, mode, setpoint, limits) for
+:func:`simulators.drives.base.axis_drive`.  An enabled axis in a torque mode with target
 torque 0 is free (the amplifier applies no torque), as the swpc firmware's FREE mode.
 """
 
@@ -44,8 +44,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag
-from simulators.axis_drives import axis_drive
-from simulators.virtual_controller import AxisModel
+from simulators.drives.base import AxisModel, axis_drive
 from swpc_hw.drives.config import ABSOLUTE, Cia402Axis, Cia402Drives, Cia402Steer
 
 SUPPORTED_MODES = (
@@ -411,7 +410,7 @@ class VirtualAxis:
 
 class VirtualCia402Module:
     """One module's virtual CiA 402 drives (steering and wheel): a
-    :class:`simulators.virtual_drives.VirtualDrive`."""
+    :class:`simulators.drives.base.VirtualDrive`."""
 
     def __init__(
         self, config: Cia402Drives, module: int, *, homing_duration: float, sensor_position: float
@@ -504,7 +503,7 @@ def build(
     homing_duration: float,
     sensor_position: float,
 ) -> VirtualCia402Module:
-    """The builder of :data:`simulators.virtual_drives.BUILDERS` (the feedback rate and the
+    """The builder of :data:`simulators.drives.factory.BUILDERS` (the feedback rate and the
     dead-man are the host's to set over CANopen: SYNC and 0x1016)."""
     assert isinstance(config, Cia402Drives)
     return VirtualCia402Module(

@@ -1,6 +1,6 @@
 """Simulated IMU calibration run: the robot's gyro and tape-measure references.
 
-:func:`generate_imu_experiment` runs :func:`simulators.datagen.generate_experiment`
+:func:`generate_imu_experiment` runs :func:`simulators.offline.datagen.generate_experiment`
 with rests and a straight drive (:data:`IMU_PROTOCOL`), then adds what a robot
 without motion capture records (docs/dataset-format.md, "Without motion capture"):
 
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from simulators.datagen import Experiment, ExperimentOptions, generate_experiment
-from simulators.physics import FloatArray
+from simulators.offline.datagen import Experiment, ExperimentOptions, generate_experiment
+from simulators.physics.core import FloatArray
 from swpc_hw.calibration.gyro.build import ImuRun, NoiseLevels, build_imu_problem
 from swpc_hw.calibration.gyro.weights import initial_weights
 from swpc_hw.calibration.options import SolverOptions
@@ -47,43 +47,18 @@ from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.files.dataset import Dataset, save_dataset
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.files.references import AxisDistance, Reference, StraightDrive, WheelRadius
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 from swpc_hw.robot.frames import design_fit_transform, transform_parameters
 from swpc_hw.robot.model import RobotParams, rot
+from swpc_hw.sensors.gyro import GyroOptions
 
 _DEG = math.pi / 180.0
 
-IMU_PROTOCOL = ExperimentOptions(rest_time=2.0, drive_length=4.0)
-"""The default protocol without motion capture: the seed experiment with 2 s rests (the
-gyro's bias) and a 4 m straight drive at the end (the wheel radii)."""
-
-
-@dataclass(frozen=True)
-class GyroOptions:
-    """A z gyro fixed to R (SI: rad/s, rad/s/sqrt(Hz), rad/s/sqrt(s))."""
-
-    rate: float = 200.0
-    noise_density: float = 0.005 * _DEG
-    bias: float = 0.1 * _DEG
-    bias_walk: float = 1e-4 * _DEG
-    scale_error: float = 0.003
-
-    @classmethod
-    def from_human(
-        cls, rate: float, noise: float, bias: float, bias_walk: float, scale_error: float
-    ) -> GyroOptions:
-        """From the units people write (the command line's, the settings'): Hz,
-        deg/s/sqrt(Hz), deg/s, deg/s/sqrt(s) and %."""
-        return cls(rate, noise * _DEG, bias * _DEG, bias_walk * _DEG, scale_error / 100.0)
-
-    def human(self) -> tuple[float, float, float, float, float]:
-        """``(rate, noise, bias, bias_walk, scale_error)`` in :meth:`from_human`'s units."""
-        return (
-            self.rate,
-            self.noise_density / _DEG,
-            self.bias / _DEG,
-            self.bias_walk / _DEG,
-            self.scale_error * 100.0,
-        )
+IMU_PROTOCOL = ExperimentOptions(
+    rest_time=DEFAULT_PROTOCOL.rest_time, drive_length=DEFAULT_PROTOCOL.drive_length
+)
+"""The default protocol without motion capture: the seed experiment with the default
+protocol's rests (the gyro's bias) and straight drive at the end (the wheel radii)."""
 
 
 @dataclass(frozen=True)

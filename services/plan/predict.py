@@ -11,7 +11,7 @@ estimate of the noise's size, so a few seeds' variances are averaged (``seeds``)
 
 Without motion capture (``metrology: imu``, :func:`predicted_imu_covariance`) the
 candidate's run with its rests and straight drive, the gyro and the tape's readings
-(:mod:`simulators.datagen_imu`), and the IMU solver's covariance in the ``design-fit``
+(:mod:`simulators.offline.datagen_imu`), and the IMU solver's covariance in the ``design-fit``
 frame.
 """
 
@@ -24,8 +24,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from simulators.datagen import ExperimentOptions, generate_experiment
-from simulators.datagen_imu import IMU_PROTOCOL, GyroOptions, ReferenceOptions, fisher_setup
+from simulators.offline.datagen import ExperimentOptions, generate_experiment
+from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions, fisher_setup
 from swpc_hw.calibration.gyro.covariance import imu_covariance
 from swpc_hw.calibration.mocap.solver import solve, solve_joint
 from swpc_hw.calibration.parameters import N_PARAMS
@@ -33,6 +33,7 @@ from swpc_hw.calibration.plan.forecast import SpinInformation, spin_information
 from swpc_hw.calibration.plan.plan import Candidate, FloatArray, MocapNoise, PlanError, TimeModel
 from swpc_hw.errors import CalibrationError
 from swpc_hw.robot.model import RobotParams
+from swpc_hw.sensors.gyro import GyroOptions
 
 
 def spins_of(base: ExperimentOptions, c: Candidate, tm: TimeModel) -> ExperimentOptions:

@@ -1,14 +1,14 @@
 """Motion capture as a run's metrology: the poses say when the robot rests and how far a
-spin went (:mod:`services.runs.metrology`).
+spin went (:mod:`services.runs.metrology.base`).
 
 * PRECHECK: the pose stream live and its clock mapped (:meth:`MocapIngest.clock_problem`).
 * During motion: a pose stream gone stale fails the run.
 * REST: every wheel braked until, over the last :data:`REST_WINDOW` s after the brake
   (robot time), the least-squares speed and yaw rate of the poses
-  (:func:`~services.runs.pose_motion.motion_rates`) are within ``limits.rest_speed`` /
+  (:func:`~services.runs.metrology.pose_motion.motion_rates`) are within ``limits.rest_speed`` /
   ``rest_yaw_rate``.
 * SPIN: the yaw of the poses, unwrapped, from ``settle_time`` after the torque on
-  (:class:`~services.runs.pose_motion.SpinWindow`); the segment ends once it has swept
+  (:class:`~services.runs.metrology.pose_motion.SpinWindow`); the segment ends once it has swept
   ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run.  A planned run
   (``plan: auto``) stops sequentially instead (:class:`SequentialSpins`, docs/plan.md):
   every :data:`JUDGE_STEP` of sweep the poses so far are fitted and the forecast
@@ -26,8 +26,8 @@ import numpy as np
 
 from services.config.robot import RobotConfig
 from services.runs.journal import SampleSource
-from services.runs.metrology import RunSteps
-from services.runs.pose_motion import REST_WINDOW, SpinWindow, motion_rates
+from services.runs.metrology.base import RunSteps
+from services.runs.metrology.pose_motion import REST_WINDOW, SpinWindow, motion_rates
 from services.runs.state import Forecast, RunFailedError, State
 from services.sensors.mocap import MocapIngest
 from swpc_hw.calibration.plan.forecast import JUDGE_STEP, Judgement, SpinSoFar, Stopping, so_far

@@ -8,13 +8,13 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from firmware_protocol import codec
-from simulators.datagen_imu import GyroOptions
-from simulators.imu_sim import check_gyro
-from simulators.mocap_sim import MocapOptions
-from simulators.robot_physics import PhysicsOptions
+from simulators.physics.robot import PhysicsOptions
+from simulators.sensors.gyro import check_gyro
+from simulators.sensors.mocap import MocapOptions
 from swpc_hw.drives.config import DrivesConfig, SwpcDrives
 from swpc_hw.files.kinematic_file import kinematics_document
 from swpc_hw.robot.model import RobotParams
+from swpc_hw.sensors.gyro import GyroOptions
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class SimOptions:
     physics: PhysicsOptions = field(default_factory=PhysicsOptions)
     mocap: MocapOptions = field(default_factory=MocapOptions)
     gyro: GyroOptions = field(default_factory=GyroOptions)
-    """The z gyro fixed to R (:mod:`simulators.imu_sim`), published on ``imu/<robot>/data``."""
+    """The z gyro fixed to R (:mod:`simulators.sensors.gyro`), published on ``imu/<robot>/data``."""
     truth_rate: float = 50.0
     bus_error_rate: float = 0.0
     max_lag: float = 0.05

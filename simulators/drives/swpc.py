@@ -39,30 +39,14 @@ from firmware_protocol.codec import (
     Frame,
     HomingState,
 )
+from simulators.drives.base import AxisModel, VirtualDrive, axis_drive, message
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, next_instant
+from swpc_hw.drives.config import DrivesConfig, SwpcDrives
 
 DEFAULT_RATE_HZ = codec.POWER_UP_FEEDBACK_RATE_HZ
 DEFAULT_WATCHDOG_MS = codec.POWER_UP_WATCHDOG_MS
 HEARTBEAT_PERIOD_S = codec.HEARTBEAT_PERIOD_S
 OVER_SPEED_FACTOR = 1.2
-
-
-@dataclass
-class AxisModel:
-    """State of one axis of a virtual controller (SI units)."""
-
-    state: AxisState = AxisState.DISABLED
-    mode: ControlMode = ControlMode.FREE
-    setpoint: float = 0.0
-    errors: int = 0
-    position: float = 0.0
-    velocity: float = 0.0
-    torque: float = 0.0
-    max_torque: float = 5.0
-    max_velocity: float = 40.0
-    inertia: float = 0.01
-    friction: float = 0.02
-    hold_target: float = 0.0
 
 
 @dataclass
@@ -508,3 +492,99 @@ class ControllerEmulator:
                 self.received.append((now, frame))
             for c in self.controllers.values():
                 self._transmit(c.handle(frame, now, arrived), clock.wall())
+
+
+class SwpcVirtualDrive:
+    """swpc's own firmware (:class:`~simulators.drives.swpc.VirtualController`):
+    one dual-axis controller on one node."""
+
+    def __init__(self, controller: VirtualController) -> None:
+        self.controller = controller
+        self.heartbeats = 0
+        self.feedback_frames = 0
+        self._hb_id = codec.frame_id(controller.node, codec.Command.HEARTBEAT)
+        self._fb_id = codec.frame_id(controller.node, codec.Command.FEEDBACK_POSITION)
+
+    @property
+    def homed(self) -> bool:
+        return self.controller.homed
+
+    @property
+    def muted(self) -> bool:
+        return self.controller.muted
+
+    @muted.setter
+    def muted(self, value: bool) -> None:
+        self.controller.muted = value
+
+    @property
+    def sensor_position(self) -> float:
+        return self.controller.sensor_position
+
+    def _out(self, frames: list[Frame]) -> list[can.Message]:
+        for f in frames:
+            if f.arbitration_id == self._fb_id:
+                self.feedback_frames += 1
+            elif f.arbitration_id == self._hb_id:
+                self.heartbeats += 1
+        return [message(f) for f in frames]
+
+    def receive(self, msg: can.Message, now: float) -> list[can.Message]:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return []
+        c = self.controller
+        if msg.arbitration_id != codec.SYNC_ID and msg.arbitration_id >> codec.NODE_SHIFT != c.node:
+            return []
+        c._t = now  # the physics owns the axes: the firmware logic only, no dt
+        return self._out(c.handle(Frame(msg.arbitration_id, bytes(msg.data)), now))
+
+    def step(self, now: float) -> list[can.Message]:
+        self.controller._t = now  # the physics owns the axes: the firmware logic only
+        return self._out(self.controller.step(now))
+
+    def next_due(self) -> float:
+        return self.controller.next_due()
+
+    def feedback_rate(self) -> float:
+        c = self.controller
+        return float(c.rate_hz) if c.rate_hz > 0 and not c.sync_mode else 0.0
+
+    def drive(
+        self, axis: Axis, position: float, dt: float, position_tau: float
+    ) -> tuple[str, float]:
+        return axis_drive(self.controller.axes[axis], axis, position, dt, position_tau)
+
+    def sense(
+        self, axis: Axis, position: float, velocity: float, torque: float | None
+    ) -> None:
+        ax = self.controller.axes[axis]
+        ax.position = position
+        ax.velocity = velocity
+        ax.torque = ax.friction * velocity if torque is None else torque
+
+    def inject_fault(self, axis: Axis, error: ErrorFlag) -> list[can.Message]:
+        return self._out(self.controller.inject_error(axis, error))
+
+    def params(self) -> dict[str, Any]:
+        return {"kind": "swpc", "node": self.controller.node}
+
+
+def build(
+    config: DrivesConfig,
+    module: int,
+    *,
+    feedback_rate_hz: int,
+    watchdog_ms: int,
+    homing_duration: float,
+    sensor_position: float,
+) -> VirtualDrive:
+    assert isinstance(config, SwpcDrives)
+    return SwpcVirtualDrive(
+        VirtualController(
+            node=config.node_map()[module],
+            rate_hz=feedback_rate_hz,
+            watchdog_ms=watchdog_ms,
+            homing_duration=homing_duration,
+            sensor_position=sensor_position,
+        )
+    )

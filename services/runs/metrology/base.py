@@ -2,8 +2,8 @@
 
 A calibration run (:class:`services.runs.protocol.CalibrationRun`) is one protocol; its
 *metrology* is a part it holds, not a subclass: motion capture
-(:class:`services.runs.mocap.MocapMetrology`) or the IMU's gyro with the wheel encoders
-and a tape measure (:class:`services.runs.imu.ImuMetrology`).  The protocol asks its
+(:class:`services.runs.metrology.mocap.MocapMetrology`) or the IMU's gyro with the wheel encoders
+and a tape measure (:class:`services.runs.metrology.imu.ImuMetrology`).  The protocol asks its
 metrology, at fixed points, what only the metrology knows:
 
 * before any motion: what makes the run impossible (:meth:`Metrology.run_problems`);

@@ -1,7 +1,7 @@
 """What the gyro and the wheel encoders say of the robot's motion, without motion capture.
 
 Pure functions and small stores of the samples (their times on the run's clock and their
-values): no clock, no I/O, so the run without motion capture (:mod:`services.runs.imu`)
+values): no clock, no I/O, so the run without motion capture (:mod:`services.runs.metrology.imu`)
 and the tests feed them samples and get the same answer on any host.
 
 * :class:`RecentRows`: the newest rows of a sensor read by cursor (each row once), kept
@@ -9,7 +9,8 @@ and the tests feed them samples and get the same answer on any host.
 * :func:`stillness`: the gyro's mean rate and the wheels' and steering's motion over a
   window (the rests: ``limits.rest_yaw_rate`` and ``limits.rest_speed``);
 * :class:`GyroYaw`: the yaw turned since a time, the gyro's rate minus a bias integrated
-  sample by sample (a spin's sweep and its rate, :class:`services.runs.pose_motion.SpinWindow`);
+  sample by sample (a spin's sweep and its rate,
+  :class:`services.runs.metrology.pose_motion.SpinWindow`);
 * :func:`wheel_travel`: how far the wheels rolled (the straight drive, nominal radii).
 
 The gyro's mean at rest includes its bias (0.1 deg/s for the simulator's, a few for a

@@ -1,10 +1,10 @@
 """The IMU as a run's metrology: the robot's gyro, its wheel encoders and a tape measure.
 
-:class:`ImuMetrology` is the metrology (:mod:`services.runs.metrology`) of a calibration
+:class:`ImuMetrology` is the metrology (:mod:`services.runs.metrology.base`) of a calibration
 without motion capture: the protocol of :mod:`services.runs.protocol` reads the gyro
 (:mod:`services.sensors.gyro`) where it would read the poses, and gains the steps the IMU
 solver needs (docs/imu.md, and the simulated protocol
-:data:`simulators.datagen_imu.IMU_PROTOCOL`)::
+:data:`simulators.offline.datagen_imu.IMU_PROTOCOL`)::
 
     PENDING -> CONNECT -> PRECHECK -> REST -> LOCK -> ALIGN -> FREE -> STILL -> SPIN -> STOP
     STOP    -> RESTEER -> STILL -> SPIN ... | RELEASE
@@ -14,12 +14,12 @@ solver needs (docs/imu.md, and the simulated protocol
 
 * PRECHECK: nodes, errors, homing and a live gyro whose stamps are this host's time.
 * REST: every wheel braked until the gyro and the wheel encoders show the robot still
-  (over :data:`~services.runs.pose_motion.REST_WINDOW`).
+  (over :data:`~services.runs.metrology.pose_motion.REST_WINDOW`).
 * STILL: the dynamic wheels braked and the robot held still for ``protocol.rest_time``
   (still by the gyro and the encoders, else longer): the gyro's bias before every spin,
   measured again by the solver from the encoders' stillness.
 * SPIN: as with motion capture; the sweep and the yaw-rate limit come from the gyro's
-  rate minus the bias of the STILL before (:class:`~services.runs.gyro_motion.GyroYaw`).
+  rate minus the bias of the STILL before (:class:`~services.runs.metrology.gyro_motion.GyroYaw`).
 * STILL, then STEER: still for ``rest_time`` (the rest after the last spin), the spins solved alone
   (:func:`swpc_hw.calibration.gyro.solver.solve_spins`) for every module's ``beta``, then
   every module steered to the straight drive's direction by them (the wheel trailing its
@@ -62,11 +62,17 @@ from typing import Any
 import numpy as np
 
 from services.config.robot import RobotConfig
-from services.runs.gyro_motion import GyroYaw, RecentRows, stillness, wheel_speed, wheel_travel
 from services.runs.journal import SampleSource
-from services.runs.metrology import RunSteps
-from services.runs.mocap import sweep_reached
-from services.runs.pose_motion import REST_WINDOW, SpinWindow
+from services.runs.metrology.base import RunSteps
+from services.runs.metrology.gyro_motion import (
+    GyroYaw,
+    RecentRows,
+    stillness,
+    wheel_speed,
+    wheel_travel,
+)
+from services.runs.metrology.mocap import sweep_reached
+from services.runs.metrology.pose_motion import REST_WINDOW, SpinWindow
 from services.runs.state import RunFailedError, State
 from services.sensors.gyro import GyroIngest
 from swpc_hw.clock import SimClock

@@ -12,7 +12,7 @@ module starts at ``theta_hat = 0``, ``psi = 0``).  For each module k in id order
 1. ``m > 0`` only: **re-steer** k from ``a_{m-1}`` to ``a_m`` (``resteer_time``): its wheel
    is pinned in the fixing tool and its fork keeps its world orientation, so the body
    rotates about ``P_s,k`` by ``-(a_m - a_{m-1})`` (raised-cosine profile) while the free
-   casters trail (exact integration, :func:`simulators.physics.trailing_about_pivot`).
+   casters trail (exact integration, :func:`simulators.physics.core.trailing_about_pivot`).
 2. **align** (``align_time``, body still, wheels do not turn, steering scrubs): k steers to
    ``theta_hat = a_m``; every other module steers to the common true direction
    ``u_c = -sign(omega) z x (G - C) / |G - C|`` (``G`` centroid of the steering axes,
@@ -29,11 +29,11 @@ run ends with a **straight drive**: every wheel steered to the true angle
 ``drive_direction``, a rest, a pure translation along ``-u(drive_direction)`` of
 ``drive_length`` metres (speed ramps of ``ramp_time``, cruise ``drive_speed``) and a rest
 (without a drive, a final rest).  The rests are where a gyro's bias is seen
-(:mod:`simulators.datagen_imu`).
+(:mod:`simulators.offline.datagen_imu`).
 
 Integration: every motion above is a rotation about a body point fixed in the world, for
 which the free-caster dynamics have the closed-form solution of
-:func:`simulators.physics.trailing_about_pivot`; it is evaluated at every sample time, so
+:func:`simulators.physics.core.trailing_about_pivot`; it is evaluated at every sample time, so
 there is no step error and no Python loop over time steps (a default run takes ~0.03 s).
 :func:`simulators.physics.rk4_step` integrates the same dynamics numerically and the tests
 check both agree.  ``integration_dt`` is the time grid on which the settle is searched.
@@ -64,16 +64,15 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from simulators.physics import (
+from simulators.offline.phases import Phase, evaluate_phases
+from simulators.physics.core import (
     FloatArray,
-    pose_about_pivot,
     settled_trailing,
-    smooth_step,
-    spin_angle,
     trailing_about_pivot,
 )
 from swpc_hw.files.dataset import Dataset, Segment, save_dataset
 from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.protocol import DEFAULT_PROTOCOL
 from swpc_hw.robot.model import RobotParams, contact_point, rot, wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 
@@ -99,17 +98,23 @@ class PartialSlip:
 
 @dataclass(frozen=True)
 class ExperimentOptions:
-    """Settings of a simulated experiment (SI units; everything random is seeded by ``seed``)."""
+    """Settings of a simulated experiment (SI units; everything random is seeded by ``seed``).
+    The protocol's defaults are :data:`swpc_hw.protocol.DEFAULT_PROTOCOL`'s but for two
+    pauses, ``settle_time`` and ``resteer_time``, shorter (their docstrings)."""
 
-    angles: tuple[float, ...] = (45.0 * _DEG, 165.0 * _DEG)
+    angles: tuple[float, ...] = tuple(a * _DEG for a in DEFAULT_PROTOCOL.angles_deg)
     yaw_rate: float = 0.5  # rad/s, > 0 counter-clockwise
     spin_duration: float = 12.0  # s of steady spin recorded per segment
-    settle_time: float = 2.0  # s, minimum steady spin before the window
+    settle_time: float = 2.0
+    """s, least steady spin before the window: the generator's own, below DEFAULT_PROTOCOL's
+    (the window opens only once the casters settled, which a robot cannot see)."""
     settle_tol: float = 1e-10  # rad, max caster error at window start (noiseless physics)
     max_settle: float = 120.0  # s, give up (ValueError) if casters settle slower
     ramp_time: float = 1.0  # s, yaw-rate ramp up / down
-    align_time: float = 1.0  # s, steering alignment before each spin
-    resteer_time: float = 2.0  # s, re-steering the locked module
+    align_time: float = DEFAULT_PROTOCOL.align_time  # s, steering alignment before each spin
+    resteer_time: float = 2.0
+    """s, re-steering the locked module: the generator's own, below DEFAULT_PROTOCOL's (its
+    runs' timelines, and the tests and figures measured on them, are these)."""
     pose_rate: float = 100.0  # Hz
     encoder_rate: float = 200.0  # Hz
     counts_per_rev: int | None = 2**17  # encoder quantization (both axes); None = off
@@ -180,93 +185,18 @@ class Experiment:
     """Windows (s, pose clock) in which body, wheels and steering are still."""
     drive: tuple[float, float] | None = None
     """The straight drive's motion (s, pose clock), None without one."""
-    phases: list[_Phase] = field(default_factory=list, repr=False)
+    phases: list[Phase] = field(default_factory=list, repr=False)
 
     def poses_at(self, t: FloatArray) -> FloatArray:
         """True poses (K, 3) ``x, y, yaw`` (yaw not wrapped) at pose-clock times ``t``."""
         a = self.truth.arrays()
-        return _evaluate(self.phases, np.asarray(t, dtype=float), a.P_s, a.b, a.r)[0]
+        return evaluate_phases(self.phases, np.asarray(t, dtype=float), a.P_s, a.b, a.r)[0]
 
     def save(self, directory: str | os.PathLike[str]) -> None:
         """Write the dataset directory plus ``truth.yaml`` (kinematic file of the truth)."""
         d = Path(directory)
         save_dataset(d, self.dataset)
         save_kinematics(d / "truth.yaml", self.truth, extra={"note": "simulation ground truth"})
-
-
-# --------------------------------------------------------------------------- phases
-
-
-@dataclass
-class _Phase:
-    """A piece of the timeline: rotation about a fixed body point, or steering alignment."""
-
-    t0: float
-    t1: float
-    pose0: FloatArray
-    theta0: FloatArray
-    psi0: FloatArray
-    kind: str  # "rotate" | "align" | "translate"
-    pivot: FloatArray = field(default_factory=lambda: np.zeros(2))  # translate: direction
-    free: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    fork: int = -1  # index of a module whose fork keeps its world orientation
-    profile: tuple[str, float, float, float] = ("spin", 0.0, 0.0, 0.0)
-    theta1: FloatArray = field(default_factory=lambda: np.zeros(0))
-
-    def phi(self, tau: FloatArray) -> FloatArray:
-        kind, a, b_, c = self.profile
-        if kind == "spin":
-            return spin_angle(tau, a, b_, c)
-        return a * smooth_step(tau / b_)  # "resteer": total angle a over b_ seconds
-
-    def evaluate(
-        self, t: FloatArray, P_s: FloatArray, b: FloatArray, r: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Poses (K, 3) (yaw not wrapped), true theta (K, N), psi (K, N) at times ``t``."""
-        tau = np.asarray(t, dtype=float) - self.t0
-        K, n = tau.shape[0], self.theta0.shape[0]
-        theta = np.broadcast_to(self.theta0, (K, n)).copy()
-        psi = np.broadcast_to(self.psi0, (K, n)).copy()
-        if self.kind == "align":
-            s = smooth_step(tau / (self.t1 - self.t0))[:, None]
-            theta = self.theta0 + (self.theta1 - self.theta0) * s
-            pose = np.broadcast_to(self.pose0, (K, 3)).copy()
-            return pose, theta, psi
-        ph = self.phi(tau)
-        if self.kind == "translate":  # distance ph along the body direction self.pivot
-            pose = np.broadcast_to(self.pose0, (K, 3)).copy()
-            pose[:, :2] += ph[:, None] * (rot(self.pose0[2]) @ self.pivot)[None, :]
-            along = np.cos(self.theta0) * self.pivot[0] + np.sin(self.theta0) * self.pivot[1]
-            return pose, theta, psi + ph[:, None] * (along / r)[None, :]
-        pose = pose_about_pivot(self.pose0, self.pivot, ph)
-        idx = np.flatnonzero(self.free)
-        if idx.size:
-            th, dpsi = trailing_about_pivot(
-                P_s[idx], b[idx], r[idx], self.pivot, self.theta0[idx], ph[:, None]
-            )
-            theta[:, idx] = th
-            psi[:, idx] = self.psi0[idx] + dpsi
-        if self.fork >= 0:
-            theta[:, self.fork] = self.theta0[self.fork] - ph
-        return pose, theta, psi
-
-
-def _evaluate(
-    phases: list[_Phase], t: FloatArray, P_s: FloatArray, b: FloatArray, r: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    n = P_s.shape[0]
-    K = t.shape[0]
-    pose = np.zeros((K, 3))
-    theta = np.zeros((K, n))
-    psi = np.zeros((K, n))
-    starts = np.array([p.t0 for p in phases])
-    which = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(phases) - 1)
-    for i, ph in enumerate(phases):
-        sel = np.flatnonzero(which == i)
-        if sel.size:
-            tt = np.minimum(t[sel], ph.t1)
-            pose[sel], theta[sel], psi[sel] = ph.evaluate(tt, P_s, b, r)
-    return pose, theta, psi
 
 
 # --------------------------------------------------------------------------- generator
@@ -364,12 +294,12 @@ class _Timeline:
         self.pose = np.zeros(3)
         self.theta = self.beta.copy()  # theta_hat = 0 everywhere
         self.psi = np.zeros(A.n)
-        self.phases: list[_Phase] = []
+        self.phases: list[Phase] = []
         self.seg_info: list[tuple[int, int, float, float, float, FloatArray, FloatArray]] = []
         self.rests: list[tuple[float, float]] = []
         self.drive: tuple[float, float] | None = None
 
-    def close(self, ph: _Phase) -> None:
+    def close(self, ph: Phase) -> None:
         """Append a phase; the next starts at its end state."""
         self.phases.append(ph)
         pe, te, se = ph.evaluate(np.array([ph.t1]), self.P_s, self.b, self.r)
@@ -382,14 +312,14 @@ class _Timeline:
         if self.opt.rest_time > 0:
             self.rests.append((self.t, self.until(self.opt.rest_time)))
             self.close(
-                _Phase(self.t, self.rests[-1][1], self.pose, self.theta, self.psi, "align",
+                Phase(self.t, self.rests[-1][1], self.pose, self.theta, self.psi, "align",
                        theta1=self.theta)
             )  # fmt: skip
 
     def align(self, theta1: FloatArray) -> None:
         opt = self.opt
         self.close(
-            _Phase(self.t, self.until(opt.align_time), self.pose, self.theta, self.psi, "align",
+            Phase(self.t, self.until(opt.align_time), self.pose, self.theta, self.psi, "align",
                    theta1=theta1)
         )  # fmt: skip
 
@@ -404,7 +334,7 @@ class _Timeline:
             if m > 0:
                 d = a - opt.angles[m - 1]
                 self.close(
-                    _Phase(
+                    Phase(
                         self.t, self.until(opt.resteer_time), self.pose, self.theta, self.psi,
                         "rotate", pivot=P_s[k].copy(), free=dyn, fork=k,
                         profile=("resteer", -d, opt.resteer_time, 0.0),
@@ -422,7 +352,7 @@ class _Timeline:
             steady = settle + opt.spin_duration
             t0, pose0 = self.t, self.pose.copy()
             self.close(
-                _Phase(
+                Phase(
                     self.t, self.until(2.0 * opt.ramp_time + steady), self.pose, self.theta,
                     self.psi, "rotate", pivot=C, free=dyn,
                     profile=("spin", w, opt.ramp_time, steady),
@@ -442,7 +372,7 @@ class _Timeline:
         direction = -np.array([math.cos(opt.drive_direction), math.sin(opt.drive_direction)])
         self.drive = (self.t, self.until(2.0 * opt.ramp_time + steady))
         self.close(
-            _Phase(
+            Phase(
                 self.t, self.drive[1], self.pose, self.theta, self.psi, "translate",
                 pivot=direction, profile=("spin", opt.drive_speed, opt.ramp_time, steady),
             )
@@ -460,7 +390,7 @@ def _slipped(
 
     def slip(j: int, ts: float, te: float, f: float) -> None:
         """Encoder j turns ``f`` x its rolling rotation extra in [ts, te] (kept after)."""
-        _, _, ps = _evaluate(tl.phases, np.array([ts, te]), tl.P_s, tl.b, tl.r)
+        _, _, ps = evaluate_phases(tl.phases, np.array([ts, te]), tl.P_s, tl.b, tl.r)
         if abs(ps[1, j] - ps[0, j]) < 1e-12:
             return  # wheel not rolling (static or still): nothing to slip
         inside = (t_enc > ts) & (t_enc < te)
@@ -526,7 +456,7 @@ def _segments(tl: _Timeline, ids: list[int]) -> tuple[list[Segment], list[Segmen
     segments: list[Segment] = []
     seg_truth: list[SegmentTruth] = []
     for k, m, a, s0, s1, C, C_W in tl.seg_info:
-        _, th_s, _ = _evaluate(tl.phases, np.array([0.5 * (s0 + s1)]), tl.P_s, tl.b, tl.r)
+        _, th_s, _ = evaluate_phases(tl.phases, np.array([0.5 * (s0 + s1)]), tl.P_s, tl.b, tl.r)
         th_set = np.asarray(wrap_angle(th_s[0]), dtype=float)
         _, D = settled_trailing(tl.P_s, tl.b, C, np.sign(w))
         D[k] = 0.0
@@ -575,8 +505,8 @@ def generate_experiment(
     i1 = math.floor((t_end + opt.clock_offset) * opt.encoder_rate + 1e-9)
     stamps = np.arange(i0, i1 + 1) / opt.encoder_rate
     t_enc = np.clip(stamps - opt.clock_offset, 0.0, t_end)
-    poses_true, _, _ = _evaluate(tl.phases, t_pose, tl.P_s, tl.b, tl.r)
-    _, theta_e, psi_e = _evaluate(tl.phases, t_enc, tl.P_s, tl.b, tl.r)
+    poses_true, _, _ = evaluate_phases(tl.phases, t_pose, tl.P_s, tl.b, tl.r)
+    _, theta_e, psi_e = evaluate_phases(tl.phases, t_enc, tl.P_s, tl.b, tl.r)
     theta_e = np.asarray(wrap_angle(theta_e), dtype=float)
     psi_meas, bursts = _slipped(tl, ids, t_enc, psi_e, rng)
 

@@ -22,8 +22,8 @@ does it (``Firmware/communication/can/can_simple.cpp``, ``MotorControl/axis.cpp`
   poll of the estimates is answered (0.5.x does; swpc never polls).
 
 :class:`ODriveVirtualDrive` is one module's two axes as a
-:class:`simulators.virtual_drives.VirtualDrive`: it turns each axis' state into the swpc
-controller's axis model and hands it to :func:`simulators.axis_drives.axis_drive`, so the
+:class:`simulators.drives.base.VirtualDrive`: it turns each axis' state into the swpc
+controller's axis model and hands it to :func:`simulators.drives.base.axis_drive`, so the
 physics is the same as the swpc virtual drive's: torque control at exactly zero is a free
 axis, position control of the steering is the first-order position loop, a wheel in
 position control is held (braked: the only wheel position command swpc sends is a hold).
@@ -37,10 +37,17 @@ from typing import Any
 
 import can
 
-from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Frame, ProtocolError
+from firmware_protocol.codec import (
+    HEARTBEAT_PERIOD_S,
+    Axis,
+    AxisState,
+    ControlMode,
+    ErrorFlag,
+    Frame,
+    ProtocolError,
+)
 from firmware_protocol.odrive import can_simple as cs
-from simulators.axis_drives import axis_drive
-from simulators.virtual_controller import HEARTBEAT_PERIOD_S, AxisModel
+from simulators.drives.base import AxisModel, axis_drive
 from swpc_hw.drives.config import ODriveAxis, ODriveDrives
 
 TWO_PI = 2.0 * math.pi
