@@ -46,7 +46,7 @@ from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag
 from simulators.axis_drives import axis_drive
 from simulators.virtual_controller import AxisModel
-from swpc_hw.drives.config import ABSOLUTE, Cia402Axis, Cia402Drives, Cia402Steer
+from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Axis, Cia402Drives, Cia402Steer
 
 SUPPORTED_MODES = (
     Mode.HOMING,

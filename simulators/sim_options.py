@@ -12,7 +12,8 @@ from simulators.datagen_imu import GyroOptions
 from simulators.imu_sim import check_gyro
 from simulators.mocap_sim import MocapOptions
 from simulators.robot_physics import PhysicsOptions
-from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.drives.registry import DrivesConfig
+from swpc_hw.drives.swpc.config import SwpcDrives
 from swpc_hw.kinematic_file import kinematics_document
 from swpc_hw.model import RobotParams
 
@@ -24,7 +25,7 @@ class SimOptions:
     robot: str = "swpc"
     drives: DrivesConfig = field(default_factory=SwpcDrives)
     """The drive kind and each module's CAN nodes (default: swpc's own, nodes 1..N in
-    module order), as in a robot config (:mod:`swpc_hw.drives.config`)."""
+    module order), as in a robot config (:mod:`swpc_hw.drives.registry`)."""
     time_scale: float = 1.0
     physics_dt: float = 0.005
     """Longest physics step (s); a tick is also no longer than the fastest feedback period."""

@@ -5,7 +5,7 @@ frame to every module's :class:`VirtualDrive`; each kind turns frames into its d
 state and that state into a drive of the physics (:func:`simulators.axis_drives.axis_drive`'s
 ``(kind, value)``: passive, a rate, a brake, a wheel torque), and reads the encoders the
 physics writes back.  :func:`virtual_drives` is the one place that knows the kinds (as
-:func:`swpc_hw.drives.factory.open_drives` on the host side).
+:func:`swpc_hw.drives.registry.open_drives` on the host side).
 
 Positions handed to :meth:`VirtualDrive.sense` are at the module's output, SI: the
 steering as the drive reports it (its homing reference, multi-turn), the wheel's
@@ -24,7 +24,9 @@ from firmware_protocol.codec import Axis, ErrorFlag, Frame
 from simulators import cia402_drive
 from simulators.axis_drives import axis_drive
 from simulators.virtual_controller import VirtualController
-from swpc_hw.drives.config import DrivesConfig, ODriveDrives, SwpcDrives
+from swpc_hw.drives.odrive.config import ODriveDrives
+from swpc_hw.drives.registry import DrivesConfig
+from swpc_hw.drives.swpc.config import SwpcDrives
 
 
 class VirtualDrive(Protocol):

@@ -41,7 +41,7 @@ from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, Fra
 from firmware_protocol.odrive import can_simple as cs
 from simulators.axis_drives import axis_drive
 from simulators.virtual_controller import HEARTBEAT_PERIOD_S, AxisModel
-from swpc_hw.drives.config import ODriveAxis, ODriveDrives
+from swpc_hw.drives.odrive.config import ODriveAxis, ODriveDrives
 
 TWO_PI = 2.0 * math.pi
 UNLIMITED = 1e9

@@ -63,11 +63,11 @@ from pathlib import Path
 from firmware_protocol.codec import HEARTBEAT_PERIOD_S
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
-from swpc_hw.can.config import CanConfig, deadman_problem
-from swpc_hw.can.errors import CanConfigError
 from swpc_hw.clock import Clock
-from swpc_hw.drives.factory import open_drives
+from swpc_hw.drives.bus import CanConfig, deadman_problem
+from swpc_hw.drives.errors import CanConfigError
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.registry import open_drives
 
 HOST_REFRESH_FLOOR_S = 0.02
 """The driver refreshes a node's last command at most this often in host time."""
@@ -190,7 +190,7 @@ def robot_drives(
     log_path: Path | None = None,
     log_total_bytes: int | None = None,
 ) -> Drives:
-    """The robot's drives (its config's kind, :func:`swpc_hw.drives.factory.open_drives`) on
+    """The robot's drives (its config's kind, :func:`swpc_hw.drives.registry.open_drives`) on
     :func:`bus_config`'s settings, UNCONFIGURED: what ``swpc serve`` and ``swpc validate``
     open."""
     bus = bus_config(

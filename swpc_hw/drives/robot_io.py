@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can import DriverEvent, Lifecycle, Severity
-from swpc_hw.can.errors import NodeError
+from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
 from swpc_hw.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
@@ -203,7 +203,7 @@ class DrivesRobotIO:
         """Feedback on the drives' clock, timed by the frames' *bus* time stamps.
 
         The drives map every bus stamp (kernel arrival on SocketCAN, send time on the
-        virtual bus) onto their clock (:func:`swpc_hw.can.node_tracking.frame_time`): the
+        virtual bus) onto their clock (:func:`swpc_hw.drives.tracking.frame_time`): the
         receive thread's queueing delay, which can reach a second on a loaded host, is not
         in it.
         """

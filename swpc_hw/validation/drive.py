@@ -9,8 +9,8 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
 from swpc_hw.model import RobotParams
 from swpc_hw.odometry import OdometryOptions
 from swpc_hw.twist_controller import TwistController
