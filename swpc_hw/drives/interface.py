@@ -142,10 +142,6 @@ class Drives(Protocol):
         """The latest known state of one module's drives (a snapshot)."""
         ...
 
-    def history_arrays(self, module: int) -> dict[str, FloatArray]:
-        """Every feedback sample kept, as columns (``t``, ``theta_hat``, ``psi``, ...)."""
-        ...
-
     def history_since(
         self, module: int, cursor: int, since: float
     ) -> tuple[FloatArray, int]:

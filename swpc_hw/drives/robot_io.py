@@ -207,9 +207,8 @@ class DrivesRobotIO:
         receive thread's queueing delay, which can reach a second on a loaded host, is not
         in it.
         """
-        h = self.drives.history_arrays(module)
-        sel = h["t"] >= since
-        return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
+        rows, _ = self.drives.history_since(module, 0, since)  # cursor 0: every row kept
+        return rows
 
     def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
         return self.drives.history_since(module, cursor, since)
