@@ -23,18 +23,14 @@ taken before the queue was found empty.  The step runs on the driver's own threa
 a real clock, and as a hook of the master against a :class:`swpc_hw.clock.SimClock`
 (lockstep with a simulator).
 
-What a kind implements (:class:`DriverBase`'s abstract methods and hooks):
-
-* the receive core: :meth:`~DriverBase._apply_frame` (what one frame tells, under the
-  lock), or :meth:`~DriverBase._receive` for a kind whose library dispatches frames itself;
-* supervision: :meth:`~DriverBase._check` (which drives are lost, what to re-send) and
-  :meth:`~DriverBase._keep_alive` (the kind's own periodic frames);
-* activation: :meth:`~DriverBase._bring_up` (heartbeats, set-up, before ACTIVE) and
-  :meth:`~DriverBase._after_activate`;
-* the stop: :meth:`~DriverBase._stopping` and :meth:`~DriverBase._stop_frames`;
-* the commands and observations of :class:`swpc_hw.drives.interface.Drives`
-  (``enable`` ... ``start_homing``, ``modules``, ``module_state``) and the feedback ring
-  of a module (:meth:`~DriverBase._ring`).
+What a kind implements (:class:`swpc_hw.drives.interface.DriveKind`, its abstract methods
+and hooks): the receive core (``_apply_frame``: what one frame tells, under the lock; or
+``_receive`` for a kind whose library dispatches frames itself), supervision (``_check``:
+which drives are lost, what to re-send; ``_keep_alive``: its own periodic frames),
+activation (``_bring_up`` before ACTIVE, ``_after_activate``), the stop (``_stopping``,
+``_stop_frames``), the commands and observations of
+:class:`swpc_hw.drives.interface.Drives` (``enable`` ... ``start_homing``, ``modules``,
+``module_state``) and each module's feedback ring (``_ring``).
 
 Positions at this boundary are SI: ``theta_hat`` (steering, rad, 0 at the homing
 reference) and ``psi`` (cumulative wheel angle, rad), unwrapped on the host.
