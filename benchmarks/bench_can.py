@@ -26,7 +26,9 @@ import numpy as np
 from firmware_protocol import busload, codec
 from firmware_protocol.codec import Axis, Command, ControlMode
 from simulators.drives.swpc import ControllerEmulator, VirtualController
-from swpc_hw.can import CanConfig, CanDriver, Lifecycle
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.swpc.driver import SwpcDriver
+from swpc_hw.drives.types import Lifecycle
 
 FRAME_LIMIT = 1e6 / busload.frame_bits(8)
 
@@ -81,7 +83,7 @@ def stream(seconds: float) -> None:
     emu = ControllerEmulator([VirtualController(n) for n in nodes], channel=ch)
     emu.record_received = False
     cfg = CanConfig(channel=ch, feedback_rate_hz=500, history_len=500 * int(seconds + 10))
-    drv = CanDriver(cfg)
+    drv = SwpcDriver(cfg)
     drv.configure()
     emu.start()
     drv.activate()
@@ -129,7 +131,7 @@ def sweep(seconds: float) -> None:
         ctrls = [VirtualController(n, rate_hz=rate) for n in nodes]
         emu = ControllerEmulator(ctrls, channel=ch)
         emu.record_received = False
-        drv = CanDriver(CanConfig(channel=ch, modules={n: n for n in nodes}, history_len=10_000))
+        drv = SwpcDriver(CanConfig(channel=ch, modules={n: n for n in nodes}, history_len=10_000))
         drv.configure()
         emu.start()
         time.sleep(seconds)
@@ -170,7 +172,7 @@ def fault_latency(trials: int) -> None:
     emu = ControllerEmulator(ctrls, channel=ch)
     emu.record_received = False
     obs = _Observer(ch)
-    drv = CanDriver(CanConfig(channel=ch, heartbeat_period_s=hb, refresh_period_s=0.02))
+    drv = SwpcDriver(CanConfig(channel=ch, heartbeat_period_s=hb, refresh_period_s=0.02))
     drv.configure()
     emu.start()
     stop_lat: list[float] = []
@@ -218,7 +220,7 @@ def fault_latency(trials: int) -> None:
 
 
 def main() -> None:
-    logging.getLogger("swpc_hw.can").setLevel(logging.ERROR)  # expected losses at the end
+    logging.getLogger("swpc_hw.drives").setLevel(logging.ERROR)  # expected losses at the end
     seconds = float(os.environ.get("SWPC_BENCH_CAN_SECONDS", "30"))
     stream(seconds)
     sweep(min(2.5, seconds))

@@ -30,8 +30,8 @@ from services.config.timing import bus_config
 from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
+from swpc_hw.drives.cia402.config import Cia402Drives
 from swpc_hw.drives.cia402.driver import Cia402Driver
-from swpc_hw.drives.config import Cia402Drives
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 BITRATES = (500_000, 1_000_000)

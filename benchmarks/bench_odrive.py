@@ -29,7 +29,7 @@ from services.config.timing import bus_config, timing_budget
 from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
-from swpc_hw.drives.factory import open_drives
+from swpc_hw.drives.registry import open_drives
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 SECONDS = 20.0

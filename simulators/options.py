@@ -11,7 +11,8 @@ from firmware_protocol import codec
 from simulators.physics.robot import PhysicsOptions
 from simulators.sensors.gyro import check_gyro
 from simulators.sensors.mocap import MocapOptions
-from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.drives.registry import DrivesConfig
+from swpc_hw.drives.swpc.config import SwpcDrives
 from swpc_hw.files.kinematic_file import kinematics_document
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.sensors.gyro import GyroOptions
@@ -24,7 +25,7 @@ class SimOptions:
     robot: str = "swpc"
     drives: DrivesConfig = field(default_factory=SwpcDrives)
     """The drive kind and each module's CAN nodes (default: swpc's own, nodes 1..N in
-    module order), as in a robot config (:mod:`swpc_hw.drives.config`)."""
+    module order), as in a robot config (:mod:`swpc_hw.drives.registry`)."""
     time_scale: float = 1.0
     physics_dt: float = 0.005
     """Longest physics step (s); a tick is also no longer than the fastest feedback period."""

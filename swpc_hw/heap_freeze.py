@@ -6,7 +6,7 @@ objects the service's imports and start-up leave behind it costs ~75 ms on the l
 machine, with millions (a feedback history kept as objects) 0.5-2 s were measured:
 long enough for the CAN driver to declare every controller lost (heartbeat timeout
 0.3 s on a robot).  The per-sample data are numpy arrays
-(:mod:`swpc_hw.can.history`, :mod:`services.sensors.mocap`); what is left is the start-up
+(:mod:`swpc_hw.drives.tracking`, :mod:`services.sensors.mocap`); what is left is the start-up
 heap, which :func:`freeze_startup_heap` moves to the permanent generation once the
 process is up (:func:`gc.freeze`, CPython >= 3.7).
 """

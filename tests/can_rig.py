@@ -37,8 +37,10 @@ from typing import Any
 import can
 
 from simulators.drives.swpc import ControllerEmulator, VirtualController
-from swpc_hw.can import CanConfig, CanDriver, ModuleState
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.swpc.driver import SwpcDriver
+from swpc_hw.drives.types import ModuleState
 
 INTERFACE = os.environ.get("SWPC_TEST_CAN_INTERFACE", "virtual")
 CHANNELS = [c for c in os.environ.get("SWPC_TEST_CAN_CHANNEL", "").split(",") if c.strip()]
@@ -119,8 +121,8 @@ def can_config(channel: str, **cfg: Any) -> CanConfig:
     return CanConfig(interface=INTERFACE, channel=channel, **{**scaled, **cfg})
 
 
-class ScaledDriver(CanDriver):
-    """The real :class:`CanDriver` on the rig's clock; only the tests' wait timeouts are
+class ScaledDriver(SwpcDriver):
+    """The real :class:`SwpcDriver` on the rig's clock; only the tests' wait timeouts are
     multiplied by F."""
 
     def __init__(self, config: CanConfig, **kwargs: Any) -> None:

@@ -13,11 +13,10 @@ import pytest
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag, HomingState
-from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.node_tracking import NodeTrack, apply_frame, frame_time
-from swpc_hw.can.periodic import KernelRefresh
-from swpc_hw.can.supervision import check
-from swpc_hw.can.types import DriverStats, EventKind, Severity
+from swpc_hw.drives.periodic import KernelRefresh
+from swpc_hw.drives.swpc.tracking import apply_frame, check
+from swpc_hw.drives.tracking import FeedbackRing, NodeTrack, frame_time
+from swpc_hw.drives.types import DriverStats, EventKind, Severity
 
 ENABLED = (AxisState.ENABLED, AxisState.ENABLED)
 FREE = (ControlMode.FREE, ControlMode.FREE)
@@ -255,8 +254,9 @@ def test_a_drain_step_ends_although_frames_never_stop_coming() -> None:
     them) still supervises: a step ends once it has applied a frame that arrived after it
     began, and judges at that start, so a lost node is still found (and the dead-man
     renewed)."""
-    from swpc_hw.can import CanConfig, CanDriver
     from swpc_hw.clock import VirtualClock
+    from swpc_hw.drives.bus import CanConfig
+    from swpc_hw.drives.swpc.driver import SwpcDriver
 
     clock = VirtualClock(start=50.0)
 
@@ -273,7 +273,7 @@ def test_a_drain_step_ends_although_frames_never_stop_coming() -> None:
             clock.sleep(0.0002)  # applying a frame takes time
             return msg(heartbeat(1), clock.wall() - clock.now() + self.t)
 
-    drv = CanDriver(CanConfig(modules={1: 1, 2: 2}), clock=clock)
+    drv = SwpcDriver(CanConfig(modules={1: 1, 2: 2}), clock=clock)
     lost: list[str] = []
     drv.add_event_callback(lambda ev: lost.append(ev.message) if ev.node == 2 else None)
     bus = Endless()
@@ -318,13 +318,14 @@ def test_driver_drains_its_queue_before_judging_heartbeat_loss() -> None:
     """The test is the clock's master: one jump of 1 s while heartbeats sat in the
     driver's receive queue (a starved receive path).  The I/O step applies them first,
     so the node is alive; loss counts from the newest one's bus time."""
-    from swpc_hw.can import CanConfig, CanDriver
     from swpc_hw.clock import SimClock
+    from swpc_hw.drives.bus import CanConfig
+    from swpc_hw.drives.swpc.driver import SwpcDriver
 
     clock = SimClock()
     channel = f"drain-{time.monotonic_ns()}"
     cfg = CanConfig(interface="virtual", channel=channel, modules={1: 1})
-    with CanDriver(cfg, clock=clock) as drv, can.Bus(
+    with SwpcDriver(cfg, clock=clock) as drv, can.Bus(
         interface="virtual", channel=channel, preserve_timestamps=True
     ) as ctrl:
         for k in range(1, 10):  # 0.1 ... 0.9 s
@@ -347,8 +348,10 @@ def test_a_command_hands_its_setpoint_to_the_kernel_before_its_frame_goes_out() 
     the command's frame goes out, and a node's new task starts before its old one stops:
     an axis is never enabled without a refresh, however long the commanding thread is then
     held off the CPU.  A frame that cannot be sent gives the kernel its old setpoint back."""
-    from swpc_hw.can import CanBusError, CanConfig, CanDriver
-    from swpc_hw.can.types import Lifecycle
+    from swpc_hw.drives.bus import CanConfig
+    from swpc_hw.drives.errors import CanBusError
+    from swpc_hw.drives.swpc.driver import SwpcDriver
+    from swpc_hw.drives.types import Lifecycle
 
     log: list[tuple[str, list[bytes]]] = []
 
@@ -376,7 +379,7 @@ def test_a_command_hands_its_setpoint_to_the_kernel_before_its_frame_goes_out() 
             log.append(("periodic", [bytes(m.data) for m in msgs]))
             return Task(msgs)
 
-    drv = CanDriver(CanConfig(modules={1: 1}))
+    drv = SwpcDriver(CanConfig(modules={1: 1}))
     bus = Bus()
     drv._bus = bus  # type: ignore[assignment]
     drv._kernel = KernelRefresh(bus, period=0.02, deadman=0.5)  # type: ignore[arg-type]
@@ -415,16 +418,17 @@ def test_the_kernel_refresh_runs_on_host_time_against_a_time_scaled_simulator() 
     seconds: at k < 1 the kernel's refresh lapsed between renewals."""
     import uuid
 
-    from swpc_hw.can import CanConfig, CanDriver
-    from swpc_hw.can.types import Lifecycle
     from swpc_hw.clock import SystemClock
+    from swpc_hw.drives.bus import CanConfig
+    from swpc_hw.drives.swpc.driver import SwpcDriver
+    from swpc_hw.drives.types import Lifecycle
 
     k = 0.25
     cfg = CanConfig(
         modules={1: 1}, channel=f"kr-{uuid.uuid4().hex[:8]}", refresh_period_s=0.02,
         deadman_s=0.5, refresh_in_kernel=True,
     )  # fmt: skip
-    drv = CanDriver(cfg, clock=SystemClock(rate=k))
+    drv = SwpcDriver(cfg, clock=SystemClock(rate=k))
     drv.configure()
     try:
         ref = drv._kernel

@@ -1,4 +1,4 @@
-"""The rolling CAN log of the data dir (swpc_hw/can/recording.py): within its bytes across
+"""The rolling CAN log of the data dir (swpc_hw/drives/recording.py): within its bytes across
 restarts, a sample of the periodic frames between runs and every event, every frame while
 a run records, and a log that cannot write stops and says why.
 """
@@ -11,11 +11,11 @@ from typing import Any
 
 import can
 
-from swpc_hw.can.recording import Recorder
+from swpc_hw.drives.recording import Recorder
 
 
 def test_the_rolling_can_log_stays_within_its_bytes_across_restarts(tmp_path: Path) -> None:
-    from swpc_hw.can.recording import ROLLING_FILES, rolling_files
+    from swpc_hw.drives.recording import ROLLING_FILES, rolling_files
 
     base = tmp_path / "can" / "can.log"
     base.parent.mkdir()
@@ -121,11 +121,12 @@ def test_the_driver_logs_every_frame_only_while_it_records_a_run(tmp_path: Path)
 
     from firmware_protocol import codec
     from firmware_protocol.codec import AxisState, ControlMode
-    from swpc_hw.can import CanConfig, CanDriver
+    from swpc_hw.drives.bus import CanConfig
+    from swpc_hw.drives.swpc.driver import SwpcDriver
 
     channel = f"swpc-idle-{uuid.uuid4().hex[:8]}"
     rolling = tmp_path / "can.log"
-    driver = CanDriver(
+    driver = SwpcDriver(
         CanConfig(channel=channel, log_path=str(rolling), log_total_bytes=1 << 20,
                   log_idle_period_s=1.0)
     )  # fmt: skip

@@ -32,10 +32,9 @@ from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ErrorFlag
 from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
-from swpc_hw.can.config import CanConfig
-from swpc_hw.can.errors import LifecycleError, NodeError
-from swpc_hw.can.types import EventKind, Lifecycle, Severity
 from swpc_hw.clock import SYSTEM_CLOCK, SimClock
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.cia402.config import Cia402Drives
 from swpc_hw.drives.cia402.driver import Cia402Driver
 from swpc_hw.drives.cia402.tracking import (
     AxisTrack,
@@ -45,7 +44,8 @@ from swpc_hw.drives.cia402.tracking import (
     pair,
     supervise,
 )
-from swpc_hw.drives.config import Cia402Drives
+from swpc_hw.drives.errors import LifecycleError, NodeError
+from swpc_hw.drives.types import EventKind, Lifecycle, Severity
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 HOST = 127

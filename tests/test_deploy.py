@@ -223,7 +223,7 @@ def _keys(model: type[BaseModel], prefix: str = "") -> list[str]:
 def test_sysctl_makes_room_for_the_drivers_receive_buffer() -> None:
     """The robot's sysctl file lets an unprivileged service get the receive buffer the
     driver asks for (SO_RCVBUF is capped at net.core.rmem_max)."""
-    from swpc_hw.can import CanConfig
+    from swpc_hw.drives.bus import CanConfig
 
     path = DEPLOY / "sysctl" / "60-swpc-can.conf"
     lines = [ln.strip() for ln in path.read_text().splitlines()]

@@ -22,20 +22,17 @@ import pytest
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, Command, ControlMode, ErrorFlag, HomingState
 from simulators.drives.swpc import ControllerEmulator, VirtualController
-from swpc_hw.can import (
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.errors import (
     CanBusError,
     CanCommandError,
-    CanConfig,
     CanConfigError,
-    CanDriver,
     CanError,
-    DriverEvent,
-    EventKind,
-    Lifecycle,
     LifecycleError,
     NodeTimeoutError,
-    Severity,
 )
+from swpc_hw.drives.swpc.driver import SwpcDriver
+from swpc_hw.drives.types import DriverEvent, EventKind, Lifecycle, Severity
 from swpc_hw.errors import SwpcError
 from tests.can_rig import (
     FEEDBACK_RATE_HZ,
@@ -65,7 +62,7 @@ virtual_only = pytest.mark.skipif(
 class Rig:
     channel: str
     emu: ControllerEmulator
-    drv: CanDriver
+    drv: SwpcDriver
     obs: Observer
 
     def ctrl(self, node: int) -> VirtualController:
@@ -181,7 +178,7 @@ def test_grow_receive_buffer_asks_the_kernel() -> None:
     import os
     import socket
 
-    from swpc_hw.can.driver import grow_receive_buffer
+    from swpc_hw.drives.recording import grow_receive_buffer
 
     size = 1 << 20
     rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
@@ -239,7 +236,7 @@ def test_config_and_bus_errors_share_one_root() -> None:
         CanConfig.from_mapping({"bogus": 1})
     cfg = CanConfig.from_mapping({"channel": "x", "modules": {"1": "3"}, "max_torque": [1, 2]})
     assert cfg.modules == {1: 3} and cfg.max_torque == (1.0, 2.0)
-    drv = CanDriver(CanConfig(interface="no_such_interface"))
+    drv = SwpcDriver(CanConfig(interface="no_such_interface"))
     with pytest.raises(CanBusError, match="no_such_interface") as info:
         drv.configure()
     assert isinstance(info.value, CanError) and isinstance(info.value, SwpcError)

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from firmware_protocol import codec
-from swpc_hw.can import CanConfig, CanDriver
-from swpc_hw.can.history import COLUMNS, FeedbackRing
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.swpc.driver import SwpcDriver
+from swpc_hw.drives.tracking import COLUMNS, FeedbackRing
 
 
 def row(i: int) -> tuple[float, ...]:
@@ -52,7 +53,7 @@ def test_driver_history_holds_no_object_per_sample() -> None:
     in a calibration, and full collections long enough to miss heartbeats)."""
     channel = f"swpc-test-{uuid.uuid4().hex[:8]}"
     n = 3000
-    with CanDriver(CanConfig(interface="virtual", channel=channel, modules={1: 1},
+    with SwpcDriver(CanConfig(interface="virtual", channel=channel, modules={1: 1},
                              history_len=2000)) as drv, \
             can.Bus(interface="virtual", channel=channel) as ctrl:
         gc.collect()  # the context manager configured the driver: it receives

@@ -24,12 +24,12 @@ from firmware_protocol import codec as swpc_codec
 from firmware_protocol.codec import Axis, ErrorFlag
 from firmware_protocol.odrive import can_simple as cs
 from simulators.drives.odrive import VirtualODriveAxis, odrive_virtual_drive
-from swpc_hw.can.config import CanConfig
-from swpc_hw.can.errors import NodeError
-from swpc_hw.can.types import DriverStats
-from swpc_hw.drives.config import ODriveAxis, ODriveDrives
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.errors import NodeError
+from swpc_hw.drives.odrive.config import ODriveAxis, ODriveDrives
 from swpc_hw.drives.odrive.driver import ODriveDriver
 from swpc_hw.drives.odrive.tracking import apply_frame, new_axis
+from swpc_hw.drives.types import DriverStats
 
 LINES = ("0.5", "0.6")
 
@@ -101,8 +101,7 @@ def test_a_frame_of_swpcs_protocol_is_never_read_as_an_odrive_frame(line: str) -
     stats = DriverStats()
     axes = {n: new_axis(1, Axis.STEER if n % 2 == 0 else Axis.WHEEL, ODriveAxis(node=n))
             for n in range(0, 9)}  # fmt: skip
-    from swpc_hw.can.history import FeedbackRing
-    from swpc_hw.can.node_tracking import NodeTrack
+    from swpc_hw.drives.tracking import FeedbackRing, NodeTrack
 
     modules = {1: NodeTrack(1, 0, FeedbackRing(10))}
     for msg in swpc_codec.database().messages:
@@ -318,7 +317,7 @@ def test_the_kernel_refresh_takes_a_new_frame_id_for_an_axis() -> None:
     """An ODrive axis' refresh goes from Set_Input_Torque (enable, free) to Set_Input_Pos
     (hold after its index search): python-can's periodic tasks change their data, never
     their ids, so the new id takes a new task (the VM's SocketCAN run faulted here before)."""
-    from swpc_hw.can.periodic import KernelRefresh
+    from swpc_hw.drives.periodic import KernelRefresh
 
     c = cs.can_simple("0.5")
     channel = f"odrive-refresh-{uuid.uuid4().hex[:8]}"

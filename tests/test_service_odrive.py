@@ -34,7 +34,7 @@ from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
 from swpc_hw.clock import Clock
-from swpc_hw.drives.config import ODriveDrives
+from swpc_hw.drives.odrive.config import ODriveDrives
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.service_rig import (
     AUTH,

@@ -2,7 +2,7 @@
 
 Every test runs the real simulator thread on a python-can ``virtual`` bus and a zenoh
 session on a loopback tcp endpoint; the host side is the real CAN driver
-(:class:`swpc_hw.can.CanDriver`) or raw frames from :mod:`firmware_protocol.codec`.
+(:class:`swpc_hw.drives.swpc.driver.SwpcDriver`) or raw frames from :mod:`firmware_protocol.codec`.
 
 Tests of what the simulator computes (geometry, watchdog, heartbeat) run it in lockstep
 on a :class:`swpc_hw.clock.SimClock` (``rig(lockstep=True)``, the test thread a
@@ -36,9 +36,10 @@ from simulators.options import SimOptions
 from simulators.sensors.gyro import imu_key
 from simulators.sensors.mocap import MocapOptions, pose_key, truth_params_key, truth_pose_key
 from simulators.virtual_robot import VirtualRobot
-from swpc_hw.can import CanConfig, CanDriver
 from swpc_hw.clock import SimClock
-from swpc_hw.drives.config import SwpcDrives
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.swpc.config import SwpcDrives
+from swpc_hw.drives.swpc.driver import SwpcDriver
 from swpc_hw.robot.model import RobotParams, rot
 from swpc_hw.sensors.gyro import GyroOptions, decode_imu
 from swpc_hw.sensors.mocap import PoseEncoding, decode_pose
@@ -251,7 +252,7 @@ def test_lock_spin_resteer_spin_through_can_and_zenoh_gives_the_true_contact_poi
         k, a1, a2 = 1, 45 * DEG, 165 * DEG
         ik = truth.index(k)
         others = [m for m in truth.ids if m != k]
-        drv = CanDriver(
+        drv = SwpcDriver(
             CanConfig(
                 channel=r.channel,
                 watchdog_timeout_ms=1000,

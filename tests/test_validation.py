@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swpc_hw.can.config import CanConfig
-from swpc_hw.can.driver import CanDriver, FeedbackSample
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.swpc.driver import SwpcDriver
+from swpc_hw.drives.types import FeedbackSample
 from swpc_hw.files.kinematic_file import load_robot
 from swpc_hw.robot.model import wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
@@ -211,7 +212,7 @@ def test_driver_odometry_aligns_unsynchronised_modules_on_the_counter_clock() ->
     delivery: the counter clock and interpolation give the exact pose, the slip indicator
     stays ~0."""
     params = PAPER_CALIBRATED
-    drv = CanDriver(CanConfig(feedback_rate_hz=100))  # never configured: only its callbacks
+    drv = SwpcDriver(CanConfig(feedback_rate_hz=100))  # never configured: only its callbacks
     feed = DriverOdometry(drv, params)
     A = params.arrays()
     rate, v = 100.0, 0.2

@@ -14,7 +14,7 @@ A hold (``one_hold``) starts, on ``--channel``:
   ``tests/test_ctrl_emulator.py``); ``--emulator python`` runs :class:`ControllerEmulator`
   instead (``emulate``), which under QEMU's emulation takes most of an emulated CPU from
   the driver and falls behind on its own heartbeats;
-* ``hold``: the service side, at normal priority: a :class:`CanDriver` with the service's
+* ``hold``: the service side, at normal priority: a :class:`SwpcDriver` with the service's
   own CAN settings at the robot's windows (:func:`services.config.timing.bus_config`: watchdog
   200 ms, refresh 20 ms, heartbeat loss 0.3 s, dead-man 0.5 s unless ``--deadman``; on
   SocketCAN the refresh goes through the kernel's broadcast manager), activated, every axis
@@ -108,7 +108,9 @@ def hold(args: argparse.Namespace) -> int:
     from services.config.robot import RobotConfig
     from services.config.settings import ServiceSettings
     from services.config.timing import bus_config, timing_budget
-    from swpc_hw.can import CanDriver, CanError, LifecycleError, Severity
+    from swpc_hw.drives.errors import CanError, LifecycleError
+    from swpc_hw.drives.swpc.driver import SwpcDriver
+    from swpc_hw.drives.types import Severity
 
     # SIGTERM/SIGINT end the hold through sigwait (an orderly shutdown: stop frames);
     # SIGUSR1 marks the start of the busy phase
@@ -128,7 +130,7 @@ def hold(args: argparse.Namespace) -> int:
     if args.host_refresh:
         can_cfg = replace(can_cfg, refresh_in_kernel=False)
     faults: list[tuple[float, str]] = []
-    drv = CanDriver(can_cfg)
+    drv = SwpcDriver(can_cfg)
     # diagnostics: when supervision (while active) and the dead-man's renewal ran
     supervised: list[float] = []
     renewed: list[float] = []

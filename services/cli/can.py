@@ -99,7 +99,9 @@ def run_monitor(args: argparse.Namespace) -> int:
     from rich.live import Live
 
     from simulators.drives.swpc import ControllerEmulator, VirtualController
-    from swpc_hw.can import CanConfig, CanConfigError, CanDriver
+    from swpc_hw.drives.bus import CanConfig
+    from swpc_hw.drives.errors import CanConfigError
+    from swpc_hw.drives.swpc.driver import SwpcDriver
 
     try:
         nodes = [int(x) for x in args.nodes.split(",") if x.strip()]
@@ -125,7 +127,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     lost: list[str] = []
     end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
     try:
-        with CanDriver(cfg) as drv:
+        with SwpcDriver(cfg) as drv:
             time.sleep(min(args.interval, max(0.0, end - time.monotonic())))
             if args.plain or not sys.stdout.isatty():
                 while True:

@@ -146,7 +146,7 @@ def sim_drives(args: argparse.Namespace) -> Any:
     from pydantic import TypeAdapter
 
     from services.config.robot import load_robot_config
-    from swpc_hw.drives.config import DrivesConfig, parse_drives
+    from swpc_hw.drives.registry import DrivesConfig, parse_drives
     from swpc_hw.errors import SwpcError
 
     given = [n for n in ("robot_config", "drives", "nodes") if getattr(args, n)]

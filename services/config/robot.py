@@ -26,8 +26,9 @@ from typing import Any, Literal, Optional
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from swpc_hw.can.config import DEFAULT_WATCHDOG_MS
-from swpc_hw.drives.config import DrivesConfig, SwpcDrives, parse_drives
+from swpc_hw.drives.bus import DEFAULT_WATCHDOG_MS
+from swpc_hw.drives.registry import DrivesConfig, parse_drives
+from swpc_hw.drives.swpc.config import SwpcDrives
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.kinematic_file import kinematics_document, load_robot, parse_kinematics
 from swpc_hw.protocol import DEFAULT_PROTOCOL as _DEFAULT

@@ -63,17 +63,15 @@ from pathlib import Path
 from firmware_protocol.codec import HEARTBEAT_PERIOD_S
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
-from swpc_hw.can.config import CanConfig, deadman_problem
-from swpc_hw.can.errors import CanConfigError
 from swpc_hw.clock import Clock
-from swpc_hw.drives.factory import open_drives
+from swpc_hw.drives.bus import DEADMAN_S, HEARTBEAT_LOSS_S, CanConfig, deadman_problem
+from swpc_hw.drives.errors import CanConfigError
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.registry import open_drives
 
 HOST_REFRESH_FLOOR_S = 0.02
 """The driver refreshes a node's last command at most this often in host time."""
-ROBOT_HEARTBEAT_TIMEOUT_S = 0.3
 ROBOT_MOCAP_STALE_S = 0.5
-DEADMAN_S = 0.5
 
 
 class TimingError(CanConfigError):
@@ -124,7 +122,7 @@ def timing_budget(settings: ServiceSettings, config: RobotConfig) -> TimingBudge
     k = settings.external_time_scale
     floor = k * settings.sim_host_window_s if k != 1.0 else 0.0
     watchdog = max(config.limits.watchdog_ms / 1000.0, floor)
-    loss = settings.heartbeat_timeout or ROBOT_HEARTBEAT_TIMEOUT_S
+    loss = settings.heartbeat_timeout or HEARTBEAT_LOSS_S
     stale = settings.mocap_stale_after or ROBOT_MOCAP_STALE_S
     if settings.heartbeat_timeout is None:
         loss = max(loss, floor)
@@ -190,7 +188,7 @@ def robot_drives(
     log_path: Path | None = None,
     log_total_bytes: int | None = None,
 ) -> Drives:
-    """The robot's drives (its config's kind, :func:`swpc_hw.drives.factory.open_drives`) on
+    """The robot's drives (its config's kind, :func:`swpc_hw.drives.registry.open_drives`) on
     :func:`bus_config`'s settings, UNCONFIGURED: what ``swpc serve`` and ``swpc validate``
     open."""
     bus = bus_config(

@@ -28,7 +28,7 @@ from typing import Any
 
 from services.runtime.runtime import Runtime
 from services.store.disk import run_reserve
-from swpc_hw.can.types import Lifecycle
+from swpc_hw.drives.types import Lifecycle
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.sensors.zenoh_session import linked_sessions
 

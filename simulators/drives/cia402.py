@@ -45,7 +45,7 @@ from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag
 from simulators.drives.base import AxisModel, axis_drive
-from swpc_hw.drives.config import ABSOLUTE, Cia402Axis, Cia402Drives, Cia402Steer
+from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Axis, Cia402Drives, Cia402Steer
 
 SUPPORTED_MODES = (
     Mode.HOMING,

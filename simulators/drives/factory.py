@@ -1,5 +1,5 @@
 """A module's virtual drives of the robot config's kind: the one place that knows the kinds
-(as :func:`swpc_hw.drives.factory.open_drives` on the host side).
+(as :func:`swpc_hw.drives.registry.open_drives` on the host side).
 
 The virtual robot (:mod:`simulators.virtual_robot`) moves the physics and hands every CAN
 frame to every module's :class:`~simulators.drives.base.VirtualDrive`; each kind turns
@@ -19,7 +19,8 @@ from typing import Any
 
 from simulators.drives import cia402, swpc
 from simulators.drives.base import VirtualDrive
-from swpc_hw.drives.config import DrivesConfig, ODriveDrives
+from swpc_hw.drives.odrive.config import ODriveDrives
+from swpc_hw.drives.registry import DrivesConfig
 
 
 def _odrive(config: DrivesConfig, module: int, **kwargs: Any) -> VirtualDrive:

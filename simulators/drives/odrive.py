@@ -48,7 +48,7 @@ from firmware_protocol.codec import (
 )
 from firmware_protocol.odrive import can_simple as cs
 from simulators.drives.base import AxisModel, axis_drive
-from swpc_hw.drives.config import ODriveAxis, ODriveDrives
+from swpc_hw.drives.odrive.config import ODriveAxis, ODriveDrives
 
 TWO_PI = 2.0 * math.pi
 UNLIMITED = 1e9

@@ -41,10 +41,10 @@ from firmware_protocol.codec import (
 )
 from simulators.drives.base import AxisModel, VirtualDrive, axis_drive, message
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, next_instant
-from swpc_hw.drives.config import DrivesConfig, SwpcDrives
+from swpc_hw.drives.registry import DrivesConfig
+from swpc_hw.drives.swpc.config import SwpcDrives
 
 DEFAULT_RATE_HZ = codec.POWER_UP_FEEDBACK_RATE_HZ
-DEFAULT_WATCHDOG_MS = codec.POWER_UP_WATCHDOG_MS
 HEARTBEAT_PERIOD_S = codec.HEARTBEAT_PERIOD_S
 OVER_SPEED_FACTOR = 1.2
 
@@ -55,7 +55,7 @@ class VirtualController:
 
     node: int
     rate_hz: int = DEFAULT_RATE_HZ
-    watchdog_ms: int = DEFAULT_WATCHDOG_MS
+    watchdog_ms: int = codec.POWER_UP_WATCHDOG_MS  # the firmware's, until the host sets W
     heartbeat_period: float = HEARTBEAT_PERIOD_S
     homing_duration: float = 0.2
     sensor_position: float = 0.3

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can import DriverEvent, Lifecycle, Severity
-from swpc_hw.can.errors import NodeError
+from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
 from swpc_hw.robot.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
@@ -203,13 +203,12 @@ class DrivesRobotIO:
         """Feedback on the drives' clock, timed by the frames' *bus* time stamps.
 
         The drives map every bus stamp (kernel arrival on SocketCAN, send time on the
-        virtual bus) onto their clock (:func:`swpc_hw.can.node_tracking.frame_time`): the
+        virtual bus) onto their clock (:func:`swpc_hw.drives.tracking.frame_time`): the
         receive thread's queueing delay, which can reach a second on a loaded host, is not
         in it.
         """
-        h = self.drives.history_arrays(module)
-        sel = h["t"] >= since
-        return np.column_stack([h["t"][sel], h["theta_hat"][sel], h["psi"][sel]])
+        rows, _ = self.drives.history_since(module, 0, since)  # cursor 0: every row kept
+        return rows
 
     def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
         return self.drives.history_since(module, cursor, since)

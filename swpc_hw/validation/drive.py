@@ -9,8 +9,8 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 
 from firmware_protocol.codec import Axis
-from swpc_hw.can import DriverEvent, Lifecycle, Severity
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
 from swpc_hw.onboard.odometry import OdometryOptions
 from swpc_hw.onboard.square_path import Direction, Leg, SquareOptions, follow_step, square_plan
 from swpc_hw.onboard.twist_controller import TwistController

@@ -10,8 +10,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.can import FeedbackSample
 from swpc_hw.drives.interface import Drives
+from swpc_hw.drives.types import FeedbackSample
 from swpc_hw.onboard.odometry import Odometry, OdometryOptions
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.validation.errors import ValidationError

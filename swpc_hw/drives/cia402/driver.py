@@ -2,17 +2,19 @@
 
 One single-axis drive per axis (a module's steering and wheel on two nodes).  canopen does
 SDO, PDO, NMT and EMCY (:class:`canopen.Network` with one
-:class:`~swpc_hw.drives.cia402.sdo.ClockedRemoteNode` per axis); this module owns the bus,
-the lifecycle of :class:`swpc_hw.drives.interface.Drives`, the receive path (it feeds
-:meth:`canopen.Network.notify` itself: no notifier thread, so that in lockstep every frame
-is handled on the clock) and the pure cores of :mod:`swpc_hw.drives.cia402.tracking`.
+:class:`~swpc_hw.drives.cia402.sdo.ClockedRemoteNode` per axis); this module is
+:class:`swpc_hw.drives.base.DriverBase` (the lifecycle, the I/O step, the fault path)
+with the kind's receive path (it feeds :meth:`canopen.Network.notify` itself: no notifier
+thread, so that in lockstep every frame is handled on the clock), the set-up
+(:mod:`swpc_hw.drives.cia402.setup`) and the pure cores of
+:mod:`swpc_hw.drives.cia402.tracking`.
 
 Lifecycle
 ---------
 * ``configure()``: open the bus, start the I/O step (the driver's thread on a real clock,
   a :class:`~swpc_hw.clock.SimClock` hook in lockstep) and the host's heartbeat (node
   ``drives.host_node``, every ``refresh_period_s``; on SocketCAN from the kernel with the
-  dead-man of :class:`swpc_hw.can.periodic.KernelRefresh`, renewed by the I/O step).
+  dead-man of :class:`swpc_hw.drives.periodic.KernelRefresh`, renewed by the I/O step).
 * ``activate()``: every drive's heartbeat seen; once per boot of a drive, its set-up over
   SDO (PRE-OPERATIONAL): heartbeat producer 0x1017 = ``heartbeat_period_s``, heartbeat
   consumer 0x1016 on the host's heartbeat with the command watchdog
@@ -40,51 +42,24 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import logging
 import math
-import queue
-import socket
-import threading
-from collections import deque
 from collections.abc import Callable, Iterator
 
 import can
 import canopen
-import numpy as np
 from canopen.emcy import EmcyError
 from canopen.pdo.base import PdoMap
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
-from numpy.typing import NDArray
 
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, Frame, HomingState
-from swpc_hw.can.config import CanConfig
-from swpc_hw.can.errors import (
-    CanBusError,
-    CanCommandError,
-    CanError,
-    LifecycleError,
-    NodeError,
-    NodeTimeoutError,
-)
-from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.node_tracking import CAN_ERR_BUSOFF, frame_time
-from swpc_hw.can.periodic import KernelRefresh
-from swpc_hw.can.recording import Recorder, grow_receive_buffer
-from swpc_hw.can.types import (
-    AXIS_NAMES,
-    DriverEvent,
-    DriverStats,
-    EventKind,
-    FeedbackSample,
-    Lifecycle,
-    ModuleState,
-    Observation,
-    Severity,
-)
-from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, wait_until
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
+from swpc_hw.drives.base import DriverBase
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
 from swpc_hw.drives.cia402.sdo import ClockedRemoteNode
+from swpc_hw.drives.cia402.setup import set_up
 from swpc_hw.drives.cia402.tracking import (
     AxisTrack,
     ModuleTrack,
@@ -94,12 +69,23 @@ from swpc_hw.drives.cia402.tracking import (
     pair,
     supervise,
 )
-from swpc_hw.drives.config import ABSOLUTE, Cia402Drives
+from swpc_hw.drives.errors import (
+    CanBusError,
+    CanCommandError,
+    CanError,
+    NodeError,
+    NodeTimeoutError,
+)
+from swpc_hw.drives.tracking import CAN_ERR_BUSOFF, FeedbackRing, Supervision
+from swpc_hw.drives.types import (
+    EventKind,
+    FeedbackSample,
+    Lifecycle,
+    ModuleState,
+    Observation,
+    Severity,
+)
 
-log = logging.getLogger(__name__)
-
-IO_WAIT_MAX = 0.05
-"""Longest wall wait of the I/O thread for a frame (s): how soon it notices shutdown."""
 POWER_TIMEOUT_S = 1.0
 """An axis asked to enable that is not OPERATION ENABLED in a statusword answering a SYNC
 sent this long after has refused (robot time, in SYNC periods)."""
@@ -120,22 +106,18 @@ class _HostNetwork(canopen.Network):
         self.driver._send(can_id, bytes(data))
 
 
-class Cia402Driver:
+class Cia402Driver(DriverBase):
     """The robot's CiA 402 drives on one bus (module docstring)."""
+
+    thread_name = "swpc-cia402-io"
+    kernel_always = True  # the kernel carries the host's heartbeat from configure() on
+    stopped_message = "fault: every axis disabled; drives inactive"
 
     def __init__(
         self, drives: Cia402Drives, config: CanConfig, *, clock: Clock = SYSTEM_CLOCK
     ) -> None:
+        super().__init__(config, clock=clock)
         self.drives = drives
-        self.config = config
-        self.clock = clock
-        self.last_exception: BaseException | None = None
-        self._lockstep = isinstance(clock, SimClock)
-        self._state = Lifecycle.UNCONFIGURED
-        self._fault_cause: str | None = None
-        self._lock = threading.RLock()
-        self._changed = threading.Condition(self._lock)
-        self._tx_lock = threading.RLock()
         self._modules: dict[int, ModuleTrack] = {}
         self._axes: dict[int, AxisTrack] = {}
         self._history: dict[int, FeedbackRing] = {}
@@ -151,323 +133,103 @@ class Cia402Driver:
                 mt.homed, mt.homing = True, HomingState.DONE
             self._modules[m] = mt
             self._history[m] = FeedbackRing(config.history_len)
-        self._stats = DriverStats()
-        self._bus: can.BusABC | None = None
         self._network: _HostNetwork | None = None
         self._nodes: dict[int, ClockedRemoteNode] = {}
-        self._kernel: KernelRefresh | None = None
-        self._next_renewal = 0.0
         self._next_heartbeat = 0.0
         self._sync_on = False
         self._sync_seq = 0
         self._next_sync = math.inf
-        self._configured_at = 0.0
-        self._last_arrival = -math.inf
-        self._io_thread: threading.Thread | None = None
-        self._stop_io = threading.Event()
-        self._events: queue.Queue[DriverEvent] = queue.Queue(maxsize=10_000)
-        self._event_callbacks: list[Callable[[DriverEvent], None]] = []
-        self._feedback_callbacks: list[Callable[[int, FeedbackSample], None]] = []
         self._pending: list[Observation] = []  # observed by canopen callbacks in a step
         self._samples: list[tuple[int, FeedbackSample]] = []
-        self._logger: Recorder | None = None
-        self._recorder: Recorder | None = None
+        self._resend: list[AxisTrack] = []  # RPDO 1 due again (supervise)
         self._limits: dict[tuple[int, int], tuple[int, int]] = {}
-        self._latency: deque[float] = deque(maxlen=10_000)
         self._arrival = 0.0  # the arrival of the frame being handled (canopen's callbacks)
 
     # ================================================================ lifecycle
-    @property
-    def state(self) -> Lifecycle:
-        return self._state
+    def _before_open(self) -> None:
+        try:
+            canopen.import_od(str(self.drives.object_dictionary))
+        except Exception as exc:
+            raise CanBusError(
+                f"drives.object_dictionary {self.drives.object_dictionary}: cannot read "
+                f"it as an EDS/DCF: {exc}"
+            ) from exc
 
-    @property
-    def fault_cause(self) -> str | None:
-        return self._fault_cause
-
-    @property
-    def refresh_in_kernel(self) -> bool:
-        """The host's heartbeat comes from the kernel (SocketCAN broadcast manager)."""
-        return self._kernel is not None
-
-    def configure(self) -> None:
-        with self._lock:
-            if self._state != Lifecycle.UNCONFIGURED:
-                raise LifecycleError(
-                    f"configure() needs state unconfigured, not {self._state.value}"
+    def _opened(self, bus: can.BusABC) -> None:
+        """canopen's network on the bus, a remote node per axis; the host's heartbeat
+        from the kernel on SocketCAN."""
+        cfg = self.config
+        net = self._network = _HostNetwork(self, bus)
+        for m, mt in self._modules.items():
+            for a in mt.axes:
+                node = ClockedRemoteNode(
+                    a.node,
+                    str(self.drives.object_dictionary),
+                    self.clock,
+                    timeout=cfg.loss_after_s,
                 )
-            cfg = self.config
-            kwargs = dict(cfg.bus_kwargs)
-            if self._lockstep:
-                if cfg.interface != "virtual":
-                    raise CanBusError(
-                        "a simulated clock needs the in-process bus (interface 'virtual'), "
-                        f"not {cfg.interface!r}"
-                    )
-                kwargs.setdefault("preserve_timestamps", True)
-            try:
-                od = canopen.import_od(str(self.drives.object_dictionary))
-            except Exception as exc:
-                raise CanBusError(
-                    f"drives.object_dictionary {self.drives.object_dictionary}: cannot read "
-                    f"it as an EDS/DCF: {exc}"
-                ) from exc
-            del od
-            try:
-                self._bus = can.Bus(
-                    interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **kwargs
-                )
-            except (can.CanError, OSError, ValueError, ImportError) as exc:
-                raise CanBusError(
-                    f"cannot open CAN bus interface={cfg.interface!r} "
-                    f"channel={cfg.channel!r}: {exc}"
-                ) from exc
-            sock = getattr(self._bus, "socket", None)
-            if cfg.rx_buffer_bytes and isinstance(sock, socket.socket):
-                self._stats.rx_buffer_bytes = grow_receive_buffer(sock, cfg.rx_buffer_bytes)
-            net = self._network = _HostNetwork(self, self._bus)
-            for m, mt in self._modules.items():
-                for a in mt.axes:
-                    node = ClockedRemoteNode(
-                        a.node,
-                        str(self.drives.object_dictionary),
-                        self.clock,
-                        timeout=cfg.heartbeat_loss_periods * cfg.heartbeat_period_s,
-                    )
-                    net.add_node(node)
-                    self._nodes[a.node] = node
-                    net.subscribe(cia402.HEARTBEAT_BASE + a.node, self._on_heartbeat)
-                    node.emcy.add_callback(self._emcy_callback(a))
-                    for i in cia402.TPDO_MAP:
-                        node.tpdo[i].add_callback(lambda p, a=a, m=m: self._on_tpdo(m, a, p))
-            kernel = cfg.refresh_in_kernel
-            if kernel is None:
-                kernel = cfg.interface == "socketcan" and not self._lockstep
-            if kernel:
-                # the kernel's timers run on host time; the budget is robot time
-                rate = self.clock.rate
-                self._kernel = KernelRefresh(
-                    self._bus, cfg.refresh_period_s / rate, cfg.deadman_s / rate
-                )
-                self._kernel.set_node(self.drives.host_node, [self._heartbeat_frame()])
-            if cfg.log_path:
-                self._logger = Recorder(
-                    cfg.log_path,
-                    total_bytes=cfg.log_total_bytes,
-                    sample_period_s=cfg.log_idle_period_s,
-                )
-            self._configured_at = self._next_heartbeat = self._next_renewal = self.clock.now()
-            self._state = Lifecycle.INACTIVE
-            self._stop_io.clear()
-            if isinstance(self.clock, SimClock):
-                self.clock.add_hook(self._io_hook)
-            else:
-                self._io_thread = threading.Thread(
-                    target=self._io_loop, name=f"swpc-cia402-io-{cfg.channel}", daemon=True
-                )
-                self._io_thread.start()
+                net.add_node(node)
+                self._nodes[a.node] = node
+                net.subscribe(cia402.HEARTBEAT_BASE + a.node, self._on_heartbeat)
+                node.emcy.add_callback(self._emcy_callback(a))
+                for i in cia402.TPDO_MAP:
+                    node.tpdo[i].add_callback(lambda p, a=a, m=m: self._on_tpdo(m, a, p))
+        if self._kernel is not None:
+            self._kernel.set_node(self.drives.host_node, [self._heartbeat_frame()])
+        self._next_heartbeat = self._next_renewal = self._configured_at
 
     def _heartbeat_frame(self) -> Frame:
         host = self.drives.host_node
         return Frame(cia402.HEARTBEAT_BASE + host, bytes([cia402.NMT_OPERATIONAL]))
 
-    def activate(self) -> None:
-        """INACTIVE -> ACTIVE (module docstring); :class:`NodeTimeoutError` names the silent
-        drives, :class:`NodeError` a drive whose set-up failed (the object and why)."""
+    def _bring_up(self) -> None:
+        """Every drive's heartbeat; each drive not set up since its boot set up
+        (:mod:`swpc_hw.drives.cia402.setup`) and started; OPERATIONAL on every heartbeat.
+        :class:`NodeTimeoutError` names the silent drives, :class:`NodeError` a drive whose
+        set-up failed (the object and why)."""
         cfg = self.config
-        with self._changed:
-            if self._state != Lifecycle.INACTIVE:
-                raise LifecycleError(f"activate() needs state inactive, not {self._state.value}")
-        self._wait_all("heartbeat", lambda a: a.alive, cfg.activate_timeout_s)
+        self._wait_axes("heartbeat", lambda a: a.alive, cfg.activate_timeout_s)
         for a in self._tracks():
             if not a.configured:
-                self._set_up(a)
-        self._wait_all(
+                set_up(self._nodes[a.node], a, self.drives, cfg)
+                with self._lock:
+                    a.configured = True
+                    a.controlword = cia402.CW_DISABLE_VOLTAGE
+                    a.sync_base, a.answered = self._sync_seq, 0  # it answers the SYNCs after
+                self._nodes[a.node].nmt.send_command(cia402.NMT_START)
+        self._wait_axes(
             "NMT OPERATIONAL", lambda a: a.nmt == cia402.NMT_OPERATIONAL, cfg.activate_timeout_s
         )
-        with self._changed:
-            if not self._sync_on:
-                self._sync_on = True
-                self._next_sync = self.clock.now()
-            if self._state != Lifecycle.INACTIVE:
-                raise LifecycleError(f"activate(): the drives became {self._state.value}")
-            self._state = Lifecycle.ACTIVE
-            self._fault_cause = None
-            for a in self._tracks():
-                a.refused_reported = False
-        self._wait_all(
-            "a statusword", lambda a: a.statusword is not None, cfg.activate_timeout_s
+
+    def _activated(self) -> None:
+        """The SYNC (``feedback_rate_hz``) runs from now on."""
+        if not self._sync_on:
+            self._sync_on = True
+            self._next_sync = self.clock.now()
+        for a in self._tracks():
+            a.refused_reported = False
+
+    def _after_activate(self) -> None:
+        self._wait_axes(
+            "a statusword", lambda a: a.statusword is not None, self.config.activate_timeout_s
         )
 
     def _tracks(self) -> Iterator[AxisTrack]:
         for mt in self._modules.values():
             yield from mt.axes
 
-    def _wait_all(self, what: str, ok: Callable[[AxisTrack], bool], timeout: float) -> None:
-        deadline = self.clock.now() + timeout
-        with self._changed:
-            if not wait_until(
-                self.clock, self._changed, lambda: all(ok(a) for a in self._tracks()), deadline
-            ):
-                bad = [a for a in self._tracks() if not ok(a)]
-                raise NodeTimeoutError(
-                    f"activate(): no {what} from {', '.join(a.where() for a in bad)} within "
-                    f"{timeout:g} s",
-                    node=bad[0].node,
-                    axis=int(bad[0].axis),
-                )
-
-    def _set_up(self, a: AxisTrack) -> None:
-        """One drive's set-up over SDO (module docstring), then NMT start."""
-        cfg = self.config
-        node = self._nodes[a.node]
-        node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)
-        axes = self.drives.axes()[a.module]
-        ax = axes.steer if a.axis is Axis.STEER else axes.wheel
-        step = "0x1000"
-        try:
-            step = "0x1017 producer heartbeat time"
-            node.sdo[cia402.PRODUCER_HEARTBEAT].raw = round(1000 * cfg.heartbeat_period_s)
-            step = "0x1016 consumer heartbeat time"
-            node.sdo[cia402.CONSUMER_HEARTBEAT][1].raw = cia402.consumer_entry(
-                self.drives.host_node, cfg.watchdog_timeout_ms
-            )
-            step = "0x605A quick stop option code"
-            node.sdo[cia402.QUICK_STOP_OPTION].raw = self.drives.quick_stop_option
-            step = "0x6502 supported drive modes"
-            supported = int(node.sdo[cia402.SUPPORTED_MODES].raw)
-            needed = [Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE]
-            homing = getattr(ax, "homing", ABSOLUTE)
-            if homing != ABSOLUTE:
-                needed.append(Mode.HOMING)
-            missing = [m.name for m in needed if not supported & cia402.supported_modes_bit(m)]
-            if missing:
-                raise NodeError(
-                    f"{a.where()}: the drive does not support mode(s) {', '.join(missing)} "
-                    f"(0x6502 = 0x{supported:08X})",
-                    node=a.node,
-                    axis=int(a.axis),
-                )
-            if homing != ABSOLUTE:
-                step = f"0x6098 homing method {homing}"
-                node.sdo[cia402.HOMING_METHOD].raw = int(homing)
-            step = "0x6076 motor rated torque"
-            a.rated_torque = int(node.sdo[cia402.RATED_TORQUE].raw) / 1000.0
-            od = node.object_dictionary
-            if cia402.ENCODER_RESOLUTION in od:
-                step = "0x608F position encoder resolution"
-                inc = int(node.sdo[cia402.ENCODER_RESOLUTION][1].raw)
-                rev = int(node.sdo[cia402.ENCODER_RESOLUTION][2].raw)
-                self._check_factor(a, "counts_per_turn", ax.counts_per_turn, inc / rev, step)
-            if cia402.GEAR_RATIO in od:
-                step = "0x6091 gear ratio"
-                mot = int(node.sdo[cia402.GEAR_RATIO][1].raw)
-                shaft = int(node.sdo[cia402.GEAR_RATIO][2].raw)
-                self._check_factor(a, "gear_ratio", ax.gear_ratio, mot / shaft, step)
-            for maps, layout, base, ttype in (
-                (node.tpdo, cia402.TPDO_MAP, cia402.TPDO_BASE, cia402.TPDO_ON_SYNC),
-                (node.rpdo, cia402.RPDO_MAP, cia402.RPDO_BASE, cia402.RPDO_ASYNC),
-            ):
-                for i, entries in layout.items():
-                    step = f"PDO mapping {'TPDO' if maps is node.tpdo else 'RPDO'} {i}"
-                    p = maps[i]
-                    p.read()
-                    p.clear()
-                    for index, sub, bits in entries:
-                        p.add_variable(index, sub, bits)
-                    p.cob_id = base[i - 1] + a.node
-                    p.trans_type = ttype
-                    p.event_timer = 0 if maps is node.tpdo else None
-                    p.enabled = True
-                    p.save()
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise NodeError(
-                f"{a.where()}: set-up {step}: {exc}", node=a.node, axis=int(a.axis)
-            ) from exc
-        with self._lock:
-            a.configured = True
-            a.controlword = cia402.CW_DISABLE_VOLTAGE
-            a.sync_base, a.answered = self._sync_seq, 0  # it answers the SYNCs after this
-        node.nmt.send_command(cia402.NMT_START)
-
-    def _check_factor(self, a: AxisTrack, key: str, mine: float, theirs: float, obj: str) -> None:
-        if not math.isclose(mine, theirs, rel_tol=1e-9):
-            raise NodeError(
-                f"{a.where()}: drives.modules.{a.module}.{AXIS_NAMES[a.axis]}.{key} is {mine:g} "
-                f"but the drive's {obj} says {theirs:g}: the units would be wrong",
-                node=a.node,
-                axis=int(a.axis),
-            )
-
-    def deactivate(self) -> None:
-        with self._lock:
-            if self._state != Lifecycle.ACTIVE:
-                raise LifecycleError(f"deactivate() needs state active, not {self._state.value}")
-        self.stop_all()
-        with self._lock:
-            if self._state == Lifecycle.ACTIVE:
-                self._state = Lifecycle.INACTIVE
-                self._fault_cause = None
-
-    def shutdown(self) -> None:
-        with self._lock:
-            if self._state == Lifecycle.FINALIZED:
-                return
-            was_active = self._state == Lifecycle.ACTIVE
-        if was_active:
-            with contextlib.suppress(CanError):
-                self.stop_all()
-        self._stop_io.set()
-        if isinstance(self.clock, SimClock):
-            self.clock.remove_hook(self._io_hook)
-        if self._io_thread is not None and self._io_thread is not threading.current_thread():
-            self._io_thread.join(timeout=2.0)
-        with self._tx_lock:
-            if self._kernel is not None:
-                self._kernel.close()
-        self.stop_recording()
-        if self._logger is not None:
-            self._logger.stop()
-        if self._bus is not None:
-            self._bus.shutdown()
-        with self._lock:
-            self._state = Lifecycle.FINALIZED
-            self._changed.notify_all()
+    def _wait_axes(self, what: str, ok: Callable[[AxisTrack], bool], timeout: float) -> None:
+        self._wait_all(what, self._tracks, ok, lambda a: a.where(), timeout)
 
     # ================================================================ transmit
     def _send(self, can_id: int, data: bytes, best_effort: bool = False) -> None:
-        bus = self._bus
-        if bus is None:
-            raise LifecycleError("the bus is not open (call configure())")
-        msg = can.Message(
-            arbitration_id=can_id,
-            data=data,
-            is_extended_id=False,
-            is_rx=False,
-            channel=self.config.channel,
-            timestamp=self.clock.wall(),
-        )
-        with self._tx_lock:
-            try:
-                bus.send(msg)
-            except (can.CanError, OSError) as exc:
-                with self._lock:
-                    self._stats.send_errors += 1
-                err = CanBusError(f"send 0x{can_id:03x} failed: {exc}")
-                self._emit(EventKind.SEND_ERROR, Severity.WARNING, str(err))
-                if not best_effort:
-                    raise err from exc
-                return
-            self._log(msg)
-            with self._lock:
-                self._stats.tx_frames += 1
-
-    def _log(self, msg: can.Message) -> None:
-        recorder = self._recorder
-        if recorder is not None:
-            recorder.write(msg)
-        if self._logger is not None:
-            self._logger.write(msg, sample=recorder is None)
+        """One frame (canopen's, the host's heartbeat, SYNC); a failed send is counted and
+        reported, and raised unless ``best_effort``."""
+        try:
+            self._send_frames([Frame(can_id, bytes(data))], best_effort)
+        except CanBusError:
+            if not best_effort:
+                raise
 
     def _send_rpdo(self, a: AxisTrack, targets: bool, best_effort: bool = False) -> None:
         """RPDO 2 (targets, if ``targets``) then RPDO 1 of ``a``: canopen packs them."""
@@ -477,11 +239,16 @@ class Cia402Driver:
             p2[f"0x{cia402.TARGET_POSITION:04X}"].raw = a.target_position
             p2[f"0x{cia402.TARGET_VELOCITY:04X}"].raw = a.target_velocity
             self._send(p2.cob_id or cia402.RPDO_BASE[1] + a.node, bytes(p2.data), best_effort)
-        p1 = node.rpdo[1]
+        f = self._rpdo1(a)
+        self._send(f.arbitration_id, f.data, best_effort)
+
+    def _rpdo1(self, a: AxisTrack) -> Frame:
+        """RPDO 1 of ``a``: controlword, mode, target torque."""
+        p1 = self._nodes[a.node].rpdo[1]
         p1[f"0x{cia402.CONTROLWORD:04X}"].raw = a.controlword
         p1[f"0x{cia402.MODES_OF_OPERATION:04X}"].raw = int(a.mode)
         p1[f"0x{cia402.TARGET_TORQUE:04X}"].raw = a.target_torque
-        self._send(p1.cob_id or cia402.RPDO_BASE[0] + a.node, bytes(p1.data), best_effort)
+        return Frame(p1.cob_id or cia402.RPDO_BASE[0] + a.node, bytes(p1.data))
 
     # ================================================================ commands
     def _module(self, module: int) -> ModuleTrack:
@@ -492,18 +259,12 @@ class Cia402Driver:
                 f"module {module} is not configured (modules: {sorted(self._modules)})"
             ) from None
 
-    def _require_active(self, what: str, a: AxisTrack | None = None) -> None:
-        if self._state != Lifecycle.ACTIVE:
-            at = f"{a.where()}: " if a else ""
-            why = f" (stopped by a fault: {self._fault_cause})" if self._fault_cause else ""
-            raise LifecycleError(f"{at}cannot {what} in state {self._state.value}{why}")
-
     def _command(self, what: str, module: int, axis: Axis, change: Callable[[AxisTrack], None],
                  targets: bool = True) -> None:  # fmt: skip
         mt = self._module(module)
         a = mt.axes[Axis(axis)]
         with self._tx_lock:
-            self._require_active(what, a)
+            self._require_active(what, a.where())
             with self._lock:
                 before = a.mode
                 change(a)
@@ -538,7 +299,7 @@ class Cia402Driver:
         """Over SDO (a set-up step: 0x6072 max torque, 0x607F max profile velocity)."""
         mt = self._module(module)
         a = mt.axes[Axis(axis)]
-        self._require_active("set limits", a)
+        self._require_active("set limits", a.where())
         torque = min(a.torque_units(max_torque), 0xFFFF)
         velocity = min(a.to_units(max_velocity), 0xFFFFFFFF)
         if self._limits.get((module, int(axis))) == (torque, velocity):
@@ -590,7 +351,7 @@ class Cia402Driver:
         attained *and* target reached.  An absolute steering is homed already."""
         mt = self._module(module)
         a = mt.steer
-        self._require_active("start homing", a)
+        self._require_active("start homing", a.where())
         if self.drives.axes()[module].steer.homing == ABSOLUTE:
             mt.homed, mt.homing = True, HomingState.DONE
             return
@@ -603,82 +364,27 @@ class Cia402Driver:
 
         self._command("start homing", module, Axis.STEER, change, targets=False)
 
-    def stop_all(self) -> None:
-        """Disable voltage and torque 0 to every axis (sent whenever the bus is open)."""
-        with self._tx_lock:
-            with self._lock:
-                self._stats.stop_all_calls += 1
-                for a in self._tracks():
-                    a.enable = False
-                    a.homing_start = False
-                    a.reset = False
-                    a.target_torque = 0
-                    a.controlword = cia402.CW_DISABLE_VOLTAGE
-                    a.t_controlword = self.clock.now()
-                    a.enable_sync = -1
-                bus_open = self._bus is not None and self._state in (
-                    Lifecycle.INACTIVE,
-                    Lifecycle.ACTIVE,
-                )
-            if not bus_open:
-                return
-            for a in self._tracks():
-                if a.configured:  # (an axis never set up was never enabled)
-                    self._send_rpdo(a, targets=False, best_effort=True)
+    def _stopping(self) -> None:
+        for a in self._tracks():
+            a.enable = False
+            a.homing_start = False
+            a.reset = False
+            a.target_torque = 0
+            a.controlword = cia402.CW_DISABLE_VOLTAGE
+            a.t_controlword = self.clock.now()
+            a.enable_sync = -1
+
+    def _stop_frames(self) -> list[Frame]:
+        """Disable voltage and torque 0 (RPDO 1) to every axis set up (an axis never set
+        up was never enabled); the host's heartbeat goes on."""
+        return [self._rpdo1(a) for a in self._tracks() if a.configured]
 
     # ================================================================ receive + supervise
-    def _io_loop(self) -> None:
-        bus = self._bus
-        assert bus is not None
-        rate = self.clock.rate
-        while not self._stop_io.is_set():
-            try:
-                deadline = self._io_step(bus)
-                wait = min(max((deadline - self.clock.now()) / rate, 0.0), IO_WAIT_MAX)
-                msg = bus.recv(wait)
-                if msg is not None:
-                    self._handle(msg)
-                    self._flush()
-            except (can.CanError, OSError, ValueError) as exc:
-                if self._stop_io.is_set():
-                    return
-                self._on_listener_error(exc)
-                self._stop_io.wait(IO_WAIT_MAX)
-            except Exception as exc:
-                self._on_listener_error(exc)
-
-    def _io_hook(self, now: float) -> None:
-        bus = self._bus
-        if bus is None or self._stop_io.is_set():
-            return
-        try:
-            self._io_step(bus)
-        except Exception as exc:
-            self._on_listener_error(exc)
-
-    def _io_step(self, bus: can.BusABC) -> float:
-        """Drain the receive queue (as the swpc kind's), then supervise at a time taken
-        before the queue was found empty; returns the next deadline."""
+    def _receive(self, msg: can.Message, t: float) -> None:
+        """One frame to canopen (its callbacks below collect what it tells; handled once
+        the step's frames are in, :meth:`_drained`), error frames here."""
         clock = self.clock
-        t0 = t_check = clock.now()
-        msg = bus.recv(0)
-        while msg is not None:
-            self._handle(msg)
-            if msg.timestamp and clock.from_wall(msg.timestamp) > t0:
-                t_check = t0
-                break
-            t_check = clock.now()
-            msg = bus.recv(0)
-        self._flush()
-        return self._supervise(t_check)
-
-    def _handle(self, msg: can.Message) -> None:
-        clock = self.clock
-        handled = clock.now()
         stamp = float(msg.timestamp or 0.0)
-        t = frame_time(stamp, handled, clock.from_wall(stamp)) if stamp else handled
-        t = self._last_arrival = max(t, self._last_arrival)
-        self._log(msg)
         with self._lock:
             self._stats.rx_frames += 1
             if stamp:
@@ -762,7 +468,7 @@ class Cia402Driver:
         self._last[mt.module] = s
         self._samples.append((mt.module, s))
 
-    def _flush(self) -> None:
+    def _drained(self) -> None:
         """The observations and samples the frames of this step made: faults stop every
         axis first, then the callbacks."""
         with self._lock:
@@ -778,56 +484,40 @@ class Cia402Driver:
                 except Exception as exc:
                     self._on_listener_error(exc)
 
-    def _observed(self, obs: list[Observation]) -> None:
-        with self._lock:
-            recorded = [self._record(o) for o in obs]
-            fault = next((e for e in recorded if e.severity is Severity.FAULT), None)
-            was_active = fault is not None and self._begin_fault(fault.message)
-        if fault is not None:
-            self._fault_stop(was_active, recorded)
-        else:
-            for ev in recorded:
-                self._notify(ev)
-
-    def _supervise(self, now: float) -> float:
+    def _check(self, now: float, active: bool) -> Supervision:
         cfg = self.config
-        loss_after = cfg.heartbeat_loss_periods * cfg.heartbeat_period_s
-        with self._lock:
-            active = self._state == Lifecycle.ACTIVE
-            d = supervise(
-                list(self._tracks()),
-                now,
-                t_configured=self._configured_at,
-                loss_after=loss_after,
-                retry=max(3.0 / max(cfg.feedback_rate_hz, 1), 0.02),
-                power_syncs=math.ceil(POWER_TIMEOUT_S * max(cfg.feedback_rate_hz, 1)),
-                mode_syncs=math.ceil(MODE_TIMEOUT_S * max(cfg.feedback_rate_hz, 1)),
-                sync_period=1.0 / max(cfg.feedback_rate_hz, 1),
-                active=active,
-            )
-            self._stats.heartbeat_losses += len(d.lost)
-        deadline = d.next_deadline
-        if d.observations:
-            self._observed(d.observations)
-        if d.fault:
-            return min(deadline, now + cfg.heartbeat_period_s)
-        for a in d.send:
+        rate = max(cfg.feedback_rate_hz, 1)
+        d = supervise(
+            list(self._tracks()),
+            now,
+            t_configured=self._configured_at,
+            loss_after=cfg.loss_after_s,
+            retry=max(3.0 / rate, 0.02),
+            power_syncs=math.ceil(POWER_TIMEOUT_S * rate),
+            mode_syncs=math.ceil(MODE_TIMEOUT_S * rate),
+            sync_period=1.0 / rate,
+            active=active,
+        )
+        self._resend = d.send
+        return Supervision(d.observations, len(d.lost), d.fault, [], d.next_deadline)
+
+    def _keep_alive(self, now: float, active: bool) -> float:
+        """The controlwords due again, the host's heartbeat (unless from the kernel), the
+        SYNC."""
+        cfg = self.config
+        resend, self._resend = self._resend, []
+        for a in resend:
             with self._tx_lock, contextlib.suppress(CanError):
                 if self._state == Lifecycle.ACTIVE:
                     self._send_rpdo(a, targets=False, best_effort=True)
+        deadline = math.inf
         if self._kernel is None:
             if now >= self._next_heartbeat:
                 f = self._heartbeat_frame()
                 with contextlib.suppress(CanError):
                     self._send(f.arbitration_id, f.data, best_effort=True)
                 self._next_heartbeat = max(self._next_heartbeat + cfg.refresh_period_s, now)
-            deadline = min(deadline, self._next_heartbeat)
-        elif now >= self._next_renewal:
-            with self._tx_lock:
-                self._kernel.renew()
-            # the kernel counts host seconds: renew_every of them on this clock
-            self._next_renewal = now + self._kernel.renew_every * self.clock.rate
-            deadline = min(deadline, self._next_renewal)
+            deadline = self._next_heartbeat
         if self._sync_on:
             if now >= self._next_sync:
                 with self._lock:
@@ -838,67 +528,6 @@ class Cia402Driver:
                 self._next_sync = max(self._next_sync + period, now - period)
             deadline = min(deadline, self._next_sync)
         return deadline
-
-    # ================================================================ faults and events
-    def _begin_fault(self, cause: str) -> bool:
-        with self._lock:
-            active = self._state == Lifecycle.ACTIVE
-            if active:
-                self._state = Lifecycle.INACTIVE
-                self._fault_cause = cause
-            return active
-
-    def _fault_stop(self, was_active: bool, events: list[DriverEvent]) -> None:
-        if was_active:
-            try:
-                self.stop_all()
-            except CanError as exc:
-                log.error("stop_all() after a fault failed: %s", exc)
-        for ev in events:
-            self._notify(ev)
-        if was_active:
-            self._emit(
-                EventKind.STOPPED, Severity.INFO, "fault: every axis disabled; drives inactive"
-            )
-        with self._changed:
-            self._changed.notify_all()
-
-    def _on_listener_error(self, exc: Exception) -> None:
-        with self._lock:
-            self._stats.listener_errors += 1
-            self.last_exception = exc
-            ev = self._record(
-                Observation(
-                    EventKind.LISTENER_ERROR,
-                    Severity.FAULT,
-                    f"exception in the receive path: {type(exc).__name__}: {exc}",
-                )
-            )
-            was_active = self._begin_fault(ev.message)
-        self._fault_stop(was_active, [ev])
-
-    def _emit(self, kind: EventKind, severity: Severity, message: str) -> None:
-        self._notify(self._record(Observation(kind, severity, message)))
-
-    def _record(self, obs: Observation) -> DriverEvent:
-        ev = DriverEvent(
-            self.clock.now(), obs.kind, obs.severity, obs.message, obs.module, obs.node, obs.axis
-        )
-        if obs.severity != Severity.INFO:
-            log.warning("%s", obs.message)
-        with contextlib.suppress(queue.Full):
-            self._events.put_nowait(ev)
-        return ev
-
-    def _notify(self, ev: DriverEvent) -> None:
-        for fn in self._event_callbacks:
-            try:
-                fn(ev)
-            except Exception as exc:
-                with self._lock:
-                    self._stats.listener_errors += 1
-                    self.last_exception = exc
-                log.error("event callback %r raised %s", fn, exc)
 
     # ================================================================ observation
     def modules(self) -> list[int]:
@@ -925,77 +554,19 @@ class Cia402Driver:
                 feedback_frames=mt.feedback_frames,
             )
 
-    def history_arrays(self, module: int) -> dict[str, NDArray[np.float64]]:
+    def _ring(self, module: int) -> FeedbackRing:
         self._module(module)
-        with self._lock:
-            return self._history[module].columns()
+        return self._history[module]
 
-    def history_since(
-        self, module: int, cursor: int, since: float = -np.inf
-    ) -> tuple[NDArray[np.float64], int]:
-        self._module(module)
-        with self._lock:
-            rows, cursor = self._history[module].since(cursor)
-        rows = rows[rows[:, 0] >= since] if since > -np.inf else rows
-        return np.ascontiguousarray(rows[:, [0, 4, 5]]), cursor
-
-    def wait_for(
-        self,
-        module: int,
-        predicate: Callable[[ModuleState], bool],
-        timeout: float,
-        what: str = "condition",
-    ) -> ModuleState:
+    def _not_reached(self, module: int, what: str, timeout: float) -> NodeTimeoutError:
         mt = self._module(module)
-        deadline = self.clock.now() + timeout
-        reached: list[ModuleState] = []
-
-        def holds() -> bool:
-            st = self.module_state(module)
-            if predicate(st):
-                reached.append(st)
-                return True
-            return False
-
-        with self._changed:
-            if wait_until(self.clock, self._changed, holds, deadline):
-                return reached[-1]
-        states = ", ".join(f"{a.where()} {a.state.value}" for a in mt.axes)
-        raise NodeTimeoutError(
+        with self._lock:
+            states = ", ".join(f"{a.where()} {a.state.value}" for a in mt.axes)
+        return NodeTimeoutError(
             f"module {module}: {what} not reached within {timeout} s ({states}, homed "
             f"{mt.homed})",
             node=mt.steer.node,
         )
-
-    def stats(self) -> DriverStats:
-        with self._lock:
-            st = dataclasses.replace(self._stats)
-        if self._kernel is not None:
-            st.periodic_renewals = self._kernel.renewals
-        return st
-
-    def events(self) -> list[DriverEvent]:
-        out: list[DriverEvent] = []
-        while True:
-            try:
-                out.append(self._events.get_nowait())
-            except queue.Empty:
-                return out
-
-    def add_feedback_callback(self, fn: Callable[[int, FeedbackSample], None]) -> None:
-        with self._lock:
-            self._feedback_callbacks = [*self._feedback_callbacks, fn]
-
-    def add_event_callback(self, fn: Callable[[DriverEvent], None]) -> None:
-        with self._lock:
-            self._event_callbacks = [*self._event_callbacks, fn]
-
-    def remove_event_callback(self, fn: Callable[[DriverEvent], None]) -> None:
-        with self._lock:
-            self._event_callbacks = [f for f in self._event_callbacks if f != fn]
-
-    def threads(self) -> list[threading.Thread]:
-        return [self._io_thread] if self._io_thread is not None else []
 
     def axis_track(self, module: int, axis: Axis) -> AxisTrack:
         """A copy of what the host knows of one axis (tests, diagnostics)."""
@@ -1004,25 +575,3 @@ class Cia402Driver:
 
     def sync_count(self) -> int:
         return self._sync_seq
-
-    # ================================================================ recording
-    def start_recording(self, path: str) -> None:
-        with self._lock:
-            if self._bus is None or self._state == Lifecycle.FINALIZED:
-                raise LifecycleError("start_recording() needs an open bus (configure() first)")
-        self.stop_recording()
-        rec = Recorder(path)
-        with self._lock:
-            self._recorder = rec
-
-    def stop_recording(self) -> str | None:
-        with self._lock:
-            rec, self._recorder = self._recorder, None
-        if rec is None:
-            return None
-        rec.stop()
-        return rec.error
-
-    def log_error(self) -> str | None:
-        return None if self._logger is None else self._logger.error
-

@@ -6,7 +6,7 @@ under its lock with times on its clock, and the tests call them directly.
 * :func:`on_statusword` / :func:`on_feedback` -- a TPDO's content into the axis's track;
   a module's feedback sample once both axes answered the same SYNC (:func:`pair`).
 * :func:`supervise` -- at ``now``: heartbeat loss (as the swpc kind's
-  :mod:`swpc_hw.can.supervision`: ``now >= t_heartbeat + loss_after``), the next
+  :func:`swpc_hw.drives.tracking.check`: ``now >= t_heartbeat + loss_after``), the next
   controlword of the 402 power state machine towards what the host asked
   (:func:`firmware_protocol.cia402.host_controlword`, one transition per statusword, sent
   again after ``retry`` when the drive did not follow), and the two refusals a drive can
@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
-from swpc_hw.can.types import AXIS_NAMES, EventKind, Observation, Severity
+from swpc_hw.drives.types import AXIS_NAMES, EventKind, Observation, Severity
 
 
 @dataclass

@@ -1,11 +1,11 @@
 """The ``odrive`` drive kind: ODrive axes over CAN Simple, behind :class:`Drives`.
 
 One node per axis (a v3.6 has two, an S1 or a Pro one); a module is a steering axis and a
-wheel axis (:class:`swpc_hw.drives.config.ODriveDrives`).  :class:`ODriveDriver` is the swpc
-kind's :class:`~swpc_hw.can.driver.CanDriver` with the ODrive's frames: the same lifecycle,
+wheel axis (:class:`swpc_hw.drives.odrive.config.ODriveDrives`).  :class:`ODriveDriver` is
+:class:`swpc_hw.drives.base.DriverBase` with the ODrive's frames: the base's lifecycle,
 receive path, fault path, kernel refresh with its dead-man and recording; the ODrive's
-pure cores are :mod:`swpc_hw.drives.odrive.tracking` (what a frame tells) and
-:func:`check` here (which axes are lost, what to refresh).
+pure core is :mod:`swpc_hw.drives.odrive.tracking` (what a frame tells); supervision is
+the base's, per axis node (which axes are lost, what to refresh).
 
 On the bus:
 
@@ -21,7 +21,7 @@ On the bus:
   the robot's ``limits.watchdog_ms``): every armed axis gets its last setpoint frame again
   every ``T_ref`` (a setpoint frame feeds the watchdog on both firmware lines), from the
   kernel's broadcast manager on SocketCAN with the swpc kind's dead-man
-  (:class:`~swpc_hw.can.periodic.KernelRefresh`: a stopped service stops every frame to
+  (:class:`~swpc_hw.drives.periodic.KernelRefresh`: a stopped service stops every frame to
   every axis, so each axis' watchdog disarms it within ``D + W``), elsewhere from the
   driver's I/O step (a :class:`~swpc_hw.clock.SimClock` hook in lockstep);
 * :meth:`ODriveDriver.activate` proves that dead-man before anything moves: it arms every
@@ -45,15 +45,11 @@ import can
 
 from firmware_protocol.codec import Axis, ControlMode, Frame, HomingState, ProtocolError
 from firmware_protocol.odrive import can_simple as cs
-from swpc_hw.can.config import CanConfig
-from swpc_hw.can.driver import CanDriver
-from swpc_hw.can.errors import CanCommandError, LifecycleError, NodeError, NodeTimeoutError
-from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.node_tracking import Applied, NodeTrack
-from swpc_hw.can.supervision import CheckResult
-from swpc_hw.can.types import EventKind, Lifecycle, Severity, where
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, wait_until
-from swpc_hw.drives.config import ODriveDrives
+from swpc_hw.drives.base import DriverBase
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.errors import CanCommandError, LifecycleError, NodeError
+from swpc_hw.drives.odrive.config import ODriveDrives
 from swpc_hw.drives.odrive.tracking import (
     AxisTrack,
     apply_frame,
@@ -61,49 +57,15 @@ from swpc_hw.drives.odrive.tracking import (
     sync_module,
     to_axis,
 )
+from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, Supervision
+from swpc_hw.drives.types import EventKind, Lifecycle, ModuleState, Severity, where
 
 TWO_PI = 2.0 * math.pi
 MIN_RATE_FRACTION = 0.5
 """The encoder estimates must come at least at this fraction of the configured rate."""
 
 
-def check(
-    axes: list[AxisTrack],
-    now: float,
-    *,
-    t_configured: float,
-    loss_after: float,
-    refresh_period: float,
-    refresh: bool,
-) -> CheckResult:
-    """Heartbeat loss per axis and the host's refresh at ``now`` (the swpc kind's
-    :func:`swpc_hw.can.supervision.check`, per axis node)::
-
-        lost(a)    <=>  now >= (t_heartbeat(a) or t_configured) + loss_after
-        refresh(a) <=>  host refresh and a.refresh and now - last_tx(a) >= T_refresh
-    """
-    out = CheckResult()
-    for ax in axes:
-        due = (ax.t_heartbeat if ax.t_heartbeat is not None else t_configured) + loss_after
-        if now >= due:
-            if ax.alive or not ax.lost_reported:
-                ax.alive = False
-                ax.lost_reported = True
-                out.lost.append(ax)
-        else:
-            out.next_deadline = min(out.next_deadline, due)
-        if refresh and ax.refresh:
-            if now - ax.last_tx >= refresh_period:
-                out.refresh += list(ax.refresh)
-                out.next_deadline = min(out.next_deadline, now + refresh_period)
-            else:
-                out.next_deadline = min(out.next_deadline, ax.last_tx + refresh_period)
-    if out.lost:
-        out.refresh = []
-    return out
-
-
-class ODriveDriver(CanDriver):
+class ODriveDriver(DriverBase):
     """The robot's ODrive axes on one bus (module docstring)."""
 
     def __init__(self, drives: ODriveDrives, config: CanConfig, *, clock: Clock = SYSTEM_CLOCK):
@@ -112,7 +74,7 @@ class ODriveDriver(CanDriver):
         self.codec = cs.can_simple(drives.firmware)
         self._axes: dict[int, AxisTrack] = {}
         self._module_axes: dict[int, tuple[AxisTrack, AxisTrack]] = {}
-        self._nodes = {}
+        self._nodes: dict[int, NodeTrack] = {}
         for module, md in drives.module_map().items():
             steer = new_axis(module, Axis.STEER, md.steer)
             wheel = new_axis(module, Axis.WHEEL, md.wheel)
@@ -125,8 +87,10 @@ class ODriveDriver(CanDriver):
             self._nodes[module] = track
         self._by_node = dict(self._axes)
 
+    thread_name = "swpc-can-io"
+
     # ================================================================ the kind's cores
-    def _receive_filters(self) -> list[dict[str, int | bool]]:
+    def _receive_filters(self) -> list[dict[str, int | bool]] | None:
         """Every standard frame of a command an axis sends (any node: a foreign node is
         reported), and every extended frame; our own commands never come back."""
         out: list[dict[str, int | bool]] = [
@@ -135,6 +99,9 @@ class ODriveDriver(CanDriver):
         ]
         out.append({"can_id": 0, "can_mask": 0, "extended": True})
         return out
+
+    def _node_of(self, arbitration_id: int) -> int | None:
+        return arbitration_id >> cs.NODE_SHIFT
 
     def _apply_frame(self, msg: can.Message, t: float) -> Applied:
         applied = apply_frame(
@@ -155,60 +122,53 @@ class ODriveDriver(CanDriver):
         steer, wheel = self._module_axes[module]
         sync_module(self._nodes[module], steer, wheel)
 
-    def _check(self, now: float, loss_after: float, active: bool) -> CheckResult:
-        res = check(
-            list(self._axes.values()),
-            now,
-            t_configured=self._configured_at,
-            loss_after=loss_after,
-            refresh_period=self.config.refresh_period_s,
-            refresh=active and self._kernel is None,
-        )
-        for module in {ax.module for ax in res.lost}:
+    def _check(self, now: float, active: bool) -> Supervision:
+        """Heartbeat loss per axis node, the refresh of each armed axis' setpoint."""
+        sup = self._check_nodes(
+            list(self._axes.values()), now, active, lambda a: bool(a.refresh),
+            lambda a: list(a.refresh),
+        )  # fmt: skip
+        for module in {self._axes[o.node].module for o in sup.observations if o.node is not None}:
             self._sync(module)
-        return res
+        if sup.fault:  # nothing is re-armed after a fault
+            for ax in self._axes.values():
+                ax.rearm = False
+        return sup
 
-    def _supervise(self, now: float) -> float:
-        deadline = super()._supervise(now)
+    def _keep_alive(self, now: float, active: bool) -> float:
+        """An axis whose index search ended is held where it ended."""
         for ax in [a for a in self._axes.values() if a.rearm]:
             ax.rearm = False
             with contextlib.suppress(LifecycleError, CanCommandError):
                 self._hold_axis(ax, "hold after the index search")
-        return deadline
+        return math.inf
 
     # ================================================================ lifecycle
-    def activate(self) -> None:
-        """INACTIVE -> ACTIVE: every axis alive, its watchdog proven (module docstring),
-        its errors cleared and its limits sent; :class:`NodeTimeoutError` names a silent
-        axis, :class:`NodeError` an axis whose watchdog or encoder rate is not what the
-        robot needs."""
-        cfg = self.config
-        clock = self.clock
-        deadline = clock.now() + cfg.activate_timeout_s
+    def _bring_up(self) -> None:
+        """Every axis alive and its watchdog proven (module docstring);
+        :class:`NodeTimeoutError` names a silent axis, :class:`NodeError` an axis whose
+        watchdog or encoder rate is not what the robot needs."""
         axes = list(self._axes.values())
-        with self._changed:
-            if self._state != Lifecycle.INACTIVE:
-                raise LifecycleError(f"activate() needs state inactive, not {self._state.value}")
-            if not wait_until(clock, self._changed, lambda: all(a.alive for a in axes), deadline):
-                silent = [a for a in axes if not a.alive]
-                names = ", ".join(where(a.module, a.node, a.axis) for a in silent)
-                raise NodeTimeoutError(
-                    f"activate(): no heartbeat from {names} within {cfg.activate_timeout_s} s",
-                    node=silent[0].node,
-                )
-        if cfg.watchdog_timeout_ms > 0:
+        self._wait_all(
+            "heartbeat",
+            lambda: axes,
+            lambda a: a.alive,
+            lambda a: where(a.module, a.node, a.axis),
+            self.config.activate_timeout_s,
+        )
+        if self.config.watchdog_timeout_ms > 0:
             self._prove_watchdogs(axes)
-        frames: list[Frame] = []
-        with self._changed:
-            if self._state != Lifecycle.INACTIVE:
-                raise LifecycleError(f"activate(): the drives became {self._state.value}")
-            for ax in axes:
-                ax.proving, ax.armed, ax.refresh = False, False, ()
-                ax.mode, ax.sent_control, ax.closed_loop_seen = ControlMode.FREE, None, False
-                frames.append(self.codec.clear_errors(ax.node))
-            self._state = Lifecycle.ACTIVE
-            self._fault_cause = None
-            self._next_renewal = clock.now()
+
+    def _activated(self) -> None:
+        for ax in self._axes.values():
+            ax.proving, ax.armed, ax.refresh = False, False, ()
+            ax.mode, ax.sent_control, ax.closed_loop_seen = ControlMode.FREE, None, False
+
+    def _after_activate(self) -> None:
+        """Every axis' errors cleared, its limits sent."""
+        cfg = self.config
+        axes = list(self._axes.values())
+        frames = [self.codec.clear_errors(ax.node) for ax in axes]
         if cfg.max_torque is not None or cfg.max_velocity is not None:
             for ax in axes:
                 frames.append(
@@ -224,8 +184,7 @@ class ODriveDriver(CanDriver):
         """Arm every axis at zero torque, send it nothing, and wait for its heartbeat to
         report the watchdog's expiry; the estimates' rate is measured in the same window."""
         cfg, clock, c = self.config, self.clock, self.codec
-        loss_after = cfg.heartbeat_loss_periods * cfg.heartbeat_period_s
-        window = cfg.watchdog_timeout_ms / 1000.0 + loss_after
+        window = cfg.watchdog_timeout_ms / 1000.0 + cfg.loss_after_s
         counts: dict[int, int] = {}
         with self._changed:
             for ax in axes:
@@ -310,7 +269,7 @@ class ODriveDriver(CanDriver):
         repeats from now on (empty: nothing), handed to the kernel before the frames go
         out (the swpc kind's rule: an armed axis is fed from its first instant)."""
         with self._tx_lock:
-            self._require_active(what, self._nodes[ax.module], ax.axis)
+            self._require_active(what, where(ax.module, ax.node, ax.axis))
             try:
                 frames = build()
             except ProtocolError as exc:
@@ -499,35 +458,42 @@ class ODriveDriver(CanDriver):
                 ax.homing_axis = False
             raise
 
-    def send_sync(self) -> int:
-        raise CanCommandError("ODrive axes send their encoder estimates on their own: no SYNC")
+    def _stopping(self) -> None:
+        """The refresh ends (kernel tasks deleted before the stop frames)."""
+        for ax in self._axes.values():
+            ax.refresh, ax.armed, ax.proving = (), False, False
+            ax.mode, ax.sent_control = ControlMode.FREE, None
+        for m in self._module_axes:
+            self._sync(m)
 
-    def stop_all(self) -> None:
-        """Zero torque then IDLE to every axis; the refresh ends first (kernel tasks
-        deleted before the stop frames).  Sends whenever the bus is open."""
+    def _stop_frames(self) -> list[Frame]:
+        """Zero torque then IDLE to every axis."""
         c = self.codec
-        with self._tx_lock:
-            with self._lock:
-                self._stats.stop_all_calls += 1
-                axes = list(self._axes.values())
-                for ax in axes:
-                    ax.refresh, ax.armed, ax.proving = (), False, False
-                    ax.mode, ax.sent_control = ControlMode.FREE, None
-                for m in self._module_axes:
-                    self._sync(m)
-                bus_open = self._bus is not None and self._state in (
-                    Lifecycle.INACTIVE,
-                    Lifecycle.ACTIVE,
-                )
-            if self._kernel is not None:
-                self._kernel.stop_all()
-            if not bus_open:
-                return
-            frames = [c.set_input_torque(ax.node, 0.0) for ax in axes]
-            frames += [c.set_axis_state(ax.node, cs.AxisState.IDLE) for ax in axes]
-            self._send_frames(frames, best_effort=True)
+        axes = list(self._axes.values())
+        frames = [c.set_input_torque(ax.node, 0.0) for ax in axes]
+        frames += [c.set_axis_state(ax.node, cs.AxisState.IDLE) for ax in axes]
+        return frames
 
     # ================================================================ observation
+    def modules(self) -> list[int]:
+        return list(self._nodes)
+
+    def module_state(self, module: int) -> ModuleState:
+        nd = self._module(module)
+        with self._lock:
+            return nd.snapshot()
+
+    def _ring(self, module: int) -> FeedbackRing:
+        return self._module(module).history
+
+    def _module(self, module: int) -> NodeTrack:
+        try:
+            return self._nodes[module]
+        except KeyError:
+            raise CanCommandError(
+                f"module {module} is not configured (modules: {sorted(self._nodes)})"
+            ) from None
+
     def _error_names(self, bits: int) -> str:
         return self.codec.error_names(bits)
 

@@ -2,7 +2,7 @@
 
 :func:`apply_frame` is a function of the tracked axes and modules, one frame, its time and
 whether the drives are ACTIVE: it updates the tracks and returns what was observed
-(:class:`swpc_hw.can.node_tracking.Applied`), as the swpc kind's core does.  No clock, no
+(:class:`swpc_hw.drives.tracking.Applied`), as the swpc kind's core does.  No clock, no
 lock, no I/O.
 
 * Liveness and faults come from each axis' heartbeat: a new axis error bit on an axis the
@@ -28,10 +28,16 @@ import can
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode, Frame, HomingState, ProtocolError
 from firmware_protocol.odrive import can_simple as cs
-from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.node_tracking import CAN_ERR_BUSOFF, Applied, NodeTrack
-from swpc_hw.can.types import DriverStats, EventKind, FeedbackSample, Observation, Severity, where
-from swpc_hw.drives.config import ODriveAxis
+from swpc_hw.drives.odrive.config import ODriveAxis
+from swpc_hw.drives.tracking import CAN_ERR_BUSOFF, Applied, FeedbackRing, NodeTrack
+from swpc_hw.drives.types import (
+    DriverStats,
+    EventKind,
+    FeedbackSample,
+    Observation,
+    Severity,
+    where,
+)
 
 TWO_PI = 2.0 * math.pi
 

@@ -1,47 +1,114 @@
-"""The driver's command API: every command frame the host sends, as typed methods.
+"""The ``swpc`` drive kind: swpc's own firmware, one dual-axis controller per module
+(python-can and the DBC of ``firmware_protocol/``, docs/can-protocol.md).
 
-A mixin of :class:`swpc_hw.can.driver.CanDriver`, which owns the bus, the locks and the
-lifecycle; here only how each command is built and which setpoint it leaves refreshed.
-Every command needs the driver ACTIVE (:class:`LifecycleError` names the fault that
-stopped it otherwise), except :meth:`DriverCommands.stop_all`, which sends whenever the
+:class:`SwpcDriver` is :class:`swpc_hw.drives.base.DriverBase` with the controllers'
+frames: what a frame tells is the pure core :mod:`swpc_hw.drives.swpc.tracking`; the
+dead-man is the controllers' command watchdog, fed with each node's last SetControl
+frames (the kernel's broadcast manager on SocketCAN, else re-sent by the I/O step
+whenever a node got none for ``refresh_period_s``); every fault frees then disables every
+axis of every node.  Every command needs the drives ACTIVE (:class:`LifecycleError` names
+the fault that stopped them otherwise), except :meth:`stop_all`, which sends whenever the
 bus is open.
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 
 import can
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, ControlMode, HomingState
-from swpc_hw.can.errors import CanCommandError, LifecycleError
-from swpc_hw.can.node_tracking import NodeTrack
-from swpc_hw.can.periodic import KernelRefresh
-from swpc_hw.can.recording import Recorder
-from swpc_hw.can.supervision import refresh_frames
-from swpc_hw.can.types import DriverStats, Lifecycle, where
+from swpc_hw.clock import SYSTEM_CLOCK, Clock
+from swpc_hw.drives.base import DriverBase
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.errors import CanCommandError
+from swpc_hw.drives.swpc.tracking import apply_frame, refresh_frames
+from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, Supervision
+from swpc_hw.drives.types import DriverEvent, ModuleState, where
 
 
-class DriverCommands:
-    """Commands of the module controllers (mixin; state lives in the driver)."""
+class SwpcDriver(DriverBase):
+    """swpc's module controllers on one bus (module docstring)."""
 
-    _lock: threading.RLock
-    _tx_lock: threading.RLock
-    _nodes: dict[int, NodeTrack]
-    _stats: DriverStats
-    _state: Lifecycle
-    _fault_cause: str | None
-    _bus: can.BusABC | None
-    _kernel: KernelRefresh | None
-    _recorder: Recorder | None
-    _logger: Recorder | None
-    _sync_counter: int
+    thread_name = "swpc-can-io"
 
-    def _send_frames(self, frames: list[codec.Frame], best_effort: bool = False) -> None:
-        raise NotImplementedError  # the driver's transmit path
+    def __init__(
+        self,
+        config: CanConfig | None = None,
+        *,
+        clock: Clock = SYSTEM_CLOCK,
+        on_event: Callable[[DriverEvent], None] | None = None,
+    ) -> None:
+        super().__init__(config or CanConfig(), clock=clock, on_event=on_event)
+        self._nodes: dict[int, NodeTrack] = {}
+        for module, node in self.config.modules.items():
+            nd = NodeTrack(module, node, FeedbackRing(self.config.history_len))
+            self._nodes[module] = nd
+            self._by_node[node] = nd
+        self._sync_counter = 0
 
+    # ================================================================ the kind's cores
+    def _receive_filters(self) -> list[dict[str, int | bool]] | None:
+        """The kernel's receive filters on SocketCAN: the controllers' frames only."""
+        return codec.host_receive_filters()
+
+    def _node_of(self, arbitration_id: int) -> int | None:
+        return arbitration_id >> codec.NODE_SHIFT
+
+    def _apply_frame(self, msg: can.Message, t: float) -> Applied:
+        return apply_frame(self._by_node, msg, t, self._stats)
+
+    def _check(self, now: float, active: bool) -> Supervision:
+        return self._check_nodes(
+            self._nodes.values(), now, active, lambda nd: bool(nd.commanded), refresh_frames
+        )
+
+    def _bring_up(self) -> None:
+        """Every node's heartbeat within ``activate_timeout_s``."""
+        self._wait_all(
+            "heartbeat",
+            self._nodes.values,
+            lambda nd: nd.alive,
+            lambda nd: where(nd.module, nd.node),
+            self.config.activate_timeout_s,
+        )
+
+    def _after_activate(self) -> None:
+        """The watchdog, the feedback rate and the limits to every node."""
+        cfg = self.config
+        frames: list[codec.Frame] = []
+        for nd in self._nodes.values():
+            frames.append(codec.make_set_watchdog(nd.node, cfg.watchdog_timeout_ms))
+            frames.append(codec.make_set_feedback(nd.node, cfg.feedback_rate_hz, cfg.sync_mode))
+            if cfg.max_torque is not None or cfg.max_velocity is not None:
+                for axis in Axis:
+                    frames.append(
+                        codec.make_set_limits(
+                            nd.node,
+                            axis,
+                            (cfg.max_torque or (65.535, 65.535))[axis],
+                            (cfg.max_velocity or (655.35, 655.35))[axis],
+                        )
+                    )
+        self._send_frames(frames)
+
+    # ================================================================ observation
+    def modules(self) -> list[int]:
+        return list(self._nodes)
+
+    def module_state(self, module: int) -> ModuleState:
+        nd = self._node(module)
+        with self._lock:
+            return nd.snapshot()
+
+    def _ring(self, module: int) -> FeedbackRing:
+        return self._node(module).history
+
+    def _error_names(self, bits: int) -> str:
+        return codec.error_names(bits)
+
+    # ================================================================ commands
     def _node(self, module: int) -> NodeTrack:
         try:
             return self._nodes[module]
@@ -49,15 +116,6 @@ class DriverCommands:
             raise CanCommandError(
                 f"module {module} is not configured (modules: {sorted(self._nodes)})"
             ) from None
-
-    def _require_active(
-        self, what: str, nd: NodeTrack | None = None, axis: Axis | None = None
-    ) -> None:
-        if self._state != Lifecycle.ACTIVE:
-            at = where(nd.module, nd.node, axis) + ": " if nd else ""
-            cause = self._fault_cause
-            why = f" (stopped by a fault: {cause})" if cause is not None else ""
-            raise LifecycleError(f"{at}cannot {what} in state {self._state.value}{why}")
 
     def _command(
         self,
@@ -79,7 +137,7 @@ class DriverCommands:
         loaded host, as a GIL or GC pause would be) tripped the controller's watchdog."""
         nd = self._node(module)
         with self._tx_lock:
-            self._require_active(what, nd, axis)
+            self._require_active(what, where(nd.module, nd.node, axis))
             try:
                 frame = build(nd.node)
             except codec.ProtocolError as exc:
@@ -188,35 +246,6 @@ class DriverCommands:
                 nd.homing, nd.homing_seen = before
             raise
 
-    def start_recording(self, path: str) -> None:
-        """Record every frame in and out to ``path`` until :meth:`stop_recording`.
-
-        python-can's Logger picks the format from the suffix (``.log``: candump, which
-        ``cantools decode`` reads with our DBC).  Independent of ``CanConfig.log_path``.
-        Frames the kernel sends for the watchdog refresh are not in it (candump sees them).
-        """
-        with self._lock:
-            if self._bus is None or self._state == Lifecycle.FINALIZED:
-                raise LifecycleError("start_recording() needs an open bus (configure() first)")
-        self.stop_recording()
-        rec = Recorder(path)
-        with self._lock:
-            self._recorder = rec
-
-    def stop_recording(self) -> str | None:
-        """Stop the recording started by :meth:`start_recording` (idempotent); returns why
-        it stopped early (a failed write), if it did."""
-        with self._lock:
-            rec, self._recorder = self._recorder, None
-        if rec is None:
-            return None
-        rec.stop()
-        return rec.error
-
-    def log_error(self) -> str | None:
-        """Why the log of ``CanConfig.log_path`` stopped (a failed write), if it did."""
-        return None if self._logger is None else self._logger.error
-
     def send_sync(self) -> int:
         """Broadcast a SYNC frame; returns its counter (the next samples carry it)."""
         self._require_active("send SYNC")
@@ -226,30 +255,15 @@ class DriverCommands:
         self._send_frames([codec.make_sync(counter)])
         return counter
 
-    def stop_all(self) -> None:
-        """FREE then DISABLED to every axis of every node; clears the refreshed setpoints.
+    def _stopping(self) -> None:
+        for nd in self._nodes.values():
+            nd.commanded.clear()
 
-        Sends regardless of the lifecycle state as long as the bus is open; this is what
-        every fault path calls.  The kernel's periodic refresh is deleted first, so no
-        refresh follows the stop frames.  Send failures are counted and re-raised at the
-        end.
-        """
-        with self._tx_lock:
-            with self._lock:
-                self._stats.stop_all_calls += 1
-                nodes = list(self._nodes.values())
-                for nd in nodes:
-                    nd.commanded.clear()
-                bus_open = self._bus is not None and self._state in (
-                    Lifecycle.INACTIVE,
-                    Lifecycle.ACTIVE,
-                )
-            if self._kernel is not None:
-                self._kernel.stop_all()
-            if not bus_open:
-                return
-            frames = [
-                codec.make_set_control(nd.node, a, ControlMode.FREE) for nd in nodes for a in Axis
-            ]
-            frames += [codec.make_set_axis_state(nd.node, a, False) for nd in nodes for a in Axis]
-            self._send_frames(frames, best_effort=True)
+    def _stop_frames(self) -> list[codec.Frame]:
+        """FREE then DISABLED to every axis of every node."""
+        nodes = list(self._nodes.values())
+        frames = [
+            codec.make_set_control(nd.node, a, ControlMode.FREE) for nd in nodes for a in Axis
+        ]
+        frames += [codec.make_set_axis_state(nd.node, a, False) for nd in nodes for a in Axis]
+        return frames

@@ -1,4 +1,4 @@
-"""Exceptions of the CAN driver, rooted in :class:`CanError` (itself a ``SwpcError``).
+"""Exceptions of the drives (every kind), rooted in :class:`CanError` (itself a ``SwpcError``).
 
 Messages name the module, the node and the axis they concern, e.g.
 ``module 2 (node 2) axis 1 (wheel): ...``.
@@ -10,7 +10,7 @@ from swpc_hw.errors import SwpcError
 
 
 class CanError(SwpcError):
-    """Root of every error the CAN driver raises."""
+    """Root of every error the drives raise."""
 
 
 class CanConfigError(CanError, ValueError):

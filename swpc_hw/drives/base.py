@@ -1,4 +1,6 @@
-"""python-can driver of the caster-module controllers: lifecycle, locks, I/O.
+"""The one base of every drive kind: lifecycle, the I/O step, supervision, the fault path,
+events; a kind adds only its protocol (as python-can's ``BusABC`` leaves a bus its two
+methods).
 
 Lifecycle (as ros2_control's hardware components)::
 
@@ -7,24 +9,31 @@ Lifecycle (as ros2_control's hardware components)::
          |                          |  +----deactivate()-----+  (also on any fault)
          +------- shutdown() (from any state, idempotent) -> FINALIZED
 
-* INACTIVE: the bus is open; heartbeats and feedback are read; no frame is sent.
-* ACTIVE: commands flow and the controllers' watchdog is fed: on SocketCAN by the
-  kernel's broadcast manager with a dead-man (:mod:`swpc_hw.can.periodic`), elsewhere by
-  re-sending a node's last control frames whenever it got none for ``refresh_period_s``.
+* INACTIVE: the bus is open; heartbeats and feedback are read; no command is sent.
+* ACTIVE: commands flow and every enabled axis is kept alive by the kind's dead-man: on
+  SocketCAN by the kernel's broadcast manager with a dead-man
+  (:mod:`swpc_hw.drives.periodic`), elsewhere from the I/O step.
 
-Every fault path (bus-off, lost heartbeat, a controller's fault report, an exception in a
-callback) calls :meth:`CanDriver.stop_all` -- FREE then DISABLED to every axis of every
-node -- and drops back to INACTIVE.
+Every fault path (bus-off, a lost heartbeat, a drive's fault report, an exception in a
+callback) drops to INACTIVE (:meth:`DriverBase._begin_fault`), calls :meth:`stop_all`
+first, *then* the event callbacks.
 
-The logic lives in pure cores: :mod:`swpc_hw.can.node_tracking` (what a frame tells) and
-:mod:`swpc_hw.can.supervision` (which nodes are lost, what to refresh).  This module owns
-the bus, the locks, the lifecycle and the receive path: one I/O step drains the receive
-queue, applies every frame, then supervises at a time taken before the queue was found
-empty.  The step runs on the driver's own thread against a real clock, and as a hook of
-the master against a :class:`swpc_hw.clock.SimClock` (lockstep with a simulator).
+One I/O step drains the receive queue, applies every frame, then supervises at a time
+taken before the queue was found empty.  The step runs on the driver's own thread against
+a real clock, and as a hook of the master against a :class:`swpc_hw.clock.SimClock`
+(lockstep with a simulator).
 
-Positions at this boundary are SI: ``theta_hat`` (steering, rad, 0 at the homing sensor)
-and ``psi`` (cumulative wheel angle, rad), unwrapped on the host.
+What a kind implements (:class:`swpc_hw.drives.interface.DriveKind`, its abstract methods
+and hooks): the receive core (``_apply_frame``: what one frame tells, under the lock; or
+``_receive`` for a kind whose library dispatches frames itself), supervision (``_check``:
+which drives are lost, what to re-send; ``_keep_alive``: its own periodic frames),
+activation (``_bring_up`` before ACTIVE, ``_after_activate``), the stop (``_stopping``,
+``_stop_frames``), the commands and observations of
+:class:`swpc_hw.drives.interface.Drives` (``enable`` ... ``start_homing``, ``modules``,
+``module_state``) and each module's feedback ring (``_ring``).
+
+Positions at this boundary are SI: ``theta_hat`` (steering, rad, 0 at the homing
+reference) and ``psi`` (cumulative wheel angle, rad), unwrapped on the host.
 """
 
 from __future__ import annotations
@@ -36,27 +45,21 @@ import queue
 import socket
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import Protocol, TypeVar
 
 import can
 
-from firmware_protocol import codec
-from firmware_protocol.codec import Axis
-from swpc_hw.can.commands import DriverCommands
-from swpc_hw.can.config import CanConfig
-from swpc_hw.can.errors import (
-    CanBusError,
-    CanError,
-    LifecycleError,
-    NodeTimeoutError,
-)
-from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.node_tracking import Applied, NodeTrack, apply_frame, frame_time
-from swpc_hw.can.observation import DriverObservation
-from swpc_hw.can.periodic import KernelRefresh
-from swpc_hw.can.recording import Recorder, grow_receive_buffer
-from swpc_hw.can.supervision import CheckResult, check
-from swpc_hw.can.types import (
+from firmware_protocol.codec import Frame
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, wait_until
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.errors import CanBusError, CanError, LifecycleError, NodeTimeoutError
+from swpc_hw.drives.interface import DriveKind
+from swpc_hw.drives.observation import DriverObservation
+from swpc_hw.drives.periodic import KernelRefresh
+from swpc_hw.drives.recording import Recorder, grow_receive_buffer
+from swpc_hw.drives.tracking import NodeTrack, Supervision, check, frame_time
+from swpc_hw.drives.types import (
     DriverEvent,
     DriverStats,
     EventKind,
@@ -66,38 +69,51 @@ from swpc_hw.can.types import (
     Severity,
     where,
 )
-from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, wait_until
 
 log = logging.getLogger(__name__)
 
 IO_WAIT_MAX = 0.05
 """Longest wall wait of the I/O thread for a frame (s): how soon it notices shutdown."""
 
+T = TypeVar("T", bound=NodeTrack)
 
-class CanDriver(DriverCommands, DriverObservation):
-    """Driver of the module controllers on one CAN bus (see the module docstring); its
-    command API is :class:`DriverCommands`, its observation API :class:`DriverObservation`."""
+
+class _OnNode(Protocol):
+    node: int
+
+
+N = TypeVar("N", bound=_OnNode)
+
+
+class DriverBase(DriverObservation, DriveKind):
+    """The robot's drives of one kind on one bus (module docstring).
+
+    ``kernel_always``: the kernel's refresh (SocketCAN) runs from ``configure()`` (a kind
+    whose host heartbeat it carries) rather than only while ACTIVE.
+    """
+
+    thread_name = "swpc-drives-io"
+    kernel_always = False
+    stopped_message = "fault: all axes freed and disabled; driver inactive"
 
     def __init__(
         self,
-        config: CanConfig | None = None,
+        config: CanConfig,
         *,
         clock: Clock = SYSTEM_CLOCK,
         on_event: Callable[[DriverEvent], None] | None = None,
     ) -> None:
-        self.config = config or CanConfig()
+        self.config = config
         self.clock = clock
+        self.last_exception: BaseException | None = None
         self._lockstep = isinstance(clock, SimClock)
         self._state = Lifecycle.UNCONFIGURED
+        self._fault_cause: str | None = None
         self._lock = threading.RLock()
         self._changed = threading.Condition(self._lock)
         self._tx_lock = threading.RLock()
-        self._nodes: dict[int, NodeTrack] = {}
         self._by_node: dict[int, NodeTrack] = {}
-        for module, node in self.config.modules.items():
-            nd = NodeTrack(module, node, FeedbackRing(self.config.history_len))
-            self._nodes[module] = nd
-            self._by_node[node] = nd
+        """Tracks by CAN node: a sent frame stamps its node's ``last_tx``."""
         self._stats = DriverStats()
         self._last_arrival = -math.inf  # the latest frame arrival on the clock (_handle)
         self._events: queue.Queue[DriverEvent] = queue.Queue(maxsize=10_000)
@@ -114,9 +130,6 @@ class CanDriver(DriverCommands, DriverObservation):
         self._io_thread: threading.Thread | None = None
         self._stop_io = threading.Event()
         self._configured_at = 0.0
-        self._fault_cause: str | None = None
-        self._sync_counter = 0
-        self.last_exception: BaseException | None = None
         self._log_counts: dict[EventKind, int] = {}
 
     # ================================================================ lifecycle
@@ -126,16 +139,16 @@ class CanDriver(DriverCommands, DriverObservation):
 
     @property
     def fault_cause(self) -> str | None:
-        """Why the driver last dropped from ACTIVE on a fault (None after activate() or an
+        """Why the drives last dropped from ACTIVE on a fault (None after activate() or an
         orderly deactivate())."""
         return self._fault_cause
 
     @property
     def refresh_in_kernel(self) -> bool:
-        """The watchdog refresh runs in the kernel (SocketCAN broadcast manager)."""
+        """The dead-man's refresh runs in the kernel (SocketCAN broadcast manager)."""
         return self._kernel is not None
 
-    def __enter__(self) -> CanDriver:
+    def __enter__(self) -> DriverBase:
         if self._state == Lifecycle.UNCONFIGURED:
             self.configure()
         return self
@@ -159,10 +172,12 @@ class CanDriver(DriverCommands, DriverObservation):
                         f"not {cfg.interface!r}"
                     )
                 kwargs.setdefault("preserve_timestamps", True)  # stamps on the sim clock
-            if cfg.interface == "socketcan":
+            filters = self._receive_filters()
+            if cfg.interface == "socketcan" and filters is not None:
                 # in the kernel: our own commands (the periodic refresh, looped back) never
                 # reach the receive path
-                kwargs.setdefault("can_filters", self._receive_filters())
+                kwargs.setdefault("can_filters", filters)
+            self._before_open()
             try:
                 self._bus = can.Bus(
                     interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **kwargs
@@ -192,61 +207,36 @@ class CanDriver(DriverCommands, DriverObservation):
                     sample_period_s=cfg.log_idle_period_s,
                 )
             self._configured_at = self.clock.now()
+            self._opened(self._bus)
             self._state = Lifecycle.INACTIVE
             self._stop_io.clear()
             if isinstance(self.clock, SimClock):
                 self.clock.add_hook(self._io_hook)
             else:
                 self._io_thread = threading.Thread(
-                    target=self._io_loop, name=f"swpc-can-io-{cfg.channel}", daemon=True
+                    target=self._io_loop, name=f"{self.thread_name}-{cfg.channel}", daemon=True
                 )
                 self._io_thread.start()
 
     def activate(self) -> None:
-        """INACTIVE -> ACTIVE: wait for every node's heartbeat, send watchdog/feedback/limits.
-
-        Raises :class:`NodeTimeoutError` naming the silent nodes if a heartbeat is missing
-        after ``activate_timeout_s``.
-        """
-        cfg = self.config
-        deadline = self.clock.now() + cfg.activate_timeout_s
+        """INACTIVE -> ACTIVE: the kind's bring-up (every drive alive, its dead-man armed),
+        then commands flow; :class:`NodeTimeoutError` names the silent drives."""
         with self._changed:
             if self._state != Lifecycle.INACTIVE:
                 raise LifecycleError(f"activate() needs state inactive, not {self._state.value}")
-
-            def all_alive() -> bool:
-                return all(nd.alive for nd in self._nodes.values())
-
-            if not wait_until(self.clock, self._changed, all_alive, deadline):
-                silent = [nd for nd in self._nodes.values() if not nd.alive]
-                names = ", ".join(where(nd.module, nd.node) for nd in silent)
-                raise NodeTimeoutError(
-                    f"activate(): no heartbeat from {names} within {cfg.activate_timeout_s} s",
-                    node=silent[0].node,
-                )
+        self._bring_up()
+        with self._changed:
             if self._state != Lifecycle.INACTIVE:
-                raise LifecycleError(f"activate(): the driver became {self._state.value}")
+                raise LifecycleError(f"activate(): the drives became {self._state.value}")
             self._state = Lifecycle.ACTIVE
             self._fault_cause = None
-            self._next_renewal = self.clock.now()
-        frames: list[codec.Frame] = []
-        for nd in self._nodes.values():
-            frames.append(codec.make_set_watchdog(nd.node, cfg.watchdog_timeout_ms))
-            frames.append(codec.make_set_feedback(nd.node, cfg.feedback_rate_hz, cfg.sync_mode))
-            if cfg.max_torque is not None or cfg.max_velocity is not None:
-                for axis in Axis:
-                    frames.append(
-                        codec.make_set_limits(
-                            nd.node,
-                            axis,
-                            (cfg.max_torque or (65.535, 65.535))[axis],
-                            (cfg.max_velocity or (655.35, 655.35))[axis],
-                        )
-                    )
-        self._send_frames(frames)
+            if not self.kernel_always:
+                self._next_renewal = self.clock.now()
+            self._activated()
+        self._after_activate()
 
     def deactivate(self) -> None:
-        """ACTIVE -> INACTIVE: free and disable every axis, stop sending."""
+        """ACTIVE -> INACTIVE: every axis free and disabled, nothing sent any more."""
         with self._lock:
             if self._state != Lifecycle.ACTIVE:
                 raise LifecycleError(f"deactivate() needs state active, not {self._state.value}")
@@ -282,13 +272,58 @@ class CanDriver(DriverCommands, DriverObservation):
             self._state = Lifecycle.FINALIZED
             self._changed.notify_all()
 
-    def _receive_filters(self) -> list[dict[str, int | bool]]:
-        """The kernel's receive filters on SocketCAN: the controllers' frames only (a drive
-        kind with other frames has its own)."""
-        return codec.host_receive_filters()
+    def stop_all(self) -> None:
+        """Every axis stopped (the kind's :meth:`_stop_frames`), the refreshed setpoints
+        forgotten and the kernel's refresh of them deleted first, so none follows the stop
+        frames.  Sends regardless of the lifecycle state as long as the bus is open: what
+        every fault path calls.  Send failures are counted and re-raised at the end."""
+        with self._tx_lock:
+            with self._lock:
+                self._stats.stop_all_calls += 1
+                self._stopping()
+                bus_open = self._bus is not None and self._state in (
+                    Lifecycle.INACTIVE,
+                    Lifecycle.ACTIVE,
+                )
+            if self._kernel is not None and not self.kernel_always:
+                self._kernel.stop_all()
+            if not bus_open:
+                return
+            self._send_frames(self._stop_frames(), best_effort=True)
+
+    def _require_active(self, what: str, at: str = "") -> None:
+        """:class:`LifecycleError` unless ACTIVE, naming the fault that stopped the drives
+        (``at``: what the command concerns, ``module 2 (node 2) axis 1 (wheel)``)."""
+        if self._state != Lifecycle.ACTIVE:
+            cause = self._fault_cause
+            why = f" (stopped by a fault: {cause})" if cause is not None else ""
+            prefix = f"{at}: " if at else ""
+            raise LifecycleError(f"{prefix}cannot {what} in state {self._state.value}{why}")
+
+    def _wait_all(
+        self,
+        what: str,
+        tracks: Callable[[], Iterable[N]],
+        ok: Callable[[N], bool],
+        name: Callable[[N], str],
+        timeout: float,
+    ) -> None:
+        """Wait (on the clock) until ``ok`` holds for every track; else
+        :class:`NodeTimeoutError` naming those it does not hold for."""
+        deadline = self.clock.now() + timeout
+        with self._changed:
+            if not wait_until(
+                self.clock, self._changed, lambda: all(ok(a) for a in tracks()), deadline
+            ):
+                bad = [a for a in tracks() if not ok(a)]
+                raise NodeTimeoutError(
+                    f"activate(): no {what} from {', '.join(name(a) for a in bad)} within "
+                    f"{timeout:g} s",
+                    node=bad[0].node,
+                )
 
     # ================================================================ transmit
-    def _send_frames(self, frames: list[codec.Frame], best_effort: bool = False) -> None:
+    def _send_frames(self, frames: list[Frame], best_effort: bool = False) -> None:
         bus = self._bus
         if bus is None:
             raise LifecycleError("the bus is not open (call configure())")
@@ -305,14 +340,15 @@ class CanDriver(DriverCommands, DriverObservation):
                     channel=self.config.channel,
                     timestamp=stamp,
                 )
+                node = self._node_of(f.arbitration_id)
                 try:
                     bus.send(msg)
                 except (can.CanError, OSError) as exc:
-                    node, _ = codec.split_id(f.arbitration_id)
                     with self._lock:
                         self._stats.send_errors += 1
+                    at = "" if node is None else f"node {node}: "
                     failure = failure or CanBusError(
-                        f"node {node}: send 0x{f.arbitration_id:03x} failed: {exc}"
+                        f"{at}send 0x{f.arbitration_id:03x} failed: {exc}"
                     )
                     if not best_effort:
                         break
@@ -320,7 +356,7 @@ class CanDriver(DriverCommands, DriverObservation):
                 self._log(msg)
                 with self._lock:
                     self._stats.tx_frames += 1
-                    nd = self._by_node.get(f.arbitration_id >> codec.NODE_SHIFT)
+                    nd = None if node is None else self._by_node.get(node)
                     if nd is not None:
                         nd.last_tx = now
         if failure is not None:
@@ -349,6 +385,7 @@ class CanDriver(DriverCommands, DriverObservation):
                 msg = bus.recv(wait)
                 if msg is not None:
                     self._handle(msg)
+                    self._drained()
             except (can.CanError, OSError, ValueError) as exc:
                 if self._stop_io.is_set():
                     return
@@ -386,9 +423,11 @@ class CanDriver(DriverCommands, DriverObservation):
                 break
             t_check = clock.now()
             msg = bus.recv(0)
+        self._drained()
         return self._supervise(t_check)
 
     def _handle(self, msg: can.Message) -> None:
+        """One received frame: its arrival on the clock, the log, the kind's receive."""
         clock = self.clock
         handled = clock.now()
         stamp = float(msg.timestamp or 0.0)
@@ -397,31 +436,111 @@ class CanDriver(DriverCommands, DriverObservation):
         t = self._last_arrival = max(t, self._last_arrival)
         self._log(msg)
         try:
-            with self._changed:
-                applied = self._apply_frame(msg, t)
-                if stamp:
-                    self._latency.append(clock.wall() - stamp)
-                # events queued before the state drops: whoever sees INACTIVE finds why
-                recorded = [self._record(o) for o in applied.observations]
-                was_active = applied.fault and self._begin_fault(
-                    next((e.message for e in recorded if e.severity is Severity.FAULT), "fault")
-                )
-                self._changed.notify_all()
-                callbacks = self._feedback_callbacks
-            if applied.fault:
-                self._fault_stop(was_active, recorded)
-            else:
-                for ev in recorded:
-                    self._notify(ev)
-            if applied.sample is not None:
-                for fn in callbacks:
-                    fn(*applied.sample)
+            self._receive(msg, t)
         except Exception as exc:
             self._on_listener_error(exc)
 
-    def _apply_frame(self, msg: can.Message, t: float) -> Applied:
-        """What one received frame tells (the pure core; under the driver's lock)."""
-        return apply_frame(self._by_node, msg, t, self._stats)
+    def _receive(self, msg: can.Message, t: float) -> None:
+        """Apply one frame (:meth:`_apply_frame`, under the lock), then its fault path or
+        its events, then the feedback callbacks."""
+        clock = self.clock
+        stamp = float(msg.timestamp or 0.0)
+        with self._changed:
+            applied = self._apply_frame(msg, t)
+            if stamp:
+                self._latency.append(clock.wall() - stamp)
+            # events queued before the state drops: whoever sees INACTIVE finds why
+            recorded = [self._record(o) for o in applied.observations]
+            was_active = applied.fault and self._begin_fault(
+                next((e.message for e in recorded if e.severity is Severity.FAULT), "fault")
+            )
+            self._changed.notify_all()
+            callbacks = self._feedback_callbacks
+        if applied.fault:
+            self._fault_stop(was_active, recorded)
+        else:
+            for ev in recorded:
+                self._notify(ev)
+        if applied.sample is not None:
+            for fn in callbacks:
+                fn(*applied.sample)
+
+    def _supervise(self, now: float) -> float:
+        """The kind's supervision at ``now`` (:meth:`_check`): a lost drive is a fault;
+        then the refresh, the kind's own periodic frames and the dead-man's renewal."""
+        with self._lock:
+            active = self._state == Lifecycle.ACTIVE
+            sup = self._check(now, active)
+            self._stats.heartbeat_losses += sup.lost
+        if sup.observations:
+            self._observed(sup.observations)
+        if sup.fault:
+            return min(sup.next_deadline, now + self.config.heartbeat_period_s)
+        if sup.refresh and active:
+            with contextlib.suppress(CanError):
+                self._send_frames(sup.refresh, best_effort=True)
+        deadline = min(sup.next_deadline, self._keep_alive(now, active))
+        return min(deadline, self._renew(now, active))
+
+    def _renew(self, now: float, active: bool) -> float:
+        """The dead-man's renewal of the kernel's refresh (every half of it); returns when
+        the next one is due."""
+        kernel = self._kernel
+        if kernel is None or not (active or self.kernel_always):
+            return math.inf
+        if now >= self._next_renewal:
+            with self._tx_lock:
+                if self.kernel_always or self._state == Lifecycle.ACTIVE:
+                    kernel.renew()
+            # the kernel counts host seconds: renew_every of them on this clock
+            self._next_renewal = now + kernel.renew_every * self.clock.rate
+        return self._next_renewal
+
+    def _check_nodes(
+        self,
+        nodes: Iterable[T],
+        now: float,
+        active: bool,
+        refreshed: Callable[[T], bool],
+        frames: Callable[[T], list[Frame]],
+    ) -> Supervision:
+        """:func:`swpc_hw.drives.tracking.check` on node tracks, a lost node a FAULT."""
+        loss_after = self.config.loss_after_s
+        res = check(
+            nodes,
+            now,
+            t_configured=self._configured_at,
+            loss_after=loss_after,
+            refresh_period=self.config.refresh_period_s,
+            refresh=active and self._kernel is None,
+            refreshed=refreshed,
+            frames=frames,
+        )
+        lost = [
+            Observation(
+                EventKind.HEARTBEAT_LOST,
+                Severity.FAULT,
+                f"{where(nd.module, nd.node)}: no heartbeat for {loss_after:.3f} s",
+                nd.module,
+                nd.node,
+            )
+            for nd in res.lost
+        ]
+        return Supervision(lost, len(lost), bool(lost), res.refresh, res.next_deadline)
+
+    # ================================================================ faults and events
+    def _observed(self, obs: list[Observation]) -> None:
+        """Observations outside the receive path: a FAULT among them stops every axis
+        first, then every event goes to the callbacks."""
+        with self._lock:
+            recorded = [self._record(o) for o in obs]
+            fault = next((e for e in recorded if e.severity is Severity.FAULT), None)
+            was_active = fault is not None and self._begin_fault(fault.message)
+        if fault is not None:
+            self._fault_stop(was_active, recorded)
+        else:
+            for ev in recorded:
+                self._notify(ev)
 
     def _on_listener_error(self, exc: Exception) -> None:
         with self._lock:
@@ -437,56 +556,8 @@ class CanDriver(DriverCommands, DriverObservation):
             was_active = self._begin_fault(ev.message)
         self._fault_stop(was_active, [ev])
 
-    def _supervise(self, now: float) -> float:
-        cfg = self.config
-        loss_after = cfg.heartbeat_loss_periods * cfg.heartbeat_period_s
-        with self._lock:
-            active = self._state == Lifecycle.ACTIVE
-            res = self._check(now, loss_after, active)
-            recorded = [
-                self._record(
-                    Observation(
-                        EventKind.HEARTBEAT_LOST,
-                        Severity.FAULT,
-                        f"{where(nd.module, nd.node)}: no heartbeat for {loss_after:.3f} s",
-                        nd.module,
-                        nd.node,
-                    )
-                )
-                for nd in res.lost
-            ]
-            self._stats.heartbeat_losses += len(res.lost)
-            was_active = bool(res.lost) and self._begin_fault(recorded[0].message)
-        deadline = res.next_deadline
-        if res.lost:
-            self._fault_stop(was_active, recorded)
-            return min(deadline, now + cfg.heartbeat_period_s)
-        if res.refresh and active:
-            with contextlib.suppress(CanError):
-                self._send_frames(res.refresh, best_effort=True)
-        if self._kernel is not None and active:
-            if now >= self._next_renewal:
-                with self._tx_lock:
-                    if self._state == Lifecycle.ACTIVE:
-                        self._kernel.renew()
-                self._next_renewal = now + self._kernel.renew_every * self.clock.rate
-            deadline = min(deadline, self._next_renewal)
-        return deadline
-
-    def _check(self, now: float, loss_after: float, active: bool) -> CheckResult:
-        """Heartbeat loss and the host's refresh at ``now`` (the pure core; lock held)."""
-        return check(
-            self._nodes.values(),
-            now,
-            t_configured=self._configured_at,
-            loss_after=loss_after,
-            refresh_period=self.config.refresh_period_s,
-            refresh=active and self._kernel is None,
-        )
-
-    # ================================================================ faults and events
     def _begin_fault(self, cause: str) -> bool:
-        """Drop from ACTIVE to INACTIVE (no more commands); True if the driver was active.
+        """Drop from ACTIVE to INACTIVE (no more commands); True if the drives were active.
 
         ``cause`` (the fault's message) is kept for :attr:`fault_cause`, and commands refused
         afterwards name it: a caller that meets the refusal before the fault's event
@@ -500,9 +571,9 @@ class CanDriver(DriverCommands, DriverObservation):
             return active
 
     def _fault_stop(self, was_active: bool, events: list[DriverEvent]) -> None:
-        """Every fault path, after :meth:`_begin_fault`: stop_all() if the driver was active,
-        *then* the event callbacks with the fault's ``events``, then STOPPED.  The motors
-        stop first: a slow event callback must not hold the stop frames back."""
+        """Every fault path, after :meth:`_begin_fault`: stop_all() if the drives were
+        active, *then* the event callbacks with the fault's ``events``, then STOPPED.  The
+        motors stop first: a slow event callback must not hold the stop frames back."""
         if was_active:
             try:
                 self.stop_all()
@@ -511,37 +582,6 @@ class CanDriver(DriverCommands, DriverObservation):
         for ev in events:
             self._notify(ev)
         if was_active:
-            self._emit(
-                EventKind.STOPPED,
-                Severity.INFO,
-                "fault: all axes freed and disabled; driver inactive",
-            )
+            self._emit(EventKind.STOPPED, Severity.INFO, self.stopped_message)
         with self._changed:
             self._changed.notify_all()
-
-    def _emit(self, kind: EventKind, severity: Severity, message: str) -> None:
-        self._notify(self._record(Observation(kind, severity, message)))
-
-    def _record(self, obs: Observation) -> DriverEvent:
-        """Stamp, log and queue an observation as an event (cheap; under the lock is fine)."""
-        ev = DriverEvent(
-            self.clock.now(), obs.kind, obs.severity, obs.message, obs.module, obs.node, obs.axis
-        )
-        if obs.severity != Severity.INFO:
-            self._log_counts[obs.kind] = n = self._log_counts.get(obs.kind, 0) + 1
-            if n <= 5 or obs.severity == Severity.FAULT:
-                log.warning("%s%s", obs.message, " (further ones counted only)" if n == 5 else "")
-        with contextlib.suppress(queue.Full):
-            self._events.put_nowait(ev)
-        return ev
-
-    def _notify(self, ev: DriverEvent) -> None:
-        """Call the event callbacks (outside the driver's lock)."""
-        for fn in self._event_callbacks:
-            try:
-                fn(ev)
-            except Exception as exc:  # a broken callback must not stop the fault path
-                with self._lock:
-                    self._stats.listener_errors += 1
-                    self.last_exception = exc
-                log.error("event callback %r raised %s", fn, exc)

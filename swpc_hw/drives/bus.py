@@ -1,4 +1,8 @@
-"""Configuration of the CAN driver (bus, node ids, rates, watchdog, recording)."""
+"""The bus and timing settings every drive kind gets (:class:`CanConfig`), and the drive
+facts the service's timing budget (:mod:`services.config.timing`) starts from, each stated
+once: the command watchdog ``W`` (:data:`DEFAULT_WATCHDOG_MS`), the dead-man ``D``
+(:data:`DEADMAN_S`), heartbeat loss ``L`` (:data:`HEARTBEAT_LOSS_PERIODS` heartbeat
+periods, :data:`HEARTBEAT_LOSS_S`)."""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from firmware_protocol import codec
-from swpc_hw.can.errors import CanConfigError
+from swpc_hw.drives.errors import CanConfigError
 
 
 def deadman_problem(deadman_s: float, refresh_period_s: float) -> str | None:
@@ -27,6 +31,17 @@ DEFAULT_WATCHDOG_MS = 200
 """The robot's command watchdog ``W`` (ms) unless its config says otherwise
 (``limits.watchdog_ms``; services/config/timing.py states what it bounds)."""
 
+DEADMAN_S = 0.5
+"""The dead-man ``D`` (s): the kernel's refresh ends this long after the driver's last
+renewal (:mod:`swpc_hw.drives.periodic`), so a stopped host frees every axis within
+``D + W``."""
+
+HEARTBEAT_LOSS_PERIODS = 3
+"""A drive is lost after this many heartbeat periods without a heartbeat (``L``)."""
+
+HEARTBEAT_LOSS_S = round(HEARTBEAT_LOSS_PERIODS * codec.HEARTBEAT_PERIOD_S, 9)
+"""``L`` on a robot (s): :data:`HEARTBEAT_LOSS_PERIODS` of the drives' 0.1 s heartbeat."""
+
 
 @dataclass(frozen=True)
 class CanConfig:
@@ -45,16 +60,16 @@ class CanConfig:
     watchdog_timeout_ms: int = DEFAULT_WATCHDOG_MS
     refresh_period_s: float = 0.02
     heartbeat_period_s: float = codec.HEARTBEAT_PERIOD_S
-    heartbeat_loss_periods: int = 3
+    heartbeat_loss_periods: int = HEARTBEAT_LOSS_PERIODS
     history_len: int = 200_000
     log_path: str | None = None
     log_total_bytes: int | None = None
     """A rolling log at ``log_path`` within this many bytes over all its files (python-can's
-    sized rotating logger, :mod:`swpc_hw.can.recording`); None: one unbounded file."""
+    sized rotating logger, :mod:`swpc_hw.drives.recording`); None: one unbounded file."""
     log_idle_period_s: float = 0.0
-    """While no recording (:meth:`CanDriver.start_recording`) is on, the log at
+    """While no recording (``start_recording()``) is on, the log at
     ``log_path`` keeps each periodic frame once per this many seconds per CAN id and every
-    event at once (:class:`swpc_hw.can.recording.IdleSampler`); 0: every frame."""
+    event at once (:class:`swpc_hw.drives.recording.IdleSampler`); 0: every frame."""
     max_torque: tuple[float, float] | None = None
     """(steer, wheel) torque limits in N.m sent at activation; None keeps the controllers'."""
     max_velocity: tuple[float, float] | None = None
@@ -63,7 +78,7 @@ class CanConfig:
     refresh_in_kernel: bool | None = None
     """Feed the watchdog from the kernel (SocketCAN broadcast manager, with a dead-man):
     None = on SocketCAN only."""
-    deadman_s: float = 0.5
+    deadman_s: float = DEADMAN_S
     """The kernel refresh stops this long after the driver's last renewal (renewed every
     half of it): a stopped service frees every axis within ``deadman_s`` + watchdog."""
     rx_buffer_bytes: int = 1 << 20
@@ -107,6 +122,12 @@ class CanConfig:
             raise CanConfigError(
                 f"log_idle_period_s: {self.log_idle_period_s} outside 0..3600 s"
             )
+
+    @property
+    def loss_after_s(self) -> float:
+        """Heartbeat loss ``L`` (s): a drive silent this long is lost (every kind's
+        supervision and activation judge by it)."""
+        return self.heartbeat_loss_periods * self.heartbeat_period_s
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any]) -> CanConfig:

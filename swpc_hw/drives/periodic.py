@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import can
 
 from firmware_protocol import codec
-from swpc_hw.can.config import deadman_problem
-from swpc_hw.can.errors import CanConfigError
+from swpc_hw.drives.bus import deadman_problem
+from swpc_hw.drives.errors import CanConfigError
 
 log = logging.getLogger(__name__)
 

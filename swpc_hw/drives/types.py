@@ -1,4 +1,5 @@
-"""The CAN driver's data types: lifecycle, events, feedback samples, snapshots, counters."""
+"""The drives' data types (every kind's): lifecycle, events, feedback samples, snapshots,
+counters."""
 
 from __future__ import annotations
 

@@ -1,13 +1,20 @@
-"""The driver's observation API: snapshots, feedback history, counters, events, waits.
+"""The drives' observation API: snapshots, feedback history, counters, events, waits,
+recording.
 
-A mixin of :class:`swpc_hw.can.driver.CanDriver` (state, locks and lifecycle live there).
-Waits are judged on the driver's clock (:mod:`swpc_hw.clock`).
+A mixin of :class:`swpc_hw.drives.base.DriverBase` (state, locks and lifecycle live
+there); a kind gives its modules (:meth:`DriverObservation.modules`,
+:meth:`DriverObservation.module_state`) and each module's feedback ring
+(:meth:`DriverObservation._ring`).  Waits are judged on the driver's clock
+(:mod:`swpc_hw.clock`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import queue
 import threading
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import replace
@@ -15,55 +22,66 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState
-from swpc_hw.can.errors import NodeTimeoutError
-from swpc_hw.can.history import COLUMNS as HISTORY_COLUMNS
-from swpc_hw.can.node_tracking import NodeTrack
-from swpc_hw.can.periodic import KernelRefresh
-from swpc_hw.can.types import (
+from swpc_hw.clock import Clock, wait_until
+from swpc_hw.drives.errors import LifecycleError, NodeTimeoutError
+from swpc_hw.drives.periodic import KernelRefresh
+from swpc_hw.drives.recording import Recorder
+from swpc_hw.drives.tracking import COLUMNS as HISTORY_COLUMNS
+from swpc_hw.drives.tracking import FeedbackRing
+from swpc_hw.drives.types import (
     AXIS_NAMES,
     DriverEvent,
     DriverStats,
+    EventKind,
     FeedbackSample,
+    Lifecycle,
     ModuleState,
-    where,
+    Observation,
+    Severity,
 )
-from swpc_hw.clock import Clock, wait_until
+
+log = logging.getLogger(__name__)
 
 
-class DriverObservation:
-    """What the driver knows (mixin; state lives in the driver)."""
+class DriverObservation(ABC):
+    """What the drives know (mixin; state lives in the driver)."""
 
     clock: Clock
+    _state: Lifecycle
     _lock: threading.RLock
     _changed: threading.Condition
-    _nodes: dict[int, NodeTrack]
     _stats: DriverStats
     _kernel: KernelRefresh | None
+    _bus: object
+    _recorder: Recorder | None
+    _logger: Recorder | None
     _latency: deque[float]
     _events: queue.Queue[DriverEvent]
     _event_callbacks: list[Callable[[DriverEvent], None]]
     _feedback_callbacks: list[Callable[[int, FeedbackSample], None]]
     _io_thread: threading.Thread | None
+    _log_counts: dict[EventKind, int]
+    last_exception: BaseException | None
 
-    def _node(self, module: int) -> NodeTrack:
-        raise NotImplementedError  # the driver's (DriverCommands)
-
-    def module_state(self, module: int) -> ModuleState:
-        nd = self._node(module)
-        with self._lock:
-            return nd.snapshot()
-
+    @abstractmethod
     def modules(self) -> list[int]:
-        return list(self._nodes)
+        """The module ids, in the robot's order."""
+
+    @abstractmethod
+    def module_state(self, module: int) -> ModuleState:
+        """The latest known state of one module's drives (a snapshot)."""
+
+    @abstractmethod
+    def _ring(self, module: int) -> FeedbackRing:
+        """The module's feedback history (:class:`CanCommandError` for an unknown one)."""
 
     def history(self, module: int) -> list[FeedbackSample]:
         """The kept feedback samples of a module, oldest first (objects made on demand;
         :meth:`history_arrays` for computation)."""
-        nd = self._node(module)
+        ring = self._ring(module)
         with self._lock:
-            a = nd.history.array()
+            a = ring.array()
         samples = []
         for r in a.tolist():
             f = dict(zip(HISTORY_COLUMNS, r, strict=True))
@@ -74,9 +92,9 @@ class DriverObservation:
     def history_arrays(self, module: int) -> dict[str, NDArray[np.float64]]:
         """Feedback history as columns (the fields of :class:`FeedbackSample`); ``t`` is
         the arrival on the bus on the driver's clock."""
-        nd = self._node(module)
+        ring = self._ring(module)
         with self._lock:
-            return nd.history.columns()
+            return ring.columns()
 
     def history_since(
         self, module: int, cursor: int, since: float = -np.inf
@@ -84,16 +102,16 @@ class DriverObservation:
         """Feedback rows ``(t, theta_hat, psi)`` appended after ``cursor`` (0: every row
         kept) with ``t >= since``, and the new cursor: a reader that keeps the cursor
         reads each sample once (a run records its feedback as it comes)."""
-        nd = self._node(module)
+        ring = self._ring(module)
         with self._lock:
-            rows, cursor = nd.history.since(cursor)
+            rows, cursor = ring.since(cursor)
         rows = rows[rows[:, 0] >= since] if since > -np.inf else rows
         return np.ascontiguousarray(rows[:, [0, 4, 5]]), cursor
 
     def clear_history(self) -> None:
         with self._lock:
-            for nd in self._nodes.values():
-                nd.history.clear()
+            for m in self.modules():
+                self._ring(m).clear()
 
     def stats(self) -> DriverStats:
         with self._lock:
@@ -150,12 +168,12 @@ class DriverObservation:
         what: str = "condition",
     ) -> ModuleState:
         """Block until ``predicate(module_state)`` holds; :class:`NodeTimeoutError` otherwise."""
-        nd = self._node(module)
+        self.module_state(module)  # an unknown module: CanCommandError
         deadline = self.clock.now() + timeout
         reached: list[ModuleState] = []
 
         def holds() -> bool:
-            st = nd.snapshot()
+            st = self.module_state(module)
             if predicate(st):
                 reached.append(st)
                 return True
@@ -164,18 +182,22 @@ class DriverObservation:
         with self._changed:
             if wait_until(self.clock, self._changed, holds, deadline):
                 return reached[-1]
-            st = nd.snapshot()
-        raise NodeTimeoutError(
-            f"{where(nd.module, nd.node)}: {what} not reached within {timeout} s "
+        raise self._not_reached(module, what, timeout)
+
+    def _not_reached(self, module: int, what: str, timeout: float) -> NodeTimeoutError:
+        """wait_for()'s error: what was not reached, and the module's state."""
+        st = self.module_state(module)
+        return NodeTimeoutError(
+            f"module {module} (node {st.node}): {what} not reached within {timeout} s "
             f"(states {[s.name for s in st.states]}, errors "
             f"{[self._error_names(e) for e in st.errors]}, homed {st.homed}, "
             f"homing {st.homing.name})",
-            node=nd.node,
+            node=st.node,
         )
 
     def _error_names(self, bits: int) -> str:
         """An axis' error bits by name (the drive kind's own)."""
-        return codec.error_names(bits)
+        return f"0x{bits:x}"
 
     def wait_axis_state(
         self, module: int, axis: Axis, state: AxisState, timeout: float = 1.0
@@ -189,5 +211,64 @@ class DriverObservation:
         )
 
     def iter_modules(self) -> Iterator[ModuleState]:
-        for module in self._nodes:
+        for module in self.modules():
             yield self.module_state(module)
+
+    # ================================================================ recording
+    def start_recording(self, path: str) -> None:
+        """Record every frame in and out to ``path`` until :meth:`stop_recording`.
+
+        python-can's Logger picks the format from the suffix (``.log``: candump, which
+        ``cantools decode`` reads with the kind's DBC).  Independent of
+        ``CanConfig.log_path``.  Frames the kernel sends for the refresh are not in it
+        (candump sees them).
+        """
+        with self._lock:
+            if self._bus is None or self._state == Lifecycle.FINALIZED:
+                raise LifecycleError("start_recording() needs an open bus (configure() first)")
+        self.stop_recording()
+        rec = Recorder(path)
+        with self._lock:
+            self._recorder = rec
+
+    def stop_recording(self) -> str | None:
+        """Stop the recording started by :meth:`start_recording` (idempotent); returns why
+        it stopped early (a failed write), if it did."""
+        with self._lock:
+            rec, self._recorder = self._recorder, None
+        if rec is None:
+            return None
+        rec.stop()
+        return rec.error
+
+    def log_error(self) -> str | None:
+        """Why the log of ``CanConfig.log_path`` stopped (a failed write), if it did."""
+        return None if self._logger is None else self._logger.error
+
+    # ================================================================ events
+    def _emit(self, kind: EventKind, severity: Severity, message: str) -> None:
+        self._notify(self._record(Observation(kind, severity, message)))
+
+    def _record(self, obs: Observation) -> DriverEvent:
+        """Stamp, log and queue an observation as an event (cheap; under the lock is fine)."""
+        ev = DriverEvent(
+            self.clock.now(), obs.kind, obs.severity, obs.message, obs.module, obs.node, obs.axis
+        )
+        if obs.severity != Severity.INFO:
+            self._log_counts[obs.kind] = n = self._log_counts.get(obs.kind, 0) + 1
+            if n <= 5 or obs.severity == Severity.FAULT:
+                log.warning("%s%s", obs.message, " (further ones counted only)" if n == 5 else "")
+        with contextlib.suppress(queue.Full):
+            self._events.put_nowait(ev)
+        return ev
+
+    def _notify(self, ev: DriverEvent) -> None:
+        """Call the event callbacks (outside the driver's lock)."""
+        for fn in self._event_callbacks:
+            try:
+                fn(ev)
+            except Exception as exc:  # a broken callback must not stop the fault path
+                with self._lock:
+                    self._stats.listener_errors += 1
+                    self.last_exception = exc
+                log.error("event callback %r raised %s", fn, exc)

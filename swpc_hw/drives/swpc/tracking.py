@@ -1,4 +1,5 @@
-"""Node tracking: what one received frame tells about the controllers (a pure core).
+"""The swpc kind's node tracking: what one received frame tells about its controllers,
+and the frames that refresh them (pure cores).
 
 :func:`apply_frame` is a function of the tracked state, one received frame and its time:
 it updates the :class:`NodeTrack` the frame concerns and the counters, and returns what
@@ -8,90 +9,62 @@ calls it under its lock, and the tests call it directly.
 Times: ``t`` is when the frame arrived on the bus, on the driver clock's axis (its bus
 time stamp mapped by :meth:`swpc_hw.clock.Clock.from_wall`, or the time it was handled
 when the stamp is unusable).  A heartbeat's ``t`` is what supervision judges loss by
-(:mod:`swpc_hw.can.supervision`), so a frame that waited in a receive queue still counts
+(:func:`swpc_hw.drives.tracking.check`), so a frame that waited in a receive queue still counts
 from when it arrived.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterable, Mapping
+from dataclasses import replace
 
 import can
 
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
-from swpc_hw.can.history import FeedbackRing
-from swpc_hw.can.types import (
+from swpc_hw.drives import tracking
+from swpc_hw.drives.tracking import CAN_ERR_BUSOFF, Applied, CheckResult, NodeTrack
+from swpc_hw.drives.types import (
     DriverStats,
     EventKind,
     FeedbackSample,
-    ModuleState,
     Observation,
     Severity,
     where,
 )
 
-CAN_ERR_BUSOFF = 0x00000040
-"""Linux SocketCAN error class bit (in the error frame's id) for bus-off."""
+
+def refresh_frames(
+    nd: NodeTrack, commanded: Mapping[Axis, tuple[ControlMode, float]] | None = None
+) -> list[codec.Frame]:
+    """The node's last SetControl per commanded axis (what feeds its watchdog); of
+    ``commanded`` instead of the node's own, if given."""
+    cmds = nd.commanded if commanded is None else commanded
+    return [codec.make_set_control(nd.node, axis, mode, sp) for axis, (mode, sp) in cmds.items()]
 
 
-@dataclass
-class NodeTrack:
-    """What the host knows of one controller node (mutable state of the pure core)."""
-
-    module: int
-    node: int
-    history: FeedbackRing
-    alive: bool = False
-    lost_reported: bool = False
-    states: tuple[AxisState, AxisState] = (AxisState.DISABLED, AxisState.DISABLED)
-    modes: tuple[ControlMode, ControlMode] = (ControlMode.FREE, ControlMode.FREE)
-    errors: tuple[int, int] = (0, 0)
-    homed: bool = False
-    homing: HomingState = HomingState.NOT_HOMED
-    homing_seen: bool = False  # a heartbeat showed the steering HOMING since start_homing()
-    t_heartbeat: float | None = None
-    heartbeats: int = 0
-    feedback_frames: int = 0
-    last: FeedbackSample | None = None
-    seq: int = -1
-    last_tx: float = -math.inf
-    commanded: dict[Axis, tuple[ControlMode, float]] = field(default_factory=dict)
-
-    def snapshot(self) -> ModuleState:
-        return ModuleState(
-            module=self.module,
-            node=self.node,
-            alive=self.alive,
-            states=self.states,
-            modes=self.modes,
-            errors=self.errors,
-            homed=self.homed,
-            homing=self.homing,
-            feedback=self.last,
-            t_heartbeat=self.t_heartbeat,
-            heartbeats=self.heartbeats,
-            feedback_frames=self.feedback_frames,
-        )
-
-
-@dataclass
-class Applied:
-    """The outcome of one frame: observations (in order), whether one is a fault, and the
-    new feedback sample (for the feedback callbacks) if the frame completed one."""
-
-    observations: list[Observation] = field(default_factory=list)
-    fault: bool = False
-    sample: tuple[int, FeedbackSample] | None = None
-
-
-def frame_time(stamp: float, handled: float, mapped: float, max_age: float = 5.0) -> float:
-    """The frame's arrival on the driver clock: ``mapped`` (its bus stamp mapped) when it
-    is plausible, i.e. ``handled - max_age <= mapped <= handled``, else ``handled``."""
-    if stamp and math.isfinite(mapped) and handled - max_age <= mapped <= handled:
-        return mapped
-    return handled
+def check(
+    nodes: Iterable[NodeTrack],
+    now: float,
+    *,
+    t_configured: float,
+    loss_after: float,
+    refresh_period: float,
+    refresh: bool,
+) -> CheckResult:
+    """:func:`swpc_hw.drives.tracking.check` on the controllers: a node is refreshed while
+    it has a commanded axis, with its last SetControl per commanded axis."""
+    return tracking.check(
+        nodes,
+        now,
+        t_configured=t_configured,
+        loss_after=loss_after,
+        refresh_period=refresh_period,
+        refresh=refresh,
+        refreshed=lambda nd: bool(nd.commanded),
+        frames=refresh_frames,
+    )
 
 
 def apply_frame(
