@@ -107,7 +107,7 @@ def play_operator(
                 f"/calibrations/{run_id}/references", json={"references": [ref]}, headers=AUTH
             )
             assert again.status_code == 409 and "already has" in again.text
-        time.sleep(0.02)
+        time.sleep(0.05)  # each GET takes CPU from the simulation (service_rig.wait_state)
     raise AssertionError(f"run {run_id} never ended: {st}")
 
 
