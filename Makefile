@@ -99,7 +99,7 @@ clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info
 
 # The module controllers emulated in C on SocketCAN, as firmware (firmware_protocol/c/emulator/;
-# the VM's deadman step runs it; tests/test_ctrl_emulator.py checks it against Python's).
+# the VM's deadman step runs it; tests/firmware/test_c_emulator.py checks it against Python's).
 CC ?= cc
 CTRL_EMU_SRC := firmware_protocol/c/swpc.c firmware_protocol/c/emulator/controller.c \
 	firmware_protocol/c/emulator/main.c

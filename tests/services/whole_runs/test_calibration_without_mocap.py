@@ -5,7 +5,7 @@ simulated clock, the test playing the operator: it marks the floor (``POST .../c
 in MARK) and reads the simulator's tape (``GET /simulator/tape-measure``) to post the
 straight drive's length (``POST .../references`` in MEASURE).  One short run (two angles
 of 45 deg sweeps per module, 1 s rests, a 1 m drive): everything else of the run without
-motion capture is tested on the fake robot in ``tests/test_state_machine.py``.
+motion capture is tested on the fake robot in ``tests/services/runs/test_state_machine.py``.
 
 45 deg sweeps leave one wheel increment per spin in the solver's coarse problem: before
 the pooled slip screen ignored such series, their exact zeros took its sigma to 0 and
