@@ -6,7 +6,8 @@ node, the message and the signal.  Hot paths (the simulator sends, and the drive
 thousands of frames per second) use a layout compiled from the same DBC at import
 (:func:`frame_layout`: every signal's start bit, length, sign and scaling): a valid frame
 packs to, and unpacks from, exactly cantools' bytes and values (checked over random frames
-by ``tests/test_protocol.py``); anything else goes through cantools, whose errors name the
+by ``tests/firmware/test_protocol_bytes.py``); anything else goes through cantools, whose errors
+name the
 offending signal.
 
 Frame ids: ``id = node << 5 | command`` (11-bit, ODrive "CAN Simple" layout).  Node 0 is the

@@ -3,7 +3,7 @@
 The tables in the doc sit between two marker lines (:data:`BEGIN`, :data:`END`); this
 module writes what goes between them from the DBC (``Sync`` and the node-1 messages
 ``N1_*``: the other nodes' copies are identical), so the doc cannot drift from the
-protocol.  ``tests/test_docs.py`` fails when the doc's block differs from :func:`markdown`::
+protocol.  ``tests/project/test_docs.py`` fails when the doc's block differs from :func:`markdown`::
 
     python -m firmware_protocol.frame_table                          # print the tables
     python -m firmware_protocol.frame_table --write docs/can-protocol.md   # update the doc

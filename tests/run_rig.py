@@ -92,7 +92,8 @@ class Rig:
         self.install = "if-within-tolerance"
         self.tmp = tmp
         # the state machine's tests need the run's dataset, not its MCAP (tested with the
-        # service and in tests/test_run_outputs.py): half the CPU of a run on the fake robot
+        # service and in tests/services/runs/test_run_outputs.py): half the CPU of a run on the
+        # fake robot
         self.run_kwargs: dict[str, Any] = {"mcap": False}
 
     def _changed(self, run: CalibrationRun) -> None:

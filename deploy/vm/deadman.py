@@ -11,7 +11,7 @@ A hold (``one_hold``) starts, on ``--channel``:
   not for the robot's computer, whose load the busy loops are.  By default the C emulator
   ``build/swpc-ctrl-emu`` (``make ctrl-emu``, built by ``deploy/vm/setup.sh``; the same
   state machine as :class:`VirtualController`, checked frame for frame by
-  ``tests/test_ctrl_emulator.py``); ``--emulator python`` runs :class:`ControllerEmulator`
+  ``tests/firmware/test_c_emulator.py``); ``--emulator python`` runs :class:`ControllerEmulator`
   instead (``emulate``), which under QEMU's emulation takes most of an emulated CPU from
   the driver and falls behind on its own heartbeats;
 * ``hold``: the service side, at normal priority: a :class:`SwpcDriver` with the service's

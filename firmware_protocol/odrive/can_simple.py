@@ -6,7 +6,7 @@ axis: an ODrive v3.6 has two, an S1 or a Pro one).  The DBCs list the messages o
 :class:`CanSimple` encodes and decodes every node with the ``Axis0_*`` message of the
 command and puts the node into the id itself.  Which messages an axis sends and which the
 host sends is the DBC's (its senders); the enums' values are checked against its value
-tables (``tests/test_odrive.py``).
+tables (``tests/drives/odrive/test_odrive_kind.py``).
 
 Firmware lines (``FIRMWARE_LINES``): ``0.5`` (ODrive v3.6, 0.5.x; heartbeat with the
 motor / encoder / controller error flags, axis errors of ``AxisError``) and ``0.6`` (S1,
@@ -15,7 +15,8 @@ uses is decoded into types; the rest of the DBC still decodes with ``cantools de
 
 A frame is taken for an ODrive frame only with its exact DLC and, for a host command, the
 exact remote (RTR) use the firmware answers: a frame of swpc's own protocol, whose ids have
-the same ``node << 5 | cmd`` layout, never decodes as one (``tests/test_odrive.py`` sends
+the same ``node << 5 | cmd`` layout, never decodes as one
+(``tests/drives/odrive/test_odrive_kind.py`` sends
 it every swpc frame).
 """
 

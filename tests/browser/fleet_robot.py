@@ -1,6 +1,6 @@
 """One simulated robot of the fleet, in a process of its own (the fleet page's browser
 test kills it): a real service runtime on its own data dir (three calibrations in its run
-store, :func:`tests.test_fleet.robot_data`) with the real publisher, until killed.
+store, :func:`tests.services.fleet.test_fleet.robot_data`) with the real publisher, until killed.
 
     python -m tests.browser.fleet_robot DATA_DIR NAME K ENDPOINT
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from services.runtime.fleet import FleetPublisher
 from services.runtime.runtime import Runtime
-from tests.test_fleet import robot_data, settings
+from tests.services.fleet.test_fleet import robot_data, settings
 
 
 def main(data: str, name: str, k: str, endpoint: str) -> None:

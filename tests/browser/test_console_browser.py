@@ -709,7 +709,7 @@ def test_a_calibration_without_motion_capture_from_the_page(
     MEASURE answered with the page's buttons (the simulator's tape read into the field),
     then the result in the design-fit frame: no empty "Spins in the world" panel (there is
     no pose), the reference re-expressed in design-fit."""
-    from tests.test_service_imu import PROTOCOL, axis_distances
+    from tests.services.whole_runs.test_calibration_without_mocap import PROTOCOL, axis_distances
 
     d = browser
     d.get(service["url"] + "/#run")

@@ -5,7 +5,7 @@
  * and advance time with ctrl_step(); both append the frames the controller sends to an
  * output list.  Times are seconds on any monotonic axis (doubles, as in Python).
  *
- * tests/test_ctrl_emulator.py runs the same frame sequences through this code (the
+ * tests/firmware/test_c_emulator.py runs the same frame sequences through this code (the
  * `--trace` mode of main.c) and through VirtualController and compares every frame.
  */
 #ifndef SWPC_CTRL_H

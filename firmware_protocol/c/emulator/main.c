@@ -13,7 +13,7 @@
  *       Reads events from stdin, one a line: "T step" (advance every controller to T) or
  *       "T ID#HEX" (a frame seen at T, hex id and data as candump -L writes them); writes
  *       every frame sent as "T ID#HEX".  The same as VirtualController.handle / .step in
- *       Python (tests/test_ctrl_emulator.py compares them).
+ *       Python (tests/firmware/test_c_emulator.py compares them).
  *
  * --rate: the feedback rate at power-on (VirtualController's rate_hz, default 200 Hz;
  * SetFeedback changes it).

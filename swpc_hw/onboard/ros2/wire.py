@@ -49,7 +49,8 @@ ADMIN_SPACE = "@ros2_lv"
 GID_SIZE = 16  # RMW_GID_STORAGE_SIZE in Jazzy
 
 TYPE_HASHES: dict[str, str] = {
-    # REP-2016 hashes of the Jazzy type descriptions.  tests/test_ros2_odometry.py recomputes
+    # REP-2016 hashes of the Jazzy type descriptions.  tests/onboard/test_ros2_odometry.py
+    # recomputes
     # them (rosbags' Jazzy type store, and zenoh-ros2-sdk's own implementation) and checks
     # them against values published for Jazzy (docs/ros2.md).
     "nav_msgs/msg/Odometry":

@@ -5,7 +5,7 @@ simulated clock, the test playing the operator: it marks the floor (``POST .../c
 in MARK) and reads the simulator's tape (``GET /simulator/tape-measure``) to post the
 straight drive's length (``POST .../references`` in MEASURE).  One short run (two angles
 of 45 deg sweeps per module, 1 s rests, a 1 m drive): everything else of the run without
-motion capture is tested on the fake robot in ``tests/test_state_machine.py``.
+motion capture is tested on the fake robot in ``tests/services/runs/test_state_machine.py``.
 
 45 deg sweeps leave one wheel increment per spin in the solver's coarse problem: before
 the pooled slip screen ignored such series, their exact zeros took its sigma to 0 and
@@ -18,6 +18,7 @@ import itertools
 import logging
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -60,10 +61,44 @@ def axis_distances(seed: int = 20) -> list[dict[str, Any]]:
     return out
 
 
+@dataclass
+class QuickRun:
+    """A calibration without motion capture on a fresh service, its operator answering at
+    once: what the HTTP test judges, and the quick half of the operator's-pace test."""
+
+    client: TestClient
+    rt: Runtime
+    run_id: str
+    started: dict[str, Any]
+    continue_before_mark: int
+    status: dict[str, Any]
+    seen: dict[str, float]
+    wall: float
+    robot: float
+
+
 @pytest.fixture(scope="module")
-def service(sim: Sim) -> tuple[TestClient, Runtime]:
-    """The service on the in-process simulator (tests/conftest.py's)."""
-    return sim.client, sim.rt
+def quick_run(sim: Sim) -> QuickRun:
+    """The run on the service of tests/conftest.py's ``sim``, fresh: this module's first
+    run, so that its parameters are those of any fresh service's first run."""
+    client, rt = sim.client, sim.rt
+    assert client.get("/calibrations").json() == []  # nothing ran on it before
+    t0 = time.monotonic()
+    robot0 = rt.clock.now()
+    body = {
+        "metrology": "imu",
+        "references": axis_distances(),
+        "overrides": {"protocol": PROTOCOL},
+        "install": "never",  # compared below with a file in force in another frame
+    }
+    r = client.post("/calibrations", json=body, headers=AUTH)
+    assert r.status_code == 202, r.text
+    run_id = r.json()["id"]
+    before_mark = client.post(f"/calibrations/{run_id}/continue", headers=AUTH).status_code
+    seen: dict[str, float] = {}
+    st = play_operator(client, run_id, seen)
+    wall, robot = time.monotonic() - t0, rt.clock.now() - robot0
+    return QuickRun(client, rt, run_id, r.json(), before_mark, st, seen, wall, robot)
 
 
 def play_operator(
@@ -107,33 +142,19 @@ def play_operator(
                 f"/calibrations/{run_id}/references", json={"references": [ref]}, headers=AUTH
             )
             assert again.status_code == 409 and "already has" in again.text
-        time.sleep(0.02)
+        time.sleep(0.05)  # each GET takes CPU from the simulation (service_rig.wait_state)
     raise AssertionError(f"run {run_id} never ended: {st}")
 
 
-def test_a_calibration_without_motion_capture_through_http(
-    service: tuple[TestClient, Runtime],
-) -> None:
+def test_a_calibration_without_motion_capture_through_http(quick_run: QuickRun) -> None:
     """DONE in the design-fit frame; every frame-free figure (distances between steering
     axes, beta differences, b, r) within 4 of its std devs of the truth, and near it;
     ``swpc solve`` of the recorded dataset gives the same result."""
-    client, rt = service
-    t0 = time.monotonic()
-    robot0 = rt.clock.now()
-    body = {
-        "metrology": "imu",
-        "references": axis_distances(),
-        "overrides": {"protocol": PROTOCOL},
-        "install": "never",  # compared below with a file in force in another frame
-    }
-    r = client.post("/calibrations", json=body, headers=AUTH)
-    assert r.status_code == 202, r.text
-    run_id = r.json()["id"]
-    assert r.json()["metrology"] == "imu"
-    assert client.post(f"/calibrations/{run_id}/continue", headers=AUTH).status_code == 409
-    seen: dict[str, float] = {}
-    st = play_operator(client, run_id, seen)
-    wall, robot = time.monotonic() - t0, rt.clock.now() - robot0
+    q = quick_run
+    client, rt, run_id, st, seen = q.client, q.rt, q.run_id, q.status, q.seen
+    wall, robot = q.wall, q.robot
+    assert q.started["metrology"] == "imu"
+    assert q.continue_before_mark == 409  # no floor to mark before MARK
     assert st["state"] == "DONE", st["errors"]
     assert st["poses"] == 0 and st["gyro_samples"] > 0 and st["segments"] == 8
     res = client.get(f"/calibrations/{run_id}/result").json()
@@ -247,17 +268,19 @@ def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
 
 
 def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(
-    tmp_path: Path,
+    quick_run: QuickRun, tmp_path: Path
 ) -> None:
     """Issue 30: simulated time flowed while the run waited for its operator, so the drive
     started at a simulated time that depended on how fast the answer came (wall time),
     and two demos differed.  Against the in-process simulator it now stands still: an
-    operator answering at once and one taking a second give the same parameters, bit
-    for bit."""
-    results = []
-    for name, think in (("quick", 0.0), ("slow", 1.0)):
-        with sim_service(tmp_path / name) as s:
-            results.append(calibrate_without_mocap(s.client, think))
-    quick, slow = ([[m[n] for n in NAMES] for m in res["modules"]] for res in results)
+    operator answering at once (the module's quick run, the first on a fresh service) and
+    one taking a second (here, the first on another fresh service) give the same
+    parameters, bit for bit.  (Whether a run installs its result comes after the solve:
+    the quick run's ``install: never`` changes no parameter.)"""
+    assert quick_run.status["state"] == "DONE", quick_run.status["errors"]
+    quick_res = quick_run.client.get(f"/calibrations/{quick_run.run_id}/result").json()
+    with sim_service(tmp_path / "slow") as s:
+        slow_res = calibrate_without_mocap(s.client, think=1.0)
+    quick, slow = ([[m[n] for n in NAMES] for m in res["modules"]] for res in (quick_res, slow_res))
     assert quick == slow
-    assert parameters_digest(results[0]) == parameters_digest(results[1])
+    assert parameters_digest(quick_res) == parameters_digest(slow_res)

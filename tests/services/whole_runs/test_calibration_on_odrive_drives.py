@@ -8,7 +8,8 @@ frame with its time on that clock: every fault must reach every axis with a stop
 frame went out (robot time): the fault table of docs/drives.md.
 
 Stale motion capture and a step timeout are judged by the state machine on any drives
-(``tests/test_state_machine.py``); they stop the robot through the same ``stop_all()``.
+(``tests/services/runs/test_state_machine.py``); they stop the robot through the same
+``stop_all()``.
 """
 
 from __future__ import annotations

@@ -7,9 +7,11 @@ its time on that clock, so the fault tests can check that zero-torque (FREE) and
 frames reached every axis.  Waits on wall time here are only guards against a hang.
 
 The state machine's every transition, fault, abort and timeout is tested on a fake robot
-and a virtual clock in ``tests/test_state_machine.py``; here the paths that need the real
+and a virtual clock in ``tests/services/runs/test_state_machine.py``; here the paths that need the
+real
 driver, simulator and HTTP.  (That the driver reports a fault stop before its event
-callbacks run is checked from inside a callback in ``tests/test_driver.py``; here a
+callbacks run is checked from inside a callback in
+``tests/drives/swpc/test_driver_back_to_back.py``; here a
 callback held for long would hold the simulated clock itself.)
 """
 

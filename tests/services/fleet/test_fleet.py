@@ -43,7 +43,7 @@ from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 ROBOTS = [f"robot{i}" for i in range(1, 6)]
-ROUTER_FILE = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "fleet-router.json5"
+ROUTER_FILE = Path(__file__).resolve().parents[3] / "deploy" / "zenoh" / "fleet-router.json5"
 DAYS = ["2026-01-01T10:00:00.000Z", "2026-01-15T10:00:00.000Z", "2026-01-29T10:00:00.000Z"]
 WEAR = 0.05e-3
 """Wheel radius lost per week by robot<k>'s module 1, times k (m)."""

@@ -33,7 +33,7 @@ from swpc_hw.onboard.ros2.wire import TYPE_HASHES, Attachment, topic_key
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
-from tests.test_odometry import make_stream
+from tests.onboard.test_odometry import make_stream
 
 # Published for ROS 2 Jazzy (docs/ros2.md names where): std_msgs/String in rmw_zenoh's
 # docs/design.md, TFMessage in a Jazzy rosbag2 metadata.yaml, Odometry by `ros2 topic info -v`.

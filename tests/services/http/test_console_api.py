@@ -2,7 +2,8 @@
 roll back, the kinematic files, comparison, a run's geometry and files.
 
 The run behind them is a real one: the state machine on the fake robot of
-``tests/test_state_machine.py`` (a virtual clock: a whole run in about a second), started
+``tests/services/runs/test_state_machine.py`` (a virtual clock: a whole run in about a second),
+started
 through the runtime's own ``on_change`` (the store, the event bus), while a client
 follows it on ``GET /events?run=<id>``.  The browser drives the same endpoints in
 ``tests/browser`` (``make test-browser``).

@@ -18,7 +18,7 @@ def test_corrupt_kinematic_file_is_a_clear_error_and_degraded_health(tmp_path: P
     """A file in force that does not load is a fault of the server's data, not of the
     request: a JSON 500 (not 503, which /health keeps for "cannot calibrate") that says
     why and which backup to roll back to; /health names it (degraded on a service that
-    can calibrate: tests/test_health_metrics.py).  It was a bare 500."""
+    can calibrate: tests/services/http/test_health_and_metrics.py).  It was a bare 500."""
     kin = tmp_path / "kinematics.yaml"
     good = tmp_path / "kinematics.20260101T000000000000Z.yaml"
     save_kinematics(good, PAPER_NOMINAL, created="2026-01-01T00:00:00Z")

@@ -1,6 +1,7 @@
 """The calibration service on CiA 402 drives, against the in-process simulator (lockstep).
 
-The same service, state machine and simulator as ``tests/test_service.py``; the robot
+The same service, state machine and simulator as
+``tests/services/whole_runs/test_calibration_on_swpc_drives.py``; the robot
 config says ``drives: cia402``, so the host is :mod:`swpc_hw.drives.cia402` and the
 virtual robot's drives are :mod:`simulators.drives.cia402`.  A whole calibration reaches
 DONE, and every fault the swpc tests stop on (heartbeat lost, a drive's fault as EMCY,

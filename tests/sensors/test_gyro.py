@@ -3,8 +3,9 @@
 Pure and fast: the model's statistics on a few thousand samples without zenoh, the CDR
 ``sensor_msgs/msg/Imu`` through rosbags, the ingest fed payloads on a virtual clock; one
 loopback zenoh hop.  The gyro inside the running simulator is checked against the
-motion capture in ``tests/test_sim.py``, and through the whole service in
-``tests/test_service_imu.py``.
+motion capture in ``tests/simulators/test_virtual_robot_over_can.py``, and through the whole
+service in
+``tests/services/whole_runs/test_calibration_without_mocap.py``.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ from swpc_hw.calibration.plan.square_error import (
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from swpc_hw.sensors.gyro import GyroOptions
 from tests.service_rig import AUTH, Sim
-from tests.test_service_imu import axis_distances, play_operator
+from tests.services.whole_runs.test_calibration_without_mocap import axis_distances, play_operator
 
 DEFAULT = Candidate((45.0, 165.0), 360.0, 3.0, 1.5, 1.0, 2.5, 0.6, 2.0, 4.0)
 """The robot config's default protocol without motion capture."""

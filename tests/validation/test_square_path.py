@@ -31,7 +31,7 @@ from swpc_hw.validation import (
     to_start_frame,
 )
 
-DEMO_FILE = Path(__file__).resolve().parents[1] / "out" / "demo" / "kinematics.yaml"
+DEMO_FILE = Path(__file__).resolve().parents[2] / "out" / "demo" / "kinematics.yaml"
 
 
 # --------------------------------------------------------------------------- path

@@ -96,7 +96,7 @@ def test_the_mocap_pcs_listener_admits_only_robots_and_takes_no_poses_from_them(
 
     from swpc_hw.sensors.zenoh_session import zenoh_config
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     users = tmp_path / "zenoh-users.txt"
     users.write_text("swpc:robot-secret-0123\n")
     ep = free_tcp_endpoint()
@@ -156,7 +156,7 @@ def test_health_names_a_refused_zenoh_link_and_the_right_password_clears_it(
     from swpc_hw.sensors.zenoh_session import zenoh_config
     from tests.service_rig import TOKEN
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     users = tmp_path / "robots.txt"
     users.write_text("swpc-robot07:robot-secret-0123\n")
     ep = free_tcp_endpoint()
