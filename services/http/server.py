@@ -16,12 +16,12 @@ every failed accept).  :class:`GuardedH11` adds:
   longest after a response (kept alive), else the oldest that has sent no whole request
   for :data:`GRACE` s, else the oldest event stream (the browser reconnects and resumes it
   by ``Last-Event-ID``), else the oldest read in progress (a GET or HEAD: a slow reader of
-  a download).  A connection younger than :data:`GRACE` that is still sending its first
-  request is never the one closed (asyncio accepts connections in batches: in a flood, a
+  a download), and only then the oldest connection younger than :data:`GRACE` still
+  sending its first request (asyncio accepts connections in batches: in a flood, a
   client's connection would otherwise be closed by the ones accepted after it before its
-  request was read); nor is one carrying a request that may change something (each with
-  the token).  With none to close, the new connection is closed.  Event streams are also
-  bounded where they begin, to fewer than the cap
+  request was read).  A connection carrying a request that may change something (each
+  with the token) is never closed; with none to close, the new connection is.  Event
+  streams are also bounded where they begin, to fewer than the cap
   (:class:`services.http.streams.StreamGate`).
 
 The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and files.
@@ -125,7 +125,7 @@ class GuardedH11(H11Protocol):
         if self._idle_since is not None:
             if self._served:
                 return (0, self._idle_since)
-            return (1, self._idle_since) if now - self._idle_since >= GRACE else None
+            return (1 if now - self._idle_since >= GRACE else 4, self._idle_since)
         scope = self.scope
         if scope is None:  # no request parsed: not reached (idle until it is)
             return None

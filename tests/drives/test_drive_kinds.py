@@ -18,7 +18,6 @@ import threading
 import time
 import tomllib
 import uuid
-from pathlib import Path
 from typing import Any, Literal
 
 import can
@@ -36,6 +35,7 @@ from swpc_hw.drives.registry import DrivesConfig, Kind, KindConfig, open_drives
 from swpc_hw.drives.robot_io import DrivesRobotIO
 from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, Supervision
 from swpc_hw.drives.types import EventKind, FeedbackSample, Lifecycle, ModuleState, Severity
+from tests.service_rig import ROOT
 
 HEARTBEAT, FEEDBACK, SETPOINT = 0x700, 0x180, 0x200
 NODE_MASK = 0x7F
@@ -317,7 +317,7 @@ def test_a_kind_from_an_entry_point(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_the_built_in_kinds_are_the_entry_points_declared() -> None:
-    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     declared = pyproject["project"]["entry-points"][registry.ENTRY_POINT_GROUP]
     assert declared == registry.BUILTIN
     for name in registry.BUILTIN:

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 from services.config.robot import ProtocolConfig, load_robot_config
 from simulators.offline.datagen import ExperimentOptions
 from simulators.offline.datagen_imu import IMU_PROTOCOL
 from swpc_hw.calibration.plan.plan import ANGLE_SETS
 from swpc_hw.protocol import DEFAULT_PROTOCOL
+from tests.service_rig import ROOT
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "deploy" / "robot.example.yaml"
+EXAMPLE = ROOT / "deploy" / "robot.example.yaml"
 
 
 def protocol_of(config: ProtocolConfig) -> dict[str, object]:
