@@ -39,7 +39,7 @@ from pydantic import SecretStr
 from benchmarks.bench_service import StopWatch
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
-from services.http.server import server as http_server
+from services.http.edge.server import server as http_server
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
 TOKEN = "bench-token-0123456789"

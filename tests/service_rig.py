@@ -152,7 +152,7 @@ def served(
 ) -> Iterator[tuple[Any, int]]:
     """``app`` behind the real HTTP server (uvicorn with GuardedH11) on a free loopback
     port, in this process: ``(server, port)``; the server is stopped on exit."""
-    from services.http.server import server as http_server
+    from services.http.edge.server import server as http_server
     from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
     port = int(free_tcp_endpoint().rsplit(":", 1)[1])

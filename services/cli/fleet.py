@@ -49,8 +49,8 @@ def run(args: argparse.Namespace) -> int:
     from services.config.fleet import FleetSettings
     from services.config.settings import SettingsError
     from services.fleet.service import FleetService
+    from services.http.edge.server import listen_socket, server
     from services.http.fleet.app import create_fleet_app
-    from services.http.server import listen_socket, server
     from services.store.fleet import FleetStore
     from services.store.logs import configure, event
     from swpc_hw.sensors.zenoh_session import open_session

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
     from services.config.settings import ServiceSettings, SettingsError
     from services.http.app import create_app
-    from services.http.server import listen_socket, server
+    from services.http.edge.server import listen_socket, server
     from services.runtime.runtime import Runtime
     from services.store.logs import configure, event
 

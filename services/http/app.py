@@ -12,7 +12,7 @@ endpoints need the bearer token from the settings.  One router per resource:
 * what they share: :mod:`.deps` (the runtime and token dependencies, problem bodies,
   standard-JSON responses); ``/docs`` and ``/redoc`` offline: :mod:`.docs`.
 
-Before a request reaches a route, :class:`services.http.guard.RequestGuard` checks the
+Before a request reaches a route, :class:`services.http.edge.guard.RequestGuard` checks the
 token of every request that may change something (before its body is read), the body's
 size and that a JSON body is standard JSON.  Responses are standard JSON too: a
 non-finite number is written ``null`` (:class:`~services.http.deps.FiniteJSONResponse`),
@@ -33,11 +33,11 @@ from fastapi.responses import JSONResponse
 from services.config.settings import ServiceSettings
 from services.http import answers, calibrations, checks, health, kinematics, simulator
 from services.http.console import router as console
-from services.http.control import limit_route_threads
 from services.http.deps import FiniteJSONResponse, printable
 from services.http.docs import offline_docs
-from services.http.guard import RequestGuard
-from services.http.streams import StreamGate
+from services.http.edge.control import limit_route_threads
+from services.http.edge.guard import RequestGuard
+from services.http.edge.streams import StreamGate
 from services.runtime.fleet import FleetPublisher
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version

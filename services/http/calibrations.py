@@ -34,8 +34,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, RunKind
 from services.http.answers import ReferenceIn, entries, refused
-from services.http.control import ABORT, run_in
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
+from services.http.edge.control import ABORT, run_in
 from services.plan.planner import (
     PlannerBusyError,
     PlanRequest,

@@ -7,8 +7,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
 
-from services.http.control import HEALTH, run_in
 from services.http.deps import FiniteJSONResponse, Rt
+from services.http.edge.control import HEALTH, run_in
 from services.http.metrics import render_metrics
 from services.runtime.health import service_health
 
@@ -21,7 +21,7 @@ router = APIRouter()
 )
 async def health(rt: Rt) -> FiniteJSONResponse:
     """``ok`` / ``degraded`` (200) or ``failing`` (503), with the problems (judged in
-    threads of its own: :mod:`services.http.control`)."""
+    threads of its own: :mod:`services.http.edge.control`)."""
     state, doc = await run_in(HEALTH, service_health, rt)
     return FiniteJSONResponse(doc, status_code=503 if state == "failing" else 200)
 

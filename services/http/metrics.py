@@ -24,7 +24,7 @@ from prometheus_client.metrics_core import (
     Metric,
 )
 
-from services.http.streams import StreamGate
+from services.http.edge.streams import StreamGate
 from services.runtime.health import service_health
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version

@@ -8,7 +8,7 @@ through the API) to ``swpc.service``.  The fields also ride on the record
 
 ``swpc serve`` sends every line to stderr (the journal under systemd) through one handler
 on the root logger (:func:`configure`): swpc's, uvicorn's (its access log included: it
-installs no handler of its own, :func:`services.http.server.server`) and any other
+installs no handler of its own, :func:`services.http.edge.server.server`) and any other
 library's warnings, in one format (``SWPC_LOG_FORMAT``, ``--log-format``):
 
 * ``text``: ``<time> <LEVEL> <logger> <message>``, the time ISO 8601 with milliseconds and

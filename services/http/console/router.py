@@ -45,8 +45,8 @@ from mcap.reader import make_reader
 from pydantic import BaseModel, Field
 
 from services.http.deps import Problem, Rt, done_result, problems
-from services.http.guard import has_token
-from services.http.streams import StreamGate, StreamRefusedError, Ticket
+from services.http.edge.guard import has_token
+from services.http.edge.streams import StreamGate, StreamRefusedError, Ticket
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL
 from services.runtime.health import simulated_time_still
@@ -342,7 +342,7 @@ def _followed(rt: Rt, run: str | None = None) -> str | None:
 
 
 async def _admitted(request: Request) -> Ticket:
-    """A place for the stream (:class:`services.http.streams.StreamGate`), else 429."""
+    """A place for the stream (:class:`services.http.edge.streams.StreamGate`), else 429."""
     gate: StreamGate = request.app.state.streams
     client = request.client.host if request.client else "unknown"
     try:

@@ -21,7 +21,7 @@ from pydantic import SecretStr
 
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
-from services.http.streams import StreamGate, StreamRefusedError
+from services.http.edge.streams import StreamGate, StreamRefusedError
 from tests.service_rig import AUTH, SHORT, TOKEN, served, start, wait_spinning
 
 CAP = 8

@@ -1,4 +1,4 @@
-"""The real HTTP server (uvicorn with services.http.server.GuardedH11) on a loopback port:
+"""The real HTTP server (uvicorn with services.http.edge.server.GuardedH11) on a loopback port:
 idle connections are closed and health still answers.
 """
 

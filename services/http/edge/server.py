@@ -22,7 +22,7 @@ every failed accept).  :class:`GuardedH11` adds:
   request was read).  A connection carrying a request that may change something (each
   with the token) is never closed; with none to close, the new connection is.  Event
   streams are also bounded where they begin, to fewer than the cap
-  (:class:`services.http.streams.StreamGate`).
+  (:class:`services.http.edge.streams.StreamGate`).
 
 The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and files.
 

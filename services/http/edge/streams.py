@@ -2,7 +2,7 @@
 
 A server-sent event stream (``GET /events``) holds its HTTP connection for as long as the
 client keeps it, so streams are what could fill the server's connection cap
-(:class:`services.http.server.GuardedH11`) and leave no connection for an abort.  The
+(:class:`services.http.edge.server.GuardedH11`) and leave no connection for an abort.  The
 gate bounds them before a stream begins:
 
 * at most ``max_streams`` streams open at once, fewer than the connection cap
