@@ -18,13 +18,16 @@
 #                 through it over HTTP (OUT/sim-calibration.json; compared by run-in-vm.sh
 #                 with an in-process run of the same configuration on the host)
 #   odrive        ODrive drives (firmware 0.5.x) on vcan41: `swpc sim --robot-config` with
-#                 virtual ODrives + `swpc serve` calibrating through it (OUT/odrive-
-#                 calibration.json), then kill -STOP of the service mid-spin: every axis
+#                 virtual ODrives + `swpc serve`; a run through them (activate, home,
+#                 lock, spin), then kill -STOP of the service mid-spin: every axis
 #                 stopped by its own watchdog within the bound (deploy/vm/odrive_deadman.py)
 #   cia402        `swpc sim --drives cia402` and `swpc serve` (robot config drives: cia402) on
-#                 vcan50: a calibration through it (OUT/cia402-calibration.json), then a
-#                 spinning run and kill -STOP of the service: every CiA 402 drive's heartbeat
-#                 consumer must fault it within D + W (deploy/vm/cia402_deadman.py)
+#                 vcan50: a run through them to a spin, then kill -STOP of the service:
+#                 every CiA 402 drive's heartbeat consumer must fault it within D + W
+#                 (deploy/vm/cia402_deadman.py)
+# A whole calibration over SocketCAN is sim-calibration's (the swpc drives: the solve under
+# TCG alone takes 70 s, 50x the host's); one through ODrive and CiA 402 drives is the
+# in-process suite's (tests/services/whole_runs/).
 #   can-up        deploy/can-up.sh on can0/can1, two SJA1000 (kvaser_pci) controllers that
 #                 QEMU emulates on one CAN bus; python-can exchange can0 -> can1
 #   robot-install deploy/vm/robot-install.sh: deploy/README.md's robot set-up on systemd
@@ -78,10 +81,17 @@ step() { # step NAME CMD...: run CMD, PASS on status 0 (SKIP if not in SWPC_VM_O
     if ! selected "$name"; then
         result "$name" SKIP "(not in SWPC_VM_ONLY)"; return 0
     fi
-    local t0; t0=$(now)
+    local t0 rc log="$OUT/step-$name.log"; t0=$(now)
     echo "-- $name: $*"
-    if "$@"; then result "$name" PASS "($(secs "$t0" "$(now)") s)"
-    else result "$name" FAIL "(status $?, $(secs "$t0" "$(now)") s)"; fi
+    # the step's output also to OUT/step-NAME.log: a failure's last lines go to
+    # OUT/failures.txt, which .ci/run prints last (CI keeps only the tail of its output)
+    "$@" > >(tee "$log") 2>&1
+    rc=$?
+    if ((rc == 0)); then result "$name" PASS "($(secs "$t0" "$(now)") s)"; return 0; fi
+    result "$name" FAIL "(status $rc, $(secs "$t0" "$(now)") s)"
+    sleep 0.5  # tee's last lines
+    { echo "-- $name failed (status $rc); its last lines:"; tail -n 12 "$log"; } \
+        >> "$OUT/failures.txt"
 }
 
 # --- vcan0 ---------------------------------------------------------------------------------
@@ -252,7 +262,7 @@ calibration_through_simulator() {
 }
 step sim-calibration calibration_through_simulator
 
-# --- ODrive drives: a calibration through virtual ODrives, then kill -STOP -------------------
+# --- ODrive drives: a run through virtual ODrives, then kill -STOP ---------------------------
 # The same set-up as sim-calibration on its own vcan41, with ODrive drives (firmware 0.5.x,
 # where every frame to an axis feeds its watchdog) in a robot config both processes read.
 # The ODrive's watchdog is set on the drive, not by the host: the simulator gets the
@@ -285,8 +295,7 @@ b = timing_budget(s, load_robot_config(s.robot_config))
 print(b.watchdog, b.heartbeat_period, b.deadman)') || return 1
     echo "ODrive budget at time scale $ts: W $w s, T_hb $hb s (robot), D $d s (kernel)"
     swpc sim --robot-config "$cfg" --interface socketcan --channel "$chan" \
-        --zenoh-listen "$ep" --time-scale "$ts" \
-        --physics-dt "$(awk -v d="$PHYSICS_DT" 'BEGIN {print d * 1000}')" \
+        --zenoh-listen "$ep" --time-scale "$ts" --physics-dt 10 \
         --feedback-rate "$FEEDBACK_RATE" --watchdog-ms "$(awk -v w="$w" 'BEGIN {print int(w * 1000 + 0.5)}')" \
         --pose-sigma-xy 0.5 --pose-sigma-yaw 0.05 --seed "$SIM_SEED" --stats-every 20 \
         > "$OUT/odrive-sim.log" 2>&1 &
@@ -299,9 +308,8 @@ print(b.watchdog, b.heartbeat_period, b.deadman)') || return 1
         swpc serve > "$OUT/odrive-service.log" 2>&1 &
     svc_pid=$!
     echo "simulator pid $sim_pid, service pid $svc_pid (ODrive drives on $chan)"
-    "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
-        --overrides "$SIM_OVERRIDES" --out "$OUT/odrive-calibration.json" \
-        --service-log "$OUT/odrive-service.log" --health-timeout 300 --timeout 1500 || rc=1
+    "$PY" deploy/vm/sim_calibration.py health --url "http://127.0.0.1:$port" \
+        --service-log "$OUT/odrive-service.log" --timeout 300 || rc=1
     if ((rc == 0)); then
         "$PY" deploy/vm/odrive_deadman.py --url "http://127.0.0.1:$port" --token "$token" \
             --service-pid "$svc_pid" --channel "$chan" --firmware 0.5 --time-scale "$ts" \
@@ -314,7 +322,7 @@ print(b.watchdog, b.heartbeat_period, b.deadman)') || return 1
     return $rc
 }
 step odrive odrive_calibration
-# --- CiA 402 drives: a calibration through `swpc sim --drives cia402`, and their dead-man ----
+# --- CiA 402 drives: a run through `swpc sim --drives cia402`, and their dead-man ------------
 # The same configuration as sim-calibration (time scale, physics step, feedback rate,
 # overrides) on its own interface (vcan50) with CiA 402 drives: the service's robot config
 # says `drives: cia402`, the simulator's drives are canopen LocalNodes with the 402 state
@@ -349,17 +357,15 @@ cia402_step() {
         swpc serve > "$OUT/cia402-service.log" 2>&1 &
     svc_pid=$!
     echo "cia402: simulator pid $sim_pid, service pid $svc_pid, time scale $ts"
-    "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
-        --overrides "$SIM_OVERRIDES" --out "$OUT/cia402-calibration.json" \
-        --service-log "$OUT/cia402-service.log" --health-timeout 300 --timeout 1500 || rc=1
     # the dead-man: a long spin, every drive enabled, then the service stopped
     "$PY" deploy/vm/sim_calibration.py run --url "http://127.0.0.1:$port" --token "$token" \
         --overrides '{"protocol": {"sweep_deg": 3600}}' --out "$OUT/cia402-stopped-run.json" \
-        --health-timeout 300 --timeout 900 > "$OUT/cia402-stopped-run.log" 2>&1 &
+        --service-log "$OUT/cia402-service.log" --health-timeout 300 --timeout 900 \
+        > "$OUT/cia402-stopped-run.log" 2>&1 &
     run_pid=$!
     "$PY" deploy/vm/cia402_deadman.py --channel vcan50 --pid "$svc_pid" --nodes 1-8 \
         --run-pid "$run_pid" --deadman "$(awk -v s="$ts" 'BEGIN {printf "%.3f", 0.5 / s}')" \
-        --consumer 1.5 --out "$OUT/cia402-deadman.json" \
+        --consumer 1.5 --time-scale "$ts" --out "$OUT/cia402-deadman.json" \
         || rc=1
     kill "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
     wait "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null

@@ -10,7 +10,7 @@
 #    .cache/vm/run/ as the only writable host folder, and two emulated SJA1000 CAN
 #    controllers (kvaser_pci) on one QEMU CAN bus (can0, can1 in the guest).
 # 3. Runs deploy/vm/in-vm.sh inside; its exit status is this script's.
-#    Step cia402: a calibration on CiA 402 drives and their dead-man (kill -STOP).
+#    Steps odrive, cia402: a run on those drives and their dead-man (kill -STOP).
 # Prints the set-up, boot and test times.  Results: .cache/vm/run/ (summary.txt,
 # vcan0.log = candump, vcan0.decoded.txt = cantools decode, driver-tests.xml).
 set -euo pipefail
