@@ -90,6 +90,8 @@ def main() -> int:
               f"{a.time_scale:g} = {bound:.2f} s", flush=True)  # fmt: skip
         last_host: dict[int, float] = {}
         expired: dict[int, float] = {}
+        beats: dict[int, list[float]] = {n: [] for n in nodes}  # each axis' heartbeats
+        estimates: dict[int, list[float]] = {n: [] for n in nodes}
         deadline = time.monotonic() + 3 * bound + 5
         while time.monotonic() < deadline and set(expired) != nodes:
             msg = bus.recv(0.2)
@@ -105,15 +107,25 @@ def main() -> int:
                 dec = c.decode(msg.arbitration_id, bytes(msg.data), msg.is_remote_frame)
             except cs.ProtocolError:
                 continue
-            if isinstance(dec, cs.Heartbeat) and dec.axis_error & c.watchdog_bit:
-                expired.setdefault(node, msg.timestamp - t_stop)
+            if isinstance(dec, cs.Heartbeat):
+                beats[node].append(msg.timestamp - t_stop)
+                if dec.axis_error & c.watchdog_bit:
+                    expired.setdefault(node, msg.timestamp - t_stop)
+            elif isinstance(dec, cs.EncoderEstimates):
+                estimates[node].append(msg.timestamp - t_stop)
     finally:
         bus.shutdown()
         os.kill(a.service_pid, signal.SIGCONT)
     ok = set(expired) == nodes and max(expired.values()) <= bound
+    def between(ts: list[float], n: int) -> int:
+        lo, hi = last_host.get(n, 0.0), expired.get(n, float("inf"))
+        return sum(1 for t in ts if lo < t <= hi)
+
     for n in sorted(nodes):
         print(f"  node {n:2d}: refresh ended {last_host.get(n, float('nan')):6.2f} s, watchdog "
-              f"reported {expired.get(n, float('nan')):6.2f} s after the stop")  # fmt: skip
+              f"reported {expired.get(n, float('nan')):6.2f} s after the stop; between them "
+              f"{between(beats[n], n)} heartbeats, {between(estimates[n], n)} encoder "
+              "estimates")  # fmt: skip
     worst = max(expired.values(), default=float("nan"))
     print(f"every axis stopped by its watchdog within {worst:.2f} s (bound {bound:.2f} s): "
           f"{'PASS' if ok else 'FAIL'}")  # fmt: skip
