@@ -36,7 +36,7 @@ from cantools.database.can import Database, Message
 
 from firmware_protocol.errors import FirmwareProtocolError
 
-DBC_PATH = Path(__file__).with_name("swpc.dbc")
+DBC_PATH = Path(__file__).parents[1] / "swpc.dbc"  # firmware_protocol/swpc.dbc
 NODE_SHIFT = 5
 COMMAND_MASK = (1 << NODE_SHIFT) - 1
 BROADCAST_NODE = 0
