@@ -24,7 +24,6 @@ host.  The module constants (:data:`STEER_LSB`, :data:`STEER_COUNTS_PER_TURN`,
 
 from __future__ import annotations
 
-import enum
 import functools
 import math
 from dataclasses import dataclass
@@ -34,186 +33,63 @@ from typing import Any
 import cantools
 from cantools.database.can import Database, Message
 
-from firmware_protocol.errors import FirmwareProtocolError
+from firmware_protocol.codec.enums import (
+    Axis,
+    AxisState,
+    ControlMode,
+    ErrorFlag,
+    HomingState,
+    error_names,
+)
+from firmware_protocol.codec.exceptions import (
+    FrameLengthError,
+    ProtocolError,
+    SignalRangeError,
+    UnknownFrameError,
+)
+from firmware_protocol.codec.ids import (
+    BROADCAST_NODE,
+    COMMAND_MASK,
+    COMMAND_NAMES,
+    CONTROLLER_FRAMES,
+    HOST_COMMANDS,
+    MAX_NODE,
+    NODE_SHIFT,
+    SYNC_ID,
+    Command,
+    Frame,
+    frame_id,
+    host_receive_filters,
+    split_id,
+)
+
+__all__ = [
+    "BROADCAST_NODE",
+    "COMMAND_MASK",
+    "COMMAND_NAMES",
+    "CONTROLLER_FRAMES",
+    "HOST_COMMANDS",
+    "MAX_NODE",
+    "NODE_SHIFT",
+    "SYNC_ID",
+    "Axis",
+    "AxisState",
+    "Command",
+    "ControlMode",
+    "ErrorFlag",
+    "Frame",
+    "FrameLengthError",
+    "HomingState",
+    "ProtocolError",
+    "SignalRangeError",
+    "UnknownFrameError",
+    "error_names",
+    "frame_id",
+    "host_receive_filters",
+    "split_id",
+]
 
 DBC_PATH = Path(__file__).parents[1] / "swpc.dbc"  # firmware_protocol/swpc.dbc
-NODE_SHIFT = 5
-COMMAND_MASK = (1 << NODE_SHIFT) - 1
-BROADCAST_NODE = 0
-MAX_NODE = 8
-SYNC_ID = 0x000
-
-
-class ProtocolError(FirmwareProtocolError, ValueError):
-    """A frame cannot be encoded or decoded; the message names node, message and signal."""
-
-
-class UnknownFrameError(ProtocolError):
-    """The frame id is not in the DBC (or its node is not a controller node)."""
-
-
-class FrameLengthError(ProtocolError):
-    """The frame's DLC differs from the DBC length of its message."""
-
-
-class SignalRangeError(ProtocolError):
-    """A signal value lies outside the DBC range [minimum, maximum]."""
-
-    def __init__(self, message: str, signal: str) -> None:
-        super().__init__(message)
-        self.signal = signal
-
-
-class Command(enum.IntEnum):
-    """Low 5 bits of the frame id.  ``SYNC`` is only used with node 0."""
-
-    SYNC = 0x00
-    SET_AXIS_STATE = 0x01
-    SET_CONTROL = 0x02
-    FAULT_REPORT = 0x03
-    FEEDBACK_POSITION = 0x04
-    FEEDBACK_VELOCITY_TORQUE = 0x05
-    HEARTBEAT = 0x06
-    CLEAR_ERRORS = 0x07
-    SET_LIMITS = 0x08
-    SET_WATCHDOG = 0x09
-    SET_FEEDBACK = 0x0A
-    START_HOMING = 0x0B
-    HOMING_STATUS = 0x0C
-
-
-#: DBC message name (without the ``N<k>_`` prefix) of each command.
-COMMAND_NAMES: dict[Command, str] = {
-    Command.SYNC: "Sync",
-    Command.SET_AXIS_STATE: "SetAxisState",
-    Command.SET_CONTROL: "SetControl",
-    Command.FAULT_REPORT: "FaultReport",
-    Command.FEEDBACK_POSITION: "FeedbackPosition",
-    Command.FEEDBACK_VELOCITY_TORQUE: "FeedbackVelocityTorque",
-    Command.HEARTBEAT: "Heartbeat",
-    Command.CLEAR_ERRORS: "ClearErrors",
-    Command.SET_LIMITS: "SetLimits",
-    Command.SET_WATCHDOG: "SetWatchdog",
-    Command.SET_FEEDBACK: "SetFeedback",
-    Command.START_HOMING: "StartHoming",
-    Command.HOMING_STATUS: "HomingStatus",
-}
-
-#: Commands the host sends to a controller (each refreshes the controller's watchdog).
-HOST_COMMANDS = frozenset(
-    {
-        Command.SET_AXIS_STATE,
-        Command.SET_CONTROL,
-        Command.CLEAR_ERRORS,
-        Command.SET_LIMITS,
-        Command.SET_WATCHDOG,
-        Command.SET_FEEDBACK,
-        Command.START_HOMING,
-    }
-)
-#: Frames a controller sends to the host.
-CONTROLLER_FRAMES = frozenset(
-    {
-        Command.FAULT_REPORT,
-        Command.FEEDBACK_POSITION,
-        Command.FEEDBACK_VELOCITY_TORQUE,
-        Command.HEARTBEAT,
-        Command.HOMING_STATUS,
-    }
-)
-
-
-def host_receive_filters() -> list[dict[str, int | bool]]:
-    """Acceptance filters (python-can ``can_filters``) for a host: every standard frame
-    whose command is not one a host sends, and every extended frame.
-
-    On SocketCAN the kernel applies them: the host's own commands (the kernel's periodic
-    watchdog refresh among them, looped back to every socket) never reach its receive
-    path, while the controllers' frames and anything unexpected (unknown commands and
-    nodes, extended ids) still do.
-    """
-    out: list[dict[str, int | bool]] = [
-        {"can_id": c, "can_mask": COMMAND_MASK, "extended": False}
-        for c in range(1 << NODE_SHIFT)
-        if c != Command.SYNC and c not in HOST_COMMANDS
-    ]
-    out.append({"can_id": 0, "can_mask": 0, "extended": True})
-    return out
-
-
-class Axis(enum.IntEnum):
-    STEER = 0
-    WHEEL = 1
-
-
-class AxisState(enum.IntEnum):
-    DISABLED = 0
-    ENABLED = 1
-    HOMING = 2
-    FAULT = 3
-
-
-class ControlMode(enum.IntEnum):
-    FREE = 0
-    HOLD = 1
-    POSITION = 2
-    VELOCITY = 3
-    TORQUE = 4
-
-
-class HomingState(enum.IntEnum):
-    NOT_HOMED = 0
-    IN_PROGRESS = 1
-    DONE = 2
-    FAILED = 3
-
-
-class ErrorFlag(enum.IntFlag):
-    """Latched per-axis error bits (Heartbeat ``SteerErrors``/``WheelErrors``)."""
-
-    NONE = 0
-    WATCHDOG_TIMEOUT = 1 << 0
-    OVER_SPEED = 1 << 1
-    OVER_TORQUE = 1 << 2
-    HOMING_FAILED = 1 << 3
-    NOT_HOMED = 1 << 4
-    INVALID_COMMAND = 1 << 5
-    ENCODER = 1 << 6
-    OVER_TEMPERATURE = 1 << 7
-    UNDER_VOLTAGE = 1 << 8
-    MOTOR = 1 << 9
-
-
-def error_names(bits: int) -> str:
-    """``"WATCHDOG_TIMEOUT|OVER_SPEED"`` for an error word, ``"-"`` for 0."""
-    names = [f.name for f in ErrorFlag if f and bits & f and f.name]
-    unknown = bits & ~sum(int(f) for f in ErrorFlag)
-    if unknown:
-        names.append(f"0x{unknown:04x}")
-    return "|".join(names) if names else "-"
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One classic CAN data frame (11-bit id)."""
-
-    arbitration_id: int
-    data: bytes
-
-
-def frame_id(node: int, command: Command) -> int:
-    """``node << 5 | command``; node 0 only for ``Sync``."""
-    if command == Command.SYNC:
-        if node != BROADCAST_NODE:
-            raise ProtocolError(f"Sync is a broadcast (node 0) frame, not node {node}")
-    elif not 1 <= node <= MAX_NODE:
-        raise ProtocolError(f"node id {node} outside 1..{MAX_NODE}")
-    return (node << NODE_SHIFT) | int(command)
-
-
-def split_id(arbitration_id: int) -> tuple[int, int]:
-    """``(node, command)`` of an 11-bit id."""
-    return arbitration_id >> NODE_SHIFT, arbitration_id & COMMAND_MASK
 
 
 @functools.cache
