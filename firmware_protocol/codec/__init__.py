@@ -33,7 +33,7 @@ from ``firmware_protocol.codec``, as before the split):
 - :mod:`~firmware_protocol.codec.decoders`: the decoded records and :func:`parse`.
 
 The public names are in ``__all__``; the private helpers (``_encode`` and the like) are
-re-exported too, so whatever ``codec.py`` offered stays importable from here.
+re-exported too, so whatever the single-file ``codec.py`` offered stays importable here.
 """
 
 from __future__ import annotations
