@@ -14,6 +14,23 @@ model's contact point is ``C_s(X) = P_s,k + b_k u(a_s + beta_k)``
     (:func:`swpc_hw.calibration.geometry.settled_residual`).
 **rolling** (one per node of a clean run)
     ``(r_j psi_j - G_j - c_run) / sigma_node`` (:mod:`swpc_hw.calibration.rolling`).
+
+The Jacobian is analytic (:meth:`JointProblem.jacobian`), with ``u(phi) = (cos phi, sin
+phi)``, ``v(phi) = u'(phi) = (-sin phi, cos phi)`` and ``a x b = a_x b_y - a_y b_x``:
+
+* contact point, ``phi_s = a_s + beta_k``: ``dC_s/dP_k = I``, ``dC_s/dbeta_k = b_k
+  v(phi_s)``, ``dC_s/db_k = u(phi_s)``;
+* settled caster, ``psi = theta_hat + beta_j``, ``d = P_j - C_s``: ``de/dP_j = u(psi)``,
+  ``de/dbeta_j = d . v(psi)``, ``de/db_j = 1``, ``de/dC_s = -u(psi)``;
+* rolling lever ``g = (P_w,j - C_s) x u(psi) = d x u(psi)`` (``b_j u x u = 0``):
+  ``dg/dP_j = (u_y, -u_x)``, ``dg/dbeta_j = d . u(psi)``, ``dg/dC_s = (-u_y, u_x)``; the
+  node's residual is linear in the levers (the trapezoid sums ``G`` restarted at each
+  run, then the run's mean removed), so its derivatives are the same sums of the levers'
+  derivatives, plus ``psi`` for ``r_j``.
+
+Every ``C_s`` derivative is chained to the locked module's parameters.  It replaces
+finite differences (20 more residual evaluations per Jacobian, the most of a solve's
+time) and agrees with them to their own error (``tests/calibration/mocap``).
 """
 
 from __future__ import annotations
@@ -24,10 +41,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.calibration import geometry as geo
-from swpc_hw.calibration.parameters import BETA, P_S, as_matrix
+from swpc_hw.calibration.parameters import BETA, N_PARAMS, P_S, R, as_matrix
 from swpc_hw.calibration.parameters import B as B_COL
-from swpc_hw.calibration.rolling import RollingSeries, cumulative_rolling_residuals
-from swpc_hw.robot.model import contact_point
+from swpc_hw.calibration.rolling import (
+    RollingSeries,
+    centred_cumulative_sums,
+    cumulative_rolling_residuals,
+)
+from swpc_hw.robot.model import contact_point, steering_direction
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -96,6 +117,70 @@ class JointProblem:
     def block_sizes(self) -> tuple[int, int, int]:
         """Number of weighted residuals in each block."""
         return 2 * self.fixed.C_hat.shape[0], self.settled.seg.size, int(self.rolling.clean.sum())
+
+    def contact_point_jacobian(self, X: FloatArray) -> FloatArray:
+        """``dC_s / d(x_s, y_s, beta, b, r)`` of the locked module of every segment,
+        (S, 2, 5) (module docstring)."""
+        k = self.fixed.static
+        phi = self.fixed.angle + X[k, BETA]
+        u = steering_direction(phi)
+        D = np.zeros((k.size, 2, N_PARAMS))
+        D[:, 0, 0] = D[:, 1, 1] = 1.0
+        D[:, 0, BETA], D[:, 1, BETA] = -X[k, B_COL] * u[:, 1], X[k, B_COL] * u[:, 0]
+        D[:, :, B_COL] = u
+        return D
+
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        """Jacobian of :meth:`residuals` (rows in block order, columns ``x``'s), analytic
+        (module docstring)."""
+        n = self.n
+        X = as_matrix(x, n)
+        C = self.contact_points(X)
+        dC = self.contact_point_jacobian(X)
+        k = self.fixed.static
+        cols = np.arange(N_PARAMS)
+        nA, nB, nC = self.block_sizes()
+        J = np.zeros((nA + nB + nC, N_PARAMS * n))
+        # fixed point: W_s dC_s in the locked module's columns
+        S = k.size
+        JA = np.einsum("sij,sjp->sip", self.fixed.whiten, dC)
+        rows = np.arange(2 * S).reshape(S, 2)
+        J[rows[:, :, None], (N_PARAMS * k)[:, None, None] + cols] = JA
+        # settled caster
+        j, s = self.settled.mod, self.settled.seg
+        if j.size:
+            u = steering_direction(self.settled.theta + X[j, BETA])
+            d = X[j, P_S] - C[s]
+            own = np.zeros((j.size, N_PARAMS))
+            own[:, :2] = u
+            own[:, BETA] = d[:, 0] * -u[:, 1] + d[:, 1] * u[:, 0]
+            own[:, B_COL] = 1.0
+            via_c = -np.einsum("qi,qip->qp", u, dC[s])
+            JB = np.zeros((j.size, N_PARAMS * n))
+            r = np.arange(j.size)[:, None]
+            np.add.at(JB, (r, (N_PARAMS * j)[:, None] + cols), own)
+            np.add.at(JB, (r, (N_PARAMS * k[s])[:, None] + cols), via_c)
+            J[nA : nA + nB] = JB / self.settled.sigma[:, None]
+        # rolling: the levers' derivatives through the same sums as the levers
+        ro = self.rolling
+        sel = ro.clean
+        if nC:
+            j, s = ro.mod[sel], ro.seg[sel]
+            u = steering_direction(ro.theta[sel] + X[j, BETA])
+            d = X[j, P_S] - C[s]
+            own = np.zeros((j.size, N_PARAMS))
+            own[:, 0], own[:, 1] = u[:, 1], -u[:, 0]
+            own[:, BETA] = np.sum(d * u, axis=1)
+            via_c = np.einsum("qi,qip->qp", np.stack([-u[:, 1], u[:, 0]], axis=1), dC[s])
+            Dg = np.zeros((j.size, N_PARAMS * n))
+            r = np.arange(j.size)[:, None]
+            np.add.at(Dg, (r, (N_PARAMS * j)[:, None] + cols), own)
+            np.add.at(Dg, (r, (N_PARAMS * k[s])[:, None] + cols), via_c)
+            dr = np.zeros_like(Dg)
+            dr[np.arange(j.size), N_PARAMS * j + R] = ro.psi[sel]
+            JC = centred_cumulative_sums(dr, Dg, ro.yaw[sel], ro.run[sel])
+            J[nA + nB :] = JC / ro.sigma[sel][:, None]
+        return J
 
     def residuals(self, x: FloatArray) -> FloatArray:
         """All weighted residuals (dimensionless), in block order."""

@@ -225,19 +225,36 @@ def cumulative_rolling_residuals(
     (differencing would telescope away all but the end points).
     """
     sel = series.clean
-    run = series.run[sel]
     g = rolling_levers(X, C, series)[sel]
-    yaw, psi = series.yaw[sel], series.psi[sel]
-    dG = np.zeros_like(g)
+    e = centred_cumulative_sums(
+        X[series.mod[sel], R] * series.psi[sel], g, series.yaw[sel], series.run[sel]
+    )
+    return np.asarray(e, dtype=float)
+
+
+def centred_cumulative_sums(
+    a: FloatArray, g: FloatArray, yaw: FloatArray, run: IntArray
+) -> FloatArray:
+    """``a - G - mean_run(a - G)`` with ``G_l = sum_{m < l} (g_m + g_m+1) / 2 (yaw_m+1 -
+    yaw_m)`` summed within each run (``run``: contiguous run ids), column by column when
+    ``a`` and ``g`` are (nodes, k): linear in ``(a, g)``, so the same sums give the
+    residuals and their derivatives (:meth:`~swpc_hw.calibration.problem.JointProblem.jacobian`).
+    """
     same = run[1:] == run[:-1]
-    dG[1:] = np.where(same, 0.5 * (g[1:] + g[:-1]) * (yaw[1:] - yaw[:-1]), 0.0)
-    G = np.cumsum(dG)
+    dyaw = (yaw[1:] - yaw[:-1]).reshape((-1,) + (1,) * (g.ndim - 1))
+    keep = same.reshape(dyaw.shape)
+    dG = np.zeros_like(g)
+    dG[1:] = np.where(keep, 0.5 * (g[1:] + g[:-1]) * dyaw, 0.0)
+    G = np.cumsum(dG, axis=0)
     starts = np.flatnonzero(np.concatenate([[True], ~same]))
-    G = G - np.repeat(G[starts], np.diff(np.append(starts, run.size)))
-    e = X[series.mod[sel], R] * psi - G
-    counts = np.bincount(run)
-    mean = np.bincount(run, weights=e) / np.maximum(counts, 1)
-    return np.asarray(e - mean[run], dtype=float)
+    G = G - np.repeat(G[starts], np.diff(np.append(starts, run.size)), axis=0)
+    e = a - G
+    counts = np.maximum(np.bincount(run), 1)
+    if e.ndim == 1:
+        return np.asarray(e - (np.bincount(run, weights=e) / counts)[run], dtype=float)
+    sums = np.zeros((counts.size, *e.shape[1:]))
+    np.add.at(sums, run, e)
+    return np.asarray(e - (sums / counts[:, None])[run], dtype=float)
 
 
 def cut_runs(series: RollingSeries, slip: BoolArray, min_nodes: int = 3) -> IntArray:

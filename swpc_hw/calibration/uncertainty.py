@@ -24,7 +24,6 @@ See ``docs/solver-uncertainty.md`` for the reasoning and the measured coverage.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -221,15 +220,3 @@ def stddev_of(cov: FloatArray) -> FloatArray:
     out = np.full(var.shape, np.nan)
     out[good] = np.sqrt(var[good])
     return out
-
-
-def numeric_jacobian(f: Callable[[FloatArray], FloatArray], x: FloatArray) -> FloatArray:
-    """Central-difference Jacobian of ``f`` at ``x`` (step ``1e-7 max(1, |x_i|)``)."""
-    cols = []
-    for i in range(x.size):
-        h = 1e-7 * max(1.0, abs(float(x[i])))
-        xp, xm = x.copy(), x.copy()
-        xp[i] += h
-        xm[i] -= h
-        cols.append((f(xp) - f(xm)) / (2 * h))
-    return np.column_stack(cols)

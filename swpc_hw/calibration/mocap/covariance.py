@@ -28,7 +28,6 @@ from swpc_hw.calibration.uncertainty import (
     bartlett_smooth,
     dense_rows,
     long_run_covariance,
-    numeric_jacobian,
     sandwich_covariance,
 )
 
@@ -146,7 +145,7 @@ def segment_terms(
 ) -> tuple[FloatArray, FloatArray, list[SegmentTerms]]:
     """``(J, f, terms)``: the weighted residuals' Jacobian and values at ``x`` and every
     segment's share of ``H`` and ``M`` (:class:`SegmentTerms`)."""
-    J = numeric_jacobian(prob.residuals, x)
+    J = prob.jacobian(x)
     f = prob.residuals(x)
     nA, nB, _ = prob.block_sizes()
     J_A, J_B, J_C = J[:nA], J[nA : nA + nB], J[nA + nB :]

@@ -257,7 +257,7 @@ def fit_joint(
         series.run = cut_runs(series, slip)
         series.sigma = rolling_noise(prob, X, C)
         sol = least_squares(
-            prob.residuals, x, method="trf", x_scale="jac",
+            prob.residuals, x, jac=prob.jacobian, method="trf", x_scale="jac",
             xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200,
         )
         x = canonical_parameters(as_matrix(sol.x, n)).ravel()
