@@ -44,7 +44,11 @@ def subcommand_modules() -> list[str]:
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``swpc`` parser with every subcommand, or only ``command``'s when a module of
+    that name exists: a subcommand's ``register`` may import what its defaults come
+    from (``datagen``: the gyro simulator, 1 s of imports), which ``swpc sim`` or
+    ``swpc serve`` should not pay at start-up."""
     from services.store.provenance import version_line
 
     parser = argparse.ArgumentParser(
@@ -52,7 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in subcommand_modules():
+    names = subcommand_modules()
+    only = [n for n in names if n == f"{__name__}.{command}"]
+    for name in only or names:
         importlib.import_module(name).register(sub)
     return parser
 
@@ -69,8 +75,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from swpc_hw.blas_threads import single_blas_thread
 
     single_blas_thread()
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args_in = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(args_in[0] if args_in and not args_in[0].startswith("-") else None)
+    args = parser.parse_args(args_in)
     try:
         return int(args.func(args))
     except (SwpcError, FirmwareProtocolError, OSError) as exc:
