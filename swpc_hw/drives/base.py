@@ -45,7 +45,7 @@ import queue
 import socket
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Protocol, TypeVar
 
 import can
@@ -53,7 +53,13 @@ import can
 from firmware_protocol.codec import Frame
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, wait_until
 from swpc_hw.drives.bus import CanConfig
-from swpc_hw.drives.errors import CanBusError, CanError, LifecycleError, NodeTimeoutError
+from swpc_hw.drives.errors import (
+    CanBusError,
+    CanCommandError,
+    CanError,
+    LifecycleError,
+    NodeTimeoutError,
+)
 from swpc_hw.drives.interface import DriveKind
 from swpc_hw.drives.observation import DriverObservation
 from swpc_hw.drives.periodic import KernelRefresh
@@ -83,6 +89,7 @@ class _OnNode(Protocol):
 
 
 N = TypeVar("N", bound=_OnNode)
+M = TypeVar("M")
 
 
 class DriverBase(DriverObservation, DriveKind):
@@ -495,6 +502,16 @@ class DriverBase(DriverObservation, DriveKind):
             # the kernel counts host seconds: renew_every of them on this clock
             self._next_renewal = now + kernel.renew_every * self.clock.rate
         return self._next_renewal
+
+    @staticmethod
+    def _configured(tracks: Mapping[int, M], module: int) -> M:
+        """``tracks[module]``, or the error that names the modules configured."""
+        try:
+            return tracks[module]
+        except KeyError:
+            raise CanCommandError(
+                f"module {module} is not configured (modules: {sorted(tracks)})"
+            ) from None
 
     def _check_nodes(
         self,

@@ -39,11 +39,19 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TypeVar
 
+import can
 import numpy as np
 from numpy.typing import NDArray
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode, Frame, HomingState
-from swpc_hw.drives.types import FeedbackSample, ModuleState, Observation
+from swpc_hw.drives.types import (
+    DriverStats,
+    EventKind,
+    FeedbackSample,
+    ModuleState,
+    Observation,
+    Severity,
+)
 from swpc_hw.row_ring import RowRing
 
 CAN_ERR_BUSOFF = 0x00000040
@@ -129,6 +137,20 @@ class Applied:
     observations: list[Observation] = field(default_factory=list)
     fault: bool = False
     sample: tuple[int, FeedbackSample] | None = None
+
+
+def error_frame(msg: can.Message, stats: DriverStats) -> Observation:
+    """What an error frame says, counted in ``stats`` (every kind's receive path): a bus-off
+    (class ``CAN_ERR_BUSOFF``) is a fault, any other class a warning."""
+    stats.error_frames += 1
+    if msg.arbitration_id & CAN_ERR_BUSOFF:
+        stats.bus_off += 1
+        return Observation(EventKind.BUS_OFF, Severity.FAULT, "CAN bus-off")
+    return Observation(
+        EventKind.ERROR_FRAME,
+        Severity.WARNING,
+        f"error frame class 0x{msg.arbitration_id:08x} data {bytes(msg.data).hex()}",
+    )
 
 
 def frame_time(stamp: float, handled: float, mapped: float, max_age: float = 5.0) -> float:

@@ -71,19 +71,16 @@ from swpc_hw.drives.cia402.tracking import (
 )
 from swpc_hw.drives.errors import (
     CanBusError,
-    CanCommandError,
     CanError,
     NodeError,
     NodeTimeoutError,
 )
-from swpc_hw.drives.tracking import CAN_ERR_BUSOFF, FeedbackRing, Supervision
+from swpc_hw.drives.tracking import FeedbackRing, Supervision, error_frame
 from swpc_hw.drives.types import (
-    EventKind,
     FeedbackSample,
     Lifecycle,
     ModuleState,
     Observation,
-    Severity,
 )
 
 POWER_TIMEOUT_S = 1.0
@@ -252,12 +249,7 @@ class Cia402Driver(DriverBase):
 
     # ================================================================ commands
     def _module(self, module: int) -> ModuleTrack:
-        try:
-            return self._modules[module]
-        except KeyError:
-            raise CanCommandError(
-                f"module {module} is not configured (modules: {sorted(self._modules)})"
-            ) from None
+        return self._configured(self._modules, module)
 
     def _command(self, what: str, module: int, axis: Axis, change: Callable[[AxisTrack], None],
                  targets: bool = True) -> None:  # fmt: skip
@@ -391,21 +383,7 @@ class Cia402Driver(DriverBase):
                 self._latency.append(clock.wall() - stamp)
         if msg.is_error_frame:
             with self._lock:
-                self._stats.error_frames += 1
-                if msg.arbitration_id & CAN_ERR_BUSOFF:
-                    self._stats.bus_off += 1
-                    self._pending.append(
-                        Observation(EventKind.BUS_OFF, Severity.FAULT, "CAN bus-off")
-                    )
-                else:
-                    self._pending.append(
-                        Observation(
-                            EventKind.ERROR_FRAME,
-                            Severity.WARNING,
-                            f"error frame class 0x{msg.arbitration_id:08x} "
-                            f"data {bytes(msg.data).hex()}",
-                        )
-                    )
+                self._pending.append(error_frame(msg, self._stats))
             return
         if msg.is_remote_frame or msg.is_extended_id or self._network is None:
             return

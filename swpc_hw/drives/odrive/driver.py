@@ -487,12 +487,7 @@ class ODriveDriver(DriverBase):
         return self._module(module).history
 
     def _module(self, module: int) -> NodeTrack:
-        try:
-            return self._nodes[module]
-        except KeyError:
-            raise CanCommandError(
-                f"module {module} is not configured (modules: {sorted(self._nodes)})"
-            ) from None
+        return self._configured(self._nodes, module)
 
     def _error_names(self, bits: int) -> str:
         return self.codec.error_names(bits)

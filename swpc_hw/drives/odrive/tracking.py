@@ -29,7 +29,7 @@ import can
 from firmware_protocol.codec import Axis, AxisState, ControlMode, Frame, HomingState, ProtocolError
 from firmware_protocol.odrive import can_simple as cs
 from swpc_hw.drives.odrive.config import ODriveAxis
-from swpc_hw.drives.tracking import CAN_ERR_BUSOFF, Applied, FeedbackRing, NodeTrack
+from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, error_frame
 from swpc_hw.drives.types import (
     DriverStats,
     EventKind,
@@ -133,19 +133,9 @@ def apply_frame(
     out = Applied()
     stats.rx_frames += 1
     if msg.is_error_frame:
-        stats.error_frames += 1
-        if msg.arbitration_id & CAN_ERR_BUSOFF:
-            stats.bus_off += 1
-            out.observations.append(Observation(EventKind.BUS_OFF, Severity.FAULT, "CAN bus-off"))
-            out.fault = True
-        else:
-            out.observations.append(
-                Observation(
-                    EventKind.ERROR_FRAME,
-                    Severity.WARNING,
-                    f"error frame class 0x{msg.arbitration_id:08x} data {bytes(msg.data).hex()}",
-                )
-            )
+        seen = error_frame(msg, stats)
+        out.observations.append(seen)
+        out.fault = seen.severity is Severity.FAULT
         return out
     node, cmd = cs.split_id(msg.arbitration_id)
     ax = axes.get(node)

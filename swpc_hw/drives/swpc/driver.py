@@ -110,12 +110,7 @@ class SwpcDriver(DriverBase):
 
     # ================================================================ commands
     def _node(self, module: int) -> NodeTrack:
-        try:
-            return self._nodes[module]
-        except KeyError:
-            raise CanCommandError(
-                f"module {module} is not configured (modules: {sorted(self._nodes)})"
-            ) from None
+        return self._configured(self._nodes, module)
 
     def _command(
         self,

@@ -24,7 +24,7 @@ import can
 from firmware_protocol import codec
 from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
 from swpc_hw.drives import tracking
-from swpc_hw.drives.tracking import CAN_ERR_BUSOFF, Applied, CheckResult, NodeTrack
+from swpc_hw.drives.tracking import Applied, CheckResult, NodeTrack, error_frame
 from swpc_hw.drives.types import (
     DriverStats,
     EventKind,
@@ -74,19 +74,9 @@ def apply_frame(
     out = Applied()
     stats.rx_frames += 1
     if msg.is_error_frame:
-        stats.error_frames += 1
-        if msg.arbitration_id & CAN_ERR_BUSOFF:
-            stats.bus_off += 1
-            out.observations.append(Observation(EventKind.BUS_OFF, Severity.FAULT, "CAN bus-off"))
-            out.fault = True
-        else:
-            out.observations.append(
-                Observation(
-                    EventKind.ERROR_FRAME,
-                    Severity.WARNING,
-                    f"error frame class 0x{msg.arbitration_id:08x} data {bytes(msg.data).hex()}",
-                )
-            )
+        seen = error_frame(msg, stats)
+        out.observations.append(seen)
+        out.fault = seen.severity is Severity.FAULT
         return out
     node, cmd = codec.split_id(msg.arbitration_id)
     if not msg.is_extended_id and (cmd in codec.HOST_COMMANDS or msg.arbitration_id == 0):
