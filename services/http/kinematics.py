@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field
@@ -58,6 +57,7 @@ from swpc_hw.files.kinematic_file import (
     KinematicFile,
     atomic_write_text,
     load_kinematics,
+    load_yaml,
     parse_kinematics,
 )
 from swpc_hw.robot.frames import DESIGN_FIT, design_fit_transform, transform_robot
@@ -526,6 +526,6 @@ def comparison(run_id: str, rt: Rt) -> Comparison:
 def _parse(text: str, name: str) -> KinematicFile | None:
     """A kinematic file's text, loaded; None when it does not load."""
     try:
-        return parse_kinematics(yaml.safe_load(text), name)
-    except (KinematicFileError, yaml.YAMLError):
+        return parse_kinematics(load_yaml(text, name), name)
+    except KinematicFileError:
         return None

@@ -30,6 +30,7 @@ from services.runtime.runtime import Runtime
 from services.store.disk import run_reserve
 from swpc_hw.drives.types import Lifecycle
 from swpc_hw.errors import KinematicFileError
+from swpc_hw.files.kinematic_file import module_mismatch
 from swpc_hw.sensors.zenoh_session import linked_sessions
 
 MIB = 1 << 20
@@ -182,9 +183,18 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
     except OSError as exc:
         failing.append(f"data dir: {exc}")
     try:
-        rt.kinematics_document()
+        in_force = rt.kinematics_document()
     except KinematicFileError as exc:
         degraded.append(f"kinematic file in force unreadable: {exc}")
+    else:
+        mismatch = in_force and module_mismatch(
+            [int(m["id"]) for m in in_force["modules"]], rt.config.nominal.ids
+        )
+        if mismatch:
+            degraded.append(
+                f"kinematic file in force does not match the robot: {mismatch} (a check is "
+                "refused; a calibration replaces it)"
+            )
     status = "failing" if failing else ("degraded" if degraded else "ok")
     doc = {
         "status": status,

@@ -76,6 +76,10 @@ from swpc_hw.files.kinematic_file import (
     atomic_write_text,
     load_kinematics,
     load_robot,
+    load_yaml,
+    module_mismatch,
+    parse_kinematics,
+    read_kinematics_text,
 )
 from swpc_hw.files.references import Reference
 from swpc_hw.sensors.zenoh_session import (
@@ -379,15 +383,21 @@ class Runtime(RunRecords):
         ``sha256``, ``run``, ``created``, ``frame``) and its text.  :class:`NoFileError`
         when there is none or it does not load."""
         path = self.settings.kinematics_file
-        try:
-            text = path.read_text(encoding="utf-8")
-            kf = load_kinematics(path)
-        except FileNotFoundError:
+        if not os.path.lexists(path):
             raise NoFileError(
                 f"no kinematic file in force at {path}: nothing to check (calibrate first)"
-            ) from None
-        except (OSError, UnicodeDecodeError, KinematicFileError) as exc:
+            )
+        try:
+            text = read_kinematics_text(path)
+            kf = parse_kinematics(load_yaml(text, str(path)), str(path))
+        except KinematicFileError as exc:
             raise NoFileError(f"the kinematic file in force does not load: {exc}") from exc
+        mismatch = module_mismatch(kf.params.ids, self.config.nominal.ids)
+        if mismatch is not None:
+            raise NoFileError(
+                f"the kinematic file in force does not match the robot: {mismatch} "
+                "(calibrate the robot, or install the file made for it)"
+            )
         prov = kf.extra.get("provenance")
         info = {
             "name": path.name,

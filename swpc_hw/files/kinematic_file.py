@@ -14,12 +14,19 @@ Schema (docs/kinematic-file.md)::
       matrix: [[...], ...]                       # (5N, 5N), SI units (m, rad)
 
 Unknown keys are ignored on load (and preserved in ``extra`` of :class:`KinematicFile`);
-missing required keys, non-finite values, ``b <= 0``, ``r <= 0``, duplicate ids, N < 2,
-a ``units`` other than SI and a ``provenance`` that is not a mapping raise
-:class:`~swpc_hw.errors.KinematicFileError` naming the key.  A ``covariance`` must be
-square of size 5N, symmetric, positive semi-definite and agree with the modules'
-``stddev``.  Files are written with the mode a new file gets (``0666`` less the umask),
-not the temporary file's ``0600``: the robot's odometry, another user, reads them.
+missing required keys, non-finite values, values outside :data:`BOUNDS`, duplicate ids,
+N < 2, a ``units`` other than SI and a ``provenance`` that is not a mapping raise
+:class:`~swpc_hw.errors.KinematicFileError` naming the key.
+
+What is read (:func:`read_kinematics_text`, for every reader: the service, the odometry,
+the command line) is a regular file (a link to one is followed; a FIFO, a device or a
+directory is refused without waiting on it) of at most :data:`MAX_BYTES`, UTF-8, YAML
+without aliases (:func:`load_yaml`: an alias can make a few kB into gigabytes).
+
+A ``covariance`` must be square of size 5N, symmetric, positive semi-definite and agree
+with the modules' ``stddev``.  Files are written with the mode a new file gets (``0666``
+less the umask), not the temporary file's ``0600``: the robot's odometry, another user,
+reads them.
 """
 
 from __future__ import annotations
@@ -28,7 +35,9 @@ import contextlib
 import datetime as _dt
 import math
 import os
+import stat
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +49,19 @@ from swpc_hw.errors import KinematicFileError
 from swpc_hw.robot.model import PARAM_NAMES, ModuleParams, ModuleStddev, RobotParams
 
 FORMAT = "swpc-kinematics/1"
+MAX_BYTES = 1 << 20
+"""Largest kinematic file read (1 MiB: a robot of 40 modules with its covariance)."""
+BOUNDS: dict[str, tuple[float, float]] = {
+    "x_s": (-50.0, 50.0),
+    "y_s": (-50.0, 50.0),
+    "beta": (-2 * math.pi, 2 * math.pi),
+    "b": (1e-4, 1.0),
+    "r": (1e-3, 1.0),
+}
+"""Plausible values (m, rad; inclusive): a steering axis within 50 m of the robot's
+origin, a homing error within a turn, a caster offset of 0.1 mm to 1 m, a wheel radius of
+1 mm to 1 m.  Anything else is a damaged file, never a robot (``r = b = 1e-300`` once
+divided the odometry by zero)."""
 UNITS = {"length": "m", "angle": "rad"}
 """The format's units (SI); a file may say so in ``units:``, never anything else."""
 COVARIANCE_KEY = "covariance"
@@ -113,9 +135,11 @@ def parse_kinematics(doc: Any, where: str = "<kinematics>") -> KinematicFile:
             if key not in m:
                 raise KinematicFileError(f"{where}: missing key '{loc}.{key}'")
             vals[key] = _number(m[key], f"{loc}.{key}", where)
-        for key in ("b", "r"):
-            if vals[key] <= 0.0:
-                raise KinematicFileError(f"{where}: {loc}.{key}: must be > 0 (got {vals[key]!r})")
+        for key, (lo, hi) in BOUNDS.items():
+            if not lo <= vals[key] <= hi:
+                raise KinematicFileError(
+                    f"{where}: {loc}.{key}: must be within [{lo:g}, {hi:g}] (got {vals[key]!r})"
+                )
         std = None
         if m.get("stddev") is not None:
             sd = m["stddev"]
@@ -183,23 +207,96 @@ def parse_covariance(doc: Any, modules: list[ModuleParams], where: str) -> list[
     return matrix
 
 
-def load_kinematics(path: str | os.PathLike[str]) -> KinematicFile:
-    """Load and validate a kinematic file."""
+class _NoAliasLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that refuses an alias (``*name``) where it meets one."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark  # type: ignore[no-untyped-call]
+            raise yaml.YAMLError(
+                f"YAML alias at line {mark.line + 1}: a kinematic file has no aliases"
+            )
+        return super().compose_node(parent, index)
+
+
+def load_yaml(text: str, where: str) -> Any:
+    """``text`` as YAML without aliases; :class:`KinematicFileError` naming ``where``."""
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)
+    except yaml.YAMLError as exc:
+        raise KinematicFileError(f"{where}: not valid YAML: {exc}".splitlines()[0]) from exc
+
+
+def read_kinematics_text(path: str | os.PathLike[str]) -> str:
+    """The text of the file at ``path`` (module docstring: a regular file of at most
+    :data:`MAX_BYTES`, UTF-8); :class:`KinematicFileError` with the reason otherwise.
+
+    Opened without blocking (a FIFO's open waits for a writer), then judged on the open
+    file, so what is read is what was checked."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:
         raise KinematicFileError(f"{p}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise KinematicFileError(f"{p}: not a regular file ({_file_kind(st.st_mode)})")
+        if st.st_size > MAX_BYTES:
+            raise KinematicFileError(
+                f"{p}: {st.st_size} bytes: a kinematic file is at most {MAX_BYTES} bytes"
+            )
+        with os.fdopen(os.dup(fd), "rb") as fh:
+            data = fh.read(MAX_BYTES + 1)
+    except OSError as exc:
+        raise KinematicFileError(f"{p}: cannot read: {exc.strerror or exc}") from exc
+    finally:
+        os.close(fd)
+    if len(data) > MAX_BYTES:
+        raise KinematicFileError(f"{p}: grew past {MAX_BYTES} bytes while read")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise KinematicFileError(
             f"{p}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): "
             "a damaged or foreign file"
         ) from exc
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise KinematicFileError(f"{p}: not valid YAML: {exc}".splitlines()[0]) from exc
-    return parse_kinematics(doc, str(p))
+
+
+def _file_kind(mode: int) -> str:
+    for test, name in (
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return name
+    return "not a file"
+
+
+def load_kinematics(path: str | os.PathLike[str]) -> KinematicFile:
+    """Load and validate a kinematic file (module docstring)."""
+    text = read_kinematics_text(path)
+    return parse_kinematics(load_yaml(text, str(path)), str(path))
+
+
+def module_mismatch(modules: Sequence[int], ids: Sequence[int]) -> str | None:
+    """Why a kinematic file's module ids ``modules`` are not the robot's ``ids`` (the
+    robot config's), or None: every module of the robot, and no other (in any order)."""
+    have, want = sorted(modules), sorted(ids)
+    if have == want:
+        return None
+    missing = [m for m in want if m not in have]
+    extra = [m for m in have if m not in want]
+    parts = [f"no module {missing}" if missing else "", f"modules {extra} the robot has not"
+             if extra else ""]  # fmt: skip
+    return (
+        f"its modules {have} are not the robot's {want} ("
+        + "; ".join(p for p in parts if p)
+        + ")"
+    )
 
 
 def load_robot(path: str | os.PathLike[str]) -> RobotParams:
@@ -303,7 +400,7 @@ def save_kinematics(
     """Save ``params`` (with their (5N, 5N) ``covariance`` if given), atomically."""
     doc = kinematics_document(params, created=created, extra=extra, covariance=covariance)
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)
-    parse_kinematics(yaml.safe_load(text), str(path))  # never write what we cannot load
+    parse_kinematics(load_yaml(text, str(path)), str(path))  # never write what we cannot load
     try:
         atomic_write_text(path, text)
     except OSError as exc:

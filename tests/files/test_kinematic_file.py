@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ import yaml
 
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.files.kinematic_file import (
+    MAX_BYTES,
     kinematics_document,
     load_kinematics,
     parse_kinematics,
@@ -57,8 +59,15 @@ def test_unknown_keys_are_ignored() -> None:
         (lambda d: d["modules"][2].pop("id"), r"missing key 'modules\[2\].id'"),
         (lambda d: d["modules"][0].update(x_s=float("nan")), r"modules\[0\].x_s: must be finite"),
         (lambda d: d["modules"][0].update(beta=float("inf")), r"modules\[0\].beta: must be finite"),
-        (lambda d: d["modules"][3].update(b=0.0), r"modules\[3\].b: must be > 0"),
-        (lambda d: d["modules"][3].update(r=-0.05), r"modules\[3\].r: must be > 0"),
+        (lambda d: d["modules"][3].update(b=0.0), r"modules\[3\].b: must be within \[0.0001, 1\]"),
+        (lambda d: d["modules"][3].update(r=-0.05), r"modules\[3\].r: must be within \[0.001, 1\]"),
+        (
+            lambda d: d["modules"][2].update(x_s=1e300),
+            r"modules\[2\].x_s: must be within \[-50, 50\]",
+        ),
+        (lambda d: d["modules"][1].update(b=1e-300), r"modules\[1\].b: must be within"),
+        (lambda d: d["modules"][1].update(r=1e-300), r"modules\[1\].r: must be within"),
+        (lambda d: d["modules"][0].update(beta=7.0), r"modules\[0\].beta: must be within"),
         (lambda d: d["modules"][1].update(id=1), r"modules\[1\].id: duplicate module id 1"),
         (lambda d: d.update(modules=d["modules"][:1]), "N >= 2"),
         (lambda d: d["modules"][0].update(y_s="abc"), r"modules\[0\].y_s: must be a number"),
@@ -84,6 +93,42 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
     p = tmp_path / "broken.yaml"
     p.write_text("format: [unclosed\n")
     with pytest.raises(KinematicFileError, match="not valid YAML"):
+        load_kinematics(p)
+
+
+def test_only_a_regular_file_of_at_most_1_mib_is_read_and_never_waited_on(
+    tmp_path: Path,
+) -> None:
+    """A FIFO (its open waits for a writer), a link to /dev/zero (endless), a directory
+    and a file past MAX_BYTES are refused at once, naming what they are; a link to a
+    regular file is followed."""
+    good = tmp_path / "good.yaml"
+    save_kinematics(good, PAPER_CALIBRATED)
+    (tmp_path / "link.yaml").symlink_to(good)
+    assert load_kinematics(tmp_path / "link.yaml").params == PAPER_CALIBRATED
+    os.mkfifo(tmp_path / "fifo.yaml")
+    (tmp_path / "zero.yaml").symlink_to("/dev/zero")
+    big = tmp_path / "big.yaml"
+    big.write_text(good.read_text() + "#" * MAX_BYTES)
+    for name, reason in [
+        ("fifo.yaml", "not a regular file (a FIFO)"),
+        ("zero.yaml", "not a regular file (a character device)"),
+        (".", "not a regular file (a directory)"),
+        ("big.yaml", f"a kinematic file is at most {MAX_BYTES} bytes"),
+    ]:
+        with pytest.raises(KinematicFileError, match=re.escape(reason)):
+            load_kinematics(tmp_path / name)
+
+
+def test_a_yaml_alias_is_refused_before_it_grows(tmp_path: Path) -> None:
+    """An alias bomb of a few kB (9 levels of 9 references: 387 million nodes once
+    expanded) is refused where its first alias stands; a valid file needs none."""
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, 9)]
+    p = tmp_path / "bomb.yaml"
+    p.write_text(yaml.safe_dump(doc()) + "\n".join(lines) + "\n")
+    assert p.stat().st_size < 5000
+    with pytest.raises(KinematicFileError, match=r"YAML alias at line \d+: a kinematic"):
         load_kinematics(p)
 
 
@@ -136,8 +181,9 @@ def test_covariance_round_trip_and_validation(tmp_path: Path) -> None:
     d = kinematics_document(params, covariance=cov)
     bad = {
         "not symmetric": lambda m: m[0].__setitem__(1, m[0][1] * 2 + 1e-9),
-        "not positive semi-definite": lambda m: m[7].__setitem__(2, 10.0)
-        or m[2].__setitem__(7, 10.0),
+        "not positive semi-definite": lambda m: (
+            m[7].__setitem__(2, 10.0) or m[2].__setitem__(7, 10.0)
+        ),
         "must be 20 rows": lambda m: m.pop(),
         "must be finite": lambda m: m[3].__setitem__(3, float("nan")),
         r"module 1 y_s gives a std dev": lambda m: m[1].__setitem__(1, m[1][1] * 4),

@@ -7,13 +7,18 @@ endpoint (never a 5xx).
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from fastapi.testclient import TestClient
 
 from services.config.robot import MotionLimits, RobotConfig, Tolerances
+from swpc_hw.files.kinematic_file import kinematics_document
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.service_rig import (
     AUTH,
     PRE_MOTION_REFUSALS,
@@ -168,6 +173,44 @@ def test_the_operator_routes_answer_only_a_run_that_waits(sim: Sim) -> None:
     assert sim.wait(run_id, {"ABORTED", "FAILED", "DONE"})["state"] == "ABORTED"
     assert client.get("/simulator/tape-measure", params={"run": "nope"}).status_code == 404
     assert client.get("/simulator/tape-measure").status_code == 422  # which run?
+
+
+def _in_force(path: Path, modules: list[int], **change: float) -> None:
+    doc = kinematics_document(PAPER_CALIBRATED)
+    rows = {m["id"]: m for m in doc["modules"]}
+    doc["modules"] = [{**rows.get(i, rows[4]), "id": i, **change} for i in modules]  # as is
+    path.write_text(yaml.safe_dump(doc))
+
+
+def test_a_check_against_a_file_in_force_that_is_not_the_robots_is_a_409_before_any_frame(
+    sim: Sim,
+) -> None:
+    """A file in force with modules the robot has not, or lacks, or damaged values, or a
+    FIFO in its place: /health says why at once (degraded: a calibration replaces it), a
+    check is refused (409) naming it, and not one frame reaches the bus."""
+    client, path = sim.client, sim.rt.settings.kinematics_file
+    cases: list[tuple[Callable[[], None], str, str]] = [
+        (lambda: _in_force(path, [1, 2]), "no module [3, 4]", "does not match the robot"),
+        (lambda: _in_force(path, [1, 2, 3, 4, 5]), "modules [5] the robot has not", "match"),
+        (lambda: _in_force(path, [1, 2, 3, 4], x_s=1e300), "x_s: must be within", "unreadable"),
+        (lambda: os.mkfifo(path), "not a regular file (a FIFO)", "unreadable"),
+    ]
+    runs_before = len(client.get("/calibrations").json())
+    sim.host_frames()
+    try:
+        for make, reason, health in cases:
+            make()
+            h = client.get("/health", headers=AUTH).json()
+            said = [p for p in h["problems"] if "kinematic file in force" in p]
+            assert h["status"] == "degraded" and said and reason in said[0], h["problems"]
+            assert health in said[0], said
+            r = client.post("/checks", json={}, headers=AUTH)
+            assert r.status_code == 409 and reason in r.text, (reason, r.status_code, r.text)
+            assert sim.host_frames() == [], reason
+            path.unlink()
+    finally:
+        path.unlink(missing_ok=True)
+    assert len(client.get("/calibrations").json()) == runs_before
 
 
 def test_the_simulators_tape_does_not_exist_against_a_robot(tmp_path: Path) -> None:
