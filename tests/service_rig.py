@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,9 +134,11 @@ def start(client: TestClient, overrides: dict[str, Any] | None = None, **kw: Any
     return str(r.json()["id"])
 
 
-def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
-    """Until the run spins and has swept ``sweep`` deg (a guard of 60 s against a hang)."""
-    deadline = time.monotonic() + 60
+def wait_spinning(
+    client: TestClient, run_id: str, sweep: float = 20.0, guard: float = 60.0
+) -> None:
+    """Until the run spins and has swept ``sweep`` deg (``guard`` s against a hang)."""
+    deadline = time.monotonic() + guard
     while time.monotonic() < deadline:
         st = client.get(f"/calibrations/{run_id}").json()
         assert st["state"] not in ("FAILED", "ABORTED", "DONE"), st
@@ -144,6 +146,47 @@ def wait_spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
             return
         time.sleep(0.02)
     raise AssertionError("never reached a steady spin")
+
+
+def fault_mid_spin(
+    client: TestClient,
+    rt: Runtime,
+    fault: Callable[[str], object],
+    undo: Callable[[], object] | None = None,
+    guard: float = 60.0,
+) -> tuple[dict[str, Any], float]:
+    """A run with a long first spin (:data:`SHORT`), ``fault(run_id)`` once it spins, then
+    its end (``undo()`` after it, whatever happens): ``(final status, the service clock's
+    time just before the fault)``, what every drive kind's fault table starts from."""
+    run_id = start(client, SHORT)
+    wait_spinning(client, run_id, guard=guard)
+    t = rt.clock.now()
+    try:
+        fault(run_id)
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    finally:
+        if undo is not None:
+            undo()
+    return st, t
+
+
+def abort(client: TestClient) -> Callable[[str], None]:
+    """The operator's abort of a run (200), as a :func:`fault_mid_spin` fault."""
+
+    def fault(run_id: str) -> None:
+        assert client.post(f"/calibrations/{run_id}/abort", headers=AUTH).status_code == 200
+
+    return fault
+
+
+def bus_off(rt: Runtime) -> Callable[[str], None]:
+    """A bus-off error frame on the robot's bus, as a :func:`fault_mid_spin` fault."""
+
+    def fault(_run_id: str) -> None:
+        with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
+            bus.send(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))
+
+    return fault
 
 
 @contextmanager

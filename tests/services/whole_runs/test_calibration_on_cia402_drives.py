@@ -34,7 +34,17 @@ from swpc_hw.clock import Clock
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES as NAMES
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from tests.service_rig import AUTH, QUICK_PROTOCOL, SHORT, TOKEN, start, wait_state
+from tests.service_rig import (
+    QUICK_PROTOCOL,
+    SHORT,
+    TOKEN,
+    abort,
+    bus_off,
+    fault_mid_spin,
+    start,
+    wait_spinning,
+    wait_state,
+)
 
 RPDO1 = cia402.RPDO_BASE[0]
 
@@ -98,17 +108,6 @@ def installed(service: tuple[TestClient, Runtime, Frames]) -> Iterator[bytes]:
     assert path.read_bytes() == before, "a failed run touched the kinematic file"
 
 
-def spinning(client: TestClient, run_id: str, sweep: float = 20.0) -> None:
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        st = client.get(f"/calibrations/{run_id}").json()
-        assert st["state"] not in ("FAILED", "ABORTED", "DONE"), st["reason"]
-        if st["state"] == "SPIN" and st["sweep_deg"] >= sweep:
-            return
-        time.sleep(0.02)
-    raise AssertionError("never reached a steady spin")
-
-
 def first_stop(rec: Frames, rt: Runtime, since: float, what: str) -> float:
     """Every drive got controlword 0 with torque 0 after ``since``: the first such frame's
     time (printed against ``since``, the fault)."""
@@ -159,11 +158,7 @@ def test_full_calibration_on_cia402_drives(service: tuple[TestClient, Runtime, F
 
 def test_abort_mid_spin(service: tuple[TestClient, Runtime, Frames], installed: bytes) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
-    spinning(client, run_id)
-    t = rt.clock.now()
-    assert client.post(f"/calibrations/{run_id}/abort", headers=AUTH).status_code == 200
-    st = wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})
+    st, t = fault_mid_spin(client, rt, abort(client), guard=120)
     assert st["state"] == "ABORTED"
     first_stop(rec, rt, t, "abort")
 
@@ -174,14 +169,9 @@ def test_heartbeat_loss_mid_spin(
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
-    spinning(client, run_id)
-    t = rt.clock.now()
-    sim.mute(3)
-    try:
-        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
-    finally:
-        sim.mute(3, False)
+    st, t = fault_mid_spin(
+        client, rt, lambda _: sim.mute(3), undo=lambda: sim.mute(3, False), guard=120
+    )
     assert st["state"] == "FAILED" and "no heartbeat" in st["reason"], st
     assert "module 3" in st["reason"]
     first_stop(rec, rt, t, "heartbeat lost (module 3 muted; loss after 0.3 s)")
@@ -193,11 +183,10 @@ def test_drive_fault_as_emcy_mid_spin(
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
-    spinning(client, run_id)
-    t = rt.clock.now()
-    sim.inject_fault(2, Axis.WHEEL, ErrorFlag.OVER_TEMPERATURE)
-    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    over_temperature = ErrorFlag.OVER_TEMPERATURE
+    st, t = fault_mid_spin(
+        client, rt, lambda _: sim.inject_fault(2, Axis.WHEEL, over_temperature), guard=120
+    )
     assert st["state"] == "FAILED", st
     assert "module 2 wheel (node 4): EMCY 0x4310 excess temperature drive" in st["reason"], st
     first_stop(rec, rt, t, "drive fault (EMCY 0x4310, module 2 wheel)")
@@ -205,12 +194,7 @@ def test_drive_fault_as_emcy_mid_spin(
 
 def test_bus_off_mid_spin(service: tuple[TestClient, Runtime, Frames], installed: bytes) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
-    spinning(client, run_id)
-    t = rt.clock.now()
-    with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
-        bus.send(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))
-    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    st, t = fault_mid_spin(client, rt, bus_off(rt), guard=120)
     assert st["state"] == "FAILED" and "bus-off" in st["reason"], st
     first_stop(rec, rt, t, "bus-off")
 
@@ -222,7 +206,7 @@ def test_stale_motion_capture_mid_spin(
     sim = rt.simulator
     assert sim is not None
     run_id = start(client, SHORT)
-    spinning(client, run_id)
+    wait_spinning(client, run_id, guard=120)
     with sim._lock:
         before = sim.mocap.options
         sim.mocap.options = dataclasses.replace(before, dropout=1.0)

@@ -42,6 +42,9 @@ from tests.service_rig import (
     QUICK_PROTOCOL,
     SHORT,
     TOKEN,
+    abort,
+    bus_off,
+    fault_mid_spin,
     start,
     wait_spinning,
     wait_state,
@@ -146,11 +149,7 @@ def test_a_whole_calibration_on_odrive_05(service: tuple[TestClient, Runtime, Re
 
 def test_abort_mid_spin_stops_every_axis(service: tuple[TestClient, Runtime, Recorder]) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = rt.clock.now()
-    assert client.post(f"/calibrations/{run_id}/abort", headers=AUTH).status_code == 200
-    st = wait_state(client, run_id, {"ABORTED", "FAILED", "DONE"})
+    st, t = fault_mid_spin(client, rt, abort(client))
     assert st["state"] == "ABORTED"
     dt = first_stop(rec, t, rt)
     print(f"\nfault table (odrive {LINE}): abort -> first IDLE after {dt * 1e3:.1f} ms")
@@ -160,14 +159,7 @@ def test_heartbeat_loss_mid_spin(service: tuple[TestClient, Runtime, Recorder]) 
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = rt.clock.now()
-    sim.mute(3)
-    try:
-        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
-    finally:
-        sim.mute(3, False)
+    st, t = fault_mid_spin(client, rt, lambda _: sim.mute(3), undo=lambda: sim.mute(3, False))
     assert st["state"] == "FAILED" and "no heartbeat" in st["reason"], st
     assert "module 3" in st["reason"]
     dt = first_stop(rec, t, rt)
@@ -181,11 +173,8 @@ def test_an_axis_error_mid_spin(service: tuple[TestClient, Runtime, Recorder]) -
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = rt.clock.now()
-    sim.inject_fault(2, Axis.WHEEL, ErrorFlag.OVER_TEMPERATURE)
-    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    over_temperature = ErrorFlag.OVER_TEMPERATURE
+    st, t = fault_mid_spin(client, rt, lambda _: sim.inject_fault(2, Axis.WHEEL, over_temperature))
     assert st["state"] == "FAILED" and "axis error OVER_TEMP" in st["reason"], st
     assert "module 2" in st["reason"] and "wheel" in st["reason"]
     dt = first_stop(rec, t, rt)
@@ -196,12 +185,7 @@ def test_an_axis_error_mid_spin(service: tuple[TestClient, Runtime, Recorder]) -
 
 def test_bus_off_mid_spin(service: tuple[TestClient, Runtime, Recorder]) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = rt.clock.now()
-    with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
-        bus.send(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))
-    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    st, t = fault_mid_spin(client, rt, bus_off(rt))
     assert st["state"] == "FAILED" and "bus-off" in st["reason"], st
     dt = first_stop(rec, t, rt)
     print(f"\nfault table (odrive {LINE}): bus-off -> first IDLE after {dt * 1e3:.1f} ms")

@@ -44,6 +44,8 @@ from tests.service_rig import (
     AUTH,
     QUICK_PROTOCOL,
     SHORT,
+    bus_off,
+    fault_mid_spin,
     sim_service,
     start,
     wait_spinning,
@@ -356,26 +358,15 @@ def test_heartbeat_loss_mid_spin(
 ) -> None:
     client, rt, rec = service
     sim = rt.simulator
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = rt.clock.now()
-    sim.mute(3)  # type: ignore[union-attr]
-    try:
-        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
-    finally:
-        sim.mute(3, False)  # type: ignore[union-attr]
+    assert sim is not None
+    st, t = fault_mid_spin(client, rt, lambda _: sim.mute(3), undo=lambda: sim.mute(3, False))
     assert st["state"] == "FAILED" and "no heartbeat" in st["reason"] and "module 3" in st["reason"]
     assert_stopped(rec, t, rt)
 
 
 def test_bus_off_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
-    wait_spinning(client, run_id)
-    t = rt.clock.now()
-    with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
-        bus.send(can.Message(is_error_frame=True, arbitration_id=0x040, dlc=8))  # CAN_ERR_BUSOFF
-    st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=30)
+    st, t = fault_mid_spin(client, rt, bus_off(rt))
     assert st["state"] == "FAILED" and "bus-off" in st["reason"], st
     assert_stopped(rec, t, rt)
 
