@@ -77,6 +77,7 @@ steering.  For every segment (a spin about the locked module k at reported steer
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -106,6 +107,11 @@ BLOCKS = (
     "axis_distance", "wheel_radius", "straight_drive", "gauge",
 )
 """Residual blocks, in the order of :meth:`ImuProblem.residuals`."""
+Rolling = Callable[
+    [FloatArray, FloatArray, FloatArray, FloatArray],
+    tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+]
+"""What profiles the wheels from their levers (:meth:`ImuProblem.rolling`)."""
 GAUGE_SCALE = 1e-4
 """The gauge residuals' unit (m, m, m^2): weights near the data's, for the solver's steps."""
 
@@ -180,6 +186,12 @@ class ImuProblem:
     scale_ref: FloatArray | None = None
     """A check's reference radii (N,): the two scale conditions join the gauge (module
     docstring); None for a calibration (its references fix the scales)."""
+    _rolled: (
+        tuple[RollingStack, frozenset[str], tuple[FloatArray, ...], tuple[FloatArray, ...]]
+        | None
+    ) = field(default=None, repr=False)
+    """The last single point :meth:`rolling` profiled: its inputs (the stack with them)
+    and its outputs (the solver's Jacobian comes at the point of its last residuals)."""
 
     def stack(self) -> RollingStack:
         """The rolling sets stacked (built at first use; :meth:`restack` after changing a
@@ -240,13 +252,11 @@ class ImuProblem:
         in rad, Y (L,))``."""
         return profiled_rolling(rs.psi, g / X[rs.mods, R], rs.present, rs.run)
 
-    def blocks(self, x: FloatArray) -> dict[str, FloatArray]:
-        """Weighted residuals of every active block (dimensionless).
-
-        ``x`` (p,) or a batch (B, p) (one call for a whole finite-difference Jacobian:
-        :meth:`jacobian`); every block is then (B, k).
-        """
-        xb = np.atleast_2d(x)
+    def unpack(
+        self, xb: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """A batch ``xb`` (B, p) as ``X`` (B, N, 5), ``s`` (B,), the knots (B, K), the angle
+        errors (B, S) and every segment's contact point ``C`` (B, S, 2)."""
         n, Bn = self.layout.n, xb.shape[0]
         X = xb[:, : N_PARAMS * n].reshape(Bn, n, N_PARAMS)
         s = xb[:, self.layout.scale]
@@ -254,6 +264,187 @@ class ImuProblem:
         k = self.seg_static
         da = xb[:, self.layout.angles]
         C = contact_point(X[:, k, P_S], X[:, k, B_COL], self.seg_angle + da + X[:, k, BETA])
+        return X, s, knots, da, C
+
+    def levers(
+        self, X: FloatArray, s: FloatArray, knots: FloatArray, C: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """What the rolling sets' wheels depend on (a batch, :meth:`unpack`): the levers
+        ``g`` (B, sets, m) (:func:`settled_lever` for a spin, ``cos(theta_j - phi)`` for a
+        drive), the drives' turn levers ``k = P_s,j x u(theta_j)`` (0 for a spin), the radii
+        ``r`` (B, sets, m), the gyro's turn over every drive ``gamma`` (B, D) and the first
+        axis' lever ``P_s,1 x u(phi)`` of every drive (B, D)."""
+        st = self.stack()
+        Bn = X.shape[0]
+        n_sets, S = len(st.set_mods), st.n_spin
+        G = np.zeros((Bn, n_sets, st.set_mods.shape[1]))
+        if S:
+            jm = st.set_mods[:S]
+            G[:, :S] = settled_lever(
+                X[:, jm, P_S], X[:, jm, B_COL], C[:, :, None, :], self.seg_sign[:, None]
+            )
+        K = np.zeros_like(G)
+        lever1 = np.zeros((Bn, n_sets - S))
+        for d in range(S, n_sets):  # a translation along the mean wheel direction
+            jm, mask = st.set_mods[d], st.set_mask[d]
+            th = st.set_theta[d] + X[:, jm, BETA]
+            phi = np.arctan2(np.sin(th[:, mask]).sum(axis=-1), np.cos(th[:, mask]).sum(axis=-1))
+            G[:, d] = np.where(mask, np.cos(th - phi[:, None]), 0.0)
+            # ... on an arc: the turn's lever P_s,j x u_j, and the first axis' P_s,1 x u_phi
+            K[:, d] = np.where(mask, X[:, jm, 0] * np.sin(th) - X[:, jm, 1] * np.cos(th), 0.0)
+            p1 = X[:, 0, P_S]
+            lever1[:, d - S] = p1[:, 0] * np.sin(phi) - p1[:, 1] * np.cos(phi)
+        r_set = X[:, st.set_mods, R]
+        gamma = np.zeros((Bn, n_sets - S))
+        for d in range(S, n_sets):  # the gyro's turn over every drive
+            a0, a1 = int(st.set_first[d]), int(st.set_last[d])
+            gamma[:, d - S] = (
+                (st.I_wz[a1] - st.I_wz[a0]) - knots @ (st.W_bias[a1] - st.W_bias[a0])
+            ) / s
+        return G, K, r_set, gamma, lever1
+
+    def drive_gyro_sigma(self, d: int) -> float:
+        """The std dev (rad) of the gyro's turn over drive ``d`` (infinite without the
+        ``gyro`` block: the drive's wheels alone)."""
+        return float(self.stack().drive_gyro_sigma[d]) if "gyro" in self.active else math.inf
+
+    def rolling(
+        self, G: FloatArray, K: FloatArray, r_set: FloatArray, gamma: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Every rolling set's wheels profiled from their levers (:meth:`levers`, a batch
+        B): the spins' by :func:`profiled_rolling` with ``h = g / r``, the drives' on their
+        arcs (:func:`arc_profile`).  Returns the residuals (B, L, m) in rad, ``Y`` (B, L),
+        every drive's weighted turn residual (B, D) and its wheels' turn ``kappa (Y_end -
+        Y_start)`` (B, D)."""
+        st = self.stack()
+        Bn = G.shape[0]
+        if Bn == 1 and self._rolled is not None:
+            stack, active, inputs, out = self._rolled
+            if stack is st and active == self.active and all(
+                np.array_equal(a, b) for a, b in zip(inputs, (G, K, r_set, gamma), strict=True)
+            ):
+                return out[0].copy(), out[1].copy(), out[2].copy(), out[3].copy()
+        n_sets, S = len(st.set_mods), st.n_spin
+        H = G / r_set
+        resid, Y = profiled_rolling(st.psi, H[:, st.row_set], st.present, st.run, st.structure)
+        turn_res = np.zeros((Bn, n_sets - S))
+        arc_turn = np.zeros((Bn, n_sets - S))
+        for d in range(S, n_sets):
+            rows = slice(int(st.set_first[d]), int(st.set_last[d]) + 1)
+            e, y, kappa, turn_res[:, d - S] = arc_profile(
+                st.psi[rows], G[:, d], K[:, d], r_set[:, d], st.present[rows],
+                st.run[rows], st.drive_structures[d - S], resid[:, rows], Y[:, rows],
+                float(st.row_sigma[rows.start]), gamma[:, d - S], self.drive_gyro_sigma(d - S),
+            )
+            resid[:, rows], Y[:, rows] = e, y
+            arc_turn[:, d - S] = kappa * (y[:, -1] - y[:, 0])
+        if Bn == 1:
+            self._rolled = (
+                st, self.active, (G.copy(), K.copy(), r_set.copy(), gamma.copy()),
+                (resid.copy(), Y.copy(), turn_res.copy(), arc_turn.copy()),
+            )
+        return resid, Y, turn_res, arc_turn
+
+    def linear_rolling(self, x: FloatArray, rel_step: float = 1e-7) -> Rolling:
+        """:meth:`rolling` to first order about ``x``, for :meth:`jacobian`.
+
+        A spin's wheels depend on the unknowns only through their ``m`` levers
+        ``h_j = g_j / r_j``; a drive's through ``g_j / r_j``, ``k_j / r_j`` and ``gamma``
+        (:func:`arc_profile`); the sets share nothing.  The derivatives in those few
+        values are central differences (step ``rel_step max(1, |v|)``), every spin's
+        ``h_j`` at once; the unknowns' then follow by the chain rule::
+
+            d resid / d x_i = sum_v (d resid / d v) (d v / d x_i)
+
+        (``d v / d x_i`` is :meth:`jacobian`'s difference of the levers: ``2 m`` profiles
+        of the spins and ``2 (2 m + 1)`` of a drive instead of two per unknown)."""
+        st = self.stack()
+        n_sets, S = len(st.set_mods), st.n_spin
+        X, s, knots, _, C = self.unpack(np.atleast_2d(x))
+        G0, K0, r0, gamma0, _ = self.levers(X, s, knots, C)
+        resid0, Y0, turn0, arc0 = self.rolling(G0, K0, r0, gamma0)
+        H0 = (G0 / r0)[0]
+        sp = slice(0, int(np.sum(st.spin_rows)))  # the spins' rows come first
+        sp_set = st.row_set[sp]
+        cols = [j for j in range(H0.shape[1]) if S and bool(st.set_mask[:S, j].any())]
+        nj = len(cols)
+        if nj:
+            hs = rel_step * np.maximum(1.0, np.abs(H0[:S][:, cols]))  # (S, nj)
+            Hb = np.repeat(H0[None], 2 * nj, axis=0)
+            for i, j in enumerate(cols):
+                Hb[i, :S, j] += hs[:, i]
+                Hb[nj + i, :S, j] -= hs[:, i]
+            rb, yb = profiled_rolling(
+                st.psi[sp], Hb[:, sp_set], st.present[sp], st.run[sp], st.spin_structure
+            )
+            step = 2.0 * hs[sp_set].T  # (nj, rows)
+            d_res = (rb[:nj] - rb[nj:]) / step[..., None]
+            d_y = (yb[:nj] - yb[nj:]) / step
+        drives = []
+        for d in range(S, n_sets):
+            rows = slice(int(st.set_first[d]), int(st.set_last[d]) + 1)
+            mask = st.set_mask[d]
+            w = int(mask.sum())
+            v0 = np.concatenate([H0[d, mask], (K0 / r0)[0, d, mask], gamma0[0, d - S : d - S + 1]])
+            nv = v0.size
+            hv = rel_step * np.maximum(1.0, np.abs(v0))
+            V = np.repeat(v0[None], 2 * nv, axis=0)
+            V[np.arange(nv), np.arange(nv)] += hv
+            V[nv + np.arange(nv), np.arange(nv)] -= hv
+            A, Q = np.zeros((2 * nv, mask.size)), np.zeros((2 * nv, mask.size))
+            A[:, mask], Q[:, mask] = V[:, :w], V[:, w : 2 * w]
+            ds = st.drive_structures[d - S]
+            z, pres, run = st.psi[rows], st.present[rows], st.run[rows]
+            e0, y0 = profiled_rolling(z, A[:, None, :], pres, run, ds)
+            e, y, kappa, turn = arc_profile(
+                z, A, Q, np.ones_like(A), pres, run, ds, e0, y0, float(st.row_sigma[rows.start]),
+                V[:, -1], self.drive_gyro_sigma(d - S),
+            )
+            arc = kappa * (y[:, -1] - y[:, 0])
+            dv = 2.0 * hv
+            drives.append((
+                d, rows, mask, v0,
+                (e[:nv] - e[nv:]) / dv[:, None, None], (y[:nv] - y[nv:]) / dv[:, None],
+                (turn[:nv] - turn[nv:]) / dv, (arc[:nv] - arc[nv:]) / dv,
+            ))  # fmt: skip
+
+        def linear(
+            G: FloatArray, K: FloatArray, r_set: FloatArray, gamma: FloatArray
+        ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+            Bn = G.shape[0]
+            H = G / r_set
+            resid = np.repeat(resid0, Bn, axis=0)
+            Y = np.repeat(Y0, Bn, axis=0)
+            turn_res, arc_turn = np.repeat(turn0, Bn, axis=0), np.repeat(arc0, Bn, axis=0)
+            if nj:
+                dH = (H[:, :S][:, :, cols] - H0[:S][:, cols])[:, sp_set]  # (B, rows, nj)
+                resid[:, sp] += np.einsum("blj,jlm->blm", dH, d_res, optimize=True)
+                Y[:, sp] += np.einsum("blj,jl->bl", dH, d_y)
+            for d, rows, mask, v0, de, dy, dt, da in drives:
+                v = np.concatenate(
+                    [H[:, d][:, mask], (K[:, d] / r_set[:, d])[:, mask], gamma[:, d - S, None]],
+                    axis=1,
+                )
+                dv = v - v0
+                resid[:, rows] += (dv @ de.reshape(de.shape[0], -1)).reshape(Bn, *de.shape[1:])
+                Y[:, rows] += dv @ dy
+                turn_res[:, d - S] += dv @ dt
+                arc_turn[:, d - S] += dv @ da
+            return resid, Y, turn_res, arc_turn
+
+        return linear
+
+    def blocks(self, x: FloatArray, rolling: Rolling | None = None) -> dict[str, FloatArray]:
+        """Weighted residuals of every active block (dimensionless).
+
+        ``x`` (p,) or a batch (B, p) (one call for a whole finite-difference Jacobian:
+        :meth:`jacobian`); every block is then (B, k).  ``rolling``: what profiles the
+        wheels given their levers (:meth:`rolling`, the default; :meth:`jacobian` passes
+        its first-order expansion).
+        """
+        xb = np.atleast_2d(x)
+        Bn = xb.shape[0]
+        X, s, knots, da, C = self.unpack(xb)
         act = self.active
         out: dict[str, list[FloatArray]] = {b: [] for b in BLOCKS}
         if "settled" in act:
@@ -265,43 +456,9 @@ class ImuProblem:
         lengths = np.zeros((Bn, 0))
         if act & {"spin", "gyro", "drive", "straight_drive"}:
             st = self.stack()
-            n_sets, S = len(st.set_mods), st.n_spin
-            G = np.zeros((Bn, n_sets, st.set_mods.shape[1]))
-            if S:
-                jm = st.set_mods[:S]
-                G[:, :S] = settled_lever(
-                    X[:, jm, P_S], X[:, jm, B_COL], C[:, :, None, :], self.seg_sign[:, None]
-                )
-            K = np.zeros_like(G)
-            lever1 = np.zeros((Bn, n_sets - S))
-            for d in range(S, n_sets):  # a translation along the mean wheel direction
-                jm, mask = st.set_mods[d], st.set_mask[d]
-                th = st.set_theta[d] + X[:, jm, BETA]
-                phi = np.arctan2(np.sin(th[:, mask]).sum(axis=-1), np.cos(th[:, mask]).sum(axis=-1))
-                G[:, d] = np.where(mask, np.cos(th - phi[:, None]), 0.0)
-                # ... on an arc: the turn's lever P_s,j x u_j, and the first axis' P_s,1 x u_phi
-                K[:, d] = np.where(mask, X[:, jm, 0] * np.sin(th) - X[:, jm, 1] * np.cos(th), 0.0)
-                p1 = X[:, 0, P_S]
-                lever1[:, d - S] = p1[:, 0] * np.sin(phi) - p1[:, 1] * np.cos(phi)
-            r_set = X[:, st.set_mods, R]
-            H = G / r_set
-            resid, Y = profiled_rolling(st.psi, H[:, st.row_set], st.present, st.run, st.structure)
-            turned = np.zeros((Bn, n_sets - S))
-            turn_res = np.zeros((Bn, n_sets - S))
-            for d in range(S, n_sets):
-                rows = slice(int(st.set_first[d]), int(st.set_last[d]) + 1)
-                a0, a1 = int(st.set_first[d]), int(st.set_last[d])
-                gamma = (
-                    (st.I_wz[a1] - st.I_wz[a0]) - knots @ (st.W_bias[a1] - st.W_bias[a0])
-                ) / s
-                e, y, kappa, turn_res[:, d - S] = arc_profile(
-                    st.psi[rows], G[:, d], K[:, d], r_set[:, d], st.present[rows],
-                    st.run[rows], st.drive_structures[d - S], resid[:, rows], Y[:, rows],
-                    float(st.row_sigma[a0]), gamma,
-                    float(st.drive_gyro_sigma[d - S]) if "gyro" in act else math.inf,
-                )
-                resid[:, rows], Y[:, rows] = e, y
-                turned[:, d - S] = kappa * (y[:, -1] - y[:, 0]) * lever1[:, d - S]
+            G, K, r_set, gamma, lever1 = self.levers(X, s, knots, C)
+            resid, Y, turn_res, arc_turn = (rolling or self.rolling)(G, K, r_set, gamma)
+            turned = arc_turn * lever1
             w = resid / st.row_sigma[:, None]
             if "spin" in act:
                 out["spin"].append(w[:, st.present & st.spin_rows[:, None]])
@@ -314,6 +471,7 @@ class ImuProblem:
                 out["gyro"].append((Y[:, b_] - Y[:, a_] - dyaw) / st.chunk_sigma)
             if "gyro" in act:
                 out["gyro"].append(turn_res)  # the drives' turn: the wheels' against the gyro's
+            S = st.n_spin
             lengths = np.abs(Y[:, st.set_last[S:]] - Y[:, st.set_first[S:]] + turned)
         if "rest" in act:
             out["rest"].append((self.knot_mean - knots) / self.knot_sigma)
@@ -354,8 +512,10 @@ class ImuProblem:
         """Jacobian of :meth:`residuals`: central differences (step
         ``rel_step max(1, |x_i|)``, every perturbed point in one batched evaluation) for
         the geometry and the angle errors (and, with a straight drive, whose arc takes the
-        gyro's turn, for the gyro's scale and knots too); the spins' ``gyro`` rows and the
-        ``rest`` block exact in those (linear in the knots and ``1 / s``)::
+        gyro's turn, for the gyro's scale and knots too), the wheels' profiles in the
+        batch to first order in their levers (:meth:`linear_rolling`: the chain rule);
+        the spins' ``gyro`` rows and the ``rest`` block exact in those (linear in the
+        knots and ``1 / s``)::
 
             d gyro_c / d b_i = dW_ci / (s sigma_c)
             d gyro_c / d s = (dI_c - dW_c . b) / (s^2 sigma_c)
@@ -370,7 +530,10 @@ class ImuProblem:
         h = rel_step * np.maximum(1.0, np.abs(x[idx]))
         E = np.zeros((idx.size, x.size))
         E[np.arange(idx.size), idx] = h
-        blocks = self.blocks(np.vstack([x + E, x - E]))
+        rolling = None
+        if self.active & {"spin", "gyro", "drive", "straight_drive"}:
+            rolling = self.linear_rolling(x, rel_step)
+        blocks = self.blocks(np.vstack([x + E, x - E]), rolling)
         F = np.concatenate([blocks[b] for b in BLOCKS if b in blocks], axis=-1)
         p = idx.size
         J = np.zeros((F.shape[1], x.size))

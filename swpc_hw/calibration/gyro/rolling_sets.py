@@ -37,6 +37,13 @@ class ProfileStructure:
     pairs: sparse.csr_matrix
     samples: sparse.csr_matrix
     counts: FloatArray
+    pairs_t: sparse.csc_matrix = field(init=False, repr=False)
+    samples_t: sparse.csc_matrix = field(init=False, repr=False)
+    """The two maps transposed, once (a transpose is a new matrix at every use)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "pairs_t", self.pairs.T)
+        object.__setattr__(self, "samples_t", self.samples.T)
 
     @classmethod
     def of(cls, present: BoolArray, run: IntArray) -> ProfileStructure:
@@ -97,11 +104,11 @@ def profiled_rolling(
     batch = shape[:-2]
     flat = int(np.prod(batch, dtype=np.int64))
     outer = gP[..., st.pl, st.pi] * gP[..., st.pl, st.pj] * inv[..., st.pl]
-    QtQ = np.asarray(st.pairs.T @ outer.reshape(flat, st.pl.size).T).T.reshape(*batch, n, n)
+    QtQ = np.asarray(st.pairs_t @ outer.reshape(flat, st.pl.size).T).T.reshape(*batch, n, n)
     A = np.diag(st.counts) - QtQ
     gz = np.sum(gP * zp, axis=-1) * inv
     Pz = zp[..., rows, cols] - gP[..., rows, cols] * gz[..., rows]
-    rhs = np.asarray(st.samples.T @ Pz.reshape(flat, runs.size).T).T.reshape(*batch, n)
+    rhs = np.asarray(st.samples_t @ Pz.reshape(flat, runs.size).T).T.reshape(*batch, n)
     c = (np.linalg.pinv(A, rcond=1e-12) @ rhs[..., None])[..., 0]
     e = zp.copy()
     e[..., rows, cols] -= c[..., runs]
@@ -229,6 +236,8 @@ class RollingStack:
     chunk_b: IntArray
     chunk_sigma: FloatArray
     structure: ProfileStructure
+    spin_structure: ProfileStructure
+    """The spins' rows alone (they come first)."""
     drive_structures: list[ProfileStructure]
     drive_gyro_sigma: FloatArray
 
@@ -272,6 +281,7 @@ def stack_sets(spins: list[RollingSet], drives: list[RollingSet], n_knots: int) 
         set_mods, theta, set_mask, np.array(first, np.int64), np.array(last, np.int64),
         len(spins), np.array(ca, np.int64), np.array(cb, np.int64), np.array(csig),
         ProfileStructure.of(present, run),
+        ProfileStructure.of(present[spin_rows], run[spin_rows]),
         [drive_structure(rs) for rs in drives],
         np.array([float(rs.gyro_sigma[0]) if rs.gyro_sigma.size else 1.0 for rs in drives]),
     )

@@ -7,6 +7,11 @@ straight drive's length (``POST .../references`` in MEASURE).  One short run (tw
 of 45 deg sweeps per module, 1 s rests, a 1 m drive): everything else of the run without
 motion capture is tested on the fake robot in ``tests/services/runs/test_state_machine.py``.
 
+Two runs, each a fresh service's first, on a robot with homing errors of +-3 deg (Table 4
+otherwise): the quick one (:func:`quick_run`: its operator answering at once), which the
+HTTP and the homing tests judge, and a slow one (its operator taking a second), which
+must give the same parameters bit for bit.
+
 45 deg sweeps leave one wheel increment per spin in the solver's coarse problem: before
 the pooled slip screen ignored such series, their exact zeros took its sigma to 0 and
 the clean drive of this very run was refused as "every wheel slipped at once".
@@ -18,6 +23,7 @@ import itertools
 import logging
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,7 +40,7 @@ from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.frame_free import Figure, frame_free
-from tests.service_rig import AUTH, Sim, sim_service
+from tests.service_rig import AUTH, sim_service
 
 NAMES = PARAM_NAMES
 PROTOCOL = {
@@ -61,10 +67,21 @@ def axis_distances(seed: int = 20) -> list[dict[str, Any]]:
     return out
 
 
+HOMING = np.radians([3.0, -2.6, 2.2, -3.0])
+"""A fresh robot's homing errors (rad), +-3 deg: Table 4 otherwise."""
+
+
+def homing_truth() -> RobotParams:
+    a = PAPER_CALIBRATED.arrays()
+    return RobotParams.from_arrays(PAPER_CALIBRATED.ids, a.P_s, HOMING, a.b, a.r)
+
+
 @dataclass
 class QuickRun:
-    """A calibration without motion capture on a fresh service, its operator answering at
-    once: what the HTTP test judges, and the quick half of the operator's-pace test."""
+    """A calibration without motion capture on a fresh service (the hidden truth
+    :func:`homing_truth`), its operator answering at once: what the HTTP and the homing
+    tests judge, and the quick half of the operator's-pace test.  ``logs``: what the run
+    logged (``swpc.run``, INFO and up)."""
 
     client: TestClient
     rt: Runtime
@@ -75,30 +92,54 @@ class QuickRun:
     seen: dict[str, float]
     wall: float
     robot: float
+    logs: list[str]
+
+
+class _Messages(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
 
 
 @pytest.fixture(scope="module")
-def quick_run(sim: Sim) -> QuickRun:
-    """The run on the service of tests/conftest.py's ``sim``, fresh: this module's first
-    run, so that its parameters are those of any fresh service's first run."""
-    client, rt = sim.client, sim.rt
-    assert client.get("/calibrations").json() == []  # nothing ran on it before
-    t0 = time.monotonic()
-    robot0 = rt.clock.now()
-    body = {
-        "metrology": "imu",
-        "references": axis_distances(),
-        "overrides": {"protocol": PROTOCOL},
-        "install": "never",  # compared below with a file in force in another frame
-    }
-    r = client.post("/calibrations", json=body, headers=AUTH)
-    assert r.status_code == 202, r.text
-    run_id = r.json()["id"]
-    before_mark = client.post(f"/calibrations/{run_id}/continue", headers=AUTH).status_code
-    seen: dict[str, float] = {}
-    st = play_operator(client, run_id, seen)
-    wall, robot = time.monotonic() - t0, rt.clock.now() - robot0
-    return QuickRun(client, rt, run_id, r.json(), before_mark, st, seen, wall, robot)
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[QuickRun]:
+    """The run on a fresh service whose simulator hides :func:`homing_truth`
+    (``SWPC_SIM_TRUTH``): its first run, so that its parameters are those of any fresh
+    service's first run."""
+    tmp = tmp_path_factory.mktemp("quick")
+    truth = tmp / "truth.yaml"
+    save_kinematics(truth, homing_truth())
+    logger = logging.getLogger("swpc.run")
+    handler, level = _Messages(), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        with sim_service(tmp / "data", sim_truth=truth) as sim:
+            client, rt = sim.client, sim.rt
+            assert client.get("/calibrations").json() == []  # nothing ran on it before
+            t0 = time.monotonic()
+            robot0 = rt.clock.now()
+            body = {
+                "metrology": "imu",
+                "references": axis_distances(),
+                "overrides": {"protocol": PROTOCOL},
+                "install": "never",  # compared below with a file in force in another frame
+            }
+            r = client.post("/calibrations", json=body, headers=AUTH)
+            assert r.status_code == 202, r.text
+            run_id = r.json()["id"]
+            before_mark = client.post(f"/calibrations/{run_id}/continue", headers=AUTH).status_code
+            seen: dict[str, float] = {}
+            st = play_operator(client, run_id, seen)
+            wall, robot = time.monotonic() - t0, rt.clock.now() - robot0
+            logs = list(handler.messages)
+            yield QuickRun(client, rt, run_id, r.json(), before_mark, st, seen, wall, robot, logs)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 def play_operator(
@@ -148,8 +189,9 @@ def play_operator(
 
 def test_a_calibration_without_motion_capture_through_http(quick_run: QuickRun) -> None:
     """DONE in the design-fit frame; every frame-free figure (distances between steering
-    axes, beta differences, b, r) within 4 of its std devs of the truth, and near it;
-    ``swpc solve`` of the recorded dataset gives the same result."""
+    axes, beta differences, b, r) within 4 of its std devs of the truth (the quick run's,
+    :func:`homing_truth`), and near it; ``swpc solve`` of the recorded dataset gives the
+    same result."""
     q = quick_run
     client, rt, run_id, st, seen = q.client, q.rt, q.run_id, q.status, q.seen
     wall, robot = q.wall, q.robot
@@ -160,7 +202,7 @@ def test_a_calibration_without_motion_capture_through_http(quick_run: QuickRun) 
     res = client.get(f"/calibrations/{run_id}/result").json()
     k = load_kinematics(Path(res["run_kinematics_path"]))
     assert k.params.frame == "design-fit" and k.covariance is not None
-    figures = frame_free(k.params, np.array(k.covariance), PAPER_CALIBRATED)
+    figures = frame_free(k.params, np.array(k.covariance), homing_truth())
     solve = seen["DONE"] - seen.get("SOLVE", seen["DONE"])
     print(f"\ncalibration without motion capture through HTTP: {wall:.1f} s wall "
           f"({solve:.1f} s of it solving and writing), {robot:.1f} s of robot time")  # fmt: skip
@@ -210,15 +252,6 @@ def test_a_calibration_without_motion_capture_through_http(quick_run: QuickRun) 
     assert max(abs(r["change"]) for r in xs) < 0.5  # mm: like with like (unaligned: cm)
 
 
-HOMING = np.radians([3.0, -2.6, 2.2, -3.0])
-"""A fresh robot's homing errors (rad), +-3 deg: Table 4 otherwise."""
-
-
-def homing_truth() -> RobotParams:
-    a = PAPER_CALIBRATED.arrays()
-    return RobotParams.from_arrays(PAPER_CALIBRATED.ids, a.P_s, HOMING, a.b, a.r)
-
-
 def assert_near_the_truth(figures: list[Figure]) -> None:
     """Every frame-free figure printed, within 4 of its std devs of the truth and within
     0.1 deg or 0.5 mm of it."""
@@ -244,19 +277,18 @@ def calibrate_without_mocap(client: TestClient, think: float = 0.0) -> dict[str,
 
 
 def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    quick_run: QuickRun,
 ) -> None:
     """Issue 30: the straight drive steered by the nominal betas (0) made the wheels of a
     robot with +-3 deg homing errors fight (the robot turned 1.2 deg over this 1 m drive
     and the dataset was refused, "not a pure translation"); it is steered by the betas
-    its spins have just measured.  The hidden truth comes from ``SWPC_SIM_TRUTH``."""
-    truth = tmp_path / "truth.yaml"
-    save_kinematics(truth, homing_truth())
-    caplog.set_level(logging.INFO, logger="swpc.run")
-    with sim_service(tmp_path / "data", sim_truth=truth) as s:
-        res = calibrate_without_mocap(s.client)
-        k = load_kinematics(Path(res["run_kinematics_path"]))
-    steer = [m for m in caplog.messages if "event=run.steer" in m]
+    its spins have just measured.  The hidden truth comes from ``SWPC_SIM_TRUTH`` (the
+    quick run's: :func:`homing_truth`)."""
+    q = quick_run
+    assert q.status["state"] == "DONE", q.status["errors"]
+    res = q.client.get(f"/calibrations/{q.run_id}/result").json()
+    k = load_kinematics(Path(res["run_kinematics_path"]))
+    steer = [m for m in q.logs if "event=run.steer" in m]
     assert len(steer) == 1 and "betas=measured" in steer[0], steer
     measured = np.radians([float(v) for v in steer[0].split("beta_deg=")[1].split(",")])
     np.testing.assert_allclose(
@@ -274,12 +306,14 @@ def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(
     started at a simulated time that depended on how fast the answer came (wall time),
     and two demos differed.  Against the in-process simulator it now stands still: an
     operator answering at once (the module's quick run, the first on a fresh service) and
-    one taking a second (here, the first on another fresh service) give the same
-    parameters, bit for bit.  (Whether a run installs its result comes after the solve:
-    the quick run's ``install: never`` changes no parameter.)"""
+    one taking a second (here, the first on another fresh service hiding the same truth)
+    give the same parameters, bit for bit.  (Whether a run installs its result comes after
+    the solve: the quick run's ``install: never`` changes no parameter.)"""
     assert quick_run.status["state"] == "DONE", quick_run.status["errors"]
     quick_res = quick_run.client.get(f"/calibrations/{quick_run.run_id}/result").json()
-    with sim_service(tmp_path / "slow") as s:
+    truth = tmp_path / "truth.yaml"
+    save_kinematics(truth, homing_truth())
+    with sim_service(tmp_path / "slow", sim_truth=truth) as s:
         slow_res = calibrate_without_mocap(s.client, think=1.0)
     quick, slow = ([[m[n] for n in NAMES] for m in res["modules"]] for res in (quick_res, slow_res))
     assert quick == slow
