@@ -7,7 +7,9 @@ service, docs/check.md) with the protocol's re-steer time, the spin torques with
 limits (:func:`swpc_hw.calibration.plan.plan.spin_torques`: the config's ``spin_torque`` and the
 fastest under ``max_wheel_torque`` and ``max_yaw_rate``), the steering's speed limit, the
 step timeout, and by default the ``tolerances`` as the per-parameter targets; the
-prediction is :func:`services.plan.predict.predicted_covariance` on the nominal robot.
+prediction is :func:`services.plan.predict.predicted_covariance` on the nominal robot,
+kept (:data:`_PREDICTED`); the plan's sequential stopping takes its spins from the
+prediction's solve of the first seed, which it is (:func:`stopping_for`).
 ``swpc plan`` prints its answer; ``POST /calibrations {"plan": "auto"}`` runs it (the plan's
 :meth:`~swpc_hw.calibration.plan.plan.Candidate.overrides`, its protocol and spin torque, as the
 run's).
@@ -23,15 +25,20 @@ import functools
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Generic, TypeVar
 
 from services.config.robot import MAX_DRIVE_LENGTH, MIN_REST_TIME, RobotConfig
 from services.plan.predict import (
-    predicted_covariance,
+    mean_covariance,
     predicted_imu_covariance,
+    predicted_solution,
     predicted_spins,
+    spins_of_solution,
 )
 from swpc_hw.calibration.gyro.solver import COARSE_INTERVAL
+from swpc_hw.calibration.mocap.solver import JointSolution
 from swpc_hw.calibration.plan.forecast import SpinInformation, Stopping
 from swpc_hw.calibration.plan.plan import (
     Candidate,
@@ -163,13 +170,28 @@ def plan_for(config: RobotConfig, request: PlanRequest | None = None) -> Plan:
     if req.metrology != "mocap":
         raise PlanError(f"no plan for metrology {req.metrology} (mocap or imu)")
 
-    def predict(c: Candidate) -> FloatArray:
-        return _predicted(key, c, req.noise, tm)
+    meeting: dict[Candidate, JointSolution] = {}  # the first seed's solve of those that meet
+    robot = RobotParams.model_validate_json(key)
 
-    return plan(
+    def predict(c: Candidate) -> FloatArray:
+        def solved() -> FloatArray:
+            sols = [predicted_solution(robot, c, req.noise, tm, s) for s in SEEDS]
+            cov = mean_covariance(c, sols)
+            if requirement.ratio(cov) <= 1.0:  # the plan is one of them
+                meeting[c] = sols[0]
+            return cov
+
+        return _PREDICTED.get((key, c, req.noise, tm), solved)
+
+    p = plan(
         predict, requirement, nominal.ids, pauses(config), tm, torques=torques,
         max_spin_time=lim.step_timeout,
     )  # fmt: skip
+    if p.candidate in meeting:  # its spins from the prediction's solve: not solved again
+        sol = meeting[p.candidate]
+        _SPINS.get((key, p.candidate, req.noise, tm),
+                   lambda: tuple(spins_of_solution(p.candidate, sol)))  # fmt: skip
+    return p
 
 
 def imu_variants(config: RobotConfig, base: Candidate) -> list[Candidate]:
@@ -261,12 +283,47 @@ class Planner:
             self._making = None
 
 
-@functools.lru_cache(maxsize=256)
-def _predicted(nominal: str, c: Candidate, noise: MocapNoise, tm: TimeModel) -> FloatArray:
-    """:func:`predicted_covariance`, kept: a plan of the same robot is the same plan (the
-    prediction's seeds are fixed), and the service plans every ``plan: auto`` run."""
-    robot = RobotParams.model_validate_json(nominal)
-    return predicted_covariance(robot, c, noise, tm)
+K = TypeVar("K")
+V = TypeVar("V")
+
+
+class Kept(Generic[K, V]):
+    """The newest ``size`` values made, by key (thread-safe; a value that raises is not
+    kept): the planner's predictions, kept because a plan of the same robot is the same
+    plan (the prediction's seeds are fixed) and the service plans every ``plan: auto``
+    run."""
+
+    def __init__(self, size: int) -> None:
+        self._lock = threading.Lock()
+        self._done: OrderedDict[K, V] = OrderedDict()
+        self._size = size
+
+    def get(self, key: K, make: Callable[[], V]) -> V:
+        """The value kept for ``key``, else ``make()``'s (then kept)."""
+        with self._lock:
+            if key in self._done:
+                self._done.move_to_end(key)
+                return self._done[key]
+        value = make()
+        with self._lock:
+            self._done[key] = value
+            while len(self._done) > self._size:
+                self._done.popitem(last=False)
+        return value
+
+
+SEEDS = (0, 1)
+"""The noise draws a prediction averages (:func:`services.plan.predict.predicted_covariance`);
+sequential stopping's spins are the first's (:func:`stopping_for`)."""
+
+PredictionKey = tuple[str, Candidate, MocapNoise, TimeModel]
+"""The nominal robot (its JSON), the candidate, the noise, the time model."""
+_PREDICTED: Kept[PredictionKey, FloatArray] = Kept(256)
+""":func:`services.plan.predict.predicted_covariance` of the nominal robot over
+:data:`SEEDS`, kept."""
+_SPINS: Kept[PredictionKey, tuple[SpinInformation, ...]] = Kept(16)
+""":func:`services.plan.predict.predicted_spins` of seed 0, kept: :func:`plan_for`
+keeps those of its plan from the prediction's solve."""
 
 
 @functools.lru_cache(maxsize=256)
@@ -276,13 +333,16 @@ def _predicted_imu(nominal: str, c: Candidate, gyro: GyroOptions, tm: TimeModel)
     return predicted_imu_covariance(robot, c, gyro, tm)
 
 
-@functools.lru_cache(maxsize=16)
 def _spins(
     nominal: str, c: Candidate, noise: MocapNoise, tm: TimeModel
 ) -> tuple[SpinInformation, ...]:
-    """:func:`predicted_spins`, kept (as :func:`_predicted`)."""
-    robot = RobotParams.model_validate_json(nominal)
-    return tuple(predicted_spins(robot, c, noise, tm))
+    """:func:`predicted_spins`, kept (:data:`_SPINS`)."""
+
+    def make() -> tuple[SpinInformation, ...]:
+        robot = RobotParams.model_validate_json(nominal)
+        return tuple(predicted_spins(robot, c, noise, tm, SEEDS[0]))
+
+    return _SPINS.get((nominal, c, noise, tm), make)
 
 
 def plan_text(p: Plan) -> str:

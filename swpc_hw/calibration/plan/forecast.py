@@ -37,6 +37,7 @@ not by the assumption.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -87,6 +88,14 @@ class SpinInformation:
     """``R~_s`` (5N, 5N)."""
     sigma: float
     """The plan's pose noise: its fixed-point fit's residual std dev (m)."""
+
+    @functools.cached_property
+    def planned(self) -> tuple[FloatArray, FloatArray]:
+        """The spin's ``(H_s, M_s)`` as planned (``Cov_s`` the plan's, ``q_s = nu_s = 1``):
+        the same for every forecast, so made once."""
+        G = self.contact_jacobian
+        fixed = G.T @ np.linalg.solve(self.fixed_covariance, G)
+        return fixed + self.settled + self.rolling_h, fixed + self.settled + self.rolling_m
 
 
 @dataclass(frozen=True)
@@ -149,12 +158,14 @@ def forecast_covariance(
     p = spins[0].contact_jacobian.shape[1]
     H, M = np.zeros((p, p)), np.zeros((p, p))
     for s, info in enumerate(spins):
-        if s < len(so_far):
-            got = so_far[s]
-            cov, q = got.fixed_covariance, got.sweep / info.sweep
-            nu = (got.sigma / info.sigma) ** 2 if info.sigma > 0 else 1.0
-        else:
-            cov, q, nu = info.fixed_covariance, 1.0, 1.0
+        if s >= len(so_far):  # to come: as planned
+            h, m = info.planned
+            H += h
+            M += m
+            continue
+        got = so_far[s]
+        cov, q = got.fixed_covariance, got.sweep / info.sweep
+        nu = (got.sigma / info.sigma) ** 2 if info.sigma > 0 else 1.0
         G = info.contact_jacobian
         fixed = G.T @ np.linalg.solve(cov, G)
         H += fixed + info.settled + q * info.rolling_h
@@ -276,14 +287,16 @@ def replay(
     """A recorded run's spins cut where sequential stopping ends them, judged every
     ``step`` of sweep as a run judges them: the segments (their windows ended there) and
     what each gave.  A spin recorded shorter than the rule wants ends with its
-    recording.  For benchmarks and tests: the same rule on recorded data."""
+    recording.  For benchmarks and tests: the same rule on recorded data (a judgement
+    before the spin may end, below ``min_sweep`` and its most sweep, is not made: it
+    cannot end it)."""
     segs = prepare_segments(ds, 0.0, "replay", True)
     if len(segs) != len(stopping.spins):
         raise CalibrationError(f"replay: {len(segs)} spins recorded, the plan has "
                                f"{len(stopping.spins)}")  # fmt: skip
     done: list[SpinSoFar] = []
     cut: list[Segment] = []
-    for sd in segs:
+    for i, sd in enumerate(segs):
         P = sd.poses
         swept = np.abs(P[:, 3] - P[0, 3])
         end, judged, now = P.shape[0] - 1, -math.inf, None
@@ -291,6 +304,8 @@ def replay(
             if swept[k] - judged < step:
                 continue
             judged = float(swept[k])
+            if judged < min(stopping.min_sweep, stopping.max_sweep(i)):
+                continue  # the spin cannot end yet, whatever the forecast: not fitted
             now = so_far(P[: k + 1], judged)
             if stopping.judge([*done, now]).stop:
                 end = k

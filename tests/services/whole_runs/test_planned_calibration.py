@@ -14,11 +14,16 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.cli import main as swpc
-from services.config.robot import RobotConfig
+from services.config.robot import MotionLimits, RobotConfig
 from services.plan.planner import Planner, PlannerBusyError, PlanRequest, plan_for
 from swpc_hw.calibration.plan.forecast import MIN_SWEEP
 from swpc_hw.calibration.plan.plan import MocapNoise, PlanError, Targets
 from tests.service_rig import AUTH, Sim, app_without_robot, wait_state
+
+SHORT_STEPS: dict[str, Any] = {"limits": {"step_timeout": 9.0}}
+"""The refused plans' robot config: steps of at most 9 s (the default protocol's spin
+takes 8.2 s at limits.max_yaw_rate), so spins of at most 420 deg: every candidate set's
+largest sweep is predicted, each half as long as with the default 60 s."""
 
 
 def until_planned(sim: Sim, body: dict[str, Any]) -> Any:
@@ -48,7 +53,9 @@ def test_a_planned_calibration_stops_each_spin_once_its_forecast_meets_the_plan(
     deadline = time.monotonic() + 240
     while st["state"] not in {"DONE", "FAILED", "ABORTED"}:
         assert time.monotonic() < deadline, st
-        time.sleep(0.05)  # each GET takes CPU from the simulation (service_rig.wait_state)
+        # each GET takes CPU from the simulation (service_rig.wait_state): every 0.1 s,
+        # dozens of forecasts still (53 on a busy 2-core host), half the GETs of 0.05 s
+        time.sleep(0.1)
         st = sim.client.get(f"/calibrations/{rid}").json()
         if st["forecast"] is not None and (not forecasts or forecasts[-1] != st["forecast"]):
             forecasts.append(st["forecast"])
@@ -135,16 +142,17 @@ def test_a_plan_that_cannot_be_made_is_refused_with_its_reason(sim: Sim) -> None
     assert code == 422 and "targets are for a planned run" in text
     code, text = post({"plan": "auto", "targets": {"beta": -1}})
     assert code == 422 and "greater than 0" in text
-    r = until_planned(sim, {"plan": "auto", "targets": {"position": 1e-9}})
+    hopeless = {"plan": "auto", "targets": {"position": 1e-9}, "overrides": SHORT_STEPS}
+    r = until_planned(sim, hopeless)
     assert r.status_code == 422 and "no candidate protocol reaches the requirement" in r.text
     assert "closest" in r.text
     # asked again, the answer is kept: at once
-    code, text = post({"plan": "auto", "targets": {"position": 1e-9}})
+    code, text = post(hopeless)
     assert code == 422 and "closest" in text
     assert len(sim.client.get("/calibrations").json()) == before  # nothing started
 
 
-def test_swpc_plan_prints_the_plan(capsys: pytest.CaptureFixture[str]) -> None:
+def test_swpc_plan_prints_the_plan(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     assert swpc(["plan", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     p = plan_for(RobotConfig())
@@ -158,7 +166,9 @@ def test_swpc_plan_prints_the_plan(capsys: pytest.CaptureFixture[str]) -> None:
     assert f"robot time: {p.robot_time:.1f} s (predicted)" in out
     assert "spin torque: 1.03 N.m (yaw rate 1.01 rad/s, predicted)" in out
     assert "square path within 0.5 mm, 0.016 deg" in out
-    assert swpc(["plan", "--target-position-mm", "0.000001"]) == 2
+    short = tmp_path / "robot.yaml"  # the refused plan's robot config as the service's
+    short.write_text(json.dumps(SHORT_STEPS), encoding="utf-8")
+    assert swpc(["plan", "--robot-config", str(short), "--target-position-mm", "0.000001"]) == 2
     assert "no candidate protocol reaches the requirement" in capsys.readouterr().err
 
 
@@ -182,17 +192,19 @@ def test_no_plan_is_started_during_a_run_and_a_made_one_is_kept() -> None:
     with pytest.raises(PlannerBusyError, match="between runs"):
         planner.get(RobotConfig(), start=False)
     # a plan that cannot be made: its reason, kept and given again at once
-    # (a noise of its own: no prediction kept from another test, so it takes a while)
+    # (a noise of its own: no prediction kept from another test, so it takes a while; a
+    # step timeout of 3 s: spins of at most 75 deg, so not too long a while)
+    short = RobotConfig(limits=MotionLimits(step_timeout=3.0))
     hopeless = PlanRequest(
         targets=Targets(1e-12, 1e-12, 1e-12), budget=None, noise=MocapNoise(sigma_xy=0.6e-3)
     )
-    assert planner.get(RobotConfig(), hopeless) is None  # being made now
+    assert planner.get(short, hopeless) is None  # being made now
     with pytest.raises(PlannerBusyError, match="another plan is being made"):
         planner.get(RobotConfig())
     deadline = time.monotonic() + 600
     with pytest.raises(PlanError, match="no candidate protocol reaches the requirement"):
-        while planner.get(RobotConfig(), hopeless) is None:
+        while planner.get(short, hopeless) is None:
             assert time.monotonic() < deadline
             time.sleep(0.05)
     with pytest.raises(PlanError, match="closest"):
-        planner.get(RobotConfig(), hopeless, start=False)  # kept: no new plan needed
+        planner.get(short, hopeless, start=False)  # kept: no new plan needed
