@@ -177,6 +177,9 @@ class StepSolution(NamedTuple):
     weights: list[float]  # IRLS weights that produced ``twist``
     sigma: float  # residual scale, m/s
     iterations: int  # least-squares solves
+    contacts: tuple[list[float], list[float], list[float], list[float]] = ([], [], [], [])
+    """``(Qx, Qy, gx, gy)`` of the step (:func:`_contact_velocities`), for the observers
+    of the odometry (drift monitor) not to compute them again."""
 
 
 def _contact_velocities(
@@ -314,7 +317,7 @@ def step_twist(
         if robust == "none" or change < 1e-4 or iterations >= max_iterations:
             break  # ``w`` (reported) are the weights that produced the twist
         w, wn_all = wn_all, w
-    return StepSolution((vx, vy, om), res, filt, w, sigma, iterations)
+    return StepSolution((vx, vy, om), res, filt, w, sigma, iterations, (Qx, Qy, gx, gy))
 
 
 # --------------------------------------------------------------------------- runtime object
@@ -461,6 +464,12 @@ class Odometry:
     def ids(self) -> tuple[int, ...]:
         """Module ids in the order readings are expected."""
         return self._geom.ids
+
+    @property
+    def rows(self) -> tuple[Row, ...]:
+        """The parameters of the hot path (:data:`Row`, module order), as of the last
+        :meth:`set_params`."""
+        return self._geom.rows
 
     @property
     def source(self) -> Path | None:
