@@ -66,13 +66,18 @@ _PARAMS = len(PARAM_NAMES)  # x_s, y_s, beta, b, r (the kinematic file's order)
 def measurement_covariance(
     qx: Sequence[float], qy: Sequence[float], weights: Sequence[float], sigma: float
 ) -> FloatArray:
-    """``Sigma_meas = sigma^2 (A^T W A)^-1`` of the twist (module docstring), 3 x 3."""
-    N = np.zeros((3, 3))
+    """``Sigma_meas = sigma^2 (A^T W A)^-1`` of the twist (module docstring), 3 x 3.
+
+    ``A^T W A = sum w_i [[1, 0, -Q_y], [0, 1, Q_x], [-Q_y, Q_x, |Q|^2]]`` summed in plain
+    floats."""
+    W = X = Y = S = 0.0
     for x, y, w in zip(qx, qy, weights, strict=True):
         w = max(float(w), _MIN_WEIGHT)
-        a1 = np.array([1.0, 0.0, -y])
-        a2 = np.array([0.0, 1.0, x])
-        N += w * (np.outer(a1, a1) + np.outer(a2, a2))
+        W += w
+        X += w * x
+        Y += w * -y
+        S += w * (y * y + x * x)
+    N = np.array([[W, 0.0, Y], [0.0, W, X], [Y, X, S]])
     return np.asarray(sigma * sigma * np.linalg.inv(N), dtype=np.float64)
 
 
@@ -86,21 +91,27 @@ def twist_sensitivity(
     weights: Sequence[float],
 ) -> FloatArray:
     """``J = d twist / d p`` (3 x 5N; p = modules in order, each x_s, y_s, beta, b, r) of
-    the weighted step at fixed weights, by forward differences (step 1e-7 in SI units)."""
-    def twist(rs: Sequence[Row]) -> FloatArray:
-        qx, qy, gx, gy, _ = _contact_velocities(rs, dt, theta_hat0, theta_hat1, psi0, psi1)
-        return np.array(_weighted_twist(weights, qx, qy, gx, gy))
+    the weighted step at fixed weights, by forward differences (step 1e-7 in SI units).
 
-    base = twist(rows)
-    J = np.zeros((3, _PARAMS * len(rows)))
+    A parameter of module i moves only that module's contact point and velocity: each
+    difference computes those again and solves the weighted twist with them in place."""
+    qx, qy, gx, gy, _ = _contact_velocities(rows, dt, theta_hat0, theta_hat1, psi0, psi1)
+    base = np.array(_weighted_twist(weights, qx, qy, gx, gy))
+    twists: list[tuple[float, float, float]] = []
     eps = 1e-7
     for i, row in enumerate(rows):
+        th0, th1, ps0, ps1 = (theta_hat0[i],), (theta_hat1[i],), (psi0[i],), (psi1[i],)
         for k in range(_PARAMS):
             p = list(row[:_PARAMS])
             p[k] += eps
-            rs = list(rows)
-            rs[i] = geometry_row(*p)
-            J[:, _PARAMS * i + k] = (twist(rs) - base) / eps
+            (qxi,), (qyi,), (gxi,), (gyi,), _ = _contact_velocities(
+                (geometry_row(*p),), dt, th0, th1, ps0, ps1)
+            Qx, Qy, Gx, Gy = list(qx), list(qy), list(gx), list(gy)
+            Qx[i], Qy[i], Gx[i], Gy[i] = qxi, qyi, gxi, gyi
+            twists.append(_weighted_twist(weights, Qx, Qy, Gx, Gy))
+    J = np.zeros((3, _PARAMS * len(rows)))
+    if twists:
+        J[:] = (np.array(twists).T - base[:, None]) / eps
     return J
 
 
