@@ -297,6 +297,9 @@ def step_twist(
     wn_all = [1.0] * n
     res = [0.0] * n
     iterations = 0
+    plain = robust == "none"
+    geman = robust == "geman"
+    sqrt = math.sqrt
     while True:
         iterations += 1
         vx, vy, om = _weighted_twist(w, Qx, Qy, gx, gy)
@@ -304,17 +307,24 @@ def step_twist(
         for i in range(n):
             ex = vx - om * Qy[i] - gx[i]
             ey = vy + om * Qx[i] - gy[i]
-            res[i] = math.sqrt(ex * ex + ey * ey)
+            res[i] = sqrt(ex * ex + ey * ey)
             fx = alpha * ex + keep * prev[2 * i]
             fy = alpha * ey + keep * prev[2 * i + 1]
             filt[2 * i] = fx
             filt[2 * i + 1] = fy
-            if robust == "none":
+            if plain:
                 continue
-            wn = robust_weight(robust, (fx * fx + fy * fy) * inv_sigma * inv_sigma)
-            change = max(change, abs(wn - w[i]))
+            z2 = (fx * fx + fy * fy) * inv_sigma * inv_sigma
+            if geman:  # robust_weight("geman", z2), inline on the hot path
+                wn = 1.0 / (1.0 + z2)
+                wn = wn * wn
+            else:
+                wn = robust_weight(robust, z2)
+            d = abs(wn - w[i])
+            if d > change:
+                change = d
             wn_all[i] = wn
-        if robust == "none" or change < 1e-4 or iterations >= max_iterations:
+        if plain or change < 1e-4 or iterations >= max_iterations:
             break  # ``w`` (reported) are the weights that produced the twist
         w, wn_all = wn_all, w
     return StepSolution((vx, vy, om), res, filt, w, sigma, iterations, (Qx, Qy, gx, gy))
