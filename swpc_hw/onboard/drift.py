@@ -354,8 +354,8 @@ class DriftMonitor:
         """After ``odometry.update(t, theta_hat, psi)``: observe that step (the first
         reading only stores).  Returns the suspects raised or cleared by it."""
         last = odometry._last
-        th = [float(a) for a in theta_hat]
-        ps = [float(a) for a in psi]
+        th = list(map(float, theta_hat))
+        ps = list(map(float, psi))
         prev = self._prev
         self._prev = (odometry.t, th, ps)
         if (last is None or prev is None or prev[0] is None or last[0] != odometry.t
@@ -393,14 +393,18 @@ class DriftMonitor:
         n = len(Qx)
         travel = 0.0
         turn = 0.0
-        for i in range(n):
-            travel += math.hypot(gx[i], gy[i]) * dt
-            dth = theta_hat1[i] - theta_hat0[i]
+        hypot = math.hypot
+        for gxi, gyi, th1, th0 in zip(gx, gy, theta_hat1, theta_hat0, strict=False):
+            travel += hypot(gxi, gyi) * dt
+            dth = th1 - th0
             if dth > _PI:
                 dth -= _TWO_PI
             elif dth <= -_PI:
                 dth += _TWO_PI
-            turn = max(turn, abs(dth))
+            if dth < 0.0:
+                dth = -dth
+            if dth > turn:
+                turn = dth
         if min(weights) < self.options.slip_weight:
             self._slip = True
         self._dt.append(dt)

@@ -548,8 +548,8 @@ class Odometry:
                 f"odometry: expected {n} steering and wheel readings "
                 f"(got {len(theta_hat)}, {len(psi)})"
             )
-        th = [float(a) for a in theta_hat]
-        ps = [float(a) for a in psi]
+        th = list(map(float, theta_hat))
+        ps = list(map(float, psi))
         t = float(t)
         if not (math.isfinite(t) and math.isfinite(math.fsum(th)) and math.isfinite(math.fsum(ps))):
             raise OdometryError(f"odometry: non-finite reading at t={t!r}")
