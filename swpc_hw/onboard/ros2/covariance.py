@@ -48,7 +48,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 # The odometry's own step (same package layer): the contact points and the weighted solve.
-from swpc_hw.onboard.odometry import Row, _contact_velocities, _weighted_twist, geometry_row
+from swpc_hw.onboard.odometry import (
+    OdometryError,
+    Row,
+    _contact_velocities,
+    geometry_row,
+)
 from swpc_hw.robot.model import PARAM_NAMES
 
 FloatArray = NDArray[np.float64]
@@ -94,9 +99,17 @@ def twist_sensitivity(
     the weighted step at fixed weights, by forward differences (step 1e-7 in SI units).
 
     A parameter of module i moves only that module's contact point and velocity: each
-    difference computes those again and solves the weighted twist with them in place."""
+    difference computes those again and solves the weighted twist
+    (:func:`~swpc_hw.onboard.odometry._weighted_twist`'s sums and closed form) from the
+    sums over modules 0..i-1, unchanged, with module i's new terms and then the others'
+    added in the same order: the same floats as solving it all again."""
+    n = len(rows)
     qx, qy, gx, gy, _ = _contact_velocities(rows, dt, theta_hat0, theta_hat1, psi0, psi1)
-    base = np.array(_weighted_twist(weights, qx, qy, gx, gy))
+    terms = [_terms(weights[i], qx[i], qy[i], gx[i], gy[i]) for i in range(n)]
+    prefix = [(0.0,) * 7]
+    for t in terms:
+        prefix.append(_add(prefix[-1], t))
+    base = np.array(_solve(prefix[n]))
     twists: list[tuple[float, float, float]] = []
     eps = 1e-7
     for i, row in enumerate(rows):
@@ -106,13 +119,39 @@ def twist_sensitivity(
             p[k] += eps
             (qxi,), (qyi,), (gxi,), (gyi,), _ = _contact_velocities(
                 (geometry_row(*p),), dt, th0, th1, ps0, ps1)
-            Qx, Qy, Gx, Gy = list(qx), list(qy), list(gx), list(gy)
-            Qx[i], Qy[i], Gx[i], Gy[i] = qxi, qyi, gxi, gyi
-            twists.append(_weighted_twist(weights, Qx, Qy, Gx, Gy))
-    J = np.zeros((3, _PARAMS * len(rows)))
+            acc = _add(prefix[i], _terms(weights[i], qxi, qyi, gxi, gyi))
+            for t in terms[i + 1:]:
+                acc = _add(acc, t)
+            twists.append(_solve(acc))
+    J = np.zeros((3, _PARAMS * n))
     if twists:
         J[:] = (np.array(twists).T - base[:, None]) / eps
     return J
+
+
+_Sums = tuple[float, float, float, float, float, float, float]
+
+
+def _terms(w: float, qx: float, qy: float, gx: float, gy: float) -> _Sums:
+    """One module's terms of ``W, X, Y, S, G_x, G_y, T`` (odometry module docstring)."""
+    return (w, w * qx, w * qy, w * (qx * qx + qy * qy), w * gx, w * gy,
+            w * (qx * gy - qy * gx))  # fmt: skip
+
+
+def _add(a: _Sums, b: _Sums) -> _Sums:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3], a[4] + b[4], a[5] + b[5],
+            a[6] + b[6])  # fmt: skip
+
+
+def _solve(sums: _Sums) -> tuple[float, float, float]:
+    """The weighted twist from its sums (as
+    :func:`~swpc_hw.onboard.odometry._weighted_twist`)."""
+    W, X, Y, S, Gx, Gy, T = sums
+    D = S - (X * X + Y * Y) / W
+    if not D > 1e-12 * S:
+        raise OdometryError("odometry: the weighted contact points are degenerate")
+    om = (T + (Y * Gx - X * Gy) / W) / D
+    return (Gx + om * Y) / W, (Gy - om * X) / W, om
 
 
 def contact_points(
