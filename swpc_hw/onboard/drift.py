@@ -74,7 +74,9 @@ Pure numpy / floats; no clock: distance, not time, drives it.
 
 from __future__ import annotations
 
+import functools
 import math
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -85,10 +87,10 @@ from numpy.typing import NDArray
 from swpc_hw.errors import SwpcError
 from swpc_hw.onboard.odometry import (
     Odometry,
+    OdometryError,
     OdometryStep,
     _contact_velocities,
     _Geometry,
-    _weighted_twist,
 )
 from swpc_hw.robot.model import RobotParams
 
@@ -186,42 +188,76 @@ def residual_maker(
     Qx: Sequence[float], Qy: Sequence[float], w: Sequence[float], columns: FloatArray
 ) -> FloatArray:
     """``(I - H) X`` for each column of ``X`` (2N x K, rows x_0, y_0, x_1, ...): the column
-    minus the rigid field ``v + omega x Q_i`` fitted to it by weighted least squares."""
-    n = len(Qx)
-    Qxl, Qyl = list(Qx), list(Qy)
+    minus the rigid field ``v + omega x Q_i`` fitted to it by weighted least squares.
+
+    All columns at once, in the closed form of the odometry's weighted solve
+    (:mod:`swpc_hw.onboard.odometry`: ``W = sum w``, ``X = sum w Q_x``, ``Y = sum w Q_y``,
+    ``S = sum w |Q|^2``, per column ``G = sum w c``, ``T = sum w (Q x c)``)::
+
+        omega = (T + (Y G_x - X G_y) / W) / (S - (X^2 + Y^2) / W)
+        v_x   = (G_x + omega Y) / W,        v_y = (G_y - omega X) / W
+    """
     out = np.array(columns, dtype=np.float64)
-    for j in range(out.shape[1]):
-        cx = out[0::2, j].tolist()
-        cy = out[1::2, j].tolist()
-        vx, vy, om = _weighted_twist(w, Qxl, Qyl, cx, cy)
-        for i in range(n):
-            out[2 * i, j] = cx[i] - (vx - om * Qyl[i])
-            out[2 * i + 1, j] = cy[i] - (vy + om * Qxl[i])
+    W = X = Y = S = 0.0
+    for wi, qx, qy in zip(w, Qx, Qy, strict=True):
+        W += wi
+        X += wi * qx
+        Y += wi * qy
+        S += wi * (qx * qx + qy * qy)
+    D = S - (X * X + Y * Y) / W
+    if not D > 1e-12 * S:
+        raise OdometryError("odometry: the weighted contact points are degenerate")
+    wv = np.asarray(w, dtype=np.float64)[:, None]
+    qx_ = np.asarray(Qx, dtype=np.float64)[:, None]
+    qy_ = np.asarray(Qy, dtype=np.float64)[:, None]
+    cx, cy = out[0::2], out[1::2]  # (N, K) views
+    Gx = (wv * cx).sum(axis=0)
+    Gy = (wv * cy).sum(axis=0)
+    T = (wv * (qx_ * cy - qy_ * cx)).sum(axis=0)
+    om = (T + (Y * Gx - X * Gy) / W) / D
+    vx = (Gx + om * Y) / W
+    vy = (Gy - om * X) / W
+    cx -= vx - om * qy_
+    cy -= vy + om * qx_
     return out
 
 
 def median_contrast(eps: FloatArray, i: int) -> FloatArray:
     """Weights ``c`` with ``c . eps = eps_i - median(eps)`` for this order of ``eps``."""
+    c = -_median_weights(eps)
+    c[i] += 1.0
+    return c
+
+
+def _median_weights(eps: FloatArray) -> FloatArray:
+    """Weights ``m`` with ``m . eps = median(eps)`` for this order of ``eps``."""
     n = eps.size
     order = np.argsort(eps, kind="stable")
-    c = np.zeros(n)
-    c[i] = 1.0
+    m = np.zeros(n)
     if n % 2:
-        c[order[n // 2]] -= 1.0
+        m[order[n // 2]] = 1.0
     else:
-        c[order[n // 2 - 1]] -= 0.5
-        c[order[n // 2]] -= 0.5
-    return c
+        m[order[n // 2 - 1]] = 0.5
+        m[order[n // 2]] = 0.5
+    return m
 
 
 def gauge_complement(radii: Sequence[float]) -> FloatArray:
     """``T`` (2N x 2N-1): an orthonormal basis of the parameters orthogonal to the common
     radius scale ``G`` (``G_r,i = r_i``, ``G_beta,i = 0``)."""
+    return _gauge_complement(tuple(float(r) for r in radii)).copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _gauge_complement(radii: tuple[float, ...]) -> FloatArray:
+    """:func:`gauge_complement`, made once per set of radii (read-only)."""
     m = 2 * len(radii)
     G = np.zeros(m)
     G[0::2] = radii
     Q, _ = np.linalg.qr(np.column_stack([G / np.linalg.norm(G), np.eye(m)]))
-    return np.asarray(Q[:, 1:m], dtype=np.float64)
+    T = np.ascontiguousarray(Q[:, 1:m], dtype=np.float64)
+    T.setflags(write=False)
+    return T
 
 
 def drift_estimates(
@@ -232,7 +268,7 @@ def drift_estimates(
     and the noise scale ``s^2`` (m^2 per block component)."""
     n = len(ids)
     m = 2 * n
-    T = gauge_complement(radii)
+    T = _gauge_complement(tuple(float(r) for r in radii))
     Lq = T.T @ L @ T
     A = Lq + np.diag(1e-9 * np.diag(Lq) + 1e-300)
     Ainv = np.linalg.inv(A)
@@ -243,17 +279,19 @@ def drift_estimates(
     cov = s2 * (T @ Ainv @ T.T)
     r = np.asarray(radii, dtype=np.float64)
     eps = p[0::2] / r
-    out = []
-    for i in range(n):
-        c = median_contrast(eps, i)
-        cp = np.zeros(m)
-        cp[0::2] = r[i] * c / r  # on p: r_i (dr_j / r_j) c_j
-        est_r = float(cp @ p)
-        std_r = math.sqrt(max(float(cp @ cov @ cp), 0.0))
-        out.append(DriftEstimate(
-            module=int(ids[i]), r=est_r, r_std=std_r, beta=float(p[2 * i + 1]),
-            beta_std=math.sqrt(max(float(cov[2 * i + 1, 2 * i + 1]), 0.0)),
-        ))  # fmt: skip
+    # row i: the contrast of module i (median_contrast) on p, r_i (dr_j / r_j) c_j
+    C = np.zeros((n, m))
+    C[:, 0::2] = (np.eye(n) - _median_weights(eps)) * (r[:, None] / r)
+    est_r = C @ p
+    var_r = ((C @ cov) * C).sum(axis=1)
+    var_b = np.diagonal(cov)[1::2]
+    out = [
+        DriftEstimate(
+            module=int(ids[i]), r=float(est_r[i]), r_std=math.sqrt(max(float(var_r[i]), 0.0)),
+            beta=float(p[2 * i + 1]), beta_std=math.sqrt(max(float(var_b[i]), 0.0)),
+        )
+        for i in range(n)
+    ]  # fmt: skip
     return out, s2
 
 
@@ -295,14 +333,16 @@ class DriftMonitor:
         self._new_block()
 
     def _new_block(self) -> None:
-        n = len(self.ids)
-        self._y = [0.0] * (2 * n)
-        self._fr = [0.0] * (2 * n)
-        self._fb = [0.0] * (2 * n)
-        self._qx = [0.0] * n
-        self._qy = [0.0] * n
-        self._w = [0.0] * n
-        self._steps = 0
+        # the block's steps, flat in step order: dt and the twist (v_x, v_y, omega) of
+        # each, and per module its contact point, encoder velocity, weight and rows
+        self._dt = array("d")
+        self._tw = array("d")
+        self._qx = array("d")
+        self._qy = array("d")
+        self._gx = array("d")
+        self._gy = array("d")
+        self._w = array("d")
+        self._rows: list[Rows] = []
         self._travel = 0.0
         self._turn = 0.0
         self._slip = False
@@ -313,16 +353,23 @@ class DriftMonitor:
              psi: Sequence[float] | FloatArray) -> list[SuspectChange]:
         """After ``odometry.update(t, theta_hat, psi)``: observe that step (the first
         reading only stores).  Returns the suspects raised or cleared by it."""
-        step = odometry.last
-        th = [float(a) for a in theta_hat]
-        ps = [float(a) for a in psi]
+        last = odometry._last
+        th = list(map(float, theta_hat))
+        ps = list(map(float, psi))
         prev = self._prev
         self._prev = (odometry.t, th, ps)
-        if (step is None or prev is None or prev[0] is None or step.t != odometry.t
-                or not math.isclose(step.t - step.dt, prev[0], rel_tol=0.0, abs_tol=1e-9)):
+        if (last is None or prev is None or prev[0] is None or last[0] != odometry.t
+                or not math.isclose(last[0] - last[1], prev[0], rel_tol=0.0, abs_tol=1e-9)):
             return []  # the odometry only stored this reading, or we missed the last one
-        rows = _Geometry.of(odometry.params).rows
-        return self.observe(rows, prev[1], th, prev[2], ps, step)
+        _t, dt, sol = last
+        rows = odometry.rows
+        n = len(self.ids)
+        if len(rows) != n or len(sol.weights) != n:
+            raise DriftError(f"drift: expected {n} modules (got {len(rows)})")
+        Qx, Qy, gx, gy = sol.contacts  # the odometry's own, of these readings
+        if len(Qx) != n:
+            Qx, Qy, gx, gy, _ = _contact_velocities(rows, dt, prev[1], th, prev[2], ps)
+        return self._step(rows, dt, prev[1], th, Qx, Qy, gx, gy, sol.twist, sol.weights)
 
     def observe(self, rows: Rows, theta_hat0: Sequence[float], theta_hat1: Sequence[float],
                 psi0: Sequence[float], psi1: Sequence[float],
@@ -331,41 +378,43 @@ class DriftMonitor:
         n = len(self.ids)
         if len(rows) != n or len(step.weights) != n:
             raise DriftError(f"drift: expected {n} modules (got {len(rows)})")
-        dt = step.dt
-        Qx, Qy, gx, gy, _ = _contact_velocities(rows, dt, theta_hat0, theta_hat1, psi0, psi1)
-        vx, vy, om = step.twist
-        y, fr, fb = self._y, self._fr, self._fb
+        Qx, Qy, gx, gy, _ = _contact_velocities(
+            rows, step.dt, theta_hat0, theta_hat1, psi0, psi1)
+        return self._step(rows, step.dt, theta_hat0, theta_hat1, Qx, Qy, gx, gy, step.twist,
+                          step.weights)
+
+    def _step(self, rows: Rows, dt: float, theta_hat0: Sequence[float],
+              theta_hat1: Sequence[float], Qx: Sequence[float], Qy: Sequence[float],
+              gx: Sequence[float], gy: Sequence[float], twist: Sequence[float],
+              weights: Sequence[float]) -> list[SuspectChange]:
+        """Take one step into the block: kept as it is (the block's sums are made when it
+        closes, :meth:`_close_block`); here only what decides the block's end, the mean
+        wheel travel ``mean_i |g_i| h`` and the largest steering turn, and the slip."""
+        n = len(Qx)
         travel = 0.0
         turn = 0.0
-        for i in range(n):
-            x_s, y_s, _beta, _b, r, _k = rows[i]
-            qx, qy = Qx[i], Qy[i]
-            ux, uy = qx - x_s, qy - y_s
-            nu = math.hypot(ux, uy)
-            ux /= nu
-            uy /= nu
-            gxi, gyi = gx[i], gy[i]
-            y[2 * i] += (vx - om * qy - gxi) * dt
-            y[2 * i + 1] += (vy + om * qx - gyi) * dt
-            rho = (gxi * ux + gyi * uy) * dt / r  # dpsi / s
-            fr[2 * i] += rho * ux
-            fr[2 * i + 1] += rho * uy
-            csx, csy = vx - om * y_s, vy + om * x_s
-            fb[2 * i] -= csy * dt
-            fb[2 * i + 1] += csx * dt
-            self._qx[i] += qx
-            self._qy[i] += qy
-            self._w[i] += step.weights[i]
-            travel += math.hypot(gxi, gyi) * dt
-            dth = theta_hat1[i] - theta_hat0[i]
+        hypot = math.hypot
+        for gxi, gyi, th1, th0 in zip(gx, gy, theta_hat1, theta_hat0, strict=False):
+            travel += hypot(gxi, gyi) * dt
+            dth = th1 - th0
             if dth > _PI:
                 dth -= _TWO_PI
             elif dth <= -_PI:
                 dth += _TWO_PI
-            turn = max(turn, abs(dth))
-            if step.weights[i] < self.options.slip_weight:
-                self._slip = True
-        self._steps += 1
+            if dth < 0.0:
+                dth = -dth
+            if dth > turn:
+                turn = dth
+        if min(weights) < self.options.slip_weight:
+            self._slip = True
+        self._dt.append(dt)
+        self._tw.extend(twist)
+        self._qx.extend(Qx)
+        self._qy.extend(Qy)
+        self._gx.extend(gx)
+        self._gy.extend(gy)
+        self._w.extend(weights)
+        self._rows.append(rows)
         self._travel += travel / n
         self._turn += turn
         if self._travel < self.options.block_length and self._turn < self.options.block_turn:
@@ -373,6 +422,48 @@ class DriftMonitor:
         return self._close_block()
 
     # ------------------------------------------------------------------ blocks
+
+    def _block_sums(self) -> tuple[FloatArray, FloatArray, FloatArray, list[float],
+                                   list[float], list[float]]:
+        """The block's sums over its ``K`` steps (module docstring; per module i, step
+        ``h``, twist ``(v, omega)``, contact point ``Q``, encoder velocity ``g``)::
+
+            y_i      = sum (v + omega x Q_i - g_i) h                (the residual, m)
+            phi_r,i  = sum (g_i . u_i) h / r_i  u_i,   u_i = (Q_i - P_s,i) / |Q_i - P_s,i|
+            phi_b,i  = sum rot90(v + omega x P_s,i) h
+
+        as flat vectors (x_0, y_0, x_1, ...), and the mean contact points and weights."""
+        k = len(self._dt)
+        n = len(self.ids)
+        h = np.frombuffer(self._dt)[:, None]
+        tw = np.frombuffer(self._tw).reshape(k, 3)
+        vx, vy, om = tw[:, 0:1], tw[:, 1:2], tw[:, 2:3]
+        qx, qy, gx, gy, w = (
+            np.frombuffer(a).reshape(k, n) for a in (self._qx, self._qy, self._gx, self._gy,
+                                                     self._w))
+        first = self._rows[0]
+        same = all(r is first for r in self._rows)
+        R = np.array(first if same else self._rows, dtype=np.float64)  # (N, 6) or (K, N, 6)
+        xs, ys, r = R[..., 0], R[..., 1], R[..., 4]
+        y = np.empty(2 * n)
+        y[0::2] = ((vx - om * qy - gx) * h).sum(axis=0)
+        y[1::2] = ((vy + om * qx - gy) * h).sum(axis=0)
+        ux = qx - xs
+        uy = qy - ys
+        nu = np.hypot(ux, uy)
+        ux /= nu
+        uy /= nu
+        rho = (gx * ux + gy * uy) * h / r  # dpsi / s
+        fr = np.empty(2 * n)
+        fr[0::2] = (rho * ux).sum(axis=0)
+        fr[1::2] = (rho * uy).sum(axis=0)
+        fb = np.empty(2 * n)  # rot90(c) h, c = v + omega x P_s
+        fb[0::2] = -((vy + om * xs) * h).sum(axis=0)
+        fb[1::2] = ((vx - om * ys) * h).sum(axis=0)
+        Qx = (qx.sum(axis=0) / k).tolist()
+        Qy = (qy.sum(axis=0) / k).tolist()
+        wm = (w.sum(axis=0) / k).tolist()
+        return y, fr, fb, Qx, Qy, wm
 
     def _close_block(self) -> list[SuspectChange]:
         o = self.options
@@ -383,16 +474,12 @@ class DriftMonitor:
             self.dropped += 1
             self._new_block()
             return self._judge(d)
-        k = self._steps
-        Qx = [q / k for q in self._qx]
-        Qy = [q / k for q in self._qy]
-        w = [x / k for x in self._w]
+        yv, fr, fb, Qx, Qy, w = self._block_sums()
         Phi = np.zeros((2 * n, 2 * n))
         for i in range(n):
-            Phi[2 * i:2 * i + 2, 2 * i] = self._fr[2 * i:2 * i + 2]
-            Phi[2 * i:2 * i + 2, 2 * i + 1] = self._fb[2 * i:2 * i + 2]
+            Phi[2 * i:2 * i + 2, 2 * i] = fr[2 * i:2 * i + 2]
+            Phi[2 * i:2 * i + 2, 2 * i + 1] = fb[2 * i:2 * i + 2]
         M = residual_maker(Qx, Qy, w, Phi)
-        yv = np.array(self._y)
         lam = math.exp(-d / o.window)
         self.L = lam * self.L + M.T @ M
         self.eta = lam * self.eta + M.T @ yv

@@ -177,6 +177,9 @@ class StepSolution(NamedTuple):
     weights: list[float]  # IRLS weights that produced ``twist``
     sigma: float  # residual scale, m/s
     iterations: int  # least-squares solves
+    contacts: tuple[list[float], list[float], list[float], list[float]] = ([], [], [], [])
+    """``(Qx, Qy, gx, gy)`` of the step (:func:`_contact_velocities`), for the observers
+    of the odometry (drift monitor) not to compute them again."""
 
 
 def _contact_velocities(
@@ -294,6 +297,9 @@ def step_twist(
     wn_all = [1.0] * n
     res = [0.0] * n
     iterations = 0
+    plain = robust == "none"
+    geman = robust == "geman"
+    sqrt = math.sqrt
     while True:
         iterations += 1
         vx, vy, om = _weighted_twist(w, Qx, Qy, gx, gy)
@@ -301,20 +307,27 @@ def step_twist(
         for i in range(n):
             ex = vx - om * Qy[i] - gx[i]
             ey = vy + om * Qx[i] - gy[i]
-            res[i] = math.sqrt(ex * ex + ey * ey)
+            res[i] = sqrt(ex * ex + ey * ey)
             fx = alpha * ex + keep * prev[2 * i]
             fy = alpha * ey + keep * prev[2 * i + 1]
             filt[2 * i] = fx
             filt[2 * i + 1] = fy
-            if robust == "none":
+            if plain:
                 continue
-            wn = robust_weight(robust, (fx * fx + fy * fy) * inv_sigma * inv_sigma)
-            change = max(change, abs(wn - w[i]))
+            z2 = (fx * fx + fy * fy) * inv_sigma * inv_sigma
+            if geman:  # robust_weight("geman", z2), inline on the hot path
+                wn = 1.0 / (1.0 + z2)
+                wn = wn * wn
+            else:
+                wn = robust_weight(robust, z2)
+            d = abs(wn - w[i])
+            if d > change:
+                change = d
             wn_all[i] = wn
-        if robust == "none" or change < 1e-4 or iterations >= max_iterations:
+        if plain or change < 1e-4 or iterations >= max_iterations:
             break  # ``w`` (reported) are the weights that produced the twist
         w, wn_all = wn_all, w
-    return StepSolution((vx, vy, om), res, filt, w, sigma, iterations)
+    return StepSolution((vx, vy, om), res, filt, w, sigma, iterations, (Qx, Qy, gx, gy))
 
 
 # --------------------------------------------------------------------------- runtime object
@@ -463,6 +476,12 @@ class Odometry:
         return self._geom.ids
 
     @property
+    def rows(self) -> tuple[Row, ...]:
+        """The parameters of the hot path (:data:`Row`, module order), as of the last
+        :meth:`set_params`."""
+        return self._geom.rows
+
+    @property
     def source(self) -> Path | None:
         return self._source
 
@@ -529,8 +548,8 @@ class Odometry:
                 f"odometry: expected {n} steering and wheel readings "
                 f"(got {len(theta_hat)}, {len(psi)})"
             )
-        th = [float(a) for a in theta_hat]
-        ps = [float(a) for a in psi]
+        th = list(map(float, theta_hat))
+        ps = list(map(float, psi))
         t = float(t)
         if not (math.isfinite(t) and math.isfinite(math.fsum(th)) and math.isfinite(math.fsum(ps))):
             raise OdometryError(f"odometry: non-finite reading at t={t!r}")

@@ -374,50 +374,6 @@ def test_the_stream_publishes_base_links_motion_from_the_robot_config(tmp_path: 
     assert math.hypot(tw_r.linear.x, tw_r.linear.y) < 1e-9
 
 
-def test_swpc_odometry_follows_the_drives_on_can_while_the_robot_drives(
-    tmp_path: Path,
-) -> None:
-    """``swpc odometry``'s robot path (the drives' CAN feedback -> DriverOdometry -> the
-    stream) on the in-process simulator in lockstep, while ``swpc validate`` drives a
-    0.3 m square: one /odom and one /tf per reading at the drives' feedback rate, and the
-    pose it publishes follows the square the simulator's truth drove."""
-    from services.cli.odometry import follow_drives
-    from services.cli.validate import run_in_process, validation_settings
-    from swpc_hw.sensors.mocap import ros2_typestore
-    from swpc_hw.validation import SquareOptions
-
-    kin = tmp_path / "kinematics.yaml"
-    save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth: the right file
-    odom: list[tuple[float, bytes]] = []
-    tf: list[float] = []
-
-    def sink(topic: str, _ty: str, stamp: float, cdr: bytes) -> None:
-        if topic == "/odom":
-            odom.append((stamp, cdr))
-        else:
-            tf.append(stamp)
-
-    stream = Ros2OdometryStream(kin, sink)
-    opt = SquareOptions(side=0.3, runs=1, yaw_rate=0.6, yaw_accel=0.8, settle=0.4,
-                        directions=("ccw",))  # fmt: skip
-    rep = run_in_process([("calibrated", PAPER_CALIBRATED)], opt,
-                         observe=lambda drv: follow_drives(drv, stream))  # fmt: skip
-    rate = validation_settings().feedback_rate_hz
-    assert len(odom) == len(tf) == stream.published > 10 * rate
-    stamps = np.array([s for s, _ in odom])
-    assert np.all(np.diff(stamps) > 0)
-    assert len(stamps) / (stamps[-1] - stamps[0]) == pytest.approx(rate, rel=0.02)
-    ts = ros2_typestore()
-    xy = np.array([[m.pose.pose.position.x, m.pose.pose.position.y]
-                   for m in (ts.deserialize_cdr(b, ODOMETRY) for _, b in odom)])  # fmt: skip
-    true = rep.results[0].true_path
-    square = xy[-len(rep.results[0].odometry_path):]  # the square's readings: the last
-
-    def diameter(p: np.ndarray) -> float:  # the square's diagonal, in any frame
-        return float(np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)))
-
-    print(f"\n{len(stamps)} messages at {len(stamps) / (stamps[-1] - stamps[0]):.2f} Hz; "
-          f"the square's diagonal {diameter(square):.5f} m published, "
-          f"{diameter(true):.5f} m true")  # fmt: skip
-    assert diameter(true) == pytest.approx(0.3 * math.sqrt(2), abs=0.005)
-    assert diameter(square) == pytest.approx(diameter(true), abs=1e-3)
+# The stream on the drives' CAN feedback while the in-process simulator drives squares:
+# tests/validation/test_square_path.py::test_swpc_odometry_follows_the_drives_on_can_while_
+# the_robot_drives, which shares the square-path test's drive (one simulator run for both).

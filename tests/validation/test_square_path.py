@@ -1,15 +1,18 @@
 """Square-path validation drive.
 
 Pure parts (path, follower, statistics, odometry feed from the real driver's feedback type)
-run instantly; the end-to-end test drives the in-process simulator through CAN (python-can
-``virtual``) with truth over zenoh on loopback: one small square each way with the nominal
-and the calibrated file, and asserts the calibrated errors are >= 95 % smaller.
+run instantly; the end-to-end tests share one drive of the in-process simulator through CAN
+(python-can ``virtual``) with truth over zenoh on loopback: one small square with the
+nominal and one with the calibrated file; one asserts the calibrated errors are >= 95 %
+smaller, the other that ``swpc odometry``'s ROS 2 stream, fed by the same drives' CAN
+feedback, published the square the truth drove.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -17,7 +20,9 @@ import pytest
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.swpc.driver import SwpcDriver
 from swpc_hw.drives.types import FeedbackSample
-from swpc_hw.files.kinematic_file import load_robot
+from swpc_hw.files.kinematic_file import load_robot, save_kinematics
+from swpc_hw.onboard.ros2.messages import ODOMETRY
+from swpc_hw.onboard.ros2.stream import Ros2OdometryStream
 from swpc_hw.robot.model import wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.validation import (
@@ -247,23 +252,61 @@ def test_driver_odometry_aligns_unsynchronised_modules_on_the_counter_clock() ->
 # --------------------------------------------------------------------------- end to end
 
 
-def test_square_drive_on_the_in_process_simulator_calibrated_beats_nominal_by_95_percent() -> (
-    None
-):
-    """The short variant of ``swpc validate``: a 0.3 m square counter-clockwise (the
-    command drives both ways), 1 run per file, on the in-process simulator in lockstep,
-    through CAN and zenoh; errors of the calibrated file are >= 95 % smaller."""
+class SquareDriveRun(NamedTuple):
+    """What the one drive of the in-process simulator left for the end-to-end tests."""
+
+    report: ValidationReport
+    lines: list[str]  # the drive's log
+    stream: Ros2OdometryStream
+    odom: list[tuple[float, bytes]]  # (stamp, CDR) of every /odom the stream published
+    tf: list[float]  # the stamp of every /tf
+
+
+@pytest.fixture(scope="module")
+def square_drive(tmp_path_factory: pytest.TempPathFactory) -> SquareDriveRun:
+    """The short variant of ``swpc validate`` on the in-process simulator in lockstep,
+    through CAN and zenoh: a 0.3 m square counter-clockwise with the nominal file, then
+    with the calibrated one (the command drives both ways), 1 run per file; all along,
+    ``swpc odometry``'s robot path (the drives' CAN feedback -> DriverOdometry -> the
+    ROS 2 stream, on the simulator's truth: the right file) follows the drives.
+
+    One drive for the two tests below: they assert on different outputs of it (the
+    report; the stream's messages), and a drive is most of their cost."""
+    from services.cli.odometry import follow_drives
     from services.cli.validate import run_in_process
 
+    kin = tmp_path_factory.mktemp("square") / "kinematics.yaml"
+    save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth: the right file
+    odom: list[tuple[float, bytes]] = []
+    tf: list[float] = []
+
+    def sink(topic: str, _ty: str, stamp: float, cdr: bytes) -> None:
+        if topic == "/odom":
+            odom.append((stamp, cdr))
+        else:
+            tf.append(stamp)
+
+    stream = Ros2OdometryStream(kin, sink)
     calibrated = load_robot(DEMO_FILE) if DEMO_FILE.exists() else PAPER_CALIBRATED
     opt = SquareOptions(
         side=0.3, runs=1, yaw_rate=0.6, yaw_accel=0.8, settle=0.4, directions=("ccw",)
     )
     lines: list[str] = []
     rep = run_in_process(
-        [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, log=lines.append
-    )
-    print("\n".join(lines))
+        [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, log=lines.append,
+        observe=lambda drv: follow_drives(drv, stream),
+    )  # fmt: skip
+    return SquareDriveRun(rep, lines, stream, odom, tf)
+
+
+def test_square_drive_on_the_in_process_simulator_calibrated_beats_nominal_by_95_percent(
+    square_drive: SquareDriveRun,
+) -> None:
+    """The short variant of ``swpc validate``: a 0.3 m square counter-clockwise (the
+    command drives both ways), 1 run per file, on the in-process simulator in lockstep,
+    through CAN and zenoh: errors of the calibrated file are >= 95 % smaller."""
+    rep = square_drive.report
+    print("\n".join(square_drive.lines))
     print(rep.table())
     assert len(rep.results) == 2
     s = rep.summary()
@@ -277,3 +320,39 @@ def test_square_drive_on_the_in_process_simulator_calibrated_beats_nominal_by_95
     red = rep.reduction()
     assert red is not None
     assert red["position"] >= 0.95 and red["heading"] >= 0.95
+
+
+def test_swpc_odometry_follows_the_drives_on_can_while_the_robot_drives(
+    square_drive: SquareDriveRun,
+) -> None:
+    """``swpc odometry``'s robot path (the drives' CAN feedback -> DriverOdometry -> the
+    stream) on the in-process simulator in lockstep, while ``swpc validate`` drives its
+    0.3 m squares: one /odom and one /tf per reading at the drives' feedback rate, and the
+    pose it publishes follows the last square the simulator's truth drove.
+
+    (With the tests of the ROS 2 stream in tests/onboard/test_ros2_odometry.py by its
+    subject; here to share the drive.)"""
+    from services.cli.validate import validation_settings
+    from swpc_hw.sensors.mocap import ros2_typestore
+
+    odom, tf, stream = square_drive.odom, square_drive.tf, square_drive.stream
+    last = square_drive.report.results[-1]
+    rate = validation_settings().feedback_rate_hz
+    assert len(odom) == len(tf) == stream.published > 10 * rate
+    stamps = np.array([s for s, _ in odom])
+    assert np.all(np.diff(stamps) > 0)
+    assert len(stamps) / (stamps[-1] - stamps[0]) == pytest.approx(rate, rel=0.02)
+    ts = ros2_typestore()
+    xy = np.array([[m.pose.pose.position.x, m.pose.pose.position.y]
+                   for m in (ts.deserialize_cdr(b, ODOMETRY) for _, b in odom)])  # fmt: skip
+    true = last.true_path
+    square = xy[-len(last.odometry_path):]  # the last square's readings: the last
+
+    def diameter(p: np.ndarray) -> float:  # the square's diagonal, in any frame
+        return float(np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)))
+
+    print(f"\n{len(stamps)} messages at {len(stamps) / (stamps[-1] - stamps[0]):.2f} Hz; "
+          f"the square's diagonal {diameter(square):.5f} m published, "
+          f"{diameter(true):.5f} m true")  # fmt: skip
+    assert diameter(true) == pytest.approx(0.3 * math.sqrt(2), abs=0.005)
+    assert diameter(square) == pytest.approx(diameter(true), abs=1e-3)

@@ -48,7 +48,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 # The odometry's own step (same package layer): the contact points and the weighted solve.
-from swpc_hw.onboard.odometry import Row, _contact_velocities, _weighted_twist, geometry_row
+from swpc_hw.onboard.odometry import (
+    OdometryError,
+    Row,
+    _contact_velocities,
+    geometry_row,
+)
 from swpc_hw.robot.model import PARAM_NAMES
 
 FloatArray = NDArray[np.float64]
@@ -66,13 +71,18 @@ _PARAMS = len(PARAM_NAMES)  # x_s, y_s, beta, b, r (the kinematic file's order)
 def measurement_covariance(
     qx: Sequence[float], qy: Sequence[float], weights: Sequence[float], sigma: float
 ) -> FloatArray:
-    """``Sigma_meas = sigma^2 (A^T W A)^-1`` of the twist (module docstring), 3 x 3."""
-    N = np.zeros((3, 3))
+    """``Sigma_meas = sigma^2 (A^T W A)^-1`` of the twist (module docstring), 3 x 3.
+
+    ``A^T W A = sum w_i [[1, 0, -Q_y], [0, 1, Q_x], [-Q_y, Q_x, |Q|^2]]`` summed in plain
+    floats."""
+    W = X = Y = S = 0.0
     for x, y, w in zip(qx, qy, weights, strict=True):
         w = max(float(w), _MIN_WEIGHT)
-        a1 = np.array([1.0, 0.0, -y])
-        a2 = np.array([0.0, 1.0, x])
-        N += w * (np.outer(a1, a1) + np.outer(a2, a2))
+        W += w
+        X += w * x
+        Y += w * -y
+        S += w * (y * y + x * x)
+    N = np.array([[W, 0.0, Y], [0.0, W, X], [Y, X, S]])
     return np.asarray(sigma * sigma * np.linalg.inv(N), dtype=np.float64)
 
 
@@ -86,22 +96,62 @@ def twist_sensitivity(
     weights: Sequence[float],
 ) -> FloatArray:
     """``J = d twist / d p`` (3 x 5N; p = modules in order, each x_s, y_s, beta, b, r) of
-    the weighted step at fixed weights, by forward differences (step 1e-7 in SI units)."""
-    def twist(rs: Sequence[Row]) -> FloatArray:
-        qx, qy, gx, gy, _ = _contact_velocities(rs, dt, theta_hat0, theta_hat1, psi0, psi1)
-        return np.array(_weighted_twist(weights, qx, qy, gx, gy))
+    the weighted step at fixed weights, by forward differences (step 1e-7 in SI units).
 
-    base = twist(rows)
-    J = np.zeros((3, _PARAMS * len(rows)))
+    A parameter of module i moves only that module's contact point and velocity: each
+    difference computes those again and solves the weighted twist
+    (:func:`~swpc_hw.onboard.odometry._weighted_twist`'s sums and closed form) from the
+    sums over modules 0..i-1, unchanged, with module i's new terms and then the others'
+    added in the same order: the same floats as solving it all again."""
+    n = len(rows)
+    qx, qy, gx, gy, _ = _contact_velocities(rows, dt, theta_hat0, theta_hat1, psi0, psi1)
+    terms = [_terms(weights[i], qx[i], qy[i], gx[i], gy[i]) for i in range(n)]
+    prefix = [(0.0,) * 7]
+    for t in terms:
+        prefix.append(_add(prefix[-1], t))
+    base = np.array(_solve(prefix[n]))
+    twists: list[tuple[float, float, float]] = []
     eps = 1e-7
     for i, row in enumerate(rows):
+        th0, th1, ps0, ps1 = (theta_hat0[i],), (theta_hat1[i],), (psi0[i],), (psi1[i],)
         for k in range(_PARAMS):
             p = list(row[:_PARAMS])
             p[k] += eps
-            rs = list(rows)
-            rs[i] = geometry_row(*p)
-            J[:, _PARAMS * i + k] = (twist(rs) - base) / eps
+            (qxi,), (qyi,), (gxi,), (gyi,), _ = _contact_velocities(
+                (geometry_row(*p),), dt, th0, th1, ps0, ps1)
+            acc = _add(prefix[i], _terms(weights[i], qxi, qyi, gxi, gyi))
+            for t in terms[i + 1:]:
+                acc = _add(acc, t)
+            twists.append(_solve(acc))
+    J = np.zeros((3, _PARAMS * n))
+    if twists:
+        J[:] = (np.array(twists).T - base[:, None]) / eps
     return J
+
+
+_Sums = tuple[float, float, float, float, float, float, float]
+
+
+def _terms(w: float, qx: float, qy: float, gx: float, gy: float) -> _Sums:
+    """One module's terms of ``W, X, Y, S, G_x, G_y, T`` (odometry module docstring)."""
+    return (w, w * qx, w * qy, w * (qx * qx + qy * qy), w * gx, w * gy,
+            w * (qx * gy - qy * gx))  # fmt: skip
+
+
+def _add(a: _Sums, b: _Sums) -> _Sums:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3], a[4] + b[4], a[5] + b[5],
+            a[6] + b[6])  # fmt: skip
+
+
+def _solve(sums: _Sums) -> tuple[float, float, float]:
+    """The weighted twist from its sums (as
+    :func:`~swpc_hw.onboard.odometry._weighted_twist`)."""
+    W, X, Y, S, Gx, Gy, T = sums
+    D = S - (X * X + Y * Y) / W
+    if not D > 1e-12 * S:
+        raise OdometryError("odometry: the weighted contact points are degenerate")
+    om = (T + (Y * Gx - X * Gy) / W) / D
+    return (Gx + om * Y) / W, (Gy - om * X) / W, om
 
 
 def contact_points(

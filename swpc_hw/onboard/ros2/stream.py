@@ -35,7 +35,7 @@ from pathlib import Path
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.kinematic_file import load_kinematics
 from swpc_hw.onboard.drift import DriftMonitor, DriftOptions, SuspectChange
-from swpc_hw.onboard.odometry import Odometry, OdometryOptions, _Geometry, file_signature
+from swpc_hw.onboard.odometry import Odometry, OdometryOptions, file_signature
 from swpc_hw.onboard.ros2.covariance import (
     OdometryCovariance,
     contact_points,
@@ -158,8 +158,12 @@ class Ros2OdometryStream:
             self._watch(t, self.drift.feed(odo, th, ps))
         if prev is None or step is None or step.t != t:
             return  # the first reading only stores
-        rows = _Geometry.of(odo.params).rows
-        qx, qy = contact_points(rows, step.dt, prev[0], th, prev[1], ps)
+        rows = odo.rows
+        sol = odo._last[2] if odo._last is not None else None
+        if sol is not None and len(sol.contacts[0]) == len(rows):
+            qx, qy = sol.contacts[0], sol.contacts[1]  # the odometry's, of these readings
+        else:
+            qx, qy = contact_points(rows, step.dt, prev[0], th, prev[1], ps)
         meas = measurement_covariance(qx, qy, step.weights, step.sigma)
         J = twist_sensitivity(rows, step.dt, prev[0], th, prev[1], ps, step.weights)
         p1 = odo.pose

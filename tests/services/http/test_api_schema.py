@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from http.cookiejar import DefaultCookiePolicy
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
+from schemathesis.transport.requests import SameHostRedirectsSession
 
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.service_rig import TOKEN
@@ -82,15 +84,25 @@ def operations(base_url: str) -> list[Any]:
     return [op.ok() for op in schema.get_all_operations()]
 
 
+def session() -> SameHostRedirectsSession:
+    """schemathesis's own session for the calls (what it opens for each call without one),
+    kept open: one keep-alive connection rather than a new one per call.  It keeps no
+    cookies (the service sets none), so no call carries anything from another."""
+    s = SameHostRedirectsSession()
+    s.cookies.set_policy(DefaultCookiePolicy(allowed_domains=[]))
+    return s
+
+
 def fuzz(base_url: str, headers: dict[str, str]) -> dict[str, int]:
     """Every operation, hypothesis-generated cases; returns how many calls per status."""
     statuses: dict[str, int] = {}
+    http = session()
     for op in operations(base_url):
 
         @settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy())
         def check(case: Any) -> None:
-            response = case.call(base_url=base_url, headers=headers)
+            response = case.call(base_url=base_url, headers=headers, session=http)
             key = f"{case.method} {case.path} {response.status_code}"
             statuses[key] = statuses.get(key, 0) + 1
             assert response.status_code < 500, (key, response.text)
@@ -102,6 +114,7 @@ def fuzz(base_url: str, headers: dict[str, str]) -> dict[str, int]:
                 assert r.status_code in (200, 409), r.text
 
         check()
+    http.close()
     codes = sorted({int(k.rsplit(" ", 1)[1]) for k in statuses})
     print(f"\nschemathesis: {sum(statuses.values())} calls, status codes {codes}")
     return statuses
