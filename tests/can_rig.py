@@ -4,7 +4,7 @@ The bus is selected by environment variables, so the same tests run on python-ca
 ``virtual`` interface (default, a unique channel per test) and on SocketCAN::
 
     SWPC_TEST_CAN_INTERFACE=socketcan SWPC_TEST_CAN_CHANNEL=vcan1,vcan2,vcan3 \
-    SWPC_TEST_TIME_FACTOR=4 pytest tests/drives/swpc/test_driver_back_to_back.py
+    SWPC_TEST_TIME_FACTOR=4 pytest tests/drives/swpc/test_driver_{lifecycle,commands,faults}.py
 
 ``SWPC_TEST_CAN_CHANNEL`` is one interface or a comma-separated pool: each rig takes the
 next one (round robin), so with at least as many interfaces as tests every test has a bus

@@ -10,7 +10,8 @@
 #                 copied to OUT/vcan0.log at the end)
 #   cansend       a DBC Sync frame sent with cansend is seen by candump
 #   python-can    deploy/vm/can_exchange.py: sync/feedback round trips on socketcan/vcan0
-#   driver-tests  tests/drives/swpc/test_driver_back_to_back.py with SWPC_TEST_CAN_INTERFACE=socketcan on vcan1..vcanN
+#   driver-tests  tests/drives/swpc/test_driver_{lifecycle,commands,faults}.py (the driver's
+#                 back-to-back suite) with SWPC_TEST_CAN_INTERFACE=socketcan on vcan1..vcanN
 #                 (one interface per test), SWPC_TEST_TIME_FACTOR=8 (SWPC_VM_TIME_FACTOR)
 #   deadman       deploy/vm/deadman.py on vcan40: held ACTIVE beside busy loops (kernel
 #                 refresh, C-emulated controllers), then kill -STOP: every axis free in time
@@ -145,7 +146,8 @@ measure_speed() { # measure_speed STEP FIXED
 
 # --- the driver's back-to-back suite ---------------------------------------------------------
 shopt -s nullglob
-driver_tests=(tests/drives/swpc/test_driver_back_to_back.py)
+driver_tests=(tests/drives/swpc/test_driver_lifecycle.py tests/drives/swpc/test_driver_commands.py
+              tests/drives/swpc/test_driver_faults.py)
 shopt -u nullglob
 # One vcan interface per test (vcan1..vcanN, used round robin by tests/can_rig.py): no
 # frame of one test reaches the next.  The rig runs F times slower (SWPC_TEST_TIME_FACTOR:
@@ -179,7 +181,7 @@ if ((${#driver_tests[@]})); then
         "${driver_tests[@]}"
     echo "driver suite at time factor $TIME_FACTOR"
 else
-    result driver-tests SKIP "(no tests/drives/swpc/test_driver_back_to_back.py yet)"
+    result driver-tests SKIP "(no tests/drives/swpc/test_driver_*.py back-to-back modules yet)"
 fi
 
 # --- the watchdog refresh in the kernel, and its dead-man ------------------------------------

@@ -23,7 +23,7 @@ import httpx
 import pytest
 
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
-from tests.browser.test_console_browser import SHOTS, browser, shot, wait_for
+from tests.browser.browser_rig import SHOTS, browser, shot, wait_for
 
 assert browser  # the fixture, imported for the tests below
 from selenium.webdriver.common.by import By  # noqa: E402

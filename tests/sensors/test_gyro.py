@@ -3,8 +3,8 @@
 Pure and fast: the model's statistics on a few thousand samples without zenoh, the CDR
 ``sensor_msgs/msg/Imu`` through rosbags, the ingest fed payloads on a virtual clock; one
 loopback zenoh hop.  The gyro inside the running simulator is checked against the
-motion capture in ``tests/simulators/test_virtual_robot_over_can.py``, and through the whole
-service in
+motion capture in ``tests/simulators/test_virtual_robot_contact_points_and_watchdog.py``,
+and through the whole service in
 ``tests/services/whole_runs/test_calibration_without_mocap.py``.
 """
 

@@ -11,7 +11,7 @@ and a virtual clock in ``tests/services/runs/test_state_machine.py``; here the p
 real
 driver, simulator and HTTP.  (That the driver reports a fault stop before its event
 callbacks run is checked from inside a callback in
-``tests/drives/swpc/test_driver_back_to_back.py``; here a
+``tests/drives/swpc/test_driver_faults.py``; here a
 callback held for long would hold the simulated clock itself.)
 """
 

@@ -1,56 +1,43 @@
-"""The console's endpoints through the real app (TestClient): event stream, install,
-roll back, the kinematic files, comparison, a run's geometry and files.
+"""The console's endpoints through the real app (TestClient) on one real run: every state
+of it pushed on ``GET /events?run=<id>``, install and roll back with dated backups (and
+their log lines), no install while a run goes, the comparison, the run's geometry, files
+and what its MCAP holds, its elapsed and remaining robot time, no start while ``/health``
+fails; and a run that installs itself compared with the file it replaced.
 
 The run behind them is a real one: the state machine on the fake robot of
-``tests/services/runs/test_state_machine.py`` (a virtual clock: a whole run in about a second),
-started
-through the runtime's own ``on_change`` (the store, the event bus), while a client
-follows it on ``GET /events?run=<id>``.  The browser drives the same endpoints in
+``tests/services/runs/test_state_machine.py`` (a virtual clock: a whole run in about a
+second), started through the runtime's own ``on_change`` (the store, the event bus), while
+a client follows it on ``GET /events?run=<id>`` (the rig:
+:mod:`tests.services.http.console_rig`).  The tests on the module's ``svc`` share that run
+and the service's kinematic file, in order.  The browser drives the same endpoints in
 ``tests/browser`` (``make test-browser``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
 import logging
 import math
-import signal
 import threading
 import time
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 from fastapi.testclient import TestClient
 from mcap.exceptions import McapError
 from mcap.writer import Writer
-from pydantic import SecretStr
 
-from services.config.robot import RobotConfig
-from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.http.console.router import mcap_summary
-from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
-from services.runtime.events import EventBus
 from services.runtime.runtime import Runtime
-from services.sensors.mocap import MocapIngest
-from swpc_hw.clock import VirtualClock
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.robot.model import RobotParams
-from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
-from tests.fake_robot import FakeRobot
-from tests.service_rig import AUTH, TOKEN, served
-
-TRUTH = RobotParams(robot="swpc", modules=PAPER_CALIBRATED.modules[:3])
-NOMINAL = RobotParams(robot="swpc", modules=PAPER_NOMINAL.modules[:3])
-PROTOCOL = {"angles_deg": [30, 150], "sweep_deg": 90, "settle_time": 0.5, "stop_time": 0.3,
-            "align_time": 0.3, "resteer_time": 0.5}  # fmt: skip
+from tests.service_rig import AUTH
+from tests.services.http.console_rig import NOMINAL, TRUTH, bare_runtime, new_run
 
 
 def parse_sse(text: str) -> list[tuple[str, Any]]:
@@ -61,42 +48,6 @@ def parse_sse(text: str) -> list[tuple[str, Any]]:
         if "event" in fields:
             out.append((fields["event"], json.loads(fields["data"])))
     return out
-
-
-def bare_runtime(data: Path) -> Runtime:
-    """A runtime not opened (no bus, no zenoh, no simulator) on a virtual clock."""
-    settings = ServiceSettings(data_dir=data, token=SecretStr(TOKEN), can_interface="virtual")
-    config = RobotConfig.model_validate({"nominal": NOMINAL.model_dump(), "protocol": PROTOCOL})
-    rt = Runtime(settings, config)
-    rt.clock = VirtualClock(start=1000.0)
-    rt.mocap = MocapIngest(clock=rt.clock, clock_mode="wall", stale_after=0.5)
-    return rt
-
-
-def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) -> CalibrationRun:
-    """A run of the fake robot as the runtime makes one (its store and event bus); every
-    state the runtime is told of goes to ``seen``."""
-
-    def on_change(run: CalibrationRun) -> None:
-        if seen is not None:
-            seen.append(run.status.state)
-        rt._persist(run)
-
-    robot = FakeRobot(TRUTH, rt.clock, rt.mocap, dt=0.01, pose_every=1)  # type: ignore[arg-type]
-    run = CalibrationRun(
-        robot,
-        MocapMetrology(rt.mocap, rt.config.pose_key),
-        rt.config,
-        clock=rt.clock,
-        data_dir=rt.data_dir,
-        kinematics_path=rt.settings.kinematics_file,
-        install=install,
-        on_change=on_change,
-    )
-    rt.runs[run.id] = run
-    rt.current = run
-    on_change(run)
-    return run
 
 
 @pytest.fixture(scope="module")
@@ -402,126 +353,6 @@ def test_what_a_runs_mcap_holds(svc: dict[str, Any], tmp_path: Path) -> None:
         mcap_summary("x", path)
 
 
-def test_an_open_event_stream_does_not_hold_up_a_sigterm(tmp_path: Path) -> None:
-    """The server waits for every open response before it stops the runtime, and with it
-    a run in progress: a console left open kept ``swpc serve`` up after SIGTERM for as
-    long as it stayed open.  Its stream now ends when the service stops."""
-    rt = bare_runtime(tmp_path)
-    app = create_app(rt.settings, runtime_factory=lambda _: rt)
-    lines: list[str] = []
-    with served(app) as (srv, port):
-
-        def listen() -> None:
-            with httpx.stream("GET", f"http://127.0.0.1:{port}/events", timeout=30) as r:
-                lines.extend(r.iter_lines())
-
-        listening = threading.Thread(target=listen, daemon=True)
-        listening.start()
-        deadline = time.monotonic() + 30
-        while "event: live" not in lines:
-            assert listening.is_alive() and time.monotonic() < deadline, lines
-            time.sleep(0.01)
-        srv.handle_exit(signal.SIGTERM, None)  # what the signal handler calls
-        listening.join(10)
-        assert not listening.is_alive() and app.state.stop_signal == "SIGTERM", (
-            "the server still waits for the open stream"
-        )
-
-
-@contextlib.contextmanager
-def http_service(rt: Runtime) -> Iterator[str]:
-    """The app on ``rt`` behind the real HTTP server, in this process; its base URL."""
-    with served(create_app(rt.settings, runtime_factory=lambda _: rt)) as (_srv, port):
-        yield f"http://127.0.0.1:{port}"
-
-
-SSE = tuple[str, str, Any]
-"""An event as a client reads it: its id, its name, its data."""
-
-
-def read_sse(lines: Iterator[str], stop: Callable[[list[SSE]], bool]) -> list[SSE]:
-    """Events from a text/event-stream's lines until ``stop(events so far)``."""
-    out: list[SSE] = []
-    fields: dict[str, str] = {}
-    for line in lines:
-        if line:
-            name, _, value = line.partition(": ")
-            fields[name] = value
-            continue
-        if "event" in fields:
-            out.append((fields["id"], fields["event"], json.loads(fields["data"])))
-            if stop(out):
-                break
-        fields = {}
-    return out
-
-
-def number(event_id: str) -> int:
-    return int(event_id.split(":")[1])
-
-
-def test_a_reconnect_with_last_event_id_gets_exactly_the_events_it_missed(
-    tmp_path: Path,
-) -> None:
-    """The events had no ids: a page whose stream broke during a run (a Wi-Fi hand-over)
-    came back with the run's state now, the states in between lost."""
-    rt = bare_runtime(tmp_path)
-    with http_service(rt) as url:
-        seen: list[str] = []
-        run = new_run(rt, seen=seen)  # published: PENDING
-        with httpx.stream("GET", f"{url}/events", timeout=30) as r:
-            assert r.headers["content-type"].startswith("text/event-stream")
-            lines = r.iter_lines()
-            first = read_sse(lines, lambda got: len(got) == 2)
-            run.start()  # a whole run in about a second of host time
-            first += read_sse(lines, lambda got: [e for _, e, _ in got].count("run") == 4)
-        # the stream broke after 4 changes of state; the run goes on to its end
-        run.join(30)
-        assert run.status.state == "DONE", run.status.errors
-        last_id = first[-1][0]
-        with httpx.stream(
-            "GET", f"{url}/events", headers={"Last-Event-ID": last_id}, timeout=30
-        ) as r:
-            again = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
-    # a new stream: hello, the run's state as it began; every id of a stream larger
-    assert [e for _, e, _ in first[:2]] == ["hello", "run"] and first[1][2]["state"] == "PENDING"
-    for events in (first, again):
-        ids = [number(i) for i, _, _ in events]
-        assert ids == sorted(set(ids)), ids
-        assert len({i.split(":")[0] for i, _, _ in events}) == 1  # one epoch
-    # the reconnect: no hello, exactly the states published after the last one it had,
-    # then the live view again
-    got = [d["state"] for _, e, d in first[2:] if e == "run"]
-    missed = [d["state"] for _, e, d in again if e == "run"]
-    assert len(got) == 4 and [e for _, e, _ in again][-1] == "live"
-    assert "hello" not in [e for _, e, _ in again]
-    assert got + missed == seen[1:], (got, missed, seen)
-    assert missed[-1] == "DONE" and len(missed) > 20
-
-
-def test_a_last_event_id_too_old_or_unknown_starts_over_with_a_snapshot(
-    tmp_path: Path,
-) -> None:
-    rt = bare_runtime(tmp_path)
-    rt.events = EventBus(history=8)  # a run publishes more than that
-    with http_service(rt) as url:
-        run = new_run(rt)
-        with httpx.stream("GET", f"{url}/events", timeout=30) as r:
-            first = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
-        run.start()
-        run.join(30)
-        assert run.status.state == "DONE", run.status.errors
-        epoch = first[0][0].split(":")[0]
-        for last_id in (first[-1][0], "0badc0de:3", f"{epoch}:99999", first[0][0], "junk"):
-            with httpx.stream(
-                "GET", f"{url}/events", headers={"Last-Event-ID": last_id}, timeout=30
-            ) as r:
-                again = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
-            # too old (forgotten), another process's, not one yet, hello's, not an id:
-            # hello and the run's state now, as for a new client
-            assert [e for _, e, _ in again] == ["hello", "run", "live"], (last_id, again)
-            assert again[1][2]["state"] == "DONE"
-
 def test_a_runs_elapsed_and_remaining_robot_time(svc: dict[str, Any]) -> None:
     """Every status pushed carries the robot time since the start and the estimate of
     what the plan's steps left take: unknown until a spin has ended (how long a sweep
@@ -561,25 +392,6 @@ def test_no_start_while_health_fails_and_the_reason_is_said(svc: dict[str, Any])
     bad = client.post("/calibrations", json={"install": "sometimes"}, headers=AUTH)
     assert bad.status_code == 422
     assert client.post("/calibrations", json={}).status_code == 401
-
-
-def test_node_liveness_is_unknown_while_no_heartbeat_is_watched(tmp_path: Path) -> None:
-    """After a run on the in-process simulator the console showed "Alive yes" beside
-    "CAN bus: inactive": between runs simulated time stands still, and no heartbeat is
-    watched.  Its liveness is now unknown (null) there; the rest of a node stays."""
-    from services.http.console.router import _LiveCursor, live_snapshot
-    from tests.service_rig import sim_service
-
-    with sim_service(tmp_path) as sim:
-        rt = sim.rt
-        assert rt.simulator is not None and not rt.running()
-        snap = live_snapshot(rt, _LiveCursor())
-        nodes = snap["nodes"]
-        assert [n["module"] for n in nodes] == [1, 2, 3, 4]
-        assert all(n["alive"] is None for n in nodes), nodes
-        assert all(n["homed"] in (True, False) for n in nodes)
-        health = sim.client.get("/health").json()
-        assert health["simulated_time_still"] is True
 
 
 def installed_run(data: Path, in_force: bool) -> tuple[Runtime, TestClient, CalibrationRun]:
