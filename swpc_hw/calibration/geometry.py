@@ -217,6 +217,19 @@ def settled_angle(P_s: ArrayLike, b: ArrayLike, C: ArrayLike, omega_sign: ArrayL
     return wrap_angle(np.arctan2(q[..., 1], q[..., 0]) + np.arctan2(-sgn * D, -bb))
 
 
+def settled_lever(
+    P_s: ArrayLike, b: ArrayLike, C: ArrayLike, omega_sign: ArrayLike
+) -> FloatArray:
+    """Signed rolling lever of a settled caster: ``g = -sign(omega) sqrt(|P_s - C|^2 - b^2)``.
+
+    The caster trails with a right angle at its contact point, ``(P_w - C) . u = 0``, so
+    ``|g| = |P_w - C| = sqrt(|P_s - C|^2 - b^2)``; it rolls backwards
+    (``r dpsi = g dyaw < 0`` for ``dyaw > 0``).  Broadcasts; (...).
+    """
+    d2 = np.sum((np.asarray(P_s) - np.asarray(C)) ** 2, axis=-1) - np.asarray(b) ** 2
+    return np.asarray(-np.sign(omega_sign) * np.sqrt(np.maximum(d2, 0.0)), dtype=float)
+
+
 def settled_residual(P_s: ArrayLike, b: ArrayLike, theta: ArrayLike, C: ArrayLike) -> FloatArray:
     """``(P_w - C) . u(theta) = (P_s - C) . u(theta) + b``: zero for a settled caster."""
     u = steering_direction(theta)

@@ -27,10 +27,9 @@ What a kind implements (:class:`swpc_hw.drives.interface.DriveKind`, its abstrac
 and hooks): the receive core (``_apply_frame``: what one frame tells, under the lock; or
 ``_receive`` for a kind whose library dispatches frames itself), supervision (``_check``:
 which drives are lost, what to re-send; ``_keep_alive``: its own periodic frames),
-activation (``_bring_up`` before ACTIVE, ``_after_activate``), the stop (``_stopping``,
-``_stop_frames``), the commands and observations of
-:class:`swpc_hw.drives.interface.Drives` (``enable`` ... ``start_homing``, ``modules``,
-``module_state``) and each module's feedback ring (``_ring``).
+activation (``_bring_up``, ``_after_activate``), the stop (``_stopping``, ``_stop_frames``),
+the commands and observations of :class:`swpc_hw.drives.interface.Drives` (``enable`` ...
+``start_homing``, ``modules``, ``module_state``) and each module's ring (``_ring``).
 
 Positions at this boundary are SI: ``theta_hat`` (steering, rad, 0 at the homing
 reference) and ``psi`` (cumulative wheel angle, rad), unwrapped on the host.
@@ -506,12 +505,9 @@ class DriverBase(DriverObservation, DriveKind):
     @staticmethod
     def _configured(tracks: Mapping[int, M], module: int) -> M:
         """``tracks[module]``, or the error that names the modules configured."""
-        try:
-            return tracks[module]
-        except KeyError:
-            raise CanCommandError(
-                f"module {module} is not configured (modules: {sorted(tracks)})"
-            ) from None
+        if module not in tracks:
+            raise CanCommandError(f"module {module} is not configured (modules: {sorted(tracks)})")
+        return tracks[module]
 
     def _check_nodes(
         self,

@@ -151,19 +151,6 @@ class ImuLayout:
         )
 
 
-def settled_lever(
-    P_s: FloatArray, b: FloatArray, C: FloatArray, omega_sign: FloatArray | float
-) -> FloatArray:
-    """Signed rolling lever of a settled caster: ``g = -sign(omega) sqrt(|P_s - C|^2 - b^2)``.
-
-    The caster trails with a right angle at its contact point, ``(P_w - C) . u = 0``, so
-    ``|g| = |P_w - C| = sqrt(|P_s - C|^2 - b^2)``; it rolls backwards
-    (``r dpsi = g dyaw < 0`` for ``dyaw > 0``).  Broadcasts; (...).
-    """
-    d2 = np.sum((np.asarray(P_s) - np.asarray(C)) ** 2, axis=-1) - np.asarray(b) ** 2
-    return np.asarray(-np.sign(omega_sign) * np.sqrt(np.maximum(d2, 0.0)), dtype=float)
-
-
 @dataclass
 class ImuProblem:
     """All observations of an IMU run; weighted residuals of the active blocks."""
@@ -212,7 +199,7 @@ class ImuProblem:
 
     def spin_levers(self, X: FloatArray, C: FloatArray, rs: RollingSet, seg: int) -> FloatArray:
         """``g_j = -sign(omega_s) D_j`` of a segment's modules (m, :func:`settled_lever`)."""
-        return settled_lever(X[rs.mods, P_S], X[rs.mods, B_COL], C[seg], self.seg_sign[seg])
+        return geo.settled_lever(X[rs.mods, P_S], X[rs.mods, B_COL], C[seg], self.seg_sign[seg])
 
     @staticmethod
     def drive_levers(X: FloatArray, rs: RollingSet) -> FloatArray:
@@ -280,7 +267,7 @@ class ImuProblem:
         G = np.zeros((Bn, n_sets, st.set_mods.shape[1]))
         if S:
             jm = st.set_mods[:S]
-            G[:, :S] = settled_lever(
+            G[:, :S] = geo.settled_lever(
                 X[:, jm, P_S], X[:, jm, B_COL], C[:, :, None, :], self.seg_sign[:, None]
             )
         K = np.zeros_like(G)
