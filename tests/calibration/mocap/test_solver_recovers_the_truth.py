@@ -221,7 +221,7 @@ BAD_CASES = {
         lambda d: (d / "robot.yaml").write_text(
             (d / "robot.yaml").read_text().replace("r: 0.055", "r: -0.055", 1)
         ),
-        "robot.yaml: modules[0].r: must be > 0",
+        "robot.yaml: modules[0].r: must be within [0.001, 1] (got -0.055)",
     ),
     "not a number": (
         lambda d: (d / "poses.csv").write_text((d / "poses.csv").read_text() + "1.0,abc,2,3\n"),

@@ -50,7 +50,8 @@ def test_corrupt_kinematic_file_is_a_clear_error_and_degraded_health(tmp_path: P
         kin.unlink()
         kin.mkdir()
         r = client.get("/kinematics")
-        assert r.status_code == 500 and r.json()["reason"] == f"{kin}: cannot read: Is a directory"
+        reason = f"{kin}: not a regular file (a directory)"
+        assert r.status_code == 500 and r.json()["reason"] == reason
         assert client.get("/kinematics/files").json()["in_force"]["sha256"] is None
         kin.rmdir()
         kin.symlink_to(tmp_path / "gone.yaml")
