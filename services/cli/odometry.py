@@ -148,6 +148,7 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
                                 base_link=config.base_link, **_drift(args))
     driver = robot_drives(st, config, interface=args.can_interface, channel=args.can_channel,
                           clock=clock)
+    stream.watch(clock)  # the kinematic file looked at and parsed off the update loop
     try:
         driver.configure()
         follow_drives(driver, stream)
@@ -156,6 +157,7 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
             threading.Event().wait()
     finally:
         driver.shutdown()
+        stream.close()
     return stream
 
 

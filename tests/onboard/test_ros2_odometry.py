@@ -295,6 +295,83 @@ def test_a_bad_new_file_keeps_the_running_parameters(tmp_path: Path) -> None:
     assert len(got) == 2 * (len(t) - 1)
 
 
+def test_a_file_rewritten_in_place_is_used_whole_or_not_at_all(tmp_path: Path) -> None:
+    """A writer that rewrites the file in place (the inode kept) first leaves a truncated
+    radius that still parses (0.05 for 0.0557): it is never used; the whole file is, once
+    it has stood SETTLE_S of the readings' time.  A rename is used at the next step."""
+    from swpc_hw.onboard.ros2.stream import SETTLE_S
+
+    p = PAPER_CALIBRATED
+    kin = tmp_path / "kinematics.yaml"
+    save_kinematics(kin, p)
+    stream = Ros2OdometryStream(kin, lambda *_: None)
+    t, th, ps, _ = make_stream(p, [(2.0, (0.2, 0.0, 0.0))], rate=100.0, jitter=0.0)
+    whole = _scaled_radius(p, 1.1)
+    save_kinematics(tmp_path / "whole.yaml", whole)
+    text = (tmp_path / "whole.yaml").read_text()
+    r1 = f"{whole.modules[0].r!r}"
+    cut = text.replace(r1, r1[:4], 1)  # the first radius cut short, the rest there
+    assert cut != text
+    radii: list[float] = []
+    for k in range(len(t)):
+        if k == 10:
+            with kin.open("r+") as fh:  # in place: the same inode, the half-written state
+                fh.write(cut)
+                fh.truncate()
+        if k == 30:  # the writer finishes 0.2 s later
+            with kin.open("r+") as fh:
+                fh.write(text)
+                fh.truncate()
+        stream.update(t[k], th[k], ps[k])
+        radii.append(stream.odometry.params.modules[0].r)
+    assert {round(r, 9) for r in radii} == {round(p.modules[0].r, 9), round(whole.modules[0].r, 9)}
+    first = radii.index(whole.modules[0].r)
+    assert t[first] - t[30] == pytest.approx(SETTLE_S, abs=0.011)  # settled, then whole
+    assert stream.reloads == 1 and stream.reload_error is None
+    # an atomic rename is whole at once: the next step
+    save_kinematics(tmp_path / "new.yaml", p)
+    os.replace(tmp_path / "new.yaml", kin)
+    stream.update(t[-1] + 0.01, th[-1], ps[-1])
+    assert stream.reloads == 2 and stream.odometry.params.modules[0].r == p.modules[0].r
+
+
+def test_a_watched_file_is_parsed_off_the_update_loop(tmp_path: Path) -> None:
+    """With watch(), update() never opens the file: a new file reaches the odometry
+    through the watcher's thread, a bad one is reported and the parameters stay."""
+    from swpc_hw.clock import SystemClock
+
+    p = PAPER_CALIBRATED
+    kin = tmp_path / "kinematics.yaml"
+    save_kinematics(kin, p)
+    stream = Ros2OdometryStream(kin, lambda *_: None)
+    t, th, ps, _ = make_stream(p, [(1.0, (0.2, 0.0, 0.0))], rate=100.0, jitter=0.0)
+    stream.watch(SystemClock(), period=0.01)
+    try:
+        save_kinematics(tmp_path / "new.yaml", _scaled_radius(p, 1.1))
+        os.replace(tmp_path / "new.yaml", kin)
+        deadline = time.monotonic() + 10
+        k = 0
+        while stream.reloads == 0 and time.monotonic() < deadline:
+            stream.update(t[k % len(t)] + k // len(t), th[k % len(t)], ps[k % len(t)])
+            k += 1
+            time.sleep(0.001)
+        assert stream.reloads == 1
+        assert stream.odometry.params.modules[0].r == pytest.approx(1.1 * p.modules[0].r)
+        os.replace(_bad(tmp_path), kin)
+        while stream.reload_error is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert stream.reload_error is not None and "missing key 'frame'" in stream.reload_error
+        assert stream.reloads == 1
+    finally:
+        stream.close()
+
+
+def _bad(tmp_path: Path) -> Path:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: swpc-kinematics/1\nrobot: x\n")
+    return bad
+
+
 def test_swpc_odometry_replays_a_datasets_encoders_to_a_ros2_client(
     tmp_path: Path, sdk_client: Any
 ) -> None:

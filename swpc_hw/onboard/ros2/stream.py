@@ -7,11 +7,18 @@ odometry step and one message on each topic, handed to a *sink* (the zenoh publi
 :mod:`swpc_hw.onboard.ros2.publisher`, or a list in a test): the stream publishes at the
 odometry's update rate.
 
-Reload.  Before every step the stream compares the kinematic file's (mtime, size, inode)
-with the last load's (a calibration installs a new file by an atomic rename, which changes
-the inode).  A changed file is loaded and swapped in between two steps, pose and readings
-kept; a file that does not load, or describes other modules, is reported once
-(:attr:`reload_error`, the log) and the old parameters stay.
+Reload.  The stream compares the kinematic file's (mtime, size, inode) with the last
+load's (a calibration installs a new file by an atomic rename, which changes the inode).  A
+changed file is loaded (the loader's checks: :func:`~swpc_hw.files.kinematic_file.load_kinematics`,
+the service's own) and swapped in between two steps, pose and readings kept; a file that
+does not load, or describes other modules, is reported once (:attr:`reload_error`, the log)
+and the old parameters stay.  A file rewritten in place (its inode kept) is loaded only once
+it has not changed for :data:`SETTLE_S`, and a file that changed while it was read is read
+again later: a writer's half-written file, which may still parse (a radius cut short), is
+never used.  With :meth:`Ros2OdometryStream.watch` the file is looked at and parsed on a
+thread of its own and :meth:`~Ros2OdometryStream.update` only swaps in what it loaded (a
+1 MiB file takes about a second to parse); without it (a replay, a test) the look is made
+before every step.
 
 Drift.  Given :class:`~swpc_hw.onboard.drift.DriftOptions`, the stream feeds every step to a
 :class:`~swpc_hw.onboard.drift.DriftMonitor` (the odometry's outputs unchanged); each calibration
@@ -29,13 +36,15 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from swpc_hw.clock import Clock
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.kinematic_file import load_kinematics
 from swpc_hw.onboard.drift import DriftMonitor, DriftOptions, SuspectChange
-from swpc_hw.onboard.odometry import Odometry, OdometryOptions, file_signature
+from swpc_hw.onboard.odometry import Odometry, OdometryError, OdometryOptions, file_signature
 from swpc_hw.onboard.ros2.covariance import (
     OdometryCovariance,
     contact_points,
@@ -60,6 +69,11 @@ log = logging.getLogger(__name__)
 
 Sink = Callable[[str, str, float, bytes], None]
 """``sink(topic, ros_type, stamp_seconds, cdr_payload)``."""
+
+SETTLE_S = 0.5
+"""s (of the readings' time, or the watcher's clock) a kinematic file rewritten in place
+must stay unchanged before it is loaded (module docstring)."""
+Loaded = tuple[RobotParams, "FloatArray | None"]
 
 ODOM_TOPIC = "/odom"
 TF_TOPIC = "/tf"
@@ -117,25 +131,53 @@ class Ros2OdometryStream:
         self._prev: tuple[list[float], list[float]] | None = None
         self.drift = DriftMonitor(params, drift) if drift is not None else None
         self._on_suspect = on_suspect
+        self._changing: tuple[tuple[int, int, int], float] | None = None
+        self._last_t = 0.0
+        self._pending: Loaded | None = None
+        self._watcher: threading.Thread | None = None
+        self._stop = threading.Event()
 
     @property
     def ids(self) -> tuple[int, ...]:
         """Module ids in the order :meth:`update` expects readings."""
         return self.odometry.ids
 
-    def reload_if_changed(self) -> bool:
-        """Load the kinematic file again if it changed (module docstring); True if swapped."""
+    def _load_if_changed(self, now: float) -> Loaded | None:
+        """The file's parameters if it changed and may be used at ``now`` (module
+        docstring); None otherwise (a file that does not load: :attr:`reload_error`)."""
         sig = file_signature(self.path)
         if sig is None or sig == self._signature:
-            return False
-        self._signature = sig
+            self._changing = None
+            return None
+        if self._signature is not None and sig[2] == self._signature[2]:  # rewritten in place
+            if self._changing is None or self._changing[0] != sig:
+                self._changing = (sig, now)
+                return None
+            if now - self._changing[1] < SETTLE_S:
+                return None
+        self._changing = None
         try:
             params, cov = load_in_base_link(self.path, self.base_link)
-            self.odometry.set_params(params)
+            if tuple(m.id for m in params.modules) != self.ids:
+                raise OdometryError(
+                    f"odometry: {self.path} has module ids {list(params.ids)}, the running "
+                    f"robot {list(self.ids)}"
+                )
         except (SwpcError, OSError, ValueError) as exc:
+            if file_signature(self.path) != sig:
+                return None  # it changed while read: judged again at the next look
+            self._signature = sig
             self.reload_error = str(exc)
             log.warning("odometry: kept the running parameters: %s", exc)
-            return False
+            return None
+        if file_signature(self.path) != sig:
+            return None
+        self._signature = sig
+        return params, cov
+
+    def _apply(self, loaded: Loaded) -> bool:
+        params, cov = loaded
+        self.odometry.set_params(params)
         self.covariance.set_parameter_covariance(_parameter_covariance(params, cov))
         if self.drift is not None:
             self.drift.restart()
@@ -144,9 +186,44 @@ class Ros2OdometryStream:
         log.info("odometry: reloaded %s", self.path)
         return True
 
+    def reload_if_changed(self, now: float | None = None) -> bool:
+        """Load the kinematic file again if it changed (module docstring), now; ``now``:
+        the time judged against :data:`SETTLE_S` (default: the last reading's).  True if
+        swapped."""
+        loaded = self._load_if_changed(self._last_t if now is None else now)
+        return loaded is not None and self._apply(loaded)
+
+    def watch(self, clock: Clock, period: float = 0.25) -> None:
+        """Look at the kinematic file every ``period`` s of ``clock`` on a thread of its
+        own (module docstring) until :meth:`close`."""
+        if self._watcher is not None:
+            return
+
+        def run() -> None:
+            while not self._stop.is_set():
+                loaded = self._load_if_changed(clock.now())
+                if loaded is not None:
+                    self._pending = loaded
+                clock.sleep(period)
+
+        self._watcher = threading.Thread(target=run, name="swpc-kinematics-watch", daemon=True)
+        self._watcher.start()
+
+    def close(self) -> None:
+        """Stop the watcher (idempotent)."""
+        self._stop.set()
+        if self._watcher is not None:
+            self._watcher.join(timeout=5.0)
+
     def update(self, t: float, theta_hat: Sequence[float], psi: Sequence[float]) -> None:
         """One reading of all modules (module order :attr:`ids`): step, then publish."""
-        self.reload_if_changed()
+        self._last_t = t
+        if self._watcher is None:
+            self.reload_if_changed(t)
+        else:
+            loaded, self._pending = self._pending, None
+            if loaded is not None:
+                self._apply(loaded)
         odo = self.odometry
         p0 = odo.pose
         odo.update(t, theta_hat, psi)
