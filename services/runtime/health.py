@@ -187,10 +187,9 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
     except KinematicFileError as exc:
         degraded.append(f"kinematic file in force unreadable: {exc}")
     else:
-        mismatch = in_force and module_mismatch(
-            [int(m["id"]) for m in in_force["modules"]], rt.config.nominal.ids
-        )
-        if mismatch:
+        ids = [] if in_force is None else [int(m["id"]) for m in in_force["modules"]]
+        mismatch = None if in_force is None else module_mismatch(ids, rt.config.nominal.ids)
+        if mismatch is not None:
             degraded.append(
                 f"kinematic file in force does not match the robot: {mismatch} (a check is "
                 "refused; a calibration replaces it)"
