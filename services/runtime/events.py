@@ -105,7 +105,9 @@ class EventBus:
         """The number of an id of this bus (``Last-Event-ID``); None for another's or
         none."""
         epoch, _, seq = (event_id or "").strip().partition(":")
-        if epoch != self.epoch or not (seq.isascii() and seq.isdigit()):
+        # at most 18 digits: a sequence number fits in 63 bits, and int() of a longer string
+        # is work an unauthenticated header should not buy (over 4300 digits: ValueError)
+        if epoch != self.epoch or not (seq.isascii() and seq.isdigit()) or len(seq) > 18:
             return None
         return int(seq)
 

@@ -137,12 +137,14 @@ def test_a_last_event_id_too_old_or_unknown_starts_over_with_a_snapshot(
         run.join(30)
         assert run.status.state == "DONE", run.status.errors
         epoch = first[0][0].split(":")[0]
-        for last_id in (first[-1][0], "0badc0de:3", f"{epoch}:99999", first[0][0], "junk"):
+        huge = f"{epoch}:" + "9" * 5000  # int() refuses over 4300 digits: was a traceback
+        for last_id in (first[-1][0], "0badc0de:3", f"{epoch}:99999", first[0][0], "junk", huge):
             with httpx.stream(
                 "GET", f"{url}/events", headers={"Last-Event-ID": last_id}, timeout=30
             ) as r:
                 again = read_sse(r.iter_lines(), lambda got: got[-1][1] == "live")
-            # too old (forgotten), another process's, not one yet, hello's, not an id:
+            # too old (forgotten), another process's, not one yet, hello's, not an id, too
+            # long to be one:
             # hello and the run's state now, as for a new client
             assert [e for _, e, _ in again] == ["hello", "run", "live"], (last_id, again)
             assert again[1][2]["state"] == "DONE"
