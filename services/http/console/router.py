@@ -489,7 +489,8 @@ def geometry(run_id: str, rt: Rt) -> RunGeometry:
     return out
 
 def run_dir(rt: Runtime, run_id: str) -> Path:
-    if rt.status(run_id) is None:
+    """A calibration's directory (404 for anything else: a check's files are its own)."""
+    if rt.status(run_id, "calibration") is None:
         raise HTTPException(404, f"no calibration {run_id}")
     return Path(rt.settings.data_dir) / "runs" / run_id
 

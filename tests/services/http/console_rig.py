@@ -12,11 +12,13 @@ from pydantic import SecretStr
 
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
+from services.runs.check import CheckRun
 from services.runs.metrology.mocap import MocapMetrology
 from services.runs.protocol import CalibrationRun
 from services.runtime.runtime import Runtime
 from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
+from swpc_hw.files.kinematic_file import load_kinematics
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.fake_robot import FakeRobot
@@ -61,4 +63,25 @@ def new_run(rt: Runtime, install: str = "never", seen: list[str] | None = None) 
     rt.runs[run.id] = run
     rt.current = run
     on_change(run)
+    return run
+
+
+def new_check(rt: Runtime) -> CheckRun:
+    """A check of the file in force on the fake robot, as the runtime makes one."""
+    robot = FakeRobot(TRUTH, rt.clock, rt.mocap, dt=0.01, pose_every=1)  # type: ignore[arg-type]
+    path = rt.settings.kinematics_file
+    run = CheckRun(
+        robot,
+        MocapMetrology(rt.mocap, rt.config.pose_key),
+        rt.config.check_config().with_overrides({"protocol": {"sweep_deg": 90}}),  # quick
+        file=load_kinematics(path),
+        file_info={"name": path.name},
+        clock=rt.clock,
+        data_dir=rt.data_dir,
+        kinematics_path=path,
+        on_change=rt._persist,
+    )
+    rt.runs[run.id] = run
+    rt.current = run
+    rt._persist(run)
     return run

@@ -37,7 +37,7 @@ from services.runs.protocol import CalibrationRun
 from services.runtime.runtime import Runtime
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from tests.service_rig import AUTH
-from tests.services.http.console_rig import NOMINAL, TRUTH, bare_runtime, new_run
+from tests.services.http.console_rig import NOMINAL, TRUTH, bare_runtime, new_check, new_run
 
 
 def parse_sse(text: str) -> list[tuple[str, Any]]:
@@ -440,3 +440,26 @@ def test_a_run_that_installs_itself_is_compared_with_the_file_it_replaced(
             assert cmp["reference"] == "nominal" and cmp["replaced"]["replaced"] is None
             assert cmp["reference_why"] == "no file was in force when it was installed"
             assert beta["reference_value"] is None
+
+
+def test_a_checks_id_is_found_only_under_checks(svc: dict[str, Any]) -> None:
+    """A check keeps a dataset, an MCAP and its file in force in its run directory, yet it
+    is no calibration: none of the calibration's file routes serves them (they answered
+    200 with the check's files)."""
+    client, rt = svc["client"], svc["rt"]
+    check = new_check(rt)  # (the fake robot's check may fail: its files are there either way)
+    check.start()
+    check.join(30)
+    assert check.status.state in ("DONE", "FAILED") and check.status.kind == "check"
+    cid = check.id
+    kept = {p.name for p in (rt.data_dir / "runs" / cid).iterdir()}
+    assert {"run.mcap", "dataset"} <= kept, kept
+    assert client.get(f"/checks/{cid}").status_code == 200
+    for path in (
+        "", "/result", "/files", "/files/dataset.zip", "/files/run.mcap", "/files/can.log",
+        "/files/kinematics.yaml", "/mcap", "/geometry", "/plot.png", "/comparison",
+        "/export?to=kinematics",
+    ):  # fmt: skip
+        r = client.get(f"/calibrations/{cid}{path}")
+        assert r.status_code == 404, (path, r.status_code, r.text[:200])
+        assert "no calibration" in r.json()["detail"], (path, r.text[:200])
