@@ -28,8 +28,10 @@ The unit's ``LimitNOFILE=`` leaves room above the cap for the bus, zenoh and fil
 
 Secrets never reach a log: uvicorn's access log line carries the request's query string,
 where a client may put the token (``?token=...``, refused with 401 all the same);
-:class:`RedactSecrets` replaces the values of secret-looking query parameters and the
-service's token wherever it appears before the line is written.
+:class:`RedactSecrets` replaces the values of secret-looking query parameters (``token``,
+``pw``, ``bearer``, ``password``, ``key``...) and the service's token wherever it appears,
+percent-encoded or not (a path is decoded, as the server decodes it, before it is
+searched, its control characters escaped), before the line is written.
 
 ``swpc serve`` binds the listening socket itself (:func:`listen_socket`) before the
 service opens anything, so that a port in use is one line on stderr, not uvicorn's
@@ -46,6 +48,7 @@ import socket
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
+from urllib.parse import unquote
 
 import h11
 import uvicorn
@@ -179,22 +182,36 @@ class GuardedH11(H11Protocol):
 
 
 SECRET_PARAMS = re.compile(
-    r"(?i)([?&](?:[^=&#]*(?:token|auth|key|secret|password)[^=&#]*)=)[^&#\s]*"
+    r"(?i)([?&;](?:[^=&#;]*(?:token|auth|key|secret|pass|pw|bearer|cred|sig|session)"
+    r"[^=&#;]*)=)[^&#;\s]*"
 )
 """A query parameter whose name says it holds a secret, up to its value."""
 REDACTED = "[redacted]"
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def _decoded(text: str) -> str:
+    """``text`` with its percent-escapes decoded (up to three times: a twice-encoded token
+    is the token to anyone who reads the log) and control characters escaped (a decoded
+    ``%0a`` must not start a forged log line)."""
+    for _ in range(3):
+        if "%" not in text:
+            break
+        text = unquote(text, errors="backslashreplace")
+    return _CONTROL.sub(lambda m: f"\\x{ord(m.group()):02x}", text)
 
 
 class RedactSecrets(logging.Filter):
     """Redact secrets from a log record (module docstring): the values of secret-looking
-    query parameters and ``token()`` wherever it appears; the record is kept."""
+    query parameters and ``token()`` wherever it appears, encoded or not; the record is
+    kept."""
 
     def __init__(self, token: Callable[[], str]) -> None:
         super().__init__("swpc.redact")
         self.token = token
 
     def redact(self, text: str) -> str:
-        text = SECRET_PARAMS.sub(lambda m: m.group(1) + REDACTED, text)
+        text = SECRET_PARAMS.sub(lambda m: m.group(1) + REDACTED, _decoded(text))
         token = self.token()
         return text.replace(token, REDACTED) if token else text
 

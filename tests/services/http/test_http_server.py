@@ -66,8 +66,9 @@ def test_the_token_never_reaches_a_log(
     server: tuple[str, int], caplog: pytest.LogCaptureFixture
 ) -> None:
     """A token sent in the query string was refused (401) but uvicorn's access log wrote
-    it down."""
+    it down; so it did under ``?pw=``, ``?bearer=``, percent-encoded, or in the path."""
     host, port = server
+    encoded = "".join(f"%{b:02X}" for b in TOKEN.encode())  # every character escaped
     caplog.set_level(logging.INFO, logger="uvicorn.access")
     with httpx.Client(base_url=f"http://{host}:{port}") as client:
         r = client.post(f"/calibrations?token={TOKEN}&x=1", json={})
@@ -77,8 +78,15 @@ def test_the_token_never_reaches_a_log(
             503,
         )
         assert client.get(f"/calibrations/{TOKEN}").status_code == 404
+        for query in (f"pw={TOKEN}", f"bearer={TOKEN}", "pw=an0ther-s3cret", f"q={encoded}",
+                      f"%74oken={encoded.replace('%', '%25')}", "x=%0a200%20OK"):  # fmt: skip
+            assert client.get(f"/health?{query}").status_code in (200, 503)
+        assert client.get(f"/calibrations/{encoded}").status_code == 404
     lines = [r.getMessage() for r in caplog.records if r.name == "uvicorn.access"]
-    assert len(lines) == 3, lines
+    assert len(lines) == 10, lines
     text = "\n".join(lines)
-    assert TOKEN not in text and "s3cret" not in text, text
+    assert TOKEN not in text and "s3cret" not in text and encoded not in text, text
     assert "token=[redacted]" in text and "run=abc" in text  # what is not secret stays
+    assert "pw=[redacted]" in text and "bearer=[redacted]" in text
+    assert "/calibrations/[redacted]" in text and "q=[redacted]" in text
+    assert "x=\\x0a200 OK" in text and all("\n" not in line for line in lines)
