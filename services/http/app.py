@@ -22,6 +22,8 @@ what is opened in the lifespan and :mod:`services.runs.protocol` for the protoco
 
 from __future__ import annotations
 
+import errno
+import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
@@ -42,6 +44,8 @@ from services.runtime.fleet import FleetPublisher
 from services.runtime.runtime import Runtime
 from services.store.provenance import tool_version
 from swpc_hw.heap_freeze import freeze_startup_heap
+
+log = logging.getLogger("swpc.service")
 
 
 def create_app(
@@ -95,6 +99,17 @@ def create_app(
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         detail = printable(jsonable_encoder(exc.errors()))
         return FiniteJSONResponse({"detail": detail}, status_code=422)
+
+    @app.exception_handler(OSError)
+    async def _os_error(request: Request, exc: OSError) -> JSONResponse:
+        """A file the request needed could not be written or read: 507 when the disk (or
+        a quota) is full, else 500; the reason without a traceback (that goes to the log)."""
+        full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+        log.error("%s %s: %s", request.method, request.url.path, exc, exc_info=not full)
+        what = "no room on disk" if full else "a file could not be written or read"
+        return FiniteJSONResponse(
+            {"detail": f"{what}: {exc.strerror or exc}"}, status_code=507 if full else 500
+        )
 
     for module in (calibrations, checks, answers, kinematics, health):
         app.include_router(module.router)

@@ -79,6 +79,8 @@ log = logging.getLogger(__name__)
 
 IO_WAIT_MAX = 0.05
 """Longest wall wait of the I/O thread for a frame (s): how soon it notices shutdown."""
+LOG_RETRY_S = 10.0
+"""The rolling CAN log, paused by a failed write (a full disk), tries again this often (s)."""
 
 T = TypeVar("T", bound=NodeTrack)
 
@@ -211,6 +213,8 @@ class DriverBase(DriverObservation, DriveKind):
                     cfg.log_path,
                     total_bytes=cfg.log_total_bytes,
                     sample_period_s=cfg.log_idle_period_s,
+                    retry_s=LOG_RETRY_S,
+                    now=self.clock.now,
                 )
             self._configured_at = self.clock.now()
             self._opened(self._bus)

@@ -5,8 +5,9 @@ A :class:`Recorder` with ``total_bytes`` is a bounded rolling log: python-can's
 :class:`can.SizedRotatingLogger` starts a new file every ``total_bytes / ROLLING_FILES``
 bytes, and its rotator deletes the oldest rotated files of the same base name so that all
 of them together stay within ``total_bytes`` (across restarts: the base file is appended
-to).  A write that fails (a full disk) stops the recorder and keeps the reason in
-:attr:`Recorder.error`; the traffic itself is never affected.
+to).  A write that fails (a full disk) stops the recorder, or pauses the rolling log
+until it can write again, and keeps the reason in :attr:`Recorder.error`; the traffic
+itself is never affected.
 
 A recorder with a ``sample_period_s`` keeps, of the frames written with ``sample=True``
 (the driver's rolling log between recordings: an idle robot), only what
@@ -26,6 +27,8 @@ import logging
 import os
 import socket
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -138,6 +141,11 @@ class Recorder:
     ``total_bytes``: a bounded rolling log (module docstring) instead of one file;
     ``sample_period_s``: frames written with ``sample=True`` go through an
     :class:`IdleSampler` of that period (0: every frame is kept).
+
+    ``retry_s`` > 0 (the rolling log): a failed write pauses the log instead of ending
+    it; the first frame ``retry_s`` or more after (on ``now``, the driver's clock) opens
+    it again, and the frames in between are counted in :attr:`lost`.  So a disk that was
+    full and has room again gets its log back without a restart.
     """
 
     def __init__(
@@ -146,33 +154,70 @@ class Recorder:
         lock: threading.Lock | None = None,
         total_bytes: int | None = None,
         sample_period_s: float = 0.0,
+        retry_s: float = 0.0,
+        now: Callable[[], float] | None = None,
     ) -> None:
         self.path = path
-        self.logger: can.Listener = (
-            rolling_logger(path, total_bytes) if total_bytes else can.Logger(path)
-        )
+        self.total_bytes = total_bytes
+        self.logger: can.Listener = self._open()
         self.lock = lock or threading.Lock()
         self.closed = False
         self.error: str | None = None
         self.sampler = IdleSampler(sample_period_s)
+        self.retry_s = retry_s
+        self.now = now or time.monotonic
+        self.lost = 0
+        """Frames not written while the log was paused (``retry_s``)."""
+        self._retry_at: float | None = None
+        self._stopped = False
+
+    def _open(self) -> can.Listener:
+        if self.total_bytes:
+            return rolling_logger(self.path, self.total_bytes)
+        return can.Logger(self.path)
 
     def write(self, msg: can.Message, sample: bool = False) -> None:
         with self.lock:
-            if self.closed:  # a frame racing with stop() is dropped, not an error
-                return
+            if self.closed and not self._resumed():
+                if self._retry_at is not None:
+                    self.lost += 1
+                return  # (a frame racing with stop() is dropped, not an error)
             if sample and not self.sampler.keep(msg):
                 return
             try:
                 self.logger.on_message_received(msg)
             except (OSError, ValueError) as exc:
-                self.error = f"{self.path}: {getattr(exc, 'strerror', None) or exc}"
-                self.closed = True
-                log.error("CAN recording stopped: %s", self.error)
-                with contextlib.suppress(Exception):
-                    self.logger.stop()
+                self._failed(exc)
+
+    def _failed(self, exc: Exception) -> None:
+        """(lock held) A write failed: the log stops, or pauses until ``retry_s`` later."""
+        self.error = f"{self.path}: {getattr(exc, 'strerror', None) or exc}"
+        self.closed = True
+        with contextlib.suppress(Exception):
+            self.logger.stop()
+        if self.retry_s > 0:
+            self._retry_at = self.now() + self.retry_s
+            log.error("CAN log paused: %s (tried again every %.0f s)", self.error, self.retry_s)
+        else:
+            log.error("CAN recording stopped: %s", self.error)
+
+    def _resumed(self) -> bool:
+        """(lock held) Open the paused log again if its retry is due; True once it is."""
+        if self._stopped or self._retry_at is None or self.now() < self._retry_at:
+            return False
+        try:
+            self.logger = self._open()
+        except OSError as exc:
+            self.error = f"{self.path}: {exc.strerror or exc}"
+            self._retry_at = self.now() + self.retry_s
+            return False
+        log.warning("CAN log resumed: %s (%d frames lost while paused)", self.path, self.lost)
+        self.closed, self.error, self._retry_at = False, None, None
+        return True
 
     def stop(self) -> None:
         with self.lock:
+            self._stopped = True
             if not self.closed:
                 self.closed = True
                 try:

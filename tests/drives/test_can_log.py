@@ -162,3 +162,35 @@ def test_a_can_log_that_cannot_write_stops_and_says_why(tmp_path: Path) -> None:
     rec.logger.file.close()  # type: ignore[attr-defined]  # the file is gone from under it
     rec.write(can.Message(arbitration_id=1, data=b"\x00"))
     assert rec.closed and rec.error is not None and "x.log" in rec.error
+
+
+def test_the_rolling_log_paused_by_a_full_disk_resumes_when_there_is_room(
+    tmp_path: Path,
+) -> None:
+    """Issue 40 row 13: after a full disk the rolling log stayed stopped ("degraded: CAN
+    log stopped" at /health) until a restart.  A real ENOSPC (``/dev/full`` under the
+    log's name), then room again (a regular file there): the log resumes ``retry_s``
+    later on the driver's clock, counts what it lost, and says nothing is wrong."""
+    from swpc_hw.clock import VirtualClock
+
+    clock = VirtualClock()
+    base = tmp_path / "can.log"
+    base.symlink_to("/dev/full")
+    rec = Recorder(str(base), total_bytes=1 << 20, retry_s=10.0, now=clock.now)
+    frame = can.Message(arbitration_id=0x123, data=bytes(8))
+    for _ in range(2000):  # a buffer's worth and more: the flush meets ENOSPC
+        rec.write(frame)
+        if rec.closed:
+            break
+    assert rec.closed and rec.error is not None and "No space left" in rec.error
+    clock.advance(9.9)
+    rec.write(frame)  # not yet: still paused, the frame lost
+    assert rec.closed and rec.lost == 1
+    base.unlink()  # room again
+    clock.advance(0.1)
+    rec.write(frame)
+    assert not rec.closed and rec.error is None and rec.lost == 1
+    rec.stop()
+    assert [m.arbitration_id for m in can.LogReader(str(base))] == [0x123]
+    rec.write(frame)  # stopped for good: no retry brings it back
+    assert rec.closed and rec.lost == 1

@@ -199,3 +199,67 @@ def test_dataset_hash_follows_every_file(tmp_path: Path) -> None:
     assert dataset_sha256(tmp_path) != h and len(h) == 64
     (tmp_path / "poses.csv").write_text("a\n")
     assert dataset_sha256(tmp_path) == h
+
+
+PLOT_ON_A_FULL_DISK = textwrap.dedent(
+    """
+    import json, os, sys
+    from pathlib import Path
+    sys.path.insert(0, {root!r})
+    from fastapi.testclient import TestClient
+    from services.http.app import create_app
+    from tests.services.http.console_rig import bare_runtime, new_run
+
+    d = Path(sys.argv[1])
+    rt = bare_runtime(d / "data")
+    with TestClient(create_app(rt.settings, runtime_factory=lambda _: rt)) as client:
+        run = new_run(rt)
+        run.start()
+        run.join(60)
+        url = f"/calibrations/{{run.id}}/plot.png"
+        with open(d / "filler", "wb") as f:  # the disk fills up
+            try:
+                while True:
+                    f.write(bytes(1 << 16))
+                    f.flush()
+            except OSError:
+                pass
+        full = client.get(url)
+        os.remove(d / "filler")  # room again
+        again = client.get(url)
+    print(json.dumps({{"state": str(run.status.state), "full": full.status_code,
+                      "full_type": full.headers["content-type"], "full_body": full.text,
+                      "again": again.status_code, "again_type": again.headers["content-type"]}}))
+    """
+)
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None, reason="no unshare(1)")
+def test_a_plot_on_a_full_disk_is_a_507_that_says_why_then_served_once_there_is_room(
+    tmp_path: Path,
+) -> None:
+    """Issue 40 row 13: ``plot.png`` answered 500 and its traceback when the disk was full.
+    A real ENOSPC in a 16 MiB tmpfs (a user + mount namespace of a child process): 507
+    with the reason; once there is room, the plot."""
+    script = tmp_path / "plot.py"
+    script.write_text(PLOT_ON_A_FULL_DISK.format(root=str(ROOT)))
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    probe = subprocess.run(
+        ["unshare", "--user", "--map-root-user", "--mount", "true"], capture_output=True
+    )
+    if probe.returncode != 0:
+        pytest.skip(f"no user namespaces here: {probe.stderr.decode().strip()}")
+    cmd = f"mount -t tmpfs -o size=16m tmpfs {mnt} && exec {sys.executable} {script} {mnt}"
+    p = subprocess.run(
+        ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", cmd],
+        capture_output=True,
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr.decode()[-3000:]
+    out = json.loads(p.stdout.decode().strip().splitlines()[-1])
+    assert out["state"] == "DONE", out
+    assert out["full"] == 507 and out["full_type"] == "application/json", out
+    assert "no room on disk: No space left on device" in out["full_body"], out
+    assert "Traceback" not in out["full_body"]
+    assert out["again"] == 200 and out["again_type"] == "image/png", out
