@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-from services.sensors.ingest import Ingest, IngestCounters
+from services.sensors.ingest import MAX_CLOCK_STEP_S, Ingest, IngestCounters
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.sensors.gyro import ImuDecodeError, decode_imu
 
@@ -42,7 +42,7 @@ class GyroIngest(Ingest):
         stale_after: float = 0.5,
         capacity: int = 4_000_000,
         max_clock_error: float = 1.0,
-        max_clock_step: float = 1.0,
+        max_clock_step: float = MAX_CLOCK_STEP_S,
     ) -> None:
         super().__init__(
             COLUMNS,
@@ -55,6 +55,8 @@ class GyroIngest(Ingest):
         )
         self.counters = IngestCounters()
         self._delay = math.nan  # receipt minus the mapped stamp, newest sample
+        rate = clock.rate  # clock seconds per stamp (wall) second; a lockstep clock's: 1
+        self._scale = float(rate) if math.isfinite(rate) else 1.0
 
     # ------------------------------------------------------------------ input
     def feed(self, payload: bytes, t_recv: float | None = None) -> bool:
@@ -71,7 +73,7 @@ class GyroIngest(Ingest):
             if not (math.isfinite(g.t) and math.isfinite(g.wz)):
                 c.non_finite += 1
                 return False
-            if not self._in_order(g.t):
+            if not self._in_order(g.t, now, self._scale):
                 return False
             t_host = self.clock.from_wall(g.t)
             self._delay = now - t_host

@@ -10,7 +10,11 @@ A sensor ingest (:class:`~services.sensors.mocap.MocapIngest`,
   so the simulated time moves on only once every sample published up to now is stored;
 * the stamp order (:meth:`Ingest._in_order`): a stamp equal to the last accepted one is a
   duplicate, an older one out of order, unless it stepped back by more than
-  ``max_clock_step`` source seconds (the source clock was reset: a new sequence);
+  ``max_clock_step`` source seconds (the source clock was reset: a new sequence); a stamp
+  that moved on more than ``max_clock_step`` beyond its receipt (the stamps advanced
+  that much more than the receive times since the last sample: a transport stall only
+  ever does the opposite) is the source clock stepped forward, also a new sequence.
+  Either is a clock jump (:meth:`Ingest.clock_jump`), which fails a run at once;
 * the store (rows ``t_source, t_recv, t_host, ...``), read whole (:meth:`Ingest.samples`)
   or by cursor (:meth:`Ingest.samples_since`), and the stream's age: *stale* when the
   newest accepted sample was received more than ``stale_after`` clock seconds ago;
@@ -34,6 +38,10 @@ from swpc_hw.row_ring import RowRing
 
 FloatArray = NDArray[np.float64]
 
+MAX_CLOCK_STEP_S = 0.5
+"""A source clock stepping back, or forward beyond its receipt, by more than this (s of
+the service clock) is a clock jump, not a late or reordered sample."""
+
 
 @dataclass
 class IngestCounters:
@@ -44,7 +52,8 @@ class IngestCounters:
     duplicates: int = 0
     out_of_order: int = 0
     clock_resets: int = 0
-    """source clock stepped back by more than ``max_clock_step``: the stamp sequence restarts"""
+    """source clock stepped back, or forward beyond its receipt, by more than
+    ``max_clock_step``: the stamp sequence restarts"""
 
     @property
     def dropped(self) -> int:
@@ -74,8 +83,10 @@ class Ingest:
         self._lock = threading.Lock()
         self._rows = RowRing(len(columns), capacity, initial=1 << 16)
         self._last_source = -math.inf
+        self._last_recv = math.nan
         self.last_clock_step = 0.0
-        """How far the source clock last stepped back (s of source time), at a reset."""
+        """How far the source clock last stepped at a reset (s of source time; > 0: back,
+        < 0: forward)."""
         self._recent = deque[float](maxlen=recent)  # receive times, for the rate
         self._subscriber: Any = None
         self._lockstep_key: str | None = None
@@ -116,10 +127,10 @@ class Ingest:
         """Decode, check and store one payload; returns whether it was accepted."""
         raise NotImplementedError
 
-    def _in_order(self, t: float, scale: float = 1.0) -> bool:
-        """Whether stamp ``t`` follows the last accepted one (module docstring), counting
-        what it is not; ``scale``: clock seconds per source second (the step's unit).
-        Called under the lock."""
+    def _in_order(self, t: float, now: float, scale: float = 1.0) -> bool:
+        """Whether stamp ``t``, received at ``now``, follows the last accepted one (module
+        docstring), counting what it is not; ``scale``: clock seconds per source second
+        (the step's unit).  Called under the lock."""
         c = self.counters
         if t == self._last_source:
             c.duplicates += 1
@@ -130,7 +141,11 @@ class Ingest:
                 return False
             c.clock_resets += 1  # the source clock was stepped back: a new sequence
             self.last_clock_step = self._last_source - t
+        elif (t - self._last_source) * scale - (now - self._last_recv) > self.max_clock_step:
+            c.clock_resets += 1  # stepped forward: a new sequence too
+            self.last_clock_step = -((t - self._last_source) - (now - self._last_recv) / scale)
         self._last_source = t
+        self._last_recv = now
         return True
 
     def _store(self, row: tuple[float, ...], now: float) -> None:
@@ -171,11 +186,17 @@ class Ingest:
     def clock_jump(self, resets_before: int, what: str, key: str) -> str | None:
         """Why the samples since ``resets_before`` clock resets cannot be trusted (None:
         none since): during a run, the source's clock stepping back is a second publisher
-        on ``key`` or a clock reset, and either makes the run's data wrong."""
+        on ``key`` or a clock reset, and a step forward a clock set anew; either makes the
+        run's data wrong."""
         with self._lock:
             n, step = self.counters.clock_resets, self.last_clock_step
         if n == resets_before:
             return None
+        if step < 0:
+            return (
+                f"{what} clock jumped forward by {-step:.3f} s during the run (its clock was "
+                "set anew): its samples cannot be trusted"
+            )
         return (
             f"{what} clock jumped back by {step:.3f} s during the run (a second publisher on "
             f"{key}, or its clock reset): its samples cannot be trusted"

@@ -40,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from services.sensors.ingest import Ingest, IngestCounters
+from services.sensors.ingest import MAX_CLOCK_STEP_S, Ingest, IngestCounters
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.sensors.mocap import (
     PoseDecodeError,
@@ -91,7 +91,7 @@ class MocapIngest(Ingest):
         sync_window: float = 1.0,
         clock_mode: str = "source",
         max_clock_error: float = 1.0,
-        max_clock_step: float = 1.0,
+        max_clock_step: float = MAX_CLOCK_STEP_S,
     ) -> None:
         super().__init__(
             COLUMNS,
@@ -144,7 +144,7 @@ class MocapIngest(Ingest):
                 c.non_unit_quaternion += 1
                 return False
             resets = c.clock_resets
-            if not self._in_order(p.t, self.source_rate):
+            if not self._in_order(p.t, now, self.source_rate):
                 return False
             if c.clock_resets != resets:
                 # the source clock was stepped back (mocap PC restarted, clock re-synced):

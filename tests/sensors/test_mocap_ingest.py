@@ -52,6 +52,24 @@ def test_a_source_clock_stepped_back_restarts_the_stream() -> None:
     assert ing.samples()[-2:, 2].tolist() == pytest.approx([10.07, 10.08])
 
 
+def test_a_source_clock_stepped_forward_is_a_jump_and_a_stalled_link_is_not() -> None:
+    """Stamps that run ahead of their receipt by more than ``max_clock_step`` are a clock
+    set anew (a new sequence, :meth:`clock_jump` says so); a link that stalls 2 s and then
+    delivers its backlog at once moves the receipts, not the stamps, and is no jump."""
+    ing = MocapIngest()  # the default step: 0.5 s
+    t = 100.0
+    for i in range(5):
+        assert ing.feed(native(t + 0.01 * i), t_recv=10.0 + 0.01 * i)
+    for i in range(5, 205):  # stalled: 2 s of poses arrive together at 12.1 s
+        assert ing.feed(native(t + 0.01 * i), t_recv=12.1)
+    assert ing.counters.clock_resets == 0 and ing.clock_jump(0, "mocap", "k") is None
+    assert ing.feed(native(t + 2.05 + 3.0), t_recv=12.11)  # the mocap clock set 3 s on
+    assert ing.counters.clock_resets == 1
+    why = ing.clock_jump(0, "motion-capture", "mocap/swpc/pose") or ""
+    assert why.startswith("motion-capture clock jumped forward by 3.000 s"), why
+    assert ing.clock_offset == pytest.approx(12.11 - (t + 5.05))  # the envelope restarted
+
+
 def test_configured_encoding_rejects_the_other() -> None:
     ing = MocapIngest(encoding=PoseEncoding.CDR)
     assert not ing.feed(native(1.0), t_recv=0.0)

@@ -400,23 +400,29 @@ def test_motion_capture_going_silent_during_a_spin_fails_the_run(tmp_path: Path)
     assert 0.5 < rig.clock.now() - rig.entered_at[State.SPIN] < 0.55
 
 
-def test_a_motion_capture_clock_that_jumps_back_mid_spin_fails_the_run_at_once(
-    tmp_path: Path,
+@pytest.mark.parametrize(("step", "said"), [(-5.0, "back by 5."), (-0.8, "back by 0.8"),
+                                           (3.0, "forward by 3.")])  # fmt: skip
+def test_a_motion_capture_clock_that_jumps_mid_spin_fails_the_run_at_once(
+    tmp_path: Path, step: float, said: str
 ) -> None:
     """Poses stamped over 1 s in the past (another publisher on the key, or the mocap's
     clock reset) were taken as a clock reset: the run went on through the whole protocol
-    and failed only at SOLVE.  Now it fails at once, robot stopped, with the reason."""
+    and failed only at SOLVE.  Now it fails at once, robot stopped, with the reason; so
+    it does for a step back of 0.8 s (was: dropped as reordered, then "stale" 7 s later)
+    and a step forward of 3 s (was: taken, the run failed at SOLVE naming something
+    else)."""
     rig = Rig(tmp_path)
 
-    def rogue_pose(run: CalibrationRun) -> None:
-        stamp = rig.clock.wall() - 5.0  # 5 s in the past, on the robot's key
+    def jumped_pose(run: CalibrationRun) -> None:
+        stamp = rig.clock.wall() + step  # the mocap's clock, stepped, on the robot's key
         rig.mocap.feed(encode_native(PoseSample.planar(stamp, 0.0, 0.0, 0.0)))
 
-    rig.hooks[State.SPIN] = rogue_pose
+    rig.hooks[State.SPIN] = jumped_pose
     run = rig.run()
     assert run.status.state is State.FAILED
     reason = run.status.reason or ""
-    assert "motion-capture clock jumped back by" in reason and "mocap/swpc/pose" in reason
+    assert f"motion-capture clock jumped {said}" in reason, reason
+    assert ("mocap/swpc/pose" in reason) is (step < 0)
     assert "(during SPIN" in reason
     assert rig.clock.now() - rig.entered_at[State.SPIN] < 0.05  # at the next check
     assert stopped_after(rig, rig.entered_at[State.SPIN])
