@@ -32,6 +32,9 @@ def register(sub: Any) -> None:
     p.add_argument("--zenoh-listen", dest="listen", nargs="*", metavar="ENDPOINT")
     p.add_argument("--zenoh-connect", dest="connect", nargs="*", metavar="ENDPOINT")
     p.add_argument("--zenoh-config", dest="config_file", help="zenoh JSON5 config file")
+    p.add_argument("--zenoh-users-file", dest="users_file",
+                   help="the robots' zenoh user:password file (mode router): each robot "
+                        "publishes under its own name only")
     p.add_argument("--stale-periods", type=float,
                    help="fleet periods without a message before a robot is stale "
                         "(default 3)")
@@ -48,17 +51,16 @@ def run(args: argparse.Namespace) -> int:
 
     from services.config.fleet import FleetSettings
     from services.config.settings import SettingsError
-    from services.fleet.service import FleetService
+    from services.fleet.service import FleetService, open_fleet_session
     from services.http.edge.server import listen_socket, server
     from services.http.fleet.app import create_fleet_app
     from services.store.fleet import FleetStore
     from services.store.logs import configure, event
-    from swpc_hw.sensors.zenoh_session import open_session
 
     if args.env_file is not None and not Path(args.env_file).is_file():
         raise SettingsError(f"--env-file {args.env_file}: no such file")
     keys = ("host", "port", "data_dir", "mode", "listen", "connect", "config_file",
-            "stale_periods", "log_level", "log_format")  # fmt: skip
+            "users_file", "stale_periods", "log_level", "log_format")  # fmt: skip
     overrides = {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
     try:
         s = FleetSettings(_env_file=args.env_file, **overrides)
@@ -72,9 +74,8 @@ def run(args: argparse.Namespace) -> int:
     session: Any = None
     fleet = FleetService(store, stale_periods=s.stale_periods)
     try:
-        session = open_session(
-            mode=s.mode, listen=s.listen, connect=s.connect, config_file=s.config_file
-        )
+        fleet.sweep()  # a store written before today's checks keeps only what they pass
+        session = open_fleet_session(s)
         fleet.subscribe(session)
         host, port = sock.getsockname()[:2]
         event(log, logging.INFO, "fleet.listen", host=host, port=port,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,51 @@ def default_fleet_dir() -> Path:
     return base / "swpc-fleet"
 
 
+def fleet_users(path: Path) -> list[str]:
+    """The user names of a zenoh user-password dictionary (``user:password`` lines): the
+    robots of the fleet, each a robot name (:class:`FleetNameError` naming the line)."""
+    users = []
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        user, sep, password = line.partition(":")
+        if not sep or not password:
+            raise FleetNameError(f"{path}:{n}: not a user:password line")
+        try:
+            users.append(check_robot_name(user))
+        except FleetNameError as exc:
+            raise FleetNameError(f"{path}:{n}: {exc}") from None
+    if not users:
+        raise FleetNameError(f"{path}: no user:password line")
+    return users
+
+
+def fleet_acl(robots: Sequence[str]) -> dict[str, Any]:
+    """zenoh access control of the fleet's router (the fleet service in mode router, with
+    its user-password dictionary): every authenticated peer may subscribe to the fleet's
+    keys and receive them; robot ``X`` (its zenoh user name) may put, delete and hold a
+    liveliness token under ``swpc/fleet/X/**`` only; nothing outside the fleet's keys
+    flows."""
+    keys = [f"{PREFIX}/**", "@/**"]
+    listen = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+    write = ["put", "delete", "liveliness_token"]
+
+    def rule(rid: str, flows: list[str], messages: list[str], where: list[str]) -> dict[str, Any]:
+        return {"id": rid, "permission": "allow", "flows": flows, "messages": messages,
+                "key_exprs": where}  # fmt: skip
+
+    rules = [rule("out", ["egress"], listen + write, keys), rule("in", ["ingress"], listen, keys)]
+    subjects: list[dict[str, Any]] = [{"id": "anyone"}]
+    policies = [{"rules": ["out", "in"], "subjects": ["anyone"]}]
+    for name in robots:
+        check_robot_name(name)
+        rules.append(rule(f"own-{name}", ["ingress"], write, [f"{PREFIX}/{name}/**"]))
+        subjects.append({"id": f"robot-{name}", "usernames": [name]})
+        policies.append({"rules": [f"own-{name}"], "subjects": [f"robot-{name}"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}  # fmt: skip
+
+
 class FleetSettings(BaseSettings):
     """``swpc fleet``'s settings: ``SWPC_FLEET_*`` variables, an env file, its flags."""
 
@@ -113,6 +159,12 @@ class FleetSettings(BaseSettings):
     )
     config_file: str | None = Field(
         None, description="zenoh JSON5 config (deploy/zenoh/fleet-router.json5)"
+    )
+    users_file: Path | None = Field(
+        None,
+        description="zenoh user-password dictionary of the robots (user:password lines, "
+        "each user a robot's fleet name): with it (mode router) only they connect, and "
+        "robot X may publish under swpc/fleet/X/ only (docs/fleet.md)",
     )
     stale_periods: float = Field(
         STALE_PERIODS,

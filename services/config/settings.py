@@ -169,6 +169,14 @@ class ServiceSettings(BaseSettings):
     fleet_config_file: str | None = Field(
         None, description="zenoh JSON5 config of the fleet session"
     )
+    fleet_user: str | None = Field(
+        None, description="zenoh user of the fleet session; unset: the robot's fleet name"
+    )
+    fleet_password: SecretStr | None = Field(
+        None,
+        description="zenoh password of the fleet session (the fleet's router admits only "
+        "its users, and each robot publishes under its own name only: docs/fleet.md)",
+    )
     pose_encoding: str = Field("auto", description="native | ros2-cdr | auto")
     mocap_stale_after: float | None = Field(
         None,

@@ -25,19 +25,33 @@ from services.config.fleet import (
     STATE_FORMAT,
     STATE_FORMAT_1,
     STATE_KEYS,
+    FleetSettings,
+    fleet_acl,
     fleet_period,
     fleet_period_field,
+    fleet_users,
     robot_of_key,
 )
-from services.fleet.view import summary
+from services.fleet.view import calibrations, summary
 from services.store.fleet import FleetStore
 from services.store.logs import event
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
+from swpc_hw.files.kinematic_file import BOUNDS
 from swpc_hw.robot.model import PARAM_NAMES
 
 log = logging.getLogger("swpc.fleet")
-MAX_DOCUMENT_BYTES = 4 << 20
-"""A state document larger than this is refused (a robot's years of calibrations fit)."""
+MAX_DOCUMENT_BYTES = 1 << 20
+"""A state document larger than this is refused (a robot's years of calibrations fit:
+a calibration is about 1.5 kB of it)."""
+MAX_DEPTH = 12
+"""Nesting of a state document's objects and lists (the format's deepest is 6)."""
+MAX_MAGNITUDE = 1e12
+"""Any number of a state document: finite and within +-this (a time stamp in epoch
+seconds fits; 1e400 is infinity in JSON and never a robot's)."""
+MAX_REFUSING_KEYS = 1024
+"""Keys remembered as refusing (each logged once); beyond, refusals are only counted."""
+MAX_PERIOD_S = 3600.0
+"""A robot's fleet period: at most this (``SWPC_FLEET_PERIOD``'s own limit)."""
 
 
 class DocumentError(ValueError):
@@ -56,13 +70,37 @@ def _modules(mods: Any, where: str) -> None:
         if not isinstance(m, dict) or not isinstance(m.get("id"), int):
             raise DocumentError(f"{where}[{i}]: a module needs an integer id")
         for k in PARAM_NAMES:
-            _number(m.get(k), f"{where}[{i}].{k}")
+            v = m.get(k)
+            _number(v, f"{where}[{i}].{k}")
+            lo, hi = BOUNDS[k]
+            if v is not None and not lo <= v <= hi:
+                raise DocumentError(f"{where}[{i}].{k}: {v!r} outside the plausible [{lo}, {hi}]")
         std = m.get("stddev")
         if std is not None:
             if not isinstance(std, dict):
                 raise DocumentError(f"{where}[{i}].stddev: not a mapping")
             for k in PARAM_NAMES:
                 _number(std.get(k), f"{where}[{i}].stddev.{k}")
+
+
+def _shape(doc: Any) -> None:
+    """Every value of ``doc`` (iteratively: a deep one cannot exhaust the stack): nested
+    at most :data:`MAX_DEPTH` deep, every number finite and within :data:`MAX_MAGNITUDE`."""
+    todo: list[tuple[Any, int, str]] = [(doc, 1, "")]
+    while todo:
+        v, depth, where = todo.pop()
+        if isinstance(v, dict | list):
+            if depth > MAX_DEPTH:
+                raise DocumentError(f"nested more than {MAX_DEPTH} deep (at {where or '/'})")
+            items = v.items() if isinstance(v, dict) else enumerate(v)
+            todo.extend((x, depth + 1, f"{where}/{k}") for k, x in items)
+        elif (
+            isinstance(v, float | int)
+            and not isinstance(v, bool)
+            and not (math.isfinite(v) and abs(v) <= MAX_MAGNITUDE)
+        ):
+            raise DocumentError(f"{where}: {v!r} is not a finite number within "
+                                f"{MAX_MAGNITUDE:g}")  # fmt: skip
 
 
 def check_document(robot: str, payload: bytes) -> dict[str, Any]:
@@ -75,16 +113,20 @@ def check_document(robot: str, payload: bytes) -> dict[str, Any]:
         doc = json.loads(payload)
     except (ValueError, UnicodeDecodeError) as exc:
         raise DocumentError(f"not JSON: {exc}") from None
+    except RecursionError:
+        raise DocumentError(f"nested more than {MAX_DEPTH} deep") from None
     if not isinstance(doc, dict):
         raise DocumentError("not a JSON object")
+    _shape(doc)
     if doc.get("format") not in (STATE_FORMAT, STATE_FORMAT_1):
         raise DocumentError(f"format {doc.get('format')!r}, expected {STATE_FORMAT!r}")
     if doc.get("robot") != robot:
         raise DocumentError(f"robot {doc.get('robot')!r} published on {robot!r}'s key")
     period = fleet_period(doc)
-    if not (isinstance(period, int | float) and math.isfinite(period) and period > 0):
+    if not (isinstance(period, int | float) and 0 < period <= MAX_PERIOD_S):
         raise DocumentError(
-            f"{fleet_period_field(doc)} {period!r}: a positive number of seconds is needed"
+            f"{fleet_period_field(doc)} {period!r}: a number of seconds in (0, "
+            f"{MAX_PERIOD_S:g}] is needed"
         )
     fif = doc.get("file_in_force")
     if fif is not None:
@@ -118,6 +160,8 @@ class FleetService:
         self.received = 0
         self.rejected = 0
         self.last_rejection: str | None = None
+        self._refusing: set[str] = set()  # keys whose last document was refused
+        self._views: dict[str, tuple[int, dict[str, Any], list[dict[str, Any]], int]] = {}
         self._lock = threading.Lock()
         self._subs: list[Any] = []
 
@@ -135,8 +179,13 @@ class FleetService:
             except DocumentError as exc:
                 self.rejected += 1
                 self.last_rejection = f"{key}: {exc}"
-                event(log, logging.WARNING, "fleet.rejected", key=key, error=str(exc))
+                # logged once until the key is right again (counted always)
+                if key not in self._refusing and len(self._refusing) < MAX_REFUSING_KEYS:
+                    self._refusing.add(key)
+                    event(log, logging.WARNING, "fleet.rejected", key=key[:200],
+                          error=str(exc)[:500])  # fmt: skip
                 return False
+            self._refusing.discard(key)
             self.store.record(robot, self.clock.wall(), doc)
             return True
 
@@ -172,10 +221,16 @@ class FleetService:
 
     # ---------------------------------------------------------------- the view
     def robots(self) -> list[dict[str, Any]]:
-        """Every robot ever heard, by name, as the fleet view shows it now."""
+        """Every robot ever heard, by name, as the fleet view shows it now.  A robot whose
+        documents cannot be shown (a store written by an older service, say) is listed
+        with the reason, never breaking the list."""
         out = []
         for row in self.store.robots():
-            got = self.robot(row.robot, points=False)
+            try:
+                got = self.robot(row.robot, points=False)
+            except Exception as exc:  # one robot's view, not everyone's
+                log.warning("fleet: robot %s cannot be shown: %r", row.robot, exc)
+                got = {"robot": row.robot, "status": "unknown", "error": repr(exc)[:300]}
             if got is not None:
                 out.append(got)
         return out
@@ -185,14 +240,17 @@ class FleetService:
         row = self.store.robot(name)
         if row is None:
             return None
-        docs = [d.doc for d in self.store.documents(name)]
-        if not docs:
+        seen = self._view_inputs(name)
+        if seen is None:
             return None
+        _, last, cals, n = seen
         with self._lock:
             alive = self.alive.get(name)
         out = summary(
             name,
-            docs,
+            last,
+            cals,
+            n,
             first_seen=row.first_seen,
             last_seen=row.last_seen,
             alive=alive,
@@ -201,8 +259,44 @@ class FleetService:
             points=points,
         )
         if points:
-            out["state"] = docs[-1]
+            out["state"] = last
         return out
+
+    def _view_inputs(
+        self, name: str
+    ) -> tuple[int, dict[str, Any], list[dict[str, Any]], int] | None:
+        """``(newest seq, newest document, calibrations, documents)`` of ``name``, read from
+        the store once per new document (``GET /robots`` would otherwise parse every
+        robot's every document at each request)."""
+        seq = self.store.last_seq().get(name)
+        if seq is None:
+            return None
+        with self._lock:
+            hit = self._views.get(name)
+        if hit is not None and hit[0] == seq:
+            return hit
+        docs = [d.doc for d in self.store.documents(name)]
+        if not docs:
+            return None
+        got = (seq, docs[-1], calibrations(docs), len(docs))
+        with self._lock:
+            self._views[name] = got
+        return got
+
+    def sweep(self) -> int:
+        """Forget the stored documents today's checks refuse (a store written before them);
+        returns how many.  Run once when the service opens its store."""
+        bad = []
+        for row in self.store.robots():
+            for d in self.store.documents(row.robot):
+                try:
+                    check_document(row.robot, json.dumps(d.doc).encode())
+                except (DocumentError, RecursionError, ValueError):
+                    bad.append(d.seq)
+        if bad:
+            self.store.delete(bad)
+            event(log, logging.WARNING, "fleet.swept", documents=len(bad))
+        return len(bad)
 
     def counts(self) -> dict[str, Any]:
         rows = self.store.robots()
@@ -216,3 +310,24 @@ class FleetService:
             "rejected": self.rejected,
             "last_rejection": self.last_rejection,
         }
+
+
+def open_fleet_session(s: FleetSettings) -> Any:
+    """The fleet service's zenoh session of settings ``s``: with ``users_file`` (mode
+    router or peer: a listener) only its users connect and each robot publishes under its
+    own key only (:func:`~services.config.fleet.fleet_acl`)."""
+    from swpc_hw.sensors.zenoh_session import ZenohAuth, open_session
+
+    auth = acl = None
+    if s.users_file is not None:
+        if s.mode == "client":
+            raise DocumentError(
+                "SWPC_FLEET_USERS_FILE: the robots' credentials are checked where they "
+                "connect: the fleet service in mode router (--zenoh-mode router)"
+            )
+        auth = ZenohAuth(users_file=str(s.users_file))
+        acl = fleet_acl(fleet_users(s.users_file))
+    return open_session(
+        mode=s.mode, listen=s.listen, connect=s.connect, config_file=s.config_file,
+        auth=auth, acl=acl,
+    )  # fmt: skip

@@ -107,7 +107,9 @@ def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def summary(
     robot: str,
-    docs: Sequence[dict[str, Any]],
+    last: dict[str, Any],
+    cals: Sequence[dict[str, Any]],
+    documents: int,
     *,
     first_seen: float,
     last_seen: float,
@@ -116,12 +118,12 @@ def summary(
     stale_periods: float,
     points: bool = False,
 ) -> dict[str, Any]:
-    """One robot in the fleet view (``points``: with each parameter's series)."""
-    last = docs[-1]
+    """One robot in the fleet view (``points``: with each parameter's series): ``last``
+    its newest document, ``cals`` :func:`calibrations` of all of them, ``documents`` how
+    many are kept."""
     st, why = status(last_seen, alive, float(fleet_period(last)), now, stale_periods)
     fif = last.get("file_in_force") or {}
     check = last.get("last_check")
-    cals = calibrations(docs)
     dr = drift(cals)
     if not points:
         dr = [{k: v for k, v in p.items() if k != "points"} for p in dr]
@@ -141,6 +143,6 @@ def summary(
         "last_check": check,
         "health": last.get("health"),
         "calibrations": len(cals),
-        "documents": len(docs),
+        "documents": documents,
         "drift": dr,
     }

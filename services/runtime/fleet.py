@@ -40,7 +40,7 @@ from services.store.provenance import tool_version
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.errors import SwpcError
 from swpc_hw.robot.model import PARAM_NAMES
-from swpc_hw.sensors.zenoh_session import open_session
+from swpc_hw.sensors.zenoh_session import ZenohAuth, open_session
 
 log = logging.getLogger("swpc.fleet")
 POLL_S = 0.5
@@ -163,9 +163,14 @@ class FleetPublisher:
     def open(cls, rt: Runtime) -> FleetPublisher:
         """The publisher of ``rt``'s settings, on a session of its own, started."""
         s = rt.settings
+        auth = None
+        if s.fleet_password is not None:
+            user = s.fleet_user or robot_name(rt)
+            auth = ZenohAuth(user, s.fleet_password.get_secret_value())
         session = open_session(
-            mode=s.fleet_mode, connect=s.fleet_connect, config_file=s.fleet_config_file
-        )
+            mode=s.fleet_mode, connect=s.fleet_connect, config_file=s.fleet_config_file,
+            auth=auth,
+        )  # fmt: skip
         try:
             pub = cls(rt, session)
         except BaseException:

@@ -4,7 +4,13 @@ documents, append-only, and when each robot was last heard.
 A document is kept when it differs from the robot's last one in anything but its
 ``time`` (a repeat, the same state published again: it only moves ``last_seen``).  So the
 store holds each robot's history of states, each once, and a restarted fleet service
-lists every robot as it last was, with when it was last heard.  Checked when it opens
+lists every robot as it last was, with when it was last heard.
+
+The store is bounded: each robot keeps its last ``max_documents`` documents, and all of
+them together at most ``max_bytes`` of JSON; beyond, the oldest are pruned first (never a
+robot's last one, unless the robots' last ones alone exceed it: then the robots heard
+longest ago go).  A robot's last document holds its whole history of calibrations, so
+pruning loses no calibration of a robot still publishing.  Checked when it opens
 (``quick_check``), as the run store: a damaged one is :class:`FleetStoreError`, one line
 naming the file.
 """
@@ -68,9 +74,24 @@ class StoredDocument:
     doc: dict[str, Any]
 
 
+MAX_DOCUMENTS = 100
+"""Documents kept per robot (its states as they changed; a robot publishes a new one per
+calibration, check or change of health)."""
+MAX_BYTES = 128 << 20
+"""JSON bytes of every robot's documents together."""
+
+
 class FleetStore:
-    def __init__(self, path: str | Path) -> None:
+    def __init__(
+        self, path: str | Path, *, max_documents: int = MAX_DOCUMENTS, max_bytes: int = MAX_BYTES
+    ) -> None:
+        if max_documents < 1 or max_bytes < 1:
+            raise ValueError("max_documents and max_bytes must be positive")
         self.path = Path(path)
+        self.max_documents = max_documents
+        self.max_bytes = max_bytes
+        self.pruned = 0
+        """Documents pruned since it opened (the bounds above)."""
         self._lock = threading.Lock()
         try:
             self._db = open_database(self.path, _SCHEMA)
@@ -80,6 +101,8 @@ class FleetStore:
                 "again: the robots publish their state again, with their whole history of "
                 "calibrations"
             ) from exc
+        with self._lock:
+            self._bytes = self._total()
 
     def record(self, robot: str, received: float, doc: dict[str, Any]) -> bool:
         """``robot`` was heard at ``received`` with ``doc``: its ``last_seen`` moves, and
@@ -99,11 +122,54 @@ class FleetStore:
             ).fetchone()
             if last is not None and last[0] == d:
                 return False
+            text = json.dumps(doc)
             self._db.execute(
                 "INSERT INTO documents (robot, received, digest, doc) VALUES (?, ?, ?, ?)",
-                (robot, received, d, json.dumps(doc)),
+                (robot, received, d, text),
             )
+            self._bytes += len(text)
+            self._prune(robot)
             return True
+
+    def _prune(self, robot: str) -> None:
+        """(lock and transaction held) Keep within the bounds (module docstring)."""
+        db = self._db
+        cur = db.execute(
+            "DELETE FROM documents WHERE robot = ? AND seq NOT IN (SELECT seq FROM documents "
+            "WHERE robot = ? ORDER BY seq DESC LIMIT ?)",
+            (robot, robot, self.max_documents),
+        )
+        self.pruned += max(cur.rowcount, 0)
+        if cur.rowcount > 0:
+            self._bytes = self._total()
+        if self._bytes <= self.max_bytes:
+            return
+        excess, doomed = self._bytes - self.max_bytes, []
+        rows = db.execute(  # oldest first, never a robot's newest
+            "SELECT seq, length(doc) FROM documents d WHERE seq < (SELECT max(seq) FROM "
+            "documents WHERE robot = d.robot) ORDER BY seq"
+        )
+        for seq, size in rows:
+            if excess <= 0:
+                break
+            doomed.append((seq,))
+            excess -= size
+        db.executemany("DELETE FROM documents WHERE seq = ?", doomed)
+        self.pruned += len(doomed)
+        while excess > 0:  # only the robots' newest documents left: the robot heard longest ago
+            gone, size = db.execute(
+                "SELECT r.robot, (SELECT coalesce(sum(length(doc)), 0) FROM documents d "
+                "WHERE d.robot = r.robot) FROM robots r ORDER BY r.last_seen, r.robot LIMIT 1"
+            ).fetchone()
+            cur = db.execute("DELETE FROM documents WHERE robot = ?", (gone,))
+            db.execute("DELETE FROM robots WHERE robot = ?", (gone,))
+            self.pruned += max(cur.rowcount, 0)
+            excess -= size
+        self._bytes = self._total()
+
+    def _total(self) -> int:
+        (n,) = self._db.execute("SELECT coalesce(sum(length(doc)), 0) FROM documents").fetchone()
+        return int(n)
 
     def robots(self) -> list[RobotRow]:
         """Every robot ever heard, by name."""
@@ -117,6 +183,26 @@ class FleetStore:
 
     def robot(self, robot: str) -> RobotRow | None:
         return next((r for r in self.robots() if r.robot == robot), None)
+
+    def last_seq(self) -> dict[str, int]:
+        """Each robot's newest document's number (what a cache of its view is keyed by)."""
+        with self._lock:
+            rows = self._db.execute("SELECT robot, max(seq) FROM documents GROUP BY robot")
+            return {str(r): int(n) for r, n in rows.fetchall()}
+
+    def delete(self, seqs: list[int]) -> None:
+        """Forget documents ``seqs`` (ones that no longer pass the checks of today)."""
+        with self._lock, self._db:
+            self._db.executemany("DELETE FROM documents WHERE seq = ?", [(q,) for q in seqs])
+            self._db.execute(
+                "DELETE FROM robots WHERE robot NOT IN (SELECT DISTINCT robot FROM documents)"
+            )
+            self._bytes = self._total()
+
+    @property
+    def bytes(self) -> int:
+        """JSON bytes of the documents kept."""
+        return self._bytes
 
     def latest(self, robot: str) -> StoredDocument | None:
         docs = self._select(robot, "ORDER BY seq DESC LIMIT 1")
