@@ -13,18 +13,36 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+KEEP_S = 600.0
+"""How far back a long-running process keeps per-sample data (s of the time column):
+longer than anything a run reads back (a spin, a rest), short enough that an always-on
+service's memory levels off within its first runs."""
+
 
 class RowRing:
     """The newest ``capacity`` rows of ``n_columns`` floats; the oldest are overwritten.
 
     Memory grows by doubling from ``initial`` rows up to ``capacity``, so a large capacity
-    costs nothing until it is used.
+    costs nothing until it is used.  With ``keep`` (s), a full ring grows only while its
+    oldest row is less than ``keep`` older (column ``time_column``) than the row appended:
+    else that oldest row is overwritten.  So memory follows the rate of the samples over
+    ``keep`` seconds, not how long the process has run.
     """
 
-    def __init__(self, n_columns: int, capacity: int, initial: int = 1024) -> None:
+    def __init__(
+        self,
+        n_columns: int,
+        capacity: int,
+        initial: int = 1024,
+        *,
+        keep: float | None = None,
+        time_column: int = 0,
+    ) -> None:
         if capacity < 1:
             raise ValueError(f"history capacity must be >= 1, not {capacity}")
         self.capacity = int(capacity)
+        self.keep = keep
+        self.time_column = time_column
         self._buf: NDArray[np.float64] = np.empty((min(self.capacity, initial), n_columns))
         self._start = 0  # index of the oldest row
         self._n = 0
@@ -40,7 +58,8 @@ class RowRing:
     def append(self, row: Sequence[float]) -> None:
         """Add a row; columns beyond ``len(row)`` are NaN."""
         size = self._buf.shape[0]
-        if self._n == size and size < self.capacity:  # grow: unroll into a larger array
+        if self._n == size and size < self.capacity and self._young(row):
+            # grow: unroll into a larger array
             grown = np.empty((min(2 * size, self.capacity), self._buf.shape[1]))
             grown[:size] = self.array()
             self._buf, self._start = grown, 0
@@ -53,6 +72,13 @@ class RowRing:
         else:
             self._n += 1
         self.total += 1
+
+    def _young(self, row: Sequence[float]) -> bool:
+        """The oldest row is within ``keep`` of ``row`` (always, without ``keep``)."""
+        if self.keep is None:
+            return True
+        c = self.time_column
+        return bool(row[c] - self._buf[self._start, c] < self.keep)
 
     def last(self) -> NDArray[np.float64]:
         """A copy of the newest row."""

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.clock import Clock, SimClock
-from swpc_hw.row_ring import RowRing
+from swpc_hw.row_ring import KEEP_S, RowRing
 
 FloatArray = NDArray[np.float64]
 
@@ -81,7 +81,8 @@ class Ingest:
         self.max_clock_error = float(max_clock_error)
         self.max_clock_step = float(max_clock_step)
         self._lock = threading.Lock()
-        self._rows = RowRing(len(columns), capacity, initial=1 << 16)
+        # the receive times (column 1) of the last KEEP_S seconds at most, up to capacity
+        self._rows = RowRing(len(columns), capacity, 1 << 16, keep=KEEP_S, time_column=1)
         self._last_source = -math.inf
         self._last_recv = math.nan
         self.last_clock_step = 0.0

@@ -52,7 +52,7 @@ from swpc_hw.drives.types import (
     Observation,
     Severity,
 )
-from swpc_hw.row_ring import RowRing
+from swpc_hw.row_ring import KEEP_S, RowRing
 
 CAN_ERR_BUSOFF = 0x00000040
 """Linux SocketCAN error class bit (in the error frame's id) for bus-off."""
@@ -76,7 +76,7 @@ class FeedbackRing(RowRing):
     """Newest ``capacity`` feedback rows of one node (the driver's lock guards it)."""
 
     def __init__(self, capacity: int) -> None:
-        super().__init__(len(COLUMNS), capacity)
+        super().__init__(len(COLUMNS), capacity, keep=KEEP_S)
 
     def set_last_velocity_torque(self, values: tuple[float, float, float, float]) -> None:
         """Fill the newest row's ``steer_velocity, wheel_velocity, steer_torque,

@@ -17,8 +17,9 @@ from swpc_hw.drives.swpc.driver import SwpcDriver
 from swpc_hw.drives.tracking import COLUMNS, FeedbackRing
 
 
-def row(i: int) -> tuple[float, ...]:
-    return (float(i), 1e9 + i, float(i % 256), float(i), 0.01 * i, -0.02 * i)
+def row(i: int, dt: float = 0.01) -> tuple[float, ...]:
+    """Sample ``i`` of a node's feedback at 1 / ``dt`` Hz."""
+    return (dt * i, 1e9 + i, float(i % 256), float(i), 0.01 * i, -0.02 * i)
 
 
 def test_ring_keeps_the_newest_rows_in_order_across_growth_and_wrap() -> None:
@@ -27,7 +28,7 @@ def test_ring_keeps_the_newest_rows_in_order_across_growth_and_wrap() -> None:
         ring.append(row(i))
     a = ring.array()
     assert a.shape == (2500, len(COLUMNS))
-    assert a[:, 0].tolist() == list(range(2500))
+    assert a[:, 3].tolist() == list(range(2500))
     assert np.isnan(a[:, 6:]).all()
     for i in range(2500, 7001):  # wraps: only the newest 3000 stay
         ring.append(row(i))
@@ -44,6 +45,30 @@ def test_ring_keeps_the_newest_rows_in_order_across_growth_and_wrap() -> None:
         ring.set_last_velocity_torque((0.0, 0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="capacity"):
         FeedbackRing(0)
+
+
+def test_the_ring_keeps_ten_minutes_and_no_more_memory_than_they_need() -> None:
+    """An always-on service's feedback at 100 Hz for 15 min (the ring's capacity, 200,000
+    rows, is 33 min of it): the ring stops growing once it holds KEEP_S (600 s), so
+    memory levels off within the first runs instead of growing to the capacity."""
+    from swpc_hw.row_ring import KEEP_S
+
+    ring = FeedbackRing(200_000)
+    for i in range(90_000):
+        ring.append(row(i))
+    a = ring.array()
+    assert len(ring) == 65_536 and ring._buf.shape[0] == 65_536  # 2^16 rows cover 655 s
+    assert a[-1, 0] - a[0, 0] >= KEEP_S
+    assert a[:, 3].tolist() == list(range(90_000 - 65_536, 90_000))  # the newest, in order
+    for i in range(90_000, 150_000):  # the rate doubles: it grows once 600 s no longer fit
+        r = row(i)
+        ring.append((900.0 + 0.005 * (i - 90_000), *r[1:]))
+        if i == 95_000:
+            assert ring._buf.shape[0] == 65_536  # still 630 s in it: no growth
+    assert ring._buf.shape[0] == 131_072
+    b = ring.array()
+    assert b[-1, 0] - b[0, 0] >= KEEP_S and len(ring) < 131_072  # 600 s and some, growing
+    assert ring.since(149_000)[0][:, 3].tolist() == list(range(149_000, 150_000))
 
 
 def test_driver_history_holds_no_object_per_sample() -> None:
