@@ -33,7 +33,7 @@ from services.config.fleet import (
     robot_of_key,
 )
 from services.fleet.view import calibrations, summary
-from services.store.fleet import FleetStore
+from services.store.fleet import FleetStore, RobotRow
 from services.store.logs import event
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.files.kinematic_file import BOUNDS
@@ -225,9 +225,10 @@ class FleetService:
         documents cannot be shown (a store written by an older service, say) is listed
         with the reason, never breaking the list."""
         out = []
+        seqs = self.store.last_seq()
         for row in self.store.robots():
             try:
-                got = self.robot(row.robot, points=False)
+                got = self._view(row, seqs.get(row.robot), points=False)
             except Exception as exc:  # one robot's view, not everyone's
                 log.warning("fleet: robot %s cannot be shown: %r", row.robot, exc)
                 got = {"robot": row.robot, "status": "unknown", "error": repr(exc)[:300]}
@@ -240,14 +241,17 @@ class FleetService:
         row = self.store.robot(name)
         if row is None:
             return None
-        seen = self._view_inputs(name)
+        return self._view(row, self.store.last_seq().get(name), points)
+
+    def _view(self, row: RobotRow, seq: int | None, points: bool) -> dict[str, Any] | None:
+        seen = None if seq is None else self._view_inputs(row.robot, seq)
         if seen is None:
             return None
         _, last, cals, n = seen
         with self._lock:
-            alive = self.alive.get(name)
+            alive = self.alive.get(row.robot)
         out = summary(
-            name,
+            row.robot,
             last,
             cals,
             n,
@@ -263,14 +267,11 @@ class FleetService:
         return out
 
     def _view_inputs(
-        self, name: str
+        self, name: str, seq: int
     ) -> tuple[int, dict[str, Any], list[dict[str, Any]], int] | None:
-        """``(newest seq, newest document, calibrations, documents)`` of ``name``, read from
-        the store once per new document (``GET /robots`` would otherwise parse every
-        robot's every document at each request)."""
-        seq = self.store.last_seq().get(name)
-        if seq is None:
-            return None
+        """``(newest seq, newest document, calibrations, documents)`` of ``name`` whose
+        newest document is ``seq``, read from the store once per new document (``GET
+        /robots`` would otherwise parse every robot's every document at each request)."""
         with self._lock:
             hit = self._views.get(name)
         if hit is not None and hit[0] == seq:
