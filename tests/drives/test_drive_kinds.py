@@ -249,9 +249,11 @@ def test_a_fourth_kind_registered_is_opened_by_name_and_runs() -> None:
     try:
         config = TypeAdapter(DrivesConfig).validate_python("toy")  # the short form
         assert isinstance(config, ToyDrives) and "toy" in registry.known()
-        # what a run's timing budget makes, with room for a loaded test host
-        bus = CanConfig(interface="virtual", channel=channel, heartbeat_loss_periods=20,
-                        activate_timeout_s=10.0)  # fmt: skip
+        # what a run's timing budget makes, with room for a loaded test host: 20 of the
+        # toy's heartbeats (its period, 50 ms, not the swpc firmware's 100 ms) missed is a
+        # loss, 1 s of silence, which the test waits for once the drives go silent
+        bus = CanConfig(interface="virtual", channel=channel, heartbeat_period_s=0.05,
+                        heartbeat_loss_periods=20, activate_timeout_s=10.0)  # fmt: skip
         drives = open_drives(config, bus, [1, 2])
         assert isinstance(drives, ToyDriver) and drives.modules() == [1, 2]
         events: list[Any] = []

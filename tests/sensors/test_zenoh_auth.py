@@ -9,6 +9,7 @@ import os
 import stat
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -16,21 +17,58 @@ import pytest
 
 from services.runtime.runtime import ZENOH_USERS_FILE
 from swpc_hw.sensors.mocap import PoseSample, encode_native
-from swpc_hw.sensors.zenoh_session import ZenohAuth, free_tcp_endpoint, open_session, publishers_acl
+from swpc_hw.sensors.zenoh_session import (
+    ZenohAuth,
+    free_tcp_endpoint,
+    linked_sessions,
+    open_session,
+    publishers_acl,
+)
 from tests.service_rig import Sim
 
 KEY = "mocap/swpc/pose"
 
 
 def deliveries(publish: Callable[[], None], got: list[Any], within: float = 2.0) -> int:
-    """Publish every 50 ms for ``within`` s (a guard: links take a moment); how many of
-    them arrived."""
+    """Publish every 50 ms for ``within`` s (a window for a negative, after a positive
+    control on the same link); how many of them arrived."""
     n0 = len(got)
     deadline = time.monotonic() + within
     while time.monotonic() < deadline:
         publish()
         time.sleep(0.05)
     return len(got) - n0
+
+
+def publish_until(publish: Callable[[], None], arrived: Callable[[], bool]) -> None:
+    """Publish every 50 ms until ``arrived()``: a positive control, waiting for the event
+    itself (10 s: a guard against a hang, never a judgement of speed)."""
+    deadline = time.monotonic() + 10.0
+    while not arrived():
+        assert time.monotonic() < deadline, "the positive control never arrived"
+        publish()
+        time.sleep(0.05)
+
+
+NEGATIVE_WINDOW_S = 0.3
+"""How long a negative keeps publishing once its positive control on the same link (same
+loopback endpoint, same key) has arrived: a put that may cross arrives within the 50 ms
+tick after it is sent, so 6 rounds of puts, each peer's last ones sent 50 ms before the
+window ends, leave every refused put ample time to show up."""
+
+
+def open_sessions(ep: str, auths: dict[str, ZenohAuth | None]) -> dict[str, Any]:
+    """One peer session per name, connected to ``ep``, opened together: zenoh's open waits
+    its scouting delay (0.5 s) for a link that never comes when the peer is refused."""
+    with ThreadPoolExecutor(len(auths)) as pool:
+        futures = {n: pool.submit(open_session, connect=[ep], auth=a) for n, a in auths.items()}
+    failed = [e for f in futures.values() if (e := f.exception()) is not None]
+    if failed:
+        for f in futures.values():
+            if f.exception() is None:
+                f.result().close()
+        raise failed[0]
+    return {n: f.result() for n, f in futures.items()}
 
 
 def test_only_the_named_publishers_put_on_the_sensor_keys(tmp_path: Path) -> None:
@@ -48,18 +86,30 @@ def test_only_the_named_publishers_put_on_the_sensor_keys(tmp_path: Path) -> Non
         "wrong password": ZenohAuth("mocap", "guessed"),
         "anonymous": None,
     }
-    arrived = {}
     try:
-        for name, auth in peers.items():
-            peer = open_session(connect=[ep], auth=auth)
-            try:
-                arrived[name] = deliveries(lambda p=peer, n=name: p.put(KEY, n.encode()), got)
-            finally:
+        sessions = open_sessions(ep, peers)
+        try:
+
+            def put_all() -> None:
+                for name, peer in sessions.items():
+                    peer.put(KEY, name.encode())
+
+            # every peer puts at once: the authorised one's puts arrive (positive control),
+            # then a window for the others' (NEGATIVE_WINDOW_S)
+            publish_until(put_all, lambda: b"mocap" in got)
+            deliveries(put_all, got, within=NEGATIVE_WINDOW_S)
+            links = {name: linked_sessions(peer) for name, peer in sessions.items()}
+        finally:
+            for peer in sessions.values():
                 peer.close()
     finally:
         service.close()
+    arrived = {name: got.count(name.encode()) for name in peers}
     assert arrived["mocap"] > 0, arrived
     assert arrived["viewer"] == arrived["wrong password"] == arrived["anonymous"] == 0, arrived
+    # the viewer is refused by the access control (it has a link), the other two by the
+    # authentication (none)
+    assert links == {"mocap": 1, "viewer": 1, "wrong password": 0, "anonymous": 0}, links
 
 
 def test_a_local_process_cannot_feed_the_service_poses(sim: Sim) -> None:
@@ -71,19 +121,32 @@ def test_a_local_process_cannot_feed_the_service_poses(sim: Sim) -> None:
     assert stat.S_IMODE(users.stat().st_mode) == 0o600
     (ep,) = rt.zenoh_endpoints
     _, cursor = rt.mocap.samples_since(0)
-    rogue = open_session(connect=[ep])
+    user, password = users.read_text().strip().split(":", 1)
+    peers = open_sessions(ep, {"rogue": None, "simulator": ZenohAuth(user, password)})
     try:
-        n = deliveries(
-            lambda: rogue.put(KEY, encode_native(PoseSample.planar(time.time(), 9.0, 9.0, 0.0))),
-            [],
-            within=1.0,
-        )
-        assert n == 0
+
+        def put(name: str, x: float) -> None:
+            peers[name].put(KEY, encode_native(PoseSample.planar(time.time(), x, x, 0.0)))
+
+        def put_both() -> None:
+            put("rogue", 9.0)
+            put("simulator", 7.0)
+
+        def ingested() -> Any:
+            return rt.mocap.samples_since(cursor)[0]
+
+        # positive control on the same endpoint: the simulator's credential is admitted and
+        # its poses (x = 7 m) reach the ingest; then a window for the rogue's
+        publish_until(put_both, lambda: bool((ingested()[:, 3] == 7.0).any()))
+        deliveries(put_both, [], within=NEGATIVE_WINDOW_S)
+        rogue_links = linked_sessions(peers["rogue"])
     finally:
-        rogue.close()
+        for peer in peers.values():
+            peer.close()
+    assert rogue_links == 0  # refused by the authentication
     # not one of its poses reached the ingest (the simulator's own, in flight on a busy
     # host, may: they are not at x = 9 m)
-    rows, _ = rt.mocap.samples_since(cursor)
+    rows = ingested()
     assert not (rows[:, 3] == 9.0).any(), rows
 
 
@@ -107,14 +170,23 @@ def test_the_mocap_pcs_listener_admits_only_robots_and_takes_no_poses_from_them(
     mocap = zenoh.open(mcfg)
     got: dict[str, list[bytes]] = {"robot": [], "anonymous": [], "mocap": []}
     try:
-        robot = open_session(connect=[ep], auth=ZenohAuth("swpc", "robot-secret-0123"))
-        anon = open_session(connect=[ep])
+        peers = open_sessions(ep, {"robot": ZenohAuth("swpc", "robot-secret-0123"), "anon": None})
+        robot, anon = peers["robot"], peers["anon"]
         try:
             robot.declare_subscriber(KEY, lambda s: got["robot"].append(s.payload.to_bytes()))
             anon.declare_subscriber(KEY, lambda s: got["anonymous"].append(s.payload.to_bytes()))
             mocap.declare_subscriber(KEY, lambda s: got["mocap"].append(s.payload.to_bytes()))
-            deliveries(lambda: mocap.put(KEY, b"pose"), got["robot"])
-            deliveries(lambda: robot.put(KEY, b"spoofed"), got["mocap"], within=1.0)
+
+            def put_both() -> None:
+                mocap.put(KEY, b"pose")
+                robot.put(KEY, b"spoofed")
+
+            # the poses reach the robot (positive control: the link is up both ways, the
+            # robot's subscription crossed it to the mocap PC), then a window for the
+            # anonymous peer's poses and the robot's spoofed ones (NEGATIVE_WINDOW_S)
+            publish_until(put_both, lambda: b"pose" in got["robot"])
+            deliveries(put_both, [], within=NEGATIVE_WINDOW_S)
+            anon_links = linked_sessions(anon)
         finally:
             robot.close()
             anon.close()
@@ -122,6 +194,7 @@ def test_the_mocap_pcs_listener_admits_only_robots_and_takes_no_poses_from_them(
         mocap.close()
     assert b"pose" in got["robot"], got  # (its own puts it hears locally)
     assert got["anonymous"] == [], got
+    assert anon_links == 0  # not admitted
     assert b"spoofed" not in got["mocap"], got
 
 
@@ -168,7 +241,9 @@ def test_health_names_a_refused_zenoh_link_and_the_right_password_clears_it(
     template = template.replace("tcp/192.0.2.10:7447", ep)
     seen: dict[str, dict[str, Any]] = {}
     try:
-        for name, password in (("refused", "guessed"), ("admitted", "robot-secret-0123")):
+        # the admitted robot first: the positive control of the mocap PC's listener and
+        # its poses, then the refused one's window (NEGATIVE_WINDOW_S)
+        for name, password in (("admitted", "robot-secret-0123"), ("refused", "guessed")):
             robot_cfg = tmp_path / f"{name}.json5"
             robot_cfg.write_text(
                 template.replace("replace-with-this-robot's-password", password)
@@ -185,7 +260,13 @@ def test_health_names_a_refused_zenoh_link_and_the_right_password_clears_it(
                 rt: Runtime = app.state.runtime
                 assert rt.zenoh_connect == [ep]
                 pose = encode_native(PoseSample.planar(time.time(), 1.0, 2.0, 0.0))
-                deliveries(lambda p=pose: mocap.put(KEY, p), [], within=1.5)
+                if name == "admitted":
+                    publish_until(
+                        lambda p=pose: mocap.put(KEY, p),
+                        lambda: client.get("/health").json()["mocap_age_s"] is not None,
+                    )
+                else:
+                    deliveries(lambda p=pose: mocap.put(KEY, p), [], within=NEGATIVE_WINDOW_S)
                 seen[name] = client.get("/health").json()
     finally:
         mocap.close()

@@ -254,6 +254,10 @@ def test_our_driver_refuses_odrive_cans_mock_which_has_no_watchdog() -> None:
     channel = f"odrive-peer-{uuid.uuid4().hex[:8]}"
     buses = [can.Bus(interface="virtual", channel=channel) for _ in (0, 1)]
     mocks = [ODriveCANMock(axis_id=n, can_bus=b) for n, b in zip((0, 1), buses, strict=True)]
+    for m in mocks:
+        # its notifier waits for a frame 1 s at a time (python-can's default) and stop()
+        # below joins that wait: 50 ms (read at each wait; frames flow until the end)
+        m.notifier.timeout = 0.05
     loop = asyncio.new_event_loop()
     tasks: list[asyncio.Task[None]] = []
 

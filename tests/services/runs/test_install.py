@@ -4,8 +4,12 @@ and never duplicate one another."""
 
 from __future__ import annotations
 
+import inspect
+import sys
 import threading
+import time
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import pytest
@@ -13,6 +17,7 @@ import pytest
 import services.runs.install as install_module
 from services.runs.install import backup_kinematics, backups
 from services.runs.state import State
+from services.runtime.runtime import Runtime
 from swpc_hw.files.kinematic_file import save_kinematics
 from tests.run_rig import NOMINAL, Rig
 from tests.service_rig import AUTH, Sim
@@ -98,6 +103,20 @@ def test_installs_through_the_api_keep_the_configured_number_of_backups(
     assert len(listed) == 3 and len(backups(rt.settings.kinematics_file)) == 3
 
 
+def at_the_start_lock() -> FrameType | None:
+    """The frame of a thread in :meth:`Runtime.start_run` at its ``with self.lock:`` (the
+    runtime's lock, which an install holds), if one is there now."""
+    lines, first = inspect.getsourcelines(Runtime.start_run)
+    line = first + next(i for i, text in enumerate(lines) if "with self.lock:" in text)
+    for top in sys._current_frames().values():
+        f: FrameType | None = top
+        while f is not None:
+            if f.f_code is Runtime.start_run.__code__ and f.f_lineno == line:
+                return f
+            f = f.f_back
+    return None
+
+
 def test_an_install_and_a_new_start_never_overlap(
     sim: Sim, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -121,8 +140,16 @@ def test_an_install_and_a_new_start_never_overlap(
             target=lambda: starts.append(client.post("/calibrations", json={}, headers=AUTH))
         )
         t.start()
-        t.join(3.0)
-        seen["start waited for the install"] = t.is_alive()
+        # the start reaches the runtime's lock (10 s: a guard against a hang), and is still
+        # waiting there, in the same frame, 0.1 s later: an acquire of a free lock passes
+        # that line in microseconds
+        deadline = time.monotonic() + 10.0
+        while (waiting := at_the_start_lock()) is None:
+            assert t.is_alive(), "the start went by without waiting for the install"
+            assert time.monotonic() < deadline, "the start never reached the runtime's lock"
+            time.sleep(0.005)
+        time.sleep(0.1)
+        seen["start waited for the install"] = at_the_start_lock() is waiting and t.is_alive()
         seen["no run during the install"] = not rt.running()
         threads.append(t)
         return real(path)
