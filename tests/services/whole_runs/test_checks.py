@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import hashlib
 import sqlite3
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +19,7 @@ from services.store.runs import RunStore
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
-from tests.service_rig import AUTH, Sim, start, wait_spinning, wait_state
+from tests.service_rig import AUTH, TOKEN, Sim, sim_service, start, wait_spinning, wait_state
 
 DONE = {"DONE", "FAILED", "ABORTED"}
 
@@ -77,14 +79,62 @@ def test_no_check_without_a_file_in_force(sim: Sim) -> None:
     assert r.status_code == 422 and "would loosen" in r.text
 
 
-def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(sim: Sim) -> None:
-    kin = sim.rt.settings.kinematics_file
-    save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
-    r = sim.client.post("/checks", json={}, headers=AUTH)
-    assert r.status_code == 409 and "in frame 'design-fit'" in r.text
-    save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth, exactly
-    before = sha(kin)
-    st = run_check(sim.client)
+@dataclass(frozen=True)
+class AfterCheck:
+    """What the disk and the API said right after a check: the file in force's sha256
+    and bytes, its backups, the checks listed and the file's changes."""
+
+    sha: str
+    kin: bytes
+    backups: list[Path]
+    checks: list[str]
+    changes: list[Any]
+
+
+@dataclass(frozen=True)
+class MocapChecks:
+    """Two checks with motion capture on a fresh service of their own (nothing else runs
+    on it): ``unchanged`` of the simulator's truth exactly (the file's sha256 ``before``
+    it, :class:`AfterCheck` ``after`` it), then ``worn`` of a file whose wheel 2 has 0.3 mm
+    more than the wheel.  The unchanged check is the worn one's point before: the
+    history's trend needs two.  ``design_fit``: the answer to a check of a file in frame
+    design-fit, before both."""
+
+    sim: Sim
+    design_fit: tuple[int, str]
+    before: str
+    unchanged: dict[str, Any]
+    after: AfterCheck
+    worn: dict[str, Any]
+
+
+@pytest.fixture(scope="module")
+def mocap_checks(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MocapChecks]:
+    """A whole check is expensive: the two with motion capture run once, judged by the
+    unchanged robot's test and the worn wheel's."""
+    with sim_service(tmp_path_factory.mktemp("mocap-checks")) as sim:
+        kin = sim.rt.settings.kinematics_file
+        save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
+        r = sim.client.post("/checks", json={}, headers=AUTH)
+        design_fit = (r.status_code, r.text)
+        save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth, exactly
+        before = sha(kin)
+        unchanged = run_check(sim.client)
+        after = AfterCheck(
+            sha(kin), kin.read_bytes(), sorted(kin.parent.glob("kinematics.*.yaml")),
+            [c["id"] for c in sim.client.get("/checks").json()],
+            sim.client.get("/kinematics/changes").json(),
+        )  # fmt: skip
+        save_kinematics(kin, worn(2, +0.3e-3))  # the file says 0.3 mm more than the wheel has
+        yield MocapChecks(sim, design_fit, before, unchanged, after, run_check(sim.client))
+
+
+def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(
+    mocap_checks: MocapChecks,
+) -> None:
+    sim, st, after = mocap_checks.sim, mocap_checks.unchanged, mocap_checks.after
+    code, text = mocap_checks.design_fit
+    assert code == 409 and "in frame 'design-fit'" in text
     assert st["verdict"] == "consistent" and st["installed"] is None
     res = st["result"]
     assert res["verdict"] == "consistent" and res["action"] == "none"
@@ -93,27 +143,27 @@ def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(sim: Sim) -> 
     assert "taken as exact" in res["notes"][0]  # no covariance, no std dev in the file
     # one spin about every module, within the issue's 30 s of robot time
     assert st["segments"] == 4 and st["angles_total"] == 1 and st["elapsed_s"] <= 30
-    assert sha(kin) == before and list(kin.parent.glob("kinematics.*.yaml")) == []
+    assert after.sha == mocap_checks.before and after.backups == []
     run_dir = sim.rt.data_dir / "runs" / st["id"]
-    assert (run_dir / "file-in-force.yaml").read_bytes() == kin.read_bytes()
+    assert (run_dir / "file-in-force.yaml").read_bytes() == after.kin
     assert not (run_dir / "kinematics.yaml").exists()
     # a check is no calibration: not listed, not found, not installable
     cid = st["id"]
+    assert after.checks == [cid]
     assert cid not in [r["id"] for r in sim.client.get("/calibrations").json()]
-    assert [r["id"] for r in sim.client.get("/checks").json()] == [cid]
+    assert sim.client.get("/calibrations").json() == []
     assert sim.client.get(f"/calibrations/{cid}").status_code == 404
     assert sim.client.get(f"/calibrations/{cid}/result").status_code == 404
     assert sim.client.post(f"/calibrations/{cid}/install", headers=AUTH).status_code == 404
     assert sim.client.get("/checks/nope").status_code == 404
-    assert sim.client.get("/kinematics/changes").json() == []
+    assert after.changes == [] and sim.client.get("/kinematics/changes").json() == []
 
 
-def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_worn_wheel_is_found_and_named(
+    mocap_checks: MocapChecks, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sim, st = mocap_checks.sim, mocap_checks.worn
     kin = sim.rt.settings.kinematics_file
-    save_kinematics(kin, PAPER_CALIBRATED)
-    run_check(sim.client)  # a point before: the history's trend needs two
-    save_kinematics(kin, worn(2, +0.3e-3))  # the file says 0.3 mm more than the wheel has
-    st = run_check(sim.client)
     res = st["result"]
     assert st["verdict"] == "drifted" and res["drifted_modules"] == [2], res["summary"]
     assert res["action"] == "recalibrate module 2"
@@ -128,6 +178,7 @@ def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture
     assert out.startswith("drifted: recalibrate module 2") and "DRIFTED r" in out
     # the history: both checks, per module and parameter, and the last check
     h = sim.client.get("/history").json()
+    assert [r["run"] for r in h["runs"]] == [mocap_checks.unchanged["id"], st["id"]]
     assert {r["kind"] for r in h["runs"]} == {"check"} and h["runs"][-1]["run"] == st["id"]
     assert h["last_check"]["id"] == st["id"] and h["last_check"]["verdict"] == "drifted"
     assert h["last_check"]["action"] == "recalibrate module 2"
@@ -141,8 +192,8 @@ def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture
         st["id"], "drifted")
     assert doc["history"]["calibrations"] == []  # checks are no calibrations
     p = next(q for q in h["parameters"] if q["module"] == 2 and q["param"] == "r")
-    in_r = [q for q in p["points"] if q["frame"] == "R"]  # other tests' checks may be there
-    assert p["unit"] == "mm" and len(in_r) >= 2 and p["tolerance"] == pytest.approx(0.2)
+    in_r = [q for q in p["points"] if q["frame"] == "R"]  # the two checks, nothing else
+    assert p["unit"] == "mm" and len(in_r) == 2 and p["tolerance"] == pytest.approx(0.2)
     assert p["reference"] == pytest.approx((PAPER_CALIBRATED.module(2).r + 0.3e-3) * 1e3)
     assert p["trend"] is not None and p["trend"]["points"] == len(in_r)
     assert sim.client.get("/history", params={"since": "2999-01-01T00:00:00Z"}).json()[
@@ -151,24 +202,66 @@ def test_a_worn_wheel_is_found_and_named(sim: Sim, capsys: pytest.CaptureFixture
     assert sim.client.get("/history", params={"since": "yesterday"}).status_code == 422
 
 
+@dataclass(frozen=True)
+class GyroChecks:
+    """Two checks with the gyro on a fresh service of their own (nothing else runs on
+    it): ``consistent`` of the simulator's truth in frame design-fit, then one of a file
+    whose wheel 3 has 0.3 mm more than the wheel, started and followed by ``swpc check``
+    over HTTP (its HTTP client the test's, over the app): its exit status ``code``, what
+    it printed ``out``, and the check's status ``drifted``."""
+
+    sim: Sim
+    consistent: dict[str, Any]
+    code: int
+    out: str
+    drifted: dict[str, Any]
+
+
+@pytest.fixture(scope="module")
+def gyro_checks(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GyroChecks]:
+    """A whole check is expensive: the two with the gyro run once, judged by the gyro's
+    test and by ``swpc check``'s."""
+    import contextlib
+    import io
+
+    import httpx
+
+    with sim_service(tmp_path_factory.mktemp("gyro-checks")) as sim:
+        kin = sim.rt.settings.kinematics_file
+        save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
+        consistent = run_check(sim.client, {"metrology": "imu"})
+        save_kinematics(kin, worn(3, +0.3e-3))  # in R: the frame does not matter either
+        out = io.StringIO()
+        with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out):
+            mp.setenv("SWPC_TOKEN", TOKEN)
+            mp.setattr(
+                httpx, "Client", lambda **kw: contextlib.nullcontext(sim.client)
+            )  # the service answers at the test client's address
+            code = swpc(["check", "--url", "http://testserver", "--metrology", "imu"])
+        printed = out.getvalue()
+        cid = printed.split("check ", 1)[1].split(" started", 1)[0]
+        assert [c["id"] for c in sim.client.get("/checks").json()] == [consistent["id"], cid]
+        drifted = sim.client.get(f"/checks/{cid}").json()
+        assert drifted["state"] == "DONE", drifted["reason"]
+        yield GyroChecks(sim, consistent, code, printed, drifted)
+
+
 def test_a_check_with_the_gyro_judges_the_robots_shape(
-    sim: Sim, capsys: pytest.CaptureFixture[str]
+    gyro_checks: GyroChecks, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Without motion capture: the gyro and the encoders, no references, no drive, no
     operator; the file in any frame (here design-fit: a calibration without motion
     capture); a worn wheel named, relative to the other wheels."""
-    kin = sim.rt.settings.kinematics_file
-    save_kinematics(kin, PAPER_CALIBRATED.model_copy(update={"frame": "design-fit"}))
-    st = run_check(sim.client, {"metrology": "imu"})
+    sim, st = gyro_checks.sim, gyro_checks.consistent
     res = st["result"]
     assert st["verdict"] == "consistent" and res["verdict"] == "consistent", res["summary"]
     assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 30
     assert any("shape" in n for n in res["notes"])
     assert {e["id"] for e in res["estimate"]} == {1, 2, 3, 4}
     assert max(m["chi2"] for m in res["modules"]) < res["chi2_threshold"]
-    save_kinematics(kin, worn(3, +0.3e-3))  # in R: the frame does not matter either
-    st = run_check(sim.client, {"metrology": "imu"})
+    st = gyro_checks.drifted  # of worn(3, +0.3e-3), in R: the frame does not matter either
     res = st["result"]
+    assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 30
     assert st["verdict"] == "drifted" and res["drifted_modules"] == [3], res["summary"]
     assert res["modules"][2]["parameters"] == ["r"]
     row = next(r for r in res["table"] if r["module"] == 3 and r["param"] == "r")
@@ -183,10 +276,8 @@ def test_a_check_with_the_gyro_judges_the_robots_shape(
     assert capsys.readouterr().out.startswith("drifted: recalibrate module 3")
     h = sim.client.get("/history").json()
     p = next(q for q in h["parameters"] if q["module"] == 3 and q["param"] == "r")
-    frames = [q["frame"] for q in p["points"]]
-    assert frames[-2:] == ["file-fit", "file-fit"]
-    in_r = frames.count("R")
-    assert (p["trend"] is None) if in_r < 2 else (p["trend"]["points"] == in_r)
+    assert [q["frame"] for q in p["points"]] == ["file-fit", "file-fit"]  # its two checks
+    assert p["trend"] is None
 
 
 def test_a_check_is_a_run_one_at_a_time_and_aborts(sim: Sim) -> None:
@@ -236,23 +327,17 @@ def test_swpc_check_names_a_service_that_is_not_there(capsys: pytest.CaptureFixt
 
 
 def test_swpc_check_over_http_prints_the_verdict(
-    sim: Sim, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    gyro_checks: GyroChecks, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """``swpc check`` against the service (its HTTP client is the test's, over the app):
-    the check's progress, the verdict and the table; exit status 1 for drifted."""
-    import contextlib
-
-    import httpx
-
-    save_kinematics(sim.rt.settings.kinematics_file, worn(4, -0.3e-3))
-    monkeypatch.setenv("SWPC_TOKEN", AUTH["Authorization"].split()[1])
-    monkeypatch.setattr(
-        httpx, "Client", lambda **kw: contextlib.nullcontext(sim.client)
-    )  # the service answers at the test client's address
-    assert swpc(["check", "--url", "http://testserver", "--metrology", "imu"]) == 1
-    out = capsys.readouterr().out
+    the check's progress, the verdict and the table; exit status 1 for drifted (the gyro's
+    check of a worn wheel 3, :func:`gyro_checks`)."""
+    out = gyro_checks.out
+    assert gyro_checks.code == 1
+    assert gyro_checks.drifted["verdict"] == "drifted"
+    assert f"check {gyro_checks.drifted['id']} started" in out
     assert "check " in out and "started" in out and "SPIN" in out and "STILL" in out
-    assert "drifted: recalibrate module 4" in out and "module 4: chi2" in out
+    assert "drifted: recalibrate module 3" in out and "module 3: chi2" in out
     assert swpc(["check", "--overrides", "{not json"]) == 2
     assert "--overrides: not JSON" in capsys.readouterr().err
 
