@@ -32,7 +32,7 @@ from services.config.fleet import (
     fleet_users,
     robot_of_key,
 )
-from services.fleet.view import calibrations, summary
+from services.fleet.view import calibrations, drift, summary
 from services.store.fleet import FleetStore, RobotRow
 from services.store.logs import event
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
@@ -147,6 +147,10 @@ def check_document(robot: str, payload: bytes) -> dict[str, Any]:
     return doc
 
 
+_ViewInputs = tuple[int, dict[str, Any], int, list[dict[str, Any]], int]
+"""A robot's view, read once per new document (:meth:`FleetService._view_inputs`)."""
+
+
 class FleetService:
     """Every robot's documents from zenoh (or :meth:`receive`) into ``store``."""
 
@@ -161,7 +165,7 @@ class FleetService:
         self.rejected = 0
         self.last_rejection: str | None = None
         self._refusing: set[str] = set()  # keys whose last document was refused
-        self._views: dict[str, tuple[int, dict[str, Any], list[dict[str, Any]], int]] = {}
+        self._views: dict[str, _ViewInputs] = {}
         self._lock = threading.Lock()
         self._subs: list[Any] = []
 
@@ -247,13 +251,14 @@ class FleetService:
         seen = None if seq is None else self._view_inputs(row.robot, seq)
         if seen is None:
             return None
-        _, last, cals, n = seen
+        _, last, cals, dr, n = seen
         with self._lock:
             alive = self.alive.get(row.robot)
         out = summary(
             row.robot,
             last,
             cals,
+            dr,
             n,
             first_seen=row.first_seen,
             last_seen=row.last_seen,
@@ -268,8 +273,8 @@ class FleetService:
 
     def _view_inputs(
         self, name: str, seq: int
-    ) -> tuple[int, dict[str, Any], list[dict[str, Any]], int] | None:
-        """``(newest seq, newest document, calibrations, documents)`` of ``name`` whose
+    ) -> _ViewInputs | None:
+        """``(newest seq, newest document, calibrations, drift, documents)`` of ``name`` whose
         newest document is ``seq``, read from the store once per new document (``GET
         /robots`` would otherwise parse every robot's every document at each request)."""
         with self._lock:
@@ -279,7 +284,8 @@ class FleetService:
         docs = [d.doc for d in self.store.documents(name)]
         if not docs:
             return None
-        got = (seq, docs[-1], calibrations(docs), len(docs))
+        cals = calibrations(docs)
+        got = (seq, docs[-1], len(cals), drift(cals), len(docs))
         with self._lock:
             self._views[name] = got
         return got

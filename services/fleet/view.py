@@ -108,7 +108,8 @@ def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def summary(
     robot: str,
     last: dict[str, Any],
-    cals: Sequence[dict[str, Any]],
+    cals: int,
+    dr: Sequence[dict[str, Any]],
     documents: int,
     *,
     first_seen: float,
@@ -119,12 +120,11 @@ def summary(
     points: bool = False,
 ) -> dict[str, Any]:
     """One robot in the fleet view (``points``: with each parameter's series): ``last``
-    its newest document, ``cals`` :func:`calibrations` of all of them, ``documents`` how
-    many are kept."""
+    its newest document, ``cals`` how many :func:`calibrations` all of them name, ``dr``
+    their :func:`drift`, ``documents`` how many are kept."""
     st, why = status(last_seen, alive, float(fleet_period(last)), now, stale_periods)
     fif = last.get("file_in_force") or {}
     check = last.get("last_check")
-    dr = drift(cals)
     if not points:
         dr = [{k: v for k, v in p.items() if k != "points"} for p in dr]
     return {
@@ -142,7 +142,7 @@ def summary(
         else {"created": fif.get("created"), "run": fif.get("run"), "error": fif.get("error")},
         "last_check": check,
         "health": last.get("health"),
-        "calibrations": len(cals),
+        "calibrations": cals,
         "documents": documents,
         "drift": dr,
     }

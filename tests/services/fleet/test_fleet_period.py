@@ -22,7 +22,7 @@ def doc(**fields: object) -> dict[str, object]:
 
 def test_a_document_states_its_fleet_period() -> None:
     d = check_document("a", json.dumps(doc(format=STATE_FORMAT, fleet_period_s=5)).encode())
-    row = summary("a", d, [], 1, first_seen=0.0, last_seen=100.0, alive=None, now=116.0,
+    row = summary("a", d, 0, [], 1, first_seen=0.0, last_seen=100.0, alive=None, now=116.0,
                   stale_periods=3)  # fmt: skip
     assert row["fleet_period_s"] == 5 and "heartbeat_s" not in row
     assert row["status"] == "stale" and "3 fleet periods of 5 s" in row["stale_reason"]
@@ -30,7 +30,7 @@ def test_a_document_states_its_fleet_period() -> None:
 
 def test_a_format_1_document_is_read_by_its_heartbeat_s() -> None:
     d = check_document("a", json.dumps(doc(format=STATE_FORMAT_1, heartbeat_s=5)).encode())
-    row = summary("a", d, [], 1, first_seen=0.0, last_seen=100.0, alive=None, now=110.0,
+    row = summary("a", d, 0, [], 1, first_seen=0.0, last_seen=100.0, alive=None, now=110.0,
                   stale_periods=3)  # fmt: skip
     assert row["fleet_period_s"] == 5 and row["status"] == "live"
 
