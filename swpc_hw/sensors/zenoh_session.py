@@ -86,7 +86,7 @@ def zenoh_config(
     auth: ZenohAuth | None = None,
     acl: dict[str, Any] | None = None,
 ) -> Any:
-    """A ``zenoh.Config`` with multicast scouting off and explicit endpoints.
+    """A ``zenoh.Config`` with scouting off (and no wait for it) and explicit endpoints.
 
     ``config_file`` (JSON5, e.g. ``deploy/zenoh/robot-peer.json5``) is loaded first; the
     explicit arguments then override ``mode``, add endpoints, the authentication and the
@@ -98,6 +98,9 @@ def zenoh_config(
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("scouting/gossip/enabled", "false")
+    # open() waits scouting/delay (500 ms) for what scouting finds; with scouting off there
+    # is nothing to find, and the connect endpoints are linked before open() returns anyway
+    cfg.insert_json5("scouting/delay", "0")
     if listen or not config_file:
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect or not config_file:
