@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -22,7 +23,14 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from services.config.fleet import FleetSettings, alive_key, fleet_acl, state_key
+from services.config.fleet import (
+    FleetNameError,
+    FleetSettings,
+    alive_key,
+    fleet_acl,
+    fleet_users,
+    state_key,
+)
 from services.config.settings import ServiceSettings
 from services.fleet.service import (
     MAX_DEPTH,
@@ -223,9 +231,15 @@ def test_each_robot_writes_under_its_own_name_only(
         rt.close()
 
 
-def test_the_acl_names_each_robot_and_no_key_outside_the_fleet() -> None:
-    acl = fleet_acl(["robot1", "robot2"])
+def test_the_acl_names_each_robot_and_no_key_outside_the_fleet(tmp_path: Path) -> None:
+    acl = fleet_acl(fleet_users(ROUTER_FILE.parent / "fleet-users.example.txt"))
     own = {r["id"]: r["key_exprs"] for r in acl["rules"] if r["id"].startswith("own-")}
     assert own == {"own-robot1": ["swpc/fleet/robot1/**"], "own-robot2": ["swpc/fleet/robot2/**"]}
     assert all(k.startswith(("swpc/fleet/", "@/")) for r in acl["rules"] for k in r["key_exprs"])
     assert acl["default_permission"] == "deny"
+    bad = tmp_path / "users.txt"
+    for text, words in (("robot1\n", ":1: not a user:password line"),
+                        ("robot/1:pw\n", ":1: fleet robot name 'robot/1'"), ("\n", "no user")):
+        bad.write_text(text)
+        with pytest.raises(FleetNameError, match=re.escape(words)):
+            fleet_users(bad)
