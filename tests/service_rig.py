@@ -72,15 +72,22 @@ SHORT = {"protocol": {"sweep_deg": 1440}}
 
 @dataclass
 class Sim:
-    """The service on the in-process simulator, and a bus of ours on its CAN channel."""
+    """The service on the in-process simulator, and (once asked) a bus of ours on its CAN
+    channel."""
 
     client: TestClient
     rt: Runtime
-    bus: can.BusABC
+    bus: can.BusABC | None = None
 
     def host_frames(self) -> list[can.Message]:
         """The commands a host sent since the last call (drained from our bus's queue: the
-        virtual bus hands every frame to every other bus on the channel as it is sent)."""
+        virtual bus hands every frame to every other bus on the channel as it is sent).
+        The first call opens that bus and returns nothing: a bus nobody reads would be
+        handed a copy of every frame of every run (CPU of the simulation, and a queue
+        that only grows)."""
+        if self.bus is None:
+            self.bus = can.Bus(interface="virtual", channel=self.rt.can_channel)
+            return []
         out = []
         while (msg := self.bus.recv(0)) is not None:
             if not msg.is_error_frame and codec.split_id(msg.arbitration_id)[1] in (
@@ -98,8 +105,12 @@ def sim_service(data: Path, **settings: Any) -> Iterator[Sim]:
     app = create_app(ServiceSettings(data_dir=data, token=SecretStr(TOKEN), **settings))
     with TestClient(app) as client:
         rt: Runtime = app.state.runtime
-        with can.Bus(interface="virtual", channel=rt.can_channel) as bus:
-            yield Sim(client, rt, bus)
+        sim = Sim(client, rt)
+        try:
+            yield sim
+        finally:
+            if sim.bus is not None:
+                sim.bus.shutdown()
 
 
 def send(client: TestClient, overrides: str, install: str = "if-within-tolerance") -> Any:
