@@ -210,20 +210,32 @@ def test_each_robot_writes_under_its_own_name_only(
         # the positive control: robot1 is heard, live, its token seen
         until(lambda: fleet.robot("robot1", points=False) and fleet.alive.get("robot1"))
         received = fleet.received
-        # then the rogues: a robot that does not exist, robot1's key from robot2, a token
-        for session in rogues.values():
-            session.liveliness().declare_token(alive_key("robot7"))
-            session.put(state_key("robot7"), state("robot7"))
-            session.put(state_key("robot1"), state("robot1", history={"calibrations": [
-                calibration("forged", 9.99)]}))  # fmt: skip
-        # robot2 may write its own key: the link works, and it arrives after the forgeries
-        rogues["robot2 as robot1"].put(state_key("robot2"), state("robot2"))
-        until(lambda: fleet.robot("robot2", points=False))
+        # then the rogues: a robot that does not exist, robot1's key from robot2, a token;
+        # and robot2 writing its own key beside them, until it is heard (a peer's put is
+        # dropped at its source until it knows the router's subscriber: the link proven)
+        tokens = [s.liveliness().declare_token(alive_key("robot7")) for s in rogues.values()]
+
+        def forge() -> None:
+            for session in rogues.values():
+                session.put(state_key("robot7"), state("robot7"))
+                session.put(state_key("robot1"), state("robot1", history={"calibrations": [
+                    calibration("forged", 9.99)]}))  # fmt: skip
+
+        deadline = time.monotonic() + 15.0
+        while not fleet.robot("robot2", points=False):
+            assert time.monotonic() < deadline, "robot2 never heard"
+            forge()
+            rogues["robot2 as robot1"].put(state_key("robot2"), state("robot2"))
+            time.sleep(0.05)
+        for _ in range(5):  # the forgeries go on after the positive control, 0.25 s more
+            forge()
+            time.sleep(0.05)
         time.sleep(0.5)  # and robot1's next publications (every 0.25 s) too
         assert {r["robot"] for r in fleet.robots()} == {"robot1", "robot2"}
         assert "robot7" not in fleet.alive
         assert fleet.robot("robot1")["calibrations"] == 0  # type: ignore[index]
         assert fleet.rejected == 0 and fleet.received > received
+        del tokens
     finally:
         for session in rogues.values():
             session.close()
