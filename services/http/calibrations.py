@@ -23,11 +23,12 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import APIRouter, HTTPException, Response
+from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -36,6 +37,7 @@ from services.config.robot import ConfigOverrides, OverrideError, RobotConfig, R
 from services.http.answers import ReferenceIn, entries, refused
 from services.http.deps import AUTH, GUARDED, Rt, done_result, not_running, problems
 from services.http.edge.control import ABORT, run_in
+from services.http.edge.guard import has_token
 from services.plan.planner import (
     PlannerBusyError,
     PlanRequest,
@@ -54,6 +56,7 @@ from services.runtime.errors import (
     StoreError,
 )
 from services.runtime.health import start_problems
+from services.store.logs import event
 from swpc_hw.calibration.plan.forecast import Stopping
 from swpc_hw.calibration.plan.plan import PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
@@ -61,6 +64,7 @@ from swpc_hw.files.kinematic_file import load_kinematics
 from swpc_hw.files.references import Reference
 from swpc_hw.onboard.export import TARGETS, file_name, make_export, render
 
+log = logging.getLogger("swpc.service")
 router = APIRouter()
 
 
@@ -312,21 +316,28 @@ def get_result(run_id: str, rt: Rt) -> dict[str, Any]:
 @router.post(
     "/calibrations/{run_id}/abort",
     response_model=RunStatus,
-    dependencies=AUTH,
-    responses={**GUARDED, **problems(404, 409)},
+    responses={**problems(413, 404, 409)},
 )
-async def abort(run_id: str, rt: Rt) -> dict[str, Any]:
-    return await abort_run(rt, run_id, "calibration")
+async def abort(run_id: str, rt: Rt, request: Request) -> dict[str, Any]:
+    """Stop the run: no token needed (stopping the robot is never refused for want of one;
+    docs/operating.md)."""
+    return await abort_run(rt, run_id, "calibration", request)
 
 
-async def abort_run(rt: Rt, run_id: str, kind: RunKind) -> dict[str, Any]:
-    """Abort run ``run_id`` of ``kind`` (404 unknown, 409 too late)."""
+async def abort_run(rt: Rt, run_id: str, kind: RunKind, request: Request) -> dict[str, Any]:
+    """Abort run ``run_id`` of ``kind`` (404 unknown, 409 too late); who asked is logged
+    (an abort needs no token)."""
     # async: runs on the event loop itself, so stop_all() is not queued behind a
     # threadpool hand-off; only the wait for the run's thread goes to a thread of its own
     run = rt.runs.get(run_id)
     if run is None or run.status.kind != kind:
         raise not_running(rt, run_id, kind)
-    if not run.abort():
+    stopping = run.abort()
+    client = request.client.host if request.client else "?"
+    token = has_token(request.scope, str(request.app.state.token))
+    event(log, logging.WARNING, "run.abort_request", run=run_id, client=client,
+          token="yes" if token else "no", stopped="yes" if stopping else "no")  # fmt: skip
+    if not stopping:
         st = run.status.state
         why = "it has finished" if run.finished else "it is installing its result, which stands"
         raise HTTPException(409, f"{kind} {run_id} is {st}: too late to abort ({why})")

@@ -550,3 +550,35 @@ def test_the_plan_is_shown_before_start_and_runs(
     assert f["ratio"] <= 1.0
     d.find_element(By.ID, "f-plan").click()  # as the other tests left it
     assert text(d, "plan-text") == ""
+
+
+def test_an_abort_from_a_tab_without_the_token_stops_at_the_first_press(
+    service: dict[str, Any], browser: WebDriver
+) -> None:
+    """Issue 45, item 1: in a tab without the token, Abort opened the token dialog while
+    the robot went on spinning (still spinning 3 s later), and Cancel let the run go on.
+    Now the first press stops it: no dialog, the run ABORTED."""
+    d = browser
+    r = httpx.post(f"{service['url']}/calibrations", headers={"Authorization": f"Bearer {TOKEN}"},
+                   json={"overrides": {"protocol": {"sweep_deg": 1440}}}, timeout=30)  # fmt: skip
+    assert r.status_code == 202, r.text
+    run_id = r.json()["id"]
+    first = d.current_window_handle
+    d.switch_to.new_window("tab")  # a tab of its own: no token in its sessionStorage
+    try:
+        d.get(service["url"] + "/")
+        assert d.execute_script("return sessionStorage.getItem('swpc-token')") is None
+        wait_for("the spin, in this tab", lambda: text(d, "run-state") == "SPIN", timeout=120)
+        t = time.monotonic()
+        press(d, "abort")
+        assert wait_state(d, {"ABORTED", "FAILED", "DONE"}, timeout=30) == "ABORTED"
+        took = time.monotonic() - t
+        assert not dialog_open(d, "token-dialog")
+        assert "aborted by the operator" in text(d, "run-reason")
+        st = httpx.get(f"{service['url']}/calibrations/{run_id}", timeout=10).json()
+        assert st["state"] == "ABORTED", st
+        print(f"\nabort from a tab without the token: ABORTED on the page {took:.2f} s after "
+              "the press")  # fmt: skip
+    finally:
+        d.close()
+        d.switch_to.window(first)

@@ -7,7 +7,10 @@
    any other is answered 400.  A web page on another site whose name an attacker points at
    the robot's address (DNS rebinding) sends its own name: it reads nothing;
 1. a request that may change something (any method but GET, HEAD, OPTIONS) without the
-   bearer token is answered 401 at once: its body is never read or parsed;
+   bearer token is answered 401 at once: its body is never read or parsed.  An abort
+   (``POST /calibrations/{id}/abort``, ``POST /checks/{id}/abort``: :data:`STOP_PATH`)
+   passes without it: stopping the robot is never refused for want of a token, as anyone
+   beside the robot may press its emergency stop (it only ever stops motion);
 2. a body over ``max_body`` bytes (by its ``Content-Length``, or counted as it arrives when
    chunked) is answered 413 without reading the rest;
 3. a JSON body must be standard JSON (RFC 8259): ``NaN``, ``Infinity``, ``-Infinity``
@@ -24,6 +27,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import math
+import re
 import secrets
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
@@ -35,6 +39,8 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+STOP_PATH = re.compile(r"/(?:calibrations|checks)/[^/]+/abort")
+"""The requests that stop a run: no token needed (module docstring, item 1)."""
 MAX_DEPTH = 32
 MAX_INT_DIGITS = 40
 
@@ -181,7 +187,8 @@ class RequestGuard:
                 {"detail": f"Host {refused!r} is not a name of this service (SWPC_ALLOWED_HOSTS)"},
             )
             return
-        if scope["method"] not in SAFE_METHODS and not self._authorised(scope):
+        stop = scope["method"] == "POST" and STOP_PATH.fullmatch(scope.get("path", ""))
+        if scope["method"] not in SAFE_METHODS and not stop and not self._authorised(scope):
             await _reply(
                 send,
                 401,

@@ -10,6 +10,7 @@ was answered with a connection reset while the run went on.
 from __future__ import annotations
 
 import gc
+import logging
 import selectors
 import socket
 import time
@@ -117,6 +118,27 @@ def test_streams_without_the_token_never_starve_an_abort(service: tuple[str, int
     finally:
         for s in streams:
             s.close()
+
+
+def test_an_abort_without_the_token_stops_the_robot_at_once(
+    service: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 45, item 1: a console tab without the token asked for it before the abort
+    while the robot went on spinning.  The service takes an abort without the token (it
+    only ever stops motion), and logs who asked."""
+    base, _ = service
+    with httpx.Client(base_url=base, timeout=30) as c:
+        run_id = start(c, SHORT)  # type: ignore[arg-type]
+        wait_spinning(c, run_id)  # type: ignore[arg-type]
+        assert c.post("/calibrations", json={}).status_code == 401  # a start still needs it
+        with caplog.at_level(logging.WARNING, logger="swpc.service"):
+            r = c.post(f"/calibrations/{run_id}/abort")
+        assert r.status_code == 200, r.text
+        assert r.json()["state"] == "ABORTED" and "aborted" in r.json()["reason"]
+        again = c.post(f"/calibrations/{run_id}/abort")
+        assert again.status_code == 409 and "too late to abort" in again.text
+    (line,) = [m for m in caplog.messages if "run.abort_request" in m and "stopped=yes" in m]
+    assert f"run={run_id}" in line and "client=127.0.0.1" in line and "token=no" in line
 
 
 def test_a_stream_with_the_token_takes_the_place_of_one_without(

@@ -26,15 +26,18 @@ from tests.service_rig import (
 )
 
 
-def asgi_post(app: Any, path: str, headers: dict[str, str], chunks: int) -> tuple[int, int]:
-    """POST ``chunks`` MiB to ``app`` as a streamed body; returns (status, chunks read)."""
+def asgi_post(
+    app: Any, path: str, headers: dict[str, str], chunks: int, chunk: int = 1 << 20
+) -> tuple[int, int]:
+    """POST ``chunks`` chunks of ``chunk`` bytes (1 MiB) to ``app`` as a streamed body;
+    returns (status, chunks read)."""
     pulled = 0
     status: list[int] = []
 
     async def receive() -> dict[str, Any]:
         nonlocal pulled
         pulled += 1
-        return {"type": "http.request", "body": b"x" * (1 << 20), "more_body": pulled < chunks}
+        return {"type": "http.request", "body": b"x" * chunk, "more_body": pulled < chunks}
 
     async def send(msg: dict[str, Any]) -> None:
         if msg["type"] == "http.response.start":
@@ -69,6 +72,24 @@ def test_a_body_without_the_token_is_never_read_and_size_is_bounded(tmp_path: Pa
     # by its Content-Length: 413 before reading anything
     sized = {**AUTH, "content-length": str(200 << 20)}
     assert asgi_post(app, "/calibrations", sized, 200) == (413, 0)
+
+
+def test_only_an_abort_passes_without_the_token_and_its_body_is_still_bounded(
+    tmp_path: Path,
+) -> None:
+    """Stopping is never refused for want of a token (issue 45, item 1): an abort reaches
+    its route without one (here 404: no such run); nothing else that changes anything
+    does, not even a path that only looks like an abort."""
+    app = app_without_robot(tmp_path)
+    with TestClient(app) as client:  # the lifespan: the runtime the route asks
+        for path in ("/calibrations/x1/abort", "/checks/x1/abort"):
+            r = client.post(path)
+            assert r.status_code == 404 and "x1" in r.text, (path, r.text)
+    for path in ("/calibrations/x1/abort", "/checks/x1/abort"):
+        assert asgi_post(app, path, {"content-length": str(200 << 20)}, 200) == (413, 0)
+    for path in ("/calibrations/x1/abort/x", "/calibrations/x1/install", "/kinematics/rollback",
+                 "/calibrations//abort", "/calibrations/abort"):  # fmt: skip
+        assert asgi_post(app, path, {}, 1) == (401, 0), path
 
 
 @pytest.mark.parametrize(

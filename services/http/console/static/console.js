@@ -52,13 +52,15 @@ const colorOf = (module) => COLORS[(module - 1 + COLORS.length) % COLORS.length]
 const runPath = (st) => (st.kind === "check" ? "/checks/" : "/calibrations/") + st.id;
 const kindName = (st) => (st.kind === "check" ? "Check" : "Calibration");
 
-async function api(method, path, body) {
+// stop: a request that stops the robot (an abort) is sent at once, with the token if the
+// tab has one, never after asking for it (the service takes an abort without it)
+async function api(method, path, body, stop = false) {
   const headers = {};
   if (body !== undefined) headers["Content-Type"] = "application/json";
   if (method !== "GET") {
-    const token = await ensureToken();
-    if (!token) throw new Error("no token given");
-    headers.Authorization = "Bearer " + token;
+    const token = stop ? sessionStorage.getItem(TOKEN_KEY) : await ensureToken();
+    if (!token && !stop) throw new Error("no token given");
+    if (token) headers.Authorization = "Bearer " + token;
   }
   const r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
   if (r.status === 401) {
@@ -77,8 +79,8 @@ async function api(method, path, body) {
 // ------------------------------------------------------------------ dialogs
 function tokenDialog(why) {
   const dlg = $("token-dialog");
-  $("token-why").textContent = why || "Starting, aborting and installing need the service's " +
-    "bearer token. It is kept for this browser tab only.";
+  $("token-why").textContent = why || "Starting and installing need the service's bearer " +
+    "token (aborting never does). It is kept for this browser tab only.";
   $("token-input").value = "";
   return new Promise((resolve) => {
     const done = (value) => { dlg.close(); resolve(value); };
@@ -342,7 +344,7 @@ async function abortRun() {
   if (!run || TERMINAL.has(run.state)) return;
   $("abort").disabled = true;
   try {
-    onRun(await api("POST", `${runPath(run)}/abort`), false);
+    onRun(await api("POST", `${runPath(run)}/abort`, undefined, true), false);
   } catch (e) {
     $("abort-text").textContent = "Abort failed: " + e.message;
   } finally {
