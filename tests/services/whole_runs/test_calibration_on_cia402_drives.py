@@ -89,7 +89,7 @@ def service(
         rt: Runtime = app.state.runtime
         rec = Frames(rt.clock)
         bus = can.Bus(interface="virtual", channel=rt.can_channel)
-        notifier = can.Notifier(bus, [rec])
+        notifier = can.Notifier(bus, [rec], timeout=0.05)  # its stop() joins a wait this long
         try:
             yield client, rt, rec
         finally:

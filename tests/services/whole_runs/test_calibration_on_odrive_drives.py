@@ -100,7 +100,7 @@ def service(
         rt: Runtime = app.state.runtime
         rec = Recorder(rt.clock)
         bus = can.Bus(interface="virtual", channel=rt.can_channel)
-        notifier = can.Notifier(bus, [rec])
+        notifier = can.Notifier(bus, [rec], timeout=0.05)  # its stop() joins a wait this long
         try:
             yield client, rt, rec
         finally:
