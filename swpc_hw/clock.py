@@ -264,9 +264,13 @@ class SimClock(_EpochClock):
     sleepers that are due and waits until the participants among them block again.  So a
     participant sees, at every wake-up, everything that happened up to ``now()``.
 
-    Time flows only while someone waits on it (:meth:`demanded`): an idle service on the
-    in-process simulator costs no CPU, and a run starts from the same state whatever the
-    wall time of its start.  ``max_speed`` caps the rate (0: as fast as the host can).
+    Unpaced (``max_speed`` 0: as fast as the host can), time flows only while someone
+    waits on it (:meth:`demanded`): an idle service on the in-process simulator costs no
+    CPU, and a run starts from the same state whatever the wall time of its start.  Paced
+    (``max_speed`` > 0 simulated s per wall s: ``make console`` at 1), it flows at that
+    rate whether or not anyone waits, as a robot's time does: the drives' heartbeats and
+    the motion capture go on while the service is idle (frozen, a service whose first pose
+    came after its last wait stayed "motion capture stale" for good).
     """
 
     def __init__(
@@ -427,16 +431,17 @@ class SimClock(_EpochClock):
 
     # ------------------------------------------------------------------ the master
     def demanded(self) -> bool:
-        """Someone waits for time to move on (a participant that yields counts)."""
+        """Time is to move on: someone waits for it (a participant that yields counts), or
+        the clock is paced (class docstring)."""
         with self._cv:
-            return bool(self._sleepers)
+            return bool(self._sleepers) or self.max_speed > 0
 
     def wait_for_demand(self, stop: threading.Event, timeout: float = 0.1) -> bool:
-        """Block (wall time, up to ``timeout``) until someone waits on the clock."""
+        """Block (wall time, up to ``timeout``) until time is to move on (:meth:`demanded`)."""
         with self._cv:
-            if not self._sleepers:
+            if not self._sleepers and self.max_speed <= 0:
                 self._cv.wait(timeout)
-            demanded = bool(self._sleepers)
+            demanded = bool(self._sleepers) or self.max_speed > 0
         if not demanded:
             self._pace_wall = 0.0  # time stood still: pacing restarts from here
         return demanded and not stop.is_set()

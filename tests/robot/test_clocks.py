@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 import uuid
 
 import pytest
@@ -52,6 +53,30 @@ def test_sim_clock_wall_stamps_round_trip_exactly_whatever_the_epoch() -> None:
         th.join(2.0)
         times.append(seen)
     assert times[0] == times[1]
+
+
+def test_a_paced_sim_clock_flows_when_no_one_waits_and_an_unpaced_one_stands_still() -> None:
+    """Unpaced (as fast as the host can), an idle simulation costs nothing: time stands
+    still until someone waits on it.  Paced (``make console``: 1 simulated s per wall s),
+    it flows as a robot's time does: an idle console's robot sent no pose while nothing
+    waited, and a service whose first pose came after its start-up's last wait stayed
+    "motion capture stale" (make console, on a loaded host)."""
+    stop = threading.Event()
+    idle = SimClock()
+    t0 = time.monotonic()
+    assert not idle.wait_for_demand(stop, timeout=0.05) and not idle.demanded()
+    assert time.monotonic() - t0 >= 0.04  # it waited for a demand
+    paced = SimClock(max_speed=20.0)
+    assert paced.demanded()
+    t0 = time.monotonic()
+    for _ in range(10):  # the master's loop, nobody else on the clock
+        assert paced.wait_for_demand(stop)
+        paced.advance_to(paced.now() + 0.05, stop)
+    wall = time.monotonic() - t0
+    assert paced.now() == pytest.approx(0.5, abs=1e-4)  # (on the wall stamps' grid)
+    assert wall >= 0.45 / 20.0  # at the paced rate, not faster
+    idle.close()
+    paced.close()
 
 
 def test_virtual_clock_moves_only_when_slept_on_and_runs_its_world() -> None:
