@@ -228,6 +228,13 @@ class VirtualRobot:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def heard(self) -> bool:
+        """Its poses have a subscriber (zenoh's matching status): a service waits for this
+        before it starts the simulation in lockstep, so that its first pose is the
+        simulation's first, whatever the wall time its zenoh link takes.  (A service
+        subscribes to the gyro at its first run without motion capture.)"""
+        return self.mocap.heard()
+
     def start(self) -> None:
         """Start the simulation thread (once)."""
         with self._lock:

@@ -93,6 +93,9 @@ from swpc_hw.sensors.zenoh_session import (
 SWITCH_INTERVAL_S = 0.001
 SIM_USER = "simulator"
 """The in-process simulator's zenoh user: the only publisher of the robot's sensor keys."""
+SIM_LINK_TIMEOUT_S = 10.0
+"""Wall seconds the service waits for the in-process simulator's zenoh link to hear it
+before its simulation starts anyway (then /health says motion capture stale, with why)."""
 ZENOH_USERS_FILE = ".zenoh-users"
 """In the data dir while the in-process simulator runs: its zenoh credential (0600)."""
 log = logging.getLogger("swpc.service")
@@ -301,6 +304,11 @@ class Runtime(RunRecords):
                 feedback_rate_hz=s.feedback_rate_hz,
                 gyro=s.sim_gyro,
             )
+            # the link up before time flows: the run's first poses are then the same
+            # whatever the wall time zenoh takes (bit for bit the same seed, the same run)
+            deadline = time.monotonic() + SIM_LINK_TIMEOUT_S
+            while not self.simulator.heard() and time.monotonic() < deadline:
+                time.sleep(0.01)
             self.simulator.start()
         self._opened = True
         return self

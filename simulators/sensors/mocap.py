@@ -211,6 +211,11 @@ class MocapSim:
         """Sample times ``k / rate`` in ``(t0, t1]`` (the first call also includes ``t0``)."""
         return self._grid.due(t0, t1)
 
+    def heard(self) -> bool:
+        """Someone subscribes to the poses (zenoh's matching status; False without a
+        session)."""
+        return self._pub is not None and listened(self._pub)
+
     def sample(self, t: float, pose: FloatArray, stamp: float | None = None) -> None:
         """Take the sample of simulated time ``t`` from the true pose ``(x, y, yaw)``,
         stamped ``stamp`` (default ``t``) plus the clock offset."""
