@@ -12,7 +12,7 @@
   while it is being made.
 * ``GET /calibrations``, ``GET /calibrations/{id}``: every run, one run.
 * ``GET /calibrations/{id}/result``: a DONE run's result document (409 otherwise).
-* ``POST /calibrations/{id}/abort`` (token): every axis stopped at once, the run ends
+* ``POST /calibrations/{id}/abort`` (no token needed): every axis stopped at once, the run ends
   ABORTED and nothing is installed; 409 when it is too late: the run has finished, or
   has begun installing its result (then that stands).
 * ``GET /calibrations/{id}/plot.png``: the run's plot, rendered once.

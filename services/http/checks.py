@@ -12,7 +12,8 @@
 * ``GET /checks``, ``GET /checks/{id}``: every check, one check (its status; once DONE
   with its ``result``: the verdict, per module the chi-square, per parameter the change,
   its std dev and z).
-* ``POST /checks/{id}/abort`` (token): every axis stopped at once, the check ends ABORTED.
+* ``POST /checks/{id}/abort`` (no token needed): every axis stopped at once, the check ends
+  ABORTED.
 * ``GET /history``: every calibration and check with its time and, per module and
   parameter, the time series with std devs and the trend with the date it leaves its
   tolerance (:mod:`services.runtime.history`); ``since`` (ISO 8601 UTC) keeps the newer.
