@@ -5,15 +5,11 @@ system; the dataset's hash follows every file.
 
 from __future__ import annotations
 
-import json
-import shutil
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 from typing import Any
-
-import pytest
 
 from services.runs.state import State
 from swpc_hw.files.dataset import load_dataset
@@ -21,6 +17,7 @@ from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
 from tests.run_rig import Rig
 from tests.service_rig import ROOT
+from tests.tmpfs_rig import no_unshare, run_in_tmpfs
 
 
 def test_a_state_that_cannot_be_saved_fails_the_run_and_stops_the_robot(tmp_path: Path) -> None:
@@ -163,26 +160,10 @@ DISK_FULL = textwrap.dedent(
 )
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None, reason="no unshare(1)")
+@no_unshare
 def test_a_full_disk_fails_the_run_cleanly_and_keeps_the_kinematic_file(tmp_path: Path) -> None:
     """A real ENOSPC: a 160 KiB tmpfs in a user + mount namespace of a child process."""
-    script = tmp_path / "full.py"
-    script.write_text(DISK_FULL.format(root=str(ROOT)))
-    mnt = tmp_path / "mnt"
-    mnt.mkdir()
-    probe = subprocess.run(
-        ["unshare", "--user", "--map-root-user", "--mount", "true"], capture_output=True
-    )
-    if probe.returncode != 0:
-        pytest.skip(f"no user namespaces here: {probe.stderr.decode().strip()}")
-    cmd = f"mount -t tmpfs -o size=160k tmpfs {mnt} && exec {sys.executable} {script} {mnt}"
-    p = subprocess.run(
-        ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", cmd],
-        capture_output=True,
-        timeout=120,
-    )
-    assert p.returncode == 0, p.stderr.decode()[-3000:]
-    out = json.loads(p.stdout.decode().strip().splitlines()[-1])
+    out = run_in_tmpfs(tmp_path, DISK_FULL.format(root=str(ROOT)), "size=160k")
     print(f"\ndisk-full run: {out}")  # the figure docs/history/ records (pytest -s)
     assert out["state"] == "FAILED" and "disk full" in out["reason"], out
     assert "No space left on device" in out["reason"]
@@ -234,30 +215,14 @@ PLOT_ON_A_FULL_DISK = textwrap.dedent(
 )
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None, reason="no unshare(1)")
+@no_unshare
 def test_a_plot_on_a_full_disk_is_a_507_that_says_why_then_served_once_there_is_room(
     tmp_path: Path,
 ) -> None:
     """Issue 40 row 13: ``plot.png`` answered 500 and its traceback when the disk was full.
     A real ENOSPC in a 16 MiB tmpfs (a user + mount namespace of a child process): 507
     with the reason; once there is room, the plot."""
-    script = tmp_path / "plot.py"
-    script.write_text(PLOT_ON_A_FULL_DISK.format(root=str(ROOT)))
-    mnt = tmp_path / "mnt"
-    mnt.mkdir()
-    probe = subprocess.run(
-        ["unshare", "--user", "--map-root-user", "--mount", "true"], capture_output=True
-    )
-    if probe.returncode != 0:
-        pytest.skip(f"no user namespaces here: {probe.stderr.decode().strip()}")
-    cmd = f"mount -t tmpfs -o size=16m tmpfs {mnt} && exec {sys.executable} {script} {mnt}"
-    p = subprocess.run(
-        ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", cmd],
-        capture_output=True,
-        timeout=120,
-    )
-    assert p.returncode == 0, p.stderr.decode()[-3000:]
-    out = json.loads(p.stdout.decode().strip().splitlines()[-1])
+    out = run_in_tmpfs(tmp_path, PLOT_ON_A_FULL_DISK.format(root=str(ROOT)), "size=16m")
     assert out["state"] == "DONE", out
     assert out["full"] == 507 and out["full_type"] == "application/json", out
     assert "no room on disk: No space left on device" in out["full_body"], out

@@ -11,8 +11,6 @@ import json
 import logging
 import os
 import shutil
-import subprocess
-import sys
 import textwrap
 import time
 from pathlib import Path
@@ -26,6 +24,7 @@ from tests.service_rig import (
     send,
     sim_service,
 )
+from tests.tmpfs_rig import no_unshare, run_in_tmpfs
 
 MIB = 1 << 20
 
@@ -184,31 +183,13 @@ NO_INODES = textwrap.dedent(
 )
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None, reason="no unshare(1)")
+@no_unshare
 def test_no_inodes_left_refuses_a_run_with_507_and_health_says_why(tmp_path: Path) -> None:
     """A real exhaustion of inodes: a tmpfs of 400 inodes in a user + mount namespace,
     filled once the service has started."""
-    script = tmp_path / "inodes.py"
-    script.write_text(NO_INODES.format(root=str(ROOT)))
-    mnt = tmp_path / "mnt"
-    mnt.mkdir()
-    probe = subprocess.run(
-        ["unshare", "--user", "--map-root-user", "--mount", "true"], capture_output=True
+    out = run_in_tmpfs(
+        tmp_path, NO_INODES.format(root=str(ROOT)), "size=2g,nr_inodes=400", timeout=240
     )
-    if probe.returncode != 0:
-        pytest.skip(f"no user namespaces here: {probe.stderr.decode().strip()}")
-    cmd = (
-        f"mount -t tmpfs -o size=2g,nr_inodes=400 tmpfs {mnt} && "
-        f"exec {sys.executable} {script} {mnt}"
-    )
-    p = subprocess.run(
-        ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", cmd],
-        capture_output=True,
-        timeout=240,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    assert p.returncode == 0, p.stderr.decode()[-3000:]
-    out = json.loads(p.stdout.decode().strip().splitlines()[-1])
     assert out["status"] == 507 and "no room for the run's files" in out["detail"], out
     assert out["runs"] == [] and out["frames"] == 0, out
     assert any("no inodes left" in h for h in out["health"]), out
