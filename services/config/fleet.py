@@ -34,6 +34,9 @@ ALIVE_KEYS = f"{PREFIX}/*/alive"
 """Every robot's liveliness token."""
 ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 """A robot's name in the fleet: one zenoh key chunk, no wildcard or separator."""
+MAX_FLEET_PERIOD_S = 3600.0
+"""The longest fleet period a robot may have (``SWPC_FLEET_PERIOD``; the fleet service
+refuses a document that states a longer one)."""
 STALE_PERIODS = 3
 """A robot is stale after this many of its fleet periods without a message (unless
 ``SWPC_FLEET_STALE_PERIODS`` says), or at once when its liveliness token goes."""

@@ -18,6 +18,7 @@ from typing import Literal
 from pydantic import ByteSize, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from services.config.fleet import MAX_FLEET_PERIOD_S
 from services.config.log_options import LogFormat, LogLevel
 from swpc_hw.errors import SwpcError
 from swpc_hw.sensors.gyro import GyroOptions
@@ -151,7 +152,7 @@ class ServiceSettings(BaseSettings):
     fleet_period: float = Field(
         5.0,
         gt=0,
-        le=3600,
+        le=MAX_FLEET_PERIOD_S,
         description="host seconds between two publications of the state when nothing changed "
         "(the fleet period; each such publication is a repeat); a change is published "
         "within 0.5 s",

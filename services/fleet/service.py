@@ -22,6 +22,7 @@ from typing import Any
 
 from services.config.fleet import (
     ALIVE_KEYS,
+    MAX_FLEET_PERIOD_S,
     STATE_FORMAT,
     STATE_FORMAT_1,
     STATE_KEYS,
@@ -50,8 +51,6 @@ MAX_MAGNITUDE = 1e12
 seconds fits; 1e400 is infinity in JSON and never a robot's)."""
 MAX_REFUSING_KEYS = 1024
 """Keys remembered as refusing (each logged once); beyond, refusals are only counted."""
-MAX_PERIOD_S = 3600.0
-"""A robot's fleet period: at most this (``SWPC_FLEET_PERIOD``'s own limit)."""
 
 
 class DocumentError(ValueError):
@@ -123,10 +122,10 @@ def check_document(robot: str, payload: bytes) -> dict[str, Any]:
     if doc.get("robot") != robot:
         raise DocumentError(f"robot {doc.get('robot')!r} published on {robot!r}'s key")
     period = fleet_period(doc)
-    if not (isinstance(period, int | float) and 0 < period <= MAX_PERIOD_S):
+    if not (isinstance(period, int | float) and 0 < period <= MAX_FLEET_PERIOD_S):
         raise DocumentError(
             f"{fleet_period_field(doc)} {period!r}: a number of seconds in (0, "
-            f"{MAX_PERIOD_S:g}] is needed"
+            f"{MAX_FLEET_PERIOD_S:g}] is needed"
         )
     fif = doc.get("file_in_force")
     if fif is not None:
