@@ -32,7 +32,13 @@ def run_in_tmpfs(tmp_path: Path, script: str, options: str, timeout: float = 120
     )
     if probe.returncode != 0:
         pytest.skip(f"no user namespaces here: {probe.stderr.decode().strip()}")
-    cmd = f"mount -t tmpfs -o {options} tmpfs {mnt} && exec {sys.executable} {path} {mnt}"
+    # The script's process ends with os._exit once its output is flushed: what is tested is
+    # done by then, and an interpreter finalizing beside zenoh's runtime threads (one of
+    # them calling back into Python) was once aborted by glibc, "FATAL: exception not
+    # rethrown", on a busy host (2026-11-29).
+    run = f"import runpy, os, sys; runpy.run_path({str(path)!r}, run_name='__main__'); "
+    run += "sys.stdout.flush(); sys.stderr.flush(); os._exit(0)"
+    cmd = f"mount -t tmpfs -o {options} tmpfs {mnt} && exec {sys.executable} -c \"{run}\" {mnt}"
     p = subprocess.run(
         ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", cmd],
         capture_output=True,
