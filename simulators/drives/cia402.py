@@ -17,6 +17,16 @@ around it here:
   homing speed, or an absolute encoder (``homing: absolute``), homed from power-up;
 * faults (:meth:`VirtualCia402Module.inject_fault`) as EMCY with their error code.
 
+As it comes from the factory, and no kinder than CiA 301/402 promise: silent until the host
+sets its heartbeat producer (0x1017 = 0), PRE-OPERATIONAL after a communication error such
+as its heartbeat consumer's timeout (0x1029 sub 1: 0 pre-operational, 1 no change, 2
+stopped), optionally in FAULT from power-up (:attr:`VirtualAxis.power_up_fault`, cleared by
+a fault reset unless :attr:`VirtualAxis.fault_clears` is false), and in cyclic synchronous
+position the target is taken at each SYNC: the one received since the previous SYNC, else
+the last set-point extrapolated for one cycle (an interpolating drive's behaviour), then
+held; a target written before the mode is in force is not taken (the drive starts from
+where it is).
+
 Time is the virtual robot's: the library's periodic sends (the heartbeat producer) run on
 :class:`SimNetwork`'s simulated time, never on a thread.  Units: the axis's gear ratio and
 encoder counts (the same config as the host's), the drive's rated torque (0x6076).
@@ -59,6 +69,9 @@ QUICK_STOP_TIME = 0.1
 """s in QUICK STOP ACTIVE before an option code 0..4 switches the power stage off."""
 ABORT_VALUE_RANGE = 0x06090030
 """SDO abort: value range of parameter exceeded."""
+ERROR_BEHAVIOUR = 0x1029
+"""CiA 301's error behaviour object: sub 1, the NMT state a communication error leads to."""
+NMT_STOP = 0x02
 
 ERROR_CODES: dict[ErrorFlag, int] = {
     ErrorFlag.OVER_TEMPERATURE: 0x4310,
@@ -145,6 +158,7 @@ class VirtualAxis:
         self.node = canopen.LocalNode(config.node, od)
         self.net.add_node(self.node)
         self.node.add_write_callback(self._on_write)
+        self.node.add_read_callback(self._on_read)
         assert self.node.rpdo.map is not None and self.node.tpdo.map is not None
         for pdo in self.node.rpdo.map.values():
             pdo.add_callback(self._on_rpdo)
@@ -175,6 +189,16 @@ class VirtualAxis:
         self.velocity = 0.0
         self.torque = 0.0
         self.sync_count = 0
+        self.power_up_fault = 0
+        """An error code the drive is in FAULT with from power-up (0: none)."""
+        self.fault_clears = True
+        """Whether a fault reset clears a fault (false: its cause persists)."""
+        # cyclic synchronous position: the set-point in force (counts), the target
+        # received since the last SYNC, the last cycle's change and the cycles missed
+        self.csp_setpoint = 0
+        self.csp_fresh: int | None = None
+        self.csp_delta = 0
+        self.csp_missed = 0
 
     # ------------------------------------------------------------------ object dictionary
     def _od_default(self, index: int, sub: int = 0) -> int:
@@ -207,11 +231,15 @@ class VirtualAxis:
             if value in [int(m) for m in SUPPORTED_MODES]:
                 if value != self.mode:
                     self.homing_attained = self.homing_error = False
+                    if value == Mode.CYCLIC_SYNC_POSITION:
+                        self._csp_start()
                 self.mode = Mode(value)
             elif value != 0:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)  # an RPDO's is dropped: display stays
         elif index == cia402.TARGET_POSITION:
             self.target_position = value
+            if self.mode is Mode.CYCLIC_SYNC_POSITION and self._csp_in_force():
+                self.csp_fresh = value
         elif index == cia402.TARGET_VELOCITY:
             self.target_velocity = value
         elif index == cia402.TARGET_TORQUE:
@@ -226,6 +254,15 @@ class VirtualAxis:
             self.consumer_node, ms = cia402.parse_consumer_entry(value)
             self.consumer_time = ms / 1000.0
             self.host_seen = None  # the consumer starts at the next heartbeat it sees
+
+    def _on_read(self, index: int, subindex: int, od: ODVariable) -> int | None:
+        """An SDO read of what the drive knows now (a TPDO carries what it knew at the
+        SYNC): statusword and modes display, in any NMT state."""
+        if index == cia402.STATUSWORD:
+            return self.statusword()
+        if index == cia402.MODES_DISPLAY:
+            return int(self.mode)
+        return None
 
     def _torque_si(self, per_mille: int) -> float:
         """A torque object's value (thousandths of the rated torque) at the output, N.m."""
@@ -242,10 +279,36 @@ class VirtualAxis:
                 continue  # a refused value (e.g. a mode): the drive keeps its own
 
     # ------------------------------------------------------------------ 402 state machine
+    def _csp_in_force(self) -> bool:
+        return self.state is PowerState.OPERATION_ENABLED
+
+    def _csp_start(self) -> None:
+        """Cyclic synchronous position comes into force: from where the axis is, any
+        target received before ignored."""
+        self.csp_setpoint = round(self.position * self.counts_per_rad)
+        self.csp_fresh, self.csp_delta, self.csp_missed = None, 0, 0
+
+    def _csp_sync(self) -> None:
+        """At a SYNC: the target received since the last one, else one cycle
+        extrapolated, then held (module docstring)."""
+        if self.csp_fresh is not None:
+            self.csp_delta = self.csp_fresh - self.csp_setpoint if self.csp_missed == 0 else 0
+            self.csp_setpoint, self.csp_fresh, self.csp_missed = self.csp_fresh, None, 0
+        elif self.csp_missed == 0:
+            self.csp_setpoint += self.csp_delta
+            self.csp_missed = 1
+        else:
+            self.csp_delta = 0
+
     def _on_controlword(self, cw: int) -> None:
         prev, self.controlword = self.controlword, cw
         before = self.state
         self.state = cia402.drive_transition(self.state, cw, prev)
+        if before is PowerState.FAULT and self.state is not before and not self.fault_clears:
+            self.state = PowerState.FAULT  # the cause persists: reset again, still FAULT
+        enabled = self.state is PowerState.OPERATION_ENABLED
+        if enabled and before is not self.state and self.mode is Mode.CYCLIC_SYNC_POSITION:
+            self._csp_start()
         if before is PowerState.FAULT and self.state is not PowerState.FAULT:
             self.error_code = 0
             self._store(cia402.ERROR_CODE, 0)
@@ -271,7 +334,8 @@ class VirtualAxis:
         self.homing_end = self.net.now + self.homing_duration
 
     def fault(self, code: int) -> None:
-        """The fault reaction: power stage off (free), EMCY with ``code``."""
+        """The fault reaction: power stage off (free), EMCY with ``code``; a
+        communication error (0x81xx) also changes the NMT state as 0x1029 sub 1 says."""
         if self.state is PowerState.FAULT:
             return
         self.state = PowerState.FAULT  # the reaction of a virtual drive takes no time
@@ -281,6 +345,16 @@ class VirtualAxis:
         self._store(cia402.ERROR_CODE, code)
         self._store(cia402.ERROR_REGISTER, register)
         self.node.emcy.send(code, register)
+        if code & 0xFF00 == 0x8100 and self.node.nmt.state == "OPERATIONAL":
+            behaviour = (
+                self._read(ERROR_BEHAVIOUR, 1)
+                if ERROR_BEHAVIOUR in self.node.object_dictionary
+                else 0
+            )
+            if behaviour == 0:
+                self.node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)
+            elif behaviour == 2:
+                self.node.nmt.send_command(NMT_STOP)
 
     def statusword(self) -> int:
         extra = cia402.SW_REMOTE
@@ -301,8 +375,10 @@ class VirtualAxis:
         self.consumer_time = 0.0
         self.host_seen = None
         self.node.nmt.send_command(cia402.NMT_RESET_NODE)  # state 0: sends the boot-up
-        self.node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)  # starts the heartbeat
+        self.node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)  # heartbeat if 0x1017
         self.booted = True
+        if self.power_up_fault:
+            self.fault(self.power_up_fault)
 
     def receive(self, msg: can.Message, now: float) -> None:
         self.net.now = now
@@ -332,6 +408,8 @@ class VirtualAxis:
         if self.node.nmt.state != "OPERATIONAL":
             return
         self.sync_count += 1
+        if self.mode is Mode.CYCLIC_SYNC_POSITION and self._csp_in_force():
+            self._csp_sync()
         self._store(cia402.STATUSWORD, self.statusword())
         self._store(cia402.MODES_DISPLAY, int(self.mode))
         self._store(cia402.POSITION_ACTUAL, round(self.position * self.counts_per_rad))
@@ -393,7 +471,7 @@ class VirtualAxis:
                     ax.mode = ControlMode.HOLD
             elif m is Mode.CYCLIC_SYNC_POSITION:
                 ax.mode = ControlMode.POSITION
-                ax.setpoint = self.target_position / self.counts_per_rad
+                ax.setpoint = self.csp_setpoint / self.counts_per_rad
             elif m is Mode.CYCLIC_SYNC_VELOCITY:
                 ax.mode = ControlMode.VELOCITY
                 ax.setpoint = self.target_velocity / self.counts_per_rad
@@ -453,8 +531,11 @@ class VirtualCia402Module:
             return []
         cob = msg.arbitration_id
         node = cob & 0x7F
-        if node and node not in self._ids and cob >= cia402.TPDO_BASE[0] and (
-            cob & 0x780 != cia402.HEARTBEAT_BASE
+        if (
+            node
+            and node not in self._ids
+            and cob >= cia402.TPDO_BASE[0]
+            and (cob & 0x780 != cia402.HEARTBEAT_BASE)
         ):
             return []  # another node's SDO / PDO
         for a in self.axes:
@@ -477,9 +558,7 @@ class VirtualCia402Module:
     ) -> tuple[str, float]:
         return axis_drive(self.axes[axis].axis_model(), axis, position, dt, position_tau)
 
-    def sense(
-        self, axis: Axis, position: float, velocity: float, torque: float | None
-    ) -> None:
+    def sense(self, axis: Axis, position: float, velocity: float, torque: float | None) -> None:
         self.axes[axis].sense(position, velocity, torque)
 
     def inject_fault(self, axis: Axis, error: ErrorFlag) -> list[can.Message]:
@@ -509,4 +588,3 @@ def build(
     return VirtualCia402Module(
         config, module, homing_duration=homing_duration, sensor_position=sensor_position
     )
-

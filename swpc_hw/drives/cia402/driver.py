@@ -180,23 +180,66 @@ class Cia402Driver(DriverBase):
         return Frame(cia402.HEARTBEAT_BASE + host, bytes([cia402.NMT_OPERATIONAL]))
 
     def _bring_up(self) -> None:
-        """Every drive's heartbeat; each drive not set up since its boot set up
-        (:mod:`swpc_hw.drives.cia402.setup`) and started; OPERATIONAL on every heartbeat.
+        """Each drive not set up since its boot reached (:meth:`_reach`), set up
+        (:mod:`swpc_hw.drives.cia402.setup`) and watched from its first heartbeat after;
+        every drive not OPERATIONAL (just set up, or left PRE-OPERATIONAL by a
+        communication error, 0x1029's default) started; OPERATIONAL on every heartbeat.
         :class:`NodeTimeoutError` names the silent drives, :class:`NodeError` a drive whose
         set-up failed (the object and why)."""
         cfg = self.config
-        self._wait_axes("heartbeat", lambda a: a.alive, cfg.activate_timeout_s)
         for a in self._tracks():
             if not a.configured:
+                self._reach(a)
                 set_up(self._nodes[a.node], a, self.drives, cfg)
                 with self._lock:
                     a.configured = True
                     a.controlword = cia402.CW_DISABLE_VOLTAGE
+        for a in self._tracks():
+            if a.nmt != cia402.NMT_OPERATIONAL:
+                with self._lock:
                     a.sync_base, a.answered = self._sync_seq, 0  # it answers the SYNCs after
+                    a.statusword_seen = False
                 self._nodes[a.node].nmt.send_command(cia402.NMT_START)
+        self._wait_axes(
+            "a heartbeat after its set-up (0x1017)", lambda a: a.watched, cfg.activate_timeout_s
+        )
         self._wait_axes(
             "NMT OPERATIONAL", lambda a: a.nmt == cia402.NMT_OPERATIONAL, cfg.activate_timeout_s
         )
+
+    def _reach(self, a: AxisTrack) -> None:
+        """The drive answers an SDO request (0x1000): a drive from the factory sends no
+        heartbeat, and one powered before the service missed its boot-up.  If it does not
+        (NMT STOPPED, or busy booting), NMT reset communication to it and its boot-up
+        awaited, then asked again; :class:`NodeTimeoutError` if still nothing."""
+        node = self._nodes[a.node]
+        if self._answers(node):
+            return
+        t0 = self.clock.now()
+        node.nmt.send_command(cia402.NMT_RESET_COMMUNICATION)
+        timeout = self.config.activate_timeout_s
+        with contextlib.suppress(NodeTimeoutError):
+            self._wait_all(
+                "a boot-up", lambda: [a], lambda x: (x.t_boot or -math.inf) >= t0,
+                lambda x: x.where(), timeout,
+            )  # fmt: skip
+        if not self._answers(node):
+            raise NodeTimeoutError(
+                f"{a.where()}: no answer to an SDO request (0x1000) and no boot-up after NMT "
+                f"reset communication within {timeout:g} s: check its power, its wiring "
+                f"to this bus ({self.config.channel}) and its node id",
+                node=a.node,
+            )
+
+    @staticmethod
+    def _answers(node: ClockedRemoteNode) -> bool:
+        try:
+            node.sdo.upload(cia402.DEVICE_TYPE, 0)
+        except SdoCommunicationError:
+            return False
+        except SdoAbortedError:
+            pass  # an abort is an answer
+        return True
 
     def _activated(self) -> None:
         """The SYNC (``feedback_rate_hz``) runs from now on."""
@@ -207,9 +250,35 @@ class Cia402Driver(DriverBase):
             a.refused_reported = False
 
     def _after_activate(self) -> None:
+        """A statusword from every drive; a fault present at start reset (the first
+        statusword asks for it, :func:`~swpc_hw.drives.cia402.tracking.on_statusword`),
+        and :class:`NodeError` with the drive's error code (0x603F) if it does not clear."""
         self._wait_axes(
-            "a statusword", lambda a: a.statusword is not None, self.config.activate_timeout_s
+            "a statusword", lambda a: a.statusword_seen, self.config.activate_timeout_s
         )
+        faulted = (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE)
+        try:
+            self._wait_axes("a fault reset", lambda a: a.state not in faulted, POWER_TIMEOUT_S)
+        except NodeTimeoutError:
+            for a in self._tracks():
+                if a.state in faulted:
+                    raise NodeError(
+                        f"{a.where()}: in FAULT since before the run, and a fault reset did "
+                        f"not clear it within {POWER_TIMEOUT_S:g} s: {self._error_code(a)}; "
+                        "its cause is still there (the drive's manual says what each code "
+                        "needs)",
+                        node=a.node,
+                        axis=int(a.axis),
+                    ) from None
+            raise
+
+    def _error_code(self, a: AxisTrack) -> str:
+        """The drive's error code 0x603F, named (or the one its EMCY gave)."""
+        code = a.error_code
+        if cia402.ERROR_CODE in self._nodes[a.node].object_dictionary:
+            with contextlib.suppress(SdoAbortedError, SdoCommunicationError):
+                code = int(self._nodes[a.node].sdo[cia402.ERROR_CODE].raw)
+        return f"error code 0x603F = 0x{code:04X} ({cia402.emcy_name(code)})"
 
     def _tracks(self) -> Iterator[AxisTrack]:
         for mt in self._modules.values():
@@ -230,14 +299,32 @@ class Cia402Driver(DriverBase):
 
     def _send_rpdo(self, a: AxisTrack, targets: bool, best_effort: bool = False) -> None:
         """RPDO 2 (targets, if ``targets``) then RPDO 1 of ``a``: canopen packs them."""
-        node = self._nodes[a.node]
         if targets:
-            p2 = node.rpdo[2]
-            p2[f"0x{cia402.TARGET_POSITION:04X}"].raw = a.target_position
-            p2[f"0x{cia402.TARGET_VELOCITY:04X}"].raw = a.target_velocity
-            self._send(p2.cob_id or cia402.RPDO_BASE[1] + a.node, bytes(p2.data), best_effort)
+            self._send_targets(a, best_effort)
         f = self._rpdo1(a)
         self._send(f.arbitration_id, f.data, best_effort)
+
+    def _send_targets(self, a: AxisTrack, best_effort: bool = False) -> None:
+        """RPDO 2 of ``a``: target position and velocity."""
+        p2 = self._nodes[a.node].rpdo[2]
+        p2[f"0x{cia402.TARGET_POSITION:04X}"].raw = a.target_position
+        p2[f"0x{cia402.TARGET_VELOCITY:04X}"].raw = a.target_velocity
+        self._send(p2.cob_id or cia402.RPDO_BASE[1] + a.node, bytes(p2.data), best_effort)
+
+    def _stream_targets(self) -> None:
+        """Before each SYNC, RPDO 2 to every axis whose cyclic synchronous mode is in force:
+        such a drive takes the target received in each SYNC cycle, and extrapolates or
+        holds when none came (CiA 402), so the target is sent every cycle, not only when
+        it changes; before the mode is in force a target is not taken."""
+        cyclic = (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY)
+        with self._tx_lock:
+            if self._state != Lifecycle.ACTIVE:
+                return
+            for a in self._tracks():
+                enabled = a.state is PowerState.OPERATION_ENABLED
+                if a.enable and enabled and a.mode in cyclic and a.mode_display == a.mode:
+                    with contextlib.suppress(CanError):
+                        self._send_targets(a, best_effort=True)
 
     def _rpdo1(self, a: AxisTrack) -> Frame:
         """RPDO 1 of ``a``: controlword, mode, target torque."""
@@ -468,7 +555,6 @@ class Cia402Driver(DriverBase):
         d = supervise(
             list(self._tracks()),
             now,
-            t_configured=self._configured_at,
             loss_after=cfg.loss_after_s,
             retry=max(3.0 / rate, 0.02),
             power_syncs=math.ceil(POWER_TIMEOUT_S * rate),
@@ -498,6 +584,7 @@ class Cia402Driver(DriverBase):
             deadline = self._next_heartbeat
         if self._sync_on:
             if now >= self._next_sync:
+                self._stream_targets()
                 with self._lock:
                     self._sync_seq += 1
                 with contextlib.suppress(CanError):

@@ -6,7 +6,9 @@ under its lock with times on its clock, and the tests call them directly.
 * :func:`on_statusword` / :func:`on_feedback` -- a TPDO's content into the axis's track;
   a module's feedback sample once both axes answered the same SYNC (:func:`pair`).
 * :func:`supervise` -- at ``now``: heartbeat loss (as the swpc kind's
-  :func:`swpc_hw.drives.tracking.check`: ``now >= t_heartbeat + loss_after``), the next
+  :func:`swpc_hw.drives.tracking.check`: ``now >= t_heartbeat + loss_after``) of each axis
+  watched (from its first heartbeat after its set-up: a drive from the factory sends none
+  until the host sets 0x1017, CiA 301's default), the next
   controlword of the 402 power state machine towards what the host asked
   (:func:`firmware_protocol.cia402.host_controlword`, one transition per statusword, sent
   again after ``retry`` when the drive did not follow), and the two refusals a drive can
@@ -50,6 +52,8 @@ class AxisTrack:
     nmt: int | None = None
     heartbeats: int = 0
     statusword: int | None = None
+    statusword_seen: bool = False
+    """A statusword seen since the drive was (re)started (NMT start)."""
     state: PowerState = PowerState.NOT_READY_TO_SWITCH_ON
     mode_display: int = 0
     error_code: int = 0
@@ -64,6 +68,10 @@ class AxisTrack:
     """TPDO 1s received since then."""
     t_feedback: float = math.nan
     configured: bool = False
+    watched: bool = False
+    """Its heartbeat judged: from its first heartbeat after its set-up."""
+    t_boot: float | None = None
+    """When its last boot-up was seen."""
     # the host's side
     enable: bool = False
     reset: bool = False
@@ -143,8 +151,11 @@ def on_heartbeat(a: AxisTrack, nmt: int, t: float) -> list[Observation]:
         if a.configured:
             out.append(_obs(a, EventKind.NODE_FAULT, Severity.FAULT,
                             "boot-up: the drive restarted (its set-up is lost)"))  # fmt: skip
-        a.configured = False
-        a.statusword = None
+        a.configured = a.watched = False  # silent again until set up (0x1017's default)
+        a.statusword, a.statusword_seen = None, False
+        a.t_boot = t
+    elif a.configured:
+        a.watched = True
     a.nmt = nmt
     a.heartbeats += 1
     a.t_heartbeat = t if a.t_heartbeat is None else max(a.t_heartbeat, t)
@@ -188,9 +199,15 @@ def on_statusword(m: ModuleTrack, a: AxisTrack, statusword: int, mode_display: i
     a.state = cia402.power_state(statusword)
     a.mode_display = mode_display
     a.position = position / a.counts_per_rad
+    first = a.statusword_seen is False
+    a.statusword_seen = True
     a.seq = seq
     a.t_feedback = t
-    if a.state is PowerState.FAULT and before is not PowerState.FAULT and not a.error_code:
+    if a.state is PowerState.FAULT and first:
+        a.reset = True  # present at start: the activation resets it (or refuses)
+        text = f"in FAULT at start (statusword 0x{statusword:04X}): fault reset"
+        out.append(_obs(a, EventKind.NODE_FAULT, Severity.WARNING, text))
+    elif a.state is PowerState.FAULT and before is not PowerState.FAULT and not a.error_code:
         out.append(_obs(a, EventKind.NODE_FAULT, Severity.FAULT,
                         f"statusword 0x{statusword:04X}: FAULT"))  # fmt: skip
     if a.state is not PowerState.FAULT:
@@ -236,7 +253,6 @@ def supervise(
     axes: list[AxisTrack],
     now: float,
     *,
-    t_configured: float,
     loss_after: float,
     retry: float,
     power_syncs: int,
@@ -248,7 +264,7 @@ def supervise(
     docstring).  Controlwords only while ``active``."""
     d = Decision()
     for a in axes:
-        due = (a.t_heartbeat if a.t_heartbeat is not None else t_configured) + loss_after
+        due = a.t_heartbeat + loss_after if a.watched and a.t_heartbeat is not None else math.inf
         if now >= due:
             if a.alive or not a.lost_reported:
                 a.alive = False
@@ -259,7 +275,7 @@ def supervise(
                          f"no heartbeat for {loss_after:.3f} s")
                 )  # fmt: skip
                 d.fault = True
-        else:
+        elif due < math.inf:
             d.next_deadline = min(d.next_deadline, due)
         if not active or a.statusword is None:
             continue

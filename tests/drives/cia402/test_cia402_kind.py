@@ -40,6 +40,7 @@ from swpc_hw.drives.cia402.tracking import (
     AxisTrack,
     ModuleTrack,
     on_emcy,
+    on_heartbeat,
     on_statusword,
     pair,
     supervise,
@@ -100,10 +101,10 @@ def _track(axis: Axis = Axis.STEER, node: int = 1) -> AxisTrack:
 
 def test_supervise_loses_a_silent_drive_once_and_names_a_refused_mode() -> None:
     a = _track()
-    a.alive, a.t_heartbeat, a.statusword = True, 0.0, 0x0237
+    a.alive, a.watched, a.t_heartbeat, a.statusword = True, True, 0.0, 0x0237
     a.state, a.enable, a.enable_sync = PowerState.OPERATION_ENABLED, True, 0
     a.controlword, a.mode, a.mode_sync, a.mode_display = 0x0F, Mode.CYCLIC_SYNC_TORQUE, 50, 0
-    kw: dict[str, Any] = dict(t_configured=0.0, loss_after=0.3, retry=0.06, power_syncs=50,
+    kw: dict[str, Any] = dict(loss_after=0.3, retry=0.06, power_syncs=50,
                               mode_syncs=25, sync_period=0.02, active=True)  # fmt: skip
     a.seq = 74  # the last statusword answered a SYNC 24 periods after the mode: not yet
     d = supervise([a], 0.29, **kw)
@@ -119,12 +120,42 @@ def test_supervise_loses_a_silent_drive_once_and_names_a_refused_mode() -> None:
     # a drive that never reaches OPERATION ENABLED
     b = _track(node=2)
     b.alive, b.t_heartbeat, b.statusword, b.state = True, 9.9, 0x0250, PowerState.SWITCH_ON_DISABLED
+    b.watched = True
     b.enable, b.enable_sync, b.controlword, b.seq = True, 10, 0x06, 59
     d = supervise([b], 9.95, **kw)  # however late: no statusword answering 1 s of SYNCs yet
     assert not d.fault and d.send == [b]  # the shutdown again: the drive did not follow it
     b.seq = 60
     d = supervise([b], 10.0, **kw)
     assert d.fault and "did not reach OPERATION ENABLED within 1 s" in d.observations[0].message
+
+
+def test_a_drive_is_judged_by_its_heartbeat_only_from_its_first_after_its_set_up() -> None:
+    """Row a of issue 42: a drive from the factory (0x1017 = 0) is silent until the host
+    has set it up; one not yet set up, however long silent, is not lost."""
+    kw: dict[str, Any] = dict(loss_after=0.3, retry=0.06, power_syncs=50, mode_syncs=25,
+                              sync_period=0.02, active=False)  # fmt: skip
+    a = _track()
+    assert supervise([a], 100.0, **kw).lost == []  # never heard, not set up
+    on_heartbeat(a, cia402.NMT_PRE_OPERATIONAL, 1.0)  # heard before its set-up
+    assert not a.watched and supervise([a], 100.0, **kw).lost == []
+    a.configured = True
+    on_heartbeat(a, cia402.NMT_PRE_OPERATIONAL, 100.1)  # the first after its set-up
+    assert a.watched and supervise([a], 100.39, **kw).lost == []
+    assert supervise([a], 100.4, **kw).lost == [a]
+    on_heartbeat(a, cia402.NMT_BOOT_UP, 101.0)  # it restarted: silent again, set up anew
+    assert not a.watched and not a.configured and a.t_boot == 101.0
+
+
+def test_a_fault_present_at_start_is_reset_not_a_fault_of_the_run() -> None:
+    """Row f: the first statusword after a start says FAULT: the activation resets it."""
+    a, w = _track(), _track(Axis.WHEEL, 2)
+    m = ModuleTrack(1, a, w)
+    (obs,) = on_statusword(m, a, 0x0218, 0, 0, 1, 0.0)
+    assert obs.severity is Severity.WARNING and a.reset and "in FAULT at start" in obs.message
+    on_statusword(m, a, 0x0250, 0, 0, 2, 0.01)  # reset: switch on disabled
+    assert not a.reset
+    (obs,) = on_statusword(m, a, 0x0218, 0, 0, 3, 0.02)  # a later FAULT is one
+    assert obs.severity is Severity.FAULT
 
 
 def test_a_tripped_deadman_is_a_fault_only_while_the_drives_are_active() -> None:
@@ -352,6 +383,9 @@ def test_the_virtual_drive_under_canopens_own_402_master(
     node.sdo.RESPONSE_TIMEOUT = 2.0
     net.add_node(node)
     try:
+        # from the factory: no heartbeat until the master sets one (CiA 301's default)
+        assert node.sdo[cia402.PRODUCER_HEARTBEAT].raw == 0
+        node.sdo[cia402.PRODUCER_HEARTBEAT].raw = 100
         node.nmt.wait_for_heartbeat(5)
         node.nmt.state = "PRE-OPERATIONAL"
         assert node.sdo[cia402.DEVICE_TYPE].raw == 0x00020192
@@ -397,8 +431,11 @@ def test_the_virtual_drive_under_canopens_own_402_master(
         assert emcy is not None, "no EMCY 0x8130 after the master's heartbeat stopped"
         print(f"\nBaseNode402: heartbeat stopped -> EMCY 0x8130 after "
               f"{emcy.timestamp - t_stop:.3f} s (consumer time 0.2 s)")  # fmt: skip
-        node.check_statusword()
-        assert node.state == "FAULT"
+        # a communication error: PRE-OPERATIONAL (0x1029's default), so no TPDO any more;
+        # the statusword over SDO
+        node.nmt.wait_for_heartbeat(1)
+        assert node.nmt.state == "PRE-OPERATIONAL"
+        assert node.sdo[cia402.STATUSWORD].raw & 0x4F == 0x08  # FAULT
     finally:
         net.sync.stop()
         net.disconnect()

@@ -1,0 +1,187 @@
+"""CiA 402 drives as they come from the box (issue 42, item 1): the host brings them up
+from any state a drive can be in, against the virtual drive with CiA 301's defaults
+(silent until 0x1017 is set, PRE-OPERATIONAL after a communication error), in lockstep.
+
+Each test is one row of the issue's table, and failed before its change: the host waited
+for heartbeats a factory drive never sends (a, b), did not start a drive left
+PRE-OPERATIONAL by its dead-man (e), and took a fault present at start for a fault of the
+run (f)."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import pytest
+
+from firmware_protocol import cia402
+from firmware_protocol.cia402 import PowerState
+from firmware_protocol.codec import Axis
+from simulators.drives.cia402 import VirtualAxis
+from simulators.options import SimOptions
+from simulators.virtual_robot import VirtualRobot
+from swpc_hw.clock import SimClock
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.cia402.config import Cia402Drives
+from swpc_hw.drives.cia402.driver import Cia402Driver
+from swpc_hw.drives.errors import NodeError, NodeTimeoutError
+from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+
+
+@dataclass
+class Rig:
+    clock: SimClock
+    host: Cia402Driver
+    sim: VirtualRobot
+    events: list[DriverEvent]
+
+    def axis(self, node: int) -> VirtualAxis:
+        for d in self.sim.drives:
+            for a in d.axes:  # type: ignore[attr-defined]
+                if a.config.node == node:
+                    assert isinstance(a, VirtualAxis)
+                    return a
+        raise KeyError(node)
+
+
+@contextmanager
+def rig(cfg: Cia402Drives | None = None, before: float = 0.0) -> Iterator[Rig]:
+    """Host and virtual drives in lockstep; the drives powered ``before`` s (robot time)
+    before the host opens the bus (their boot-ups unheard)."""
+    clock = SimClock()
+    ch = f"cia402-box-{uuid.uuid4().hex[:8]}"
+    cfg = cfg or Cia402Drives().for_modules(PAPER_CALIBRATED.ids)
+    host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
+                            options=SimOptions(drives=cfg, physics_dt=0.01, seed=2))  # fmt: skip
+    events: list[DriverEvent] = []
+    host.add_event_callback(events.append)
+    r = Rig(clock, host, sim, events)
+    try:
+        with clock.participant():
+            if before:
+                sim.start()
+                clock.sleep(before)
+                host.configure()
+            else:
+                host.configure()
+                sim.start()
+            yield r
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
+
+
+def test_factory_drives_silent_until_set_up_are_brought_up_and_watched_each_on_its_own() -> None:
+    """Row a: 0x1017 = 0 until the host sets it; set-up goes one drive after another; none
+    is declared lost while the others are set up."""
+    with rig() as r:
+        r.clock.sleep(0.5)
+        beats = sum(d.heartbeats for d in r.sim.drives)  # type: ignore[attr-defined]
+        assert beats == len(r.host.drives.nodes())  # each its boot-up, then nothing
+        t0 = r.clock.now()
+        r.host.activate()
+        took = r.clock.now() - t0
+        assert r.host.state is Lifecycle.ACTIVE
+        assert not [e for e in r.events if e.severity is Severity.FAULT], r.events
+        for node in r.host.drives.nodes():
+            a = r.axis(node)
+            assert a.node.nmt.state == "OPERATIONAL"
+            assert a._read(cia402.PRODUCER_HEARTBEAT) == 100
+        print(f"\n8 factory drives brought up in {took:.3f} s of robot time")
+        r.clock.sleep(1.0)  # watched from then on: still no loss
+        assert r.host.state is Lifecycle.ACTIVE
+
+
+def test_drives_powered_before_the_service_are_found_by_sdo() -> None:
+    """Row b: booted before the service started, their boot-ups missed, silent."""
+    with rig(before=2.0) as r:
+        r.host.activate()
+        assert r.host.state is Lifecycle.ACTIVE
+        assert all(r.axis(n).node.nmt.state == "OPERATIONAL" for n in r.host.drives.nodes())
+
+
+def test_a_stopped_drive_is_woken_by_reset_communication() -> None:
+    """A drive in NMT STOPPED answers no SDO: the host resets its communication, waits for
+    its boot-up and sets it up."""
+    with rig(before=0.5) as r:
+        r.axis(3).node.nmt.send_command(0x02)  # STOPPED (by a tool, an earlier master)
+        r.host.activate()
+        assert r.host.state is Lifecycle.ACTIVE and r.axis(3).node.nmt.state == "OPERATIONAL"
+
+
+def test_a_missing_drive_is_named_with_what_to_check() -> None:
+    cfg = Cia402Drives.model_validate({"kind": "cia402", "modules": {
+        m: {"steer": {"node": 2 * m - 1}, "wheel": {"node": 20 if m == 2 else 2 * m}}
+        for m in PAPER_CALIBRATED.ids}})  # fmt: skip
+    sim_cfg = Cia402Drives().for_modules(PAPER_CALIBRATED.ids)
+    clock = SimClock()
+    ch = f"cia402-box-{uuid.uuid4().hex[:8]}"
+    host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
+                            options=SimOptions(drives=sim_cfg, physics_dt=0.01))  # fmt: skip
+    try:
+        with clock.participant():
+            host.configure()
+            sim.start()
+            with pytest.raises(NodeTimeoutError) as err:
+                host.activate()
+        assert "module 2 wheel (node 20): no answer to an SDO request (0x1000)" in str(err.value)
+        assert "its node id" in str(err.value)
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
+
+
+def test_after_a_deadman_trip_the_next_activation_starts_the_drives_again() -> None:
+    """Row e: the drives' dead-man trips (the host stalls), they go PRE-OPERATIONAL as
+    0x1029's default says; the next activation resets and starts them: the service goes
+    on, as docs/drives.md says."""
+    with rig() as r:
+        r.host.activate()
+        r.host.enable(1, Axis.WHEEL)
+        r.clock.sleep(0.2)
+        r.clock.remove_hook(r.host._io_hook)  # the host stalls: no heartbeat, no SYNC
+        r.clock.sleep(0.5)
+        r.clock.add_hook(r.host._io_hook)
+        r.host.wait_for(1, lambda s: not s.alive or any(s.errors), 2.0, "the trip seen")
+        r.clock.sleep(0.2)
+        tripped = [n for n in r.host.drives.nodes() if r.axis(n).state is PowerState.FAULT]
+        assert tripped == r.host.drives.nodes()
+        assert {r.axis(n).node.nmt.state for n in tripped} == {"PRE-OPERATIONAL"}
+        if r.host.state is Lifecycle.ACTIVE:
+            r.host.deactivate()
+        r.host.activate()
+        assert r.host.state is Lifecycle.ACTIVE
+        for n in r.host.drives.nodes():
+            assert r.axis(n).node.nmt.state == "OPERATIONAL"
+            assert r.axis(n).state is not PowerState.FAULT
+
+
+def test_a_fault_present_at_power_up_is_reset_and_one_that_stays_is_refused_naming_it() -> None:
+    """Row f: in FAULT when the service starts: reset at activation; a fault whose cause
+    persists refused with the drive's error code (0x603F), before any motion."""
+    with rig() as r:
+        r.axis(4).power_up_fault = 0x3220  # under-voltage at power-up, cleared by a reset
+        r.axis(4).booted = False  # power-cycled: it boots again at the next step
+        r.clock.sleep(0.1)
+        assert r.axis(4).state is PowerState.FAULT
+        r.host.activate()
+        assert r.host.state is Lifecycle.ACTIVE and r.axis(4).state is not PowerState.FAULT
+        warned = [e.message for e in r.events if e.severity is Severity.WARNING]
+        assert any("module 2 wheel (node 4): in FAULT at start" in m for m in warned), warned
+    with rig() as r:
+        ax = r.axis(4)
+        ax.fault_clears = False
+        ax.fault(0x3220)
+        with pytest.raises(NodeError) as err:
+            r.host.activate()
+        assert str(err.value).startswith(
+            "module 2 wheel (node 4): in FAULT since before the run, and a fault reset did "
+            "not clear it within 1 s: error code 0x603F = 0x3220"
+        ), str(err.value)
