@@ -84,6 +84,15 @@ ERROR_CODES: dict[ErrorFlag, int] = {
 """The EMCY code a virtual drive reports for a fault injected as an swpc error flag."""
 
 
+def modes_of(od: Any) -> tuple[Mode, ...]:
+    """The modes a drive whose object dictionary is ``od`` has: its 0x6502 default (a real
+    drive's EDS), else :data:`SUPPORTED_MODES`."""
+    if cia402.SUPPORTED_MODES in od and od[cia402.SUPPORTED_MODES].default is not None:
+        bits = int(od[cia402.SUPPORTED_MODES].default)
+        return tuple(m for m in Mode if m and bits & cia402.supported_modes_bit(m))
+    return SUPPORTED_MODES
+
+
 class SimPeriodic(PeriodicMessageTask):
     """A periodic send (canopen's heartbeat producer) on the simulated time of
     :class:`SimNetwork` instead of a thread."""
@@ -165,7 +174,13 @@ class VirtualAxis:
         self._formats: dict[int, struct.Struct] = {}
         self.model = AxisModel()
         self.counts_per_rad = config.counts_per_rad()
-        self.rated_torque = self._od_default(cia402.RATED_TORQUE) / 1000.0  # N.m at the motor
+        od_has = self.node.object_dictionary.__contains__
+        rated = self._od_default(cia402.RATED_TORQUE) if od_has(cia402.RATED_TORQUE) else 0
+        # N.m at the motor: 0x6076, else what the config says the data sheet says
+        self.rated_torque = rated / 1000.0 if rated > 0 else (config.rated_torque or 0.1)
+        self.modes = modes_of(self.node.object_dictionary)
+        """The modes this drive has: its EDS's 0x6502 (a personality), else the four
+        swpc's own EDS declares."""
         self.state = PowerState.NOT_READY_TO_SWITCH_ON
         self.controlword = 0
         self.mode = Mode.NONE
@@ -207,6 +222,8 @@ class VirtualAxis:
         return int(var.default or 0)
 
     def _store(self, index: int, value: int) -> None:
+        if index not in self.node.object_dictionary:
+            return  # an object this drive (its personality) does not have
         fmt = self._formats.get(index)
         if fmt is None:
             var = self.node.object_dictionary[index]
@@ -228,7 +245,7 @@ class VirtualAxis:
         if index == cia402.CONTROLWORD:
             self._on_controlword(value)
         elif index == cia402.MODES_OF_OPERATION:
-            if value in [int(m) for m in SUPPORTED_MODES]:
+            if value in [int(m) for m in self.modes]:
                 if value != self.mode:
                     self.homing_attained = self.homing_error = False
                     if value == Mode.CYCLIC_SYNC_POSITION:
@@ -262,6 +279,13 @@ class VirtualAxis:
             return self.statusword()
         if index == cia402.MODES_DISPLAY:
             return int(self.mode)
+        if index == cia402.SUPPORTED_MODES and od.default is None:  # the drive knows
+            return sum(cia402.supported_modes_bit(m) for m in self.modes)
+        if index == cia402.ENCODER_RESOLUTION and subindex in (1, 2):  # its encoder's
+            return self.config.counts_per_turn if subindex == 1 else 1
+        unset = subindex not in self.node.data_store.get(index, {})
+        if unset and od.default is None and od.value is None:
+            return 0  # an EDS without a default for it (a real drive has some value)
         return None
 
     def _torque_si(self, per_mille: int) -> float:
@@ -415,14 +439,14 @@ class VirtualAxis:
         self._store(cia402.POSITION_ACTUAL, round(self.position * self.counts_per_rad))
         self._store(cia402.VELOCITY_ACTUAL, round(self.velocity * self.counts_per_rad))
         self._store(cia402.TORQUE_ACTUAL, self._torque_units(self.torque))
-        store = self.node.data_store
+        get = self.node.get_data
         assert self.node.tpdo.map is not None
         for pdo in self.node.tpdo.map.values():
             every = pdo.trans_type or 0
             if not pdo.enabled or not 1 <= every <= 240 or self.sync_count % every:
                 continue
             # the mapped objects' bytes, in map order (swpc maps whole bytes: no bit packing)
-            pdo.data = bytearray(b"".join(store[v.index][v.subindex] for v in pdo.map))
+            pdo.data = bytearray(b"".join(get(v.index, v.subindex) for v in pdo.map))
             pdo.transmit()
 
     def step(self, now: float) -> None:
@@ -442,7 +466,8 @@ class VirtualAxis:
             self.homing_attained = True
         if now >= self.quick_stop_end:
             self.quick_stop_end = math.inf
-            option = self._read(cia402.QUICK_STOP_OPTION)
+            has = cia402.QUICK_STOP_OPTION in self.node.object_dictionary
+            option = self._read(cia402.QUICK_STOP_OPTION) if has else 2  # 402's default
             qsa = self.state is PowerState.QUICK_STOP_ACTIVE
             if qsa and option in cia402.QUICK_STOP_TO_DISABLED:
                 self.state = PowerState.SWITCH_ON_DISABLED
@@ -472,10 +497,10 @@ class VirtualAxis:
             elif m is Mode.CYCLIC_SYNC_POSITION:
                 ax.mode = ControlMode.POSITION
                 ax.setpoint = self.csp_setpoint / self.counts_per_rad
-            elif m is Mode.CYCLIC_SYNC_VELOCITY:
+            elif m in (Mode.CYCLIC_SYNC_VELOCITY, Mode.PROFILE_VELOCITY):
                 ax.mode = ControlMode.VELOCITY
                 ax.setpoint = self.target_velocity / self.counts_per_rad
-            elif m is Mode.CYCLIC_SYNC_TORQUE and self.target_torque != 0:
+            elif m in (Mode.CYCLIC_SYNC_TORQUE, Mode.PROFILE_TORQUE) and self.target_torque != 0:
                 ax.mode, ax.setpoint = ControlMode.TORQUE, self._torque_si(self.target_torque)
         return ax
 

@@ -33,6 +33,8 @@ class EventKind(enum.Enum):
     FEEDBACK_GAP = "feedback_gap"
     HOMING = "homing"
     STOPPED = "stopped"
+    SET_UP = "set_up"
+    """What a drive's set-up did without (an object it lacks), said once."""
 
 
 class Severity(enum.Enum):

@@ -34,6 +34,12 @@ class Cia402Axis(BaseModel):
     counts_per_turn: int = Field(
         DEFAULT_COUNTS_PER_TURN, ge=1, description="encoder counts per motor turn"
     )
+    rated_torque: float | None = Field(
+        None,
+        gt=0,
+        description="N.m at the motor: the unit of the torque objects (thousandths of it) "
+        "for a drive without 0x6076; the drive's 0x6076 wins when it has one",
+    )
 
     def counts_per_rad(self) -> float:
         """Position units (encoder counts) per radian at the module's output."""

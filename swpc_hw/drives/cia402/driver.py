@@ -59,7 +59,7 @@ from swpc_hw.drives.base import DriverBase
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
 from swpc_hw.drives.cia402.sdo import ClockedRemoteNode
-from swpc_hw.drives.cia402.setup import set_up
+from swpc_hw.drives.cia402.setup import ABSENT_ABORTS, OPTIONAL, set_up
 from swpc_hw.drives.cia402.tracking import (
     AxisTrack,
     ModuleTrack,
@@ -77,10 +77,12 @@ from swpc_hw.drives.errors import (
 )
 from swpc_hw.drives.tracking import FeedbackRing, Supervision, error_frame
 from swpc_hw.drives.types import (
+    EventKind,
     FeedbackSample,
     Lifecycle,
     ModuleState,
     Observation,
+    Severity,
 )
 
 POWER_TIMEOUT_S = 1.0
@@ -141,6 +143,7 @@ class Cia402Driver(DriverBase):
         self._resend: list[AxisTrack] = []  # RPDO 1 due again (supervise)
         self._limits: dict[tuple[int, int], tuple[int, int]] = {}
         self._arrival = 0.0  # the arrival of the frame being handled (canopen's callbacks)
+        self._said: set[str] = set()
 
     # ================================================================ lifecycle
     def _before_open(self) -> None:
@@ -190,7 +193,8 @@ class Cia402Driver(DriverBase):
         for a in self._tracks():
             if not a.configured:
                 self._reach(a)
-                set_up(self._nodes[a.node], a, self.drives, cfg)
+                for note in set_up(self._nodes[a.node], a, self.drives, cfg):
+                    self._say_once(a, note)
                 with self._lock:
                     a.configured = True
                     a.controlword = cia402.CW_DISABLE_VOLTAGE
@@ -206,6 +210,14 @@ class Cia402Driver(DriverBase):
         self._wait_axes(
             "NMT OPERATIONAL", lambda a: a.nmt == cia402.NMT_OPERATIONAL, cfg.activate_timeout_s
         )
+
+    def _say_once(self, a: AxisTrack, note: str) -> None:
+        """What a drive lacks and swpc does without: an event, once per service."""
+        if note in self._said:
+            return
+        self._said.add(note)
+        obs = Observation(EventKind.SET_UP, Severity.INFO, note, a.module, a.node, a.axis)
+        self._observed([obs])
 
     def _reach(self, a: AxisTrack) -> None:
         """The drive answers an SDO request (0x1000): a drive from the factory sends no
@@ -307,8 +319,11 @@ class Cia402Driver(DriverBase):
     def _send_targets(self, a: AxisTrack, best_effort: bool = False) -> None:
         """RPDO 2 of ``a``: target position and velocity."""
         p2 = self._nodes[a.node].rpdo[2]
-        p2[f"0x{cia402.TARGET_POSITION:04X}"].raw = a.target_position
-        p2[f"0x{cia402.TARGET_VELOCITY:04X}"].raw = a.target_velocity
+        for index, value in (
+            (cia402.TARGET_POSITION, a.target_position), (cia402.TARGET_VELOCITY, a.target_velocity)
+        ):  # fmt: skip
+            if any(v.index == index for v in p2.map):  # 0x60FF is optional
+                p2[f"0x{index:04X}"].raw = value
         self._send(p2.cob_id or cia402.RPDO_BASE[1] + a.node, bytes(p2.data), best_effort)
 
     def _stream_targets(self) -> None:
@@ -356,7 +371,7 @@ class Cia402Driver(DriverBase):
         def change(a: AxisTrack) -> None:
             if not a.enable:
                 a.enable, a.enable_sync, a.refused_reported = True, self._sync_seq, False
-            a.mode, a.target_torque = Mode.CYCLIC_SYNC_TORQUE, 0
+            a.mode, a.target_torque = a.torque_mode, 0
             nxt = cia402.host_controlword(a.state, True, a.reset, a.controlword)
             if nxt is not None:
                 a.controlword, a.t_controlword = nxt, self.clock.now()
@@ -375,41 +390,64 @@ class Cia402Driver(DriverBase):
                     a.reset = True
 
     def set_limits(self, module: int, axis: Axis, max_torque: float, max_velocity: float) -> None:
-        """Over SDO (a set-up step: 0x6072 max torque, 0x607F max profile velocity)."""
+        """Over SDO (a set-up step: 0x6072 max torque, 0x607F max profile velocity, each
+        where the drive has it), and applied by the host to every torque and velocity it
+        commands (a drive without them has only the host's)."""
         mt = self._module(module)
         a = mt.axes[Axis(axis)]
         self._require_active("set limits", a.where())
+        a.max_torque, a.max_velocity = abs(max_torque), abs(max_velocity)
         torque = min(a.torque_units(max_torque), 0xFFFF)
         velocity = min(a.to_units(max_velocity), 0xFFFFFFFF)
         if self._limits.get((module, int(axis))) == (torque, velocity):
             return
         node = self._nodes[a.node]
-        try:
-            node.sdo[cia402.MAX_TORQUE].raw = torque
-            node.sdo[cia402.MAX_PROFILE_VELOCITY].raw = velocity
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise NodeError(f"{a.where()}: set limits: {exc}", node=a.node, axis=int(axis)) from exc
+        has = list(a.has_limits)
+        for k, (index, value) in enumerate(
+            ((cia402.MAX_TORQUE, torque), (cia402.MAX_PROFILE_VELOCITY, velocity))
+        ):
+            if not has[k]:
+                continue
+            try:
+                node.sdo[index].raw = value
+            except SdoAbortedError as exc:
+                if exc.code not in ABSENT_ABORTS:
+                    raise NodeError(
+                        f"{a.where()}: set limits 0x{index:04X}: {exc}", node=a.node, axis=int(axis)
+                    ) from exc
+                has[k] = False  # its EDS has it, the drive does not: the host's limit only
+                self._say_once(a, f"{a.where()}: no 0x{index:04X} on the drive: {OPTIONAL[index]}")
+            except SdoCommunicationError as exc:
+                raise NodeError(
+                    f"{a.where()}: set limits 0x{index:04X}: {exc}", node=a.node, axis=int(axis)
+                ) from exc
+        a.has_limits = (has[0], has[1])
         self._limits[(module, int(axis))] = (torque, velocity)
 
     def set_position(self, module: int, axis: Axis, position: float) -> None:
         def change(a: AxisTrack) -> None:
             a.mode, a.target_position, a.target_torque = (
-                Mode.CYCLIC_SYNC_POSITION, a.to_units(position), 0
+                a.position_mode, a.to_units(position), 0
             )  # fmt: skip
 
         self._command(f"set position {position:g}", module, axis, change)
 
     def set_velocity(self, module: int, axis: Axis, velocity: float) -> None:
         def change(a: AxisTrack) -> None:
-            a.mode, a.target_velocity, a.target_torque = (
-                Mode.CYCLIC_SYNC_VELOCITY, a.to_units(velocity), 0
-            )  # fmt: skip
+            if a.velocity_mode is None:
+                raise NodeError(
+                    f"{a.where()}: the drive has no velocity mode (0x6502) or no target "
+                    "velocity 0x60FF", node=a.node, axis=int(a.axis),
+                )  # fmt: skip
+            v = max(-a.max_velocity, min(a.max_velocity, velocity))
+            a.mode, a.target_velocity, a.target_torque = a.velocity_mode, a.to_units(v), 0
 
         self._command(f"set velocity {velocity:g}", module, axis, change)
 
     def set_torque(self, module: int, axis: Axis, torque: float) -> None:
         def change(a: AxisTrack) -> None:
-            a.mode, a.target_torque = Mode.CYCLIC_SYNC_TORQUE, a.torque_units(torque)
+            t = max(-a.max_torque, min(a.max_torque, torque))
+            a.mode, a.target_torque = a.torque_mode, a.torque_units(t)
 
         self._command(f"set torque {torque:g}", module, axis, change, targets=False)
 
@@ -512,8 +550,12 @@ class Cia402Driver(DriverBase):
                 if s is not None:
                     self._sample(mt, s)
             else:
-                a.velocity = int(p[f"0x{cia402.VELOCITY_ACTUAL:04X}"].raw) / a.counts_per_rad
-                a.torque = a.torque_si(int(p[f"0x{cia402.TORQUE_ACTUAL:04X}"].raw))
+                mapped = {v.index for v in p.map}  # 0x606C and 0x6077 are optional
+                if cia402.VELOCITY_ACTUAL in mapped:
+                    v = int(p[f"0x{cia402.VELOCITY_ACTUAL:04X}"].raw)
+                    a.velocity = v / a.counts_per_rad
+                if cia402.TORQUE_ACTUAL in mapped:
+                    a.torque = a.torque_si(int(p[f"0x{cia402.TORQUE_ACTUAL:04X}"].raw))
                 ring = self._history[module]
                 last = self._last.get(module)
                 if len(ring) and last is not None and last.seq == a.seq:

@@ -3,15 +3,26 @@
 In PRE-OPERATIONAL: heartbeat producer 0x1017 = ``heartbeat_period_s``, heartbeat
 consumer 0x1016 on the host's heartbeat with the command watchdog (``watchdog_timeout_ms``)
 as its time, quick-stop option 0x605A, homing method 0x6098, the motor's rated torque
-0x6076 read, the factor group (0x608F, 0x6091) and the modes (0x6502) checked against the
-config, the PDO mapping of :data:`firmware_protocol.cia402.RPDO_MAP` /
-:data:`~firmware_protocol.cia402.TPDO_MAP` written (before anything uses it).
+0x6076 read, the factor group (0x608F, 0x6091) checked against the config, the modes
+chosen from 0x6502 (:func:`choose_modes`), the PDO mapping of
+:data:`firmware_protocol.cia402.RPDO_MAP` / :data:`~firmware_protocol.cia402.TPDO_MAP`
+written and read back (before anything uses it).
+
+Real drives differ in what they have (``tests/drives/cia402/eds/``: seven published EDS
+files).  What a drive lacks is found from its object dictionary (the EDS) and from the
+drive itself (an SDO abort 0x06020000 "object does not exist" or 0x06090011 "subindex does
+not exist"): an object the run needs (:data:`NEEDED`) refuses the drive before any motion,
+naming node, object and what to do; one it can do without (:data:`OPTIONAL`) is skipped
+and said once, in the notes :func:`set_up` returns.  Never a ``KeyError``.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
+from canopen.objectdictionary import ODRecord, ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from firmware_protocol import cia402
@@ -24,76 +35,303 @@ from swpc_hw.drives.cia402.tracking import AxisTrack
 from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.types import AXIS_NAMES
 
+ABSENT_ABORTS = (0x06020000, 0x06090011)
+"""SDO aborts that say the drive has no such object / subindex."""
+
+NEEDED: dict[int, str] = {
+    cia402.PRODUCER_HEARTBEAT: "swpc watches every drive by its heartbeat; a drive without "
+    "a heartbeat producer cannot be supervised",
+    cia402.CONSUMER_HEARTBEAT: "the drive's own dead-man on the host's heartbeat: without "
+    "it the drive would keep its last command when the host stops; use a drive (or "
+    "firmware) with a heartbeat consumer",
+    cia402.CONTROLWORD: "the 402 power state machine",
+    cia402.STATUSWORD: "the 402 power state machine",
+    cia402.MODES_OF_OPERATION: "the modes swpc commands",
+    cia402.MODES_DISPLAY: "swpc reads the mode in force back",
+    cia402.POSITION_ACTUAL: "the encoder feedback",
+    cia402.TARGET_POSITION: "the steering's and a held wheel's position",
+    cia402.TARGET_TORQUE: "swpc spins the robot by wheel torque, and frees a wheel by a "
+    "torque of 0",
+}
+"""Objects without which a drive is refused, and why."""
+
+OPTIONAL: dict[int, str] = {
+    cia402.QUICK_STOP_OPTION: "the drive's own quick-stop reaction stays",
+    cia402.MAX_TORQUE: "the run's torque limit is applied by the host only",
+    cia402.MAX_PROFILE_VELOCITY: "the run's velocity limit is applied by the host only",
+    cia402.ENCODER_RESOLUTION: "the units are not checked against the drive",
+    cia402.GEAR_RATIO: "the units are not checked against the drive",
+    cia402.VELOCITY_ACTUAL: "no velocity feedback (the solver uses positions)",
+    cia402.TORQUE_ACTUAL: "no torque feedback",
+    cia402.TARGET_VELOCITY: "no velocity mode (swpc's calibration does not use it)",
+    cia402.SUPPORTED_MODES: "the modes are tried and judged by the modes display",
+    cia402.ERROR_CODE: "faults are named by their EMCY only",
+}
+"""Objects a drive may lack, and what that costs (said once)."""
+
+POSITION_MODES = (Mode.CYCLIC_SYNC_POSITION,)
+VELOCITY_MODES = (Mode.CYCLIC_SYNC_VELOCITY, Mode.PROFILE_VELOCITY)
+TORQUE_MODES = (Mode.CYCLIC_SYNC_TORQUE, Mode.PROFILE_TORQUE)
+"""The modes swpc can command for each setpoint, preferred first: the cyclic synchronous
+ones (the target every SYNC), else the profile torque and velocity modes, which take the
+target as it comes.  Profile position (its set-point handshake) is not supported yet."""
+
+
+def choose_modes(supported: int | None) -> dict[str, Mode | None]:
+    """For ``position``, ``velocity`` and ``torque``: the first mode of its list the drive
+    supports (0x6502 bits), ``None`` if none; every first choice when 0x6502 is unknown."""
+    out: dict[str, Mode | None] = {}
+    for name, modes in (
+        ("position", POSITION_MODES), ("velocity", VELOCITY_MODES), ("torque", TORQUE_MODES)
+    ):  # fmt: skip
+        ok = [m for m in modes if supported is None or supported & cia402.supported_modes_bit(m)]
+        out[name] = ok[0] if ok else None
+    return out
+
+
+class _Drive:
+    """What one drive has, asked once: its object dictionary, then the drive itself."""
+
+    def __init__(self, node: ClockedRemoteNode, a: AxisTrack) -> None:
+        self.node, self.a = node, a
+        self.od = node.object_dictionary
+        self.notes: list[str] = []
+        self.step = ""
+
+    def declared(self, index: int, sub: int = 0) -> bool:
+        if index not in self.od:
+            return False
+        obj = self.od[index]
+        return isinstance(obj, ODVariable) or sub in obj
+
+    def variable(self, index: int, sub: int = 0) -> Any:
+        obj = self.node.sdo[index]
+        return obj[sub] if isinstance(self.od[index], ODRecord) or sub else obj
+
+    def refuse(self, index: int, why: str, sub: int | None = None) -> NodeError:
+        at = f"0x{index:04X}" + (f" sub {sub}" if sub is not None else "")
+        return NodeError(
+            f"{self.a.where()}: the drive has no {at} ({_name(self.od, index)}): {why}",
+            node=self.a.node,
+            axis=int(self.a.axis),
+        )
+
+    def skip(self, index: int) -> None:
+        self.notes.append(
+            f"{self.a.where()}: no 0x{index:04X} ({_name(self.od, index)}): "
+            f"{OPTIONAL.get(index, 'skipped')}"
+        )
+
+    def access(self, index: int, sub: int, fn: Callable[[Any], Any], step: str) -> Any:
+        """``fn(variable)`` over SDO; ``None`` when the drive has no such object (skipped
+        if optional, refused if needed)."""
+        self.step = step
+        if not self.declared(index, sub):
+            return self._absent(index, sub)
+        try:
+            return fn(self.variable(index, sub))
+        except SdoAbortedError as exc:
+            if exc.code in ABSENT_ABORTS:
+                return self._absent(index, sub)
+            raise
+
+    def _absent(self, index: int, sub: int) -> None:
+        if index in NEEDED:
+            raise self.refuse(index, NEEDED[index], sub or None)
+        self.skip(index)
+        return None
+
+
+def _name(od: Any, index: int) -> str:
+    try:
+        return str(od[index].name)
+    except KeyError:
+        return {v: k for k, v in vars(cia402).items() if isinstance(v, int)}.get(
+            index, "object"
+        ).lower().replace("_", " ")
+
 
 def set_up(
     node: ClockedRemoteNode, a: AxisTrack, drives: Cia402Drives, cfg: CanConfig
-) -> None:
+) -> list[str]:
     """One drive's set-up over SDO in PRE-OPERATIONAL (module docstring); the caller
-    starts it (NMT) once its track is marked configured.  :class:`NodeError` names the
-    object that failed and why."""
+    starts it (NMT) once its track is marked configured.  Returns what was skipped (to be
+    said once); :class:`NodeError` names the object that failed or is missing, and why."""
     node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)
     axes = drives.axes()[a.module]
     ax = axes.steer if a.axis is Axis.STEER else axes.wheel
-    step = "0x1000"
+    d = _Drive(node, a)
+
+    def write(value: int) -> Callable[[Any], None]:
+        def fn(var: Any) -> None:
+            var.raw = value
+
+        return fn
+
+    def read(var: Any) -> int:
+        return int(var.raw)
+
     try:
-        step = "0x1017 producer heartbeat time"
-        node.sdo[cia402.PRODUCER_HEARTBEAT].raw = round(1000 * cfg.heartbeat_period_s)
-        step = "0x1016 consumer heartbeat time"
-        node.sdo[cia402.CONSUMER_HEARTBEAT][1].raw = cia402.consumer_entry(
-            drives.host_node, cfg.watchdog_timeout_ms
-        )
-        step = "0x605A quick stop option code"
-        node.sdo[cia402.QUICK_STOP_OPTION].raw = drives.quick_stop_option
-        step = "0x6502 supported drive modes"
-        supported = int(node.sdo[cia402.SUPPORTED_MODES].raw)
-        needed = [Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE]
+        d.access(cia402.PRODUCER_HEARTBEAT, 0, write(round(1000 * cfg.heartbeat_period_s)),
+                 "0x1017 producer heartbeat time")  # fmt: skip
+        entry = cia402.consumer_entry(drives.host_node, cfg.watchdog_timeout_ms)
+        d.access(cia402.CONSUMER_HEARTBEAT, 1, write(entry), "0x1016 consumer heartbeat time")
+        d.access(cia402.QUICK_STOP_OPTION, 0, write(drives.quick_stop_option),
+                 "0x605A quick stop option code")  # fmt: skip
+        supported = d.access(cia402.SUPPORTED_MODES, 0, read, "0x6502 supported drive modes")
         homing = getattr(ax, "homing", ABSOLUTE)
+        _modes(d, supported, homing)
         if homing != ABSOLUTE:
-            needed.append(Mode.HOMING)
-        missing = [m.name for m in needed if not supported & cia402.supported_modes_bit(m)]
-        if missing:
+            if not d.declared(cia402.HOMING_METHOD):
+                raise d.refuse(cia402.HOMING_METHOD, "the steering's homing method; with an "
+                               "absolute encoder, set its `homing: absolute`")  # fmt: skip
+            d.access(cia402.HOMING_METHOD, 0, write(int(homing)), f"0x6098 homing method {homing}")
+        _rated_torque(d, ax.rated_torque, read)
+        inc = d.access(cia402.ENCODER_RESOLUTION, 1, read, "0x608F position encoder resolution")
+        rev = d.access(cia402.ENCODER_RESOLUTION, 2, read, d.step) if inc is not None else None
+        if inc is not None and rev:
+            _check_factor(a, "counts_per_turn", ax.counts_per_turn, inc / rev, d.step)
+        mot = d.access(cia402.GEAR_RATIO, 1, read, "0x6091 gear ratio")
+        shaft = d.access(cia402.GEAR_RATIO, 2, read, d.step) if mot is not None else None
+        if mot is not None and shaft and mot == shaft:
+            d.notes.append(
+                f"{a.where()}: 0x6091 gear ratio is 1:1 ({mot}:{shaft}, the factory "
+                "default): positions in motor counts, as swpc computes them; not checked"
+            )
+        elif mot is not None and shaft:
+            _check_factor(a, "gear_ratio", ax.gear_ratio, mot / shaft, d.step)
+        a.has_limits = (
+            d.declared(cia402.MAX_TORQUE), d.declared(cia402.MAX_PROFILE_VELOCITY)
+        )  # fmt: skip
+        if not d.declared(cia402.ERROR_CODE):
+            d.skip(cia402.ERROR_CODE)
+        _map_pdos(d)
+    except (SdoAbortedError, SdoCommunicationError) as exc:
+        raise NodeError(
+            f"{a.where()}: set-up {d.step}: {exc}", node=a.node, axis=int(a.axis)
+        ) from exc
+    return d.notes
+
+
+def _modes(d: _Drive, supported: int | None, homing: object) -> None:
+    """The axis's modes from 0x6502: the position and torque modes are needed (and homing
+    unless the steering's encoder is absolute); velocity is optional."""
+    a = d.a
+    chosen = choose_modes(supported)
+    need = {"position": chosen["position"], "torque": chosen["torque"]}
+    missing = [k for k, m in need.items() if m is None]
+    bit = cia402.supported_modes_bit
+    if homing != ABSOLUTE and supported is not None and not supported & bit(Mode.HOMING):
+        missing.append("homing")
+    if missing:
+        has = [m.name for m in Mode if m and supported and supported & bit(m)]
+        raise NodeError(
+            f"{a.where()}: the drive has no {' and no '.join(missing)} mode swpc can use "
+            f"(0x6502 = 0x{supported or 0:08X}: {', '.join(has) or 'none swpc knows'}); "
+            "swpc needs cyclic synchronous position, cyclic synchronous or profile torque, "
+            "and homing unless the encoder is absolute (profile position is not supported "
+            "yet)",
+            node=a.node,
+            axis=int(a.axis),
+        )
+    a.position_mode = chosen["position"] or Mode.CYCLIC_SYNC_POSITION
+    a.torque_mode = chosen["torque"] or Mode.CYCLIC_SYNC_TORQUE
+    a.velocity_mode = chosen["velocity"]
+
+
+def _rated_torque(d: _Drive, configured: float | None, read: Callable[[Any], int]) -> None:
+    """The torque unit: 0x6076 (thousandths of it), else the config's ``rated_torque``."""
+    a = d.a
+    d.step = "0x6076 motor rated torque"
+    value = None
+    if d.declared(cia402.RATED_TORQUE):
+        try:
+            value = read(d.variable(cia402.RATED_TORQUE)) / 1000.0
+        except SdoAbortedError as exc:
+            if exc.code not in ABSENT_ABORTS:
+                raise
+    if value is None or value <= 0:
+        if configured is None:
             raise NodeError(
-                f"{a.where()}: the drive does not support mode(s) {', '.join(missing)} "
-                f"(0x6502 = 0x{supported:08X})",
+                f"{a.where()}: the drive has no 0x6076 (motor rated torque), the unit of its "
+                f"torque objects: set drives.modules.{a.module}.{AXIS_NAMES[a.axis]}"
+                ".rated_torque (N.m at the motor, from its data sheet)",
                 node=a.node,
                 axis=int(a.axis),
             )
-        if homing != ABSOLUTE:
-            step = f"0x6098 homing method {homing}"
-            node.sdo[cia402.HOMING_METHOD].raw = int(homing)
-        step = "0x6076 motor rated torque"
-        a.rated_torque = int(node.sdo[cia402.RATED_TORQUE].raw) / 1000.0
-        od = node.object_dictionary
-        if cia402.ENCODER_RESOLUTION in od:
-            step = "0x608F position encoder resolution"
-            inc = int(node.sdo[cia402.ENCODER_RESOLUTION][1].raw)
-            rev = int(node.sdo[cia402.ENCODER_RESOLUTION][2].raw)
-            _check_factor(a, "counts_per_turn", ax.counts_per_turn, inc / rev, step)
-        if cia402.GEAR_RATIO in od:
-            step = "0x6091 gear ratio"
-            mot = int(node.sdo[cia402.GEAR_RATIO][1].raw)
-            shaft = int(node.sdo[cia402.GEAR_RATIO][2].raw)
-            _check_factor(a, "gear_ratio", ax.gear_ratio, mot / shaft, step)
-        for maps, layout, base, ttype in (
-            (node.tpdo, cia402.TPDO_MAP, cia402.TPDO_BASE, cia402.TPDO_ON_SYNC),
-            (node.rpdo, cia402.RPDO_MAP, cia402.RPDO_BASE, cia402.RPDO_ASYNC),
-        ):
-            for i, entries in layout.items():
-                step = f"PDO mapping {'TPDO' if maps is node.tpdo else 'RPDO'} {i}"
-                p = maps[i]
-                p.read()
-                p.clear()
-                for index, sub, bits in entries:
-                    p.add_variable(index, sub, bits)
-                p.cob_id = base[i - 1] + a.node
-                p.trans_type = ttype
-                p.event_timer = 0 if maps is node.tpdo else None
-                p.enabled = True
-                p.save()
-    except (SdoAbortedError, SdoCommunicationError) as exc:
-        raise NodeError(
-            f"{a.where()}: set-up {step}: {exc}", node=a.node, axis=int(a.axis)
-        ) from exc
+        value = configured
+    a.rated_torque = value
+
+
+def _map_pdos(d: _Drive) -> None:
+    """The PDO maps written, then read back: an object the drive lacks is left out when
+    optional and refused when needed; one it cannot map is refused; a map that came out
+    shorter than asked is refused, never used."""
+    node, a = d.node, d.a
+    for maps, layout, base, ttype, kind in (
+        (node.tpdo, cia402.TPDO_MAP, cia402.TPDO_BASE, cia402.TPDO_ON_SYNC, "TPDO"),
+        (node.rpdo, cia402.RPDO_MAP, cia402.RPDO_BASE, cia402.RPDO_ASYNC, "RPDO"),
+    ):
+        for i, entries in layout.items():
+            d.step = f"PDO mapping {kind} {i}"
+            wanted = []
+            for index, sub, bits in entries:
+                if not d.declared(index, sub):
+                    d._absent(index, sub)
+                    continue
+                var = d.od[index]
+                var = var if isinstance(var, ODVariable) else var[sub]
+                if not var.pdo_mappable:
+                    why = NEEDED.get(index) or OPTIONAL.get(index, "")
+                    if index in NEEDED:
+                        raise NodeError(
+                            f"{a.where()}: 0x{index:04X} ({var.name}) is not PDO-mappable "
+                            f"on this drive (its object dictionary): {why}",
+                            node=a.node,
+                            axis=int(a.axis),
+                        )
+                    d.skip(index)
+                    continue
+                wanted.append((index, sub, bits))
+            p = maps[i]
+            p.read()
+            p.clear()
+            for index, sub, bits in wanted:
+                p.add_variable(index, sub, bits)
+            p.cob_id = base[i - 1] + a.node
+            p.trans_type = ttype
+            p.event_timer = 0 if maps is node.tpdo else None
+            p.enabled = True
+            _save(p, wanted)
+            p.read()
+            got = [(v.index, v.subindex) for v in p.map]
+            if got != [(index, sub) for index, sub, _ in wanted]:
+                raise NodeError(
+                    f"{a.where()}: {kind} {i} read back as "
+                    f"{', '.join(f'0x{x:04X}:{s}' for x, s in got) or 'empty'} where swpc "
+                    f"mapped {', '.join(f'0x{x:04X}:{s}' for x, s, _ in wanted)}: the drive "
+                    "took a shorter map (too many entries, or objects it cannot map)",
+                    node=a.node,
+                    axis=int(a.axis),
+                )
+
+
+def _save(p: Any, wanted: list[tuple[int, int, int]]) -> None:
+    """One PDO's communication and mapping parameters over SDO, CiA 301's sequence: the
+    PDO disabled (COB-ID bit 31), the transmission type (and event timer), the mapping's
+    count 0, its entries, its count, the PDO enabled.  Not canopen's ``PdoMap.save()``:
+    with a mapping object typed ARRAY in the EDS (as some drives' are) it iterates the
+    entries by the count it has just set to 0, and writes none."""
+    com, mapping = p.com_record, p.map_array
+    com[1].raw = p.cob_id | 0x80000000
+    com[2].raw = p.trans_type
+    if p.event_timer is not None and 5 in com.od and com[5].writable:
+        com[5].raw = p.event_timer
+    mapping[0].raw = 0
+    for k, (index, sub, bits) in enumerate(wanted, start=1):
+        mapping[k].raw = index << 16 | sub << 8 | bits
+    mapping[0].raw = len(wanted)
+    com[1].raw = p.cob_id
 
 
 def _check_factor(a: AxisTrack, key: str, mine: float, theirs: float, obj: str) -> None:

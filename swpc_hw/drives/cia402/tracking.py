@@ -68,6 +68,15 @@ class AxisTrack:
     """TPDO 1s received since then."""
     t_feedback: float = math.nan
     configured: bool = False
+    position_mode: Mode = Mode.CYCLIC_SYNC_POSITION
+    torque_mode: Mode = Mode.CYCLIC_SYNC_TORQUE
+    velocity_mode: Mode | None = Mode.CYCLIC_SYNC_VELOCITY
+    """The modes chosen at set-up from 0x6502 (:func:`swpc_hw.drives.cia402.setup.choose_modes`)."""
+    has_limits: tuple[bool, bool] = (True, True)
+    """Whether the drive has 0x6072 (max torque) and 0x607F (max profile velocity)."""
+    max_torque: float = math.inf
+    max_velocity: float = math.inf
+    """The run's limits (N.m, rad/s at the output), applied by the host too."""
     watched: bool = False
     """Its heartbeat judged: from its first heartbeat after its set-up."""
     t_boot: float | None = None
@@ -116,9 +125,9 @@ class AxisTrack:
         m = self.mode
         if m is Mode.CYCLIC_SYNC_POSITION:
             return ControlMode.POSITION
-        if m is Mode.CYCLIC_SYNC_VELOCITY:
+        if m in (Mode.CYCLIC_SYNC_VELOCITY, Mode.PROFILE_VELOCITY):
             return ControlMode.VELOCITY
-        if m is Mode.CYCLIC_SYNC_TORQUE and self.target_torque:
+        if m in (Mode.CYCLIC_SYNC_TORQUE, Mode.PROFILE_TORQUE) and self.target_torque:
             return ControlMode.TORQUE
         if m is Mode.HOMING:
             return ControlMode.HOLD

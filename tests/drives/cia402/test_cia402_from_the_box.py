@@ -9,10 +9,12 @@ run (f)."""
 
 from __future__ import annotations
 
+import re
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -27,7 +29,7 @@ from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.cia402.config import Cia402Drives
 from swpc_hw.drives.cia402.driver import Cia402Driver
 from swpc_hw.drives.errors import NodeError, NodeTimeoutError
-from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
+from swpc_hw.drives.types import DriverEvent, EventKind, Lifecycle, Severity
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 
@@ -48,15 +50,19 @@ class Rig:
 
 
 @contextmanager
-def rig(cfg: Cia402Drives | None = None, before: float = 0.0) -> Iterator[Rig]:
+def rig(
+    cfg: Cia402Drives | None = None, before: float = 0.0, drive_od: Path | None = None
+) -> Iterator[Rig]:
     """Host and virtual drives in lockstep; the drives powered ``before`` s (robot time)
-    before the host opens the bus (their boot-ups unheard)."""
+    before the host opens the bus (their boot-ups unheard), their object dictionary
+    ``drive_od`` (default: the host's)."""
     clock = SimClock()
     ch = f"cia402-box-{uuid.uuid4().hex[:8]}"
     cfg = cfg or Cia402Drives().for_modules(PAPER_CALIBRATED.ids)
     host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
-    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
-                            options=SimOptions(drives=cfg, physics_dt=0.01, seed=2))  # fmt: skip
+    sim_cfg = cfg if drive_od is None else cfg.model_copy(update={"object_dictionary": drive_od})
+    opts = SimOptions(drives=sim_cfg, physics_dt=0.01, seed=2)
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock, options=opts)
     events: list[DriverEvent] = []
     host.add_event_callback(events.append)
     r = Rig(clock, host, sim, events)
@@ -185,3 +191,30 @@ def test_a_fault_present_at_power_up_is_reset_and_one_that_stays_is_refused_nami
             "module 2 wheel (node 4): in FAULT since before the run, and a fault reset did "
             "not clear it within 1 s: error code 0x603F = 0x3220"
         ), str(err.value)
+
+
+def test_a_drive_without_the_objects_its_eds_promised_is_set_up_without_them(
+    tmp_path: Path,
+) -> None:
+    """Rows c and d: the project's default EDS given for drives that have no 0x608F
+    (encoder resolution) and no 0x607F (max profile velocity): the drive aborts
+    0x06020000 "object does not exist"; both are skipped, said once, the run's velocity
+    limit applied by the host, never a KeyError."""
+    text = cia402.EDS_PATH.read_text()
+    for index in ("607F", "608F"):
+        text = re.sub(rf"\n\[{index}(sub\d+)?\]\n(?:[^\[]*\n)*?(?=\n\[)", "\n", text)
+    eds = tmp_path / "without_607F_608F.eds"
+    eds.write_text(text)
+    with rig(drive_od=eds) as r:
+        assert 0x607F not in r.axis(1).node.object_dictionary
+        r.host.activate()
+        r.host.set_limits(1, Axis.WHEEL, max_torque=0.5, max_velocity=2.0)
+        r.host.set_limits(1, Axis.WHEEL, max_torque=0.5, max_velocity=2.0)
+        r.host.enable(1, Axis.WHEEL)
+        r.host.set_torque(1, Axis.WHEEL, 5.0)  # above the limit: the host's limit holds
+        r.clock.sleep(0.2)
+        assert r.axis(2).target_torque == r.host.axis_track(1, Axis.WHEEL).torque_units(0.5)
+        said = [e.message for e in r.events if e.kind is EventKind.SET_UP]
+        assert any("module 1 wheel (node 2): no 0x607F on the drive" in m for m in said), said
+        assert any("module 1 steer (node 1): no 0x608F" in m for m in said), said
+        assert len(said) == len(set(said))
