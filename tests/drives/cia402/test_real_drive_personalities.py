@@ -1,0 +1,94 @@
+"""The set-up against the object dictionaries real drives publish (issue 42, item 2 and
+the table of real drives): seven EDS files of six makers (``tests/drives/cia402/eds/``,
+their sources in its README), each given as ``object_dictionary`` the way docs/drives.md
+tells a user to, the virtual drive serving only what that EDS declares (its 0x6502, its
+objects, its mapping objects' types).  Each comes up with the modes it has and says once
+what it skipped, or is refused before any motion naming node, object and why; never a
+``KeyError``.  A whole calibration on the ones that come up:
+``tests/services/whole_runs/test_calibration_on_real_drives.py``."""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+from typing import Any
+
+import canopen
+import pytest
+
+from firmware_protocol import cia402
+from firmware_protocol.cia402 import Mode
+from firmware_protocol.codec import Axis
+from simulators.options import SimOptions
+from simulators.virtual_robot import VirtualRobot
+from swpc_hw.clock import SimClock
+from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.cia402.config import Cia402Drives
+from swpc_hw.drives.cia402.driver import Cia402Driver
+from swpc_hw.drives.errors import NodeError
+from swpc_hw.drives.types import DriverEvent, EventKind
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+
+EDS = Path(__file__).with_name("eds")
+
+
+def personality(eds: Path) -> dict[str, Any]:
+    """A robot config's ``drives:`` for drives of this EDS, as a technician would write it:
+    ``rated_torque`` from the data sheet where the drive has no 0x6076, ``homing:
+    absolute`` where it has no homing method 0x6098."""
+    od = canopen.import_od(str(eds), 1)
+    steer: dict[str, Any] = {"rated_torque": 0.1}
+    if cia402.HOMING_METHOD not in od:
+        steer["homing"] = "absolute"
+    return {"kind": "cia402", "object_dictionary": str(eds), "modules": {
+        m: {"steer": {"node": 2 * m - 1, **steer}, "wheel": {"node": 2 * m, "rated_torque": 0.1}}
+        for m in PAPER_CALIBRATED.ids}}  # fmt: skip
+
+
+EXPECTED: dict[str, str | tuple[Mode, Mode]] = {
+    "elmo_gold": (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE),
+    "yiyou_euservo": (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE),
+    "faulhaber_mcdc300_co": "no position and no torque mode swpc can use (0x6502 = 0x00000025",
+    "pilz_prbt": "no position and no torque and no homing mode swpc can use",
+    "schunk_prl120": "no position and no torque mode swpc can use (0x6502 = 0x00000060",
+    "technosoft_idm_iscm": "the drive has no 0x1016 sub 1 (consumer heartbeat): the drive's own",
+    "technosoft_ipos": "the drive has no 0x1016 sub 1 (consumer heartbeat): the drive's own",
+}
+"""What each comes to: (steering's position mode, wheel's torque mode), or the refusal."""
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_each_real_drive_comes_up_with_its_modes_or_is_refused_naming_why(name: str) -> None:
+    cfg = Cia402Drives.model_validate(personality(EDS / f"{name}.eds"))
+    clock = SimClock()
+    ch = f"cia402-real-{uuid.uuid4().hex[:8]}"
+    host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
+    events: list[DriverEvent] = []
+    host.add_event_callback(events.append)
+    host.configure()
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
+                            options=SimOptions(drives=cfg, physics_dt=0.01))  # fmt: skip
+    sim.start()
+    expected = EXPECTED[name]
+    try:
+        with clock.participant():
+            if isinstance(expected, str):
+                with pytest.raises(NodeError) as err:
+                    host.activate()
+                assert "module 1 steer (node 1): " in str(err.value)
+                assert expected in str(err.value), str(err.value)
+                outcome = f"refused: {str(err.value).split(': ', 1)[1]}"
+            else:
+                host.activate()
+                steer, wheel = host.axis_track(1, Axis.STEER), host.axis_track(1, Axis.WHEEL)
+                assert (steer.position_mode, wheel.torque_mode) == expected
+                skipped = [e.message for e in events if e.kind is EventKind.SET_UP]
+                assert len(skipped) == len(set(skipped))  # each said once
+                outcome = f"up: {expected[0].name}, {expected[1].name}; skipped: " + "; ".join(
+                    sorted({m.split(': ', 1)[1] for m in skipped})
+                )
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
+    print(f"\n{name}: {outcome}")
