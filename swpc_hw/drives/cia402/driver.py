@@ -254,12 +254,16 @@ class Cia402Driver(DriverBase):
         return True
 
     def _activated(self) -> None:
-        """The SYNC (``feedback_rate_hz``) runs from now on."""
+        """The SYNC (``feedback_rate_hz``) runs from now on; an axis known to be in FAULT
+        (from an earlier run, or its EMCY) is reset (:meth:`_after_activate` waits)."""
         if not self._sync_on:
             self._sync_on = True
             self._next_sync = self.clock.now()
+        faulted = (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE)
         for a in self._tracks():
             a.refused_reported = False
+            if a.state in faulted or a.error_code:
+                a.reset = True
 
     def _after_activate(self) -> None:
         """A statusword from every drive; a fault present at start reset (the first
