@@ -106,12 +106,18 @@ class InputMode(enum.IntEnum):
 
 
 class ProcedureResult(enum.IntEnum):
-    """``Procedure_Result`` of a 0.6.x heartbeat (how the last state request ended)."""
+    """``Procedure_Result`` of a 0.6.x heartbeat (how the last state request ended; the
+    ones swpc uses or reports: the DBC names every value, :meth:`CanSimple.procedure_name`)."""
 
     SUCCESS = 0
     BUSY = 1
     CANCELLED = 2
     DISARMED = 3
+    INVALID_STATE = 13
+    """The requested state is not allowed from where the axis is."""
+    NOT_CALIBRATED = 14
+    """The requested state needs a calibration the axis has not had (closed loop before the
+    motor and encoder calibration)."""
 
 
 # ------------------------------------------------------------------ decoded frames
@@ -269,6 +275,15 @@ class CanSimple:
         """The axis error bits of the heartbeat's ``Axis_Error`` (value -> name)."""
         sig = self._msgs[Cmd.HEARTBEAT].get_signal_by_name("Axis_Error")
         return {int(v): str(n) for v, n in (sig.choices or {}).items()}
+
+    def procedure_name(self, value: int | None) -> str:
+        """``"NOT_CALIBRATED"``: a 0.6.x heartbeat's ``Procedure_Result`` by its DBC name
+        (the number when the DBC has no name for it; ``"-"`` on 0.5.x, which has none)."""
+        if value is None or self.line == "0.5":
+            return "-"
+        sig = self._msgs[Cmd.HEARTBEAT].get_signal_by_name("Procedure_Result")
+        names = {int(v): str(n) for v, n in (sig.choices or {}).items()}
+        return names.get(value, str(value))
 
     def error_bit(self, name: str) -> int:
         for value, n in self.error_choices().items():

@@ -8,6 +8,10 @@ does it (``Firmware/communication/can/can_simple.cpp``, ``MotorControl/axis.cpp`
 * axis states IDLE, CLOSED_LOOP_CONTROL, ENCODER_INDEX_SEARCH (the steering turns at the
   homing speed for ``homing_duration``, then its position is referenced to the index and
   the axis goes IDLE); a state request with an axis error active is refused;
+* an axis whose motor and encoder are not calibrated (``calibrated`` False: a new ODrive,
+  or one whose calibration was not saved) refuses closed loop and stays IDLE: 0.5.x
+  latches the axis error INVALID_STATE (``axis.cpp``: closed loop needs the motor
+  calibrated and the encoder ready), 0.6.x reports ``Procedure_Result`` NOT_CALIBRATED;
 * control modes position, velocity and torque with passthrough inputs, ``Set_Limits``
   (velocity limit, current limit through the axis' torque constant and gear ratio);
 * error bits of the line's DBC; ``Clear_Errors`` clears them;
@@ -96,6 +100,8 @@ class VirtualODriveAxis:
     _next_heartbeat: float | None = None
     _next_estimate: float | None = None
     index_found: bool = False
+    calibrated: bool = True
+    """The motor and encoder calibrations are done (saved, or run at start-up)."""
     codec: cs.CanSimple = field(init=False)
 
     def __post_init__(self) -> None:
@@ -149,7 +155,13 @@ class VirtualODriveAxis:
         if self.axis_error:  # refused: the axis stays where it is
             self.procedure_result = cs.ProcedureResult.DISARMED
             return
-        if state == cs.AxisState.CLOSED_LOOP_CONTROL:
+        if state == cs.AxisState.CLOSED_LOOP_CONTROL and not self.calibrated:
+            self.state = cs.AxisState.IDLE  # refused (module docstring)
+            if self.line == "0.5":
+                self.axis_error |= self.codec.error_bit("INVALID_STATE")
+            else:
+                self.procedure_result = cs.ProcedureResult.NOT_CALIBRATED
+        elif state == cs.AxisState.CLOSED_LOOP_CONTROL:
             self.state = cs.AxisState.CLOSED_LOOP_CONTROL
             self.procedure_result = cs.ProcedureResult.SUCCESS
             self._feed(now)  # axis.cpp: entering closed loop feeds the watchdog
