@@ -23,7 +23,8 @@ does it (``Firmware/communication/can/can_simple.cpp``, ``MotorControl/axis.cpp`
   CAN example feeds it with its setpoints; the exact set is not in the DBC).  Entering closed
   loop feeds it on both.  On expiry the axis is disarmed (IDLE) with the error latched;
 * cyclic heartbeat (``T_hb``) and ``Get_Encoder_Estimates`` at the encoder rate; a remote
-  poll of the estimates is answered (0.5.x does; swpc never polls).
+  poll of the estimates is answered (0.5.x does; swpc never polls), and on 0.6.x one of
+  ``Get_Version`` (firmware 0.6.10, hardware 0.0.0: ``swpc drives scan`` asks it).
 
 :class:`ODriveVirtualDrive` is one module's two axes as a
 :class:`simulators.drives.base.VirtualDrive`: it turns each axis' state into the swpc
@@ -67,6 +68,10 @@ FAULT_NAMES = {
 """swpc's injected hardware errors as each line's axis error (others: MOTOR_FAILED on
 0.5.x, DRV_FAULT on 0.6.x)."""
 DEFAULT_FAULT = {"0.5": "MOTOR_FAILED", "0.6": "DRV_FAULT"}
+VIRTUAL_FIRMWARE = (0, 6, 10)
+"""What a virtual 0.6.x axis answers to ``Get_Version``: the firmware of its DBC
+(``odrive-cansimple-0.6.10``), hardware 0.0.0 (no board)."""
+VIRTUAL_HARDWARE = (0, 0, 0)
 
 
 @dataclass
@@ -125,6 +130,9 @@ class VirtualODriveAxis:
         if isinstance(dec, cs.Poll):
             if dec.cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
                 out += self._estimate()
+            elif dec.cmd == cs.Cmd.GET_VERSION and self.codec.has_version:
+                out += self._send([self.codec.version(self.node, VIRTUAL_FIRMWARE,
+                                                      VIRTUAL_HARDWARE)])  # fmt: skip
             return out
         if self.line == "0.6" and isinstance(dec, cs.SETPOINTS):
             self._feed(now)
