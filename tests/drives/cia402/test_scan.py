@@ -188,7 +188,8 @@ def other_profile_od() -> odm.ObjectDictionary:
 def local_bus() -> Iterator[tuple[str, dict[int, canopen.LocalNode], Sent]]:
     """On one virtual bus, canopen's LocalNode as drives: node 1 (identity of a real make,
     the host's heartbeat consumed), node 2 with its heartbeat off (0x1017 = 0), node 3 in
-    FAULT, node 4 twice (two devices, one node id), node 10 a CiA 401 I/O module."""
+    FAULT, node 4 twice (two devices, one node id), node 10 a CiA 401 I/O module; each
+    but node 2 with a heartbeat every 100 ms."""
     ch = f"scan-local-{uuid.uuid4().hex[:8]}"
     nets = [network(ch), network(ch)]
     nodes: dict[int, canopen.LocalNode] = {}
@@ -205,6 +206,8 @@ def local_bus() -> Iterator[tuple[str, dict[int, canopen.LocalNode], Sent]]:
     one[0x1018][3].raw, one[0x1018][4].raw = 0x01700000, 0x12345678  # revision, serial
     one[cia402.CONSUMER_HEARTBEAT][1].raw = cia402.consumer_entry(HOST, 200)
     one[cia402.STATUSWORD].raw = 0x0250  # switch on disabled, remote
+    for node in (nodes[1], nodes[3], nodes[4], twin):
+        node.sdo[cia402.PRODUCER_HEARTBEAT].raw = 100  # the EDS' default is CiA 301's: 0
     nodes[2].sdo[cia402.PRODUCER_HEARTBEAT].raw = 0
     three = nodes[3].sdo
     three[cia402.STATUSWORD].raw = 0x0218  # fault
@@ -313,15 +316,15 @@ def test_scan_of_the_virtual_robots_drives_and_wake(
         assert_only_reads(sent)
         found = {f.node: f for f in result.found}
         assert sorted(found) == list(range(1, 9))
-        for f in found.values():
-            assert f.fields["NMT"] == "PRE-OPERATIONAL"
+        for f in found.values():  # as they come from the box: silent (CiA 301's 0x1017 = 0)
+            assert f.fields["NMT"] == "unknown (no heartbeat: 0x1017 = 0)"
             assert f.fields["product"] == "0x00000402" and f.fields["revision"] == "0x00010000"
-            assert f.fields["modes"] == "HM CSP CSV CST" and f.fields["heartbeat"] == "100 ms"
+            assert f.fields["modes"] == "HM CSP CSV CST" and f.fields["heartbeat"] == "0 ms"
             assert f.fields["name"] == "swpc virtual CiA 402 axis"
-        # the EMCY code and the error register are in the drive's objects; its statusword
-        # object is written on SYNC only (in OPERATIONAL), so over SDO it reads 0 here
-        assert found[4].fields["error code"] == "0x4310 excess temperature drive"
+            assert f.fields["402 state"] == ("fault" if f.node == 4 else "switch on disabled")
+        assert found[4].fault == "0x4310 excess temperature drive"
         assert found[4].fields["error register"] == "0x01"
+        assert [f.node for f in found.values() if f.fault] == [4]
         print(f"\ncia402 scan of 127 nodes, the virtual robot's 8 drives: "
               f"{result.elapsed_s:.2f} s (probe {result.probe_s:.3f} s)")  # fmt: skip
         # --wake: one NMT reset communication to all, every drive boots again
