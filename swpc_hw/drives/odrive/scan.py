@@ -116,6 +116,7 @@ def expected(drives: ODriveDrives) -> list[Expected]:
 class ODriveScan:
     found: list[FoundNode]
     candidates: int
+    """How many nodes were asked for their version (0 on 0.5.x)."""
     elapsed_s: float
     notes: list[str] = field(default_factory=list)
 
@@ -185,4 +186,4 @@ def scan(
         for n in sorted(heard)
         if heard[n].heartbeat is not None or heard[n].versions
     ]
-    return ODriveScan(found, len(set(heard) | set(candidates)), listened, notes)
+    return ODriveScan(found, len(asked), listened, notes)
