@@ -262,8 +262,10 @@ def test_scan_finds_canopens_local_nodes_and_reads_what_each_is(
     # in FAULT: 0x603F named
     assert found[3].fault == "0x7305 incremental sensor 1 fault"
     assert found[3].fields["402 state"] == "fault" and found[3].fields["error register"] == "0x01"
-    # two devices on node 4
-    assert found[4].duplicate == "2 answers to one SDO request"
+    # two devices on node 4: two answers to the probe (on a host too busy for both within
+    # the first 50 ms, their heartbeats at twice the period of 0x1017 tell it)
+    dup = found[4].duplicate or ""
+    assert dup == "2 answers to one SDO request" or " heartbeats in " in dup, dup
     # another profile: the 402 objects and the serial absent, never an exception
     ten = found[10]
     assert ten.fields["device type"] == "0x00000191 (CiA 401: not a 402 drive)"
