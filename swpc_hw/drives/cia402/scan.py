@@ -151,7 +151,8 @@ def unread(exc: Exception) -> Unread:
     if isinstance(exc, SdoAbortedError):
         if exc.code in ABSENT_CODES:
             return Unread(ABSENT)
-        return Unread(f"abort: {exc}")
+        what = SdoAbortedError.CODES.get(exc.code)
+        return Unread(f"abort 0x{exc.code:08X}" + (f": {what}" if what else ""))
     return Unread("no answer")
 
 

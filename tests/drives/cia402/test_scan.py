@@ -13,6 +13,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import canopen
@@ -345,3 +346,68 @@ def test_scan_of_the_virtual_robots_drives_and_wake(
         net.disconnect()
         notifier.stop()
         observer.shutdown()
+
+
+def test_scan_reads_real_drives_published_object_dictionaries() -> None:
+    """canopen's LocalNode serving each of the seven real drives' EDS files
+    (``tests/drives/cia402/eds/``, their survey in its README): every one found by the
+    probe though none but Pilz's configured file sends a heartbeat (CiA 301's 0x1017 = 0),
+    its identity and modes as its maker wrote them, the modes swpc needs and it lacks
+    noted, what it lacks absent, what its file gives no value for named by its abort."""
+    eds = sorted((Path(__file__).with_name("eds")).glob("*.eds"))
+    names = [p.stem for p in eds]
+    ch = f"scan-eds-{uuid.uuid4().hex[:8]}"
+    peer = network(ch)
+    locals_ = []
+    for node, path in enumerate(eds, 1):
+        local = canopen.LocalNode(node, canopen.import_od(str(path), node))
+        peer.add_node(local)
+        local.nmt.send_command(cia402.NMT_RESET_NODE)
+        local.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)
+        locals_.append(local)
+    net = network(ch)
+    try:
+        result = cs.scan(net, range(1, 128), listen_s=0.5,
+                         needed={n: cs.modes_swpc_needs(19) for n in range(1, 8)})  # fmt: skip
+    finally:
+        net.disconnect()
+        for local in locals_:
+            local.nmt.stop_heartbeat()
+        peer.disconnect()
+    f = {names[x.node - 1]: x for x in result.found}
+    assert sorted(f) == sorted(names)
+    assert {n: x.fields["vendor"] for n, x in f.items() if n != "pilz_prbt"} == {
+        "elmo_gold": "0x0000009A", "faulhaber_mcdc300_co": "0x00000147",
+        "schunk_prl120": "0x00000000", "technosoft_idm_iscm": "0x000001A3",
+        "technosoft_ipos": "0x000001A3", "yiyou_euservo": "0x00000668",
+    }  # fmt: skip
+    assert {n: x.fields["modes"] for n, x in f.items() if n != "elmo_gold"} == {
+        "faulhaber_mcdc300_co": "PP PV HM", "pilz_prbt": "PP VL IP", "schunk_prl120": "HM IP",
+        "technosoft_idm_iscm": "PP PV HM IP",
+        "technosoft_ipos": "PP PV HM IP maker bit 16 maker bit 17 maker bit 18 maker bit 19 "
+        "maker bit 20",
+        "yiyou_euservo": "PP PV PT IP CSP CSV CST",
+    }  # fmt: skip
+    # Elmo's file declares 0x6502 without a value: canopen's slave aborts the read
+    assert f["elmo_gold"].fields["modes"] == "abort 0x060A0023: Resource not available"
+    assert f["yiyou_euservo"].notes == ["lacks mode(s) swpc needs: HOMING"]
+    assert f["faulhaber_mcdc300_co"].notes == [
+        "lacks mode(s) swpc needs: CYCLIC_SYNC_POSITION, CYCLIC_SYNC_TORQUE"
+    ]
+    # absent: what the file does not have at all
+    idm = f["technosoft_idm_iscm"]
+    assert idm.fields["consumers"] == "absent" and idm.fields["product"] == "absent"
+    assert idm.data["absent"] == ["0x1008", "0x100A", "0x1016", "0x1018 sub 2", "0x1018 sub 3",
+                                  "0x1018 sub 4"]  # fmt: skip
+    yiyou = f["yiyou_euservo"]
+    assert (yiyou.fields["product"], yiyou.fields["revision"], yiyou.fields["serial"]) == (
+        "0x00220811", "0x00000010", "absent"
+    )
+    assert (yiyou.fields["name"], yiyou.fields["software"]) == ("EuPH11D-101", "V135")
+    assert f["faulhaber_mcdc300_co"].fields["software"] == "3150.68B"
+    # the silent ones found by the probe; Pilz's DCF configures a heartbeat
+    pilz = f["pilz_prbt"]
+    assert (pilz.fields["NMT"], pilz.fields["heartbeat"]) == ("PRE-OPERATIONAL", "100 ms")
+    assert all(x.fields["NMT"] == "unknown (no heartbeat: 0x1017 = 0)"
+               for n, x in f.items() if n != "pilz_prbt")  # fmt: skip
+    assert all(x.fault is None and x.duplicate is None for x in f.values())
