@@ -202,16 +202,17 @@ def _scan_cia402(
     import canopen
 
     from swpc_hw.drives.cia402 import scan as cia
+    from swpc_hw.drives.cia402.config import ABSOLUTE
 
-    needed: dict[int, Any] = {}
+    homing: dict[int, object] = {}
     expected = []
     host = None
     if drives is not None:
         expected = cia.expected(drives)
         host = drives.host_node
         for md in drives.axes().values():
-            needed[md.steer.node] = cia.modes_swpc_needs(md.steer.homing)
-            needed[md.wheel.node] = cia.modes_swpc_needs(None)
+            homing[md.steer.node] = md.steer.homing
+            homing[md.wheel.node] = ABSOLUTE  # a wheel does not home
     # every node by default (127 in about 0.2 s): a drive the config does not name, and
     # whose heartbeat is off (CiA 301's default), is found too; --nodes narrows the probe
     # to the config's nodes and those
@@ -226,7 +227,7 @@ def _scan_cia402(
     try:
         result = cia.scan(
             net, candidates, listen_s=args.listen, probe_timeout_s=args.probe_timeout,
-            sdo_timeout_s=args.sdo_timeout, wake=args.wake, needed=needed,
+            sdo_timeout_s=args.sdo_timeout, wake=args.wake, homing=homing,
         )  # fmt: skip
     finally:
         net.disconnect()

@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import can
@@ -41,6 +41,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
+from swpc_hw.drives.cia402.setup import POSITION_MODES, TORQUE_MODES, choose_modes
 from swpc_hw.drives.errors import CanBusError
 from swpc_hw.drives.scan import Expected, FoundNode
 
@@ -94,18 +95,23 @@ def mode_names(value: int) -> list[str]:
     return out
 
 
-def missing_modes(value: int, needed: Iterable[Mode]) -> list[str]:
-    """The modes of ``needed`` whose bit 0x6502 does not set (their 0x6060 names)."""
-    return [m.name for m in needed if not value & cia402.supported_modes_bit(m)]
+def _short(mode: Mode) -> str:
+    return MODE_BITS[int(mode) - 1]
 
 
-def modes_swpc_needs(homing: object) -> list[Mode]:
-    """What swpc's set-up requires of a drive (``swpc_hw/drives/cia402/setup.py``):
-    cyclic synchronous position and torque, and homing unless the steering is absolute."""
-    needed = [Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE]
-    if homing is not None and homing != ABSOLUTE:
-        needed.append(Mode.HOMING)
-    return needed
+def lacking(supported: int, homing: object) -> list[str]:
+    """What swpc's set-up would refuse a drive for in its 0x6502 (the set-up's own choice,
+    :func:`swpc_hw.drives.cia402.setup.choose_modes`): no position mode swpc can use, no
+    torque mode, no homing for an axis that homes (``homing`` not ``absolute``: a wheel is
+    given ``absolute``)."""
+    chosen = choose_modes(supported)
+    out = []
+    for what, modes in (("position", POSITION_MODES), ("torque", TORQUE_MODES)):
+        if chosen[what] is None:
+            out.append(f"a {what} mode ({' or '.join(_short(m) for m in modes)})")
+    if homing != ABSOLUTE and not supported & cia402.supported_modes_bit(Mode.HOMING):
+        out.append("homing (HM)")
+    return out
 
 
 def device_type_text(value: int) -> str:
@@ -190,12 +196,13 @@ def describe(
     *,
     listened_s: float,
     answers: int = 1,
-    needed: Sequence[Mode] = (),
+    homing: object = None,
 ) -> FoundNode:
     """A node as the scan shows it, from what it answered (``reads``: (index, sub) ->
     value) and its heartbeats (``heard``, None: none while listening for ``listened_s``).
-    ``answers``: how many answers its first probe got; ``needed``: the modes the config's
-    axis needs (a missing one is noted)."""
+    ``answers``: how many answers its first probe got; ``homing``: the config's axis'
+    homing (``absolute`` for a wheel), whose modes are checked as swpc's set-up would
+    (:func:`lacking`; None: no config, no check)."""
     r = reads.get
     if not reads:  # a heartbeat, no SDO server answering
         state = nmt_name(heard.state) if heard else "unknown"
@@ -286,10 +293,10 @@ def describe(
                 f"{heard.count} heartbeats in {span:.2f} s, 0x1017 = {producer} ms allows "
                 f"{math.floor(allowed)}"
             )
-    if isinstance(modes, int) and needed:
-        lacking = missing_modes(modes, needed)
-        if lacking:
-            found.notes.append(f"lacks mode(s) swpc needs: {', '.join(lacking)}")
+    if isinstance(modes, int) and homing is not None:
+        lacks = lacking(modes, homing)
+        if lacks:
+            found.notes.append(f"lacks what swpc needs: {', '.join(lacks)}")
     if isinstance(dev, int) and dev & 0xFFFF != 402:
         found.notes.append("not a CiA 402 drive (0x1000)")
     return found
@@ -449,12 +456,13 @@ def scan(
     probe_timeout_s: float = 0.05,
     sdo_timeout_s: float = 0.3,
     wake: bool = False,
-    needed: dict[int, Sequence[Mode]] | None = None,
+    homing: dict[int, object] | None = None,
 ) -> Cia402Scan:
     """Scan the bus ``net`` is connected to (module docstring).  ``candidates``: the nodes
     to probe (any node heard is probed too); ``wake``: NMT reset communication to every
-    node first, and a listen long enough for their boot-ups; ``needed``: node -> the modes
-    its axis needs (noted when the drive lacks one)."""
+    node first, and a listen long enough for their boot-ups; ``homing``: node -> its
+    axis' homing in the config (``absolute`` for a wheel): a mode swpc needs and the drive
+    lacks is noted."""
     if net.notifier is None:
         raise CanBusError("scan(): the canopen network is not connected")
     t0 = time.monotonic()
@@ -490,7 +498,7 @@ def scan(
         found = [
             describe(
                 n, reads.get(n, {}), heard.get(n), listened_s=listened,
-                answers=answered.get(n, 0), needed=(needed or {}).get(n, ()),
+                answers=answered.get(n, 0), homing=(homing or {}).get(n),
             )
             for n in sorted(set(answered) | set(heard))
         ]  # fmt: skip

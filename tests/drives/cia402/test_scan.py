@@ -21,7 +21,6 @@ import pytest
 from canopen import objectdictionary as odm
 
 from firmware_protocol import cia402
-from firmware_protocol.cia402 import Mode
 from firmware_protocol.codec import Axis, ErrorFlag
 from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
@@ -53,13 +52,12 @@ def test_supported_modes_are_named_by_their_bits() -> None:
         "reserved bit 4", "CSTCA", "reserved bit 11", "maker bit 16"
     ]
     assert cs.mode_names(0) == []
-    needs = cs.modes_swpc_needs(19)
-    assert needs == [Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE, Mode.HOMING]
-    assert cs.modes_swpc_needs("absolute") == needs[:2] == cs.modes_swpc_needs(None)
-    assert cs.missing_modes(0x000003A0, needs) == []
-    assert cs.missing_modes(0x00000005, needs) == [
-        "CYCLIC_SYNC_POSITION", "CYCLIC_SYNC_TORQUE", "HOMING"
-    ]
+    # what swpc's set-up would refuse (its own choice of modes): CSP; CST, else PT; HM
+    assert cs.lacking(0x000003A0, 19) == []
+    assert cs.lacking(0x000000AD, 19) == []  # PP PV PT HM CSP: profile torque will do
+    assert cs.lacking(0x00000025, 19) == ["a position mode (CSP)", "a torque mode (CST or PT)"]
+    assert cs.lacking(0x00000280, 19) == ["homing (HM)"]  # CSP CST
+    assert cs.lacking(0x00000280, "absolute") == []  # an absolute steering, or a wheel
     assert cs.device_type_text(0x00020192) == "0x00020192 (CiA 402 servo drive)"
     assert cs.device_type_text(0x00000191) == "0x00000191 (CiA 401: not a 402 drive)"
     assert cs.consumers_text([cia402.consumer_entry(127, 200), 0]) == "node 127: 200 ms"
@@ -102,7 +100,7 @@ def test_a_node_is_described_from_what_it_answered() -> None:
         (0x6502, 0): 0x3A0, (0x1017, 0): 0, (0x1016, 0): 1, (0x1016, 1): 0x007F00C8,
         (0x6041, 0): 0x0218, (0x603F, 0): 0x8130,
     }  # fmt: skip
-    f = cs.describe(5, reads, None, listened_s=1.0, needed=cs.modes_swpc_needs(19))
+    f = cs.describe(5, reads, None, listened_s=1.0, homing=19)
     assert f.fault == "0x8130 life guard or heartbeat error (the host's heartbeat was lost)"
     assert f.fields["NMT"] == "unknown (no heartbeat: 0x1017 = 0)"
     assert f.fields["402 state"] == "fault" and f.fields["consumers"] == "node 127: 200 ms"
@@ -285,12 +283,14 @@ def test_a_drive_lacking_a_mode_swpc_needs_is_noted(
     nodes[1].sdo[cia402.SUPPORTED_MODES].raw = 0x00000025  # PP PV HM: no cyclic modes
     net = network(ch)
     try:
-        result = cs.scan(net, [1], listen_s=0.2, needed={1: cs.modes_swpc_needs(19)})
+        result = cs.scan(net, [1], listen_s=0.2, homing={1: 19})
     finally:
         net.disconnect()
     (one,) = [f for f in result.found if f.node == 1]
     assert one.fields["modes"] == "PP PV HM"
-    assert one.notes == ["lacks mode(s) swpc needs: CYCLIC_SYNC_POSITION, CYCLIC_SYNC_TORQUE"]
+    assert one.notes == [
+        "lacks what swpc needs: a position mode (CSP), a torque mode (CST or PT)"
+    ]
 
 
 @pytest.fixture()
@@ -368,7 +368,7 @@ def test_scan_reads_real_drives_published_object_dictionaries() -> None:
     net = network(ch)
     try:
         result = cs.scan(net, range(1, 128), listen_s=0.5,
-                         needed={n: cs.modes_swpc_needs(19) for n in range(1, 8)})  # fmt: skip
+                         homing={n: 19 for n in range(1, 8)})  # fmt: skip
     finally:
         net.disconnect()
         for local in locals_:
@@ -390,9 +390,15 @@ def test_scan_reads_real_drives_published_object_dictionaries() -> None:
     }  # fmt: skip
     # Elmo's file declares 0x6502 without a value: canopen's slave aborts the read
     assert f["elmo_gold"].fields["modes"] == "abort 0x060A0023: Resource not available"
-    assert f["yiyou_euservo"].notes == ["lacks mode(s) swpc needs: HOMING"]
-    assert f["faulhaber_mcdc300_co"].notes == [
-        "lacks mode(s) swpc needs: CYCLIC_SYNC_POSITION, CYCLIC_SYNC_TORQUE"
+    # what swpc's set-up says of them too (docs/drives.md's table of real drives)
+    assert f["yiyou_euservo"].notes == ["lacks what swpc needs: homing (HM)"]
+    assert f["elmo_gold"].notes == []  # no 0x6502 value: the set-up tries the modes
+    for name in ("faulhaber_mcdc300_co", "schunk_prl120", "technosoft_idm_iscm"):
+        assert f[name].notes == [
+            "lacks what swpc needs: a position mode (CSP), a torque mode (CST or PT)"
+        ], name
+    assert f["pilz_prbt"].notes == [
+        "lacks what swpc needs: a position mode (CSP), a torque mode (CST or PT), homing (HM)"
     ]
     # absent: what the file does not have at all
     idm = f["technosoft_idm_iscm"]
