@@ -38,8 +38,9 @@ def register(subparsers: Any) -> None:
         "scan",
         help="find the drives on the bus and compare them with the robot config (reads only)",
         description="Find the drives on the CAN bus, say what each is and its state, and "
-        "compare them with the robot config's drives (--config). It only reads and listens: "
-        "CiA 402: heartbeats, then SDO uploads (0x1000 of every candidate node, then "
+        "compare them with the robot config's drives (--config). It never moves a motor: it "
+        "only reads and listens, and sends no NMT command unless --wake. CiA 402: "
+        "heartbeats, then SDO uploads (0x1000 of every candidate node, then "
         "identity, modes, heartbeat settings, statusword, error code of each that answers); "
         "ODrive: heartbeats, and Get_Version (0.6.x); swpc: heartbeats. Exit status 1 when "
         "a node the config expects is missing, a drive is in FAULT or two devices share a "
