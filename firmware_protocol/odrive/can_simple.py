@@ -45,8 +45,10 @@ FIRMWARE_LINES: dict[str, str] = {"0.5": "odrive-cansimple-0.5.6", "0.6": "odriv
 
 
 class Cmd(enum.IntEnum):
-    """The command ids swpc uses (``Axis0_<name>`` in the DBC, :data:`MESSAGE_NAMES`)."""
+    """The command ids swpc uses (``Axis0_<name>`` in the DBC, :data:`MESSAGE_NAMES`;
+    ``GET_VERSION`` only where the line's DBC has it: :attr:`CanSimple.has_version`)."""
 
+    GET_VERSION = 0x00
     HEARTBEAT = 0x01
     SET_AXIS_STATE = 0x07
     GET_ENCODER_ESTIMATES = 0x09
@@ -106,12 +108,18 @@ class InputMode(enum.IntEnum):
 
 
 class ProcedureResult(enum.IntEnum):
-    """``Procedure_Result`` of a 0.6.x heartbeat (how the last state request ended)."""
+    """``Procedure_Result`` of a 0.6.x heartbeat (how the last state request ended; the
+    ones swpc uses or reports: the DBC names every value, :meth:`CanSimple.procedure_name`)."""
 
     SUCCESS = 0
     BUSY = 1
     CANCELLED = 2
     DISARMED = 3
+    INVALID_STATE = 13
+    """The requested state is not allowed from where the axis is."""
+    NOT_CALIBRATED = 14
+    """The requested state needs a calibration the axis has not had (closed loop before the
+    motor and encoder calibration)."""
 
 
 # ------------------------------------------------------------------ decoded frames
@@ -128,6 +136,32 @@ class Heartbeat:
     procedure_result: int | None
     trajectory_done: bool
     component_errors: int = 0
+
+
+@dataclass(frozen=True)
+class Version:
+    """``Get_Version`` (0.6.x; an axis answers a remote frame of it): the firmware and
+    hardware versions and the CAN protocol's."""
+
+    node: int
+    protocol: int
+    hw_major: int
+    hw_minor: int
+    hw_variant: int
+    fw_major: int
+    fw_minor: int
+    fw_revision: int
+    fw_unreleased: int
+
+    @property
+    def firmware(self) -> str:
+        """``0.6.10`` (``-dev`` for an unreleased build)."""
+        dev = "-dev" if self.fw_unreleased else ""
+        return f"{self.fw_major}.{self.fw_minor}.{self.fw_revision}{dev}"
+
+    @property
+    def hardware(self) -> str:
+        return f"{self.hw_major}.{self.hw_minor}.{self.hw_variant}"
 
 
 @dataclass(frozen=True)
@@ -195,6 +229,7 @@ class Poll:
 
 Decoded = (
     Heartbeat
+    | Version
     | EncoderEstimates
     | SetAxisState
     | SetControllerMode
@@ -255,6 +290,9 @@ class CanSimple:
             if self._msgs.get(cmd) is None or self._msgs[cmd].name != f"Axis0_{name}":
                 raise ProtocolError(f"{self.path.name}: no Axis0_{name} at command 0x{cmd:02x}")
         self.watchdog_bit = self.error_bit("WATCHDOG_TIMER_EXPIRED")
+        version = self._msgs.get(Cmd.GET_VERSION)
+        self.has_version = version is not None and version.name == "Axis0_Get_Version"
+        """The line has ``Get_Version`` (0.6.x; 0.5.x reports no version over CAN)."""
 
     # ------------------------------------------------------------------ ids and names
     def message(self, cmd: int) -> Message:
@@ -269,6 +307,15 @@ class CanSimple:
         """The axis error bits of the heartbeat's ``Axis_Error`` (value -> name)."""
         sig = self._msgs[Cmd.HEARTBEAT].get_signal_by_name("Axis_Error")
         return {int(v): str(n) for v, n in (sig.choices or {}).items()}
+
+    def procedure_name(self, value: int | None) -> str:
+        """``"NOT_CALIBRATED"``: a 0.6.x heartbeat's ``Procedure_Result`` by its DBC name
+        (the number when the DBC has no name for it; ``"-"`` on 0.5.x, which has none)."""
+        if value is None or self.line == "0.5":
+            return "-"
+        sig = self._msgs[Cmd.HEARTBEAT].get_signal_by_name("Procedure_Result")
+        names = {int(v): str(n) for v, n in (sig.choices or {}).items()}
+        return names.get(value, str(value))
 
     def error_bit(self, name: str) -> int:
         for value, n in self.error_choices().items():
@@ -362,6 +409,26 @@ class CanSimple:
             v["Procedure_Result"] = procedure_result
         return self.encode(node, Cmd.HEARTBEAT, v)
 
+    def version(self, node: int, firmware: tuple[int, int, int], hardware: tuple[int, int, int],
+                protocol: int = 0, unreleased: bool = False) -> Frame:
+        """An axis' ``Get_Version`` answer (:class:`ProtocolError` on a line without it)."""
+        if not self.has_version:
+            raise ProtocolError(f"ODrive firmware {self.line}: no Get_Version message")
+        return self.encode(node, Cmd.GET_VERSION, {
+            "Protocol_Version": protocol,
+            "Hw_Version_Major": hardware[0], "Hw_Version_Minor": hardware[1],
+            "Hw_Version_Variant": hardware[2],
+            "Fw_Version_Major": firmware[0], "Fw_Version_Minor": firmware[1],
+            "Fw_Version_Revision": firmware[2], "Fw_Version_Unreleased": int(unreleased),
+        })  # fmt: skip
+
+    def version_request(self, node: int) -> Frame:
+        """The remote frame's id that asks ``node`` for its version (no data: send it as a
+        remote frame of DLC 8)."""
+        if not self.has_version:
+            raise ProtocolError(f"ODrive firmware {self.line}: no Get_Version message")
+        return Frame(self.frame_id(node, Cmd.GET_VERSION), b"")
+
     def encoder_estimates(self, node: int, pos: float, vel: float) -> Frame:
         return self.encode(
             node, Cmd.GET_ENCODER_ESTIMATES, {"Pos_Estimate": pos, "Vel_Estimate": vel}
@@ -415,7 +482,14 @@ def _heartbeat(cs: CanSimple, node: int, v: dict[str, Any]) -> Heartbeat:
     )  # fmt: skip
 
 
+_VERSION_SIGNALS = (
+    "Protocol_Version", "Hw_Version_Major", "Hw_Version_Minor", "Hw_Version_Variant",
+    "Fw_Version_Major", "Fw_Version_Minor", "Fw_Version_Revision", "Fw_Version_Unreleased",
+)  # fmt: skip
+"""``Get_Version``'s signals in :class:`Version`'s order."""
+
 _DECODERS: dict[int, Any] = {
+    Cmd.GET_VERSION: lambda cs, n, v: Version(n, *(int(v[k]) for k in _VERSION_SIGNALS)),
     Cmd.HEARTBEAT: _heartbeat,
     Cmd.GET_ENCODER_ESTIMATES: lambda cs, n, v: EncoderEstimates(
         n, float(v["Pos_Estimate"]), float(v["Vel_Estimate"])

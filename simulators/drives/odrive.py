@@ -8,6 +8,10 @@ does it (``Firmware/communication/can/can_simple.cpp``, ``MotorControl/axis.cpp`
 * axis states IDLE, CLOSED_LOOP_CONTROL, ENCODER_INDEX_SEARCH (the steering turns at the
   homing speed for ``homing_duration``, then its position is referenced to the index and
   the axis goes IDLE); a state request with an axis error active is refused;
+* an axis whose motor and encoder are not calibrated (``calibrated`` False: a new ODrive,
+  or one whose calibration was not saved) refuses closed loop and stays IDLE: 0.5.x
+  latches the axis error INVALID_STATE (``axis.cpp``: closed loop needs the motor
+  calibrated and the encoder ready), 0.6.x reports ``Procedure_Result`` NOT_CALIBRATED;
 * control modes position, velocity and torque with passthrough inputs, ``Set_Limits``
   (velocity limit, current limit through the axis' torque constant and gear ratio);
 * error bits of the line's DBC; ``Clear_Errors`` clears them;
@@ -19,7 +23,8 @@ does it (``Firmware/communication/can/can_simple.cpp``, ``MotorControl/axis.cpp`
   CAN example feeds it with its setpoints; the exact set is not in the DBC).  Entering closed
   loop feeds it on both.  On expiry the axis is disarmed (IDLE) with the error latched;
 * cyclic heartbeat (``T_hb``) and ``Get_Encoder_Estimates`` at the encoder rate; a remote
-  poll of the estimates is answered (0.5.x does; swpc never polls).
+  poll of the estimates is answered (0.5.x does; swpc never polls), and on 0.6.x one of
+  ``Get_Version`` (firmware 0.6.10, hardware 0.0.0: ``swpc drives scan`` asks it).
 
 :class:`ODriveVirtualDrive` is one module's two axes as a
 :class:`simulators.drives.base.VirtualDrive`: it turns each axis' state into the swpc
@@ -63,6 +68,10 @@ FAULT_NAMES = {
 """swpc's injected hardware errors as each line's axis error (others: MOTOR_FAILED on
 0.5.x, DRV_FAULT on 0.6.x)."""
 DEFAULT_FAULT = {"0.5": "MOTOR_FAILED", "0.6": "DRV_FAULT"}
+VIRTUAL_FIRMWARE = (0, 6, 10)
+"""What a virtual 0.6.x axis answers to ``Get_Version``: the firmware of its DBC
+(``odrive-cansimple-0.6.10``), hardware 0.0.0 (no board)."""
+VIRTUAL_HARDWARE = (0, 0, 0)
 
 
 @dataclass
@@ -96,6 +105,8 @@ class VirtualODriveAxis:
     _next_heartbeat: float | None = None
     _next_estimate: float | None = None
     index_found: bool = False
+    calibrated: bool = True
+    """The motor and encoder calibrations are done (saved, or run at start-up)."""
     codec: cs.CanSimple = field(init=False)
 
     def __post_init__(self) -> None:
@@ -119,6 +130,9 @@ class VirtualODriveAxis:
         if isinstance(dec, cs.Poll):
             if dec.cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
                 out += self._estimate()
+            elif dec.cmd == cs.Cmd.GET_VERSION and self.codec.has_version:
+                out += self._send([self.codec.version(self.node, VIRTUAL_FIRMWARE,
+                                                      VIRTUAL_HARDWARE)])  # fmt: skip
             return out
         if self.line == "0.6" and isinstance(dec, cs.SETPOINTS):
             self._feed(now)
@@ -149,7 +163,13 @@ class VirtualODriveAxis:
         if self.axis_error:  # refused: the axis stays where it is
             self.procedure_result = cs.ProcedureResult.DISARMED
             return
-        if state == cs.AxisState.CLOSED_LOOP_CONTROL:
+        if state == cs.AxisState.CLOSED_LOOP_CONTROL and not self.calibrated:
+            self.state = cs.AxisState.IDLE  # refused (module docstring)
+            if self.line == "0.5":
+                self.axis_error |= self.codec.error_bit("INVALID_STATE")
+            else:
+                self.procedure_result = cs.ProcedureResult.NOT_CALIBRATED
+        elif state == cs.AxisState.CLOSED_LOOP_CONTROL:
             self.state = cs.AxisState.CLOSED_LOOP_CONTROL
             self.procedure_result = cs.ProcedureResult.SUCCESS
             self._feed(now)  # axis.cpp: entering closed loop feeds the watchdog

@@ -56,6 +56,7 @@ from swpc_hw.drives.odrive.tracking import (
     new_axis,
     sync_module,
     to_axis,
+    unproven_message,
 )
 from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, Supervision
 from swpc_hw.drives.types import EventKind, Lifecycle, ModuleState, Severity, where
@@ -188,7 +189,7 @@ class ODriveDriver(DriverBase):
         counts: dict[int, int] = {}
         with self._changed:
             for ax in axes:
-                ax.proving, ax.proven_at = True, None
+                ax.proving, ax.proven_at, ax.closed_loop_seen = True, None, False
                 counts[ax.node] = ax.estimates
         frames: list[Frame] = []
         for ax in axes:
@@ -219,19 +220,8 @@ class ODriveDriver(DriverBase):
                 self._send_frames(
                     [c.set_axis_state(a.node, cs.AxisState.IDLE) for a in axes], best_effort=True
                 )
-            names = "; ".join(
-                f"{where(a.module, a.node, a.axis)}: "
-                + (
-                    f"axis error {c.error_names(a.axis_error)}"
-                    if a.axis_error & ~c.watchdog_bit
-                    else f"still armed {window:.3f} s after its last frame"
-                )
-                for a in failed
-            )
             raise NodeError(
-                f"activate(): the axis watchdog did not stop {names}: set "
-                f"<axis>.config.enable_watchdog = True and watchdog_timeout = "
-                f"{cfg.watchdog_timeout_ms / 1000.0:g} s on the ODrive (docs/drives.md)",
+                f"activate(): {unproven_message(c, failed, window, cfg.watchdog_timeout_ms)}",
                 node=failed[0].node,
             )
         want = cfg.feedback_rate_hz

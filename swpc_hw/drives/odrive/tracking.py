@@ -272,6 +272,70 @@ def _homing(
     )
 
 
+REFUSED_RESULTS = frozenset({cs.ProcedureResult.INVALID_STATE, cs.ProcedureResult.NOT_CALIBRATED})
+"""0.6.x ``Procedure_Result`` values of a closed-loop request the axis refused."""
+
+CALIBRATE_ADVICE = (
+    "the axis is not calibrated (or closed loop is not a state it may enter now): run the "
+    "motor and encoder calibration (requested_state FULL_CALIBRATION_SEQUENCE in odrivetool) "
+    "and keep it (save_configuration(); on 0.5.x first <axis>.motor.config.pre_calibrated and "
+    "<axis>.encoder.config.pre_calibrated = True), or have the "
+    "ODrive calibrate at every power-up (<axis>.config.startup_motor_calibration and "
+    "startup_encoder_offset_calibration = True, or startup_encoder_index_search with an "
+    "index), docs/drives.md"
+)
+
+
+def unproven_cause(codec: cs.CanSimple, ax: AxisTrack, window: float) -> tuple[str, bool]:
+    """Why the watchdog proof of activation did not see ``ax``'s watchdog expire: the
+    cause as its heartbeats tell it, and whether the watchdog itself is to blame (an axis
+    that entered closed loop and stayed armed ``window`` s after its last frame).
+
+    An axis that refused closed loop never armed its watchdog: 0.5.x latches the axis
+    error INVALID_STATE (closed loop before the motor and encoder are calibrated), 0.6.x
+    reports ``Procedure_Result`` INVALID_STATE or NOT_CALIBRATED."""
+    other = ax.axis_error & ~codec.watchdog_bit
+    invalid = codec.error_bit("INVALID_STATE") if codec.line == "0.5" else 0
+    if other & invalid:
+        names = codec.error_names(other)
+        return f"refused closed loop (axis error {names}): {CALIBRATE_ADVICE}", False
+    if not ax.closed_loop_seen and ax.procedure_result in REFUSED_RESULTS:
+        return (
+            f"refused closed loop (procedure result {codec.procedure_name(ax.procedure_result)}):"
+            f" {CALIBRATE_ADVICE}",
+            False,
+        )
+    if other:
+        return f"axis error {codec.error_names(other)} (state {_state_name(ax.state)})", False
+    if not ax.closed_loop_seen:
+        result = (
+            "" if ax.procedure_result is None
+            else f", procedure result {codec.procedure_name(ax.procedure_result)}"
+        )  # fmt: skip
+        return f"never entered closed loop (state {_state_name(ax.state)}{result})", False
+    return f"still armed {window:.3f} s after its last frame", True
+
+
+def unproven_message(
+    codec: cs.CanSimple, failed: list[AxisTrack], window: float, watchdog_ms: int
+) -> str:
+    """Activation's refusal of the axes whose watchdog was not proven: each axis with its
+    cause (:func:`unproven_cause`); the watchdog's settings only for the axes it concerns."""
+    parts: list[str] = []
+    armed: list[str] = []
+    for a in failed:
+        cause, watchdog = unproven_cause(codec, a, window)
+        text = f"{where(a.module, a.node, a.axis)}: {cause}"
+        (armed if watchdog else parts).append(text)
+    if armed:
+        parts.append(
+            f"the axis watchdog did not stop {'; '.join(armed)}: set "
+            f"<axis>.config.enable_watchdog = True and watchdog_timeout = "
+            f"{watchdog_ms / 1000.0:g} s on the ODrive (docs/drives.md)"
+        )
+    return "; ".join(parts)
+
+
 def _state_name(state: int) -> str:
     try:
         return cs.AxisState(state).name

@@ -384,3 +384,43 @@ def test_a_frame_queued_before_the_simulator_slows_down_takes_effect_at_once() -
             assert axis.state == cs.AxisState.CLOSED_LOOP_CONTROL
         finally:
             sim.stop()
+
+
+# ---------------------------------------------------------------- activation's refusals
+@pytest.mark.parametrize("line", LINES)
+def test_an_uncalibrated_axis_is_refused_for_its_calibration_not_its_watchdog(line: str) -> None:
+    """An axis that refuses closed loop because it is not calibrated (0.5.x: axis error
+    INVALID_STATE; 0.6.x: Procedure_Result NOT_CALIBRATED, no error) fails activation with
+    its cause and the settings that fix it, not the watchdog's advice: its watchdog was
+    never armed.  The others' watchdogs are proven as usual."""
+    from simulators.options import SimOptions
+    from simulators.virtual_robot import VirtualRobot
+    from swpc_hw.clock import SimClock
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+
+    clock = SimClock()
+    channel = f"odrive-uncal-{uuid.uuid4().hex[:8]}"
+    cfg = ODriveDrives(firmware=line, homing="absolute").for_modules(PAPER_CALIBRATED.ids)
+    host = ODriveDriver(cfg, CanConfig(channel=channel, feedback_rate_hz=50,
+                                       watchdog_timeout_ms=200), clock=clock)  # fmt: skip
+    host.configure()
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=channel, clock=clock,
+                            options=SimOptions(drives=cfg, physics_dt=0.01, watchdog_ms=200,
+                                               feedback_rate_hz=50))  # fmt: skip
+    sim.drives[1].axes[0].calibrated = False  # type: ignore[attr-defined]  # module 2 steer
+    sim.start()
+    try:
+        with clock.participant(), pytest.raises(NodeError) as err:
+            host.activate()
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
+    msg = str(err.value)
+    print(f"\n{line}: {msg}")
+    why = "axis error INVALID_STATE" if line == "0.5" else "procedure result NOT_CALIBRATED"
+    assert f"module 2 (node 2) axis 0 (steer): refused closed loop ({why})" in msg
+    assert "not calibrated" in msg and "FULL_CALIBRATION_SEQUENCE" in msg
+    assert "startup_motor_calibration" in msg
+    assert "enable_watchdog" not in msg and "still armed" not in msg
+    assert err.value.node == 2
