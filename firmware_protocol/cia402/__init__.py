@@ -154,6 +154,8 @@ SW_WARNING = 1 << 7
 SW_REMOTE = 1 << 9
 SW_TARGET_REACHED = 1 << 10
 SW_HOMING_ATTAINED = 1 << 12
+SW_SETPOINT_ACK = 1 << 12
+"""Bit 12 in profile position mode: the set-point was taken (the handshake's answer)."""
 """Bit 12 in homing mode; other modes give it other meanings."""
 SW_HOMING_ERROR = 1 << 13
 
@@ -188,6 +190,12 @@ CW_DISABLE_OPERATION = 0x0007
 CW_ENABLE_OPERATION = 0x000F
 CW_HOMING_START = 0x0010
 """Bit 4 in homing mode: a rising edge starts homing."""
+CW_NEW_SETPOINT = 0x0010
+"""Bit 4 in profile position mode: a rising edge hands the drive the target (0x607A); the
+drive acknowledges it (statusword bit 12, :data:`SW_SETPOINT_ACK`), then the host takes
+bit 4 low again and the drive its acknowledgement (the set-point handshake)."""
+CW_CHANGE_IMMEDIATELY = 0x0020
+"""Bit 5 in profile position mode: a new set-point replaces the one in progress."""
 CW_FAULT_RESET = 0x0080
 """Bit 7: a rising edge resets a fault."""
 
@@ -257,13 +265,21 @@ def drive_transition(
 
 
 def host_controlword(
-    state: PowerState, enable: bool, reset: bool, last: int, homing_start: bool = False
+    state: PowerState,
+    enable: bool,
+    reset: bool,
+    last: int,
+    homing_start: bool = False,
+    profile_position: bool = False,
+    new_setpoint: bool = False,
 ) -> int | None:
     """The host's side: the next controlword towards OPERATION ENABLED (``enable``) or
     SWITCH ON DISABLED, one transition per statusword; None while the drive is in a state
     it leaves by itself (fault reaction) or in FAULT without ``reset`` (a fault is reset
     only when asked: :meth:`Drives.clear_errors`).  ``last``: the controlword sent before
-    (the fault reset needs a rising edge of bit 7)."""
+    (the fault reset needs a rising edge of bit 7).  In OPERATION ENABLED the mode's bits:
+    homing's start (bit 4), profile position's change-immediately (bit 5) and new
+    set-point (bit 4, ``new_setpoint``)."""
     S = PowerState
     if state is S.FAULT_REACTION_ACTIVE:
         return None
@@ -283,6 +299,8 @@ def host_controlword(
     }[state]
     if state is S.OPERATION_ENABLED and homing_start:
         nxt |= CW_HOMING_START
+    if state is S.OPERATION_ENABLED and profile_position:
+        nxt |= CW_CHANGE_IMMEDIATELY | (CW_NEW_SETPOINT if new_setpoint else 0)
     return nxt
 
 

@@ -20,7 +20,9 @@ around it here:
 As it comes from the factory, and no kinder than CiA 301/402 promise: silent until the host
 sets its heartbeat producer (0x1017 = 0), PRE-OPERATIONAL after a communication error such
 as its heartbeat consumer's timeout (0x1029 sub 1: 0 pre-operational, 1 no change, 2
-stopped), optionally in FAULT from power-up (:attr:`VirtualAxis.power_up_fault`, cleared by
+stopped), profile position with the set-point handshake (bit 4's rising edge takes the
+target, statusword bit 12 acknowledges it while bit 4 stays high), optionally in FAULT
+from power-up (:attr:`VirtualAxis.power_up_fault`, cleared by
 a fault reset unless :attr:`VirtualAxis.fault_clears` is false), and in cyclic synchronous
 position the target is taken at each SYNC: the one received since the previous SYNC, else
 the last set-point extrapolated for one cycle (an interpolating drive's behaviour), then
@@ -211,6 +213,10 @@ class VirtualAxis:
         # cyclic synchronous position: the set-point in force (counts), the target
         # received since the last SYNC, the last cycle's change and the cycles missed
         self.csp_setpoint = 0
+        # profile position: the set-point taken at bit 4's last rising edge, and its
+        # acknowledgement (statusword bit 12 while bit 4 stays high)
+        self.pp_setpoint = 0
+        self.pp_ack = False
         self.csp_fresh: int | None = None
         self.csp_delta = 0
         self.csp_missed = 0
@@ -250,6 +256,8 @@ class VirtualAxis:
                     self.homing_attained = self.homing_error = False
                     if value == Mode.CYCLIC_SYNC_POSITION:
                         self._csp_start()
+                    if value == Mode.PROFILE_POSITION:
+                        self._pp_start()
                 self.mode = Mode(value)
             elif value != 0:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)  # an RPDO's is dropped: display stays
@@ -312,6 +320,11 @@ class VirtualAxis:
         self.csp_setpoint = round(self.position * self.counts_per_rad)
         self.csp_fresh, self.csp_delta, self.csp_missed = None, 0, 0
 
+    def _pp_start(self) -> None:
+        """Profile position comes into force: it holds where the axis is."""
+        self.pp_setpoint = round(self.position * self.counts_per_rad)
+        self.pp_ack = False
+
     def _csp_sync(self) -> None:
         """At a SYNC: the target received since the last one, else one cycle
         extrapolated, then held (module docstring)."""
@@ -333,6 +346,14 @@ class VirtualAxis:
         enabled = self.state is PowerState.OPERATION_ENABLED
         if enabled and before is not self.state and self.mode is Mode.CYCLIC_SYNC_POSITION:
             self._csp_start()
+        if enabled and before is not self.state and self.mode is Mode.PROFILE_POSITION:
+            self._pp_start()
+        if enabled and self.mode is Mode.PROFILE_POSITION:
+            edge = cw & cia402.CW_NEW_SETPOINT and not prev & cia402.CW_NEW_SETPOINT
+            if edge:  # the set-point handshake: take the target, acknowledge it
+                self.pp_setpoint, self.pp_ack = self.target_position, True
+            elif not cw & cia402.CW_NEW_SETPOINT:
+                self.pp_ack = False
         if before is PowerState.FAULT and self.state is not PowerState.FAULT:
             self.error_code = 0
             self._store(cia402.ERROR_CODE, 0)
@@ -382,6 +403,14 @@ class VirtualAxis:
 
     def statusword(self) -> int:
         extra = cia402.SW_REMOTE
+        if self.mode is Mode.PROFILE_POSITION and self.state is PowerState.OPERATION_ENABLED:
+            if self.pp_ack:
+                extra |= cia402.SW_SETPOINT_ACK
+            if (
+                abs(self.position * self.counts_per_rad - self.pp_setpoint)
+                < 0.001 * self.counts_per_rad
+            ):
+                extra |= cia402.SW_TARGET_REACHED
         if self.mode is Mode.HOMING:
             if self.homing_attained:
                 extra |= cia402.SW_HOMING_ATTAINED | cia402.SW_TARGET_REACHED
@@ -497,6 +526,9 @@ class VirtualAxis:
             elif m is Mode.CYCLIC_SYNC_POSITION:
                 ax.mode = ControlMode.POSITION
                 ax.setpoint = self.csp_setpoint / self.counts_per_rad
+            elif m is Mode.PROFILE_POSITION:
+                ax.mode = ControlMode.POSITION
+                ax.setpoint = self.pp_setpoint / self.counts_per_rad
             elif m in (Mode.CYCLIC_SYNC_VELOCITY, Mode.PROFILE_VELOCITY):
                 ax.mode = ControlMode.VELOCITY
                 ax.setpoint = self.target_velocity / self.counts_per_rad

@@ -59,7 +59,7 @@ from swpc_hw.drives.base import DriverBase
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
 from swpc_hw.drives.cia402.sdo import ClockedRemoteNode
-from swpc_hw.drives.cia402.setup import ABSENT_ABORTS, OPTIONAL, set_up
+from swpc_hw.drives.cia402.setup import ABSENT_ABORTS, OPTIONAL, PROFILE_VELOCITY, set_up
 from swpc_hw.drives.cia402.tracking import (
     AxisTrack,
     ModuleTrack,
@@ -369,6 +369,7 @@ class Cia402Driver(DriverBase):
                 if a.mode is not before:
                     a.mode_sync = self._sync_seq
                     a.refused_reported = False
+                    a.pp_acked = None  # profile position: the first target handed over
             self._send_rpdo(a, targets)
 
     def enable(self, module: int, axis: Axis) -> None:
@@ -426,6 +427,13 @@ class Cia402Driver(DriverBase):
                     f"{a.where()}: set limits 0x{index:04X}: {exc}", node=a.node, axis=int(axis)
                 ) from exc
         a.has_limits = (has[0], has[1])
+        if a.position_mode is Mode.PROFILE_POSITION and a.has_profile_velocity:
+            try:  # profile position travels at 0x6081: the run's velocity limit
+                node.sdo[PROFILE_VELOCITY].raw = velocity
+            except (SdoAbortedError, SdoCommunicationError) as exc:
+                raise NodeError(
+                    f"{a.where()}: set limits 0x6081: {exc}", node=a.node, axis=int(axis)
+                ) from exc
         self._limits[(module, int(axis))] = (torque, velocity)
 
     def set_position(self, module: int, axis: Axis, position: float) -> None:

@@ -35,6 +35,8 @@ from swpc_hw.drives.cia402.tracking import AxisTrack
 from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.types import AXIS_NAMES
 
+PROFILE_VELOCITY = 0x6081
+"""Profile position's travel speed: the run's velocity limit where the drive has it."""
 ABSENT_ABORTS = (0x06020000, 0x06090011)
 """SDO aborts that say the drive has no such object / subindex."""
 
@@ -69,12 +71,13 @@ OPTIONAL: dict[int, str] = {
 }
 """Objects a drive may lack, and what that costs (said once)."""
 
-POSITION_MODES = (Mode.CYCLIC_SYNC_POSITION,)
+POSITION_MODES = (Mode.CYCLIC_SYNC_POSITION, Mode.PROFILE_POSITION)
 VELOCITY_MODES = (Mode.CYCLIC_SYNC_VELOCITY, Mode.PROFILE_VELOCITY)
 TORQUE_MODES = (Mode.CYCLIC_SYNC_TORQUE, Mode.PROFILE_TORQUE)
 """The modes swpc can command for each setpoint, preferred first: the cyclic synchronous
-ones (the target every SYNC), else the profile torque and velocity modes, which take the
-target as it comes.  Profile position (its set-point handshake) is not supported yet."""
+ones (the target every SYNC), else the profile modes: torque and velocity take the target
+as it comes, position with the set-point handshake (controlword bit 4, statusword bit 12;
+:func:`swpc_hw.drives.cia402.tracking.supervise`)."""
 
 
 def choose_modes(supported: int | None) -> dict[str, Mode | None]:
@@ -228,13 +231,14 @@ def _modes(d: _Drive, supported: int | None, homing: object) -> None:
         raise NodeError(
             f"{a.where()}: the drive has no {' and no '.join(missing)} mode swpc can use "
             f"(0x6502 = 0x{supported or 0:08X}: {', '.join(has) or 'none swpc knows'}); "
-            "swpc needs cyclic synchronous position, cyclic synchronous or profile torque, "
-            "and homing unless the encoder is absolute (profile position is not supported "
-            "yet)",
+            "swpc needs a position mode (cyclic synchronous or profile), a torque mode "
+            "(cyclic synchronous or profile: the spins are driven by wheel torque), and "
+            "homing unless the encoder is absolute",
             node=a.node,
             axis=int(a.axis),
         )
     a.position_mode = chosen["position"] or Mode.CYCLIC_SYNC_POSITION
+    a.has_profile_velocity = d.declared(PROFILE_VELOCITY)
     a.torque_mode = chosen["torque"] or Mode.CYCLIC_SYNC_TORQUE
     a.velocity_mode = chosen["velocity"]
 

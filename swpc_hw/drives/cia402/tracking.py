@@ -73,6 +73,8 @@ class AxisTrack:
     velocity_mode: Mode | None = Mode.CYCLIC_SYNC_VELOCITY
     """The modes chosen at set-up from 0x6502 (:func:`swpc_hw.drives.cia402.setup.choose_modes`)."""
     has_limits: tuple[bool, bool] = (True, True)
+    has_profile_velocity: bool = False
+    """Whether the drive has 0x6081 (profile position's speed: the run's velocity limit)."""
     """Whether the drive has 0x6072 (max torque) and 0x607F (max profile velocity)."""
     max_torque: float = math.inf
     max_velocity: float = math.inf
@@ -98,6 +100,11 @@ class AxisTrack:
     controlword: int = 0
     t_controlword: float = -math.inf
     refused_reported: bool = False
+    pp_edge_target: int | None = None
+    """Profile position: the target handed over by the last rising edge of bit 4."""
+    pp_acked: int | None = None
+    """Profile position: the target the drive last acknowledged (None: none yet in this
+    mode, so the first is handed over)."""
 
     def where(self) -> str:
         return f"module {self.module} {AXIS_NAMES[self.axis]} (node {self.node})"
@@ -123,7 +130,7 @@ class AxisTrack:
 
     def control_mode(self) -> ControlMode:
         m = self.mode
-        if m is Mode.CYCLIC_SYNC_POSITION:
+        if m in (Mode.CYCLIC_SYNC_POSITION, Mode.PROFILE_POSITION):
             return ControlMode.POSITION
         if m in (Mode.CYCLIC_SYNC_VELOCITY, Mode.PROFILE_VELOCITY):
             return ControlMode.VELOCITY
@@ -248,6 +255,19 @@ def pair(m: ModuleTrack) -> int | None:
     return None
 
 
+def _new_setpoint(a: AxisTrack) -> bool:
+    """Profile position's handshake (:data:`firmware_protocol.cia402.CW_NEW_SETPOINT`):
+    bit 4 stays high until the drive acknowledges, then goes low; it rises again for a
+    target not yet acknowledged once the drive has taken its acknowledgement back."""
+    ack = bool((a.statusword or 0) & cia402.SW_SETPOINT_ACK)
+    if a.controlword & cia402.CW_NEW_SETPOINT:
+        if ack:
+            a.pp_acked = a.pp_edge_target
+            return False
+        return True
+    return not ack and a.target_position != a.pp_acked
+
+
 @dataclass
 class Decision:
     lost: list[AxisTrack] = field(default_factory=list)
@@ -288,13 +308,17 @@ def supervise(
             d.next_deadline = min(d.next_deadline, due)
         if not active or a.statusword is None:
             continue
+        pp = a.mode is Mode.PROFILE_POSITION and a.mode_display == Mode.PROFILE_POSITION
         cw = cia402.host_controlword(
             a.state, a.enable, a.reset, a.controlword,
             a.homing_start and a.mode_display == Mode.HOMING,
+            profile_position=pp, new_setpoint=pp and _new_setpoint(a),
         )  # fmt: skip
         if cw is not None and (cw != a.controlword or now - a.t_controlword >= retry):
             target = PowerState.OPERATION_ENABLED if a.enable else PowerState.SWITCH_ON_DISABLED
             if cw != a.controlword or a.state is not target:
+                if pp and cw & ~a.controlword & cia402.CW_NEW_SETPOINT:
+                    a.pp_edge_target = a.target_position  # the edge hands this one over
                 a.controlword = cw
                 a.t_controlword = now
                 d.send.append(a)

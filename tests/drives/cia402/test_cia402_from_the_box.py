@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from firmware_protocol import cia402
-from firmware_protocol.cia402 import PowerState
+from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis
 from simulators.drives.cia402 import VirtualAxis
 from simulators.options import SimOptions
@@ -218,3 +218,47 @@ def test_a_drive_without_the_objects_its_eds_promised_is_set_up_without_them(
         assert any("module 1 wheel (node 2): no 0x607F on the drive" in m for m in said), said
         assert any("module 1 steer (node 1): no 0x608F" in m for m in said), said
         assert len(said) == len(set(said))
+
+
+def profile_only_eds(tmp_path: Path) -> Path:
+    """The project's EDS as a drive with the profile modes only: 0x6502 = 0x2D (profile
+    position, profile velocity, profile torque, homing), as the profile-only drives of
+    ``tests/drives/cia402/eds/`` declare theirs (and with a profile torque mode, which
+    none of those has)."""
+    text = re.sub(
+        r"(\[6502\]\n(?:[^\[]*?\n)*?DefaultValue=)[^\n]*", r"\g<1>0x2D", cia402.EDS_PATH.read_text()
+    )
+    eds = tmp_path / "profile_only.eds"
+    eds.write_text(text)
+    return eds
+
+
+def test_profile_position_hands_each_target_over_with_the_set_point_handshake(
+    tmp_path: Path,
+) -> None:
+    """Item 3: a drive without the cyclic synchronous modes is driven in the profile
+    modes: position by the handshake (bit 4 up with the target, the drive's bit 12, bit 4
+    down), torque and velocity as they come."""
+    eds = profile_only_eds(tmp_path)
+    cfg = Cia402Drives(object_dictionary=eds).for_modules(PAPER_CALIBRATED.ids)
+    with rig(cfg) as r:
+        r.host.activate()
+        steer = r.host.axis_track(1, Axis.STEER)
+        wheel = r.host.axis_track(1, Axis.WHEEL)
+        assert steer.position_mode is Mode.PROFILE_POSITION
+        assert wheel.torque_mode is Mode.PROFILE_TORQUE
+        assert wheel.velocity_mode is Mode.PROFILE_VELOCITY
+        for m in r.host.modules():
+            r.host.enable(m, Axis.STEER)
+            r.host.enable(m, Axis.WHEEL)
+            r.host.start_homing(m)
+        r.host.wait_for(1, lambda s: s.homed, 5.0, "homed")
+        for target in (0.5, 1.0, -0.3):
+            r.host.set_position(1, Axis.STEER, target)
+            r.clock.sleep(2.0)
+            assert r.host.module_state(1).theta_hat == pytest.approx(target, abs=1e-4)
+            assert r.axis(1).pp_setpoint == r.host.axis_track(1, Axis.STEER).to_units(target)
+            assert not r.axis(1).pp_ack  # the handshake closed: bit 4 low again
+        r.host.set_torque(1, Axis.WHEEL, 0.2)
+        r.clock.sleep(0.1)
+        assert r.axis(2).mode is Mode.PROFILE_TORQUE and r.axis(2).target_torque != 0

@@ -48,8 +48,8 @@ def personality(eds: Path) -> dict[str, Any]:
 EXPECTED: dict[str, str | tuple[Mode, Mode]] = {
     "elmo_gold": (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE),
     "yiyou_euservo": (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE),
-    "faulhaber_mcdc300_co": "no position and no torque mode swpc can use (0x6502 = 0x00000025",
-    "pilz_prbt": "no position and no torque and no homing mode swpc can use",
+    "faulhaber_mcdc300_co": "the drive has no torque mode swpc can use (0x6502 = 0x00000025",
+    "pilz_prbt": "the drive has no torque and no homing mode swpc can use",
     "schunk_prl120": "no position and no torque mode swpc can use (0x6502 = 0x00000060",
     "technosoft_idm_iscm": "the drive has no 0x1016 sub 1 (consumer heartbeat): the drive's own",
     "technosoft_ipos": "the drive has no 0x1016 sub 1 (consumer heartbeat): the drive's own",

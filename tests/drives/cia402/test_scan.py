@@ -55,7 +55,9 @@ def test_supported_modes_are_named_by_their_bits() -> None:
     # what swpc's set-up would refuse (its own choice of modes): CSP; CST, else PT; HM
     assert cs.lacking(0x000003A0, 19) == []
     assert cs.lacking(0x000000AD, 19) == []  # PP PV PT HM CSP: profile torque will do
-    assert cs.lacking(0x00000025, 19) == ["a position mode (CSP)", "a torque mode (CST or PT)"]
+    assert cs.lacking(0x00000025, 19) == ["a torque mode (CST or PT)"]  # PP is a position mode
+    lacks = ["a position mode (CSP or PP)", "a torque mode (CST or PT)"]
+    assert cs.lacking(0x00000060, 19) == lacks  # HM IP
     assert cs.lacking(0x00000280, 19) == ["homing (HM)"]  # CSP CST
     assert cs.lacking(0x00000280, "absolute") == []  # an absolute steering, or a wheel
     assert cs.device_type_text(0x00020192) == "0x00020192 (CiA 402 servo drive)"
@@ -288,9 +290,7 @@ def test_a_drive_lacking_a_mode_swpc_needs_is_noted(
         net.disconnect()
     (one,) = [f for f in result.found if f.node == 1]
     assert one.fields["modes"] == "PP PV HM"
-    assert one.notes == [
-        "lacks what swpc needs: a position mode (CSP), a torque mode (CST or PT)"
-    ]
+    assert one.notes == ["lacks what swpc needs: a torque mode (CST or PT)"]
 
 
 @pytest.fixture()
@@ -393,12 +393,13 @@ def test_scan_reads_real_drives_published_object_dictionaries() -> None:
     # what swpc's set-up says of them too (docs/drives.md's table of real drives)
     assert f["yiyou_euservo"].notes == ["lacks what swpc needs: homing (HM)"]
     assert f["elmo_gold"].notes == []  # no 0x6502 value: the set-up tries the modes
-    for name in ("faulhaber_mcdc300_co", "schunk_prl120", "technosoft_idm_iscm"):
-        assert f[name].notes == [
-            "lacks what swpc needs: a position mode (CSP), a torque mode (CST or PT)"
-        ], name
+    for name in ("faulhaber_mcdc300_co", "technosoft_idm_iscm"):  # PP PV HM (IP)
+        assert f[name].notes == ["lacks what swpc needs: a torque mode (CST or PT)"], name
+    assert f["schunk_prl120"].notes == [
+        "lacks what swpc needs: a position mode (CSP or PP), a torque mode (CST or PT)"
+    ]
     assert f["pilz_prbt"].notes == [
-        "lacks what swpc needs: a position mode (CSP), a torque mode (CST or PT), homing (HM)"
+        "lacks what swpc needs: a torque mode (CST or PT), homing (HM)"
     ]
     # absent: what the file does not have at all
     idm = f["technosoft_idm_iscm"]

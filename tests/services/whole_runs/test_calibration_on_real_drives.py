@@ -2,7 +2,8 @@
 personality (issue 42, item 4): its published EDS as ``object_dictionary`` (the robot
 config a technician writes, ``tests/drives/cia402/test_real_drive_personalities.py``),
 CiA 301's defaults, only the objects that EDS declares.  The two of the seven that swpc
-brings up today (the others are refused at set-up, naming why, in that test)."""
+brings up today (the others are refused at set-up, naming why, in that test), and a drive
+with the profile modes only."""
 
 from __future__ import annotations
 
@@ -18,16 +19,20 @@ from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.runtime.runtime import Runtime
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from tests.drives.cia402.test_cia402_from_the_box import profile_only_eds
 from tests.drives.cia402.test_real_drive_personalities import EDS, personality
 from tests.service_rig import QUICK_PROTOCOL, TOKEN, start, wait_state
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 
 
-@pytest.mark.parametrize("name", ["elmo_gold", "yiyou_euservo"])
+@pytest.mark.parametrize("name", ["elmo_gold", "yiyou_euservo", "profile_only"])
 def test_a_whole_calibration_on_a_real_drives_personality(tmp_path: Path, name: str) -> None:
+    """``profile_only``: the project's EDS with 0x6502 = profile position, velocity and
+    torque and homing (no cyclic synchronous mode), the profile modes end to end."""
+    eds = profile_only_eds(tmp_path) if name == "profile_only" else EDS / f"{name}.eds"
     robot = tmp_path / "robot.yaml"
-    robot.write_text(yaml.safe_dump({"drives": personality(EDS / f"{name}.eds")}))
+    robot.write_text(yaml.safe_dump({"drives": personality(eds)}))
     settings = ServiceSettings(data_dir=tmp_path, token=SecretStr(TOKEN), robot_config=robot)
     app = create_app(settings)
     with TestClient(app) as client:
