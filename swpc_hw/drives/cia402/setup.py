@@ -298,6 +298,15 @@ def _map_pdos(d: _Drive) -> None:
                     continue
                 wanted.append((index, sub, bits))
             p = maps[i]
+            room = _entries(p.map_array.od)
+            if len(wanted) > room:
+                raise NodeError(
+                    f"{a.where()}: {kind} {i}'s mapping 0x{p.map_array.od.index:04X} has room "
+                    f"for {room} entries, swpc maps {len(wanted)} "
+                    f"({', '.join(f'0x{x:04X}' for x, _, _ in wanted)})",
+                    node=a.node,
+                    axis=int(a.axis),
+                )
             p.read()
             p.clear()
             for index, sub, bits in wanted:
@@ -318,6 +327,11 @@ def _map_pdos(d: _Drive) -> None:
                     node=a.node,
                     axis=int(a.axis),
                 )
+
+
+def _entries(mapping: Any) -> int:
+    """How many entries a PDO mapping object (0x1600.., 0x1A00..) declares room for."""
+    return len([k for k in mapping.subindices if k > 0])
 
 
 def _save(p: Any, wanted: list[tuple[int, int, int]]) -> None:

@@ -92,3 +92,86 @@ def test_each_real_drive_comes_up_with_its_modes_or_is_refused_naming_why(name: 
         host.shutdown()
         clock.close()
     print(f"\n{name}: {outcome}")
+
+
+def edited_eds(
+    tmp_path: Path, drop: tuple[str, ...] = (), edit: dict[str, tuple[str, str]] | None = None
+) -> Path:
+    """The project's EDS without the sections ``drop`` and with ``edit``: section ->
+    (line start, new line)."""
+    out: list[str] = []
+    section = ""
+    for line in cia402.EDS_PATH.read_text().splitlines():
+        if line.startswith("["):
+            section = line.strip("[]")
+        if section in drop:
+            continue
+        if edit and section in edit and line.startswith(edit[section][0]):
+            line = edit[section][1]
+        out.append(line)
+    path = tmp_path / "edited.eds"
+    path.write_text("\n".join(out) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("drop", "edit", "expected"),
+    [
+        ((), {"6061": ("PDOMapping=", "PDOMapping=0")},
+         "0x6061 (Modes of operation display) is not PDO-mappable on this drive (its object "
+         "dictionary): swpc reads the mode in force back"),
+        (tuple(f"1600sub{k}" for k in range(3, 9)), None,
+         "RPDO 1's mapping 0x1600 has room for 2 entries, swpc maps 3 (0x6040, 0x6060, 0x6071)"),
+        (("6098",), None,
+         "the drive has no 0x6098 (homing method): the steering's homing method; with an "
+         "absolute encoder, set its `homing: absolute`"),
+    ],
+)  # fmt: skip
+def test_an_object_or_a_map_the_drive_cannot_give_is_refused_naming_it(
+    tmp_path: Path, drop: tuple[str, ...], edit: dict[str, tuple[str, str]] | None, expected: str
+) -> None:
+    """The real drives' table: objects not PDO-mappable (Schunk PRL120's 0x6060/0x6061),
+    mapping records with fewer entries than swpc's maps (canopen only logs a warning and
+    maps less), a homing method missing: refused before any motion, naming it."""
+    eds = edited_eds(tmp_path, drop, edit)
+    cfg = Cia402Drives(object_dictionary=eds).for_modules(PAPER_CALIBRATED.ids)
+    clock = SimClock()
+    ch = f"cia402-map-{uuid.uuid4().hex[:8]}"
+    host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
+    host.configure()
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
+                            options=SimOptions(drives=cfg, physics_dt=0.01))  # fmt: skip
+    sim.start()
+    try:
+        with clock.participant(), pytest.raises(NodeError) as err:
+            host.activate()
+        assert str(err.value) == f"module 1 steer (node 1): {expected}"
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
+
+
+def test_a_drive_without_homing_is_refused_unless_the_steering_is_absolute() -> None:
+    """Yiyou's EuServo has neither homing mode nor 0x6098: with the default homing (19) it
+    is refused naming the way out; ``homing: absolute`` brings it up (the test above)."""
+    drives = personality(EDS / "yiyou_euservo.eds")
+    for m in drives["modules"].values():
+        m["steer"].pop("homing")
+    cfg = Cia402Drives.model_validate(drives)
+    clock = SimClock()
+    ch = f"cia402-hm-{uuid.uuid4().hex[:8]}"
+    host = Cia402Driver(cfg, CanConfig(channel=ch, feedback_rate_hz=50), clock=clock)
+    host.configure()
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, clock=clock,
+                            options=SimOptions(drives=cfg, physics_dt=0.01))  # fmt: skip
+    sim.start()
+    try:
+        with clock.participant(), pytest.raises(NodeError) as err:
+            host.activate()
+        assert "module 1 steer (node 1): the drive has no homing mode" in str(err.value)
+        assert "and homing unless the encoder is absolute" in str(err.value)
+    finally:
+        sim.stop()
+        host.shutdown()
+        clock.close()
