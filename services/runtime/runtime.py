@@ -96,6 +96,9 @@ SIM_USER = "simulator"
 SIM_LINK_TIMEOUT_S = 10.0
 """Wall seconds the service waits for the in-process simulator's zenoh link to hear it
 before its simulation starts anyway (then /health says motion capture stale, with why)."""
+FIRST_CONTACT_RETRY_S = 5.0
+"""Wall seconds between two attempts of the drives' first contact (drives silent until
+set up, :meth:`Runtime._first_contact`)."""
 ZENOH_USERS_FILE = ".zenoh-users"
 """In the data dir while the in-process simulator runs: its zenoh credential (0600)."""
 log = logging.getLogger("swpc.service")
@@ -179,6 +182,8 @@ class Runtime(RunRecords):
         self.started = time.time()
         self._opened = False
         self._closed = False
+        self._contact: threading.Thread | None = None
+        self._contact_stop = threading.Event()
 
     def _apply_file_group(self) -> None:
         """``SWPC_FILE_GROUP``: the data dir gets the group, group read and search, and
@@ -310,8 +315,33 @@ class Runtime(RunRecords):
             while not self.simulator.heard() and time.monotonic() < deadline:
                 time.sleep(0.01)
             self.simulator.start()
+        elif getattr(self.drives, "silent_until_set_up", False):
+            self._contact = threading.Thread(
+                target=self._first_contact, name="swpc-first-contact", daemon=True
+            )
+            self._contact.start()
         self._opened = True
         return self
+
+    def _first_contact(self) -> None:
+        """Drives silent until set up (CiA 402 from the factory) brought up at start and
+        left inactive: from then on they heartbeat, and /health watches them between runs.
+        Nothing moves (no axis is enabled).  Tried again every
+        :data:`FIRST_CONTACT_RETRY_S` while it fails (drives powered after the service) and
+        no run has started; each failure is logged, /health says the drives are silent,
+        and a run's CONNECT brings them up itself."""
+        assert self.drives is not None
+        while not self._contact_stop.is_set():
+            try:
+                self.drives.activate()
+                self.drives.deactivate()
+            except Exception as exc:  # CanError, LifecycleError: said, not raised
+                error = f"{type(exc).__name__}: {exc}"
+                event(log, logging.WARNING, "drives.contact", ok=False, error=error)
+                self._contact_stop.wait(FIRST_CONTACT_RETRY_S)
+            else:
+                event(log, logging.INFO, "drives.contact", ok=True)
+                return
 
     def _zenoh_guard(self, listen: list[str], connect: list[str]) -> ZenohAuth | None:
         """Who may connect to this service's zenoh session, and publish its robot's sensor
@@ -353,6 +383,9 @@ class Runtime(RunRecords):
         if run is not None and not run.finished:
             run.shutdown(reason)
             run.join(5.0)
+        if self._contact is not None:
+            self._contact_stop.set()
+            self._contact.join(5.0)
         if self.drives is not None:
             with contextlib.suppress(Exception):
                 self.drives.stop_all()
@@ -440,6 +473,9 @@ class Runtime(RunRecords):
         """
         assert self.drives is not None
         s = self.settings
+        if self._contact is not None:  # the drives' first contact: its attempt ends first
+            self._contact_stop.set()
+            self._contact.join()
         with self.lock:
             if self.current is not None and not self.current.finished:
                 what = self.current.status.kind
@@ -518,9 +554,7 @@ class Runtime(RunRecords):
                 self.runs.pop(run.id, None)
                 self.current = previous
             self._forget_files(run)
-            raise StoreError(
-                f"run store not writable: {self.store_error}: no run started"
-            ) from exc
+            raise StoreError(f"run store not writable: {self.store_error}: no run started") from exc
         run.start()
         return run
 

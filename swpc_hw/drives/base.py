@@ -98,10 +98,15 @@ class DriverBase(DriverObservation, DriveKind):
 
     ``kernel_always``: the kernel's refresh (SocketCAN) runs from ``configure()`` (a kind
     whose host heartbeat it carries) rather than only while ACTIVE.
+    ``silent_until_set_up``: the kind's devices say nothing until the host has set them up
+    (CiA 402 drives from the factory: heartbeat producer 0x1017 = 0), so a service brings
+    them up once (``activate()`` then ``deactivate()``: nothing moves) to watch them
+    between runs.
     """
 
     thread_name = "swpc-drives-io"
     kernel_always = False
+    silent_until_set_up = False
     stopped_message = "fault: all axes freed and disabled; driver inactive"
 
     def __init__(

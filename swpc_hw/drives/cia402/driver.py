@@ -110,6 +110,7 @@ class Cia402Driver(DriverBase):
 
     thread_name = "swpc-cia402-io"
     kernel_always = True  # the kernel carries the host's heartbeat from configure() on
+    silent_until_set_up = True  # 0x1017 = 0 from the factory
     stopped_message = "fault: every axis disabled; drives inactive"
 
     def __init__(

@@ -10,6 +10,7 @@ import platform
 import time
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import can
@@ -198,3 +199,47 @@ def test_an_unwritable_run_store_fails_the_run_and_says_so_everywhere(sim: Sim) 
     assert r.status_code == 202, r.text
     client.post(f"/calibrations/{r.json()['id']}/abort", headers=AUTH)
     sim.wait(r.json()["id"], {"ABORTED", "FAILED", "DONE"})
+
+
+def test_factory_cia402_drives_are_brought_up_once_and_watched_between_runs(
+    tmp_path: Path,
+) -> None:
+    """CiA 402 drives from the factory say nothing until the host sets 0x1017: without a
+    first contact /health said "no heartbeat" for ever between runs (and a lab's script
+    waiting for the nodes never started its run).  The service brings them up once at
+    start (nothing enabled) and then watches them."""
+    from simulators.options import SimOptions
+    from simulators.virtual_robot import VirtualRobot
+    from swpc_hw.drives.cia402.config import Cia402Drives
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+
+    ch = f"swpc-contact-{uuid.uuid4().hex[:8]}"
+    cfg = Cia402Drives().for_modules(PAPER_CALIBRATED.ids)
+    sim = VirtualRobot.open(PAPER_CALIBRATED, channel=ch, options=SimOptions(drives=cfg))
+    sim.start()  # powered before the service: booted, silent
+    robot = tmp_path / "robot.yaml"
+    robot.write_text("drives: cia402\n")
+    settings = ServiceSettings(
+        data_dir=tmp_path / "data", token=SecretStr(TOKEN), can_interface="virtual",
+        can_channel=ch, zenoh_listen=[free_tcp_endpoint()], robot_config=robot,
+    )  # fmt: skip
+    app = create_app(settings, runtime_factory=lambda s: Runtime(s).open())
+    try:
+        with TestClient(app) as client:
+            deadline = time.monotonic() + 30.0
+            while True:
+                doc = client.get("/health").json()
+                if all(n["alive"] for n in doc["nodes"].values()):
+                    break
+                assert time.monotonic() < deadline, doc
+                time.sleep(0.1)
+            assert not any("no heartbeat" in p for p in doc["problems"]), doc["problems"]
+            rt: Runtime = app.state.runtime
+            assert rt._contact is not None
+            rt._contact.join(30.0)  # set up and started (its NMT start after every set-up)
+            for d in sim.drives:
+                for a in d.axes:  # type: ignore[attr-defined]
+                    assert a.node.nmt.state == "OPERATIONAL", a.config.node
+                    assert a.axis_model().state.value != "enabled"  # nothing enabled
+    finally:
+        sim.stop()
