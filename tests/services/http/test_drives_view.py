@@ -104,3 +104,21 @@ def test_configured_alive_then_a_fault_named(case: KindCase, tmp_path: Path) -> 
         )
         others = [a for k, a in by.items() if k != (2, "wheel")]
         assert all(a["error"] == 0 and not a["fault"] for a in others)
+
+
+def test_without_a_robot_the_configured_drives_only(tmp_path: Path) -> None:
+    """A service not connected to a robot (no bus): the config's drives, nothing known of
+    them."""
+    from fastapi.testclient import TestClient
+
+    from tests.service_rig import app_without_robot
+
+    with TestClient(app_without_robot(tmp_path)) as c:
+        doc = c.get("/drives").json()
+    assert (doc["kind"], doc["driver"], doc["watched"], doc["axis_detail"]) == (
+        "swpc", "not open", False, False
+    )
+    assert [(a["module"], a["axis"], a["node"]) for a in doc["axes"]] == [
+        (m, axis, m) for m in (1, 2, 3, 4) for axis in ("steer", "wheel")
+    ]
+    assert all(a["alive"] is None and a["state"] is None for a in doc["axes"])
