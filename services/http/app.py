@@ -6,7 +6,8 @@ endpoints need the bearer token from the settings.  One router per resource:
 * :mod:`.calibrations` (start, list, result, plot, abort), :mod:`.checks` (a check of
   the file in force, the robot's history), :mod:`.answers` (the
   operator's answers to a run that waits for them), :mod:`.kinematics` (the file in force,
-  its backups, install and roll back), :mod:`.health` (``/health``, ``/metrics``), the
+  its backups, install and roll back), :mod:`.drives` (``/drives``: each axis' drive as
+  the driver knows it), :mod:`.health` (``/health``, ``/metrics``), the
   operator console (:mod:`.console`) and, with the in-process simulator only,
   :mod:`.simulator` (its tape measure);
 * what they share: :mod:`.deps` (the runtime and token dependencies, problem bodies,
@@ -33,7 +34,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from services.config.settings import ServiceSettings
-from services.http import answers, calibrations, checks, health, kinematics, simulator
+from services.http import answers, calibrations, checks, drives, health, kinematics, simulator
 from services.http.console import router as console
 from services.http.deps import FiniteJSONResponse, printable
 from services.http.docs import offline_docs
@@ -111,7 +112,7 @@ def create_app(
             {"detail": f"{what}: {exc.strerror or exc}"}, status_code=507 if full else 500
         )
 
-    for module in (calibrations, checks, answers, kinematics, health):
+    for module in (calibrations, checks, answers, kinematics, drives, health):
         app.include_router(module.router)
     if cfg.in_process:  # never against a robot
         app.include_router(simulator.router)

@@ -48,7 +48,14 @@ from firmware_protocol.codec import Axis, Frame
 from swpc_hw.clock import Clock
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.tracking import Applied, Supervision
-from swpc_hw.drives.types import DriverEvent, DriverStats, FeedbackSample, Lifecycle, ModuleState
+from swpc_hw.drives.types import (
+    AxisStatus,
+    DriverEvent,
+    DriverStats,
+    FeedbackSample,
+    Lifecycle,
+    ModuleState,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -140,6 +147,13 @@ class Drives(Protocol):
 
     def module_state(self, module: int) -> ModuleState:
         """The latest known state of one module's drives (a snapshot)."""
+        ...
+
+    def axis_status(self, module: int, axis: Axis) -> AxisStatus | None:
+        """What the host knows now of one axis' drive: its node, liveness, last heartbeat,
+        state, mode and error named in the kind's words (a snapshot, read only; sends
+        nothing).  None from a kind that reports whole modules only (its
+        :meth:`module_state`)."""
         ...
 
     def history_since(

@@ -31,6 +31,7 @@ from swpc_hw.drives.tracking import COLUMNS as HISTORY_COLUMNS
 from swpc_hw.drives.tracking import FeedbackRing
 from swpc_hw.drives.types import (
     AXIS_NAMES,
+    AxisStatus,
     DriverEvent,
     DriverStats,
     EventKind,
@@ -71,6 +72,35 @@ class DriverObservation(ABC):
     @abstractmethod
     def module_state(self, module: int) -> ModuleState:
         """The latest known state of one module's drives (a snapshot)."""
+
+    def axis_status(self, module: int, axis: Axis) -> AxisStatus | None:
+        """What the host knows now of one axis' drive (:class:`AxisStatus`); None here: a
+        kind reports its axes one by one by overriding this (a kind whose module is one
+        controller on one node returns :meth:`_module_axis_status`)."""
+        return None
+
+    def _module_axis_status(self, module: int, axis: Axis) -> AxisStatus:
+        """One axis as its module's snapshot tells it: right for a kind whose module is one
+        dual-axis controller on one node (the swpc kind), whose node, liveness, heartbeat
+        and homing are the module's; the error named by :meth:`_error_names`."""
+        st = self.module_state(module)
+        axis = Axis(axis)
+        error = int(st.errors[axis])
+        return AxisStatus(
+            module=module,
+            axis=axis,
+            node=st.node,
+            alive=st.alive,
+            t_heartbeat=st.t_heartbeat,
+            heartbeats=st.heartbeats,
+            state=st.states[axis].name,
+            nmt=None,
+            mode=st.modes[axis].name,
+            error=error,
+            error_name=self._error_names(error) if error else "none",
+            fault=st.states[axis] == AxisState.FAULT,
+            homed=st.homed if axis == Axis.STEER else None,
+        )
 
     @abstractmethod
     def _ring(self, module: int) -> FeedbackRing:

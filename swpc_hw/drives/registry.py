@@ -80,6 +80,12 @@ class KindConfig(BaseModel):
         """Every CAN node id the drives use (for a listing; each kind numbers its own)."""
         raise NotImplementedError
 
+    def axis_nodes(self) -> dict[int, tuple[int, int]]:
+        """Module id -> the nodes of its steering and its wheel drive (one node twice for a
+        module whose two axes share a controller); the default numbering must have been
+        filled in (:meth:`for_modules`)."""
+        raise NotImplementedError
+
 
 Opener = Callable[[Any, CanConfig, Clock], Drives]
 

@@ -130,6 +130,38 @@ class ModuleState:
         return self.feedback.psi if self.feedback else math.nan
 
 
+@dataclass(frozen=True)
+class AxisStatus:
+    """What the host knows now of one axis' drive (a snapshot; the console's drives view).
+
+    In the kind's own words where the kinds differ: ``state`` is swpc's axis state
+    (``ENABLED``), the CiA 402 power state (``operation enabled``) or the ODrive's axis
+    state (``CLOSED_LOOP_CONTROL``); ``nmt`` the CANopen NMT state its heartbeat reports
+    (``OPERATIONAL``; None for a kind without NMT); ``mode`` the mode in force (swpc and
+    ODrive: the host's control mode, ``POSITION``; CiA 402: the modes display 0x6061,
+    ``CYCLIC_SYNC_POSITION``); ``error`` the kind's error word or code (0: none) and
+    ``error_name`` it named (``OVER_TEMPERATURE``, ``0x4310 excess temperature drive``,
+    ``MOTOR_OVER_TEMP``; ``none`` for 0).  ``fault``: the drive is in fault by its kind's
+    rule (an ODrive's watchdog expiry alone is not one: a 0.5.x axis left alone reports it,
+    as ``swpc drives scan`` says).  ``homed``: the steering's homing (None for a wheel,
+    which does not home)."""
+
+    module: int
+    axis: Axis
+    node: int
+    alive: bool
+    t_heartbeat: float | None
+    """The driver clock's time of the drive's last heartbeat (None: none yet)."""
+    heartbeats: int
+    state: str
+    nmt: str | None
+    mode: str
+    error: int
+    error_name: str
+    fault: bool
+    homed: bool | None
+
+
 @dataclass
 class DriverStats:
     rx_frames: int = 0

@@ -180,7 +180,7 @@ def test_live_view_advances_and_abort_ends_aborted(
     # the header's controls (the views' links and the token), then Enter
     d.find_element(By.CSS_SELECTOR, "nav a").send_keys("")  # focus, as a Tab would
     tabs = 0
-    while d.switch_to.active_element.get_attribute("id") != "abort" and tabs < 7:
+    while d.switch_to.active_element.get_attribute("id") != "abort" and tabs < 8:
         d.switch_to.active_element.send_keys(Keys.TAB)
         tabs += 1
     assert d.switch_to.active_element.get_attribute("id") == "abort", tabs

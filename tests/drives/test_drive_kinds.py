@@ -266,6 +266,9 @@ def test_a_fourth_kind_registered_is_opened_by_name_and_runs() -> None:
         io.lock(1, 0.5)  # steering to 0.5 rad, wheel held
         st = drives.wait_for(1, lambda s: abs(s.theta_hat - 0.5) < 1e-6, 10.0, "steer 0.5")
         assert st.alive and st.feedback is not None
+        # a kind that reports whole modules only (the base's axis_status): the console
+        # shows its modules' snapshots
+        assert drives.axis_status(1, Axis.STEER) is None
         rows, cursor = io.encoder_rows(1, 0, -math.inf)
         assert rows.shape[1] == 3 and cursor > 0 and abs(rows[-1, 1] - 0.5) < 1e-6
         assert _until(lambda: len([r for r in device.received if r[2] == ControlMode.POSITION]) > 2)

@@ -7,12 +7,13 @@
   state machine through :class:`services.runtime.events.EventBus`) and ``live`` (nodes, mocap age,
   the robot's pose, its trajectory since the last one, the fixed point of every spin done)
   every :data:`LIVE_PERIOD` s of host time while the stream is open.  ``?run=<id>``
-  follows one run and ends after its final state.  FastAPI's own server-sent events
-  (``fastapi.sse``); every event has an id (:mod:`services.runtime.events`: increasing
-  along a stream), so a client that reconnects with ``Last-Event-ID`` (a browser's
-  EventSource does it itself) gets exactly the ``run`` events it missed, then ``live``
-  again; with an id too old, unknown or ``hello``'s, the stream starts over as a new one
-  (``hello``, the run's status).
+  follows one run and ends after its final state.  ``live`` also carries ``drives``, the
+  document of ``GET /drives`` (:mod:`services.http.drives`), for the Drives view.
+  FastAPI's own server-sent events (``fastapi.sse``); every event has an id
+  (:mod:`services.runtime.events`: increasing along a stream), so a client that
+  reconnects with ``Last-Event-ID`` (a browser's EventSource does it itself) gets exactly
+  the ``run`` events it missed, then ``live`` again; with an id too old, unknown or
+  ``hello``'s, the stream starts over as a new one (``hello``, the run's status).
 * ``GET /calibrations/{id}/geometry`` a finished run's spins for the top-down view.
 * ``GET /calibrations/{id}/files`` and ``.../files/{name}`` its files for download.
 * ``GET /calibrations/{id}/mcap`` what its ``run.mcap`` holds, read from the file's own
@@ -45,6 +46,7 @@ from mcap.reader import make_reader
 from pydantic import BaseModel, Field
 
 from services.http.deps import Problem, Rt, done_result, problems
+from services.http.drives import drives_view
 from services.http.edge.guard import has_token
 from services.http.edge.streams import StreamGate, StreamRefusedError, Ticket
 from services.runs.protocol import CalibrationRun
@@ -259,6 +261,7 @@ def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
     out: dict[str, Any] = {
         "can": None if rt.drives is None else rt.drives.state.name.lower(),
         "nodes": _nodes(rt),
+        "drives": drives_view(rt).model_dump(mode="json"),
         "mocap": {
             "age_s": _finite(age),
             "stale": rt.mocap.is_stale(),

@@ -120,3 +120,6 @@ class Cia402Drives(KindConfig):
         """Module id -> its axes (the default numbering must have been filled in)."""
         assert self.modules is not None, "for_modules() first"
         return dict(self.modules)
+
+    def axis_nodes(self) -> dict[int, tuple[int, int]]:
+        return {m: (md.steer.node, md.wheel.node) for m, md in self.axes().items()}

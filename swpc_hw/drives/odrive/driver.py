@@ -59,7 +59,7 @@ from swpc_hw.drives.odrive.tracking import (
     unproven_message,
 )
 from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, Supervision
-from swpc_hw.drives.types import EventKind, Lifecycle, ModuleState, Severity, where
+from swpc_hw.drives.types import AxisStatus, EventKind, Lifecycle, ModuleState, Severity, where
 
 TWO_PI = 2.0 * math.pi
 MIN_RATE_FRACTION = 0.5
@@ -472,6 +472,35 @@ class ODriveDriver(DriverBase):
         nd = self._module(module)
         with self._lock:
             return nd.snapshot()
+
+    def axis_status(self, module: int, axis: Axis) -> AxisStatus:
+        """One axis as its own heartbeats tell it (each axis is a node of its own): its
+        axis state, the host's control mode while it is armed, its axis error named; in
+        fault with an axis error other than the watchdog's (a 0.5.x axis left alone
+        reports that one, as ``swpc drives scan`` says)."""
+        ax = self._axis(module, axis)
+        md = self._module(module)
+        with self._lock:
+            try:
+                state = cs.AxisState(ax.state).name
+            except ValueError:
+                state = f"state {ax.state}"
+            error = ax.axis_error
+            return AxisStatus(
+                module=module,
+                axis=ax.axis,
+                node=ax.node,
+                alive=ax.alive,
+                t_heartbeat=ax.t_heartbeat,
+                heartbeats=ax.heartbeats,
+                state=state,
+                nmt=None,
+                mode=(ax.mode if ax.armed else ControlMode.FREE).name,
+                error=error,
+                error_name=self.codec.error_names(error),
+                fault=bool(error & ~self.codec.watchdog_bit),
+                homed=md.homed if ax.axis == Axis.STEER else None,
+            )
 
     def _ring(self, module: int) -> FeedbackRing:
         return self._module(module).history

@@ -46,3 +46,7 @@ class SwpcDrives(KindConfig):
         """Module id -> node (the default numbering must have been filled in)."""
         assert self.modules is not None, "for_modules() first"
         return dict(self.modules)
+
+    def axis_nodes(self) -> dict[int, tuple[int, int]]:
+        """Both axes of a module on its controller's node."""
+        return {m: (n, n) for m, n in self.node_map().items()}

@@ -25,7 +25,7 @@ from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.errors import CanCommandError
 from swpc_hw.drives.swpc.tracking import apply_frame, refresh_frames
 from swpc_hw.drives.tracking import Applied, FeedbackRing, NodeTrack, Supervision
-from swpc_hw.drives.types import DriverEvent, ModuleState, where
+from swpc_hw.drives.types import AxisStatus, DriverEvent, ModuleState, where
 
 
 class SwpcDriver(DriverBase):
@@ -101,6 +101,11 @@ class SwpcDriver(DriverBase):
         nd = self._node(module)
         with self._lock:
             return nd.snapshot()
+
+    def axis_status(self, module: int, axis: Axis) -> AxisStatus:
+        """One axis as its controller's heartbeat tells it: both axes of a module are on
+        its controller's node, and share its liveness and heartbeat."""
+        return self._module_axis_status(module, axis)
 
     def _ring(self, module: int) -> FeedbackRing:
         return self._node(module).history

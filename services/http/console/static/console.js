@@ -118,7 +118,7 @@ function confirmDialog(title, text, okLabel) {
 // ------------------------------------------------------------------ routing
 function route() {
   const [view, arg] = (location.hash.slice(1) || "run").split("/");
-  const known = ["run", "result", "history", "drift", "check", "files", "foxglove"];
+  const known = ["run", "result", "history", "drift", "check", "files", "foxglove", "drives"];
   const v = known.includes(view) ? view : "run";
   for (const k of known) $("view-" + k).hidden = k !== v;
   const tab = v === "check" ? "drift" : v;  // a check's verdict belongs with the drift
@@ -132,6 +132,7 @@ function route() {
   if (v === "history") showHistory();
   if (v === "files") showFiles();
   if (v === "foxglove") showFoxglove(arg || app.resultRun);
+  if (v === "drives") showDrives();
 }
 
 // ------------------------------------------------------------------ start / abort
@@ -480,6 +481,7 @@ function onLive(ev) {
     chunk.points.push(...ev.trail.points);
     app.spins = ev.spins || [];
   }
+  if (ev.drives && !$("view-drives").hidden) renderDrives(ev.drives);
   // without motion capture there is no pose to draw
   $("live-figure").hidden = !!app.current && app.current.metrology === "imu" && !(m.pose);
   drawLive();
@@ -893,6 +895,50 @@ async function showFoxglove(id) {
     : `log times on the run's clock (${(s.start_ns / 1e9).toFixed(1)} s to ${(s.end_ns / 1e9).toFixed(1)} s), not epoch time`;
   $("fox-extra").textContent = s.indexed ? `${times[0].toUpperCase()}${times.slice(1)}; metadata: ` +
     (s.metadata.join(", ") || "none") + "; attachments: " + (s.attachments.join(", ") || "none") + "." : "";
+}
+
+// ------------------------------------------------------------------ drives
+// Each module axis' drive (GET /drives; then every live event carries the same document)
+async function showDrives() {
+  if (app.live && app.live.drives) renderDrives(app.live.drives);
+  try {
+    renderDrives(await api("GET", "/drives"));
+  } catch (e) {
+    $("drv-summary").textContent = "No drives: " + e.message;
+  }
+}
+function renderDrives(doc) {
+  const down = doc.axes.filter((a) => a.alive === false).length;
+  const faults = doc.axes.filter((a) => a.fault).length;
+  const alive = doc.axes.filter((a) => a.alive === true).length;
+  $("drv-summary").replaceChildren(
+    `${doc.kind} drives on ${doc.bus} · driver ${doc.driver} · ${doc.axes.length} axes: ` +
+    (doc.watched ? `${alive} alive` : "liveness unknown") + " · ",
+    down || faults ? el("span", { class: "chip bad", id: "drv-verdict" },
+      [down ? `${down} without heartbeat` : "", faults ? `${faults} in fault` : ""].filter(Boolean).join(", "))
+      : el("span", { class: "chip ok", id: "drv-verdict" }, "no fault"),
+    doc.fault_cause ? ` · last stopped on: ${doc.fault_cause}` : "");
+  const yesNo = (v) => (v === null ? el("td", { class: "muted" }, "unknown") :
+    el("td", { class: v ? "yes" : "no" }, v ? "yes" : "no"));
+  // a name in capitals (CYCLIC_SYNC_POSITION, OVER_TEMPERATURE|WATCHDOG_TIMEOUT) may wrap
+  // after its underscores and bars in a narrow window, never inside a word
+  const words = (t) => t.split(/(?<=[_|])/).flatMap((w, i) => (i ? [el("wbr"), w] : [w]));
+  $("drive-rows").replaceChildren(...doc.axes.map((a) => {
+    const bad = a.fault || a.alive === false;
+    const age = a.heartbeat_age_s === null ? "none yet" : `${(a.heartbeat_age_s * 1000).toFixed(0)} ms ago`;
+    const state = [a.nmt, a.state].filter((x) => x !== null).join(" · ") || "–";
+    const code = a.error && !a.error_name.startsWith("0x") ? ` (0x${a.error.toString(16).padStart(4, "0")})` : "";
+    const error = !a.error ? el("td", {}, a.error === null ? "–" : "none") :
+      el("td", { class: a.fault ? "no" : "" }, a.fault ? "FAULT: " : "", ...words(a.error_name),
+        el("span", { class: "mono" }, code));
+    return el("tr", { "data-axis": `${a.module}.${a.axis}`, class: bad ? "bad" : "" },
+      el("th", { scope: "row" }, `${a.module} ${a.axis}`), el("td", { class: "num" }, a.node),
+      yesNo(a.alive), el("td", { class: "num" }, age), el("td", {}, ...words(state)),
+      el("td", {}, ...words(a.mode ?? "–")), error,
+      a.homed === null ? el("td", { class: "muted" }, a.axis === "wheel" ? "n/a" : "–") : yesNo(a.homed));
+  }));
+  $("drv-unwatched").hidden = doc.watched || !doc.axes.length;
+  $("drv-modules").hidden = doc.axis_detail || doc.driver === "not open";
 }
 
 // ------------------------------------------------------------------ event stream
