@@ -62,6 +62,20 @@ NMT_BOOT_UP = 0
 NMT_STOPPED = 4
 NMT_OPERATIONAL = 5
 NMT_PRE_OPERATIONAL = 127
+NMT_NAMES = {
+    NMT_BOOT_UP: "boot-up",
+    NMT_STOPPED: "STOPPED",
+    NMT_OPERATIONAL: "OPERATIONAL",
+    NMT_PRE_OPERATIONAL: "PRE-OPERATIONAL",
+}
+"""The NMT states a heartbeat reports (its byte's low 7 bits)."""
+
+
+def nmt_name(state: int) -> str:
+    """``OPERATIONAL``, or the byte in hex for a state CiA 301 does not name."""
+    return NMT_NAMES.get(state & 0x7F, f"0x{state & 0x7F:02X}")
+
+
 NMT_START = 0x01
 NMT_ENTER_PRE_OPERATIONAL = 0x80
 NMT_RESET_NODE = 0x81

@@ -77,6 +77,7 @@ from swpc_hw.drives.errors import (
 )
 from swpc_hw.drives.tracking import FeedbackRing, Supervision, error_frame
 from swpc_hw.drives.types import (
+    AxisStatus,
     EventKind,
     FeedbackSample,
     Lifecycle,
@@ -687,6 +688,29 @@ class Cia402Driver(DriverBase):
             f"{mt.homed})",
             node=mt.steer.node,
         )
+
+    def axis_status(self, module: int, axis: Axis) -> AxisStatus:
+        """What the host knows now of one axis' drive (the console's drives view): its
+        power state, NMT state, modes display and error code, in CiA 402's words."""
+        mt = self._module(module)
+        a = mt.axes[Axis(axis)]
+        with self._lock:
+            faulted = a.state in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE)
+            return AxisStatus(
+                module=module,
+                axis=a.axis,
+                node=a.node,
+                alive=a.alive,
+                t_heartbeat=a.t_heartbeat,
+                heartbeats=a.heartbeats,
+                state=a.state.value,
+                nmt=None if a.nmt is None else cia402.nmt_name(a.nmt),
+                mode=cia402.mode_name(a.mode_display),
+                error=a.error_code,
+                error_name=cia402.emcy_name(a.error_code) if a.error_code else "none",
+                fault=faulted or a.error_code != 0,  # the EMCY comes before the statusword
+                homed=mt.homed if a.axis is Axis.STEER else None,
+            )
 
     def axis_track(self, module: int, axis: Axis) -> AxisTrack:
         """A copy of what the host knows of one axis (tests, diagnostics)."""

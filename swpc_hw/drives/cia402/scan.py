@@ -69,12 +69,6 @@ torque with commutation angle; bit 4 and bits 11-15 are reserved, 16-31 the make
 DEVICE_TYPES_402 = {1: "frequency converter", 2: "servo drive", 3: "stepper motor"}
 """0x1000 bits 16-23 of a CiA 402 device."""
 
-NMT_NAMES = {
-    cia402.NMT_BOOT_UP: "boot-up",
-    cia402.NMT_STOPPED: "STOPPED",
-    cia402.NMT_OPERATIONAL: "OPERATIONAL",
-    cia402.NMT_PRE_OPERATIONAL: "PRE-OPERATIONAL",
-}
 
 FAULT_STATES = (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE)
 
@@ -122,10 +116,6 @@ def device_type_text(value: int) -> str:
         return f"0x{value:08X} (CiA 402 {kind})"
     what = "no profile" if profile == 0 else f"CiA {profile}: not a 402 drive"
     return f"0x{value:08X} ({what})"
-
-
-def nmt_name(state: int) -> str:
-    return NMT_NAMES.get(state & 0x7F, f"0x{state & 0x7F:02X}")
 
 
 def consumers_text(entries: Sequence[int]) -> str:
@@ -205,7 +195,7 @@ def describe(
     (:func:`lacking`; None: no config, no check)."""
     r = reads.get
     if not reads:  # a heartbeat, no SDO server answering
-        state = nmt_name(heard.state) if heard else "unknown"
+        state = cia402.nmt_name(heard.state) if heard else "unknown"
         f = FoundNode(node, state, fields={"NMT": state, "SDO": "no answer"})
         f.data = {"nmt": state, "sdo": False, "boot_ups": 0 if heard is None else heard.boot_ups}
         if heard is not None and heard.state & 0x7F == cia402.NMT_STOPPED:
@@ -217,7 +207,7 @@ def describe(
     if heard is not None and heard.state == cia402.NMT_BOOT_UP and producer == 0:
         nmt = "boot-up heard (no heartbeat: 0x1017 = 0)"
     elif heard is not None:
-        nmt = nmt_name(heard.state)
+        nmt = cia402.nmt_name(heard.state)
     elif producer == 0:
         nmt = "unknown (no heartbeat: 0x1017 = 0)"
     elif isinstance(producer, int):
