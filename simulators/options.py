@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from firmware_protocol import codec
+from simulators.drives.wiring import WIRED_AS_CONFIGURED, Wiring
 from simulators.physics.robot import PhysicsOptions
 from simulators.sensors.gyro import check_gyro
 from simulators.sensors.mocap import MocapOptions
@@ -54,6 +55,9 @@ class SimOptions:
     mocap_clock: str = "host"
     """Pose time stamps: ``"host"`` wall clock at sampling, or ``"sim"`` simulated time."""
     seed: int = 0
+    wiring: Wiring = WIRED_AS_CONFIGURED
+    """How the drives are really wired (crossed, swapped, inverted, another ratio; a rotated
+    motion-capture body): the hidden truth beside the config (:mod:`simulators.drives.wiring`)."""
 
     def __post_init__(self) -> None:
         if not self.time_scale > 0.0:

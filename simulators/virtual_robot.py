@@ -133,6 +133,8 @@ class VirtualRobot:
             else list(rng.uniform(-math.pi, math.pi, n))
         )
         self.robot = RobotPhysics(truth, opt.physics, opt.pose0, list(theta0))
+        opt.wiring.check(n)
+        self._wired = not opt.wiring.identity  # miswired: every tick through the wiring
         self.drives: list[VirtualDrive] = virtual_drives(
             opt.drives,
             truth.ids,
@@ -477,10 +479,13 @@ class VirtualRobot:
         opt = self.options
         r = self.robot
         drives = []
-        for i, d in enumerate(self.drives):
-            s = d.drive(Axis.STEER, self._steer_reported(i), dt, opt.position_tau)
-            w = d.drive(Axis.WHEEL, float(r.psi_encoder[i]), dt, opt.position_tau)
-            drives.append(module_drive(s, w))
+        if not self._wired:
+            for i, d in enumerate(self.drives):
+                s = d.drive(Axis.STEER, self._steer_reported(i), dt, opt.position_tau)
+                w = d.drive(Axis.WHEEL, float(r.psi_encoder[i]), dt, opt.position_tau)
+                drives.append(module_drive(s, w))
+        else:
+            drives = [self._wired_drive(i, dt) for i in range(len(self.drives))]
         t0 = self.now
         pose0 = r.pose.copy()
         r.step(dt, drives)
@@ -503,15 +508,47 @@ class VirtualRobot:
         self._stats.ticks += 1
 
     def _steer_reported(self, i: int) -> float:
-        d = self.drives[i]
+        d = self.drives[self.options.wiring.channel(i, Axis.STEER)[0]]
         off = 0.0 if d.homed else d.sensor_position
         return float(self.robot.theta[i] - self.robot.arrays.beta[i] + off)
+
+    def _physical(self, i: int, axis: Axis) -> tuple[float, float]:
+        """Physical module ``i``'s ``axis``: (angle as its encoder counts it before the
+        wiring's gain, rate)."""
+        r = self.robot
+        if axis == Axis.STEER:
+            return self._steer_reported(i), float(r.theta_dot[i])
+        return float(r.psi_encoder[i]), float(r.psi_dot[i])
+
+    def _wired_drive(self, i: int, dt: float) -> ModuleDrive:
+        """Physical module ``i``'s drive through the wiring (:mod:`simulators.drives.wiring`):
+        each axis commanded by the drive channel it hangs on, scaled by its gain."""
+        w = self.options.wiring
+        out: list[tuple[str, float]] = []
+        for axis in (Axis.STEER, Axis.WHEEL):
+            k, channel = w.channel(i, axis)
+            g = w.gain(i, axis)
+            position, _ = self._physical(i, axis)
+            kind, v = self.drives[k].drive(channel, g * position, dt, self.options.position_tau)
+            if kind == "rate":
+                v = v / g
+            elif kind == "torque":
+                v = v * g
+                if axis == Axis.STEER:
+                    kind, v = "passive", 0.0  # a steering's torque is not modelled
+            elif kind == "brake" and axis == Axis.STEER:
+                kind, v = "rate", 0.0
+            out.append((kind, v))
+        return module_drive(out[0], out[1])
 
     def _write_encoders(self, drives: Sequence[ModuleDrive] | None = None) -> None:
         """The encoders after a tick into the drives (``drives``: what each module's axes
         did in it; None at the start: nothing applied yet)."""
         opt = self.options
         r = self.robot
+        if self._wired:
+            self._write_wired_encoders(drives)
+            return
         for i, d in enumerate(self.drives):
             steer_torque: float | None = 0.0
             wheel_torque: float | None = 0.0
@@ -535,6 +572,28 @@ class VirtualRobot:
                 wheel_torque,
             )
 
+    def _write_wired_encoders(self, drives: Sequence[ModuleDrive] | None) -> None:
+        """:meth:`_write_encoders` through the wiring: each physical axis's encoder into
+        the drive channel it hangs on, scaled by its gain."""
+        opt = self.options
+        w = opt.wiring
+        for i in range(len(self.drives)):
+            md = None if drives is None else drives[i]
+            for axis in (Axis.STEER, Axis.WHEEL):
+                k, channel = w.channel(i, axis)
+                g = w.gain(i, axis)
+                position, rate = self._physical(i, axis)
+                torque: float | None = 0.0
+                if md is not None and axis == Axis.STEER and md.steer is SteerDrive.RATE:
+                    torque = None
+                if md is not None and axis == Axis.WHEEL:
+                    if md.wheel is WheelDrive.TORQUE:
+                        torque = md.wheel_value / g
+                    elif md.wheel is WheelDrive.RATE:
+                        torque = None
+                counts = opt.steer_counts if channel == Axis.STEER else opt.wheel_counts
+                self.drives[k].sense(channel, quantize(g * position, counts), g * rate, torque)
+
     def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
         """The poses and gyro samples due in ``(t0, t1]``, stamped like the tick's frames
         (the twist is constant within the tick); the true pose to the history."""
@@ -546,8 +605,11 @@ class VirtualRobot:
             st = self._stamp(tp) if self.clock is not None else wall - (t1 - tp) / scale
             return st if host else tp
 
+        wiring = self.options.wiring
         for tp in self.mocap.due_times(t0, t1):
             pose = se2_step(pose0, twist[:2], float(twist[2]), tp - t0) if tp > t0 else pose0
+            if self._wired:
+                pose = np.array(wiring.mocap_pose(float(pose[0]), float(pose[1]), float(pose[2])))
             self.mocap.sample(tp, pose, stamp=stamp(tp))
         self.mocap.flush(t1)
         for tg in self.gyro.due_times(t0, t1):
