@@ -280,6 +280,12 @@ class ServiceSettings(BaseSettings):
         description="in-process simulator: a kinematic file of the robot's hidden truth "
         "(its module ids the robot config's); unset: the paper's Table 4 calibrated values",
     )
+    sim_wiring: Path | None = Field(
+        None,
+        description="in-process simulator: a YAML file of how its drives are really wired "
+        "(crossed, swapped, inverted, another ratio, a turned motion-capture body; "
+        "simulators/drives/wiring.py); unset: as the robot config says",
+    )
     sim_physics_dt: float = Field(
         0.01,
         gt=0,

@@ -65,6 +65,7 @@ from services.store.disk import make_room, run_reserve
 from services.store.locks import ChannelLock, DataDirLock
 from services.store.logs import event
 from services.store.runs import RunStore
+from simulators.drives.wiring import WIRED_AS_CONFIGURED, Wiring, load_wiring
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.calibration.plan.forecast import Stopping
 from swpc_hw.clock import Clock, SimClock, SystemClock
@@ -308,6 +309,9 @@ class Runtime(RunRecords):
                 mocap_latency=s.sim_mocap_latency,
                 feedback_rate_hz=s.feedback_rate_hz,
                 gyro=s.sim_gyro,
+                wiring=WIRED_AS_CONFIGURED
+                if s.sim_wiring is None
+                else self._sim_wiring(s.sim_wiring),
             )
             # the link up before time flows: the run's first poses are then the same
             # whatever the wall time zenoh takes (bit for bit the same seed, the same run)
@@ -322,6 +326,12 @@ class Runtime(RunRecords):
             self._contact.start()
         self._opened = True
         return self
+
+    def _sim_wiring(self, path: Path) -> Wiring:
+        try:
+            return load_wiring(path, self.config.nominal.ids)
+        except ValueError as exc:
+            raise SettingsError(f"SWPC_SIM_WIRING: {exc}") from exc
 
     def _first_contact(self) -> None:
         """Drives silent until set up (CiA 402 from the factory) brought up at start and

@@ -20,6 +20,7 @@ import math
 from collections.abc import Sequence
 
 from services.config.robot import RobotConfig
+from simulators.drives.wiring import WIRED_AS_CONFIGURED, Wiring
 from simulators.options import SimOptions
 from simulators.sensors.mocap import MocapOptions
 from simulators.virtual_robot import VirtualRobot
@@ -46,6 +47,7 @@ def in_process_simulator(
     feedback_rate_hz: int = 50,
     gyro: GyroOptions | None = None,
     zenoh_auth: ZenohAuth | None = None,
+    wiring: Wiring = WIRED_AS_CONFIGURED,
 ) -> VirtualRobot:
     """A simulator on the in-process virtual bus ``channel``, publishing poses to the
     service's zenoh endpoint (it connects to ``zenoh_endpoints``), and its gyro
@@ -66,6 +68,7 @@ def in_process_simulator(
         ),
         gyro=gyro or GyroOptions(),
         seed=seed,
+        wiring=wiring,
     )
     return VirtualRobot.open(
         truth,

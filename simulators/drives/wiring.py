@@ -25,8 +25,12 @@ truth's own homing error (``beta``), and a rotated motion-capture body the senso
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
 
 from firmware_protocol.codec import Axis
 
@@ -89,3 +93,72 @@ class Wiring:
 BODY_HEIGHT = 0.3
 """m: the motion-capture body's height above the floor (what a Y-up system's y is)."""
 WIRED_AS_CONFIGURED = Wiring()
+
+
+AXES = {"steer": Axis.STEER, "wheel": Axis.WHEEL}
+WIRING_KEYS = ("crossed", "swapped", "inverted", "ratio", "mocap_yaw_deg", "mocap_y_up")
+
+
+def wiring_from_document(doc: Any, ids: Sequence[int]) -> Wiring:
+    """A :class:`Wiring` from its YAML document, module ids as in the robot config::
+
+        crossed: {1: 2, 2: 1}          # module 1 is on module 2's drives, and 2 on 1's
+        swapped: [3]                   # module 3's steering and wheel motors exchanged
+        inverted: [{module: 2, axis: wheel}]
+        ratio: [{module: 4, axis: steer, factor: 2.0}]
+        mocap_yaw_deg: 90              # the motion-capture body turned
+        mocap_y_up: false              # a Y-up motion capture
+
+    :class:`ValueError` names the key that is wrong."""
+    if not isinstance(doc, dict):
+        raise ValueError("wiring: a mapping of " + ", ".join(WIRING_KEYS))
+    unknown = sorted(set(doc) - set(WIRING_KEYS))
+    if unknown:
+        raise ValueError(f"wiring: unknown key(s) {unknown}; known: {', '.join(WIRING_KEYS)}")
+    index = {m: i for i, m in enumerate(ids)}
+
+    def module(key: str, m: Any) -> int:
+        if m not in index:
+            raise ValueError(f"wiring.{key}: no module {m!r} (modules {list(ids)})")
+        return index[m]
+
+    def axis(key: str, a: Any) -> Axis:
+        if a not in AXES:
+            raise ValueError(f"wiring.{key}: axis {a!r} is not steer or wheel")
+        return AXES[a]
+
+    drive_of = None
+    crossed = doc.get("crossed") or {}
+    if crossed:
+        perm = list(range(len(ids)))
+        for m, on in dict(crossed).items():
+            perm[module("crossed", m)] = module("crossed", on)
+        drive_of = tuple(perm)
+    swapped = frozenset(module("swapped", m) for m in doc.get("swapped") or [])
+    scale: dict[tuple[int, Axis], float] = {}
+    for e in doc.get("inverted") or []:
+        key = (module("inverted", e.get("module")), axis("inverted", e.get("axis")))
+        scale[key] = -scale.get(key, 1.0)
+    for e in doc.get("ratio") or []:
+        key = (module("ratio", e.get("module")), axis("ratio", e.get("axis")))
+        factor = e.get("factor")
+        if not isinstance(factor, (int, float)) or not factor > 0:
+            raise ValueError(f"wiring.ratio: factor {factor!r} (true over configured, > 0)")
+        scale[key] = scale.get(key, 1.0) * float(factor)
+    w = Wiring(
+        drive_of=drive_of,
+        swapped=swapped,
+        scale=scale,
+        mocap_yaw=math.radians(float(doc.get("mocap_yaw_deg") or 0.0)),
+        mocap_y_up=bool(doc.get("mocap_y_up", False)),
+    )
+    w.check(len(ids))
+    return w
+
+
+def load_wiring(path: Path, ids: Sequence[int]) -> Wiring:
+    """:func:`wiring_from_document` of a YAML file (its errors name the file)."""
+    try:
+        return wiring_from_document(yaml.safe_load(path.read_text()), ids)
+    except (OSError, yaml.YAMLError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from exc

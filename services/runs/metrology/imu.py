@@ -64,6 +64,7 @@ import numpy as np
 from services.config.robot import RobotConfig
 from services.runs.journal import SampleSource
 from services.runs.metrology.base import RunSteps
+from services.runs.metrology.direction import DirectionWatch
 from services.runs.metrology.gyro_motion import (
     GyroYaw,
     RecentRows,
@@ -170,6 +171,7 @@ class ImuMetrology:
         self._answers = threading.Lock()  # one operator answer at a time
         ids = config.nominal.ids
         self._ids = ids
+        self._directions: set[int] = set()  # locked modules whose spin wheels were judged
         keep = max(config.protocol.rest_time, REST_WINDOW) + 2.0
         self._gyro = RecentRows(2, keep)
         self._wheels = {m: RecentRows(3, keep) for m in ids}
@@ -339,14 +341,21 @@ class ImuMetrology:
         yaw.add(float(last[0]), float(last[1]))
         spin = SpinWindow(run.clock.now(), run.config.protocol.settle_time, float(last[0]), 0.0)
         seen = float(last[0])
+        # the wheels against the turn the gyro integrates (first spin about each module)
+        direction = DirectionWatch(run, k, run.clock.now(), 0.0)
+        direction.decided = k in self._directions
+        self._directions.add(k)
+        turned = 0.0
         deadline = run.deadline()
         while True:
             run.check(True, deadline)
             self._read(run)
             rows = self._gyro.rows
             for t, wz in rows[rows[:, 0] > seen].tolist():
-                spin.add(t, yaw.add(t, wz))
+                turned = yaw.add(t, wz)
+                spin.add(t, turned)
                 seen = t
+            direction.update(turned)
             sweep = sweep_reached(run, spin, done, total)
             if sweep is not None:
                 assert spin.start is not None

@@ -9,7 +9,9 @@ spin went (:mod:`services.runs.metrology.base`).
   ``rest_yaw_rate``.
 * SPIN: the yaw of the poses, unwrapped, from ``settle_time`` after the torque on
   (:class:`~services.runs.metrology.pose_motion.SpinWindow`); the segment ends once it has swept
-  ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run.  A planned run
+  ``sweep_deg``; a yaw rate above ``limits.max_yaw_rate`` fails the run, and so does a
+  robot or a trailing wheel turning the other way than commanded
+  (:mod:`services.runs.metrology.direction`).  A planned run
   (``plan: auto``) stops sequentially instead (:class:`SequentialSpins`, docs/plan.md):
   every :data:`JUDGE_STEP` of sweep the poses so far are fitted and the forecast
   (:mod:`swpc_hw.calibration.plan.forecast`) says whether the spin may end.
@@ -27,6 +29,7 @@ import numpy as np
 from services.config.robot import RobotConfig
 from services.runs.journal import SampleSource
 from services.runs.metrology.base import RunSteps
+from services.runs.metrology.direction import DirectionWatch
 from services.runs.metrology.pose_motion import REST_WINDOW, SpinWindow, motion_rates
 from services.runs.state import Forecast, RunFailedError, State
 from services.sensors.mocap import MocapIngest
@@ -142,6 +145,7 @@ class MocapMetrology:
         self.sequential = None if stopping is None else SequentialSpins(stopping)
         """A planned run's sequential stopping (None: every spin sweeps ``sweep_deg``)."""
         self._resets = mocap.counters.clock_resets  # at the run's start
+        self._directions: set[int] = set()  # locked modules whose spin direction was judged
         self.drive: tuple[float, float] | None = None  # it never drives straight
 
     @property
@@ -230,6 +234,11 @@ class MocapMetrology:
         spin = SpinWindow(
             run.clock.now(), run.config.protocol.settle_time, latest.t_host, latest.yaw
         )
+        # judged on the first spin about each module, its trailing casters aligned (ALIGN):
+        # after a re-steer they first swivel, and the robot may turn back a little
+        direction = DirectionWatch(run, k, run.clock.now(), latest.yaw)
+        direction.decided = k in self._directions
+        self._directions.add(k)
         deadline = run.deadline()
         seq = self.sequential
         if seq is not None:
@@ -239,6 +248,7 @@ class MocapMetrology:
             p = self.mocap.latest()
             assert p is not None
             spin.add(p.t_host, p.yaw)
+            direction.update(p.yaw)
             if seq is None:
                 sweep = sweep_reached(run, spin, done, total)
             else:

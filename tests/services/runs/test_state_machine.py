@@ -505,21 +505,19 @@ def test_install_policies(tmp_path: Path) -> None:
 
 
 def test_data_the_solver_refuses_fail_the_run_and_install_nothing(tmp_path: Path) -> None:
-    """robot.yaml with modules 1 and 3 on each other's corners: every fixed point is far
-    from where that robot puts it.  FAILED with the solver's one-line reason; the file in
-    force is untouched, even with ``install: always``."""
+    """robot.yaml with module 1's steering axis 30 cm from where it is: its fixed points
+    are far from where that robot puts them.  FAILED with the solver's one-line reason;
+    the file in force is untouched, even with ``install: always``.  (Modules on each
+    other's corners no longer get this far: their wheels roll against what the config
+    predicts, and the first spin stops, tests/services/whole_runs/test_miswired_robot.py.)"""
     kinematics = tmp_path / "kinematics.yaml"
     save_kinematics(kinematics, NOMINAL, created="2026-01-01T00:00:00Z")
     before = kinematics.read_bytes()
     m1, m2, m3 = NOMINAL.modules
-    swapped = [
-        m1.model_copy(update={"x_s": m3.x_s, "y_s": m3.y_s}),
-        m2,
-        m3.model_copy(update={"x_s": m1.x_s, "y_s": m1.y_s}),
-    ]
+    moved = [m1.model_copy(update={"x_s": m1.x_s + 0.3}), m2, m3]
     rig = Rig(tmp_path, QUICK)
     rig.config = rig.config.model_copy(
-        update={"nominal": NOMINAL.model_copy(update={"modules": swapped})}
+        update={"nominal": NOMINAL.model_copy(update={"modules": moved})}
     )
     rig.kinematics, rig.install = kinematics, "always"
     run = rig.run()

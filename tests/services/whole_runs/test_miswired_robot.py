@@ -1,0 +1,63 @@
+"""A calibration on a robot whose config is wrong (issue 43, item 5): the in-process
+simulator miswired (``SWPC_SIM_WIRING``, :mod:`simulators.drives.wiring`), the robot config
+as it was.  A wheel drive that turns the other way round stops the run as soon as the
+robot has turned 2 deg, naming the module, before the spin goes on (a right robot: every
+whole-run test of tests/services/whole_runs, none stopped)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from tests.service_rig import AUTH, QUICK_PROTOCOL, sim_service, start, wait_state
+from tests.services.whole_runs.test_calibration_without_mocap import (
+    PROTOCOL,
+    axis_distances,
+    play_operator,
+)
+
+
+@pytest.mark.parametrize(
+    ("wiring", "named"),
+    [
+        ({"inverted": [{"module": 2, "axis": "wheel"}]}, "module 2's wheel rolled"),
+        ({"inverted": [{"module": m, "axis": "wheel"} for m in (2, 3, 4)]},
+         "module 3's wheel rolled"),
+    ],
+    ids=["one-wheel-inverted", "three-wheels-inverted"],
+)  # fmt: skip
+def test_a_wheel_turning_the_other_way_stops_the_spin_naming_it(
+    tmp_path: Path, wiring: dict[str, object], named: str
+) -> None:
+    path = tmp_path / "wiring.yaml"
+    path.write_text(yaml.safe_dump(wiring))
+    with sim_service(tmp_path / "data", sim_wiring=path) as sim:
+        run_id = start(sim.client, {"protocol": QUICK_PROTOCOL})
+        stopped(wait_state(sim.client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=300), named)
+
+
+def test_without_motion_capture_the_gyro_says_the_same(tmp_path: Path) -> None:
+    """The gyro's integrated turn in place of the poses (metrology imu)."""
+    path = tmp_path / "wiring.yaml"
+    path.write_text(yaml.safe_dump({"inverted": [{"module": 3, "axis": "wheel"}]}))
+    with sim_service(tmp_path / "data", sim_wiring=path) as sim:
+        body = {
+            "metrology": "imu",
+            "references": axis_distances(),
+            "overrides": {"protocol": PROTOCOL},
+        }
+        r = sim.client.post("/calibrations", json=body, headers=AUTH)
+        assert r.status_code == 202, r.text
+        st = play_operator(sim.client, r.json()["id"], {})
+        stopped(st, "module 3's wheel rolled")
+
+
+def stopped(st: dict[str, Any], named: str) -> None:
+    """The run FAILED in its first spin, naming the wheel."""
+    assert st["state"] == "FAILED", st
+    assert named in st["reason"] and "ms into the spin" in st["reason"], st["reason"]
+    assert st["module"] == 1 and st["angle_index"] == 1  # the first spin, not later
+    print(f"\n{st['reason']}")
