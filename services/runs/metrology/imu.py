@@ -342,7 +342,7 @@ class ImuMetrology:
         spin = SpinWindow(run.clock.now(), run.config.protocol.settle_time, float(last[0]), 0.0)
         seen = float(last[0])
         # the wheels against the turn the gyro integrates (first spin about each module)
-        direction = DirectionWatch(run, k, run.clock.now(), 0.0)
+        direction = DirectionWatch(run, k, seen, 0.0)
         direction.decided = k in self._directions
         self._directions.add(k)
         turned = 0.0
@@ -355,7 +355,7 @@ class ImuMetrology:
                 turned = yaw.add(t, wz)
                 spin.add(t, turned)
                 seen = t
-            direction.update(turned)
+            direction.update(turned, seen)
             sweep = sweep_reached(run, spin, done, total)
             if sweep is not None:
                 assert spin.start is not None

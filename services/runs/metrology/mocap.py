@@ -236,7 +236,7 @@ class MocapMetrology:
         )
         # judged on the first spin about each module, its trailing casters aligned (ALIGN):
         # after a re-steer they first swivel, and the robot may turn back a little
-        direction = DirectionWatch(run, k, run.clock.now(), latest.yaw)
+        direction = DirectionWatch(run, k, latest.t_host, latest.yaw)
         direction.decided = k in self._directions
         self._directions.add(k)
         deadline = run.deadline()
@@ -248,7 +248,7 @@ class MocapMetrology:
             p = self.mocap.latest()
             assert p is not None
             spin.add(p.t_host, p.yaw)
-            direction.update(p.yaw)
+            direction.update(p.yaw, p.t_host)
             if seq is None:
                 sweep = sweep_reached(run, spin, done, total)
             else:

@@ -26,8 +26,9 @@ from tests.services.whole_runs.test_calibration_without_mocap import (
         ({"inverted": [{"module": 2, "axis": "wheel"}]}, "module 2's wheel rolled"),
         ({"inverted": [{"module": m, "axis": "wheel"} for m in (2, 3, 4)]},
          "module 3's wheel rolled"),
+        ({"mocap_y_up": True}, "the sensor does not see the robot turn"),
     ],
-    ids=["one-wheel-inverted", "three-wheels-inverted"],
+    ids=["one-wheel-inverted", "three-wheels-inverted", "mocap-y-up"],
 )  # fmt: skip
 def test_a_wheel_turning_the_other_way_stops_the_spin_naming_it(
     tmp_path: Path, wiring: dict[str, object], named: str
