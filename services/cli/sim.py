@@ -16,8 +16,10 @@ import argparse
 import errno
 import math
 import signal
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from services.cli import add_gyro_arguments, add_noise_arguments, gyro_options
@@ -56,6 +58,12 @@ def register(sub: Any) -> None:
     p.add_argument("--zenoh-config", help="zenoh JSON5 config file (endpoints still explicit)")
     p.add_argument("--robot", default="swpc", help="robot id in the zenoh keys (swpc)")
     p.add_argument("--truth", help="kinematic file of the hidden truth (default: paper Table 4)")
+    p.add_argument(
+        "--wiring",
+        help="YAML file of how the drives are really wired: crossed, swapped, inverted, "
+        "another ratio, a turned motion-capture body (docs/commissioning.md; default: as "
+        "configured)",
+    )
     p.add_argument(
         "--drives",
         default=None,
@@ -166,6 +174,7 @@ def sim_drives(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    from simulators.drives.wiring import WIRED_AS_CONFIGURED, load_wiring
     from simulators.options import SimOptions
     from simulators.physics.robot import PhysicsOptions
     from simulators.sensors.mocap import MocapOptions
@@ -175,6 +184,13 @@ def run(args: argparse.Namespace) -> int:
     from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
     truth = load_robot(args.truth) if args.truth else PAPER_CALIBRATED
+    try:
+        wiring = (
+            load_wiring(Path(args.wiring), truth.ids) if args.wiring else WIRED_AS_CONFIGURED
+        )
+    except ValueError as exc:
+        print(f"swpc sim: --wiring {exc}", file=sys.stderr)
+        return 2
     opt = SimOptions(
         robot=args.robot,
         drives=sim_drives(args),
@@ -202,6 +218,7 @@ def run(args: argparse.Namespace) -> int:
         bus_error_rate=args.bus_error_rate,
         mocap_clock=args.mocap_clock,
         seed=args.seed,
+        wiring=wiring,
     )
     listen = args.zenoh_listen or ([] if args.zenoh_connect else [DEFAULT_ENDPOINT])
     import can

@@ -27,8 +27,12 @@ def test_cli_errors_are_one_line_with_a_nonzero_exit(
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
     assert exc.value.code == 0 and capsys.readouterr().out.startswith(f"swpc {tool_version()}")
+    wiring = tmp_path / "wiring.yaml"
+    wiring.write_text("swapped: [9]\n")
     cases = [
         (["serve", "--env-file", str(tmp_path / "none.env")], "--env-file", 2),
+        (["sim", "--wiring", str(wiring), "--duration", "0.1"],
+         "wiring.swapped: no module 9 (modules [1, 2, 3, 4])", 2),
         (["sim", "--channel", "swpcnone0", "--duration", "0.1"], "cannot open CAN interface", 2),
         (["can", "monitor", "--channel", "swpc-none", "--duration", "0.4", "--plain"],
          "no heartbeat from module 1 (node 1)", 1),
