@@ -262,6 +262,17 @@ CHECK_PROTOCOL_KEYS = frozenset(
 RunKind = Literal["calibration", "check"]
 
 
+class Polarity(BaseModel):
+    """Which way an axis turns against what its drive reports: -1 for a motor mounted the
+    other way round (or its encoder counting the other way), applied by swpc to what a run
+    commands and reads (docs/commissioning.md)."""
+
+    model_config = STRICT
+
+    steer: Literal[1, -1] = 1
+    wheel: Literal[1, -1] = 1
+
+
 class RobotConfig(BaseModel):
     model_config = STRICT
 
@@ -280,6 +291,11 @@ class RobotConfig(BaseModel):
     protocol: ProtocolConfig = ProtocolConfig()
     tolerances: Tolerances = Tolerances()
     check: CheckConfig = CheckConfig()
+    polarity: dict[int, Polarity] = Field(
+        default_factory=dict,
+        description="module id -> {steer, wheel}: -1 for an axis that turns the other way "
+        "round from what its drive reports (commissioning finds it); unset: 1",
+    )
 
     @field_validator("nominal", mode="before")
     @classmethod
@@ -308,6 +324,9 @@ class RobotConfig(BaseModel):
         self.drives = self.drives.for_modules(ids)
         if self.protocol.modules is not None and not set(self.protocol.modules) <= set(ids):
             raise ValueError("protocol.modules must be module ids of the robot")
+        if not set(self.polarity) <= set(ids):
+            extra = sorted(set(self.polarity) - set(ids))
+            raise ValueError(f"polarity: {extra} are not module ids")
         try:  # the check's protocol is valid as a protocol (its angles' spacing)
             ProtocolConfig.model_validate({**self.protocol.model_dump(), **self.check.protocol()})
         except ValueError as exc:

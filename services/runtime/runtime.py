@@ -524,6 +524,7 @@ class Runtime(RunRecords):
             io = DrivesRobotIO(
                 self.drives,
                 limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
+                polarity={m: (p.steer, p.wheel) for m, p in config.polarity.items()},
             )
             common: dict[str, Any] = dict(
                 clock=self.clock,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Mapping
 from typing import Protocol
 
 import numpy as np
@@ -101,10 +102,16 @@ class DrivesRobotIO:
     """
 
     def __init__(
-        self, drives: Drives, limits: tuple[float, tuple[float, float]] | None = None
+        self,
+        drives: Drives,
+        limits: tuple[float, tuple[float, float]] | None = None,
+        polarity: Mapping[int, tuple[int, int]] | None = None,
     ) -> None:
         self.drives = drives
         self.limits = limits
+        self.polarity = dict(polarity or {})
+        """Module -> (steer, wheel): -1 for an axis that turns the other way round from what
+        its drive reports; what a run commands and reads is turned by it here."""
         self._faults: list[str] = []
         self._cause_taken = drives.fault_cause  # the drives' fault cause last looked at
         self._skip_event: str | None = None  # its event, when the cause was reported first
@@ -157,10 +164,14 @@ class DrivesRobotIO:
     def start_homing(self, module: int) -> None:
         self.drives.start_homing(module)
 
+    def _sign(self, module: int, axis: Axis) -> int:
+        return self.polarity.get(module, (1, 1))[int(axis)]
+
     def _steer_setpoint(self, module: int, steer: float) -> float:
         """``steer`` on the turn nearest the steering's reported position: the controller's
         position is multi-turn (free casters trail through whole turns during spins), a
-        raw ``steer`` could send it the long way round, up to many turns."""
+        raw ``steer`` could send it the long way round, up to many turns.  In the drive's
+        own sense (its polarity)."""
         st = self.drives.module_state(module)
         if not math.isfinite(st.theta_hat):
             raise NodeError(
@@ -168,7 +179,8 @@ class DrivesRobotIO:
                 node=st.node,
                 axis=int(Axis.STEER),
             )
-        return float(nearest_turn(st.theta_hat, steer))
+        s = self._sign(module, Axis.STEER)
+        return s * float(nearest_turn(s * st.theta_hat, steer))
 
     def lock(self, module: int, steer: float) -> None:
         self.drives.set_position(module, Axis.STEER, self._steer_setpoint(module, steer))
@@ -181,7 +193,7 @@ class DrivesRobotIO:
         self.drives.free(module, Axis.STEER)
 
     def wheel_torque(self, module: int, torque: float) -> None:
-        self.drives.set_torque(module, Axis.WHEEL, torque)
+        self.drives.set_torque(module, Axis.WHEEL, self._sign(module, Axis.WHEEL) * torque)
 
     def wheel_hold(self, module: int) -> None:
         self.drives.hold(module, Axis.WHEEL)
@@ -190,7 +202,17 @@ class DrivesRobotIO:
         self.drives.free(module, Axis.WHEEL)
 
     def steering(self, module: int) -> float:
-        return self.drives.module_state(module).theta_hat
+        return self._sign(module, Axis.STEER) * self.drives.module_state(module).theta_hat
+
+    def _turned(self, module: int, rows: FloatArray) -> FloatArray:
+        """Feedback rows ``(t, theta_hat, psi)`` in the robot's sense (the polarity)."""
+        s, w = self.polarity.get(module, (1, 1))
+        if s == 1 and w == 1:
+            return rows
+        out = np.array(rows, dtype=float, copy=True)
+        out[:, 1] *= s
+        out[:, 2] *= w
+        return out
 
     def stop_all(self) -> None:
         self.drives.stop_all()
@@ -208,10 +230,11 @@ class DrivesRobotIO:
         in it.
         """
         rows, _ = self.drives.history_since(module, 0, since)  # cursor 0: every row kept
-        return rows
+        return self._turned(module, rows)
 
     def encoder_rows(self, module: int, cursor: int, since: float) -> tuple[FloatArray, int]:
-        return self.drives.history_since(module, cursor, since)
+        rows, cursor = self.drives.history_since(module, cursor, since)
+        return self._turned(module, rows), cursor
 
     def take_faults(self) -> list[str]:
         """The fault events since the last call, and the drives' fault cause as soon as they

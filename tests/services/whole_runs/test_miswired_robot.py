@@ -62,3 +62,31 @@ def stopped(st: dict[str, Any], named: str) -> None:
     assert named in st["reason"] and "ms into the spin" in st["reason"], st["reason"]
     assert st["module"] == 1 and st["angle_index"] == 1  # the first spin, not later
     print(f"\n{st['reason']}")
+
+
+def test_the_config_that_says_the_polarity_calibrates_the_miswired_robot(tmp_path: Path) -> None:
+    """Item 2: module 2's wheel and module 3's steering mounted the other way round, and
+    the robot config saying so (``polarity``): the calibration is DONE and right."""
+    import math
+
+    from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+
+    wiring = tmp_path / "wiring.yaml"
+    wiring.write_text(yaml.safe_dump({"inverted": [
+        {"module": 2, "axis": "wheel"}, {"module": 3, "axis": "steer"}]}))  # fmt: skip
+    robot = tmp_path / "robot.yaml"
+    robot.write_text(yaml.safe_dump({"polarity": {2: {"wheel": -1}, 3: {"steer": -1}}}))
+    with sim_service(tmp_path / "data", sim_wiring=wiring, robot_config=robot) as sim:
+        run_id = start(sim.client, {"protocol": QUICK_PROTOCOL})
+        st = wait_state(sim.client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=300)
+        assert st["state"] == "DONE", st["reason"]
+        res = sim.client.get(f"/calibrations/{run_id}/result").json()
+    truth = {m.id: m for m in PAPER_CALIBRATED.modules}
+    worst = 0.0
+    for m in res["modules"]:
+        for k in ("x_s", "y_s", "beta", "b", "r"):
+            err, sd = m[k] - getattr(truth[m["id"]], k), m["stddev"][k]
+            assert abs(err) < (0.3e-3 if k != "beta" else math.radians(0.05)), (m["id"], k, err)
+            worst = max(worst, abs(err) / sd)
+    assert worst < 4.0
+    print(f"\npolarity in the config: DONE, largest error {worst:.2f} std devs")
