@@ -62,6 +62,9 @@ NMT_BOOT_UP = 0
 NMT_STOPPED = 4
 NMT_OPERATIONAL = 5
 NMT_PRE_OPERATIONAL = 127
+SDO_ABSENT = frozenset({0x06020000, 0x06090011})
+"""SDO aborts that say the drive has no such object (0x06020000) or subindex (0x06090011)."""
+
 NMT_NAMES = {
     NMT_BOOT_UP: "boot-up",
     NMT_STOPPED: "STOPPED",

@@ -23,12 +23,12 @@ from typing import Literal
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from firmware_protocol.codec import Axis, AxisState
+from firmware_protocol.codec import Axis
 from services.http.deps import Rt
 from services.runtime.health import simulated_time_still
 from services.runtime.runtime import Runtime
 from swpc_hw.drives.interface import Drives
-from swpc_hw.drives.types import AXIS_NAMES, AxisStatus, Lifecycle
+from swpc_hw.drives.types import AXIS_NAMES, AxisStatus, Lifecycle, axis_status_of_module
 
 SCAN_NOTE = (
     "what each drive is (identity, software, supported modes, heartbeat settings) and the "
@@ -96,25 +96,10 @@ def _age(d: Drives, t: float | None) -> float | None:
 
 
 def _from_module(d: Drives, module: int, axis: Axis) -> AxisStatus:
-    """One axis from its module's snapshot (a kind without ``axis_status``): in fault when
-    its state says so or it reports an error (a CiA 402 drive's EMCY comes before the
-    statusword that shows FAULT)."""
-    st = d.module_state(module)
-    error = int(st.errors[axis])
-    return AxisStatus(
-        module=module,
-        axis=axis,
-        node=st.node,
-        alive=st.alive,
-        t_heartbeat=st.t_heartbeat,
-        heartbeats=st.heartbeats,
-        state=st.states[axis].name,
-        nmt=None,
-        mode=st.modes[axis].name,
-        error=error,
-        error_name=f"0x{error:04X}" if error else "none",
-        fault=st.states[axis] == AxisState.FAULT or error != 0,
-        homed=st.homed if axis == Axis.STEER else None,
+    """One axis from its module's snapshot (a kind without ``axis_status``): its error by
+    number, in fault when its state says so or it reports an error."""
+    return axis_status_of_module(
+        d.module_state(module), axis, lambda e: f"0x{e:04X}", fault_on_error=True
     )
 
 

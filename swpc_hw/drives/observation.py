@@ -40,6 +40,7 @@ from swpc_hw.drives.types import (
     ModuleState,
     Observation,
     Severity,
+    axis_status_of_module,
 )
 
 log = logging.getLogger(__name__)
@@ -81,26 +82,9 @@ class DriverObservation(ABC):
 
     def _module_axis_status(self, module: int, axis: Axis) -> AxisStatus:
         """One axis as its module's snapshot tells it: right for a kind whose module is one
-        dual-axis controller on one node (the swpc kind), whose node, liveness, heartbeat
-        and homing are the module's; the error named by :meth:`_error_names`."""
-        st = self.module_state(module)
-        axis = Axis(axis)
-        error = int(st.errors[axis])
-        return AxisStatus(
-            module=module,
-            axis=axis,
-            node=st.node,
-            alive=st.alive,
-            t_heartbeat=st.t_heartbeat,
-            heartbeats=st.heartbeats,
-            state=st.states[axis].name,
-            nmt=None,
-            mode=st.modes[axis].name,
-            error=error,
-            error_name=self._error_names(error) if error else "none",
-            fault=st.states[axis] == AxisState.FAULT,
-            homed=st.homed if axis == Axis.STEER else None,
-        )
+        dual-axis controller on one node (the swpc kind); the error named by
+        :meth:`_error_names` (:func:`swpc_hw.drives.types.axis_status_of_module`)."""
+        return axis_status_of_module(self.module_state(module), axis, self._error_names)
 
     @abstractmethod
     def _ring(self, module: int) -> FeedbackRing:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
@@ -160,6 +161,32 @@ class AxisStatus:
     error_name: str
     fault: bool
     homed: bool | None
+
+
+def axis_status_of_module(
+    st: ModuleState, axis: Axis, error_name: Callable[[int], str], fault_on_error: bool = False
+) -> AxisStatus:
+    """One axis as its module's snapshot tells it: node, liveness, heartbeat and homing the
+    module's (right for a dual-axis controller on one node), its error word named by
+    ``error_name``; in fault when its state says so, or with ``fault_on_error`` when it
+    reports an error (a CiA 402 drive's EMCY comes before the statusword showing FAULT)."""
+    axis = Axis(axis)
+    error = int(st.errors[axis])
+    return AxisStatus(
+        module=st.module,
+        axis=axis,
+        node=st.node,
+        alive=st.alive,
+        t_heartbeat=st.t_heartbeat,
+        heartbeats=st.heartbeats,
+        state=st.states[axis].name,
+        nmt=None,
+        mode=st.modes[axis].name,
+        error=error,
+        error_name=error_name(error) if error else "none",
+        fault=st.states[axis] == AxisState.FAULT or (fault_on_error and error != 0),
+        homed=st.homed if axis == Axis.STEER else None,
+    )
 
 
 @dataclass

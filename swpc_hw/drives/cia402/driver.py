@@ -59,7 +59,7 @@ from swpc_hw.drives.base import DriverBase
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
 from swpc_hw.drives.cia402.sdo import ClockedRemoteNode
-from swpc_hw.drives.cia402.setup import ABSENT_ABORTS, OPTIONAL, PROFILE_VELOCITY, set_up
+from swpc_hw.drives.cia402.setup import OPTIONAL, PROFILE_VELOCITY, set_up
 from swpc_hw.drives.cia402.tracking import (
     AxisTrack,
     ModuleTrack,
@@ -418,7 +418,7 @@ class Cia402Driver(DriverBase):
             try:
                 node.sdo[index].raw = value
             except SdoAbortedError as exc:
-                if exc.code not in ABSENT_ABORTS:
+                if exc.code not in cia402.SDO_ABSENT:
                     raise NodeError(
                         f"{a.where()}: set limits 0x{index:04X}: {exc}", node=a.node, axis=int(axis)
                     ) from exc

@@ -45,9 +45,6 @@ from swpc_hw.drives.cia402.setup import POSITION_MODES, TORQUE_MODES, choose_mod
 from swpc_hw.drives.errors import CanBusError
 from swpc_hw.drives.scan import Expected, FoundNode
 
-ABSENT_CODES = frozenset({0x06020000, 0x06090011})
-"""SDO aborts that mean the drive has no such object (0x06020000) or sub-index
-(0x06090011)."""
 ABSENT = "absent"
 
 MODE_BITS: dict[int, str] = {
@@ -145,7 +142,7 @@ Value = int | str | Unread
 
 def unread(exc: Exception) -> Unread:
     if isinstance(exc, SdoAbortedError):
-        if exc.code in ABSENT_CODES:
+        if exc.code in cia402.SDO_ABSENT:
             return Unread(ABSENT)
         what = SdoAbortedError.CODES.get(exc.code)
         return Unread(f"abort 0x{exc.code:08X}" + (f": {what}" if what else ""))

@@ -37,8 +37,6 @@ from swpc_hw.drives.types import AXIS_NAMES
 
 PROFILE_VELOCITY = 0x6081
 """Profile position's travel speed: the run's velocity limit where the drive has it."""
-ABSENT_ABORTS = (0x06020000, 0x06090011)
-"""SDO aborts that say the drive has no such object / subindex."""
 
 NEEDED: dict[int, str] = {
     cia402.PRODUCER_HEARTBEAT: "swpc watches every drive by its heartbeat; a drive without "
@@ -134,7 +132,7 @@ class _Drive:
         try:
             return fn(self.variable(index, sub))
         except SdoAbortedError as exc:
-            if exc.code in ABSENT_ABORTS:
+            if exc.code in cia402.SDO_ABSENT:
                 return self._absent(index, sub)
             raise
 
@@ -252,7 +250,7 @@ def _rated_torque(d: _Drive, configured: float | None, read: Callable[[Any], int
         try:
             value = read(d.variable(cia402.RATED_TORQUE)) / 1000.0
         except SdoAbortedError as exc:
-            if exc.code not in ABSENT_ABORTS:
+            if exc.code not in cia402.SDO_ABSENT:
                 raise
     if value is None or value <= 0:
         if configured is None:

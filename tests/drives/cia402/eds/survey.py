@@ -34,21 +34,11 @@ from pathlib import Path
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
+from swpc_hw.drives.cia402.scan import MODE_BITS  # 0x6502's bits as CiA 402 names them
+
 HERE = Path(__file__).resolve().parent
 NODE_ID = 1
 
-# 0x6502 bits as CiA 402 assigns them (bit 4 and 10-15 reserved, 16-31 manufacturer-specific)
-MODE_BITS: dict[int, str] = {
-    0: "PP",
-    1: "VL",
-    2: "PV",
-    3: "PT",
-    5: "HM",
-    6: "IP",
-    7: "CSP",
-    8: "CSV",
-    9: "CST",
-}
 CYCLIC_BITS = (7, 8, 9)
 
 OBJECTS: tuple[int, ...] = (
