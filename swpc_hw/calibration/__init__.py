@@ -3,6 +3,8 @@
 The solver's names are imported on first use (PEP 562): a module of this package that
 needs no solver (the gyro problem's builder, the options) does not pay scipy.optimize's
 import (0.65 s on the development VM, 20x that under the test VM's emulation) for it.
+Likewise every module here imports scipy inside the function that uses it: the service
+starts without scipy (a third of its imports) and pays for it at its first solve.
 """
 
 from __future__ import annotations

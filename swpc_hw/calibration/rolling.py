@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import CubicSpline
 
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.parameters import BETA, P_S, R
@@ -51,6 +50,8 @@ class EncoderTrack:
     @classmethod
     def from_rows(cls, rows: FloatArray) -> EncoderTrack:
         """``rows``: (K, 3) ``t, steer, wheel`` sorted by t."""
+        from scipy.interpolate import CubicSpline  # at first use: see swpc_hw.calibration
+
         t, first = np.unique(rows[:, 0], return_index=True)
         steer = np.unwrap(rows[first, 1])
         wheel = rows[first, 2]

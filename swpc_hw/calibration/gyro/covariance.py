@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import null_space
 
 from swpc_hw.calibration.gyro.problem import ImuProblem
 from swpc_hw.calibration.gyro.rolling_sets import RollingSet
@@ -39,6 +38,8 @@ def imu_covariance(prob: ImuProblem, x: FloatArray) -> tuple[FloatArray, FloatAr
     parameters scaled to unit Jacobian columns.  A singular ``Z^T H Z`` raises
     :class:`CalibrationError` naming the least determined parameters.
     """
+    from scipy.linalg import null_space  # at first use: see swpc_hw.calibration
+
     data = prob.with_blocks(prob.active - {"gauge"})
     J = data.jacobian(x)
     f = data.residuals(x)

@@ -38,7 +38,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from swpc_hw.calibration.gyro.rolling_sets import ProfileStructure, RollingSet, profiled_rolling
 
@@ -80,6 +79,8 @@ def free_levers(rs: RollingSet, h0: FloatArray) -> tuple[FloatArray, float]:
     ``h_1`` held at ``h0_1`` (a common scale of ``h`` is the yaw's), the others by
     Levenberg-Marquardt from ``h0``; wheels with no sample keep ``h0``.
     """
+    from scipy.optimize import least_squares  # at first use: see swpc_hw.calibration
+
     st = ProfileStructure.of(rs.present, rs.run)
     used = np.flatnonzero(rs.present.any(axis=0))
     if used.size < 2:

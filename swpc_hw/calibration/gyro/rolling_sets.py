@@ -11,10 +11,13 @@ the straight drive's curvature as well (the ``spin`` and ``drive`` blocks of
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import sparse
+
+if TYPE_CHECKING:
+    from scipy import sparse
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -47,6 +50,8 @@ class ProfileStructure:
 
     @classmethod
     def of(cls, present: BoolArray, run: IntArray) -> ProfileStructure:
+        from scipy import sparse  # at first use: see swpc_hw.calibration
+
         rows, cols = np.nonzero(present)
         runs = run[rows, cols]
         n_run = int(np.max(runs)) + 1 if runs.size else 0

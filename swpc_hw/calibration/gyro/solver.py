@@ -36,7 +36,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from swpc_hw.calibration import plausibility
 from swpc_hw.calibration.gyro.assemble import assemble_imu_result
@@ -186,6 +185,8 @@ def trial_cut(
     The problem's samples are put back as they were."""
     if len(failing) == 1:
         return failing[0]
+    from scipy.optimize import least_squares  # at first use: see swpc_hw.calibration
+
     prob = run.problem
     kept = [(rs.present.copy(), rs.run.copy(), list(rs.chunks)) for rs in prob.spins]
 
@@ -250,6 +251,8 @@ def irls(
     last iteration's and no noise scale moved by 1 %.  ``valid``: every rolling set's
     usable samples.  Returns the solution and the wheel increments cut as slip in every
     rolling set (spins, then drives)."""
+    from scipy.optimize import least_squares  # at first use: see swpc_hw.calibration
+
     prob = run.problem
     n = prob.layout.n
     st = prob.settled
@@ -301,6 +304,8 @@ def coarse_fit(run: ImuRun, x0: FloatArray, opts: SolverOptions) -> FloatArray:
     start (a robot 30 % off its design) near the optimum at a tenth of the cost.  Slip
     bursts are cut first (against the gyro with the start's levers, each wheel's scale
     fitted: :func:`wheel_increments`): least squares would bend everything to them."""
+    from scipy.optimize import least_squares  # at first use: see swpc_hw.calibration
+
     prob = run.problem
     n = prob.layout.n
     floor = initial_weights(run, x0)

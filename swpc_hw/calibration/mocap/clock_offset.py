@@ -44,7 +44,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize_scalar
 
 from swpc_hw.calibration.fixed_point import robust_fixed_point
 from swpc_hw.calibration.mocap.yaw_noise import score_variance
@@ -225,6 +224,7 @@ def estimate_clock_offset(
     def fine(sel: list[int], start: float, width: float) -> tuple[float, RollingSeries, IntArray]:
         """The fine search over the segments ``sel`` (indices into the kept ones): the
         estimate, its nodes and their clean runs (slip bursts at ``start``)."""
+        from scipy.optimize import minimize_scalar  # at first use: see swpc_hw.calibration
 
         def build_sel(delta: float) -> RollingSeries:
             return build_rolling_series(

@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration import plausibility
@@ -238,6 +237,8 @@ def fit_joint(
     iterations: the first finds slip bursts only.  ``wheel_resolution`` (rad): an
     increment's noise is at least ``r q / sqrt(6)`` (two quantized readings).
     """
+    from scipy.optimize import least_squares  # at first use: see swpc_hw.calibration
+
     n = prob.n
     increment_floor = max(float(np.nanmax(X0[:, R])) * wheel_resolution / math.sqrt(6.0), 1e-12)
     series = prob.rolling

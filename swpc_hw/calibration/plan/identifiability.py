@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import null_space
 
 from swpc_hw.calibration.gyro.problem import ImuProblem
 from swpc_hw.calibration.parameters import BETA, N_PARAMS, P_S, X_S, Y_S, R
@@ -190,6 +189,8 @@ def design_fit_std(
     information ``Fs`` of the unknowns ``idx`` (``root``: their scales):
     ``Cov = Z (Z^T F Z)^+ Z^T`` with ``Z`` the null space of the frame's conditions; a
     figure with a component along a null direction of ``Z^T F Z`` is not determined."""
+    from scipy.linalg import null_space  # at first use: see swpc_hw.calibration
+
     A = prob.gauge_jacobian()
     Z = null_space(A[:, idx] / root)
     H = Z.T @ Fs @ Z
