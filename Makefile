@@ -89,8 +89,9 @@ demo: $(STAMP)
 	$(BIN)/python -m services.demo
 
 # The console on the simulated robot, kept up until Ctrl-C: prints where to click.
+# PORT=N: on that port (default 8080 when free, else any free one).
 console: $(STAMP)
-	$(BIN)/python -m services.demo --console --out out/console
+	$(BIN)/python -m services.demo --console --out out/console $(if $(PORT),--port $(PORT))
 
 demo-offline: $(STAMP)
 	$(BIN)/python -m services.demo --offline

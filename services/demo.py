@@ -275,7 +275,7 @@ def run_service_demo(
     with _Service(data_dir, sim_speed, seed, robot_config) as svc, httpx.Client(
         base_url=svc.base, timeout=10.0
     ) as http:
-        print(f"operator console: {svc.base}/ (token {svc.token})")
+        print(f"operator console while the demo runs: {svc.base}/ (token {svc.token})")
         if not svc.wait_healthy(http):
             return 1
         auth = {"Authorization": f"Bearer {svc.token}"}
@@ -327,6 +327,9 @@ def run_service_demo(
                   "service")  # fmt: skip
             with contextlib.suppress(KeyboardInterrupt):
                 svc.proc.wait()
+        else:
+            print(f"the demo's service stops now, and {svc.base}/ with it: `make console` "
+                  "keeps one up on the simulated robot for calibrations from the page")  # fmt: skip
         return 0
 
 
@@ -334,16 +337,23 @@ CONSOLE_PORT = 8080
 """``make console``'s port when it is free (else any free one, printed)."""
 
 
-def run_console(data_dir: Path, seed: int, port: int = CONSOLE_PORT) -> int:
+def run_console(data_dir: Path, seed: int, port: int | None = None) -> int:
     """``make console``: ``swpc serve`` on the in-process simulator at the robot's own pace
     (1 simulated s per wall s, so that a run in the console moves as on a robot), no
     calibration started; prints where to click and the token, and keeps the service up
-    until Ctrl-C (then stops it by its PID)."""
+    until Ctrl-C (then stops it by its PID).  ``port``: the one asked for (``make console
+    PORT=N``; taken: an error), else :data:`CONSOLE_PORT` when free, else any free one."""
+    asked = port is not None
     try:
         with contextlib.closing(socket.socket()) as probe:
             probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
-            probe.bind(("127.0.0.1", port))
-    except OSError:
+            probe.bind(("127.0.0.1", CONSOLE_PORT if port is None else port))
+        port = CONSOLE_PORT if port is None else port
+    except OSError as exc:
+        if asked:
+            print(f"port {port} on 127.0.0.1 is not free ({exc.strerror}): pick another "
+                  "(make console PORT=N)", file=sys.stderr)  # fmt: skip
+            return 2
         port = _free_port()
     with _Service(data_dir, 1.0, seed, port=port) as svc, httpx.Client(
         base_url=svc.base, timeout=10.0
@@ -416,6 +426,11 @@ def main(argv: list[str] | None = None) -> int:
         "the robot's own pace, until Ctrl-C (make console)",
     )
     parser.add_argument(
+        "--port", type=int, default=None,
+        help=f"--console's port on 127.0.0.1 (default {CONSOLE_PORT} when free, else any free "
+        "one; make console PORT=N)",
+    )
+    parser.add_argument(
         "--keep-serving", action="store_true",
         help="after the run, keep the service (and its console at /) up until Ctrl-C",
     )
@@ -437,7 +452,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.offline:
         return run_offline_demo(out, args.seed)
     if args.console:
-        return run_console(out.resolve(), args.seed)
+        return run_console(out.resolve(), args.seed, args.port)
     results: list[dict[str, Any]] = []
     code = run_service_demo(
         out.resolve(), args.sim_speed, args.seed, args.keep_serving, args.metrology,

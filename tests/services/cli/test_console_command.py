@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -20,12 +21,39 @@ import httpx
 REPO = Path(__file__).resolve().parents[3]
 
 
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_console_port_that_is_taken_is_refused_naming_it(tmp_path: Path) -> None:
+    """``make console PORT=N`` with N taken: exit status 2 and what to do, at once (no
+    service started on another port the operator did not ask for)."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = subprocess.run(
+            [sys.executable, "-m", "services.demo", "--console", "--out", str(tmp_path / "c"),
+             "--port", str(port)],
+            cwd=tmp_path, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
+            text=True, timeout=60, check=False,
+        )
+    assert out.returncode == 2, out
+    assert f"port {port} on 127.0.0.1 is not free" in out.stderr
+    assert "make console PORT=N" in out.stderr
+    assert "swpc serve started" not in out.stdout
+
+
 def test_console_command_serves_until_ctrl_c_and_its_token_starts_a_run(
     tmp_path: Path,
 ) -> None:
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
+    port = free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.demo", "--console", "--out", str(tmp_path / "c")],
+        [sys.executable, "-m", "services.demo", "--console", "--out", str(tmp_path / "c"),
+         "--port", str(port)],
         cwd=tmp_path,
         env=env,
         stdout=subprocess.PIPE,
@@ -50,6 +78,7 @@ def test_console_command_serves_until_ctrl_c_and_its_token_starts_a_run(
         pid = re.search(r"swpc serve started \(pid (\d+)\)", out)
         assert address and token and pid, out
         base = address.group(1)
+        assert base == f"http://127.0.0.1:{port}", out  # make console PORT=N
         with httpx.Client(base_url=base, timeout=10.0) as http:
             page = http.get("/")
             assert page.status_code == 200 and "<html" in page.text.lower()
