@@ -122,11 +122,25 @@ def test_page_loads_offline_and_the_token_is_asked_once(
     assert not d.find_element(By.ID, "abort-bar").is_displayed()
     check_view(d, "run, idle")
     shot(d, "01-idle")
+    # a field that is not a number is named, before any token is asked; the error goes
+    # once the field is changed (issue 45 item 5)
+    angles = d.find_element(By.ID, "f-angles")
+    angles.clear()
+    angles.send_keys("45, 1x5")
+    d.find_element(By.ID, "start").click()
+    assert text(d, "start-error") == 'Not started: Steering angles (deg): "1x5" is not a number'
+    assert not dialog_open(d, "token-dialog")
+    angles.send_keys(Keys.BACKSPACE * 3 + "165")
+    assert text(d, "start-error") == ""
+    assert angles.get_attribute("value") == "45, 165"
     # Start without a token asks for it; typed and Enter'd from the keyboard
     d.find_element(By.ID, "start").click()
     wait_for("the token dialog", lambda: dialog_open(d, "token-dialog"))
     active = d.switch_to.active_element
     assert active.get_attribute("id") == "token-input"
+    # the dialog says where the token is (issue 45 item 5)
+    where = text(d, "token-where")
+    assert "SWPC_TOKEN" in where and "api-token" in where and "make console" in where, where
     shot(d, "02-token")
     active.send_keys(TOKEN + Keys.ENTER)
     run_id = wait_for("a run", lambda: text(d, "run-id"))

@@ -19,6 +19,7 @@ const app = {
   startAt: null,        // performance.now() of the last Start, until its run is under way
   startSeen: new Set(), // the runs known at that Start
   // Start -> the new run's first update pushed by the service / its first change of state
+  // (the browser test's figures, not the operator's: never shown on the page)
   metrics: { firstLiveUpdateMs: null, firstChangeMs: null, statesSeen: [] },
   resultRun: null,
   checkRun: null,
@@ -71,9 +72,16 @@ async function api(method, path, body, stop = false) {
   const data = r.headers.get("content-type")?.includes("json") ? await r.json() : null;
   if (!r.ok) {
     const d = data?.detail;
-    throw new Error(Array.isArray(d) ? d.map((e) => e.msg).join("; ") : d || r.statusText);
+    throw new Error(Array.isArray(d) ? d.map(validationText).join("; ") : d || r.statusText);
   }
   return data;
+}
+
+// one of FastAPI's validation errors, naming what it is about: "overrides.protocol.sweep_deg:
+// Input should be a valid number" (its loc without the leading "body")
+function validationText(e) {
+  const loc = (e.loc || []).filter((x, i) => !(i === 0 && x === "body")).join(".");
+  return loc ? `${loc}: ${e.msg}` : e.msg;
 }
 
 // ------------------------------------------------------------------ dialogs
@@ -147,10 +155,20 @@ function fillDefaults(p) {
   $("f-drive").value = p.drive_length;
   $("f-rest").value = p.rest_time;
 }
+// the numbers typed in a form field, or an error naming the field and what is not a number
+function numbersOf(id) {
+  const words = $(id).value.split(/[,\s]+/).filter(Boolean);
+  const bad = words.find((w) => !Number.isFinite(Number(w)));
+  if (bad !== undefined) {
+    const label = $(id).closest("label")?.firstChild?.textContent.trim() || id;
+    throw new Error(`${label}: "${bad}" is not a number`);
+  }
+  return words.map(Number);
+}
 function overrides() {
   const p = app.hello.protocol;
   const protocol = {};
-  const angles = $("f-angles").value.split(/[,\s]+/).filter(Boolean).map(Number);
+  const angles = numbersOf("f-angles");
   if (angles.join() !== p.angles_deg.join()) protocol.angles_deg = angles;
   const nums = { sweep_deg: "f-sweep", settle_time: "f-settle", stop_time: "f-stop",
     align_time: "f-align", resteer_time: "f-resteer" };
@@ -159,7 +177,7 @@ function overrides() {
     const v = Number($(id).value);
     if ($(id).value !== "" && v !== p[k]) protocol[k] = v;
   }
-  const mods = $("f-modules").value.split(/[,\s]+/).filter(Boolean).map(Number);
+  const mods = numbersOf("f-modules");
   if (mods.length) protocol.modules = mods;
   return Object.keys(protocol).length ? { protocol } : {};
 }
@@ -304,8 +322,14 @@ async function start(ev) {
   ev.preventDefault();
   $("start-error").textContent = "";
   const planned = $("f-plan").checked;
-  const body = planned ? { plan: "auto", install: $("f-install").value }
-    : { overrides: overrides(), install: $("f-install").value };
+  let body;
+  try {
+    body = planned ? { plan: "auto", install: $("f-install").value }
+      : { overrides: overrides(), install: $("f-install").value };
+  } catch (e) {
+    $("start-error").textContent = "Not started: " + e.message;
+    return;
+  }
   body.metrology = $("f-metrology").value;
   if (body.metrology === "imu") body.references = tapeReferences();
   if (!(await ensureToken())) { $("start-error").textContent = "a token is needed to start"; return; }
@@ -359,8 +383,6 @@ function onRun(st, pushed) {
     const m = app.metrics, dt = performance.now() - app.startAt;
     if (m.firstLiveUpdateMs === null) m.firstLiveUpdateMs = dt;
     if (st.state !== "PENDING") { m.firstChangeMs = dt; app.startAt = null; }
-    $("metric").textContent = `Start to the first update pushed: ${m.firstLiveUpdateMs.toFixed(0)} ms` +
-      (m.firstChangeMs === null ? "." : `; to the run under way (${st.state}): ${m.firstChangeMs.toFixed(0)} ms.`);
   }
   app.seenRuns.add(st.id);
   if (pushed) app.metrics.statesSeen.push([st.id, st.state, st.module_index]);
@@ -1033,6 +1055,8 @@ function connect() {
 
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
+  // an error is about what was sent: gone once the operator changes the form
+  $("start-form").addEventListener("input", () => { $("start-error").textContent = ""; });
   $("f-plan").addEventListener("change", showPlan);
   $("check").addEventListener("click", startCheck);
   $("f-metrology").addEventListener("change", showMetrology);
