@@ -43,6 +43,7 @@ from typing import Any, Literal
 import numpy as np
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import TOLERANCE_OF, Tolerances
@@ -61,7 +62,9 @@ from swpc_hw.files.kinematic_file import (
     parse_kinematics,
 )
 from swpc_hw.robot.frames import DESIGN_FIT, design_fit_transform, transform_robot
-from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.model import PARAM_NAMES, ModuleParams, ModuleStddev, RobotParams
+
+FloatArray = NDArray[np.float64]
 
 log = logging.getLogger("swpc.service")
 
@@ -151,14 +154,21 @@ class Comparison(BaseModel):
     )
     in_force: FileInfo | None
     frame: str = Field(
-        "R", description="the frame of the result and of the comparison: R (motion capture) "
-        "or design-fit (without: the reference re-expressed in it when it is in another)"
+        "R", description="the frame of the comparison: R (motion capture) or design-fit "
+        "(a result without motion capture, or a reference from one: whichever of the two is "
+        "in another frame is re-expressed in design-fit, as frame_note says)"
     )  # fmt: skip
-    frame_note: str | None = Field(None, description="how the reference was re-expressed")
+    frame_note: str | None = Field(
+        None, description="which of the two was re-expressed in design-fit, and how"
+    )
     is_in_force: bool = Field(description="the file in force is this run's result")
     significance_k: float
     within_tolerance: bool
     installed: bool
+    install_held: str | None = Field(
+        None, description="why the default install (if within tolerance) did not install a "
+        "result within tolerance: the file in force was in another frame"
+    )  # fmt: skip
     rows: list[ComparisonRow]
 
 
@@ -256,31 +266,63 @@ def _write_failure(exc: Exception) -> HTTPException:
     )
 
 
-def in_design_fit(ref: KinematicFile, nominal: RobotParams) -> tuple[KinematicFile, str]:
-    """A reference file re-expressed in the design-fit frame of a result without motion
-    capture (:func:`swpc_hw.robot.frames.design_fit_transform` of its steering axes onto the
-    nominal ones), and a sentence saying so.  Its std devs: ``beta``, ``b``, ``r`` as they
-    are (a rotation leaves them), ``x_s`` and ``y_s`` the larger of the two (a rotated
+def params_in_design_fit(
+    params: RobotParams, nominal: RobotParams
+) -> tuple[RobotParams, float, FloatArray]:
+    """``params`` (with their std devs) re-expressed in the design-fit frame
+    (:func:`swpc_hw.robot.frames.design_fit_transform` of their steering axes onto the
+    nominal ones), and that transform ``(phi, t)``.  Std devs: ``beta``, ``b``, ``r`` as
+    they are (a rotation leaves them), ``x_s`` and ``y_s`` the larger of the two (a rotated
     coordinate's std dev is near it for the small angles of a fit)."""
-    ids = [m for m in ref.params.ids if m in nominal.ids]
-    P = np.array([[ref.params.module(m).x_s, ref.params.module(m).y_s] for m in ids])
+    ids = [m for m in params.ids if m in nominal.ids]
+    P = np.array([[params.module(m).x_s, params.module(m).y_s] for m in ids])
     Q = np.array([[nominal.module(m).x_s, nominal.module(m).y_s] for m in ids])
     phi, t = design_fit_transform(P, Q)
-    moved = transform_robot(ref.params, phi, t, DESIGN_FIT)
+    moved = transform_robot(params, phi, t, DESIGN_FIT)
     mods = []
-    for m, old in zip(moved.modules, ref.params.modules, strict=True):
+    for m, old in zip(moved.modules, params.modules, strict=True):
         sd = old.stddev
         if sd is not None:
             s = max(sd.x_s, sd.y_s)
             m = m.model_copy(update={"stddev": sd.model_copy(update={"x_s": s, "y_s": s})})
         mods.append(m)
-    out = dataclasses.replace(ref, params=moved.model_copy(update={"modules": mods}))
-    note = (
-        f"the reference (frame {ref.params.frame}) re-expressed in design-fit: its steering "
-        f"axes fitted to the nominal ones, turned {math.degrees(phi):+.3f} deg and moved "
+    return moved.model_copy(update={"modules": mods}), phi, t
+
+
+def _moved(what: str, frame: str, phi: float, t: FloatArray) -> str:
+    return (
+        f"{what} (frame {frame}) re-expressed in design-fit: its steering axes fitted to the "
+        f"nominal ones, turned {math.degrees(phi):+.3f} deg and moved "
         f"{float(np.hypot(*t)) * 1e3:.1f} mm"
     )
-    return out, note
+
+
+def in_design_fit(ref: KinematicFile, nominal: RobotParams) -> tuple[KinematicFile, str]:
+    """A reference file re-expressed in the design-fit frame of a result without motion
+    capture (:func:`params_in_design_fit`), and a sentence saying so."""
+    moved, phi, t = params_in_design_fit(ref.params, nominal)
+    return dataclasses.replace(ref, params=moved), _moved("the reference", ref.params.frame, phi, t)
+
+
+def result_in_design_fit(
+    doc: dict[str, Any], nominal: RobotParams
+) -> tuple[dict[str, Any], str]:
+    """A result in frame R (motion capture) re-expressed in design-fit, to be compared with
+    a reference in that frame (a calibration without motion capture: its frame R is not
+    known, so the result goes to it), and a sentence saying so."""
+    mods = [
+        ModuleParams(
+            id=int(m["id"]), **{k: m[k] for k in PARAM_NAMES},
+            stddev=None if m.get("stddev") is None else ModuleStddev(**m["stddev"]),
+        )
+        for m in doc["modules"]
+    ]  # fmt: skip
+    moved, phi, t = params_in_design_fit(RobotParams(modules=mods), nominal)
+    out = []
+    for m, new in zip(doc["modules"], moved.modules, strict=True):
+        sd = None if new.stddev is None else new.stddev.model_dump()
+        out.append({**m, **{k: getattr(new, k) for k in PARAM_NAMES}, "stddev": sd})
+    return {**doc, "modules": out}, _moved("this result", "R", phi, t)
 
 
 def compare(
@@ -507,6 +549,9 @@ def comparison(run_id: str, rt: Rt) -> Comparison:
     note = None
     if ref is not None and frame == DESIGN_FIT and ref.params.frame != DESIGN_FIT:
         ref, note = in_design_fit(ref, rt.config.nominal)
+    elif ref is not None and frame != DESIGN_FIT and ref.params.frame == DESIGN_FIT:
+        doc, note = result_in_design_fit(doc, rt.config.nominal)
+        frame = DESIGN_FIT
     return Comparison(
         run=run_id,
         reference=reference,
@@ -519,6 +564,7 @@ def comparison(run_id: str, rt: Rt) -> Comparison:
         significance_k=SIGNIFICANCE_K,
         within_tolerance=bool(doc.get("within_tolerance")),
         installed=bool(doc.get("installed")),
+        install_held=doc.get("install_held"),
         rows=compare(run_id, doc, ref, tol),
     )
 

@@ -182,12 +182,39 @@ def result_document(
 @dataclass(frozen=True)
 class Written:
     """What :func:`write_result` did: within tolerance, installed, the backup of the file
-    it replaced, the result document."""
+    it replaced, the result document, and why a result within tolerance was not installed
+    by ``if-within-tolerance`` (``held``)."""
 
     within: bool
     installed: bool
     backup: Path | None
     document: dict[str, Any]
+    held: str | None = None
+
+
+def frame_in_force(path: Path) -> str | None:
+    """The frame of the kinematic file at ``path``; None when there is none or it does not
+    load (a broken file holds nothing back)."""
+    try:
+        return load_kinematics(path).params.frame if path.is_file() else None
+    except (KinematicFileError, OSError):
+        return None
+
+
+def held_back(result: CalibrationResult, in_force: str | None) -> str | None:
+    """Why ``if-within-tolerance`` does not install ``result`` over a file in force in
+    another frame (None: nothing holds it back).  Parameters of two frames (R of the motion
+    capture, design-fit of a calibration without it) differ by the frames' rotation and
+    offset, not by the robot: what odometry then reads would move by that much without the
+    operator having chosen it."""
+    frame = result.params.frame
+    if in_force is None or in_force == frame:
+        return None
+    return (
+        f"the file in force is in frame {in_force}, this result in frame {frame}: a file of "
+        "another frame is installed only when asked (install: always, or Install on the "
+        "result page)"
+    )
 
 
 def write_result(
@@ -203,9 +230,13 @@ def write_result(
 ) -> Written:
     """The run's WRITE: its kinematic file (with ``provenance`` and the quality figures)
     in ``run_dir``, installed at ``kinematics_path`` when ``install`` is ``always``, or
-    ``if-within-tolerance`` and every std dev is within the config's tolerances."""
+    ``if-within-tolerance``, every std dev is within the config's tolerances and the file
+    in force, if any, is in the result's frame (:func:`held_back`)."""
     ok = within_tolerance(result, config.tolerances)
-    installed = install == "always" or (install == "if-within-tolerance" and ok)
+    held = None
+    if install == "if-within-tolerance" and ok:
+        held = held_back(result, frame_in_force(kinematics_path))
+    installed = install == "always" or (install == "if-within-tolerance" and ok and held is None)
     extra = {"provenance": provenance, "quality": result.quality_document()}
     save_kinematics(
         run_dir / "kinematics.yaml", result.params, extra=extra, covariance=result.covariance
@@ -222,4 +253,5 @@ def write_result(
         within=ok,
         installed=installed,
     )
-    return Written(ok, installed, backup, document)
+    document["install_held"] = held
+    return Written(ok, installed, backup, document, held)

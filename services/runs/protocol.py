@@ -361,6 +361,7 @@ class CalibrationRun(RunMachine):
                 within_tolerance=out.within,
                 install=self.install,
                 result=str(self.run_dir / "kinematics.yaml"),
+                held=out.held,
             )
         self.status.installed = out.installed
         self.result_doc = out.document

@@ -508,7 +508,7 @@ def test_a_calibration_without_motion_capture_from_the_page(
     wait_for("its panels", lambda: not d.find_element(By.ID, "res-world-figure").is_displayed())
     summary = text(d, "res-summary")
     assert "compared with" in summary and "the no file" not in summary, summary
-    assert text(d, "res-frame").startswith("Frame design-fit (no motion capture)")
+    assert text(d, "res-frame").startswith("Compared in frame design-fit")
     check_view(d, "result")
     shot(d, "12-result-imu")
     assert severe_logs(d) == []

@@ -629,12 +629,13 @@ function renderComparison(cmp) {
   $("res-summary").replaceChildren(
     el("b", { class: cmp.within_tolerance ? "yes" : "no" }, cmp.within_tolerance ? "Within tolerance" : "Over tolerance"),
     " · ", cmp.is_in_force ? el("b", { class: "yes" }, "this result is in force") :
-      (cmp.installed ? "installed at the run's end, since replaced" : "not installed"),
+      (cmp.installed ? "installed at the run's end, since replaced"
+        : "not installed" + (cmp.install_held ? ` (${cmp.install_held})` : "")),
     " · compared with " + ref + `; significant = change over ${cmp.significance_k} std devs.`);
   $("res-frame").textContent = cmp.frame === "design-fit"
-    ? "Frame design-fit (no motion capture): the steering axes best aligned with the nominal ones" +
+    ? "Compared in frame design-fit: the steering axes best aligned with the nominal ones" +
       (cmp.frame_note ? `; ${cmp.frame_note}.` : ".")
-    : "Frame R: the motion capture's rigid body.";
+    : "Compared in frame R: the motion capture's rigid body.";
   $("res-ref-head").textContent = { "replaced file": "Replaced", "file in force": "In force", nominal: "Reference (none)" }[cmp.reference];
   $("res-install").disabled = cmp.is_in_force;
   $("res-install-note").textContent = cmp.is_in_force ? "already the file in force" : "";
