@@ -11,11 +11,13 @@ with its std devs.  Per module and parameter the trend is the weighted line of
 newest calibration's), the tolerance the robot config's (``tolerances``: position for
 ``x_s``, ``y_s``, ``b``; ``beta``; ``radius`` for ``r``; the largest std dev a calibration
 may have, here the largest change the file may be off by).  ``x_s``, ``y_s`` and ``beta``
-depend on the frame of the parameters: their trend uses the points in the reference's
-frame only (a calibration without motion capture is in its design-fit frame); ``b`` and
-``r`` do not.  A check without motion capture (frame ``file-fit``: fitted to the file it
-checked, its scales the file's) is shown but enters no trend: it measures changes of the
-robot's shape, not values.
+depend on the frame of the parameters (a calibration without motion capture is in its
+design-fit frame): a point of another frame than the reference's is re-expressed in it when
+it can be (a motion-capture point, frame R, in design-fit: :func:`in_reference_frame`), else
+neither drawn nor in the trend (``value`` null, ``other_frame`` true: a design-fit point
+has no frame R); ``b`` and ``r`` do not depend on it.  A check without motion capture
+(frame ``file-fit``: fitted to the file it checked, its scales the file's) is shown but
+enters no trend: it measures changes of the robot's shape, not values.
 
 Values are in display units (mm, deg; slopes per week): :data:`swpc_hw.calibration.report.DISPLAY`.
 """
@@ -28,13 +30,20 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from services.config.robot import TOLERANCE_OF, RobotConfig
 from services.runtime.errors import NoFileError
 from services.runtime.runtime import Runtime
 from swpc_hw.calibration.check.trend import linear_trend
 from swpc_hw.calibration.report import DISPLAY
-from swpc_hw.robot.frames import DESIGN_FIT, FILE_FIT
-from swpc_hw.robot.model import PARAM_NAMES
+from swpc_hw.robot.frames import (
+    DESIGN_FIT,
+    FILE_FIT,
+    design_fit_transform,
+    transform_parameters,
+)
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 
 WEEK = 7 * 86400.0
 FRAME_FREE = frozenset({"b", "r"})
@@ -105,6 +114,32 @@ def points(rt: Runtime, since: str | None = None) -> list[Point]:
     return sorted(out, key=lambda p: epoch(p.time))
 
 
+def in_reference_frame(
+    p: Point, frame: str, nominal: RobotParams
+) -> dict[int, dict[str, tuple[float, float]]] | None:
+    """``p``'s modules in ``frame``: as they are in it; a point in R re-expressed in
+    design-fit (its steering axes fitted to the nominal ones,
+    :func:`swpc_hw.robot.frames.design_fit_transform`; std devs of ``x_s`` and ``y_s`` the
+    larger of the two, as the result's comparison does); None when it cannot be."""
+    if p.frame == frame:
+        return p.modules
+    if not (p.frame == "R" and frame == DESIGN_FIT):
+        return None
+    ids = [m for m in sorted(p.modules) if m in nominal.ids]
+    if len(ids) < 2:
+        return None
+    X = np.array([[p.modules[m][k][0] for k in PARAM_NAMES] for m in ids])
+    Q = np.array([[nominal.module(m).x_s, nominal.module(m).y_s] for m in ids])
+    phi, t = design_fit_transform(X[:, 0:2], Q)
+    Y = transform_parameters(X, phi, t)
+    out = {}
+    for row, m in zip(Y, ids, strict=True):
+        sd = {k: p.modules[m][k][1] for k in PARAM_NAMES}
+        sd["x_s"] = sd["y_s"] = max(sd["x_s"], sd["y_s"])
+        out[m] = {k: (float(v), sd[k]) for k, v in zip(PARAM_NAMES, row, strict=True)}
+    return out
+
+
 def parameter_series(
     pts: list[Point],
     reference: dict[int, dict[str, float]] | None,
@@ -118,12 +153,20 @@ def parameter_series(
     robot differ by that much more than their std devs say, docs/check.md)."""
     ids = sorted({m for p in pts for m in p.modules} | set(reference or {}))
     rep = dict(zip(PARAM_NAMES, config.check.repeatability.per_parameter(), strict=True))
+    placed = {p.run: in_reference_frame(p, reference_frame, config.nominal) for p in pts}
+    nan = (float("nan"), float("nan"))
     out = []
     for mid in ids:
         mine = [p for p in pts if mid in p.modules]
         for k in PARAM_NAMES:
             unit, f = DISPLAY[k]
-            values = [p.modules[mid][k] for p in mine]
+            free = k in FRAME_FREE
+            values = [
+                p.modules[mid][k] if free or p.frame == FILE_FIT
+                else (placed[p.run] or {}).get(mid, {}).get(k, nan)
+                for p in mine
+            ]  # fmt: skip
+            other = [not (free or p.frame == FILE_FIT) and placed[p.run] is None for p in mine]
             ref = None if reference is None or mid not in reference else reference[mid][k] * f
             if ref is None:  # none in force: the newest calibration's
                 cal = [v for p, v in zip(mine, values, strict=True) if p.kind == "calibration"]
@@ -131,8 +174,8 @@ def parameter_series(
             tol = float(getattr(config.tolerances, TOLERANCE_OF[k])) * f
             used = [
                 (epoch(p.time), v * f, math.hypot(sd, rep[k]) * f)
-                for p, (v, sd) in zip(mine, values, strict=True)
-                if p.frame != FILE_FIT and (k in FRAME_FREE or p.frame == reference_frame)
+                for p, (v, sd), o in zip(mine, values, other, strict=True)
+                if p.frame != FILE_FIT and not o
             ]
             tr = None
             if ref is not None and used:
@@ -154,9 +197,11 @@ def parameter_series(
             series = [
                 {
                     "time": p.time, "run": p.run, "kind": p.kind, "frame": p.frame,
-                    "value": v * f, "stddev": sd * f,
+                    "value": None if o else v * f, "stddev": None if o else sd * f,
+                    "other_frame": o,
+                    "re_expressed": not (o or free or p.frame in (FILE_FIT, reference_frame)),
                 }
-                for p, (v, sd) in zip(mine, values, strict=True)
+                for p, (v, sd), o in zip(mine, values, other, strict=True)
             ]  # fmt: skip
             out.append(
                 {
@@ -198,6 +243,9 @@ def history_document(rt: Runtime, since: str | None = None) -> dict[str, Any]:
         kf, info, _ = rt.file_in_force()
     except NoFileError:  # none in force, or it does not load: the newest calibration's
         kf = None
+    cals = [p for p in pts if p.kind == "calibration"]
+    if cals:  # none in force: the newest calibration's values, in its frame
+        frame = cals[-1].frame
     if kf is not None:
         frame = kf.params.frame
         reference = {

@@ -11,12 +11,17 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
 
+from services.config.robot import RobotConfig
 from services.http.app import create_app
+from services.runtime.history import Point, epoch, parameter_series
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.robot.frames import DESIGN_FIT, design_fit_transform, transform_robot
+from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from tests.service_rig import AUTH
 from tests.services.http.console_rig import NOMINAL, TRUTH, bare_runtime, new_run
 
@@ -64,3 +69,53 @@ def test_a_mocap_result_over_a_design_fit_file_is_held_and_compared_in_design_fi
         assert r.status_code == 200, r.text
     assert load_kinematics(path).params.frame == "R"
     assert any(p.read_bytes() == before for p in path.parent.glob("kinematics.*.yaml"))
+
+
+def point(run: str, day: int, params: RobotParams, frame: str) -> Point:
+    sd = 0.1e-3
+    return Point(
+        run=run, kind="calibration", time=f"2026-11-{day:02d}T12:00:00Z", frame=frame,
+        installed=None, verdict=None,
+        modules={
+            m.id: {k: (float(getattr(m, k)), sd) for k in PARAM_NAMES} for m in params.modules
+        },
+    )  # fmt: skip
+
+
+def test_drift_draws_each_calibration_in_the_references_frame_or_not_at_all() -> None:
+    """Two motion-capture calibrations (R) and one without (design-fit) of the same robot:
+    Drift drew the design-fit one as an outlier by the frames' turn in every beta and
+    position.  Against a design-fit file the R points are re-expressed in design-fit
+    (they then agree with it); against an R file the design-fit point is not drawn and
+    not in the trend (a design-fit result has no frame R)."""
+    config = RobotConfig.model_validate({"nominal": NOMINAL.model_dump()})
+    phi, t = design_fit_transform(TRUTH.arrays().P_s, NOMINAL.arrays().P_s)
+    fitted = transform_robot(TRUTH, phi, t, DESIGN_FIT)
+    pts = [point("a", 1, TRUTH, "R"), point("g", 2, fitted, DESIGN_FIT), point("b", 3, TRUTH, "R")]
+    now = epoch("2026-11-04T12:00:00Z")
+
+    def series(reference: RobotParams) -> dict[tuple[int, str], dict[str, Any]]:
+        ref = {m.id: {k: float(getattr(m, k)) for k in PARAM_NAMES} for m in reference.modules}
+        got = parameter_series(pts, ref, reference.frame, config, now)
+        return {(s["module"], s["param"]): s for s in got}
+
+    in_df = series(fitted)
+    for m in TRUTH.modules:
+        beta = in_df[(m.id, "beta")]
+        by_run = {q["run"]: q for q in beta["points"]}
+        assert by_run["a"]["re_expressed"] and not by_run["g"]["re_expressed"]
+        assert not any(q["other_frame"] for q in beta["points"])
+        for q in beta["points"]:  # all three are the truth in design-fit
+            assert q["value"] == pytest.approx(beta["reference"], abs=1e-9), q
+        assert beta["trend"]["points"] == 3
+    in_r = series(TRUTH)
+    for m in TRUTH.modules:
+        for k in ("x_s", "y_s", "beta"):
+            s = in_r[(m.id, k)]
+            g = next(q for q in s["points"] if q["run"] == "g")
+            assert g["other_frame"] and g["value"] is None, g
+            assert s["trend"]["points"] == 2
+        r = next(q for q in in_r[(m.id, "r")]["points"] if q["run"] == "g")
+        assert not r["other_frame"] and r["value"] is not None  # r is the same in any frame
+    # the turn the design-fit point would have shown as drift (what it drew before)
+    assert abs(math.degrees(phi)) > 0.07

@@ -816,9 +816,13 @@ async function showDrift() {
       (tr.outside ? " · outside its tolerance now" : "") +
       (tr.leaves_tolerance ? ` · leaves ±${fmt(p.tolerance, d(p))} ${p.unit} on ${dateOf(tr.leaves_tolerance)}` :
         " · no significant trend");
+    const other = p.points.filter((q) => q.other_frame).length;
+    const moved = p.points.filter((q) => q.re_expressed).length;
+    const frames = (moved ? ` · ${moved} from motion capture re-expressed in design-fit` : "") +
+      (other ? ` · ${other} of another frame not drawn` : "");
     return el("figure", { "data-param": `${p.module}.${p.param}` },
       el("h3", {}, `module ${p.module} ${p.param} (${p.unit})`), driftChart(p, verdicts),
-      el("figcaption", { class: "muted" }, what));
+      el("figcaption", { class: "muted" }, what + frames));
   }));
   if (!h.parameters.length) $("drift-charts").replaceChildren(el("p", {}, "No calibration or check finished yet."));
   checks.reverse();
