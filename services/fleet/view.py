@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from services.config.fleet import fleet_period
+from swpc_hw.robot.frames import DESIGN_FIT
 from swpc_hw.robot.model import PARAM_NAMES
 
 WEEK_S = 7 * 86400.0
@@ -63,15 +64,30 @@ def calibrations(docs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return sorted(by_run.values(), key=lambda c: (epoch(str(c.get("time"))) or 0.0, c["run"]))
 
 
+FRAME_FREE = frozenset({"b", "r"})
+"""Parameters the same in every frame (services.runtime.history says why)."""
+
+
+def frame_of(c: dict[str, Any]) -> str:
+    """A calibration's frame: design-fit without motion capture (metrology ``imu``), else
+    R."""
+    return DESIGN_FIT if c.get("metrology") == "imu" else "R"
+
+
 def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per module and parameter: the series (time, run, value, std dev) over ``cals``,
-    first, last, change (last - first) and change per week (None with one time only)."""
+    first, last, change (last - first) and change per week (None with one time only).
+    Positions and ``beta`` over the calibrations in the newest one's frame only (``frame``):
+    a change between frames is the frames' turn and offset, not the robot's drift."""
     series: dict[tuple[int, str], list[dict[str, Any]]] = {}
+    newest = frame_of(cals[-1]) if cals else "R"
     for c in cals:
         t = epoch(str(c.get("time")))
         for m in c["modules"]:
             std = m.get("stddev") or {}
             for k in PARAM_NAMES:
+                if k not in FRAME_FREE and frame_of(c) != newest:
+                    continue
                 v = m.get(k)
                 if v is None or not math.isfinite(float(v)):
                     continue
@@ -99,6 +115,7 @@ def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                 "last": last["value"],
                 "change": change,
                 "per_week": change / span * WEEK_S if span else None,
+                "frame": "any" if param in FRAME_FREE else newest,
                 "points": [{k: p[k] for k in ("time", "run", "value", "stddev")} for p in pts],
             }
         )

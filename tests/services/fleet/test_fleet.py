@@ -379,3 +379,30 @@ def test_the_service_publishes_when_told_to_and_never_otherwise(tmp_path: Path) 
             if session is not None:
                 session.close()
         router.close()
+
+
+def test_drift_compares_positions_and_beta_within_one_frame() -> None:
+    """A calibration without motion capture (design-fit) between two with it (R): its
+    positions and beta differ by the frames' turn, which the fleet's largest drift showed
+    as the robot's.  They are compared within the newest calibration's frame; b and r in
+    all of them."""
+
+    def cal(run: str, day: int, metrology: str, beta: float, r: float) -> dict[str, Any]:
+        mods = [{"id": i, "x_s": 0.2, "y_s": 0.1, "beta": beta, "b": 0.02, "r": r,
+                 "stddev": None} for i in (1, 2)]  # fmt: skip
+        return {"run": run, "time": f"2026-11-{day:02d}T00:00:00Z", "metrology": metrology,
+                "installed": True, "modules": mods}  # fmt: skip
+
+    turn = math.radians(3.0)
+    cals = [cal("a", 1, "mocap", 0.0, 0.05), cal("g", 8, "imu", turn, 0.0499),
+            cal("b", 15, "mocap", 1e-4, 0.0498)]  # fmt: skip
+    by = {(d["module"], d["param"]): d for d in drift(cals)}
+    beta, r = by[(1, "beta")], by[(1, "r")]
+    assert [p["run"] for p in beta["points"]] == ["a", "b"] and beta["frame"] == "R"
+    assert beta["change"] == pytest.approx(1e-4)  # not the 3 deg turn of run g
+    assert [p["run"] for p in r["points"]] == ["a", "g", "b"] and r["frame"] == "any"
+    # the newest without motion capture: its frame's calibrations only (one: no change)
+    gyro_last = drift([*cals, cal("h", 22, "imu", turn + 2e-4, 0.0497)])
+    beta = next(d for d in gyro_last if d["module"] == 1 and d["param"] == "beta")
+    assert [p["run"] for p in beta["points"]] == ["g", "h"] and beta["frame"] == "design-fit"
+    assert beta["change"] == pytest.approx(2e-4)

@@ -104,7 +104,7 @@ async function showDrift(name) {
     el("td", { class: "num" }, d.module), el("td", {}, `${d.param} (${SCALE[d.param][1]})`),
     el("td", { class: "num" }, fmt(d.first, d.param)), el("td", { class: "num" }, fmt(d.last, d.param)),
     el("td", { class: "num" }, fmt(d.change, d.param)),
-    el("td", { class: "num" }, d.per_week === null ? "–" : fmt(d.per_week, d.param)),
+    el("td", { class: "num" }, d.per_week === null ? "–" : `${fmt(d.per_week, d.param)} ${SCALE[d.param][1]}/week`),
     el("td", {}, spark(d.points, d.param))));
   document.getElementById("drift-rows").replaceChildren(...rows);
   sec.hidden = false;
