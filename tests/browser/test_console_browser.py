@@ -274,10 +274,15 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     # the nominal file is in force: every row compares with it
     row = d.find_element(By.CSS_SELECTOR, '#res-rows tr[data-param="1.x_s"]')
     cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
-    assert cells[0] == "1 x_s (mm)" and cells[1] == "215.000" and cells[4] == "215.000"
-    assert float(cells[5]) == pytest.approx(float(cells[2]) - 215.0, abs=2e-3)
-    assert cells[6] == "yes" and cells[7] == "yes"  # significant (truth: Table 4), within
-    changed = cells[5]
+    assert cells[0] == "1 x_s (mm)" and cells[1] == "215.000" and cells[6] == "215.000"
+    # the std dev beside its tolerance (the robot config's position tolerance), then within
+    cmp = httpx.get(f"{service['url']}/calibrations/{run_id}/comparison", timeout=10).json()
+    tol = next(r["tolerance"] for r in cmp["rows"] if (r["module"], r["param"]) == (1, "x_s"))
+    assert float(cells[4]) == pytest.approx(tol, abs=1e-4)
+    assert float(cells[3]) <= float(cells[4]) and cells[5] == "yes"
+    assert float(cells[7]) == pytest.approx(float(cells[2]) - 215.0, abs=2e-3)
+    assert cells[8] == "yes"  # significant (truth: Table 4)
+    changed = cells[7]
     assert "not installed" in text(d, "res-summary")
     assert "compared with the file in force, kinematics.yaml (not from a run)" in text(
         d, "res-summary"
@@ -309,7 +314,7 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     row = d.find_element(By.CSS_SELECTOR, '#res-rows tr[data-param="1.x_s"]')
     cells = [c.text for c in row.find_elements(By.CSS_SELECTOR, "th, td")]
     # still compared with the file its install replaced (it compared with itself: 0.000)
-    assert cells[4] == "215.000" and cells[5] == changed and cells[6] == "yes"
+    assert cells[6] == "215.000" and cells[7] == changed and cells[8] == "yes"
     assert "compared with the file its install replaced, kept as kinematics." in text(
         d, "res-summary"
     )
@@ -506,6 +511,8 @@ def test_a_calibration_without_motion_capture_from_the_page(
     wait_for("this run's result", lambda: text(d, "res-id") == run_id)
     wait_for("its rows", lambda: len(css(d, "#res-rows tr")) == 20)
     wait_for("its panels", lambda: not d.find_element(By.ID, "res-world-figure").is_displayed())
+    # no fixed points without motion capture: the caption does not promise them
+    assert not d.find_element(By.ID, "res-modules-fixed").is_displayed()
     summary = text(d, "res-summary")
     assert "compared with" in summary and "the no file" not in summary, summary
     assert text(d, "res-frame").startswith("Compared in frame design-fit")
@@ -533,6 +540,9 @@ def test_the_plan_is_shown_before_start_and_runs(
     assert f"{plan['protocol']['sweep_deg']:g} deg sweeps" in planned
     assert "Targets: position 0.5 mm, beta 0.2 deg, radius 0.2 mm; the square path within " \
         "0.5 mm, 0.016 deg" in planned
+    # the form's own protocol settings are not used: greyed out, not left looking in force
+    assert d.find_element(By.ID, "f-sweep").get_attribute("disabled") is not None
+    assert d.find_element(By.ID, "f-angles").get_attribute("disabled") is not None
     check_view(d, "run, planned")
     shot(d, "14-plan")
     before = text(d, "run-id")
@@ -564,6 +574,7 @@ def test_the_plan_is_shown_before_start_and_runs(
     assert f["ratio"] <= 1.0
     d.find_element(By.ID, "f-plan").click()  # as the other tests left it
     assert text(d, "plan-text") == ""
+    assert d.find_element(By.ID, "f-sweep").get_attribute("disabled") is None
 
 
 def test_an_abort_from_a_tab_without_the_token_stops_at_the_first_press(

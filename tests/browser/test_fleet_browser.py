@@ -120,7 +120,12 @@ def test_the_fleet_page_shows_five_robots_then_one_stale(
     kill_to_page = time.monotonic() - t0
     got = statuses(d)
     assert got == {**dict.fromkeys(ROBOTS, "live"), "robot1": "stale"}
-    assert "liveliness token" in d.find_element(By.CSS_SELECTOR, 'tr[data-robot="robot1"]').text
+    row1 = d.find_element(By.CSS_SELECTOR, 'tr[data-robot="robot1"]').text
+    assert "liveliness token" in row1
+    # its health is its last word, not a state now (it said "ok" before it was killed)
+    assert "unknown now (last said ok" in row1, row1
+    live = d.find_element(By.CSS_SELECTOR, 'tr[data-robot="robot2"]').text
+    assert "unknown now" not in live, live
     assert "4 live, 1 stale" in d.find_element(By.ID, "fleet-counts").text
     shot(d, "fleet-stale")
     after = httpx.get(f"{service['url']}/robots").json()

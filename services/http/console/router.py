@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import math
 import re
 import zipfile
@@ -49,6 +50,7 @@ from services.http.deps import Problem, Rt, done_result, problems
 from services.http.drives import drives_view
 from services.http.edge.guard import has_token
 from services.http.edge.streams import StreamGate, StreamRefusedError, Ticket
+from services.runs.plots import MODULE_COLOURS
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL
 from services.runtime.health import simulated_time_still
@@ -328,6 +330,16 @@ _geometry_cache: OrderedDict[tuple[str, str], RunGeometry] = OrderedDict()
 @router.get("/", include_in_schema=False)
 def index() -> FileResponse:
     return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+@router.get("/console/palette.js", include_in_schema=False)
+def palette() -> Response:
+    """The modules' colours of the run's plot (:data:`services.runs.plots.MODULE_COLOURS`),
+    for the page: one module, one colour on both."""
+    body = f"const COLORS = {json.dumps(list(MODULE_COLOURS))};\n"
+    return Response(
+        body, media_type="text/javascript; charset=utf-8", headers={"Cache-Control": "no-cache"}
+    )
+
 
 @router.get("/console/{name}", include_in_schema=False)
 def asset(name: str) -> FileResponse:

@@ -33,6 +33,7 @@ from mcap.writer import Writer
 
 from services.http.app import create_app
 from services.http.console.router import mcap_summary
+from services.runs.plots import MODULE_COLOURS
 from services.runs.protocol import CalibrationRun
 from services.runtime.runtime import Runtime
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
@@ -305,6 +306,12 @@ def test_a_runs_geometry_and_files(svc: dict[str, Any]) -> None:
     assert page.status_code == 200 and "/console/console.js" in page.text
     assert "http" not in page.text.replace("http-equiv", "")  # nothing from elsewhere
     assert client.get("/console/console.js").headers["content-type"].startswith("text/javascript")
+    # one module, one colour: the page's are the run plot's (served, not copied)
+    palette = client.get("/console/palette.js")
+    assert palette.headers["content-type"].startswith("text/javascript")
+    assert palette.text == f"const COLORS = {json.dumps(list(MODULE_COLOURS))};\n"
+    assert "const COLORS" not in client.get("/console/console.js").text
+    assert page.text.index("/console/palette.js") < page.text.index("/console/console.js")
     assert client.get("/console/..%2Fapi.py").status_code == 404
     # the endless stream stays out of the schema (a schema fuzzer would wait on it for ever)
     paths = client.get("/openapi.json").json()["paths"]

@@ -5,7 +5,7 @@
 
 const $ = (id) => document.getElementById(id);
 const SVG_NS = "http://www.w3.org/2000/svg";
-const COLORS = ["#0b4fa8", "#b3001b", "#0a6b2d", "#6a1b9a", "#8a4b00", "#00607a"];
+// COLORS: the modules' colours, from /console/palette.js (the run plot's, one per module)
 const TERMINAL = new Set(["DONE", "FAILED", "ABORTED"]);
 const TOKEN_KEY = "swpc-token";
 
@@ -298,10 +298,15 @@ function planText(p) {
       `${g(r.square_heading_deg)} deg (predicted ${p.square_position_mm.toFixed(2)} mm, ` +
       `${p.square_heading_deg.toFixed(4)} deg)`;
   }
-  return t + ". The protocol settings below are not used.";
+  return t + ". The protocol settings of the form are not used (greyed out).";
 }
+// the form's protocol settings, which a planned run does not use
+const PROTOCOL_FIELDS = ["f-angles", "f-sweep", "f-modules", "f-settle", "f-stop", "f-align",
+  "f-resteer", "f-drive", "f-rest"];
 async function showPlan() {
-  if (!$("f-plan").checked) { $("plan-text").textContent = ""; return; }
+  const planned = $("f-plan").checked;
+  for (const id of PROTOCOL_FIELDS) $(id).disabled = planned;
+  if (!planned) { $("plan-text").textContent = ""; return; }
   $("plan-text").textContent = "Planning (seconds to a minute)...";
   for (;;) {
     let r;
@@ -643,10 +648,10 @@ function renderComparison(cmp) {
   $("res-rows").replaceChildren(...cmp.rows.map((r) => el("tr", { "data-param": `${r.module}.${r.param}` },
     el("th", { scope: "row" }, `${r.module} ${r.param} `, el("span", { class: "muted" }, `(${r.unit})`)),
     el("td", { class: "num" }, fmt(r.nominal, d(r))), el("td", { class: "num" }, fmt(r.calibrated, d(r))),
-    el("td", { class: "num" }, fmt(r.stddev, d(r) + 1)), el("td", { class: "num" }, fmt(r.reference_value, d(r))),
-    el("td", { class: "num" }, signed(r.change, d(r))),
-    el("td", { title: `|change| > ${cmp.significance_k} std devs` }, chip(r.significant, "yes", "no", false)),
-    el("td", { title: `std dev <= ${fmt(r.tolerance, d(r) + 1)} ${r.unit}` }, chip(r.within_tolerance, "yes", "NO", true)))));
+    el("td", { class: "num" }, fmt(r.stddev, d(r) + 1)), el("td", { class: "num" }, fmt(r.tolerance, d(r) + 1)),
+    el("td", {}, chip(r.within_tolerance, "yes", "NO", true)),
+    el("td", { class: "num" }, fmt(r.reference_value, d(r))), el("td", { class: "num" }, signed(r.change, d(r))),
+    el("td", { title: `|change| > ${cmp.significance_k} std devs` }, chip(r.significant, "yes", "no", false)))));
 }
 async function installResult() {
   const id = app.resultRun;
@@ -675,6 +680,7 @@ function renderGeometry(geo) {
   drawSpins(g, geo.spins, w);
   scaleBar(world, w);
   $("res-world-figure").hidden = !geo.spins.length;  // without motion capture: no path
+  $("res-modules-fixed").hidden = !geo.spins.length;  // ... and no fixed points (×) to draw
   const panels = geo.calibrated.map((cal) => {
     const nom = geo.nominal.find((n) => n.id === cal.id);
     const el2 = svg("svg", { role: "img", "aria-label": `module ${cal.id} in the robot frame` });

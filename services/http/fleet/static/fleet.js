@@ -67,7 +67,9 @@ function robotRow(r) {
   const file = f === null ? "none" : f.error ? `unreadable: ${f.error}` :
     `${f.created || "?"}${f.run ? ` (run ${f.run})` : " (by hand)"}`;
   const chk = r.last_check === null ? "none yet" : (r.last_check.verdict || JSON.stringify(r.last_check));
-  const health = r.health ? r.health.status : "–";
+  // a stale robot's health is its last word, not its state now: said so
+  const health = !r.health ? "–" : r.status === "live" ? r.health.status
+    : `unknown now (last said ${r.health.status}, ${ago(r.age_s)})`;
   return el("tr", { "data-robot": r.robot },
     el("th", { scope: "row" }, name), statusCell(r),
     el("td", {}, `${r.last_seen} (${ago(r.age_s)})`), el("td", {}, file), el("td", {}, chk),
