@@ -89,29 +89,14 @@ def parameters_digest(result: dict[str, Any]) -> str:
     return hashlib.sha256(" ".join(values).encode()).hexdigest()[:16]
 
 
-def tape_references(seed: int, stddev: float | None = None) -> list[dict[str, Any]]:
+def tape_references(http: httpx.Client, seed: int) -> list[dict[str, Any]]:
     """What the operator measures with a tape before a run without motion capture: the
-    distances between the steering axes of every pair of modules (the simulator's truth,
-    with the tape's error)."""
-    import itertools
-
-    import numpy as np
-
-    from simulators.offline.datagen_imu import ReferenceOptions
-
-    stddev = ReferenceOptions.stddev if stddev is None else stddev
-    rng = np.random.default_rng([seed, 20])
-    a = PAPER_CALIBRATED.arrays()
-    ids = PAPER_CALIBRATED.ids
-    return [
-        {
-            "kind": "axis_distance",
-            "modules": [ids[i], ids[j]],
-            "value": float(np.linalg.norm(a.P_s[i] - a.P_s[j])) + float(rng.normal(0, stddev)),
-            "stddev": stddev,
-        }
-        for i, j in itertools.combinations(range(len(ids)), 2)
-    ]
+    distances between the steering axes of every pair of modules, each read twice, as the
+    simulator's tape reads them (``GET /simulator/axis-distances``, the console's "Read
+    the simulator's tape")."""
+    r = http.get("/simulator/axis-distances", params={"seed": seed})
+    r.raise_for_status()
+    return list(r.json()["references"])
 
 
 def operator_step(
@@ -281,7 +266,7 @@ def run_service_demo(
         auth = {"Authorization": f"Bearer {svc.token}"}
         body: dict[str, Any] = {}
         if metrology == "imu":
-            body = {"metrology": "imu", "references": tape_references(seed)}
+            body = {"metrology": "imu", "references": tape_references(http, seed)}
             print("without motion capture: the tape-measured distances between the steering "
                   "axes go with the request")  # fmt: skip
         r = http.post("/calibrations", json=body, headers=auth)

@@ -72,6 +72,7 @@ options (noise, dropouts, outliers, latency, clock offset).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import threading
 import time
@@ -623,6 +624,22 @@ class VirtualRobot:
             p0, p1 = self.history.at(start), self.history.at(end)
         travel = axis_travel(p0, p1, self.robot.arrays.P_s[0])
         return tape_measure(travel, stddev, np.random.default_rng([self.options.seed, seed]))
+
+    def axis_distances(
+        self, stddev: float, seed: int = 0, readings: int = 2
+    ) -> list[tuple[int, int, list[float]]]:
+        """What a tape measures between the steering axes of every pair of modules (m): per
+        pair ``(a, b, [reading, ...])``, ``readings`` readings each with the error
+        ``N(0, stddev^2)`` (seeded), of the true distance ``|P_s,a - P_s,b|``."""
+        rng = np.random.default_rng([self.options.seed, seed, 20])
+        P, ids = self.robot.arrays.P_s, self.truth.ids
+        return [
+            (ids[i], ids[j], [
+                tape_measure(float(np.linalg.norm(P[i] - P[j])), stddev, rng)
+                for _ in range(readings)
+            ])
+            for i, j in itertools.combinations(range(len(ids)), 2)
+        ]  # fmt: skip
 
     def _transmit(self, frames: Iterable[can.Message]) -> None:
         stamp = self.clock.to_wall(self.now) if self.clock is not None else 0.0

@@ -4,6 +4,9 @@
   truly travelled between the run's straight drive's start and end, plus a tape's error
   (``stddev``, default 0.5 mm), as the reference to post to
   ``/calibrations/{id}/references``.
+* ``GET /simulator/axis-distances``: the distances between the steering axes of every pair
+  of modules, each read twice with the tape's error: the references a run without motion
+  capture starts with (``axis_distance``).
 
 The router is included only when the service runs its in-process simulator: never against
 a robot.
@@ -65,3 +68,39 @@ def tape_measure(
     if not math.isfinite(value):
         raise HTTPException(409, "no finite tape reading")
     return TapeMeasure(run=run, value=value, stddev=stddev, start=drive[0], end=drive[1])
+
+
+class AxisDistanceReading(BaseModel):
+    """One pair of modules' steering axes, as the simulated tape reads it (m)."""
+
+    kind: Literal["axis_distance"] = "axis_distance"
+    modules: tuple[int, int]
+    value: float
+    stddev: float
+
+
+class AxisDistances(BaseModel):
+    """Every pair's readings, as references for ``POST /calibrations``."""
+
+    references: list[AxisDistanceReading]
+    note: str = (
+        "simulated: the in-process simulator's true distance between the two steering axes, "
+        "plus the tape's error, each pair read twice"
+    )
+
+
+@router.get("/simulator/axis-distances", response_model=AxisDistances, responses=problems(404))
+def axis_distances(
+    rt: Rt,
+    stddev: Annotated[float, Query(gt=0, le=0.1)] = DEFAULT_TAPE_STDDEV,
+    seed: int = 0,
+) -> AxisDistances:
+    """The simulated operator's tape between the steering axes (true distance plus
+    ``N(0, stddev^2)``, seeded), each pair read twice."""
+    if rt.simulator is None:
+        raise HTTPException(404, "no in-process simulator")
+    return AxisDistances(references=[
+        AxisDistanceReading(modules=(a, b), value=v, stddev=stddev)
+        for a, b, values in rt.simulator.axis_distances(stddev, seed)
+        for v in values
+    ])  # fmt: skip

@@ -20,6 +20,7 @@ is required (see the rig).
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -30,10 +31,11 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
-from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.browser.browser_rig import (
     SHOTS,
@@ -475,7 +477,7 @@ def test_a_calibration_without_motion_capture_from_the_page(
     MEASURE answered with the page's buttons (the simulator's tape read into the field),
     then the result in the design-fit frame: no empty "Spins in the world" panel (there is
     no pose), the reference re-expressed in design-fit."""
-    from tests.services.whole_runs.test_calibration_without_mocap import PROTOCOL, axis_distances
+    from tests.services.whole_runs.test_calibration_without_mocap import PROTOCOL
 
     d = browser
     d.get(service["url"] + "/#run")
@@ -485,9 +487,16 @@ def test_a_calibration_without_motion_capture_from_the_page(
     lines = css(d, "#tape-drawing line[data-pair]")
     assert sorted(ln.get_attribute("data-pair") for ln in lines) == [
         "1-2", "1-3", "1-4", "2-3", "2-4", "3-4"]  # fmt: skip
-    for n, ref in enumerate(axis_distances() + axis_distances(seed=21)):
-        a, b = ref["modules"]
-        set_field(d, f"tape-{a}-{b}-{1 + n // 6}", f"{ref['value'] * 1e3:.1f}")
+    # the simulator plays the operator's tape: twelve readings, each near the truth
+    press(d, "tape-sim")
+    P = PAPER_CALIBRATED.arrays().P_s
+    for a, b in itertools.combinations(PAPER_CALIBRATED.ids, 2):
+        i, j = PAPER_CALIBRATED.index(a), PAPER_CALIBRATED.index(b)
+        true_mm = float(np.linalg.norm(P[i] - P[j])) * 1e3
+        got = [wait_for(f"reading {n} of {a}-{b}", lambda a=a, b=b, n=n: d.find_element(
+            By.ID, f"tape-{a}-{b}-{n}").get_attribute("value")) for n in (1, 2)]  # fmt: skip
+        assert all(abs(float(g) - true_mm) < 3.0 for g in got), (a, b, got, true_mm)
+        assert got[0] != got[1]  # two readings, two errors
     set_field(d, "f-drive", str(PROTOCOL["drive_length"]))
     set_field(d, "f-rest", str(PROTOCOL["rest_time"]))
     check_view(d, "run, tape", shots="16-tape")

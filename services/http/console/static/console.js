@@ -241,8 +241,25 @@ function tapeReferences() {
   }
   return refs;
 }
+// the in-process simulator plays the operator's tape: every reading into its field
+async function readSimulatorAxes() {
+  $("start-error").textContent = "";
+  try {
+    const sd = Number($("f-tape-sd").value) / 1000;
+    const got = await api("GET", `/simulator/axis-distances?stddev=${encodeURIComponent(sd)}`);
+    const seen = {};
+    for (const r of got.references) {
+      const key = r.modules.join("-"), n = (seen[key] = (seen[key] || 0) + 1);
+      const field = $(`tape-${key}-${n}`);
+      if (field) field.value = (r.value * 1000).toFixed(1);
+    }
+  } catch (e) {
+    $("start-error").textContent = "No tape readings: " + e.message;
+  }
+}
 function showMetrology() {
   $("tape-fields").hidden = $("f-metrology").value !== "imu";
+  $("tape-sim").hidden = !(app.hello && app.hello.in_process_simulator);
 }
 // MARK and MEASURE: what the run waits for, answered here (POST .../continue, .../references)
 function renderOperator(st) {
@@ -1066,6 +1083,7 @@ function connect() {
 
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
+  $("tape-sim").addEventListener("click", readSimulatorAxes);
   // an error is about what was sent: gone once the operator changes the form
   $("start-form").addEventListener("input", () => { $("start-error").textContent = ""; });
   $("f-plan").addEventListener("change", showPlan);
