@@ -143,6 +143,10 @@ class RunStatus(BaseModel):
     """A check once DONE: does the robot still match the file (its result says more)."""
     drive_m: float | None = None
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
+    waits_for: Literal["continue", "references"] | None = None
+    """What the run waits for from its operator now, if anything: ``continue`` (MARK:
+    ``POST /calibrations/{id}/continue``) or ``references`` (MEASURE: ``POST
+    /calibrations/{id}/references``); the step says it in words."""
     elapsed_s: float | None = None
     """Robot time since the run started (s)."""
     forecast: Forecast | None = None

@@ -504,10 +504,23 @@ def test_a_calibration_without_motion_capture_from_the_page(
     assert wait_state(d, {"MARK", "FAILED", "ABORTED"}) == "MARK", text(d, "run-reason")
     wait_for("the operator's prompt", lambda: d.find_element(By.ID, "operator").is_displayed())
     assert "mark the floor under module 1's steering axis" in text(d, "op-text")
+    assert "POST" not in text(d, "op-text")  # words, not the API's calls
     check_view(d, "run, mark", shots="17-mark")
+    # the sticky bar says the run waits, in words, and takes the operator to the answer
+    # wherever the page is scrolled (issue 45 item 3: at 800 px the box was off-screen)
+    bar = wait_for("the bar's words", lambda: t if "waits for you" in (
+        t := text(d, "abort-text")) else None)  # fmt: skip
+    assert "waits for you (MARK): mark the floor under module 1's steering axis" in bar, bar
+    d.execute_script("window.scrollTo(0, document.body.scrollHeight)")
+    press(d, "bar-answer")
+    assert d.switch_to.active_element.get_attribute("id") == "op-continue"
+    top = d.execute_script("return document.getElementById('op-continue')"
+                           ".getBoundingClientRect().top")  # fmt: skip
+    assert 0 <= top <= d.execute_script("return window.innerHeight"), top
     press(d, "op-continue")
     assert wait_state(d, {"MEASURE", "FAILED", "ABORTED"}) == "MEASURE", text(d, "run-reason")
     wait_for("the measure form", lambda: d.find_element(By.ID, "op-measure").is_displayed())
+    wait_for("the bar at MEASURE", lambda: "waits for you (MEASURE)" in text(d, "abort-text"))
     press(d, "op-sim-tape")
     got = wait_for("the tape's reading", lambda: d.find_element(By.ID, "op-distance")
                    .get_attribute("value"))  # fmt: skip
@@ -515,6 +528,7 @@ def test_a_calibration_without_motion_capture_from_the_page(
     press(d, "op-send")
     assert wait_state(d, {"DONE", "FAILED", "ABORTED"}) == "DONE", text(d, "run-reason")
     assert text(d, "op-error") == "" and not d.find_element(By.ID, "operator").is_displayed()
+    assert not d.find_element(By.ID, "bar-answer").is_displayed()
     Select(d.find_element(By.ID, "f-metrology")).select_by_value("mocap")  # the next tests'
     d.find_element(By.ID, "run-result-link").click()
     wait_for("this run's result", lambda: text(d, "res-id") == run_id)

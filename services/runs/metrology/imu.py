@@ -255,6 +255,14 @@ class ImuMetrology:
         answer: it arrives at the simulated instant the run asked for it, whenever the
         person (or script) gives it, and a run is reproducible bit for bit; the timeout
         then counts host seconds."""
+        run.set_status(waits_for=self.waits_for(run.status.state))
+        run.changed()
+        try:
+            self._await_answer(run, done, what)
+        finally:
+            run.set_status(waits_for=None)
+
+    def _await_answer(self, run: RunSteps, done: threading.Event, what: str) -> None:
         timeout = run.config.protocol.operator_timeout
         if isinstance(run.clock, SimClock):
             end_host = time.monotonic() + timeout
@@ -435,9 +443,8 @@ class ImuMetrology:
         first = self._ids[0]
         run.enter(
             State.MARK,
-            f"mark the floor under module {first}'s steering axis, then continue "
-            f"(POST /calibrations/{run.id}/continue); the robot holds still, wheels braked, "
-            "and drives off once you continue",
+            f"mark the floor under module {first}'s steering axis, then continue: the robot "
+            "holds still, wheels braked, and drives off once you continue",
         )
         self._wait_operator(run, self._marked, "floor mark before the straight drive")
         run.event(logging.INFO, "run.marked")
@@ -519,8 +526,8 @@ class ImuMetrology:
         run.enter(
             State.MEASURE,
             f"measure the distance module {first}'s steering axis travelled between the two "
-            f"floor marks (the one you made and one under the axis now), then POST it with "
-            f"its std dev to /calibrations/{run.id}/references",
+            "floor marks (the one you made and one under the axis now), then send it with "
+            "its std dev",
         )
         self._wait_operator(run, self._measured, "tape measurement of the straight drive")
         self.references += self._measured_refs

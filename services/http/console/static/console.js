@@ -433,7 +433,11 @@ function renderRun() {
   $("abort-bar").hidden = !active;
   $("start").disabled = $("check").disabled = !!active;  // one run at a time: the service refuses a second
   if (!st) return;
-  $("abort-text").textContent = `${kindName(st)} ${st.id}: ${st.state}`;
+  // a run that waits for its operator says so, in words, with a way to the answer
+  $("abort-text").textContent = st.waits_for
+    ? `${kindName(st)} ${st.id} waits for you (${st.state}): ${st.step}`
+    : `${kindName(st)} ${st.id}: ${st.state}`;
+  $("bar-answer").hidden = !(active && st.waits_for);
   $("run-id").textContent = st.id;
   const s = $("run-state");
   s.textContent = st.state;
@@ -1084,6 +1088,12 @@ function connect() {
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
   $("tape-sim").addEventListener("click", readSimulatorAxes);
+  $("bar-answer").addEventListener("click", () => {
+    if (!location.hash.startsWith("#run") && location.hash !== "") { location.hash = "#run"; route(); }
+    $("operator").scrollIntoView({ block: "center" });
+    const first = app.current && app.current.waits_for === "continue" ? "op-continue" : "op-distance";
+    $(first).focus();
+  });
   // an error is about what was sent: gone once the operator changes the form
   $("start-form").addEventListener("input", () => { $("start-error").textContent = ""; });
   $("f-plan").addEventListener("change", showPlan);
