@@ -68,6 +68,10 @@ QUICK_PROTOCOL = {
 SHORT_STEPS = {"protocol": QUICK_PROTOCOL}
 SHORT = {"protocol": {"sweep_deg": 1440}}
 """A long first spin (about module 1): the faults a test injects land in it."""
+MID_SPIN = {"protocol": {"sweep_deg": 1440, "settle_time": 1.0}}
+""":data:`SHORT` with :data:`QUICK_PROTOCOL`'s 1 s settle: the same long first spin for a
+fault, reached 2 s of robot time sooner (the sweep :func:`wait_spinning` waits for is
+counted once the settle is over)."""
 
 
 @dataclass
@@ -166,10 +170,10 @@ def fault_mid_spin(
     undo: Callable[[], object] | None = None,
     guard: float = 60.0,
 ) -> tuple[dict[str, Any], float]:
-    """A run with a long first spin (:data:`SHORT`), ``fault(run_id)`` once it spins, then
-    its end (``undo()`` after it, whatever happens): ``(final status, the service clock's
-    time just before the fault)``, what every drive kind's fault table starts from."""
-    run_id = start(client, SHORT)
+    """A run with a long first spin (:data:`MID_SPIN`), ``fault(run_id)`` once it spins,
+    then its end (``undo()`` after it, whatever happens): ``(final status, the service
+    clock's time just before the fault)``, what every drive kind's fault table starts from."""
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id, guard=guard)
     t = rt.clock.now()
     try:

@@ -35,8 +35,8 @@ from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES as NAMES
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import (
+    MID_SPIN,
     QUICK_PROTOCOL,
-    SHORT,
     TOKEN,
     abort,
     bus_off,
@@ -205,7 +205,7 @@ def test_stale_motion_capture_mid_spin(
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id, guard=120)
     with sim._lock:
         before = sim.mocap.options

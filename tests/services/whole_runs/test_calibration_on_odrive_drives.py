@@ -39,6 +39,7 @@ from swpc_hw.drives.odrive.config import ODriveDrives
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.service_rig import (
     AUTH,
+    MID_SPIN,
     QUICK_PROTOCOL,
     SHORT,
     TOKEN,
@@ -195,7 +196,7 @@ def test_stale_motion_capture_mid_spin(service: tuple[TestClient, Runtime, Recor
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id)
     t = rt.clock.now()
     before = sim.mocap.options
@@ -237,7 +238,7 @@ def test_a_host_that_stops_refreshing_is_stopped_by_every_axis_watchdog(
     client, rt, rec = service
     drv = rt.drives
     assert drv is not None
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id)
     hook = drv._io_hook  # type: ignore[attr-defined]
     rt.clock.remove_hook(hook)  # type: ignore[attr-defined]

@@ -42,6 +42,7 @@ from swpc_hw.robot.model import PARAM_NAMES
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import (
     AUTH,
+    MID_SPIN,
     QUICK_PROTOCOL,
     SHORT,
     bus_off,
@@ -243,7 +244,7 @@ def assert_stopped(rec: Recorder, since: float, rt: Runtime) -> None:
 
 def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id)
     t = rt.clock.now()
     assert client.post("/calibrations", json={}).status_code == 401  # a start needs the token
@@ -321,7 +322,7 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
     try:
         rt.clock.sleep(4 * window)  # robot time passes while this thread waits on it
         t = rt.clock.now()
-        run_id = start(client, SHORT)
+        run_id = start(client, MID_SPIN)
         wait_spinning(client, run_id, sweep=1.0)
     finally:
         sim.push()
