@@ -185,6 +185,26 @@ def fault_mid_spin(
     return st, t
 
 
+def home_and_release(rt: Runtime) -> None:
+    """Home every steering not homed yet, then leave every axis free and disabled (a run
+    that follows needs no homing: its CONNECT step is short on any drive kind)."""
+    from swpc_hw.drives.robot_io import DrivesRobotIO
+
+    assert rt.drives is not None
+    io = DrivesRobotIO(rt.drives)
+    try:
+        io.activate()
+        for m in io.unhomed():
+            io.start_homing(m)
+        deadline = rt.clock.now() + 10.0  # robot time: the clock moves while we wait on it
+        while io.unhomed() and rt.clock.now() < deadline:
+            rt.clock.sleep(0.01)
+        assert not io.unhomed()
+    finally:
+        io.release()
+        io.close()
+
+
 def abort(client: TestClient) -> Callable[[str], None]:
     """The operator's abort of a run (200), as a :func:`fault_mid_spin` fault."""
 

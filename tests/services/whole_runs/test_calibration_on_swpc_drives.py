@@ -47,6 +47,7 @@ from tests.service_rig import (
     SHORT,
     bus_off,
     fault_mid_spin,
+    home_and_release,
     sim_service,
     start,
     wait_spinning,
@@ -282,25 +283,6 @@ def yaw_rate(rt: Runtime, t0: float, t1: float) -> float:
     p = p[p[:, 2] <= t1]
     assert p.shape[0] >= 5, p.shape
     return float(np.polyfit(p[:, 2], np.unwrap(p[:, 5]), 1)[0])
-
-
-def home_and_release(rt: Runtime) -> None:
-    """Home every steering not homed yet, then leave every axis free and disabled."""
-    from swpc_hw.drives.robot_io import DrivesRobotIO
-
-    assert rt.drives is not None
-    io = DrivesRobotIO(rt.drives)
-    try:
-        io.activate()
-        for m in io.unhomed():
-            io.start_homing(m)
-        deadline = rt.clock.now() + 10.0  # robot time: the clock moves while we wait on it
-        while io.unhomed() and rt.clock.now() < deadline:
-            rt.clock.sleep(0.01)
-        assert not io.unhomed()
-    finally:
-        io.release()
-        io.close()
 
 
 def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
