@@ -68,6 +68,10 @@ QUICK_PROTOCOL = {
 SHORT_STEPS = {"protocol": QUICK_PROTOCOL}
 SHORT = {"protocol": {"sweep_deg": 1440}}
 """A long first spin (about module 1): the faults a test injects land in it."""
+MID_SPIN = {"protocol": {"sweep_deg": 1440, "settle_time": 1.0}}
+""":data:`SHORT` with :data:`QUICK_PROTOCOL`'s 1 s settle: the same long first spin for a
+fault, reached 2 s of robot time sooner (the sweep :func:`wait_spinning` waits for is
+counted once the settle is over)."""
 
 
 @dataclass
@@ -166,10 +170,10 @@ def fault_mid_spin(
     undo: Callable[[], object] | None = None,
     guard: float = 60.0,
 ) -> tuple[dict[str, Any], float]:
-    """A run with a long first spin (:data:`SHORT`), ``fault(run_id)`` once it spins, then
-    its end (``undo()`` after it, whatever happens): ``(final status, the service clock's
-    time just before the fault)``, what every drive kind's fault table starts from."""
-    run_id = start(client, SHORT)
+    """A run with a long first spin (:data:`MID_SPIN`), ``fault(run_id)`` once it spins,
+    then its end (``undo()`` after it, whatever happens): ``(final status, the service
+    clock's time just before the fault)``, what every drive kind's fault table starts from."""
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id, guard=guard)
     t = rt.clock.now()
     try:
@@ -179,6 +183,26 @@ def fault_mid_spin(
         if undo is not None:
             undo()
     return st, t
+
+
+def home_and_release(rt: Runtime) -> None:
+    """Home every steering not homed yet, then leave every axis free and disabled (a run
+    that follows needs no homing: its CONNECT step is short on any drive kind)."""
+    from swpc_hw.drives.robot_io import DrivesRobotIO
+
+    assert rt.drives is not None
+    io = DrivesRobotIO(rt.drives)
+    try:
+        io.activate()
+        for m in io.unhomed():
+            io.start_homing(m)
+        deadline = rt.clock.now() + 10.0  # robot time: the clock moves while we wait on it
+        while io.unhomed() and rt.clock.now() < deadline:
+            rt.clock.sleep(0.01)
+        assert not io.unhomed()
+    finally:
+        io.release()
+        io.close()
 
 
 def abort(client: TestClient) -> Callable[[str], None]:

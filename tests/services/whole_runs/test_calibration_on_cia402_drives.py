@@ -35,12 +35,13 @@ from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES as NAMES
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import (
+    MID_SPIN,
     QUICK_PROTOCOL,
-    SHORT,
     TOKEN,
     abort,
     bus_off,
     fault_mid_spin,
+    home_and_release,
     start,
     wait_spinning,
     wait_state,
@@ -205,7 +206,7 @@ def test_stale_motion_capture_mid_spin(
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id, guard=120)
     with sim._lock:
         before = sim.mocap.options
@@ -221,15 +222,21 @@ def test_stale_motion_capture_mid_spin(
 
 
 def test_step_timeout(service: tuple[TestClient, Runtime, Frames], installed: bytes) -> None:
-    """A spin too slow for its step (a weak spin torque): the step's timeout fails it."""
+    """A spin too slow for its step (a weak spin torque): the step's timeout fails it.
+    3 s: what the pre-motion check allows a 90 deg sweep after a 1 s settle (2.3 s at
+    limits.max_yaw_rate) and the protocol's 2.5 s re-steer.  The robot is homed first, as
+    the file's first run leaves it: homing these drives takes 8 s, which the run's own
+    step timeout would stop."""
     client, rt, rec = service
+    home_and_release(rt)
     t = rt.clock.now()
-    run_id = start(client, {"limits": {"spin_torque": 0.05, "step_timeout": 8.0},
-                            "protocol": {"settle_time": 1.0}})  # fmt: skip
+    run_id = start(client, {"limits": {"spin_torque": 0.05, "step_timeout": 3.0},
+                            "protocol": {"settle_time": 1.0, "sweep_deg": 90}})  # fmt: skip
     st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=120)
-    assert st["state"] == "FAILED" and "longer than" in st["reason"], st
+    assert st["state"] == "FAILED", st
+    assert "spinning about module 1 (1/2) took longer than 3 s" in st["reason"], st
     spins = [ts for ts, _n, cw, mode, tq in rec.rpdo1_since(t)
              if mode == 10 and tq != 0 and cw == 0x0F]  # fmt: skip
     assert spins, rec.rpdo1_since(t)[-40:]
     t_spin = max(spins)
-    first_stop(rec, rt, t_spin, "step timeout (limits.step_timeout 8 s from the spin's torque)")
+    first_stop(rec, rt, t_spin, "step timeout (limits.step_timeout 3 s from the spin's torque)")

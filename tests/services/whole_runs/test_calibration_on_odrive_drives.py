@@ -39,6 +39,7 @@ from swpc_hw.drives.odrive.config import ODriveDrives
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.service_rig import (
     AUTH,
+    MID_SPIN,
     QUICK_PROTOCOL,
     SHORT,
     TOKEN,
@@ -195,7 +196,7 @@ def test_stale_motion_capture_mid_spin(service: tuple[TestClient, Runtime, Recor
     client, rt, rec = service
     sim = rt.simulator
     assert sim is not None
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id)
     t = rt.clock.now()
     before = sim.mocap.options
@@ -214,16 +215,19 @@ def test_stale_motion_capture_mid_spin(service: tuple[TestClient, Runtime, Recor
 def test_a_spin_that_outlasts_the_step_timeout(
     service: tuple[TestClient, Runtime, Recorder],
 ) -> None:
-    """A 1440 deg spin within a 25 s step timeout (the pre-motion check's least: settle
-    3 s + 25 rad at 1.2 rad/s) at 0.6 N.m, which turns the robot far slower than that."""
+    """A 180 deg spin within a 4 s step timeout (the pre-motion check's least: settle
+    1 s + 3.1 rad at 1.2 rad/s) at 0.6 N.m, which turns the robot far slower than that
+    (6.3 s): the first spin's step times out."""
     client, rt, rec = service
+    timeout = 4.0
     t = rt.clock.now()
-    run_id = start(client, {**SHORT, "limits": {"step_timeout": 25.0}})
+    spin = {"sweep_deg": 180, "settle_time": 1.0}
+    run_id = start(client, {"protocol": spin, "limits": {"step_timeout": timeout}})
     st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=120)
     assert st["state"] == "FAILED" and st["reason"].startswith("step timeout: "), st
-    assert "25 s" in st["reason"], st["reason"]
-    # the spin alone took 25 s: the stop of the timeout is the first after that
-    at = 25.0 + first_stop(rec, t + 25.0, rt)
+    assert "spinning about module 1 (1/2) took longer than 4 s" in st["reason"], st["reason"]
+    # the spin alone took 4 s: the stop of the timeout is the first after that
+    at = timeout + first_stop(rec, t + timeout, rt)
     print(f"\nfault table (odrive {LINE}): step timeout -> every axis IDLE {at:.1f} s after "
           f"the run started ({st['reason']})")
 
@@ -237,7 +241,7 @@ def test_a_host_that_stops_refreshing_is_stopped_by_every_axis_watchdog(
     client, rt, rec = service
     drv = rt.drives
     assert drv is not None
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id)
     hook = drv._io_hook  # type: ignore[attr-defined]
     rt.clock.remove_hook(hook)  # type: ignore[attr-defined]

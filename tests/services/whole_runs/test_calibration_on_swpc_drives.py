@@ -42,10 +42,12 @@ from swpc_hw.robot.model import PARAM_NAMES
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from tests.service_rig import (
     AUTH,
+    MID_SPIN,
     QUICK_PROTOCOL,
     SHORT,
     bus_off,
     fault_mid_spin,
+    home_and_release,
     sim_service,
     start,
     wait_spinning,
@@ -243,7 +245,7 @@ def assert_stopped(rec: Recorder, since: float, rt: Runtime) -> None:
 
 def test_abort_mid_spin(service: tuple[TestClient, Runtime, Recorder], installed: bytes) -> None:
     client, rt, rec = service
-    run_id = start(client, SHORT)
+    run_id = start(client, MID_SPIN)
     wait_spinning(client, run_id)
     t = rt.clock.now()
     assert client.post("/calibrations", json={}).status_code == 401  # a start needs the token
@@ -283,25 +285,6 @@ def yaw_rate(rt: Runtime, t0: float, t1: float) -> float:
     return float(np.polyfit(p[:, 2], np.unwrap(p[:, 5]), 1)[0])
 
 
-def home_and_release(rt: Runtime) -> None:
-    """Home every steering not homed yet, then leave every axis free and disabled."""
-    from swpc_hw.drives.robot_io import DrivesRobotIO
-
-    assert rt.drives is not None
-    io = DrivesRobotIO(rt.drives)
-    try:
-        io.activate()
-        for m in io.unhomed():
-            io.start_homing(m)
-        deadline = rt.clock.now() + 10.0  # robot time: the clock moves while we wait on it
-        while io.unhomed() and rt.clock.now() < deadline:
-            rt.clock.sleep(0.01)
-        assert not io.unhomed()
-    finally:
-        io.release()
-        io.close()
-
-
 def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
     service: tuple[TestClient, Runtime, Recorder], installed: bytes
 ) -> None:
@@ -321,7 +304,7 @@ def test_a_pushed_robot_is_braked_to_rest_before_a_module_is_locked(
     try:
         rt.clock.sleep(4 * window)  # robot time passes while this thread waits on it
         t = rt.clock.now()
-        run_id = start(client, SHORT)
+        run_id = start(client, MID_SPIN)
         wait_spinning(client, run_id, sweep=1.0)
     finally:
         sim.push()

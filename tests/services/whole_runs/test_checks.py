@@ -19,7 +19,16 @@ from services.store.runs import RunStore
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
-from tests.service_rig import AUTH, TOKEN, Sim, sim_service, start, wait_spinning, wait_state
+from tests.service_rig import (
+    AUTH,
+    MID_SPIN,
+    TOKEN,
+    Sim,
+    sim_service,
+    start,
+    wait_spinning,
+    wait_state,
+)
 
 DONE = {"DONE", "FAILED", "ABORTED"}
 
@@ -294,7 +303,7 @@ def test_a_check_is_a_run_one_at_a_time_and_aborts(sim: Sim) -> None:
     assert r.status_code == 200 and r.json()["state"] == "ABORTED"
     assert sim.client.get(f"/checks/{cid}").json()["result"] is None
     # and a calibration aborted by the checks' route is no check's either
-    rid = start(sim.client, {"protocol": {"sweep_deg": 1440}})
+    rid = start(sim.client, MID_SPIN)
     wait_spinning(sim.client, rid, 5.0)
     assert sim.client.post(f"/checks/{rid}/abort", headers=AUTH).status_code == 404
     sim.client.post(f"/calibrations/{rid}/abort", headers=AUTH)

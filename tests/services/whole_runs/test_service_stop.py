@@ -27,7 +27,7 @@ from firmware_protocol import codec
 from firmware_protocol.codec import ControlMode
 from services.store.runs import RunStore
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
-from tests.service_rig import AUTH, SHORT, TOKEN, wait_spinning
+from tests.service_rig import AUTH, MID_SPIN, TOKEN, wait_spinning
 
 STOP_TIMEOUT = 20.0
 """The unit's ``TimeoutStopSec`` (deploy/systemd/swpc-service.service)."""
@@ -56,7 +56,7 @@ def test_sigterm_mid_spin_stops_every_axis_and_fails_the_run(tmp_path: Path) -> 
             assert time.monotonic() < deadline, "the service did not start"
             time.sleep(0.1)
         with httpx.Client(base_url=base, timeout=30) as c:
-            r = c.post("/calibrations", json={"overrides": SHORT}, headers=AUTH)
+            r = c.post("/calibrations", json={"overrides": MID_SPIN}, headers=AUTH)
             assert r.status_code == 202, r.text
             run_id = r.json()["id"]
             wait_spinning(c, run_id)  # type: ignore[arg-type]
