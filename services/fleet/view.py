@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from services.config.fleet import fleet_period
+from swpc_hw.calibration.check.trend import MIN_SPAN
 from swpc_hw.robot.frames import DESIGN_FIT
 from swpc_hw.robot.model import PARAM_NAMES
 
@@ -76,7 +77,8 @@ def frame_of(c: dict[str, Any]) -> str:
 
 def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per module and parameter: the series (time, run, value, std dev) over ``cals``,
-    first, last, change (last - first) and change per week (None with one time only).
+    first, last, change (last - first) and change per week (None over less than
+    :data:`~swpc_hw.calibration.check.trend.MIN_SPAN`: a day).
     Positions and ``beta`` over the calibrations in the newest one's frame only (``frame``):
     a change between frames is the frames' turn and offset, not the robot's drift."""
     series: dict[tuple[int, str], list[dict[str, Any]]] = {}
@@ -114,7 +116,7 @@ def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                 "first": first["value"],
                 "last": last["value"],
                 "change": change,
-                "per_week": change / span * WEEK_S if span else None,
+                "per_week": change / span * WEEK_S if span and span >= MIN_SPAN else None,
                 "frame": "any" if param in FRAME_FREE else newest,
                 "points": [{k: p[k] for k in ("time", "run", "value", "stddev")} for p in pts],
             }

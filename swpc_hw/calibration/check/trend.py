@@ -22,6 +22,11 @@ time the line reaches the band's edge in the direction of its slope::
 
 given only when the slope is significant, ``|b| > 2 sd(b)`` (otherwise the line's date
 is noise); ``outside`` says the line is already out of the band now.
+
+**Over a span that supports a slope**: no line unless the points span at least
+:data:`MIN_SPAN` (a day).  Two calibrations minutes apart differ by their noise, which a
+slope per week multiplies by thousands (+1192 mm/week +- 1113 from two points 10 min
+apart): a number that reads as drift and is none.
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+MIN_SPAN = 86400.0
+"""s: the least span of a trend's points (module docstring)."""
 SIGNIFICANT = 2.0
 """A slope is significant beyond this many of its std devs."""
 
@@ -71,13 +78,14 @@ def linear_trend(
     now: float,
 ) -> Trend | None:
     """The weighted line through ``(t_i, y_i)`` with std devs ``sd_i`` and when it leaves
-    ``reference +- tolerance`` (module docstring).  None with fewer than two points at
-    distinct times (no line); a point without a finite positive std dev is left out."""
+    ``reference +- tolerance`` (module docstring).  None with fewer than two points or
+    points spanning less than :data:`MIN_SPAN` (no line); a point without a finite
+    positive std dev is left out."""
     t_a, y_a, s_a = (np.asarray(v, dtype=float).reshape(-1) for v in (t, y, sd))
     ok = np.isfinite(t_a) & np.isfinite(y_a) & np.isfinite(s_a) & (s_a > 0)
     t_a, y_a, s_a = t_a[ok], y_a[ok], s_a[ok]
     n = int(t_a.size)
-    if n < 2 or float(np.ptp(t_a)) <= 0.0:
+    if n < 2 or float(np.ptp(t_a)) < MIN_SPAN:
         return None
     w = 1.0 / s_a**2
     W = float(w.sum())

@@ -406,3 +406,8 @@ def test_drift_compares_positions_and_beta_within_one_frame() -> None:
     beta = next(d for d in gyro_last if d["module"] == 1 and d["param"] == "beta")
     assert [p["run"] for p in beta["points"]] == ["g", "h"] and beta["frame"] == "design-fit"
     assert beta["change"] == pytest.approx(2e-4)
+    # two calibrations an hour apart: a change, but no rate per week (less than a day)
+    close = drift([cal("a", 1, "mocap", 0.0, 0.05), {**cal("b", 1, "mocap", 1e-4, 0.05),
+                   "time": "2026-11-01T01:00:00Z"}])  # fmt: skip
+    b1 = next(d for d in close if d["module"] == 1 and d["param"] == "beta")
+    assert b1["change"] == pytest.approx(1e-4) and b1["per_week"] is None

@@ -204,7 +204,10 @@ def test_a_worn_wheel_is_found_and_named(
     in_r = [q for q in p["points"] if q["frame"] == "R"]  # the two checks, nothing else
     assert p["unit"] == "mm" and len(in_r) == 2 and p["tolerance"] == pytest.approx(0.2)
     assert p["reference"] == pytest.approx((PAPER_CALIBRATED.module(2).r + 0.3e-3) * 1e3)
-    assert p["trend"] is not None and p["trend"]["points"] == len(in_r)
+    # two checks minutes apart: no slope (trend.MIN_SPAN: a slope per week of two points
+    # minutes apart is their noise times thousands); the frames' part of the trend is
+    # tests/services/http/test_frames_across_methods.py's, over days
+    assert p["trend"] is None
     assert sim.client.get("/history", params={"since": "2999-01-01T00:00:00Z"}).json()[
         "runs"
     ] == []

@@ -838,7 +838,9 @@ async function showDrift() {
   const d = (p) => (p.unit === "deg" ? 4 : 3);
   $("drift-charts").replaceChildren(...h.parameters.map((p) => {
     const tr = p.trend;
-    const what = !tr ? "no trend: fewer than two points" :
+    const drawn = p.points.filter((q) => q.value !== null).length;
+    const what = !tr ? (drawn < 2 ? "no trend: fewer than two points"
+      : "no trend: its points span less than a day, too short for a slope per week") :
       `${signed(tr.per_week, d(p) + 1)} ${p.unit}/week ± ${fmt(tr.per_week_std, d(p) + 1)}` +
       (tr.outside ? " · outside its tolerance now" : "") +
       (tr.leaves_tolerance ? ` · leaves ±${fmt(p.tolerance, d(p))} ${p.unit} on ${dateOf(tr.leaves_tolerance)}` :
