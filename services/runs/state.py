@@ -143,6 +143,9 @@ class RunStatus(BaseModel):
     """A check once DONE: does the robot still match the file (its result says more)."""
     drive_m: float | None = None
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
+    notes: list[str] = Field(default_factory=list)
+    """What the operator should know that does not stop the run (e.g. a straight drive
+    steered by the nominal betas), each once, as the run's log says it too."""
     waits_for: Literal["continue", "references"] | None = None
     """What the run waits for from its operator now, if anything: ``continue`` (MARK:
     ``POST /calibrations/{id}/continue``) or ``references`` (MEASURE: ``POST

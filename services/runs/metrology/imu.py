@@ -429,6 +429,13 @@ class ImuMetrology:
             res = solve_spins(ds, source="the spins")
         except (CalibrationError, DatasetError) as exc:
             run.event(logging.WARNING, "run.steer", betas="nominal", reason=str(exc))
+            note = (
+                "the straight drive is steered by the nominal betas (the spins could not be "
+                f"solved yet: {exc}); a homing error turns it, and a drive that turns too "
+                "much is refused"
+            )
+            run.set_status(notes=[*run.status.notes, note])
+            run.changed()
             return run.config.nominal.arrays().beta.tolist(), "nominal"
         betas = res.params.arrays().beta.tolist()
         run.event(

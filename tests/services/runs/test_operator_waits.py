@@ -36,3 +36,15 @@ def test_the_status_says_what_the_operator_owes_in_words(tmp_path: Path) -> None
         assert "POST" not in step and "/calibrations" not in step, step
     assert seen[State.MARK][1].startswith("mark the floor under module 1's steering axis")
     assert run.status.waits_for is None
+
+
+def test_a_drive_steered_by_the_nominal_betas_is_a_note_the_operator_sees(
+    tmp_path: Path,
+) -> None:
+    """A gyro whose scale is 50 % off: the spins cannot be solved before the drive, which is
+    steered by the nominal betas (the final solve then refuses the run, as it should).
+    That was a log line only; the status's notes say it."""
+    run = Rig(tmp_path, metrology="imu", gyro_scale_error=0.5).run()
+    notes = run.status.notes
+    assert len(notes) == 1, (notes, run.status.errors)
+    assert notes[0].startswith("the straight drive is steered by the nominal betas"), notes

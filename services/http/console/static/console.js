@@ -457,6 +457,7 @@ function renderRun() {
   $("run-progress").value = st.progress;
   renderForecast(st);
   $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
+  $("run-notes").replaceChildren(...(st.notes || []).map((n) => el("li", {}, "Note: " + n)));
   renderOperator(st);
   const link = $("run-result-link");
   link.hidden = st.state !== "DONE";
