@@ -251,9 +251,16 @@ class RunMachine:
         if self.status.state in TERMINAL:
             self.status.remaining_s = None
             return
-        self.status.elapsed_s = round(now - self._t0, 2)
+        elapsed = now - self._t0
+        self.status.elapsed_s = round(elapsed, 2)
         left = self.remaining(now)
         self.status.remaining_s = None if left is None else round(left, 1)
+        if left is not None and elapsed + left > 0:
+            # the share of the plan's robot time done: every step counts (a run without
+            # motion capture was at 100 % with its drive and the operator's steps to come);
+            # never backwards when a step takes longer than its estimate
+            done = min(elapsed / (elapsed + left), 1.0)
+            self.status.progress = round(max(self.status.progress, done), 3)
 
     def check(self, motion: bool, deadline: float | None) -> None:
         with self._lock:

@@ -89,6 +89,7 @@ from services.runs.state import (
 )
 from services.store.provenance import dataset_sha256
 from swpc_hw.calibration.mocap.solver import CalibrationResult
+from swpc_hw.calibration.plan.plan import TimeModel
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
@@ -154,19 +155,28 @@ class CalibrationRun(RunMachine):
         again = [State.RESTEER, *still, State.SPIN, State.STOP]
         per_module = first + again * (len(config.protocol.angles_deg) - 1) + [State.RELEASE]
         self.plan = per_module * len(self.modules)
+        if metrology.name == "imu" and config.protocol.drive_length > 0:
+            # the rest after the last spin, the drive and the operator's two steps (theirs:
+            # counted as steps, their time is the operator's)
+            self.plan += [State.STILL, State.STEER, State.MARK, State.DRIVE, State.MEASURE]
 
     def planned(self, state: State) -> float | None:
         """A step's robot time from the protocol's settings before one was measured: the
-        align, stop, re-steer and rest times; a lock as long as a re-steer; a spin's
-        unknown until one has ended (how long a sweep takes is the robot's)."""
-        p = self.config.protocol
+        align, stop, re-steer and rest times; a lock as long as a re-steer; a spin and the
+        straight drive as the planner's time model predicts them
+        (:class:`swpc_hw.calibration.plan.plan.TimeModel`: the settle time and the sweep at
+        the yaw rate of the spin torque; both rests, the length at its cruise speed and
+        the steer, ramp and coast); the operator's steps 0 (theirs)."""
+        p, lim = self.config.protocol, self.config.limits
+        tm = TimeModel()
         return {
             State.LOCK: p.resteer_time,
             State.ALIGN: p.align_time,
             State.STOP: p.stop_time,
             State.RESTEER: p.resteer_time,
             State.STILL: p.rest_time,
-            State.SPIN: None,
+            State.SPIN: p.settle_time + math.radians(p.sweep_deg) / tm.yaw_rate(lim.spin_torque),
+            State.DRIVE: 2 * p.rest_time + p.drive_length / tm.drive_speed + tm.drive_extra,
         }.get(state, 0.0)
 
     def _start_fields(self) -> dict[str, Any]:

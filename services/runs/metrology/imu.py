@@ -364,7 +364,7 @@ class ImuMetrology:
                 spin.add(t, turned)
                 seen = t
             direction.update(turned, seen)
-            sweep = sweep_reached(run, spin, done, total)
+            sweep = sweep_reached(run, spin)
             if sweep is not None:
                 assert spin.start is not None
                 run.add_segment(Segment(k, spin.start, seen), sweep)

@@ -47,17 +47,16 @@ def within_rate_limit(run: RunSteps, spin: SpinWindow) -> None:
         )
 
 
-def sweep_reached(run: RunSteps, spin: SpinWindow, done: int, total: int) -> float | None:
-    """Judge a spin at a poll: the yaw-rate limit, the operator's progress; the sweep once
-    ``sweep_deg`` is reached (None before)."""
+def sweep_reached(run: RunSteps, spin: SpinWindow) -> float | None:
+    """Judge a spin at a poll: the yaw-rate limit, the sweep so far for the operator; the
+    sweep once ``sweep_deg`` is reached (None before).  (The run's progress is its share of
+    the plan's robot time: :meth:`services.runs.machine.RunMachine.remaining`.)"""
     target = math.radians(run.config.protocol.sweep_deg)
     within_rate_limit(run, spin)
     if spin.start is None:
         return None
     sweep = spin.sweep
-    run.set_status(
-        sweep_deg=math.degrees(sweep), progress=min((done + min(sweep / target, 1.0)) / total, 1.0)
-    )
+    run.set_status(sweep_deg=math.degrees(sweep))
     return sweep if sweep >= target else None
 
 
@@ -84,9 +83,8 @@ class SequentialSpins:
         self._judged = -math.inf
 
     def judge(
-        self, run: RunSteps, k: int, spin: SpinWindow, window: Callable[[float], FloatArray],
-        done: int, total: int,
-    ) -> float | None:  # fmt: skip
+        self, run: RunSteps, k: int, spin: SpinWindow, window: Callable[[float], FloatArray]
+    ) -> float | None:
         """Judge the spin about module ``k`` at a poll (``window(start)``: the poses ``t, x,
         y, yaw`` since ``start``, read only when a judgement is due): the yaw-rate limit,
         the forecast every :data:`JUDGE_STEP` (the spin may last :data:`SPIN_TIME_SHARE`
@@ -105,10 +103,7 @@ class SequentialSpins:
             )
         sweep, top = spin.sweep, self.stopping.max_sweep(i)
         planned = self.stopping.spins[i].sweep
-        run.set_status(
-            sweep_deg=math.degrees(sweep),
-            progress=min((done + min(sweep / planned, 1.0)) / total, 1.0),
-        )
+        run.set_status(sweep_deg=math.degrees(sweep))
         if sweep - self._judged < JUDGE_STEP and sweep < top:
             return None
         poses = window(spin.start)
@@ -250,9 +245,9 @@ class MocapMetrology:
             spin.add(p.t_host, p.yaw)
             direction.update(p.yaw, p.t_host)
             if seq is None:
-                sweep = sweep_reached(run, spin, done, total)
+                sweep = sweep_reached(run, spin)
             else:
-                sweep = seq.judge(run, k, spin, self._window, done, total)
+                sweep = seq.judge(run, k, spin, self._window)
             if spin.start is not None:
                 run.set_status(poses=self.mocap.counters.accepted)
             if sweep is not None:

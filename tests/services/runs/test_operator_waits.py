@@ -15,19 +15,21 @@ class Watching(Rig):
     """An operator who answers only what the status says is owed, and notes it."""
 
     seen: dict[State, tuple[str | None, str]]
+    times: dict[State, tuple[float, float | None]]
 
     def _changed(self, run: CalibrationRun) -> None:
         super()._changed(run)
         st = run.status
         if st.waits_for is not None and st.state not in self.seen:
             self.seen[st.state] = (st.waits_for, st.step)
+            self.times[st.state] = (st.progress, st.remaining_s)
             self.play_operator(run)
 
 
 def test_the_status_says_what_the_operator_owes_in_words(tmp_path: Path) -> None:
     rig = Watching(tmp_path, metrology="imu")
     rig.operator = False  # the rig's own operator answers at entry, unasked
-    rig.seen = {}
+    rig.seen, rig.times = {}, {}
     run = rig.run()
     assert run.status.state == "DONE", run.status.errors
     seen = rig.seen
@@ -36,6 +38,12 @@ def test_the_status_says_what_the_operator_owes_in_words(tmp_path: Path) -> None
         assert "POST" not in step and "/calibrations" not in step, step
     assert seen[State.MARK][1].startswith("mark the floor under module 1's steering axis")
     assert run.status.waits_for is None
+    # at MARK the drive is still to come: not 100 % (it was), and its time is counted
+    p = run.config.protocol
+    progress, remaining = rig.times[State.MARK]
+    assert remaining is not None and remaining >= 2 * p.rest_time + p.drive_length / 0.4
+    assert progress < 0.9, (progress, remaining)
+    assert rig.times[State.MEASURE][0] > progress
 
 
 def test_a_drive_steered_by_the_nominal_betas_is_a_note_the_operator_sees(
