@@ -453,7 +453,7 @@ function renderRun() {
   $("run-segments").textContent = String(st.segments);
   $("run-elapsed").textContent = st.elapsed_s === null ? "–" : `${duration(st.elapsed_s)} (robot time)`;
   $("run-remaining").textContent = st.remaining_s !== null ? `about ${duration(st.remaining_s)}` :
-    !active ? "–" : st.segments === 0 ? "estimated once a spin has ended" : "not estimated in this step";
+    !active ? "–" : "not estimated in this step";
   $("run-progress").value = st.progress;
   renderForecast(st);
   $("run-reason").textContent = st.reason ? `${st.state}: ${st.reason}` : "";
