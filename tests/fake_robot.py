@@ -41,6 +41,8 @@ from swpc_hw.robot.model import FloatArray, RobotParams, nearest_turn, trailing_
 from swpc_hw.sensors.gyro import GyroSample, encode_imu
 from swpc_hw.sensors.mocap import PoseSample, encode_native
 
+_TWO_PI = 2.0 * math.pi
+
 
 @dataclass
 class FakeModule:
@@ -112,6 +114,11 @@ class FakeRobot:
         self._moving_since: float | None = None
         self._steps = 0
         self._trail: dict[tuple[float, float, float], FloatArray] = {}
+        a = self.arrays  # per module, as floats: P_s (x, y), b, beta, r
+        self._geometry = tuple(
+            [float(x) for x in col]
+            for col in (a.P_s[:, 0], a.P_s[:, 1], a.b, a.beta, a.r)
+        )
         self._in_flight: deque[tuple[float, bytes]] = deque()
         self.clock.on_sleep.append(self.advance_to)
         self._feed_pose()
@@ -125,6 +132,9 @@ class FakeRobot:
         return self.ids.index(m)
 
     def _step(self, dt: float) -> None:
+        # scalar maths (math, not 2-element numpy arrays): the same operations in the same
+        # order, so the same numbers, at a fraction of the CPU (this runs every 10 ms of
+        # every run)
         t = self.t + dt
         A = self.arrays
         for m, md in self.mods.items():
@@ -136,22 +146,24 @@ class FakeRobot:
                 md.theta_hat += max(-step, min(step, md.target - md.theta_hat))
         locked = [m for m, md in self.mods.items() if md.steer == "position" and md.wheel == "hold"]
         driving = [md for md in self.mods.values() if md.wheel == "torque" and md.torque != 0.0]
-        omega, v = self.drift, np.zeros(2)
+        omega, vx, vy = self.drift, 0.0, 0.0
         held = all(md.steer == "position" for md in self.mods.values())
+        Psx, Psy, bs, betas, rs = self._geometry
         if len(locked) == 1 and driving:
             k = self._index(locked[0])
-            theta_k = self.mods[locked[0]].theta_hat + A.beta[k]
-            C = A.P_s[k] + A.b[k] * np.array([math.cos(theta_k), math.sin(theta_k)])
+            theta_k = self.mods[locked[0]].theta_hat + betas[k]
+            Cx = Psx[k] + bs[k] * math.cos(theta_k)
+            Cy = Psy[k] + bs[k] * math.sin(theta_k)
             omega = self.spin_rate * (1.0 if driving[0].torque < 0 else -1.0) + self.drift
-            v = omega * np.array([C[1], -C[0]])  # v = -omega x C: C stays put
+            vx, vy = omega * Cy, omega * -Cx  # v = -omega x C: C stays put
         elif not locked and held and len(driving) == len(self.mods):
             # the straight drive: a translation along the wheels' mean direction, away from
             # it for a negative torque (the wheels roll backwards)
             th = np.array([md.theta_hat for md in self.mods.values()]) + A.beta
             u = np.array([np.cos(th).sum(), np.sin(th).sum()])
             sign = -1.0 if driving[0].torque < 0 else 1.0
-            v = sign * self.drive_speed * u / np.linalg.norm(u)
-        moving = omega != 0.0 or bool(v.any())
+            vx, vy = (float(c) for c in sign * self.drive_speed * u / np.linalg.norm(u))
+        moving = omega != 0.0 or vx != 0.0 or vy != 0.0
         if moving and self._moving_since is None:
             self._moving_since = t - dt
         elif not moving:
@@ -159,23 +171,26 @@ class FakeRobot:
         if moving and self.ramp_time > 0:
             assert self._moving_since is not None
             f = min(1.0, (t - self._moving_since) / self.ramp_time)
-            omega, v = omega * f, v * f
+            omega, vx, vy = omega * f, vx * f, vy * f
         if moving:
-            key = (float(v[0]) / (omega or 1.0), float(v[1]) / (omega or 1.0), float(v.any()))
+            translating = float(vx != 0.0 or vy != 0.0)
+            key = (vx / (omega or 1.0), vy / (omega or 1.0), translating)
             trail = self._trail.get(key)
             if trail is None and not held:  # constant for a whole spin
-                trail = self._trail[key] = trailing_steering_angle(A, v, omega)
+                trail = self._trail[key] = trailing_steering_angle(A, np.array([vx, vy]), omega)
             for i, m in enumerate(self.ids):
                 md = self.mods[m]
                 if md.steer in ("free", "disabled") and m not in locked and trail is not None:
-                    md.theta_hat = float(nearest_turn(md.theta_hat, trail[i]))
-                th = md.theta_hat + A.beta[i]
-                u = np.array([math.cos(th), math.sin(th)])
-                P_w = A.P_s[i] + A.b[i] * u
-                vel = v + omega * np.array([-P_w[1], P_w[0]])
+                    # nearest_turn(theta_hat, trail[i]), in floats (% is numpy's mod)
+                    c = md.theta_hat
+                    md.theta_hat = c + (math.pi - (math.pi - (float(trail[i]) - c)) % _TWO_PI)
+                th = md.theta_hat + betas[i]
+                ux, uy = math.cos(th), math.sin(th)
+                Pwx, Pwy = Psx[i] + bs[i] * ux, Psy[i] + bs[i] * uy
+                velx, vely = vx + omega * -Pwy, vy + omega * Pwx
                 if md.wheel in ("free", "torque", "disabled"):
-                    md.psi += float(vel @ u) / A.r[i] * dt
-            self.pose = se2_step(self.pose, v, omega, dt)
+                    md.psi += (velx * ux + vely * uy) / rs[i] * dt
+            self.pose = se2_step(self.pose, (vx, vy), omega, dt)
         self.t = t
         self.pose_log.append((t, *self.pose.tolist()))
         if self.imu is not None and self.gyro_on:

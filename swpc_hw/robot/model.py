@@ -345,14 +345,19 @@ def trailing_steering_angle(arrays: RobotArrays, v: ArrayLike, omega: float) -> 
     fixed-point iteration starting from the direction opposite to the steering axis's
     velocity (exact for pure translation).
     """
+    # contact_point and contact_velocity by components: the same operations on the same
+    # numbers (the same result) without their stacking, for the simulators and fake
+    # robots that call this at every change of twist
     vv = np.asarray(v, dtype=float)
-    vel_s = contact_velocity(vv[None, :], np.full(arrays.n, omega), arrays.P_s)
-    theta = np.arctan2(-vel_s[:, 1], -vel_s[:, 0])
+    vx, vy = vv[0], vv[1]
+    w = float(omega)
+    xs, ys, b = arrays.P_s[:, 0], arrays.P_s[:, 1], np.asarray(arrays.b, dtype=float)
+    theta = np.arctan2(-(vy + w * xs), -(vx + w * -ys))  # opposite the axis' velocity
     for _ in range(50):
-        P_w = contact_point(arrays.P_s, arrays.b, theta)
-        vel = contact_velocity(vv[None, :], np.full(arrays.n, omega), P_w)
-        new = np.arctan2(-vel[:, 1], -vel[:, 0])
-        if np.allclose(new, theta, atol=1e-15, rtol=0.0):
+        # v + omega x P_w, P_w = P_s + b u(theta)
+        new = np.arctan2(-(vy + w * (xs + b * np.cos(theta))),
+                         -(vx + w * -(ys + b * np.sin(theta))))
+        if np.all(np.abs(new - theta) <= 1e-15):  # np.allclose(atol=1e-15, rtol=0)
             theta = new
             break
         theta = new

@@ -175,12 +175,21 @@ def test_a_gyro_in_other_units_or_upside_down_is_refused(
         solve_imu(dataclasses.replace(ds, imu=imu), source="ds")
 
 
-def test_slip_bursts_are_cut_against_the_gyro() -> None:
+@pytest.fixture(scope="module")
+def bursts() -> tuple[ImuExperiment, CalibrationResult]:
+    """A light run with slip bursts (0.08 a second per wheel), solved: for the two tests
+    below, which look at different parts of one solve."""
     run = generate_imu_experiment(
         PAPER_CALIBRATED, dataclasses.replace(LIGHT, slip_burst_rate=0.08, seed=11)
     )
+    return run, solve_imu(run.imu_dataset)
+
+
+def test_slip_bursts_are_cut_against_the_gyro(
+    bursts: tuple[ImuExperiment, CalibrationResult],
+) -> None:
+    run, res = bursts
     assert run.experiment.slip_bursts
-    res = solve_imu(run.imu_dataset)
     assert res.increments_rejected > 0
     X, T = as_array(res.params), as_array(PAPER_CALIBRATED)
     est, G = frame_free(X)
@@ -189,11 +198,10 @@ def test_slip_bursts_are_cut_against_the_gyro() -> None:
     assert np.abs((est - frame_free(T)[0]) / std).max() < 4.0
 
 
-def test_slip_bursts_are_counted_in_the_segment_they_are_in() -> None:
-    run = generate_imu_experiment(
-        PAPER_CALIBRATED, dataclasses.replace(LIGHT, slip_burst_rate=0.08, seed=11)
-    )
-    res = solve_imu(run.imu_dataset)
+def test_slip_bursts_are_counted_in_the_segment_they_are_in(
+    bursts: tuple[ImuExperiment, CalibrationResult],
+) -> None:
+    run, res = bursts
     per_segment = [q.increments_rejected for q in res.segments]
     assert sum(per_segment) > 0
     # the rest were cut from the straight drive

@@ -79,7 +79,9 @@ def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         assert proc.returncode in (0, -15), (data / "service.log").read_text()[-3000:]
 
 
+@pytest.fixture(scope="module")
 def operations(base_url: str) -> list[Any]:
+    """The service's operations, from its schema: loaded and parsed once for both tests."""
     schema = schemathesis.openapi.from_url(f"{base_url}/openapi.json")
     return [op.ok() for op in schema.get_all_operations()]
 
@@ -93,11 +95,11 @@ def session() -> SameHostRedirectsSession:
     return s
 
 
-def fuzz(base_url: str, headers: dict[str, str]) -> dict[str, int]:
+def fuzz(base_url: str, operations: list[Any], headers: dict[str, str]) -> dict[str, int]:
     """Every operation, hypothesis-generated cases; returns how many calls per status."""
     statuses: dict[str, int] = {}
     http = session()
-    for op in operations(base_url):
+    for op in operations:
 
         @settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy())
@@ -120,13 +122,13 @@ def fuzz(base_url: str, headers: dict[str, str]) -> dict[str, int]:
     return statuses
 
 
-def test_with_token(base_url: str) -> None:
-    statuses = fuzz(base_url, {"Authorization": f"Bearer {TOKEN}"})
+def test_with_token(base_url: str, operations: list[Any]) -> None:
+    statuses = fuzz(base_url, operations, {"Authorization": f"Bearer {TOKEN}"})
     assert any(k.startswith("POST /calibrations 202") for k in statuses), statuses
     assert any(k.endswith(" 422") for k in statuses), statuses
 
 
-def test_without_token(base_url: str) -> None:
-    statuses = fuzz(base_url, {})
+def test_without_token(base_url: str, operations: list[Any]) -> None:
+    statuses = fuzz(base_url, operations, {})
     assert any(k == "POST /calibrations 401" for k in statuses), statuses
     assert not any(k.startswith("POST /calibrations 202") for k in statuses), statuses
