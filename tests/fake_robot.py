@@ -113,7 +113,7 @@ class FakeRobot:
         self.pose_log: list[tuple[float, float, float, float]] = [(self.t, 0.0, 0.0, 0.0)]
         self._moving_since: float | None = None
         self._steps = 0
-        self._trail: dict[tuple[float, float, float], FloatArray] = {}
+        self._trail: dict[tuple[float, float, float, bool], FloatArray] = {}
         a = self.arrays  # per module, as floats: P_s (x, y), b, beta, r
         self._geometry = tuple(
             [float(x) for x in col]
@@ -174,7 +174,9 @@ class FakeRobot:
             omega, vx, vy = omega * f, vx * f, vy * f
         if moving:
             translating = float(vx != 0.0 or vy != 0.0)
-            key = (vx / (omega or 1.0), vy / (omega or 1.0), translating)
+            # the turn's sign too: about the same point the other way round, the casters
+            # trail the other way
+            key = (vx / (omega or 1.0), vy / (omega or 1.0), translating, omega > 0.0)
             trail = self._trail.get(key)
             if trail is None and not held:  # constant for a whole spin
                 trail = self._trail[key] = trailing_steering_angle(A, np.array([vx, vy]), omega)
