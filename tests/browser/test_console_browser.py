@@ -39,6 +39,7 @@ from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 from tests.browser.browser_rig import (
     SHOTS,
+    TABLET,
     browser,
     check_view,
     css,
@@ -46,6 +47,7 @@ from tests.browser.browser_rig import (
     go,
     press,
     set_field,
+    set_window,
     severe_logs,
     shot,
     start_run,
@@ -62,6 +64,22 @@ from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 from selenium.webdriver.support.select import Select  # noqa: E402
 
 TOKEN = "browser-token-4711"
+SELECTS_CUT_JS = """
+const c = document.createElement("canvas").getContext("2d");
+const out = [];
+for (const s of document.querySelectorAll("#start-form select")) {
+  const st = getComputedStyle(s);
+  c.font = `${st.fontWeight} ${st.fontSize} ${st.fontFamily}`;
+  const room = s.clientWidth - parseFloat(st.paddingLeft) - parseFloat(st.paddingRight) - 24;
+  for (const o of s.options) {
+    const w = c.measureText(o.text).width;
+    if (w > room) out.push([s.id, o.text, Math.round(w), Math.round(room)]);
+  }
+}
+return out;
+"""
+"""The options of the start form's selects whose text is wider than the select leaves for
+it (its padding and about 24 px for the arrow)."""
 # the whole protocol, short spins: a real result in well under a minute
 QUICK = {"sweep": "45", "settle": "1", "stop": "0.5", "align": "0.5", "resteer": "1.5"}
 
@@ -123,6 +141,15 @@ def test_page_loads_offline_and_the_token_is_asked_once(
     assert d.find_element(By.ID, "f-angles").get_attribute("value") == "45, 165"
     assert not d.find_element(By.ID, "abort-bar").is_displayed()
     check_view(d, "run, idle")
+    # every option of the form's selects reads whole in a narrow window (issue 45 item 6:
+    # "the gyro, the wheels and a tap" at 800 px); what each means is said under it
+    set_window(d, (800, 1200))
+    try:
+        cut = d.execute_script(SELECTS_CUT_JS)
+    finally:
+        set_window(d, TABLET)
+    assert cut == [], cut
+    assert text(d, "f-metrology-hint").startswith("Motion capture measures every spin")
     shot(d, "01-idle")
     # a field that is not a number is named, before any token is asked; the error goes
     # once the field is changed (issue 45 item 5)

@@ -257,7 +257,20 @@ async function readSimulatorAxes() {
     $("start-error").textContent = "No tape readings: " + e.message;
   }
 }
+// what each choice of the two selects means, under it (their options stay short enough
+// for a tablet's narrow column)
+const METROLOGY_HINT = {
+  mocap: "Motion capture measures every spin.",
+  imu: "No motion capture: the gyro and the wheels' encoders, the tape's distances below and a straight drive at the end.",
+};
+const CHECK_HINT = {
+  "": "The service's own way of measuring.",
+  mocap: "Motion capture: every parameter is checked.",
+  imu: "The gyro and the wheels: the robot's shape is checked (no motion capture needed).",
+};
+function showCheckHint() { $("f-check-hint").textContent = CHECK_HINT[$("f-check-metrology").value]; }
 function showMetrology() {
+  $("f-metrology-hint").textContent = METROLOGY_HINT[$("f-metrology").value];
   $("tape-fields").hidden = $("f-metrology").value !== "imu";
   $("tape-sim").hidden = !(app.hello && app.hello.in_process_simulator);
 }
@@ -1091,6 +1104,8 @@ function connect() {
 document.addEventListener("DOMContentLoaded", () => {
   $("start-form").addEventListener("submit", start);
   $("tape-sim").addEventListener("click", readSimulatorAxes);
+  $("f-check-metrology").addEventListener("change", showCheckHint);
+  showCheckHint();
   $("bar-answer").addEventListener("click", () => {
     if (!location.hash.startsWith("#run") && location.hash !== "") { location.hash = "#run"; route(); }
     $("operator").scrollIntoView({ block: "center" });
