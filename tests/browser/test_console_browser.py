@@ -609,6 +609,9 @@ def test_the_plan_is_shown_before_start_and_runs(
         lambda: "mm" in text(d, "forecast-position") and "°" in text(d, "forecast-beta"),
     )  # fmt: skip
     assert text(d, "run-sweep").endswith("°")  # no "of 360°": the forecast ends the spin
+    # the forecast table whole in every window (issue 45 item 6: it scrolled sideways and
+    # its last column was cut at 800 px)
+    check_view(d, "run, forecast")
     shot(d, "18-forecast")
     assert wait_state(d, {"DONE", "FAILED", "ABORTED"}, timeout=300) == "DONE"
     with httpx.Client(base_url=service["url"], timeout=10.0) as http:
