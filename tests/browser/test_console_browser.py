@@ -317,6 +317,12 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
         d, "res-summary"
     )
     wait_for("the module panels", lambda: len(css(d, "#res-modules svg")) == 4)
+    # their scale's text readable (issue 45 item 6: about 5 px at 800 px)
+    heights = d.execute_script(
+        "return [...document.querySelectorAll('#res-modules svg text.scale')]"
+        ".map((t) => t.getBoundingClientRect().height)"
+    )
+    assert len(heights) == 4 and min(heights) >= 10, heights
     wait_for("the spins", lambda: len(css(d, "#res-world polyline")) == 8)
     files = [e.text for e in d.find_elements(By.CSS_SELECTOR, "#res-files a")]
     assert {"run.mcap", "can.log", "kinematics.yaml", "dataset.zip"} <= set(files), files

@@ -564,12 +564,22 @@ function fitView(el, pts, pad, minW = 0.2) {
   el.append(g);
   return { g, w };
 }
+// a drawing's scale text at least 12 px on the screen however small the drawing is shown
+// (a module's panel at 800 px is ~150 px wide: a thirty-second of it was 5 px); once the
+// drawings are in the page, where their size is known
+function fitScaleText(root) {
+  for (const e of root.querySelectorAll("svg")) {
+    const px = e.getBoundingClientRect().width, w = e.viewBox.baseVal.width;
+    if (!(px > 0 && w > 0)) continue;
+    for (const t of e.querySelectorAll("text.scale")) t.setAttribute("font-size", Math.max(w / 32, (12 * w) / px));
+  }
+}
 function scaleBar(el, w) {
   const vb = el.viewBox.baseVal;
   const len = Math.pow(10, Math.floor(Math.log10(w / 4)));
   const x = vb.x + w * 0.04, y = vb.y + vb.height * 0.95;
   el.append(svg("line", { x1: x, y1: y, x2: x + len, y2: y, stroke: "#111", "stroke-width": w / 250 }));
-  const t = svg("text", { x, y: y - w / 100, "font-size": w / 32, fill: "#111" });
+  const t = svg("text", { x, y: y - w / 100, "font-size": w / 32, fill: "#111", class: "scale" });
   t.textContent = len >= 1 ? `${len} m` : `${Math.round(len * 1000)} mm`;
   el.append(t);
 }
@@ -741,6 +751,7 @@ function renderGeometry(geo) {
     return el2;
   });
   $("res-modules").replaceChildren(...panels);
+  fitScaleText($("res-modules"));
 }
 
 // ------------------------------------------------------------------ check and drift
