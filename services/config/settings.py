@@ -170,6 +170,13 @@ class ServiceSettings(BaseSettings):
     fleet_config_file: str | None = Field(
         None, description="zenoh JSON5 config of the fleet session"
     )
+    fleet_console_url: str | None = Field(
+        None,
+        pattern=r"^https?://[^\s\x00-\x1f]{1,500}$",
+        description="where the lab reaches this robot's operator console (e.g. "
+        "http://robot07.lab:8080/): the fleet page links each robot to it; the service "
+        "cannot know the name the lab uses for it",
+    )
     fleet_user: str | None = Field(
         None, description="zenoh user of the fleet session; unset: the robot's fleet name"
     )

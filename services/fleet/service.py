@@ -17,6 +17,7 @@ import contextlib
 import json
 import logging
 import math
+import re
 import threading
 from typing import Any
 
@@ -127,6 +128,11 @@ def check_document(robot: str, payload: bytes) -> dict[str, Any]:
             f"{fleet_period_field(doc)} {period!r}: a number of seconds in (0, "
             f"{MAX_FLEET_PERIOD_S:g}] is needed"
         )
+    url = doc.get("console_url")
+    if url is not None and not (
+        isinstance(url, str) and len(url) <= 500 and re.fullmatch(r"https?://[^\s\x00-\x1f]+", url)
+    ):
+        raise DocumentError("console_url: an http or https address of at most 500 characters")
     fif = doc.get("file_in_force")
     if fif is not None:
         if not isinstance(fif, dict):

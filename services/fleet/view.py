@@ -155,6 +155,7 @@ def summary(
         "age_s": max(0.0, now - last_seen),
         "first_seen": iso(first_seen),
         "version": last.get("version"),
+        "console_url": last.get("console_url"),
         "fleet_period_s": fleet_period(last),
         "file_in_force": None
         if not fif

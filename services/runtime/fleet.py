@@ -130,6 +130,7 @@ def fleet_document(rt: Runtime, period: float | None = None) -> dict[str, Any]:
         "version": tool_version(),
         "time": now_iso(),
         "fleet_period_s": rt.settings.fleet_period if period is None else period,
+        "console_url": rt.settings.fleet_console_url,
         "file_in_force": file_in_force(rt),
         "last_check": last_check(rt),
         "history": history_summary(rt),

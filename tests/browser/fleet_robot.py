@@ -18,7 +18,8 @@ from tests.services.fleet.test_fleet import robot_data, settings
 
 def main(data: str, name: str, k: str, endpoint: str) -> None:
     robot_data(Path(data), int(k))
-    rt = Runtime(settings(Path(data), name, fleet_connect=[endpoint]))
+    url = f"http://{name}.lab.invalid:8080/"  # where the lab would reach its console
+    rt = Runtime(settings(Path(data), name, fleet_connect=[endpoint], fleet_console_url=url))
     pub = FleetPublisher.open(rt)
     print("publishing", flush=True)
     try:

@@ -23,7 +23,7 @@ import httpx
 import pytest
 
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
-from tests.browser.browser_rig import SHOTS, browser, shot, wait_for
+from tests.browser.browser_rig import SHOTS, browser, check_view, shot, wait_for
 
 assert browser  # the fixture, imported for the tests below
 from selenium.webdriver.common.by import By  # noqa: E402
@@ -106,7 +106,12 @@ def test_the_fleet_page_shows_five_robots_then_one_stale(
     assert "robot3" in d.find_element(By.ID, "drift-robot").text
     row3 = d.find_element(By.CSS_SELECTOR, 'tr[data-robot="robot3"]').text
     assert "module 2 beta +2.000 deg" in row3
+    # each robot's row links to its own console (issue 45 item 8)
+    link = d.find_element(By.CSS_SELECTOR, 'tr[data-robot="robot3"] a.console-link')
+    assert link.get_attribute("href") == "http://robot3.lab.invalid:8080/"
     before = httpx.get(f"{service['url']}/robots").json()
+    # nothing clipped or scrolling sideways in any window, 800 px included (issue 45 item 8)
+    check_view(d, "fleet")
     shot(d, "fleet")
 
     t0 = time.monotonic()

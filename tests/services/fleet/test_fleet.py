@@ -22,11 +22,12 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from pydantic import ValidationError
 
 from services.config.fleet import FleetNameError, state_key
 from services.config.robot import RobotConfig
 from services.config.settings import ServiceSettings
-from services.fleet.service import FleetService, check_document
+from services.fleet.service import DocumentError, FleetService, check_document
 from services.fleet.view import drift, status
 from services.http.app import create_app
 from services.http.fleet.app import create_fleet_app
@@ -411,3 +412,22 @@ def test_drift_compares_positions_and_beta_within_one_frame() -> None:
                    "time": "2026-11-01T01:00:00Z"}])  # fmt: skip
     b1 = next(d for d in close if d["module"] == 1 and d["param"] == "beta")
     assert b1["change"] == pytest.approx(1e-4) and b1["per_week"] is None
+
+
+def test_each_robot_links_to_its_own_console(tmp_path: Path) -> None:
+    """Issue 45 item 8: the fleet page had no way from a robot to its console.  The robot
+    publishes where the lab reaches it (``SWPC_FLEET_CONSOLE_URL``), the fleet keeps it in
+    the robot's view; anything but an http(s) address is refused, naming the field."""
+    url = "http://robot2.lab:8080/"
+    rt = Runtime(settings(tmp_path, "robot2", fleet_console_url=url))
+    try:
+        doc = fleet_document(rt)
+    finally:
+        rt.close()
+    assert doc["console_url"] == url
+    assert check_document("robot2", json.dumps(doc).encode())["console_url"] == url
+    for bad in ("javascript:alert(1)", "http://a b/", "ftp://robot2/", "http://" + "x" * 500):
+        with pytest.raises(DocumentError, match="console_url"):
+            check_document("robot2", json.dumps({**doc, "console_url": bad}).encode())
+    with pytest.raises(ValidationError):
+        settings(tmp_path, "robot2", fleet_console_url="javascript:alert(1)")

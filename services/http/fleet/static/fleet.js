@@ -63,6 +63,9 @@ function statusCell(r) {
 }
 function robotRow(r) {
   const name = el("a", { href: `#${encodeURIComponent(r.robot)}`, class: "mono name" }, r.robot);
+  // the robot's own console, where its operator starts and aborts runs (SWPC_FLEET_CONSOLE_URL)
+  const consoleLink = r.console_url ? el("a", { href: r.console_url, class: "console-link",
+    target: "_blank", rel: "noopener" }, "console") : null;
   const f = r.file_in_force;
   const file = f === null ? "none" : f.error ? `unreadable: ${f.error}` :
     `${f.created || "?"}${f.run ? ` (run ${f.run})` : " (by hand)"}`;
@@ -71,7 +74,7 @@ function robotRow(r) {
   const health = !r.health ? "–" : r.status === "live" ? r.health.status
     : `unknown now (last said ${r.health.status}, ${ago(r.age_s)})`;
   return el("tr", { "data-robot": r.robot },
-    el("th", { scope: "row" }, name), statusCell(r),
+    el("th", { scope: "row" }, name, ...(consoleLink ? [consoleLink] : [])), statusCell(r),
     el("td", {}, `${r.last_seen} (${ago(r.age_s)})`), el("td", {}, file), el("td", {}, chk),
     el("td", {}, health), el("td", { class: "num" }, r.calibrations), el("td", {}, largest(r.drift)));
 }
