@@ -14,7 +14,8 @@ topic                        schema                      what
 ===========================  ==========================  =================================
 ``/mocap/pose``              ``foxglove.PoseInFrame``    pose of R in W (frame ``W``)
 ``/tf``                      ``foxglove.FrameTransform``  the same pose as the transform
-                                                         W -> R (Foxglove's 3D panel)
+                                                         W -> R (Foxglove's 3D panel);
+                                                         both with the first pose only
 ``/module<id>/encoders``     ``swpc.ModuleEncoders``     reported ``theta_hat`` and ``psi``
 ``/calibration/segments``    ``swpc.Segment``            one message per spin window
 ``/calibration/events``      ``foxglove.Log``            the run's events (state changes,
@@ -223,8 +224,9 @@ class McapRecorder:
         self._fh: IO[bytes] = self.path.open("wb")
         self._w = Writer(self._fh)
         self._w.start(profile="ros2" if self._ros2 else "", library=library)
-        self._pose = self._channel("/mocap/pose", POSE_IN_FRAME, "geometry_msgs/msg/PoseStamped")
-        self._tf = self._channel("/tf", FRAME_TRANSFORM, "tf2_msgs/msg/TFMessage")
+        # registered with the first pose: a run without motion capture declares no pose
+        # topic (an empty 3D panel in Foxglove, issue 45 item 7)
+        self._pose = self._tf = -1
         self._enc = {
             m: self._channel(f"/module{m}/encoders", ENCODERS, "sensor_msgs/msg/JointState")
             for m in module_ids
@@ -265,6 +267,13 @@ class McapRecorder:
     def poses(self, rows: FloatArray) -> None:
         """Rows ``t, x, y, yaw`` (clock s, m, m, rad): a ``foxglove.PoseInFrame`` and a
         ``foxglove.FrameTransform`` each (formatted directly: the hot path of a run)."""
+        if self._pose < 0:
+            if not len(rows):
+                return
+            self._pose = self._channel(
+                "/mocap/pose", POSE_IN_FRAME, "geometry_msgs/msg/PoseStamped"
+            )
+            self._tf = self._channel("/tf", FRAME_TRANSFORM, "tf2_msgs/msg/TFMessage")
         if self._ros2 is not None:
             self._ros2_poses(self._ros2, rows)
             return
