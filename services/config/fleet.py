@@ -34,6 +34,11 @@ ALIVE_KEYS = f"{PREFIX}/*/alive"
 """Every robot's liveliness token."""
 ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 """A robot's name in the fleet: one zenoh key chunk, no wildcard or separator."""
+CONSOLE_URL = re.compile(r"(?=.{1,500}\Z)https?://[^\s\x00-\x1f]+", re.DOTALL)
+"""Where the lab reaches a robot's console (``SWPC_FLEET_CONSOLE_URL``, the state's
+``console_url``): an http or https address of at most 500 characters, no space or control
+character; the settings and the fleet service both refuse anything else."""
+CONSOLE_URL_RULE = "an http or https address of at most 500 characters"
 MAX_FLEET_PERIOD_S = 3600.0
 """The longest fleet period a robot may have (``SWPC_FLEET_PERIOD``; the fleet service
 refuses a document that states a longer one)."""

@@ -18,7 +18,7 @@ from typing import Literal
 from pydantic import ByteSize, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from services.config.fleet import MAX_FLEET_PERIOD_S
+from services.config.fleet import CONSOLE_URL, CONSOLE_URL_RULE, MAX_FLEET_PERIOD_S
 from services.config.log_options import LogFormat, LogLevel
 from swpc_hw.errors import SwpcError
 from swpc_hw.sensors.gyro import GyroOptions
@@ -172,7 +172,6 @@ class ServiceSettings(BaseSettings):
     )
     fleet_console_url: str | None = Field(
         None,
-        pattern=r"^https?://[^\s\x00-\x1f]{1,500}$",
         description="where the lab reaches this robot's operator console (e.g. "
         "http://robot07.lab:8080/): the fleet page links each robot to it; the service "
         "cannot know the name the lab uses for it",
@@ -338,6 +337,13 @@ class ServiceSettings(BaseSettings):
                 f"{self.max_connections}: event streams would leave no room for an abort"
             )
         return self
+
+    @field_validator("fleet_console_url")
+    @classmethod
+    def _console_url(cls, v: str | None) -> str | None:
+        if v is not None and not CONSOLE_URL.fullmatch(v):
+            raise ValueError(f"{CONSOLE_URL_RULE} is needed")
+        return v
 
     @field_validator("log_level", "log_format", mode="before")
     @classmethod

@@ -17,12 +17,13 @@ import contextlib
 import json
 import logging
 import math
-import re
 import threading
 from typing import Any
 
 from services.config.fleet import (
     ALIVE_KEYS,
+    CONSOLE_URL,
+    CONSOLE_URL_RULE,
     MAX_FLEET_PERIOD_S,
     STATE_FORMAT,
     STATE_FORMAT_1,
@@ -129,10 +130,8 @@ def check_document(robot: str, payload: bytes) -> dict[str, Any]:
             f"{MAX_FLEET_PERIOD_S:g}] is needed"
         )
     url = doc.get("console_url")
-    if url is not None and not (
-        isinstance(url, str) and len(url) <= 500 and re.fullmatch(r"https?://[^\s\x00-\x1f]+", url)
-    ):
-        raise DocumentError("console_url: an http or https address of at most 500 characters")
+    if url is not None and not (isinstance(url, str) and CONSOLE_URL.fullmatch(url)):
+        raise DocumentError(f"console_url: {CONSOLE_URL_RULE} is needed")
     fif = doc.get("file_in_force")
     if fif is not None:
         if not isinstance(fif, dict):

@@ -18,7 +18,7 @@ from typing import Any
 
 from services.config.fleet import fleet_period
 from swpc_hw.calibration.check.trend import MIN_SPAN
-from swpc_hw.robot.frames import DESIGN_FIT
+from swpc_hw.robot.frames import FRAME_FREE, frame_of_metrology
 from swpc_hw.robot.model import PARAM_NAMES
 
 WEEK_S = 7 * 86400.0
@@ -65,14 +65,9 @@ def calibrations(docs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return sorted(by_run.values(), key=lambda c: (epoch(str(c.get("time"))) or 0.0, c["run"]))
 
 
-FRAME_FREE = frozenset({"b", "r"})
-"""Parameters the same in every frame (services.runtime.history says why)."""
-
-
 def frame_of(c: dict[str, Any]) -> str:
-    """A calibration's frame: design-fit without motion capture (metrology ``imu``), else
-    R."""
-    return DESIGN_FIT if c.get("metrology") == "imu" else "R"
+    """A published calibration's frame (by its metrology)."""
+    return frame_of_metrology(c.get("metrology"))
 
 
 def drift(cals: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -43,7 +43,6 @@ from typing import Any, Literal
 import numpy as np
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
-from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.config.robot import TOLERANCE_OF, Tolerances
@@ -61,10 +60,13 @@ from swpc_hw.files.kinematic_file import (
     load_yaml,
     parse_kinematics,
 )
-from swpc_hw.robot.frames import DESIGN_FIT, design_fit_transform, transform_robot
+from swpc_hw.robot.frames import (
+    DESIGN_FIT,
+    FloatArray,
+    frame_of_metrology,
+    params_in_design_fit,
+)
 from swpc_hw.robot.model import PARAM_NAMES, ModuleParams, ModuleStddev, RobotParams
-
-FloatArray = NDArray[np.float64]
 
 log = logging.getLogger("swpc.service")
 
@@ -264,29 +266,6 @@ def _write_failure(exc: Exception) -> HTTPException:
         f"not installed: cannot write the kinematic file: {reason} (the file in force is "
         "untouched)",
     )
-
-
-def params_in_design_fit(
-    params: RobotParams, nominal: RobotParams
-) -> tuple[RobotParams, float, FloatArray]:
-    """``params`` (with their std devs) re-expressed in the design-fit frame
-    (:func:`swpc_hw.robot.frames.design_fit_transform` of their steering axes onto the
-    nominal ones), and that transform ``(phi, t)``.  Std devs: ``beta``, ``b``, ``r`` as
-    they are (a rotation leaves them), ``x_s`` and ``y_s`` the larger of the two (a rotated
-    coordinate's std dev is near it for the small angles of a fit)."""
-    ids = [m for m in params.ids if m in nominal.ids]
-    P = np.array([[params.module(m).x_s, params.module(m).y_s] for m in ids])
-    Q = np.array([[nominal.module(m).x_s, nominal.module(m).y_s] for m in ids])
-    phi, t = design_fit_transform(P, Q)
-    moved = transform_robot(params, phi, t, DESIGN_FIT)
-    mods = []
-    for m, old in zip(moved.modules, params.modules, strict=True):
-        sd = old.stddev
-        if sd is not None:
-            s = max(sd.x_s, sd.y_s)
-            m = m.model_copy(update={"stddev": sd.model_copy(update={"x_s": s, "y_s": s})})
-        mods.append(m)
-    return moved.model_copy(update={"modules": mods}), phi, t
 
 
 def _moved(what: str, frame: str, phi: float, t: FloatArray) -> str:
@@ -545,7 +524,7 @@ def comparison(run_id: str, rt: Rt) -> Comparison:
         if ref is None:
             why = "no file is in force" if info is None else "the file in force does not load"
     quality = doc.get("quality")
-    frame = DESIGN_FIT if isinstance(quality, dict) and quality.get("mode") == "imu" else "R"
+    frame = frame_of_metrology(quality.get("mode") if isinstance(quality, dict) else None)
     note = None
     if ref is not None and frame == DESIGN_FIT and ref.params.frame != DESIGN_FIT:
         ref, note = in_design_fit(ref, rt.config.nominal)

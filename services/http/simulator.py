@@ -25,6 +25,8 @@ from simulators.offline.datagen_imu import ReferenceOptions
 
 router = APIRouter()
 
+Seed = Annotated[int, Query(ge=0, le=2**63 - 1, description="the tape's random seed")]
+"""A simulated tape's seed: a non-negative integer numpy's generators take."""
 DEFAULT_TAPE_STDDEV = ReferenceOptions.stddev
 """m: the simulated tape's error (1 sigma) unless the request says otherwise."""
 
@@ -49,7 +51,7 @@ def tape_measure(
     rt: Rt,
     run: Annotated[str, Query(description="the run whose straight drive to measure")],
     stddev: Annotated[float, Query(gt=0, le=0.1)] = DEFAULT_TAPE_STDDEV,
-    seed: Annotated[int, Query(ge=0, le=2**63 - 1)] = 0,
+    seed: Seed = 0,
 ) -> TapeMeasure:
     """The simulated operator's tape measurement of a run's straight drive (the true
     travel plus ``N(0, stddev^2)``, seeded)."""
@@ -93,7 +95,7 @@ class AxisDistances(BaseModel):
 def axis_distances(
     rt: Rt,
     stddev: Annotated[float, Query(gt=0, le=0.1)] = DEFAULT_TAPE_STDDEV,
-    seed: Annotated[int, Query(ge=0, le=2**63 - 1)] = 0,
+    seed: Seed = 0,
 ) -> AxisDistances:
     """The simulated operator's tape between the steering axes (true distance plus
     ``N(0, stddev^2)``, seeded), each pair read twice."""

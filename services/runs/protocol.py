@@ -96,6 +96,10 @@ from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset, load_dataset
 from swpc_hw.robot.model import contact_point, trailing_steering_angle, wrap_angle
 
+TIME_MODEL = TimeModel()
+"""The planner's time model with its measured defaults: a step's estimate before one was
+measured (:meth:`CalibrationRun.planned`; asked at every poll, made once)."""
+
 
 class CalibrationRun(RunMachine):
     """One calibration: runs the protocol on its own thread (see the module docstring),
@@ -168,7 +172,7 @@ class CalibrationRun(RunMachine):
         the yaw rate of the spin torque; both rests, the length at its cruise speed and
         the steer, ramp and coast); the operator's steps 0 (theirs)."""
         p, lim = self.config.protocol, self.config.limits
-        tm = TimeModel()
+        tm = TIME_MODEL
         return {
             State.LOCK: p.resteer_time,
             State.ALIGN: p.align_time,
@@ -225,8 +229,6 @@ class CalibrationRun(RunMachine):
         m.come_to_rest(self)
         nominal = cfg.nominal.arrays()
         ids = cfg.nominal.ids
-        spins_total = len(self.modules) * len(angles)
-        spins_done = 0
         torque = cfg.limits.spin_torque
         for mi, k in enumerate(self.modules):
             ki = ids.index(k)
@@ -272,8 +274,7 @@ class CalibrationRun(RunMachine):
                 for mod in dyn:
                     # trailing wheels roll backwards for a CCW spin (r dpsi = -D dyaw)
                     self.robot.wheel_torque(mod, -torque)
-                m.spin(self, k, spins_done, spins_total)
-                spins_done += 1
+                m.spin(self, k)
                 self.enter(State.STOP, "spinning down")
                 for mod in dyn:
                     self.robot.wheel_hold(mod)

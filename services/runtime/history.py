@@ -30,8 +30,6 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from services.config.robot import TOLERANCE_OF, RobotConfig
 from services.runtime.errors import NoFileError
 from services.runtime.runtime import Runtime
@@ -40,14 +38,13 @@ from swpc_hw.calibration.report import DISPLAY
 from swpc_hw.robot.frames import (
     DESIGN_FIT,
     FILE_FIT,
-    design_fit_transform,
-    transform_parameters,
+    FRAME_FREE,
+    frame_of_metrology,
+    params_in_design_fit,
 )
-from swpc_hw.robot.model import PARAM_NAMES, RobotParams
+from swpc_hw.robot.model import PARAM_NAMES, ModuleParams, ModuleStddev, RobotParams
 
 WEEK = 7 * 86400.0
-FRAME_FREE = frozenset({"b", "r"})
-"""Parameters the same in every frame of R's rigid motions."""
 
 
 def epoch(iso: str) -> float:
@@ -84,8 +81,8 @@ def point_of(status: dict[str, Any], doc: dict[str, Any]) -> Point | None:
     if not when or not isinstance(rows, list):
         return None
     quality = doc.get("quality")
-    imu = isinstance(quality, dict) and quality.get("mode") == "imu"
-    frame = str(doc.get("frame") or (DESIGN_FIT if imu else "R"))
+    mode = quality.get("mode") if isinstance(quality, dict) else None
+    frame = str(doc.get("frame") or frame_of_metrology(mode))
     modules: dict[int, dict[str, tuple[float, float]]] = {}
     for m in rows:
         sd = m.get("stddev") or {}
@@ -118,9 +115,8 @@ def in_reference_frame(
     p: Point, frame: str, nominal: RobotParams
 ) -> dict[int, dict[str, tuple[float, float]]] | None:
     """``p``'s modules in ``frame``: as they are in it; a point in R re-expressed in
-    design-fit (its steering axes fitted to the nominal ones,
-    :func:`swpc_hw.robot.frames.design_fit_transform`; std devs of ``x_s`` and ``y_s`` the
-    larger of the two, as the result's comparison does); None when it cannot be."""
+    design-fit (:func:`swpc_hw.robot.frames.params_in_design_fit`, as the result's
+    comparison does); None when it cannot be."""
     if p.frame == frame:
         return p.modules
     if not (p.frame == "R" and frame == DESIGN_FIT):
@@ -128,16 +124,21 @@ def in_reference_frame(
     ids = [m for m in sorted(p.modules) if m in nominal.ids]
     if len(ids) < 2:
         return None
-    X = np.array([[p.modules[m][k][0] for k in PARAM_NAMES] for m in ids])
-    Q = np.array([[nominal.module(m).x_s, nominal.module(m).y_s] for m in ids])
-    phi, t = design_fit_transform(X[:, 0:2], Q)
-    Y = transform_parameters(X, phi, t)
-    out = {}
-    for row, m in zip(Y, ids, strict=True):
-        sd = {k: p.modules[m][k][1] for k in PARAM_NAMES}
-        sd["x_s"] = sd["y_s"] = max(sd["x_s"], sd["y_s"])
-        out[m] = {k: (float(v), sd[k]) for k, v in zip(PARAM_NAMES, row, strict=True)}
-    return out
+    sds = {m: [p.modules[m][k][1] for k in PARAM_NAMES] for m in ids}
+    params = RobotParams(modules=[
+        ModuleParams(
+            id=m, **{k: p.modules[m][k][0] for k in PARAM_NAMES},
+            stddev=ModuleStddev.of(sds[m]) if all(map(math.isfinite, sds[m])) else None,
+        )
+        for m in ids
+    ])  # fmt: skip
+    moved, _, _ = params_in_design_fit(params, nominal)
+    nan = [float("nan")] * len(PARAM_NAMES)
+    return {
+        m.id: dict(zip(PARAM_NAMES, zip(m.values(), m.stddev.values() if m.stddev else nan,
+                                        strict=True), strict=True))
+        for m in moved.modules
+    }  # fmt: skip
 
 
 def parameter_series(

@@ -129,6 +129,40 @@ def transform_robot(params: RobotParams, phi: float, t: ArrayLike, frame: str) -
     return RobotParams.from_matrix(a.ids, Y, robot=params.robot, frame=frame)
 
 
+FRAME_FREE = frozenset({"b", "r"})
+"""Parameters the same in every frame of R's rigid motions (``x_s``, ``y_s`` and ``beta``
+move with the frame)."""
+
+
+def frame_of_metrology(metrology: str | None) -> str:
+    """The frame a calibration's result is in: design-fit without motion capture
+    (metrology ``imu``: its frame R is not known), else R (the motion capture's body)."""
+    return DESIGN_FIT if metrology == "imu" else "R"
+
+
+def params_in_design_fit(
+    params: RobotParams, nominal: RobotParams
+) -> tuple[RobotParams, float, FloatArray]:
+    """``params`` (with their std devs) re-expressed in the design-fit frame
+    (:func:`design_fit_transform` of their steering axes onto the nominal ones, over the
+    modules both have), and that transform ``(phi, t)``.  Std devs: ``beta``, ``b``, ``r``
+    as they are (a rotation leaves them), ``x_s`` and ``y_s`` the larger of the two (a
+    rotated coordinate's std dev is near it for the small angles of a fit)."""
+    ids = [m for m in params.ids if m in nominal.ids]
+    P = np.array([[params.module(m).x_s, params.module(m).y_s] for m in ids])
+    Q = np.array([[nominal.module(m).x_s, nominal.module(m).y_s] for m in ids])
+    phi, t = design_fit_transform(P, Q)
+    moved = transform_robot(params, phi, t, DESIGN_FIT)
+    mods = []
+    for m, old in zip(moved.modules, params.modules, strict=True):
+        sd = old.stddev
+        if sd is not None:
+            s = max(sd.x_s, sd.y_s)
+            m = m.model_copy(update={"stddev": sd.model_copy(update={"x_s": s, "y_s": s})})
+        mods.append(m)
+    return moved.model_copy(update={"modules": mods}), phi, t
+
+
 def design_fit_constraints(P_s: ArrayLike, P_nom: ArrayLike) -> FloatArray:
     """The three gauge conditions of the design-fit frame, zero when it holds::
 

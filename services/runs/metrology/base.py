@@ -144,9 +144,9 @@ class Metrology(Protocol):
         """Between the alignment (or re-steering) and a spin about module ``k``."""
         ...
 
-    def spin(self, run: RunSteps, k: int, done: int, total: int) -> None:
-        """SPIN about ``k`` (spin ``done + 1`` of ``total``) until the sweep is reached;
-        ends with :meth:`RunSteps.add_segment`."""
+    def spin(self, run: RunSteps, k: int) -> None:
+        """SPIN about ``k`` until the sweep is reached; ends with
+        :meth:`RunSteps.add_segment`."""
         ...
 
     def after_spins(self, run: RunSteps) -> None:

@@ -341,7 +341,7 @@ class ImuMetrology:
             run.robot.wheel_hold(m)
         self._hold_still(run, step)  # SPIN's torque releases the brakes
 
-    def spin(self, run: RunSteps, k: int, done: int, total: int) -> None:
+    def spin(self, run: RunSteps, k: int) -> None:
         self._read(run)
         last = self._gyro.last
         assert last is not None  # the STILL before had samples

@@ -223,7 +223,7 @@ class MocapMetrology:
     def before_spin(self, run: RunSteps, k: int, dyn: list[int]) -> None:
         """Nothing: the poses need no rest before a spin."""
 
-    def spin(self, run: RunSteps, k: int, done: int, total: int) -> None:
+    def spin(self, run: RunSteps, k: int) -> None:
         latest = self.mocap.latest()
         assert latest is not None
         spin = SpinWindow(
