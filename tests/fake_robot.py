@@ -269,6 +269,12 @@ class FakeRobot:
         self._cmd("wheel_torque", module)
         self.mods[module].wheel, self.mods[module].torque = "torque", torque
 
+    def wheel_velocity(self, module: int, velocity: float) -> None:
+        raise AssertionError("the fake robot's wheels spin it by torque")
+
+    def spins_by_torque(self, module: int) -> bool:
+        return True
+
     def wheel_hold(self, module: int) -> None:
         self._cmd("wheel_hold", module)
         self.mods[module].wheel, self.mods[module].torque = "hold", 0.0

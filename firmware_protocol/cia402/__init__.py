@@ -22,6 +22,12 @@ EDS_PATH = Path(__file__).with_name("swpc_axis.eds")
 # ----------------------------------------------------------------------- objects (index)
 DEVICE_TYPE = 0x1000
 ERROR_REGISTER = 0x1001
+GUARD_TIME = 0x100C
+"""Node guarding (CiA 301): the master's guard period, ms (0: no life guarding)."""
+LIFE_TIME_FACTOR = 0x100D
+"""Life guarding: the node stops ``0x100C x 0x100D`` ms after the master's last guard
+request (a remote request on the node's ``0x700 + node``, answered with its NMT state and
+a toggle bit 7)."""
 CONSUMER_HEARTBEAT = 0x1016
 PRODUCER_HEARTBEAT = 0x1017
 ERROR_CODE = 0x603F

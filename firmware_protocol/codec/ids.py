@@ -98,10 +98,13 @@ def host_receive_filters() -> list[dict[str, int | bool]]:
 
 @dataclass(frozen=True)
 class Frame:
-    """One classic CAN data frame (11-bit id)."""
+    """One classic CAN frame (11-bit id): a data frame, or with ``remote`` a remote
+    request (RTR) of ``len(data)`` bytes (its data is not sent; CANopen's node guarding
+    asks a node's 1-byte state so)."""
 
     arbitration_id: int
     data: bytes
+    remote: bool = False
 
 
 def frame_id(node: int, command: Command) -> int:

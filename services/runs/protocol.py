@@ -164,6 +164,32 @@ class CalibrationRun(RunMachine):
             # counted as steps, their time is the operator's)
             self.plan += [State.STILL, State.STEER, State.MARK, State.DRIVE, State.MEASURE]
 
+    def _spin_wheels(self, k: int, dyn: Sequence[int], angle: float, torque: float) -> None:
+        """The dynamic wheels spin the robot counter-clockwise about module ``k``'s
+        contact point C: trailing wheels roll backwards, ``r dpsi = -D dyaw``.
+
+        By torque (``-torque`` on each) when every dynamic wheel's drive has a torque
+        mode.  Otherwise by velocity: velocity-held wheels would fight each other over
+        the robot's unknown geometry, so one wheel drives, the one whose steering axis is
+        farthest from C (nominal), at ``dpsi = -D omega / r`` with ``omega`` the time
+        model's yaw rate of the spin torque (the same time the run plans), and the others
+        are free (power stage off where a drive has no torque mode)."""
+        if all(self.robot.spins_by_torque(mod) for mod in dyn):
+            for mod in dyn:
+                self.robot.wheel_torque(mod, -torque)
+            return
+        nominal = self.config.nominal.arrays()
+        ids = self.config.nominal.ids
+        ki = ids.index(k)
+        C = contact_point(nominal.P_s[ki], np.array(nominal.b[ki]), angle + nominal.beta[ki])
+        reach = {mod: float(np.hypot(*(nominal.P_s[ids.index(mod)] - C))) for mod in dyn}
+        driver = max(dyn, key=lambda mod: reach[mod])
+        omega = TIME_MODEL.yaw_rate(self.config.limits.spin_torque)
+        for mod in dyn:
+            if mod != driver:
+                self.robot.wheel_free(mod)
+        self.robot.wheel_velocity(driver, -reach[driver] * omega / nominal.r[ids.index(driver)])
+
     def planned(self, state: State) -> float | None:
         """A step's robot time from the protocol's settings before one was measured: the
         align, stop, re-steer and rest times; a lock as long as a re-steer; a spin and the
@@ -271,9 +297,7 @@ class CalibrationRun(RunMachine):
                         self.robot.free_steer(mod)
                 m.before_spin(self, k, dyn)
                 self.enter(State.SPIN, f"spinning about module {k} ({ai + 1}/{len(angles)})")
-                for mod in dyn:
-                    # trailing wheels roll backwards for a CCW spin (r dpsi = -D dyaw)
-                    self.robot.wheel_torque(mod, -torque)
+                self._spin_wheels(k, dyn, a, torque)
                 m.spin(self, k)
                 self.enter(State.STOP, "spinning down")
                 for mod in dyn:

@@ -74,6 +74,8 @@ ABORT_VALUE_RANGE = 0x06090030
 ERROR_BEHAVIOUR = 0x1029
 """CiA 301's error behaviour object: sub 1, the NMT state a communication error leads to."""
 NMT_STOP = 0x02
+NMT_CODES = {v: k for k, v in canopen.nmt.NMT_STATES.items()}
+"""canopen's NMT state names -> CiA 301's state codes (a guard answer's bits 0-6)."""
 
 ERROR_CODES: dict[ErrorFlag, int] = {
     ErrorFlag.OVER_TEMPERATURE: 0x4310,
@@ -201,6 +203,9 @@ class VirtualAxis:
         self.consumer_node = 0
         self.consumer_time = 0.0
         self.host_seen: float | None = None
+        self.guard_toggle = 0
+        self.guarded_at: float | None = None
+        """Life guarding: the last guard request, once 0x100C and 0x100D are both set."""
         self.booted = False
         self.position = 0.0
         self.velocity = 0.0
@@ -427,6 +432,7 @@ class VirtualAxis:
         self.controlword = 0
         self.consumer_time = 0.0
         self.host_seen = None
+        self.guard_toggle, self.guarded_at = 0, None
         self.node.nmt.send_command(cia402.NMT_RESET_NODE)  # state 0: sends the boot-up
         self.node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)  # heartbeat if 0x1017
         self.booted = True
@@ -436,6 +442,10 @@ class VirtualAxis:
     def receive(self, msg: can.Message, now: float) -> None:
         self.net.now = now
         cob = msg.arbitration_id
+        if msg.is_remote_frame:
+            if cob == cia402.HEARTBEAT_BASE + self.config.node:
+                self._guard(now)
+            return
         if self.consumer_node and cob == cia402.HEARTBEAT_BASE + self.consumer_node:
             self.host_seen = now
             return
@@ -446,6 +456,26 @@ class VirtualAxis:
         self.net.notify(cob, bytearray(msg.data), now)
         if cob == cia402.NMT_ID:
             self._on_nmt(was, now)
+
+    def _guard_time(self) -> float:
+        """Life guarding's time, s: 0x100C ms x 0x100D (0: off, or no such objects)."""
+        od = self.node.object_dictionary
+        if cia402.GUARD_TIME not in od or cia402.LIFE_TIME_FACTOR not in od:
+            return 0.0
+        return self._read(cia402.GUARD_TIME) * self._read(cia402.LIFE_TIME_FACTOR) / 1000.0
+
+    def _guard(self, now: float) -> None:
+        """Node guarding (CiA 301): the answer is the NMT state with a toggle bit 7 that
+        alternates from 0; life guarding starts with the first request while 0x100C and
+        0x100D are both non-zero.  A drive without them does not answer."""
+        od = self.node.object_dictionary
+        if cia402.GUARD_TIME not in od or self.node.nmt.state == "INITIALISING":
+            return
+        state = NMT_CODES.get(self.node.nmt.state, cia402.NMT_PRE_OPERATIONAL)
+        self.net.send_message(cia402.HEARTBEAT_BASE + self.config.node,
+                              bytes([self.guard_toggle | state]))  # fmt: skip
+        self.guard_toggle ^= 0x80
+        self.guarded_at = now if self._guard_time() > 0 else None
 
     def _on_nmt(self, was: str, now: float) -> None:
         state = self.node.nmt.state
@@ -489,6 +519,10 @@ class VirtualAxis:
         ):
             self.host_seen = None
             self.fault(0x8130)
+        life = self._guard_time() if self.guarded_at is not None else 0.0
+        if self.guarded_at is not None and now - self.guarded_at > life:
+            self.guarded_at = None  # a life guarding event: "life guard error"
+            self.fault(0x8130)
         if now >= self.homing_end:
             self.homing_end = math.inf
             self.homed = True
@@ -506,6 +540,8 @@ class VirtualAxis:
         due = min(self.net.next_due(), self.homing_end, self.quick_stop_end)
         if self.consumer_time > 0 and self.host_seen is not None:
             due = min(due, self.host_seen + self.consumer_time + 1e-6)
+        if self.guarded_at is not None:
+            due = min(due, self.guarded_at + self._guard_time() + 1e-6)
         return due
 
     # ------------------------------------------------------------------ physics
@@ -584,10 +620,13 @@ class VirtualCia402Module:
         return out
 
     def receive(self, msg: can.Message, now: float) -> list[can.Message]:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+        if msg.is_error_frame or msg.is_extended_id:
             return []
         cob = msg.arbitration_id
         node = cob & 0x7F
+        guard = cob & 0x780 == cia402.HEARTBEAT_BASE and node in self._ids
+        if msg.is_remote_frame and not guard:  # node guarding's requests only
+            return []
         if (
             node
             and node not in self._ids

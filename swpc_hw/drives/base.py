@@ -61,7 +61,7 @@ from swpc_hw.drives.errors import (
 )
 from swpc_hw.drives.interface import DriveKind
 from swpc_hw.drives.observation import DriverObservation
-from swpc_hw.drives.periodic import KernelRefresh
+from swpc_hw.drives.periodic import KernelRefresh, frame_message
 from swpc_hw.drives.recording import Recorder, grow_receive_buffer
 from swpc_hw.drives.tracking import NodeTrack, Supervision, check, frame_time
 from swpc_hw.drives.types import (
@@ -347,14 +347,7 @@ class DriverBase(DriverObservation, DriveKind):
             now = self.clock.now()
             stamp = self.clock.wall()
             for f in frames:
-                msg = can.Message(
-                    arbitration_id=f.arbitration_id,
-                    data=f.data,
-                    is_extended_id=False,
-                    is_rx=False,
-                    channel=self.config.channel,
-                    timestamp=stamp,
-                )
+                msg = frame_message(f, self.config.channel, stamp)
                 node = self._node_of(f.arbitration_id)
                 try:
                     bus.send(msg)

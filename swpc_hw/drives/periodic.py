@@ -39,10 +39,19 @@ class _Task:
     frames: tuple[codec.Frame, ...]
 
 
-def _message(f: codec.Frame, channel: str | int | None) -> can.Message:
+def frame_message(
+    f: codec.Frame, channel: str | int | None, timestamp: float = 0.0
+) -> can.Message:
+    """python-can's message of ``f`` (a remote request: its length as DLC, no data)."""
+    if f.remote:
+        return can.Message(
+            arbitration_id=f.arbitration_id, is_remote_frame=True, dlc=len(f.data),
+            is_extended_id=False, is_rx=False, channel=channel, timestamp=timestamp,
+        )  # fmt: skip
     return can.Message(
-        arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False, channel=channel
-    )
+        arbitration_id=f.arbitration_id, data=f.data, is_extended_id=False, is_rx=False,
+        channel=channel, timestamp=timestamp,
+    )  # fmt: skip
 
 
 class KernelRefresh:
@@ -77,7 +86,7 @@ class KernelRefresh:
         if cur is not None and same_ids and new:
             # python-can changes a task's data, never its ids (an ODrive axis' refresh goes
             # from Set_Input_Torque to Set_Input_Pos): other ids take a new task, below
-            msgs = [_message(f, self.bus.channel_info) for f in new]
+            msgs = [frame_message(f, self.bus.channel_info) for f in new]
             cur.task.modify_data(msgs)  # type: ignore[attr-defined]
             cur.frames = new
             return
@@ -85,7 +94,7 @@ class KernelRefresh:
         # long this thread is held off the CPU in between (both send for that moment)
         task = None
         if new:
-            msgs = [_message(f, self.bus.channel_info) for f in new]
+            msgs = [frame_message(f, self.bus.channel_info) for f in new]
             task = self.bus.send_periodic(msgs, self.period, duration=self.deadman)
         if cur is not None:
             self._stop(node)

@@ -60,6 +60,15 @@ class RobotIO(Protocol):
 
     def wheel_torque(self, module: int, torque: float) -> None: ...
 
+    def wheel_velocity(self, module: int, velocity: float) -> None:
+        """The wheel at ``velocity`` (rad/s, the robot's sense)."""
+        ...
+
+    def spins_by_torque(self, module: int) -> bool:
+        """Whether the module's wheel spins the robot by torque; False: its drive has no
+        torque mode, so it spins it by velocity and is free with its power stage off."""
+        ...
+
     def wheel_hold(self, module: int) -> None: ...
 
     def wheel_free(self, module: int) -> None: ...
@@ -194,6 +203,13 @@ class DrivesRobotIO:
 
     def wheel_torque(self, module: int, torque: float) -> None:
         self.drives.set_torque(module, Axis.WHEEL, self._sign(module, Axis.WHEEL) * torque)
+
+    def wheel_velocity(self, module: int, velocity: float) -> None:
+        self.drives.set_velocity(module, Axis.WHEEL, self._sign(module, Axis.WHEEL) * velocity)
+
+    def spins_by_torque(self, module: int) -> bool:
+        st = self.drives.axis_status(module, Axis.WHEEL)
+        return st is None or st.torque_mode
 
     def wheel_hold(self, module: int) -> None:
         self.drives.hold(module, Axis.WHEEL)

@@ -145,7 +145,7 @@ class AxisStatus:
     ``MOTOR_OVER_TEMP``; ``none`` for 0).  ``fault``: the drive is in fault by its kind's
     rule (an ODrive's watchdog expiry alone is not one: a 0.5.x axis left alone reports it,
     as ``swpc drives scan`` says).  ``homed``: the steering's homing (None for a wheel,
-    which does not home)."""
+    which does not home); ``torque_mode`` below."""
 
     module: int
     axis: Axis
@@ -161,6 +161,9 @@ class AxisStatus:
     error_name: str
     fault: bool
     homed: bool | None
+    torque_mode: bool = True
+    """Whether the axis has a torque mode (a CiA 402 drive may not: it is then free with
+    its power stage off, and a wheel spins the robot by velocity)."""
 
 
 def axis_status_of_module(

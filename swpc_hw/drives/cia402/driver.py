@@ -18,7 +18,8 @@ Lifecycle
 * ``activate()``: every drive's heartbeat seen; once per boot of a drive, its set-up over
   SDO (PRE-OPERATIONAL): heartbeat producer 0x1017 = ``heartbeat_period_s``, heartbeat
   consumer 0x1016 on the host's heartbeat with the command watchdog
-  (``watchdog_timeout_ms``) as its time, quick-stop option 0x605A, homing method 0x6098,
+  (``watchdog_timeout_ms``) as its time (or node guarding on a drive without 0x1016: the
+  host asks its state every ``refresh_period_s``), quick-stop option 0x605A, homing method 0x6098,
   the motor's rated torque 0x6076 read, the factor group (0x608F, 0x6091) and the modes
   (0x6502) checked against the config, the PDO mapping of
   :data:`firmware_protocol.cia402.RPDO_MAP` / :data:`~firmware_protocol.cia402.TPDO_MAP`
@@ -27,7 +28,8 @@ Lifecycle
 * commands: RPDO 2 (targets) then RPDO 1 (controlword, mode, torque); the power state
   machine moves one transition per statusword (:func:`~swpc_hw.drives.cia402.tracking.
   supervise`); steering and held wheels in cyclic synchronous position, wheel torque in
-  cyclic synchronous torque, "free" a torque of 0, homing in mode 6.
+  cyclic synchronous torque, "free" a torque of 0 (a drive without a torque mode: its
+  power stage off), homing in mode 6.
 * ``stop_all()``: controlword *disable voltage* and target torque 0 to every axis (the
   power stage off: every axis free).  The host's heartbeat goes on while the bus is open:
   it says the host is alive, and a drive whose consumer saw it end would fault.
@@ -180,6 +182,11 @@ class Cia402Driver(DriverBase):
             self._kernel.set_node(self.drives.host_node, [self._heartbeat_frame()])
         self._next_heartbeat = self._next_renewal = self._configured_at
 
+    @staticmethod
+    def _guard_frame(a: AxisTrack) -> Frame:
+        """Node guarding's request of ``a``'s state (a remote frame, 1 byte)."""
+        return Frame(cia402.HEARTBEAT_BASE + a.node, b"\x00", remote=True)
+
     def _heartbeat_frame(self) -> Frame:
         host = self.drives.host_node
         return Frame(cia402.HEARTBEAT_BASE + host, bytes([cia402.NMT_OPERATIONAL]))
@@ -200,6 +207,9 @@ class Cia402Driver(DriverBase):
                 with self._lock:
                     a.configured = True
                     a.controlword = cia402.CW_DISABLE_VOLTAGE
+                if a.guarded and self._kernel is not None:
+                    with self._tx_lock:  # its guard requests from the kernel, as the heartbeat
+                        self._kernel.set_node(a.node, [self._guard_frame(a)])
         for a in self._tracks():
             if a.nmt != cia402.NMT_OPERATIONAL:
                 with self._lock:
@@ -352,7 +362,8 @@ class Cia402Driver(DriverBase):
         p1 = self._nodes[a.node].rpdo[1]
         p1[f"0x{cia402.CONTROLWORD:04X}"].raw = a.controlword
         p1[f"0x{cia402.MODES_OF_OPERATION:04X}"].raw = int(a.mode)
-        p1[f"0x{cia402.TARGET_TORQUE:04X}"].raw = a.target_torque
+        if a.torque_mode is not None:  # 0x6071 is mapped where the drive has a torque mode
+            p1[f"0x{cia402.TARGET_TORQUE:04X}"].raw = a.target_torque
         return Frame(p1.cob_id or cia402.RPDO_BASE[0] + a.node, bytes(p1.data))
 
     # ================================================================ commands
@@ -374,10 +385,28 @@ class Cia402Driver(DriverBase):
                     a.pp_acked = None  # profile position: the first target handed over
             self._send_rpdo(a, targets)
 
+    def _power(self, a: AxisTrack) -> None:
+        """OPERATION ENABLED asked (the power state machine moves one step per
+        statusword)."""
+        if not a.enable:
+            a.enable, a.enable_sync, a.refused_reported = True, self._sync_seq, False
+        a.unpowered = False
+
+    def _powered(self, a: AxisTrack) -> None:
+        """A command to an axis freed without a torque mode powers it again; one stopped
+        stays off until :meth:`enable`."""
+        if a.unpowered:
+            self._power(a)
+
     def enable(self, module: int, axis: Axis) -> None:
+        """Closed loop at torque 0; a drive without a torque mode is free with its power
+        stage off instead, powered by the next position, velocity or homing command."""
+
         def change(a: AxisTrack) -> None:
-            if not a.enable:
-                a.enable, a.enable_sync, a.refused_reported = True, self._sync_seq, False
+            if a.torque_mode is None:
+                a.enable, a.unpowered, a.enable_sync = False, True, -1
+                return
+            self._power(a)
             a.mode, a.target_torque = a.torque_mode, 0
             nxt = cia402.host_controlword(a.state, True, a.reset, a.controlword)
             if nxt is not None:
@@ -404,7 +433,7 @@ class Cia402Driver(DriverBase):
         a = mt.axes[Axis(axis)]
         self._require_active("set limits", a.where())
         a.max_torque, a.max_velocity = abs(max_torque), abs(max_velocity)
-        torque = min(a.torque_units(max_torque), 0xFFFF)
+        torque = min(a.torque_units(max_torque), 0xFFFF) if a.torque_mode is not None else 0
         velocity = min(a.to_units(max_velocity), 0xFFFFFFFF)
         if self._limits.get((module, int(axis))) == (torque, velocity):
             return
@@ -440,6 +469,7 @@ class Cia402Driver(DriverBase):
 
     def set_position(self, module: int, axis: Axis, position: float) -> None:
         def change(a: AxisTrack) -> None:
+            self._powered(a)
             a.mode, a.target_position, a.target_torque = (
                 a.position_mode, a.to_units(position), 0
             )  # fmt: skip
@@ -454,12 +484,18 @@ class Cia402Driver(DriverBase):
                     "velocity 0x60FF", node=a.node, axis=int(a.axis),
                 )  # fmt: skip
             v = max(-a.max_velocity, min(a.max_velocity, velocity))
+            self._powered(a)
             a.mode, a.target_velocity, a.target_torque = a.velocity_mode, a.to_units(v), 0
 
         self._command(f"set velocity {velocity:g}", module, axis, change)
 
     def set_torque(self, module: int, axis: Axis, torque: float) -> None:
         def change(a: AxisTrack) -> None:
+            if a.torque_mode is None:
+                raise NodeError(
+                    f"{a.where()}: the drive has no torque mode (0x6502): drive it by "
+                    "velocity", node=a.node, axis=int(a.axis),
+                )  # fmt: skip
             t = max(-a.max_torque, min(a.max_torque, torque))
             a.mode, a.target_torque = a.torque_mode, a.torque_units(t)
 
@@ -473,8 +509,17 @@ class Cia402Driver(DriverBase):
         self.set_position(module, axis, a.position)
 
     def free(self, module: int, axis: Axis) -> None:
-        """Cyclic synchronous torque, target 0."""
-        self.set_torque(module, axis, 0.0)
+        """Its torque mode, target 0; without one, its power stage off (disable voltage:
+        no torque, the axis turns freely and its encoder still reports)."""
+        a = self._module(module).axes[Axis(axis)]
+        if a.torque_mode is not None:
+            self.set_torque(module, axis, 0.0)
+            return
+
+        def change(a: AxisTrack) -> None:
+            a.enable, a.unpowered, a.enable_sync = False, True, -1
+
+        self._command("free", module, axis, change, targets=False)
 
     def start_homing(self, module: int) -> None:
         """Mode 6 and the start edge of controlword bit 4 (sent by the power state machine
@@ -488,6 +533,7 @@ class Cia402Driver(DriverBase):
             return
 
         def change(a: AxisTrack) -> None:
+            self._powered(a)
             a.mode = Mode.HOMING
             a.homing_start = True
             a.homing_sync = self._sync_seq
@@ -497,7 +543,7 @@ class Cia402Driver(DriverBase):
 
     def _stopping(self) -> None:
         for a in self._tracks():
-            a.enable = False
+            a.enable = a.unpowered = False
             a.homing_start = False
             a.reset = False
             a.target_torque = 0
@@ -633,9 +679,11 @@ class Cia402Driver(DriverBase):
         deadline = math.inf
         if self._kernel is None:
             if now >= self._next_heartbeat:
-                f = self._heartbeat_frame()
+                frames = [self._heartbeat_frame()] + [
+                    self._guard_frame(a) for a in self._tracks() if a.guarded and a.configured
+                ]
                 with contextlib.suppress(CanError):
-                    self._send(f.arbitration_id, f.data, best_effort=True)
+                    self._send_frames(frames, best_effort=True)
                 self._next_heartbeat = max(self._next_heartbeat + cfg.refresh_period_s, now)
             deadline = self._next_heartbeat
         if self._sync_on:
@@ -710,6 +758,7 @@ class Cia402Driver(DriverBase):
                 error_name=cia402.emcy_name(a.error_code) if a.error_code else "none",
                 fault=faulted or a.error_code != 0,  # the EMCY comes before the statusword
                 homed=mt.homed if a.axis is Axis.STEER else None,
+                torque_mode=a.torque_mode is not None,
             )
 
     def axis_track(self, module: int, axis: Axis) -> AxisTrack:

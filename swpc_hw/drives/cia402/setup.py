@@ -2,7 +2,8 @@
 
 In PRE-OPERATIONAL: heartbeat producer 0x1017 = ``heartbeat_period_s``, heartbeat
 consumer 0x1016 on the host's heartbeat with the command watchdog (``watchdog_timeout_ms``)
-as its time, quick-stop option 0x605A, homing method 0x6098, the motor's rated torque
+as its time (node guarding instead on a drive without 0x1016: :func:`_guarding`),
+quick-stop option 0x605A, homing method 0x6098, the motor's rated torque
 0x6076 read, the factor group (0x608F, 0x6091) checked against the config, the modes
 chosen from 0x6502 (:func:`choose_modes`), the PDO mapping of
 :data:`firmware_protocol.cia402.RPDO_MAP` / :data:`~firmware_protocol.cia402.TPDO_MAP`
@@ -42,16 +43,16 @@ NEEDED: dict[int, str] = {
     cia402.PRODUCER_HEARTBEAT: "swpc watches every drive by its heartbeat; a drive without "
     "a heartbeat producer cannot be supervised",
     cia402.CONSUMER_HEARTBEAT: "the drive's own dead-man on the host's heartbeat: without "
-    "it the drive would keep its last command when the host stops; use a drive (or "
-    "firmware) with a heartbeat consumer",
+    "it (or node guarding, 0x100C and 0x100D) the drive would keep its last command when "
+    "the host stops; use a drive (or firmware) with a heartbeat consumer or node guarding",
     cia402.CONTROLWORD: "the 402 power state machine",
     cia402.STATUSWORD: "the 402 power state machine",
     cia402.MODES_OF_OPERATION: "the modes swpc commands",
     cia402.MODES_DISPLAY: "swpc reads the mode in force back",
     cia402.POSITION_ACTUAL: "the encoder feedback",
     cia402.TARGET_POSITION: "the steering's and a held wheel's position",
-    cia402.TARGET_TORQUE: "swpc spins the robot by wheel torque, and frees a wheel by a "
-    "torque of 0",
+    cia402.TARGET_TORQUE: "the drive's torque mode: swpc spins the robot by wheel torque "
+    "and frees an axis by a torque of 0",
 }
 """Objects without which a drive is refused, and why."""
 
@@ -137,6 +138,8 @@ class _Drive:
             raise
 
     def _absent(self, index: int, sub: int) -> None:
+        if index == cia402.TARGET_TORQUE and self.a.torque_mode is None:
+            return None  # no torque mode: said once with the modes
         if index in NEEDED:
             raise self.refuse(index, NEEDED[index], sub or None)
         self.skip(index)
@@ -173,10 +176,16 @@ def set_up(
         return int(var.raw)
 
     try:
-        d.access(cia402.PRODUCER_HEARTBEAT, 0, write(round(1000 * cfg.heartbeat_period_s)),
-                 "0x1017 producer heartbeat time")  # fmt: skip
-        entry = cia402.consumer_entry(drives.host_node, cfg.watchdog_timeout_ms)
-        d.access(cia402.CONSUMER_HEARTBEAT, 1, write(entry), "0x1016 consumer heartbeat time")
+        guarding = not d.declared(cia402.CONSUMER_HEARTBEAT, 1) and all(
+            d.declared(i) for i in (cia402.GUARD_TIME, cia402.LIFE_TIME_FACTOR)
+        )
+        if guarding:
+            _guarding(d, cfg, write)
+        else:
+            d.access(cia402.PRODUCER_HEARTBEAT, 0, write(round(1000 * cfg.heartbeat_period_s)),
+                     "0x1017 producer heartbeat time")  # fmt: skip
+            entry = cia402.consumer_entry(drives.host_node, cfg.watchdog_timeout_ms)
+            d.access(cia402.CONSUMER_HEARTBEAT, 1, write(entry), "0x1016 consumer heartbeat time")
         d.access(cia402.QUICK_STOP_OPTION, 0, write(drives.quick_stop_option),
                  "0x605A quick stop option code")  # fmt: skip
         supported = d.access(cia402.SUPPORTED_MODES, 0, read, "0x6502 supported drive modes")
@@ -187,7 +196,8 @@ def set_up(
                 raise d.refuse(cia402.HOMING_METHOD, "the steering's homing method; with an "
                                "absolute encoder, set its `homing: absolute`")  # fmt: skip
             d.access(cia402.HOMING_METHOD, 0, write(int(homing)), f"0x6098 homing method {homing}")
-        _rated_torque(d, ax.rated_torque, read)
+        if a.torque_mode is not None:
+            _rated_torque(d, ax.rated_torque, read)
         inc = d.access(cia402.ENCODER_RESOLUTION, 1, read, "0x608F position encoder resolution")
         rev = d.access(cia402.ENCODER_RESOLUTION, 2, read, d.step) if inc is not None else None
         if inc is not None and rev:
@@ -214,31 +224,62 @@ def set_up(
     return d.notes
 
 
+def _guarding(d: _Drive, cfg: CanConfig, write: Callable[[int], Callable[[Any], None]]) -> None:
+    """Node guarding, CiA 301's other error control, for a drive without a heartbeat
+    consumer: its heartbeat producer off (the two are not used together), guard time
+    0x100C = the host's heartbeat period, life time factor 0x100D = the command watchdog
+    over it (rounded up).  The host asks the drive's state every guard time (a remote
+    request, :attr:`AxisTrack.guarded`) and watches the answers as heartbeats; the drive
+    stops ``0x100C x 0x100D`` ms (the watchdog) after the host's last request, the bound
+    the heartbeat consumer gives."""
+    guard_ms = max(1, round(1000 * cfg.refresh_period_s))
+    factor = min(255, max(2, math.ceil(cfg.watchdog_timeout_ms / guard_ms)))
+    if d.declared(cia402.PRODUCER_HEARTBEAT):
+        d.access(cia402.PRODUCER_HEARTBEAT, 0, write(0), "0x1017 producer heartbeat time 0")
+    d.access(cia402.GUARD_TIME, 0, write(guard_ms), f"0x100C guard time {guard_ms} ms")
+    d.access(cia402.LIFE_TIME_FACTOR, 0, write(factor), f"0x100D life time factor {factor}")
+    d.a.guarded = True
+    d.notes.append(
+        f"{d.a.where()}: no 0x1016 (consumer heartbeat): node guarding instead, the drive "
+        f"stops {guard_ms * factor} ms after the host's last guard request (0x100C "
+        f"{guard_ms} ms x 0x100D {factor})"
+    )
+
+
 def _modes(d: _Drive, supported: int | None, homing: object) -> None:
-    """The axis's modes from 0x6502: the position and torque modes are needed (and homing
-    unless the steering's encoder is absolute); velocity is optional."""
+    """The axis's modes from 0x6502: a position mode (the steering, a held wheel), homing
+    unless the steering's encoder is absolute, and for a wheel a torque or a velocity
+    mode (the spins).  A drive without a torque mode is free with its power stage off,
+    and its wheel spins the robot by velocity (said once)."""
     a = d.a
     chosen = choose_modes(supported)
-    need = {"position": chosen["position"], "torque": chosen["torque"]}
-    missing = [k for k, m in need.items() if m is None]
+    missing = [] if chosen["position"] is not None else ["position"]
+    if a.axis is Axis.WHEEL and chosen["torque"] is None and chosen["velocity"] is None:
+        missing.append("torque or velocity")
     bit = cia402.supported_modes_bit
     if homing != ABSOLUTE and supported is not None and not supported & bit(Mode.HOMING):
         missing.append("homing")
+    has = [m.name for m in Mode if m and supported and supported & bit(m)]
     if missing:
-        has = [m.name for m in Mode if m and supported and supported & bit(m)]
         raise NodeError(
             f"{a.where()}: the drive has no {' and no '.join(missing)} mode swpc can use "
             f"(0x6502 = 0x{supported or 0:08X}: {', '.join(has) or 'none swpc knows'}); "
-            "swpc needs a position mode (cyclic synchronous or profile), a torque mode "
-            "(cyclic synchronous or profile: the spins are driven by wheel torque), and "
-            "homing unless the encoder is absolute",
+            "swpc needs a position mode (cyclic synchronous or profile), for a wheel a "
+            "torque or a velocity mode (the spins), and homing unless the encoder is "
+            "absolute",
             node=a.node,
             axis=int(a.axis),
         )
     a.position_mode = chosen["position"] or Mode.CYCLIC_SYNC_POSITION
     a.has_profile_velocity = d.declared(PROFILE_VELOCITY)
-    a.torque_mode = chosen["torque"] or Mode.CYCLIC_SYNC_TORQUE
+    a.torque_mode = chosen["torque"]
     a.velocity_mode = chosen["velocity"]
+    if a.torque_mode is None:
+        d.notes.append(
+            f"{a.where()}: no torque mode (0x6502 = 0x{supported or 0:08X}: {', '.join(has)}):"
+            " free is its power stage off"
+            + (", and its wheel spins the robot by velocity" if a.axis is Axis.WHEEL else "")
+        )
 
 
 def _rated_torque(d: _Drive, configured: float | None, read: Callable[[Any], int]) -> None:

@@ -69,9 +69,10 @@ class AxisTrack:
     t_feedback: float = math.nan
     configured: bool = False
     position_mode: Mode = Mode.CYCLIC_SYNC_POSITION
-    torque_mode: Mode = Mode.CYCLIC_SYNC_TORQUE
+    torque_mode: Mode | None = Mode.CYCLIC_SYNC_TORQUE
     velocity_mode: Mode | None = Mode.CYCLIC_SYNC_VELOCITY
-    """The modes chosen at set-up from 0x6502 (:func:`swpc_hw.drives.cia402.setup.choose_modes`)."""
+    """The modes chosen at set-up from 0x6502 (:func:`swpc_hw.drives.cia402.setup.choose_modes`);
+    a drive without a torque mode (None) is free with its power stage off (:attr:`unpowered`)."""
     has_limits: tuple[bool, bool] = (True, True)
     has_profile_velocity: bool = False
     """Whether the drive has 0x6081 (profile position's speed: the run's velocity limit)."""
@@ -79,12 +80,19 @@ class AxisTrack:
     max_torque: float = math.inf
     max_velocity: float = math.inf
     """The run's limits (N.m, rad/s at the output), applied by the host too."""
+    guarded: bool = False
+    """Watched by node guarding (a drive without a heartbeat consumer 0x1016): the host
+    asks its state every heartbeat period and takes the answers as its heartbeats."""
     watched: bool = False
     """Its heartbeat judged: from its first heartbeat after its set-up."""
     t_boot: float | None = None
     """When its last boot-up was seen."""
     # the host's side
     enable: bool = False
+    unpowered: bool = False
+    """Free without a torque mode: its power stage off (``enable`` false) until a position,
+    velocity or homing command powers it again; false after a stop, which only ``enable``
+    undoes."""
     reset: bool = False
     mode: Mode = Mode.NONE
     target_position: int = 0

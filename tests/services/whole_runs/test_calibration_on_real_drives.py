@@ -26,7 +26,10 @@ from tests.service_rig import QUICK_PROTOCOL, TOKEN, start, wait_state
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 
 
-@pytest.mark.parametrize("name", ["elmo_gold", "yiyou_euservo", "profile_only"])
+@pytest.mark.parametrize(
+    "name",
+    ["elmo_gold", "yiyou_euservo", "faulhaber_mcdc300_co", "technosoft_ipos", "profile_only"],
+)
 def test_a_whole_calibration_on_a_real_drives_personality(tmp_path: Path, name: str) -> None:
     """``profile_only``: the project's EDS with 0x6502 = profile position, velocity and
     torque and homing (no cyclic synchronous mode), the profile modes end to end."""
