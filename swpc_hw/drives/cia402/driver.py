@@ -361,7 +361,8 @@ class Cia402Driver(DriverBase):
         """RPDO 1 of ``a``: controlword, mode, target torque."""
         p1 = self._nodes[a.node].rpdo[1]
         p1[f"0x{cia402.CONTROLWORD:04X}"].raw = a.controlword
-        p1[f"0x{cia402.MODES_OF_OPERATION:04X}"].raw = int(a.mode)
+        if not a.mode_by_sdo:
+            p1[f"0x{cia402.MODES_OF_OPERATION:04X}"].raw = int(a.mode)
         if a.torque_mode is not None:  # 0x6071 is mapped where the drive has a torque mode
             p1[f"0x{cia402.TARGET_TORQUE:04X}"].raw = a.target_torque
         return Frame(p1.cob_id or cia402.RPDO_BASE[0] + a.node, bytes(p1.data))
@@ -379,11 +380,29 @@ class Cia402Driver(DriverBase):
             with self._lock:
                 before = a.mode
                 change(a)
-                if a.mode is not before:
+                changed = a.mode is not before
+                if changed:
                     a.mode_sync = self._sync_seq
                     a.refused_reported = False
                     a.pp_acked = None  # profile position: the first target handed over
+            if not (changed and a.mode_by_sdo):
+                self._send_rpdo(a, targets)
+                return
+        # the mode over SDO first, outside the transmit lock (its answer comes through the
+        # I/O step, which takes that lock), then the targets and the controlword
+        self._write_mode(a)
+        with self._tx_lock:
             self._send_rpdo(a, targets)
+
+    def _write_mode(self, a: AxisTrack) -> None:
+        """0x6060 over SDO (a drive on which it is not PDO-mappable)."""
+        try:
+            self._nodes[a.node].sdo[cia402.MODES_OF_OPERATION].raw = int(a.mode)
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise NodeError(
+                f"{a.where()}: mode {cia402.mode_name(a.mode)} (0x6060 over SDO): {exc}",
+                node=a.node, axis=int(a.axis),
+            ) from exc  # fmt: skip
 
     def _power(self, a: AxisTrack) -> None:
         """OPERATION ENABLED asked (the power state machine moves one step per

@@ -41,7 +41,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
-from swpc_hw.drives.cia402.setup import POSITION_MODES, TORQUE_MODES, choose_modes
+from swpc_hw.drives.cia402.setup import POSITION_MODES, TORQUE_MODES, VELOCITY_MODES, choose_modes
 from swpc_hw.drives.errors import CanBusError
 from swpc_hw.drives.scan import Expected, FoundNode
 
@@ -93,13 +93,16 @@ def _short(mode: Mode) -> str:
 def lacking(supported: int, homing: object) -> list[str]:
     """What swpc's set-up would refuse a drive for in its 0x6502 (the set-up's own choice,
     :func:`swpc_hw.drives.cia402.setup.choose_modes`): no position mode swpc can use, no
-    torque mode, no homing for an axis that homes (``homing`` not ``absolute``: a wheel is
-    given ``absolute``)."""
+    torque and no velocity mode (which a wheel needs: the scan does not know the axis, so
+    it is said "for a wheel"), no homing for an axis that homes (``homing`` not
+    ``absolute``: a wheel is given ``absolute``)."""
     chosen = choose_modes(supported)
     out = []
-    for what, modes in (("position", POSITION_MODES), ("torque", TORQUE_MODES)):
-        if chosen[what] is None:
-            out.append(f"a {what} mode ({' or '.join(_short(m) for m in modes)})")
+    if chosen["position"] is None:
+        out.append(f"a position mode ({' or '.join(_short(m) for m in POSITION_MODES)})")
+    if chosen["torque"] is None and chosen["velocity"] is None:
+        both = " or ".join(_short(m) for m in TORQUE_MODES + VELOCITY_MODES)
+        out.append(f"for a wheel, a torque or velocity mode ({both})")
     if homing != ABSOLUTE and not supported & cia402.supported_modes_bit(Mode.HOMING):
         out.append("homing (HM)")
     return out

@@ -324,6 +324,13 @@ def _map_pdos(d: _Drive) -> None:
                     continue
                 var = d.od[index]
                 var = var if isinstance(var, ODVariable) else var[sub]
+                if not var.pdo_mappable and index == cia402.MODES_OF_OPERATION:
+                    a.mode_by_sdo = True  # a mode changes seldom: over SDO, not mapped
+                    d.notes.append(
+                        f"{a.where()}: 0x6060 ({var.name}) is not PDO-mappable on this "
+                        "drive: each mode is written over SDO when it changes"
+                    )
+                    continue
                 if not var.pdo_mappable:
                     why = NEEDED.get(index) or OPTIONAL.get(index, "")
                     if index in NEEDED:

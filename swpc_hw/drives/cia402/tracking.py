@@ -80,6 +80,9 @@ class AxisTrack:
     max_torque: float = math.inf
     max_velocity: float = math.inf
     """The run's limits (N.m, rad/s at the output), applied by the host too."""
+    mode_by_sdo: bool = False
+    """0x6060 is not PDO-mappable on this drive: each mode is written over SDO when it
+    changes (not in RPDO 1)."""
     guarded: bool = False
     """Watched by node guarding (a drive without a heartbeat consumer 0x1016): the host
     asks its state every heartbeat period and takes the answers as its heartbeats."""

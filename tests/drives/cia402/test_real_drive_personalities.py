@@ -1,5 +1,5 @@
 """The set-up against the object dictionaries real drives publish (issue 42, item 2 and
-the table of real drives): seven EDS files of six makers (``tests/drives/cia402/eds/``,
+the table of real drives): eight EDS files of seven makers (``tests/drives/cia402/eds/``,
 their sources in its README), each given as ``object_dictionary`` the way docs/drives.md
 tells a user to, the virtual drive serving only what that EDS declares (its 0x6502, its
 objects, its mapping objects' types).  Each comes up with the modes it has and says once
@@ -53,6 +53,7 @@ EXPECTED: dict[str, str | tuple[Mode, Mode | None]] = {
     "schunk_prl120": "the drive has no position mode swpc can use (0x6502 = 0x00000060",
     "technosoft_idm_iscm": "TPDO 1's mapping 0x1A00 has room for 1 entries, swpc maps 3",
     "technosoft_ipos": (Mode.PROFILE_POSITION, None),
+    "wittenstein_simco": (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE),
 }
 """What each comes to: (steering's position mode, wheel's torque mode: None, it spins the
 robot by velocity), or the refusal."""

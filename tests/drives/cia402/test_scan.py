@@ -55,8 +55,12 @@ def test_supported_modes_are_named_by_their_bits() -> None:
     # what swpc's set-up would refuse (its own choice of modes): CSP; CST, else PT; HM
     assert cs.lacking(0x000003A0, 19) == []
     assert cs.lacking(0x000000AD, 19) == []  # PP PV PT HM CSP: profile torque will do
-    assert cs.lacking(0x00000025, 19) == ["a torque mode (CST or PT)"]  # PP is a position mode
-    lacks = ["a position mode (CSP or PP)", "a torque mode (CST or PT)"]
+    assert cs.lacking(0x00000025, 19) == []  # PP PV HM: a wheel spins the robot by velocity
+    assert cs.lacking(0x00000021, 19) == [  # PP HM
+        "for a wheel, a torque or velocity mode (CST or PT or CSV or PV)"
+    ]
+    lacks = ["a position mode (CSP or PP)",
+             "for a wheel, a torque or velocity mode (CST or PT or CSV or PV)"]  # fmt: skip
     assert cs.lacking(0x00000060, 19) == lacks  # HM IP
     assert cs.lacking(0x00000280, 19) == ["homing (HM)"]  # CSP CST
     assert cs.lacking(0x00000280, "absolute") == []  # an absolute steering, or a wheel
@@ -282,15 +286,17 @@ def test_a_drive_lacking_a_mode_swpc_needs_is_noted(
     local_bus: tuple[str, dict[int, canopen.LocalNode], Sent],
 ) -> None:
     ch, nodes, _sent = local_bus
-    nodes[1].sdo[cia402.SUPPORTED_MODES].raw = 0x00000025  # PP PV HM: no cyclic modes
+    nodes[1].sdo[cia402.SUPPORTED_MODES].raw = 0x00000023  # PP VL HM: no mode to spin by
     net = network(ch)
     try:
         result = cs.scan(net, [1], listen_s=0.2, homing={1: 19})
     finally:
         net.disconnect()
     (one,) = [f for f in result.found if f.node == 1]
-    assert one.fields["modes"] == "PP PV HM"
-    assert one.notes == ["lacks what swpc needs: a torque mode (CST or PT)"]
+    assert one.fields["modes"] == "PP VL HM"
+    assert one.notes == [
+        "lacks what swpc needs: for a wheel, a torque or velocity mode (CST or PT or CSV or PV)"
+    ]
 
 
 @pytest.fixture()
@@ -368,7 +374,7 @@ def test_scan_reads_real_drives_published_object_dictionaries() -> None:
     net = network(ch)
     try:
         result = cs.scan(net, range(1, 128), listen_s=0.5,
-                         homing={n: 19 for n in range(1, 8)})  # fmt: skip
+                         homing={n: 19 for n in range(1, len(eds) + 1)})  # fmt: skip
     finally:
         net.disconnect()
         for local in locals_:
@@ -379,13 +385,15 @@ def test_scan_reads_real_drives_published_object_dictionaries() -> None:
     assert {n: x.fields["vendor"] for n, x in f.items() if n != "pilz_prbt"} == {
         "elmo_gold": "0x0000009A", "faulhaber_mcdc300_co": "0x00000147",
         "schunk_prl120": "0x00000000", "technosoft_idm_iscm": "0x000001A3",
-        "technosoft_ipos": "0x000001A3", "yiyou_euservo": "0x00000668",
+        "technosoft_ipos": "0x000001A3", "wittenstein_simco": "0x0000010A",
+        "yiyou_euservo": "0x00000668",
     }  # fmt: skip
     assert {n: x.fields["modes"] for n, x in f.items() if n != "elmo_gold"} == {
         "faulhaber_mcdc300_co": "PP PV HM", "pilz_prbt": "PP VL IP", "schunk_prl120": "HM IP",
         "technosoft_idm_iscm": "PP PV HM IP",
         "technosoft_ipos": "PP PV HM IP maker bit 16 maker bit 17 maker bit 18 maker bit 19 "
         "maker bit 20",
+        "wittenstein_simco": "PP PV PT HM IP CSP CSV CST",
         "yiyou_euservo": "PP PV PT IP CSP CSV CST",
     }  # fmt: skip
     # Elmo's file declares 0x6502 without a value: canopen's slave aborts the read
@@ -393,13 +401,15 @@ def test_scan_reads_real_drives_published_object_dictionaries() -> None:
     # what swpc's set-up says of them too (docs/drives.md's table of real drives)
     assert f["yiyou_euservo"].notes == ["lacks what swpc needs: homing (HM)"]
     assert f["elmo_gold"].notes == []  # no 0x6502 value: the set-up tries the modes
-    for name in ("faulhaber_mcdc300_co", "technosoft_idm_iscm"):  # PP PV HM (IP)
-        assert f[name].notes == ["lacks what swpc needs: a torque mode (CST or PT)"], name
+    for name in ("faulhaber_mcdc300_co", "technosoft_idm_iscm", "wittenstein_simco"):
+        assert f[name].notes == [], name  # PP PV HM: a wheel spins the robot by velocity
     assert f["schunk_prl120"].notes == [
-        "lacks what swpc needs: a position mode (CSP or PP), a torque mode (CST or PT)"
+        "lacks what swpc needs: a position mode (CSP or PP), "
+        "for a wheel, a torque or velocity mode (CST or PT or CSV or PV)"
     ]
     assert f["pilz_prbt"].notes == [
-        "lacks what swpc needs: a torque mode (CST or PT), homing (HM)"
+        "lacks what swpc needs: for a wheel, a torque or velocity mode (CST or PT or CSV or "
+        "PV), homing (HM)"
     ]
     # absent: what the file does not have at all
     idm = f["technosoft_idm_iscm"]

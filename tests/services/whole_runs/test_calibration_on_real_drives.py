@@ -1,9 +1,10 @@
 """A whole calibration through the service on the virtual drive with a real drive's
 personality (issue 42, item 4): its published EDS as ``object_dictionary`` (the robot
 config a technician writes, ``tests/drives/cia402/test_real_drive_personalities.py``),
-CiA 301's defaults, only the objects that EDS declares.  The two of the seven that swpc
-brings up today (the others are refused at set-up, naming why, in that test), and a drive
-with the profile modes only."""
+CiA 301's defaults, only the objects that EDS declares.  The five of the eight that swpc
+brings up today (the others are refused at set-up, naming why, in that test): two without
+a torque mode (their spins driven by velocity), one of them node-guarded, one whose 0x6060
+is written over SDO; and a drive with the profile modes only."""
 
 from __future__ import annotations
 
@@ -28,7 +29,10 @@ NAMES = ("x_s", "y_s", "beta", "b", "r")
 
 @pytest.mark.parametrize(
     "name",
-    ["elmo_gold", "yiyou_euservo", "faulhaber_mcdc300_co", "technosoft_ipos", "profile_only"],
+    [
+        "elmo_gold", "yiyou_euservo", "faulhaber_mcdc300_co", "technosoft_ipos",
+        "wittenstein_simco", "profile_only",
+    ],
 )
 def test_a_whole_calibration_on_a_real_drives_personality(tmp_path: Path, name: str) -> None:
     """``profile_only``: the project's EDS with 0x6502 = profile position, velocity and
