@@ -57,8 +57,9 @@ SUPPORTED_MODES = 0x6502
 NMT_ID = 0x000
 SYNC_ID = 0x080
 EMCY_BASE = 0x080
-TPDO_BASE = (0x180, 0x280)
-RPDO_BASE = (0x200, 0x300)
+TPDO_BASE = (0x180, 0x280, 0x380, 0x480)
+RPDO_BASE = (0x200, 0x300, 0x400, 0x500)
+"""PDOs 1-4's COB-IDs (+ node): CiA 301's predefined connection set."""
 SDO_TX_BASE = 0x580
 SDO_RX_BASE = 0x600
 HEARTBEAT_BASE = 0x700
@@ -99,7 +100,9 @@ RPDO_MAP: dict[int, tuple[PdoEntry, ...]] = {
     2: ((TARGET_POSITION, 0, 32), (TARGET_VELOCITY, 0, 32)),
 }
 """Host -> drive, applied on reception (transmission type :data:`RPDO_ASYNC`): RPDO 2 (the
-targets) is sent before RPDO 1 (controlword, mode), so a mode starts on its own target."""
+targets) is sent before RPDO 1 (controlword, mode), so a mode starts on its own target.
+Each group in its PDO where the drive's mapping has room; spread over PDOs 3 and 4 where it
+has not (:func:`swpc_hw.drives.cia402.setup.place`)."""
 TPDO_MAP: dict[int, tuple[PdoEntry, ...]] = {
     1: ((STATUSWORD, 0, 16), (POSITION_ACTUAL, 0, 32), (MODES_DISPLAY, 0, 8)),
     2: ((VELOCITY_ACTUAL, 0, 32), (TORQUE_ACTUAL, 0, 16)),

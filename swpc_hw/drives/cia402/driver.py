@@ -176,8 +176,8 @@ class Cia402Driver(DriverBase):
                 self._nodes[a.node] = node
                 net.subscribe(cia402.HEARTBEAT_BASE + a.node, self._on_heartbeat)
                 node.emcy.add_callback(self._emcy_callback(a))
-                for i in cia402.TPDO_MAP:
-                    node.tpdo[i].add_callback(lambda p, a=a, m=m: self._on_tpdo(m, a, p))
+                for i in node.tpdo.map or {}:  # the ones swpc maps (a.tpdos): at set-up
+                    node.tpdo[i].add_callback(lambda p, a=a, m=m, i=i: self._on_tpdo(m, a, i, p))
         if self._kernel is not None:
             self._kernel.set_node(self.drives.host_node, [self._heartbeat_frame()])
         self._next_heartbeat = self._next_renewal = self._configured_at
@@ -326,21 +326,31 @@ class Cia402Driver(DriverBase):
                 raise
 
     def _send_rpdo(self, a: AxisTrack, targets: bool, best_effort: bool = False) -> None:
-        """RPDO 2 (targets, if ``targets``) then RPDO 1 of ``a``: canopen packs them."""
+        """The targets' RPDOs (if ``targets``) then the command's of ``a``: canopen packs
+        them."""
         if targets:
             self._send_targets(a, best_effort)
-        f = self._rpdo1(a)
-        self._send(f.arbitration_id, f.data, best_effort)
+        for f in self._command_frames(a):
+            self._send(f.arbitration_id, f.data, best_effort)
+
+    def _pdo_frames(self, a: AxisTrack, group: int, values: dict[int, int]) -> list[Frame]:
+        """The RPDOs of one group of ``a`` (:attr:`AxisTrack.rpdos`), each object it maps
+        set from ``values`` (an object the drive lacks is in no map)."""
+        out = []
+        for i in a.rpdos[group]:
+            p = self._nodes[a.node].rpdo[i]
+            for v in p.map:
+                if v.index in values:
+                    p[f"0x{v.index:04X}"].raw = values[v.index]
+            out.append(Frame(p.cob_id or cia402.RPDO_BASE[i - 1] + a.node, bytes(p.data)))
+        return out
 
     def _send_targets(self, a: AxisTrack, best_effort: bool = False) -> None:
-        """RPDO 2 of ``a``: target position and velocity."""
-        p2 = self._nodes[a.node].rpdo[2]
-        for index, value in (
-            (cia402.TARGET_POSITION, a.target_position), (cia402.TARGET_VELOCITY, a.target_velocity)
-        ):  # fmt: skip
-            if any(v.index == index for v in p2.map):  # 0x60FF is optional
-                p2[f"0x{index:04X}"].raw = value
-        self._send(p2.cob_id or cia402.RPDO_BASE[1] + a.node, bytes(p2.data), best_effort)
+        """The targets' RPDOs of ``a`` (RPDO 2 on most drives): position and velocity."""
+        values = {cia402.TARGET_POSITION: a.target_position,
+                  cia402.TARGET_VELOCITY: a.target_velocity}  # fmt: skip
+        for f in self._pdo_frames(a, 1, values):
+            self._send(f.arbitration_id, f.data, best_effort)
 
     def _stream_targets(self) -> None:
         """Before each SYNC, RPDO 2 to every axis whose cyclic synchronous mode is in force:
@@ -357,15 +367,12 @@ class Cia402Driver(DriverBase):
                     with contextlib.suppress(CanError):
                         self._send_targets(a, best_effort=True)
 
-    def _rpdo1(self, a: AxisTrack) -> Frame:
-        """RPDO 1 of ``a``: controlword, mode, target torque."""
-        p1 = self._nodes[a.node].rpdo[1]
-        p1[f"0x{cia402.CONTROLWORD:04X}"].raw = a.controlword
-        if not a.mode_by_sdo:
-            p1[f"0x{cia402.MODES_OF_OPERATION:04X}"].raw = int(a.mode)
-        if a.torque_mode is not None:  # 0x6071 is mapped where the drive has a torque mode
-            p1[f"0x{cia402.TARGET_TORQUE:04X}"].raw = a.target_torque
-        return Frame(p1.cob_id or cia402.RPDO_BASE[0] + a.node, bytes(p1.data))
+    def _command_frames(self, a: AxisTrack) -> list[Frame]:
+        """The command's RPDOs of ``a`` (RPDO 1 on most drives): controlword, mode (unless
+        over SDO), target torque (where it has a torque mode)."""
+        values = {cia402.CONTROLWORD: a.controlword, cia402.MODES_OF_OPERATION: int(a.mode),
+                  cia402.TARGET_TORQUE: a.target_torque}  # fmt: skip
+        return self._pdo_frames(a, 0, values)
 
     # ================================================================ commands
     def _module(self, module: int) -> ModuleTrack:
@@ -573,7 +580,7 @@ class Cia402Driver(DriverBase):
     def _stop_frames(self) -> list[Frame]:
         """Disable voltage and torque 0 (RPDO 1) to every axis set up (an axis never set
         up was never enabled); the host's heartbeat goes on."""
-        return [self._rpdo1(a) for a in self._tracks() if a.configured]
+        return [f for a in self._tracks() if a.configured for f in self._command_frames(a)]
 
     # ================================================================ receive + supervise
     def _receive(self, msg: can.Message, t: float) -> None:
@@ -614,27 +621,31 @@ class Cia402Driver(DriverBase):
             self._pending += on_emcy(a, e.code, e.register, active)
             self._changed.notify_all()
 
-    def _on_tpdo(self, module: int, a: AxisTrack, p: PdoMap) -> None:
+    def _on_tpdo(self, module: int, a: AxisTrack, i: int, p: PdoMap) -> None:
+        """TPDO ``i`` of ``a``: its objects kept; the last TPDO of the sample group
+        completes a statusword and position (:attr:`AxisTrack.tpdos`), the last of the
+        velocity and torque group those."""
         mt = self._modules[module]
         with self._changed:
             mt.feedback_frames += 1
-            if p is self._nodes[a.node].tpdo[1]:
-                sw = int(p[f"0x{cia402.STATUSWORD:04X}"].raw)
-                pos = int(p[f"0x{cia402.POSITION_ACTUAL:04X}"].raw)
-                disp = int(p[f"0x{cia402.MODES_DISPLAY:04X}"].raw)
+            got = a.tpdo_values
+            for v in p.map:
+                got[v.index] = int(v.raw)
+            if i == a.tpdos[0][-1]:
+                sw = got.get(cia402.STATUSWORD, 0)
+                pos = got.get(cia402.POSITION_ACTUAL, 0)
+                disp = got.get(cia402.MODES_DISPLAY, 0)
                 a.answered += 1
                 seq = a.sync_base + a.answered
                 self._pending += on_statusword(mt, a, sw, disp, pos, seq, self._arrival)
                 s = pair(mt)
                 if s is not None:
                     self._sample(mt, s)
-            else:
-                mapped = {v.index for v in p.map}  # 0x606C and 0x6077 are optional
-                if cia402.VELOCITY_ACTUAL in mapped:
-                    v = int(p[f"0x{cia402.VELOCITY_ACTUAL:04X}"].raw)
-                    a.velocity = v / a.counts_per_rad
-                if cia402.TORQUE_ACTUAL in mapped:
-                    a.torque = a.torque_si(int(p[f"0x{cia402.TORQUE_ACTUAL:04X}"].raw))
+            elif len(a.tpdos) > 1 and i == a.tpdos[1][-1]:
+                if cia402.VELOCITY_ACTUAL in got:  # 0x606C and 0x6077 are optional
+                    a.velocity = got[cia402.VELOCITY_ACTUAL] / a.counts_per_rad
+                if cia402.TORQUE_ACTUAL in got:
+                    a.torque = a.torque_si(got[cia402.TORQUE_ACTUAL])
                 ring = self._history[module]
                 last = self._last.get(module)
                 if len(ring) and last is not None and last.seq == a.seq:

@@ -306,73 +306,137 @@ def _rated_torque(d: _Drive, configured: float | None, read: Callable[[Any], int
     a.rated_torque = value
 
 
+PdoEntry = tuple[int, int, int]
+
+
+def place(
+    groups: list[list[PdoEntry]], rooms: dict[int, int]
+) -> list[list[tuple[int, list[PdoEntry]]]] | None:
+    """The PDOs each group of entries goes to: group by group, each from the next PDO not
+    taken, its entries in order into PDOs of ``rooms`` entries (PDO number -> room), one
+    group never sharing a PDO with another (so each is sent on its own).  swpc's groups fit
+    PDOs 1 and 2 of most drives; one with smaller mapping objects spreads them over PDOs
+    3 and 4.  None when they do not fit.
+
+    >>> place([[(1, 0, 16), (2, 0, 8)], [(3, 0, 32)]], {1: 1, 2: 2, 3: 2})
+    [[(1, [(1, 0, 16)]), (2, [(2, 0, 8)])], [(3, [(3, 0, 32)])]]
+    """
+    free = sorted(rooms)
+    out: list[list[tuple[int, list[PdoEntry]]]] = []
+    for entries in groups:
+        placed: list[tuple[int, list[PdoEntry]]] = []
+        rest = list(entries)
+        while rest:
+            if not free:
+                return None
+            n = free.pop(0)
+            if rooms[n] > 0:
+                placed.append((n, rest[: rooms[n]]))
+                rest = rest[rooms[n] :]
+        out.append(placed)
+    return out
+
+
 def _map_pdos(d: _Drive) -> None:
-    """The PDO maps written, then read back: an object the drive lacks is left out when
-    optional and refused when needed; one it cannot map is refused; a map that came out
-    shorter than asked is refused, never used."""
+    """The PDO maps written (:func:`place`), then read back: an object the drive lacks is
+    left out when optional and refused when needed; one it cannot map is refused; a map
+    that came out shorter than asked is refused, never used.  Records on the axis which
+    PDOs carry each group (:attr:`AxisTrack.rpdos`, :attr:`AxisTrack.tpdos`)."""
     node, a = d.node, d.a
     for maps, layout, base, ttype, kind in (
         (node.tpdo, cia402.TPDO_MAP, cia402.TPDO_BASE, cia402.TPDO_ON_SYNC, "TPDO"),
         (node.rpdo, cia402.RPDO_MAP, cia402.RPDO_BASE, cia402.RPDO_ASYNC, "RPDO"),
     ):
-        for i, entries in layout.items():
-            d.step = f"PDO mapping {kind} {i}"
-            wanted = []
-            for index, sub, bits in entries:
-                if not d.declared(index, sub):
-                    d._absent(index, sub)
-                    continue
-                var = d.od[index]
-                var = var if isinstance(var, ODVariable) else var[sub]
-                if not var.pdo_mappable and index == cia402.MODES_OF_OPERATION:
-                    a.mode_by_sdo = True  # a mode changes seldom: over SDO, not mapped
-                    d.notes.append(
-                        f"{a.where()}: 0x6060 ({var.name}) is not PDO-mappable on this "
-                        "drive: each mode is written over SDO when it changes"
-                    )
-                    continue
-                if not var.pdo_mappable:
-                    why = NEEDED.get(index) or OPTIONAL.get(index, "")
-                    if index in NEEDED:
-                        raise NodeError(
-                            f"{a.where()}: 0x{index:04X} ({var.name}) is not PDO-mappable "
-                            f"on this drive (its object dictionary): {why}",
-                            node=a.node,
-                            axis=int(a.axis),
-                        )
-                    d.skip(index)
-                    continue
-                wanted.append((index, sub, bits))
-            p = maps[i]
-            room = _entries(p.map_array.od)
-            if len(wanted) > room:
+        groups = [_wanted(d, entries) for entries in layout.values()]
+        rooms = {n: _entries(maps[n].map_array.od) for n in maps.map or {} if n <= len(base)}
+        placed = place(groups, rooms)
+        if placed is None:
+            raise NodeError(
+                f"{a.where()}: {kind} {min(layout)}'s mapping 0x"
+                f"{maps[min(layout)].map_array.od.index:04X} has room for "
+                f"{rooms.get(min(layout), 0)} entries, swpc maps {len(groups[0])} "
+                f"({', '.join(f'0x{x:04X}' for x, _, _ in groups[0])}); spread over its "
+                f"{kind}s ({', '.join(f'{n}: {r}' for n, r in sorted(rooms.items()))} "
+                f"entries), swpc's {len(groups)} groups of "
+                f"{' and '.join(str(len(g)) for g in groups)} entries, each in PDOs of its "
+                "own, do not fit",
+                node=a.node,
+                axis=int(a.axis),
+            )
+        for group in placed:
+            for i, wanted in group:
+                _write_map(d, maps, i, wanted, base[i - 1] + a.node, ttype, kind)
+        numbers = tuple(tuple(i for i, _ in group) for group in placed)
+        if numbers != tuple((i,) for i in layout):
+            d.notes.append(
+                f"{a.where()}: its {kind} maps are small: swpc's spread over {kind}s "
+                + "; ".join("+".join(map(str, g)) for g in numbers)
+            )
+        if maps is node.tpdo:
+            a.tpdos = numbers
+        else:
+            a.rpdos = numbers
+
+
+def _wanted(d: _Drive, entries: tuple[PdoEntry, ...]) -> list[PdoEntry]:
+    """The entries of one group the drive can map (module docstring)."""
+    a = d.a
+    wanted = []
+    for index, sub, bits in entries:
+        if not d.declared(index, sub):
+            d._absent(index, sub)
+            continue
+        var = d.od[index]
+        var = var if isinstance(var, ODVariable) else var[sub]
+        if not var.pdo_mappable and index == cia402.MODES_OF_OPERATION:
+            a.mode_by_sdo = True  # a mode changes seldom: over SDO, not mapped
+            d.notes.append(
+                f"{a.where()}: 0x6060 ({var.name}) is not PDO-mappable on this "
+                "drive: each mode is written over SDO when it changes"
+            )
+            continue
+        if not var.pdo_mappable:
+            why = NEEDED.get(index) or OPTIONAL.get(index, "")
+            if index in NEEDED:
                 raise NodeError(
-                    f"{a.where()}: {kind} {i}'s mapping 0x{p.map_array.od.index:04X} has room "
-                    f"for {room} entries, swpc maps {len(wanted)} "
-                    f"({', '.join(f'0x{x:04X}' for x, _, _ in wanted)})",
+                    f"{a.where()}: 0x{index:04X} ({var.name}) is not PDO-mappable "
+                    f"on this drive (its object dictionary): {why}",
                     node=a.node,
                     axis=int(a.axis),
                 )
-            p.read()
-            p.clear()
-            for index, sub, bits in wanted:
-                p.add_variable(index, sub, bits)
-            p.cob_id = base[i - 1] + a.node
-            p.trans_type = ttype
-            p.event_timer = 0 if maps is node.tpdo else None
-            p.enabled = True
-            _save(p, wanted)
-            p.read()
-            got = [(v.index, v.subindex) for v in p.map]
-            if got != [(index, sub) for index, sub, _ in wanted]:
-                raise NodeError(
-                    f"{a.where()}: {kind} {i} read back as "
-                    f"{', '.join(f'0x{x:04X}:{s}' for x, s in got) or 'empty'} where swpc "
-                    f"mapped {', '.join(f'0x{x:04X}:{s}' for x, s, _ in wanted)}: the drive "
-                    "took a shorter map (too many entries, or objects it cannot map)",
-                    node=a.node,
-                    axis=int(a.axis),
-                )
+            d.skip(index)
+            continue
+        wanted.append((index, sub, bits))
+    return wanted
+
+
+def _write_map(
+    d: _Drive, maps: Any, i: int, wanted: list[PdoEntry], cob_id: int, ttype: int, kind: str
+) -> None:
+    """One PDO's map over SDO (:func:`_save`), then read back and compared."""
+    a = d.a
+    d.step = f"PDO mapping {kind} {i}"
+    p = maps[i]
+    p.read()
+    p.clear()
+    for index, sub, bits in wanted:
+        p.add_variable(index, sub, bits)
+    p.cob_id = cob_id
+    p.trans_type = ttype
+    p.event_timer = 0 if kind == "TPDO" else None
+    p.enabled = True
+    _save(p, wanted)
+    p.read()
+    got = [(v.index, v.subindex) for v in p.map]
+    if got != [(index, sub) for index, sub, _ in wanted]:
+        raise NodeError(
+            f"{a.where()}: {kind} {i} read back as "
+            f"{', '.join(f'0x{x:04X}:{s}' for x, s in got) or 'empty'} where swpc "
+            f"mapped {', '.join(f'0x{x:04X}:{s}' for x, s, _ in wanted)}: the drive "
+            "took a shorter map (too many entries, or objects it cannot map)",
+            node=a.node,
+            axis=int(a.axis),
+        )
 
 
 def _entries(mapping: Any) -> int:

@@ -80,6 +80,14 @@ class AxisTrack:
     max_torque: float = math.inf
     max_velocity: float = math.inf
     """The run's limits (N.m, rad/s at the output), applied by the host too."""
+    rpdos: tuple[tuple[int, ...], ...] = ((1,), (2,))
+    """The RPDOs that carry the command group (controlword, mode, torque) and the targets
+    group (:func:`swpc_hw.drives.cia402.setup.place`)."""
+    tpdos: tuple[tuple[int, ...], ...] = ((1,), (2,))
+    """The TPDOs that carry the sample group (statusword, position, modes display) and the
+    velocity and torque group; a group's last one completes it."""
+    tpdo_values: dict[int, int] = field(default_factory=dict)
+    """The latest value of each object the TPDOs carry (index -> raw)."""
     mode_by_sdo: bool = False
     """0x6060 is not PDO-mappable on this drive: each mode is written over SDO when it
     changes (not in RPDO 1)."""

@@ -51,7 +51,7 @@ EXPECTED: dict[str, str | tuple[Mode, Mode | None]] = {
     "faulhaber_mcdc300_co": (Mode.PROFILE_POSITION, None),
     "pilz_prbt": "the drive has no homing mode swpc can use (0x6502 = 0x00000043",
     "schunk_prl120": "the drive has no position mode swpc can use (0x6502 = 0x00000060",
-    "technosoft_idm_iscm": "TPDO 1's mapping 0x1A00 has room for 1 entries, swpc maps 3",
+    "technosoft_idm_iscm": (Mode.PROFILE_POSITION, None),
     "technosoft_ipos": (Mode.PROFILE_POSITION, None),
     "wittenstein_simco": (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_TORQUE),
 }
@@ -124,7 +124,9 @@ def edited_eds(
          "0x6061 (Modes of operation display) is not PDO-mappable on this drive (its object "
          "dictionary): swpc reads the mode in force back"),
         (tuple(f"1600sub{k}" for k in range(3, 9)), None,
-         "RPDO 1's mapping 0x1600 has room for 2 entries, swpc maps 3 (0x6040, 0x6060, 0x6071)"),
+         "RPDO 1's mapping 0x1600 has room for 2 entries, swpc maps 3 (0x6040, 0x6060, 0x6071); "
+         "spread over its RPDOs (1: 2, 2: 8 entries), swpc's 2 groups of 3 and 2 entries, each "
+         "in PDOs of its own, do not fit"),
         (("6098",), None,
          "the drive has no 0x6098 (homing method): the steering's homing method; with an "
          "absolute encoder, set its `homing: absolute`"),

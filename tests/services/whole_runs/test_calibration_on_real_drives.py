@@ -1,10 +1,11 @@
 """A whole calibration through the service on the virtual drive with a real drive's
 personality (issue 42, item 4): its published EDS as ``object_dictionary`` (the robot
 config a technician writes, ``tests/drives/cia402/test_real_drive_personalities.py``),
-CiA 301's defaults, only the objects that EDS declares.  The five of the eight that swpc
-brings up today (the others are refused at set-up, naming why, in that test): two without
-a torque mode (their spins driven by velocity), one of them node-guarded, one whose 0x6060
-is written over SDO; and a drive with the profile modes only."""
+CiA 301's defaults, only the objects that EDS declares.  The six of the eight that swpc
+brings up (Pilz's and Schunk's are refused at set-up, naming why, in that test): three
+without a torque mode (their spins driven by velocity), two of them node-guarded, one with
+its PDOs spread over small maps, one whose 0x6060 is written over SDO; and a drive with
+the profile modes only."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ NAMES = ("x_s", "y_s", "beta", "b", "r")
     "name",
     [
         "elmo_gold", "yiyou_euservo", "faulhaber_mcdc300_co", "technosoft_ipos",
-        "wittenstein_simco", "profile_only",
+        "technosoft_idm_iscm", "wittenstein_simco", "profile_only",
     ],
 )
 def test_a_whole_calibration_on_a_real_drives_personality(tmp_path: Path, name: str) -> None:
