@@ -25,6 +25,7 @@ from swpc_hw.clock import SimClock
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.cia402.config import Cia402Drives
 from swpc_hw.drives.cia402.driver import Cia402Driver
+from swpc_hw.drives.cia402.setup import place
 from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.types import DriverEvent, EventKind
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
@@ -180,3 +181,14 @@ def test_a_drive_without_homing_is_refused_unless_the_steering_is_absolute() -> 
         sim.stop()
         host.shutdown()
         clock.close()
+
+
+def test_swpcs_pdo_groups_go_each_to_pdos_of_its_own_spread_where_a_map_is_small() -> None:
+    rpdo = [list(entries) for entries in cia402.RPDO_MAP.values()]  # 3 and 2 entries
+    assert place(rpdo, {1: 8, 2: 8, 3: 8, 4: 8}) == [[(1, rpdo[0])], [(2, rpdo[1])]]
+    # Technosoft IDM/ISCM: 1, 2, 2, 2
+    assert place(rpdo, {1: 1, 2: 2, 3: 2, 4: 2}) == [
+        [(1, rpdo[0][:1]), (2, rpdo[0][1:])], [(3, rpdo[1])]
+    ]
+    assert place(rpdo, {1: 2, 2: 8}) is None  # the targets would share RPDO 2
+    assert place(rpdo, {1: 0, 2: 3, 3: 2}) == [[(2, rpdo[0])], [(3, rpdo[1])]]
