@@ -152,7 +152,9 @@ class RunJournal:
                 "robot-config": self.config.to_document(),
                 "provenance": self.provenance(),
                 "run": {"id": self.run_id, "install": install, "created": created},
-            }
+            },
+            at=t0,
+            base_link=self.config.base_link,
         )
         self.recording = rec
 

@@ -23,6 +23,10 @@ topic                        schema                      what
 ``/imu/gyro``                ``swpc.Gyro``               without motion capture: the
                                                          gyro's yaw rate (instead of the
                                                          poses)
+``/tf_static``               ``foxglove.FrameTransform``  R -> ``base_link`` (the robot
+                                                         config's), once at the start
+``/robot_description``       ``std_msgs/String``         the URDF of the nominal robot in
+                                                         base_link (the exports'), once
 ===========================  ==========================  =================================
 
 Profile ``ros2`` (``SWPC_MCAP_PROFILE=ros2``, ``McapRecorder(profile="ros2")``) writes the
@@ -41,6 +45,8 @@ topic                        ROS 2 type                            what
 ``/calibration/segments``    ``std_msgs/msg/String``               the segment as JSON
 ``/calibration/events``      ``rcl_interfaces/msg/Log``            the run's events
 ``/imu/gyro``                ``sensor_msgs/msg/Imu``               the gyro's yaw rate
+``/tf_static``               ``tf2_msgs/msg/TFMessage``            ``R -> base_link``
+``/robot_description``       ``std_msgs/msg/String``               the URDF
 ===========================  ====================================  ===========================
 
 Log and publish times are epoch nanoseconds: the dataset's clock times plus the run's
@@ -66,7 +72,11 @@ from mcap.writer import Writer
 
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.dataset import Dataset
-from swpc_hw.robot.model import FloatArray
+from swpc_hw.files.kinematic_file import KinematicFile
+from swpc_hw.onboard.export.core import make_export
+from swpc_hw.onboard.export.urdf import render_urdf
+from swpc_hw.robot.frames import BASE_LINK, BaseLink, base_link_transform
+from swpc_hw.robot.model import FloatArray, RobotParams
 
 _TIME = {
     "type": "object",
@@ -155,6 +165,13 @@ GYRO = {
         "wz": {"type": "number", "description": "yaw rate of R from its gyro, rad/s"},
     },
 }
+STRING = {
+    "title": "std_msgs/String",
+    "type": "object",
+    "properties": {"data": {"type": "string"}},
+    "required": ["data"],
+}
+"""``/robot_description``: the URDF, as Foxglove's 3D panel takes it from a topic."""
 LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
 ROS_LOG_LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40, "fatal": 50}
 WORLD, ROBOT = "W", "R"
@@ -316,6 +333,43 @@ class McapRecorder:
                 ),
             )])  # fmt: skip
             self._bytes(self._tf, ns, r.cdr(tf, "tf2_msgs/msg/TFMessage"))
+
+    def robot_description(self, params: RobotParams, base_link: BaseLink | None, t: float) -> None:
+        """The robot as the exports see it, once at clock time ``t``: ``/tf_static`` the
+        transform R -> ``base_link`` (the robot config's, :func:`~swpc_hw.robot.frames.
+        base_link_transform`; the identity when it sets none) and ``/robot_description``
+        the URDF of ``params`` in base_link (``swpc export --to urdf``'s), so the frame
+        tree goes on from W -> R to the robot's own frames and Foxglove draws the modules."""
+        urdf = render_urdf(make_export(
+            KinematicFile(params=params, created=""), base_link, "the run's nominal robot"
+        ))  # fmt: skip
+        phi, tr, _ = base_link_transform(params.arrays().P_s, base_link)
+        # base_link's pose in R: p_bl = rot(phi) p_R + t, so its origin is -rot(-phi) t
+        c, s_ = math.cos(phi), math.sin(phi)
+        ox, oy = -(c * tr[0] + s_ * tr[1]), -(-s_ * tr[0] + c * tr[1])
+        qz, qw = math.sin(-phi / 2), math.cos(-phi / 2)
+        ns = self.ns(t)
+        tf = self._channel("/tf_static", FRAME_TRANSFORM, "tf2_msgs/msg/TFMessage")
+        desc = self._channel("/robot_description", STRING, "std_msgs/msg/String")
+        if self._ros2 is not None:
+            r, T = self._ros2, self._ros2.T
+            msg = T["tf2_msgs/msg/TFMessage"](transforms=[T["geometry_msgs/msg/TransformStamped"](
+                header=r.header(ns, ROBOT), child_frame_id=BASE_LINK,
+                transform=T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=ox, y=oy, z=0.0),
+                    rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw),
+                ),
+            )])  # fmt: skip
+            self._bytes(tf, ns, r.cdr(msg, "tf2_msgs/msg/TFMessage"))
+            text = T["std_msgs/msg/String"](data=urdf)
+            self._bytes(desc, ns, r.cdr(text, "std_msgs/msg/String"))
+            return
+        self._add(tf, ns, {
+            "timestamp": _stamp(ns), "parent_frame_id": ROBOT, "child_frame_id": BASE_LINK,
+            "translation": {"x": ox, "y": oy, "z": 0.0},
+            "rotation": {"x": 0.0, "y": 0.0, "z": qz, "w": qw},
+        })  # fmt: skip
+        self._add(desc, ns, {"data": urdf})
 
     def gyro(self, rows: FloatArray) -> None:
         """Rows ``t, wz`` (clock s, rad/s) of the gyro."""

@@ -41,6 +41,7 @@ from swpc_hw.files.dataset import (
 )
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.files.references import Reference, save_references
+from swpc_hw.robot.frames import BaseLink
 from swpc_hw.robot.model import FloatArray, RobotParams
 
 POSE_FORMAT = "%.6f,%.9f,%.9f,%.9f\n"
@@ -160,9 +161,16 @@ class RunRecording:
     def mcap_path(self) -> Path:
         return self.run_dir / "run.mcap"
 
-    def open(self, metadata: dict[str, dict[str, Any]]) -> None:
+    def open(
+        self,
+        metadata: dict[str, dict[str, Any]],
+        *,
+        at: float = 0.0,
+        base_link: BaseLink | None = None,
+    ) -> None:
         """Create the dataset (``robot.yaml``, the CSV headers) and the MCAP file, with
-        ``metadata`` records (name -> values)."""
+        ``metadata`` records (name -> values) and the robot's description at clock time
+        ``at`` (:meth:`McapRecorder.robot_description`, the robot config's ``base_link``)."""
         try:
             self.dataset_dir.mkdir(parents=True, exist_ok=True)
             save_kinematics(self.dataset_dir / "robot.yaml", self.robot)
@@ -184,6 +192,7 @@ class RunRecording:
                 )
                 for name, values in metadata.items():
                     self.mcap.metadata(name, values)
+                self.mcap.robot_description(self.robot, base_link, at)
                 self.mcap.flush()
         except RecordingError:
             raise

@@ -1,0 +1,70 @@
+"""The run's MCAP carries the robot (issue 45, item 7): ``/tf_static`` R -> base_link (the
+robot config's) and ``/robot_description`` the URDF the exports write, in both profiles,
+so Foxglove's frame tree goes on from W -> R to the robot's own frames and draws it.
+Read back by mcap's reader and, for ``ros2``, decoded by mcap-ros2-support (a reader this
+project did not write); the URDF loaded by yourdfpy, its wheels where swpc's model puts
+them."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from services.runs.mcap import McapRecorder
+from swpc_hw.robot.frames import BaseLinkPose, to_base_link
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
+from tests.onboard.test_export_in_base_link import urdf_contact_error
+
+BASE_LINK = BaseLinkPose(x=0.1, y=-0.05, yaw=0.3)
+
+
+def read(path: Path, ros2: bool) -> dict[str, list[Any]]:
+    got: dict[str, list[Any]] = {}
+    with path.open("rb") as fh:
+        if ros2:
+            from mcap_ros2.decoder import DecoderFactory
+
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            for _s, channel, _m, msg in reader.iter_decoded_messages():
+                got.setdefault(channel.topic, []).append(msg)
+        else:
+            for _s, channel, m in make_reader(fh).iter_messages():
+                got.setdefault(channel.topic, []).append(json.loads(m.data))
+    return got
+
+
+@pytest.mark.parametrize("profile", ["foxglove", "ros2"])
+def test_the_mcap_holds_the_frame_tree_to_base_link_and_the_urdf(
+    tmp_path: Path, profile: str
+) -> None:
+    path = tmp_path / "run.mcap"
+    rec = McapRecorder(path, list(PAPER_CALIBRATED.ids), wall_offset=1.7e9, profile=profile)
+    rec.robot_description(PAPER_CALIBRATED, BASE_LINK, 2.0)
+    rec.poses(np.array([[2.0, 0.3, 0.4, 0.5]]))
+    rec.finish()
+    got = read(path, profile == "ros2")
+    (tf,) = got["/tf_static"]
+    (desc,) = got["/robot_description"]
+    if profile == "ros2":
+        t = tf.transforms[0]
+        frames = (t.header.frame_id, t.child_frame_id)
+        xy = (t.transform.translation.x, t.transform.translation.y)
+        q = t.transform.rotation
+        yaw = 2 * math.atan2(q.z, q.w)
+        urdf = desc.data
+    else:
+        frames = (tf["parent_frame_id"], tf["child_frame_id"])
+        xy = (tf["translation"]["x"], tf["translation"]["y"])
+        yaw = 2 * math.atan2(tf["rotation"]["z"], tf["rotation"]["w"])
+        urdf = desc["data"]
+    assert frames == ("R", "base_link")  # W -> R from the poses, then R -> base_link
+    assert xy == pytest.approx((0.1, -0.05), abs=1e-12) and yaw == pytest.approx(0.3)
+    params, _ = to_base_link(PAPER_CALIBRATED, None, BASE_LINK)
+    assert urdf_contact_error(urdf, params, tmp_path) < 1e-9
+    assert urdf.count('<joint name="steer_') == len(PAPER_CALIBRATED.ids)
