@@ -27,6 +27,9 @@ topic                        schema                      what
                                                          config's), once at the start
 ``/robot_description``       ``std_msgs/String``         the URDF of the nominal robot in
                                                          base_link (the exports'), once
+``/calibration/circles``     ``foxglove.SceneUpdate``    each spin's fitted circle in W
+                                                         (:func:`spin_circles`), at the
+                                                         end of a run with poses
 ===========================  ==========================  =================================
 
 Profile ``ros2`` (``SWPC_MCAP_PROFILE=ros2``, ``McapRecorder(profile="ros2")``) writes the
@@ -47,6 +50,7 @@ topic                        ROS 2 type                            what
 ``/imu/gyro``                ``sensor_msgs/msg/Imu``               the gyro's yaw rate
 ``/tf_static``               ``tf2_msgs/msg/TFMessage``            ``R -> base_link``
 ``/robot_description``       ``std_msgs/msg/String``               the URDF
+``/calibration/circles``     ``visualization_msgs/msg/MarkerArray``  the fitted circles
 ===========================  ====================================  ===========================
 
 Log and publish times are epoch nanoseconds: the dataset's clock times plus the run's
@@ -70,6 +74,7 @@ from typing import IO, Any
 import numpy as np
 from mcap.writer import Writer
 
+from swpc_hw.calibration import geometry as geo
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.dataset import Dataset
 from swpc_hw.files.kinematic_file import KinematicFile
@@ -155,8 +160,13 @@ SEGMENT = {
         "static_module": {"type": "integer"},
         "start": {"type": "number", "description": "window start, dataset clock s"},
         "end": {"type": "number", "description": "window end, dataset clock s"},
+        "start_time": _TIME,
+        "end_time": _TIME,
     },
 }
+"""A spin window: ``start``/``end`` on the dataset's clock (segments.csv), ``start_time``
+/``end_time`` the same instants on the file's log time (epoch), as a viewer's timeline
+shows them."""
 GYRO = {
     "title": "swpc.Gyro",
     "type": "object",
@@ -172,6 +182,66 @@ STRING = {
     "required": ["data"],
 }
 """``/robot_description``: the URDF, as Foxglove's 3D panel takes it from a topic."""
+_COLOR = {
+    "type": "object",
+    "title": "foxglove.Color",
+    "properties": {k: {"type": "number", "minimum": 0, "maximum": 1} for k in "rgba"},
+    "required": ["r", "g", "b", "a"],
+}
+_POSE = {
+    "type": "object",
+    "title": "foxglove.Pose",
+    "properties": {"position": _VECTOR3, "orientation": _QUATERNION},
+    "required": ["position", "orientation"],
+}
+_ARRAY = {"type": "array", "maxItems": 0}
+SCENE_UPDATE = {
+    "title": "foxglove.SceneUpdate",
+    "type": "object",
+    "properties": {
+        "deletions": _ARRAY,
+        "entities": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.SceneEntity",
+                "type": "object",
+                "properties": {
+                    "timestamp": _TIME,
+                    "frame_id": {"type": "string"},
+                    "id": {"type": "string"},
+                    "lifetime": _TIME,
+                    "frame_locked": {"type": "boolean"},
+                    "metadata": _ARRAY, "arrows": _ARRAY, "cubes": _ARRAY, "spheres": _ARRAY,
+                    "cylinders": _ARRAY, "triangles": _ARRAY, "texts": _ARRAY,
+                    "models": _ARRAY,
+                    "lines": {
+                        "type": "array",
+                        "items": {
+                            "title": "foxglove.LinePrimitive",
+                            "type": "object",
+                            "properties": {
+                                "type": {"type": "integer", "description": "1: line loop"},
+                                "pose": _POSE,
+                                "thickness": {"type": "number"},
+                                "scale_invariant": {"type": "boolean"},
+                                "points": {"type": "array", "items": _VECTOR3},
+                                "color": _COLOR,
+                                "colors": _ARRAY,
+                                "indices": _ARRAY,
+                            },
+                            "required": ["type", "pose", "thickness", "points", "color"],
+                        },
+                    },
+                },
+                "required": ["timestamp", "frame_id", "id", "lines"],
+            },
+        },
+    },
+    "required": ["deletions", "entities"],
+}  # fmt: skip
+"""``/calibration/circles``: the fitted circle of each spin (a subset of Foxglove's
+SceneUpdate: line loops only)."""
+CIRCLE_POINTS = 72
 LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
 ROS_LOG_LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40, "fatal": 50}
 WORLD, ROBOT = "W", "R"
@@ -208,6 +278,23 @@ class _Ros2:
 
 def _stamp(ns: int) -> dict[str, int]:
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+MODULE_COLOURS = ("#0b4fa8", "#b3001b", "#0a6b2d", "#6a1b9a", "#8a4b00", "#00607a")
+"""Each module's colour, by its id (module k: ``MODULE_COLOURS[(k - 1) % 6]``), in the run's
+plot, its MCAP's drawings and the console (served to it as ``/console/palette.js``): one
+module, one colour."""
+
+
+def module_colour(module_id: int) -> str:
+    return MODULE_COLOURS[(module_id - 1) % len(MODULE_COLOURS)]
+
+
+def _rgba(module_id: int) -> dict[str, float]:
+    """Module ``module_id``'s colour (:data:`MODULE_COLOURS`) as Foxglove's and ROS's."""
+    h = module_colour(module_id).lstrip("#")
+    return {"r": int(h[0:2], 16) / 255, "g": int(h[2:4], 16) / 255,
+            "b": int(h[4:6], 16) / 255, "a": 1.0}  # fmt: skip
 
 
 def _num(x: float) -> str:
@@ -371,6 +458,59 @@ class McapRecorder:
         })  # fmt: skip
         self._add(desc, ns, {"data": urdf})
 
+    def circles(self, t: float, circles: list[tuple[int, float, float, float]]) -> None:
+        """The fitted circle of each spin, once at clock time ``t``: ``(module, cx, cy,
+        radius)``, the path of R's origin about the spin's fixed point in W (a line loop of
+        :data:`CIRCLE_POINTS` points in the module's colour, the run plot's)."""
+        if not circles:
+            return
+        ns = self.ns(t)
+        ch = self._channel(
+            "/calibration/circles", SCENE_UPDATE, "visualization_msgs/msg/MarkerArray"
+        )
+        a = np.linspace(0.0, 2 * math.pi, CIRCLE_POINTS, endpoint=False)
+        loops = [
+            (m, [(cx + r * math.cos(x), cy + r * math.sin(x)) for x in a.tolist()])
+            for m, cx, cy, r in circles
+        ]
+        if self._ros2 is not None:
+            rs, T = self._ros2, self._ros2.T
+            markers = [T["visualization_msgs/msg/Marker"](
+                header=rs.header(ns, WORLD), ns="swpc_spins", id=k, type=4, action=0,  # strip
+                pose=T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                    orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                ),
+                scale=T["geometry_msgs/msg/Vector3"](x=0.005, y=0.0, z=0.0),
+                color=T["std_msgs/msg/ColorRGBA"](**_rgba(m)),
+                lifetime=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+                frame_locked=False,
+                points=[T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0) for x, y in pts + pts[:1]],
+                colors=[], texture_resource="", texture=T["sensor_msgs/msg/CompressedImage"](
+                    header=rs.header(ns, ""), format="", data=np.zeros(0, dtype=np.uint8)),
+                uv_coordinates=[], text="", mesh_resource="",
+                mesh_file=T["visualization_msgs/msg/MeshFile"](
+                    filename="", data=np.zeros(0, dtype=np.uint8)),
+                mesh_use_embedded_materials=False,
+            ) for k, (m, pts) in enumerate(loops)]  # fmt: skip
+            msg = T["visualization_msgs/msg/MarkerArray"](markers=markers)
+            self._bytes(ch, ns, rs.cdr(msg, "visualization_msgs/msg/MarkerArray"))
+            return
+        ident = {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}  # fmt: skip
+        entities = [{
+            "timestamp": _stamp(ns), "frame_id": WORLD, "id": f"spin{k + 1}",
+            "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False, "metadata": [],
+            "arrows": [], "cubes": [], "spheres": [], "cylinders": [], "triangles": [],
+            "texts": [], "models": [],
+            "lines": [{
+                "type": 1, "pose": ident, "thickness": 0.005, "scale_invariant": False,
+                "points": [{"x": x, "y": y, "z": 0.0} for x, y in pts],
+                "color": _rgba(m), "colors": [], "indices": [],
+            }],
+        } for k, (m, pts) in enumerate(loops)]  # fmt: skip
+        self._add(ch, ns, {"deletions": [], "entities": entities})
+
     def gyro(self, rows: FloatArray) -> None:
         """Rows ``t, wz`` (clock s, rad/s) of the gyro."""
         if not rows.shape[0]:
@@ -419,16 +559,13 @@ class McapRecorder:
 
     def segment(self, static_module: int, start: float, end: float) -> None:
         ns = self.ns(start)
+        doc = {"static_module": static_module, "start": start, "end": end,
+               "start_time": _stamp(ns), "end_time": _stamp(self.ns(end))}  # fmt: skip
         if self._ros2 is not None:
-            doc = {"static_module": static_module, "start": start, "end": end}
             msg = self._ros2.T["std_msgs/msg/String"](data=json.dumps(doc))
             self._bytes(self._seg, ns, self._ros2.cdr(msg, "std_msgs/msg/String"))
             return
-        self._add(
-            self._seg,
-            ns,
-            {"timestamp": _stamp(ns), "static_module": static_module, "start": start, "end": end},
-        )
+        self._add(self._seg, ns, {"timestamp": _stamp(ns), **doc})
 
     def event(self, t: float, level: str, message: str) -> None:
         ns = self.ns(t)
@@ -489,6 +626,23 @@ class McapRecorder:
                 self._fh.close()
 
 
+def spin_circles(ds: Dataset) -> list[tuple[int, float, float, float]]:
+    """``(module, cx, cy, radius)`` of each spin of ``ds`` with 3 poses or more: the
+    fixed point ``C_W`` its poses give (:func:`swpc_hw.calibration.geometry.fixed_point`)
+    and ``|C_R|``, the radius of R's origin's path about it."""
+    out = []
+    P = np.asarray(ds.poses)
+    for seg in ds.segments:
+        sel = (P[:, 0] >= seg.start) & (P[:, 0] <= seg.end) if P.size else np.zeros(0, bool)
+        if int(sel.sum()) < 3:
+            continue
+        pp = P[sel, 1:].copy()
+        pp[:, 2] = np.unwrap(pp[:, 2])
+        C_R, C_W = geo.fixed_point(pp)
+        out.append((seg.static_module, float(C_W[0]), float(C_W[1]), float(np.hypot(*C_R))))
+    return out
+
+
 def write_mcap(
     path: str | Path, ds: Dataset, wall_offset: float = 0.0, profile: str = "foxglove"
 ) -> int:
@@ -500,6 +654,8 @@ def write_mcap(
             rec.encoders(mid, enc)
         for s in ds.segments:
             rec.segment(s.static_module, s.start, s.end)
+        if ds.segments:
+            rec.circles(ds.segments[-1].end, spin_circles(ds))
     except BaseException:
         rec.abandon()
         raise

@@ -1,4 +1,5 @@
-"""Calibration plot (matplotlib, Agg): pivot circles, fitted fixed points, residuals."""
+"""Calibration plot (matplotlib, Agg): pivot circles, fitted fixed points, residuals; each
+module in its colour (:data:`services.runs.mcap.MODULE_COLOURS`)."""
 
 from __future__ import annotations
 
@@ -6,17 +7,10 @@ import io
 
 import numpy as np
 
+from services.runs.mcap import module_colour
 from swpc_hw.calibration import geometry as geo
 from swpc_hw.calibration.mocap.solver import CalibrationResult
 from swpc_hw.files.dataset import Dataset
-
-MODULE_COLOURS = ("#0b4fa8", "#b3001b", "#0a6b2d", "#6a1b9a", "#8a4b00", "#00607a")
-"""Each module's colour, by its id (module k: ``MODULE_COLOURS[(k - 1) % 6]``), in the run's
-plot and in the console (served to it as ``/console/palette.js``): one module, one colour."""
-
-
-def module_colour(module_id: int) -> str:
-    return MODULE_COLOURS[(module_id - 1) % len(MODULE_COLOURS)]
 
 
 def calibration_plot(ds: Dataset, result: CalibrationResult) -> bytes:

@@ -30,7 +30,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from services.runs.mcap import McapRecorder
+from services.runs.mcap import McapRecorder, spin_circles
 from swpc_hw.errors import SwpcError
 from swpc_hw.files.dataset import (
     ENCODERS_COLUMNS,
@@ -38,6 +38,7 @@ from swpc_hw.files.dataset import (
     POSES_COLUMNS,
     SEGMENTS_COLUMNS,
     Segment,
+    load_dataset,
 )
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.files.references import Reference, save_references
@@ -302,6 +303,9 @@ class RunRecording:
         if self.mcap is None:
             return
         try:
+            if self.metrology == "mocap":  # each spin's fitted circle, from what was written
+                with contextlib.suppress(SwpcError, OSError, ValueError):
+                    self.mcap.circles(t, spin_circles(load_dataset(self.dataset_dir)))
             self.mcap.metadata("outcome", outcome)
             for name, (data, media_type) in (attachments or {}).items():
                 self.mcap.attach(name, data, media_type, t)

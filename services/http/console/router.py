@@ -50,7 +50,7 @@ from services.http.deps import Problem, Rt, done_result, problems
 from services.http.drives import drives_view
 from services.http.edge.guard import has_token
 from services.http.edge.streams import StreamGate, StreamRefusedError, Ticket
-from services.runs.plots import MODULE_COLOURS
+from services.runs.mcap import MODULE_COLOURS
 from services.runs.protocol import CalibrationRun
 from services.runs.state import TERMINAL
 from services.runtime.health import simulated_time_still
@@ -333,7 +333,7 @@ def index() -> FileResponse:
 
 @router.get("/console/palette.js", include_in_schema=False)
 def palette() -> Response:
-    """The modules' colours of the run's plot (:data:`services.runs.plots.MODULE_COLOURS`),
+    """The modules' colours of the run's plot (:data:`services.runs.mcap.MODULE_COLOURS`),
     for the page: one module, one colour on both."""
     body = f"const COLORS = {json.dumps(list(MODULE_COLOURS))};\n"
     return Response(

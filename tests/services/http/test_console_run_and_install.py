@@ -33,7 +33,7 @@ from mcap.writer import Writer
 
 from services.http.app import create_app
 from services.http.console.router import mcap_summary
-from services.runs.plots import MODULE_COLOURS
+from services.runs.mcap import MODULE_COLOURS
 from services.runs.protocol import CalibrationRun
 from services.runtime.runtime import Runtime
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics

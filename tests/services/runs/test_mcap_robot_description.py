@@ -68,3 +68,40 @@ def test_the_mcap_holds_the_frame_tree_to_base_link_and_the_urdf(
     params, _ = to_base_link(PAPER_CALIBRATED, None, BASE_LINK)
     assert urdf_contact_error(urdf, params, tmp_path) < 1e-9
     assert urdf.count('<joint name="steer_') == len(PAPER_CALIBRATED.ids)
+
+
+@pytest.mark.parametrize("profile", ["foxglove", "ros2"])
+def test_each_spins_fitted_circle_is_drawn_in_w(tmp_path: Path, profile: str) -> None:
+    """A robot turning about C_W = (0.5, -0.2) with its origin 0.3 m from it: the circle
+    :func:`spin_circles` fits and :meth:`McapRecorder.circles` draws, decoded back."""
+    from services.runs.mcap import CIRCLE_POINTS, spin_circles
+    from swpc_hw.files.dataset import Dataset, Segment
+
+    yaw = np.linspace(0.0, 0.8, 50)
+    C_R = np.array([0.3, 0.0])
+    xy = np.array([0.5, -0.2]) - np.stack(
+        [np.cos(yaw) * C_R[0] - np.sin(yaw) * C_R[1], np.sin(yaw) * C_R[0] + np.cos(yaw) * C_R[1]],
+        axis=1,
+    )
+    poses = np.column_stack([np.linspace(0.0, 4.9, 50), xy, yaw])
+    ds = Dataset(robot=PAPER_CALIBRATED, poses=poses, encoders={},
+                 segments=[Segment(static_module=2, start=0.0, end=4.9)])  # fmt: skip
+    (circle,) = spin_circles(ds)
+    assert circle == pytest.approx((2, 0.5, -0.2, 0.3), abs=1e-9)
+    path = tmp_path / "run.mcap"
+    rec = McapRecorder(path, list(PAPER_CALIBRATED.ids), profile=profile)
+    rec.circles(4.9, [circle])
+    rec.finish()
+    (msg,) = read(path, profile == "ros2")["/calibration/circles"]
+    if profile == "ros2":
+        (marker,) = msg.markers
+        assert (marker.header.frame_id, marker.type) == ("W", 4)  # LINE_STRIP, closed
+        pts = [(p.x, p.y) for p in marker.points]
+        assert len(pts) == CIRCLE_POINTS + 1 and pts[0] == pts[-1]
+    else:
+        (entity,) = msg["entities"]
+        assert entity["frame_id"] == "W" and entity["lines"][0]["type"] == 1  # LINE_LOOP
+        pts = [(p["x"], p["y"]) for p in entity["lines"][0]["points"]]
+        assert len(pts) == CIRCLE_POINTS
+    radii = np.hypot(*(np.array(pts) - [0.5, -0.2]).T)
+    assert radii == pytest.approx(0.3, abs=1e-12)

@@ -13,6 +13,7 @@ import stat
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
@@ -185,11 +186,13 @@ def test_the_run_mcap_is_foxglove_json_that_matches_its_schemas(
             t: jsonschema_rs.validator_for(json.loads(s.data)) for t, s in schemas.items()
         }
         counts: dict[str, int] = {}
+        docs: dict[str, Any] = {}
         for _schema, channel, message in reader.iter_messages():
             doc = json.loads(message.data, parse_constant=lambda c: pytest.fail(c))
             errors = [e.message for e in validators[channel.topic].iter_errors(doc)]
             assert errors == [], (channel.topic, doc, errors)
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            docs[channel.topic] = doc
         attachments = {a.name for a in reader.iter_attachments()}
         metadata = {m.name for m in reader.iter_metadata()}
     assert schemas["/mocap/pose"].name == "foxglove.PoseInFrame"
@@ -199,6 +202,18 @@ def test_the_run_mcap_is_foxglove_json_that_matches_its_schemas(
     for m, rows in ds.encoders.items():
         assert counts[f"/module{m}/encoders"] == rows.shape[0]
     assert counts["/calibration/segments"] == len(ds.segments)
+    # the frame tree to base_link, the robot, and each spin's fitted circle in W: the path
+    # of R's origin in that spin, within 2 mm of every pose of it
+    assert counts["/tf_static"] == counts["/robot_description"] == 1
+    assert schemas["/calibration/circles"].name == "foxglove.SceneUpdate"
+    entities = docs["/calibration/circles"]["entities"]
+    assert len(entities) == len(ds.segments)
+    for seg, ent in zip(ds.segments, entities, strict=True):
+        pts = np.array([[p["x"], p["y"]] for p in ent["lines"][0]["points"]])
+        centre, radius = pts.mean(axis=0), float(np.linalg.norm(pts[0] - pts.mean(axis=0)))
+        sel = (ds.poses[:, 0] >= seg.start) & (ds.poses[:, 0] <= seg.end)
+        off = np.linalg.norm(ds.poses[sel, 1:3] - centre, axis=1) - radius
+        assert ent["frame_id"] == "W" and np.abs(off).max() < 2e-3, (seg, np.abs(off).max())
     # every run event as a log too, from the recordings' opening (after run.start) to the
     # last before DONE (the outcome metadata has the end)
     assert lines[0].startswith("event=run.start ") and "state=DONE" in lines[-1]
