@@ -16,16 +16,18 @@ topic                        schema                      what
 ``/tf``                      ``foxglove.FrameTransform``  the same pose as the transform
                                                          W -> R (Foxglove's 3D panel);
                                                          both with the first pose only
-``/module<id>/encoders``     ``swpc.ModuleEncoders``     reported ``theta_hat`` and ``psi``
+``/module<id>/encoders``     ``sensor_msgs/msg/JointState``  ``steer_<id>`` (reported
+                                                         ``theta_hat``) and ``wheel_<id>``
+                                                         (``psi``), the URDF's joints
 ``/calibration/segments``    ``swpc.Segment``            one message per spin window
 ``/calibration/events``      ``foxglove.Log``            the run's events (state changes,
                                                          faults, the result)
-``/imu/gyro``                ``swpc.Gyro``               without motion capture: the
+``/imu/gyro``                ``sensor_msgs/msg/Imu``     without motion capture: the
                                                          gyro's yaw rate (instead of the
                                                          poses)
 ``/tf_static``               ``foxglove.FrameTransform``  R -> ``base_link`` (the robot
                                                          config's), once at the start
-``/robot_description``       ``std_msgs/String``         the URDF of the nominal robot in
+``/robot_description``       ``std_msgs/msg/String``     the URDF of the nominal robot in
                                                          base_link (the exports'), once
 ``/calibration/circles``     ``foxglove.SceneUpdate``    each spin's fitted circle in W
                                                          (:func:`spin_circles`), at the
@@ -41,10 +43,10 @@ topic                        ROS 2 type                            what
 ===========================  ====================================  ===========================
 ``/mocap/pose``              ``geometry_msgs/msg/PoseStamped``     frame ``W``
 ``/tf``                      ``tf2_msgs/msg/TFMessage``            ``W -> R``
-``/module<id>/encoders``     ``sensor_msgs/msg/JointState``        ``module<id>_steering``
+``/module<id>/encoders``     ``sensor_msgs/msg/JointState``        ``steer_<id>``
                                                                    (theta_hat, rad) and
-                                                                   ``module<id>_wheel``
-                                                                   (psi, rad) positions
+                                                                   ``wheel_<id>`` (psi, rad)
+                                                                   positions
 ``/calibration/segments``    ``std_msgs/msg/String``               the segment as JSON
 ``/calibration/events``      ``rcl_interfaces/msg/Log``            the run's events
 ``/imu/gyro``                ``sensor_msgs/msg/Imu``               the gyro's yaw rate
@@ -79,7 +81,7 @@ from swpc_hw.errors import SwpcError
 from swpc_hw.files.dataset import Dataset
 from swpc_hw.files.kinematic_file import KinematicFile
 from swpc_hw.onboard.export.core import make_export
-from swpc_hw.onboard.export.urdf import render_urdf
+from swpc_hw.onboard.export.urdf import render_urdf, steer_joint, wheel_joint
 from swpc_hw.robot.frames import BASE_LINK, BaseLink, base_link_transform
 from swpc_hw.robot.model import FloatArray, RobotParams
 
@@ -142,16 +144,28 @@ LOG = {
     },
     "required": ["timestamp", "level", "message", "name", "file", "line"],
 }
+_HEADER = {
+    "type": "object",
+    "title": "std_msgs/msg/Header",
+    "properties": {"stamp": _TIME, "frame_id": {"type": "string"}},
+    "required": ["stamp", "frame_id"],
+}
+_NUMBERS = {"type": "array", "items": {"type": "number"}}
 ENCODERS = {
-    "title": "swpc.ModuleEncoders",
+    "title": "sensor_msgs/msg/JointState",
     "type": "object",
     "properties": {
-        "timestamp": _TIME,
-        "module": {"type": "integer"},
-        "theta_hat": {"type": "number", "description": "reported steering angle, rad"},
-        "psi": {"type": "number", "description": "cumulative wheel angle, rad"},
+        "header": _HEADER,
+        "name": {"type": "array", "items": {"type": "string"},
+                 "description": "the URDF's joints: steer_<id>, wheel_<id>"},
+        "position": {**_NUMBERS, "description": "reported theta_hat and cumulative psi, rad"},
+        "velocity": _NUMBERS,
+        "effort": _NUMBERS,
     },
-}
+    "required": ["header", "name", "position", "velocity", "effort"],
+}  # fmt: skip
+"""A module's encoders as ROS's JointState (in JSON here), named as the URDF of
+``/robot_description`` names its joints, so a viewer moves the robot's model with them."""
 SEGMENT = {
     "title": "swpc.Segment",
     "type": "object",
@@ -167,16 +181,25 @@ SEGMENT = {
 """A spin window: ``start``/``end`` on the dataset's clock (segments.csv), ``start_time``
 /``end_time`` the same instants on the file's log time (epoch), as a viewer's timeline
 shows them."""
+_COVARIANCE = {"type": "array", "items": {"type": "number"}, "minItems": 9, "maxItems": 9}
 GYRO = {
-    "title": "swpc.Gyro",
+    "title": "sensor_msgs/msg/Imu",
     "type": "object",
     "properties": {
-        "timestamp": _TIME,
-        "wz": {"type": "number", "description": "yaw rate of R from its gyro, rad/s"},
+        "header": _HEADER,
+        "orientation": _QUATERNION,
+        "orientation_covariance": _COVARIANCE,
+        "angular_velocity": {**_VECTOR3, "description": "z: the gyro's yaw rate, rad/s"},
+        "angular_velocity_covariance": _COVARIANCE,
+        "linear_acceleration": _VECTOR3,
+        "linear_acceleration_covariance": _COVARIANCE,
     },
+    "required": ["header", "angular_velocity"],
 }
+"""The gyro as ROS's Imu (in JSON here): orientation and acceleration not provided (their
+covariance's first element -1), as :func:`swpc_hw.sensors.gyro.encode_imu` sends it."""
 STRING = {
-    "title": "std_msgs/String",
+    "title": "std_msgs/msg/String",
     "type": "object",
     "properties": {"data": {"type": "string"}},
     "required": ["data"],
@@ -524,21 +547,28 @@ class McapRecorder:
                 ns = self.ns(t)
                 self._bytes(self._gyro, ns, encode_imu(GyroSample(ns * 1e-9, wz), ROBOT))
             return
+        unknown = "[-1.0,0,0,0,0,0,0,0,0]"
         for t, wz in rows.tolist():
             ns = self.ns(t)
             self._raw(
                 self._gyro,
                 ns,
-                f'{{"timestamp":{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}},'
-                f'"wz":{_num(wz)}}}',
+                f'{{"header":{{"stamp":{{"sec":{ns // 1_000_000_000},'
+                f'"nsec":{ns % 1_000_000_000}}},"frame_id":"{ROBOT}"}},'
+                f'"orientation":{{"x":0.0,"y":0.0,"z":0.0,"w":1.0}},'
+                f'"orientation_covariance":{unknown},'
+                f'"angular_velocity":{{"x":0.0,"y":0.0,"z":{_num(wz)}}},'
+                f'"angular_velocity_covariance":[0,0,0,0,0,0,0,0,0],'
+                f'"linear_acceleration":{{"x":0.0,"y":0.0,"z":0.0}},'
+                f'"linear_acceleration_covariance":{unknown}}}',
             )
 
     def encoders(self, module: int, rows: FloatArray) -> None:
         """Rows ``t, theta_hat, psi`` of one module."""
         ch = self._enc[module]
+        names = [steer_joint(module), wheel_joint(module)]
         if self._ros2 is not None:
             r = self._ros2
-            names = [f"module{module}_steering", f"module{module}_wheel"]
             for t, th, psi in rows.tolist():
                 ns = self.ns(t)
                 msg = r.T["sensor_msgs/msg/JointState"](
@@ -548,13 +578,15 @@ class McapRecorder:
                 )  # fmt: skip
                 self._bytes(ch, ns, r.cdr(msg, "sensor_msgs/msg/JointState"))
             return
+        head = f',"frame_id":"{ROBOT}"}},"name":{json.dumps(names)},"position":['
         for t, th, psi in rows.tolist():
             ns = self.ns(t)
             self._raw(
                 ch,
                 ns,
-                f'{{"timestamp":{{"sec":{ns // 1_000_000_000},"nsec":{ns % 1_000_000_000}}},'
-                f'"module":{module},"theta_hat":{_num(th)},"psi":{_num(psi)}}}',
+                f'{{"header":{{"stamp":{{"sec":{ns // 1_000_000_000},'
+                f'"nsec":{ns % 1_000_000_000}}}{head}{_num(th)},{_num(psi)}],'
+                '"velocity":[],"effort":[]}',
             )
 
     def segment(self, static_module: int, start: float, end: float) -> None:

@@ -48,7 +48,7 @@ def test_the_ros2_profile_is_decoded_by_mcap_ros2_support(tmp_path: Path) -> Non
     tf = got["/tf"][0].transforms[0]
     assert (tf.header.frame_id, tf.child_frame_id, tf.transform.translation.x) == ("W", "R", 0.1)
     js = got["/module1/encoders"][1]
-    assert list(js.name) == ["module1_steering", "module1_wheel"]
+    assert list(js.name) == ["steer_1", "wheel_1"]  # the URDF's joints (/robot_description)
     assert list(js.position) == [0.51, 10.2]
     assert len(got["/module2/encoders"]) == 1
     assert '"static_module": 2' in got["/calibration/segments"][0].data

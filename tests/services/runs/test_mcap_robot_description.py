@@ -105,3 +105,34 @@ def test_each_spins_fitted_circle_is_drawn_in_w(tmp_path: Path, profile: str) ->
         assert len(pts) == CIRCLE_POINTS
     radii = np.hypot(*(np.array(pts) - [0.5, -0.2]).T)
     assert radii == pytest.approx(0.3, abs=1e-12)
+
+
+def test_encoders_and_gyro_are_ros_joint_states_and_imu_in_json(tmp_path: Path) -> None:
+    """The default profile's encoders and gyro in ROS's standard types (JSON): joint names
+    those of the URDF, the gyro's rate on ``angular_velocity.z``, every message valid
+    against its channel's schema."""
+    import jsonschema_rs
+
+    path = tmp_path / "run.mcap"
+    rec = McapRecorder(path, [3], wall_offset=1.7e9)
+    rec.encoders(3, np.array([[1.0, 0.25, 7.5]]))
+    rec.gyro(np.array([[1.0, -0.125]]))
+    rec.finish()
+    with path.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        names = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        for schema, channel, m in reader.iter_messages():
+            doc = json.loads(m.data)
+            assert schema is not None
+            errors = list(jsonschema_rs.validator_for(json.loads(schema.data)).iter_errors(doc))
+            assert errors == [], (channel.topic, doc)
+            if channel.topic == "/module3/encoders":
+                assert (doc["name"], doc["position"]) == (["steer_3", "wheel_3"], [0.25, 7.5])
+            else:
+                assert doc["angular_velocity"]["z"] == -0.125
+                assert doc["orientation_covariance"][0] == -1.0  # not provided
+    assert (names["/module3/encoders"], names["/imu/gyro"]) == (
+        "sensor_msgs/msg/JointState", "sensor_msgs/msg/Imu"
+    )  # fmt: skip
