@@ -25,6 +25,7 @@ from swpc_hw.errors import KinematicFileError
 from swpc_hw.files.dataset import load_dataset
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from tests.mcap_listing import mcap_listing
 from tests.run_rig import Rig
 from tests.service_rig import (
     TOKEN,
@@ -205,6 +206,10 @@ def test_the_run_mcap_is_foxglove_json_that_matches_its_schemas(
     # the frame tree to base_link, the robot, and each spin's fitted circle in W: the path
     # of R's origin in that spin, within 2 mm of every pose of it
     assert counts["/tf_static"] == counts["/robot_description"] == 1
+    topics, edges, listing = mcap_listing(run.run_dir / "run.mcap")
+    print(f"\nmotion-capture run's MCAP:\n{listing}")
+    assert {("W", "R"), ("R", "base_link"), ("base_link", "steer_1_link")} <= edges, edges
+    assert topics["/module1/encoders"][0] == "sensor_msgs/msg/JointState"
     assert schemas["/calibration/circles"].name == "foxglove.SceneUpdate"
     entities = docs["/calibration/circles"]["entities"]
     assert len(entities) == len(ds.segments)

@@ -40,6 +40,7 @@ from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.frame_free import Figure, frame_free
+from tests.mcap_listing import mcap_listing
 from tests.service_rig import AUTH, sim_service
 
 NAMES = PARAM_NAMES
@@ -229,6 +230,10 @@ def test_a_calibration_without_motion_capture_through_http(quick_run: QuickRun) 
     by_topic = {summary.channels[c].topic: n for c, n in counts.items()}
     assert by_topic.get("/imu/gyro", 0) == st["gyro_samples"]
     assert by_topic.get("/mocap/pose", 0) == 0
+    listed, edges, listing = mcap_listing(Path(res["dataset_dir"]).parent / "run.mcap")
+    print(f"\ngyro run's MCAP:\n{listing}")
+    assert listed["/imu/gyro"][0] == "sensor_msgs/msg/Imu"
+    assert ("R", "base_link") in edges and not any(p == "W" for p, _ in edges), edges
     # the console offers the dataset with the gyro and the references
     files = {f["name"] for f in client.get(f"/calibrations/{run_id}/files").json()}
     assert {"dataset.zip", "run.mcap", "kinematics.yaml"} <= files
