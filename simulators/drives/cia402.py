@@ -206,6 +206,8 @@ class VirtualAxis:
         self.guard_toggle = 0
         self.guarded_at: float | None = None
         """Life guarding: the last guard request, once 0x100C and 0x100D are both set."""
+        self.life_time = 0.0
+        """s: 0x100C x 0x100D as they were at the last guard request."""
         self.booted = False
         self.position = 0.0
         self.velocity = 0.0
@@ -475,7 +477,8 @@ class VirtualAxis:
         self.net.send_message(cia402.HEARTBEAT_BASE + self.config.node,
                               bytes([self.guard_toggle | state]))  # fmt: skip
         self.guard_toggle ^= 0x80
-        self.guarded_at = now if self._guard_time() > 0 else None
+        self.life_time = self._guard_time()  # as the objects say at this request
+        self.guarded_at = now if self.life_time > 0 else None
 
     def _on_nmt(self, was: str, now: float) -> None:
         state = self.node.nmt.state
@@ -519,8 +522,7 @@ class VirtualAxis:
         ):
             self.host_seen = None
             self.fault(0x8130)
-        life = self._guard_time() if self.guarded_at is not None else 0.0
-        if self.guarded_at is not None and now - self.guarded_at > life:
+        if self.guarded_at is not None and now - self.guarded_at > self.life_time:
             self.guarded_at = None  # a life guarding event: "life guard error"
             self.fault(0x8130)
         if now >= self.homing_end:
@@ -541,7 +543,7 @@ class VirtualAxis:
         if self.consumer_time > 0 and self.host_seen is not None:
             due = min(due, self.host_seen + self.consumer_time + 1e-6)
         if self.guarded_at is not None:
-            due = min(due, self.guarded_at + self._guard_time() + 1e-6)
+            due = min(due, self.guarded_at + self.life_time + 1e-6)
         return due
 
     # ------------------------------------------------------------------ physics
