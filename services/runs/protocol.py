@@ -94,7 +94,7 @@ from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset, load_dataset
-from swpc_hw.robot.model import contact_point, trailing_steering_angle, wrap_angle
+from swpc_hw.robot.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
 TIME_MODEL = TimeModel()
 """The planner's time model with its measured defaults: a step's estimate before one was
@@ -164,6 +164,13 @@ class CalibrationRun(RunMachine):
             # counted as steps, their time is the operator's)
             self.plan += [State.STILL, State.STEER, State.MARK, State.DRIVE, State.MEASURE]
 
+    def _pivot(self, k: int, angle: float) -> FloatArray:
+        """C, module ``k``'s contact point in R (nominal) with its steering at ``angle``:
+        the point a spin about ``k`` turns the robot around."""
+        nominal = self.config.nominal.arrays()
+        ki = self.config.nominal.ids.index(k)
+        return contact_point(nominal.P_s[ki], np.array(nominal.b[ki]), angle + nominal.beta[ki])
+
     def _spin_wheels(self, k: int, dyn: Sequence[int], angle: float, torque: float) -> None:
         """The dynamic wheels spin the robot counter-clockwise about module ``k``'s
         contact point C: trailing wheels roll backwards, ``r dpsi = -D dyaw``.
@@ -180,8 +187,7 @@ class CalibrationRun(RunMachine):
             return
         nominal = self.config.nominal.arrays()
         ids = self.config.nominal.ids
-        ki = ids.index(k)
-        C = contact_point(nominal.P_s[ki], np.array(nominal.b[ki]), angle + nominal.beta[ki])
+        C = self._pivot(k, angle)
         reach = {mod: float(np.hypot(*(nominal.P_s[ids.index(mod)] - C))) for mod in dyn}
         driver = max(dyn, key=lambda mod: reach[mod])
         omega = TIME_MODEL.yaw_rate(self.config.limits.spin_torque)
@@ -257,7 +263,6 @@ class CalibrationRun(RunMachine):
         ids = cfg.nominal.ids
         torque = cfg.limits.spin_torque
         for mi, k in enumerate(self.modules):
-            ki = ids.index(k)
             dyn = [mod for mod in ids if mod != k]
             self.status.module, self.status.module_index, self.status.sweep_deg = k, mi + 1, 0.0
             self.status.angle_index, self.status.angle_deg = 1, cfg.protocol.angles_deg[0]
@@ -283,9 +288,7 @@ class CalibrationRun(RunMachine):
                 else:
                     # dynamic modules to their nominal trailing angle for a CCW spin about C
                     self.enter(State.ALIGN, "aligning the dynamic modules")
-                    C = contact_point(
-                        nominal.P_s[ki], np.array(nominal.b[ki]), a + nominal.beta[ki]
-                    )
+                    C = self._pivot(k, a)
                     v = -np.array([-C[1], C[0]])  # v = -omega x C with omega = 1
                     targets = trailing_steering_angle(nominal, v, 1.0)
                     for mod in dyn:
