@@ -125,20 +125,49 @@ def send(client: TestClient, overrides: str, install: str = "if-within-tolerance
     )
 
 
+def _run_state(client: TestClient, run_id: str) -> str | None:
+    """The run's state as the service holds it in memory (no request), None when the
+    client's service has no such run in this process (then only HTTP says)."""
+    app = getattr(client, "app", None)  # an httpx client to a service process: None
+    rt = None if app is None else getattr(app.state, "runtime", None)
+    run = None if rt is None else rt.runs.get(run_id)
+    return None if run is None else str(run.status.state)
+
+
+def watch(
+    client: TestClient,
+    run_id: str,
+    until: Callable[[dict[str, Any]], bool],
+    timeout: float = 240.0,
+    path: str = "/calibrations",
+) -> dict[str, Any]:
+    """The run's status over HTTP (``GET {path}/{run_id}``) once ``until`` holds for it.
+
+    A GET through the TestClient costs ~10 ms of CPU (the portal's event loop, the
+    middleware), taken from the run's simulation: polled every 50 ms over a whole run, a
+    sixth of the test's CPU.  So between GETs this watches the run's state in the
+    service's memory (an attribute read, every 10 ms) and asks HTTP only when it changed;
+    HTTP still answers what the test judges.  ``timeout`` (wall s) is a guard against a
+    hang, never a judgement of speed."""
+    deadline = time.monotonic() + timeout
+    seen: str | None = ""
+    st: dict[str, Any] = {}
+    while True:
+        now = _run_state(client, run_id)
+        if now is None or now != seen:
+            st = client.get(f"{path}/{run_id}").json()
+            seen = now
+            if until(st):
+                return st
+        assert time.monotonic() < deadline, f"run {run_id} never got there: {st}"
+        time.sleep(0.01)
+
+
 def wait_state(
     client: TestClient, run_id: str, states: set[str], timeout: float = 240.0
 ) -> dict[str, Any]:
-    """Poll the run until its state is one of ``states``; its status then.  ``timeout``
-    (wall s) is a guard against a hang, never a judgement of speed.  Every 50 ms: each GET
-    takes the CPU (and the GIL) from the run's simulation, which polling every 10 ms slowed
-    by about a sixth."""
-    deadline = time.monotonic() + timeout
-    while True:
-        st: dict[str, Any] = client.get(f"/calibrations/{run_id}").json()
-        if st["state"] in states:
-            return st
-        assert time.monotonic() < deadline, f"run {run_id} never reached {states}: {st}"
-        time.sleep(0.05)
+    """The run's status once its state is one of ``states`` (:func:`watch`)."""
+    return watch(client, run_id, lambda st: st["state"] in states, timeout)
 
 
 def start(client: TestClient, overrides: dict[str, Any] | None = None, **kw: Any) -> str:
@@ -155,6 +184,9 @@ def wait_spinning(
     """Until the run spins and has swept ``sweep`` deg (``guard`` s against a hang)."""
     deadline = time.monotonic() + guard
     while time.monotonic() < deadline:
+        if _run_state(client, run_id) not in ("SPIN", "FAILED", "ABORTED", "DONE", None):
+            time.sleep(0.01)  # not spinning yet: nothing to ask HTTP (:func:`watch`)
+            continue
         st = client.get(f"/calibrations/{run_id}").json()
         assert st["state"] not in ("FAILED", "ABORTED", "DONE"), st
         if st["state"] == "SPIN" and st["sweep_deg"] >= sweep:

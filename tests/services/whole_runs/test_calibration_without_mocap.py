@@ -41,7 +41,7 @@ from swpc_hw.robot.model import PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.frame_free import Figure, frame_free
 from tests.mcap_listing import mcap_listing
-from tests.service_rig import AUTH, sim_service
+from tests.service_rig import AUTH, sim_service, watch
 
 NAMES = PARAM_NAMES
 PROTOCOL = {
@@ -153,23 +153,26 @@ def play_operator(
     """Watch the run as an operator; mark and measure when asked; its final status.
     ``seen``: the wall time each state was first seen (for the figures printed);
     ``think``: wall seconds the operator takes before each answer."""
-    deadline = time.monotonic() + timeout  # a guard against a hang, never a judgement
     done: set[str] = set()
-    while time.monotonic() < deadline:
-        st: dict[str, Any] = client.get(f"/calibrations/{run_id}").json()
+    ends = ("DONE", "FAILED", "ABORTED")
+
+    def news(st: dict[str, Any]) -> bool:
         seen.setdefault(st["state"], time.monotonic())
-        if st["state"] in ("DONE", "FAILED", "ABORTED"):
+        return st["state"] in ends or st["state"] in {"MARK", "MEASURE"} - done
+
+    while True:
+        st = watch(client, run_id, news, timeout)  # a guard against a hang, never a judgement
+        if st["state"] in ends:
             return st
-        if st["state"] in ("MARK", "MEASURE") and st["state"] not in done:
-            time.sleep(think)  # a person's pace, in wall time
-        if st["state"] == "MARK" and "MARK" not in done:
+        time.sleep(think)  # a person's pace, in wall time
+        if st["state"] == "MARK":
             done.add("MARK")
             assert "mark the floor under module 1's steering axis" in st["step"]
             r = client.post(f"/calibrations/{run_id}/continue", headers=AUTH)
             assert r.status_code == 200, r.text
             again = client.post(f"/calibrations/{run_id}/continue", headers=AUTH)
             assert again.status_code == 409  # once
-        elif st["state"] == "MEASURE" and "MEASURE" not in done:
+        else:
             done.add("MEASURE")
             assert "module 1's steering axis travelled between the two floor marks" in st["step"]
             tape = client.get("/simulator/tape-measure", params={"run": run_id})
@@ -184,8 +187,6 @@ def play_operator(
                 f"/calibrations/{run_id}/references", json={"references": [ref]}, headers=AUTH
             )
             assert again.status_code == 409 and "already has" in again.text
-        time.sleep(0.05)  # each GET takes CPU from the simulation (service_rig.wait_state)
-    raise AssertionError(f"run {run_id} never ended: {st}")
 
 
 def test_a_calibration_without_motion_capture_through_http(quick_run: QuickRun) -> None:

@@ -28,6 +28,7 @@ from tests.service_rig import (
     start,
     wait_spinning,
     wait_state,
+    watch,
 )
 
 DONE = {"DONE", "FAILED", "ABORTED"}
@@ -53,15 +54,7 @@ def run_check(client: TestClient, body: dict[str, Any] | None = None) -> dict[st
 
 
 def wait_check(client: TestClient, cid: str) -> dict[str, Any]:
-    import time
-
-    deadline = time.monotonic() + 240
-    while True:
-        st: dict[str, Any] = client.get(f"/checks/{cid}").json()
-        if st["state"] in DONE:
-            return st
-        assert time.monotonic() < deadline, st
-        time.sleep(0.05)  # each GET takes CPU from the simulation (service_rig.wait_state)
+    return watch(client, cid, lambda st: st["state"] in DONE, path="/checks")
 
 
 def sha(path: Path) -> str:

@@ -8,7 +8,6 @@ encoder sample the runs recorded.  A busy host can only slow the runs down.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +18,7 @@ from services.config.settings import ServiceSettings
 from services.demo import parameters_digest
 from services.http.app import create_app
 from swpc_hw.robot.model import PARAM_NAMES
-from tests.service_rig import AUTH, TOKEN
+from tests.service_rig import AUTH, TOKEN, wait_state
 
 # every module, two angles, the shortest spins the solver takes: the whole protocol
 PROTOCOL = {
@@ -34,12 +33,7 @@ def calibrate(data_dir: Path, seed: int) -> tuple[dict[str, Any], Path]:
         r = client.post("/calibrations", json={"overrides": {"protocol": PROTOCOL}}, headers=AUTH)
         assert r.status_code == 202, r.text
         run_id = r.json()["id"]
-        deadline = time.monotonic() + 240  # a guard against a hang, not a timing
-        while (st := client.get(f"/calibrations/{run_id}").json())["state"] not in (
-            "DONE", "FAILED", "ABORTED"
-        ):  # fmt: skip
-            assert time.monotonic() < deadline, st
-            time.sleep(0.05)
+        st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"})
         assert st["state"] == "DONE", st["errors"]
         res: dict[str, Any] = client.get(f"/calibrations/{run_id}/result").json()
     return res, Path(res["dataset_dir"])
