@@ -15,10 +15,18 @@ all: test
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
 
-# The exact versions of requirements.lock (pyproject.toml has the lower bounds).
+# The exact versions of requirements.lock (pyproject.toml has the lower bounds): first
+# pyproject's requirements (extras service and test) under the lock, then swpc itself,
+# editable, without them.  The second step is -qq: setuptools tells every editable install
+# "Please be careful with folders in your working directory ..." as a warning, which was
+# the first thing `make demo` printed on a fresh machine; an error still shows.
 $(STAMP): pyproject.toml requirements.lock | $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -c requirements.lock -e '.[service,test]'
+	$(BIN)/python -c 'import tomllib; p = tomllib.load(open("pyproject.toml", "rb"))["project"]; \
+		x = p["optional-dependencies"]; print(*p["dependencies"], *x["service"], *x["test"], sep="\n")' \
+		> $(VENV)/requirements.txt
+	$(BIN)/python -m pip install -q -c requirements.lock -r $(VENV)/requirements.txt
+	$(BIN)/python -m pip install -qq --no-deps -e .
 	touch $(STAMP)
 
 # requirements.lock from pyproject.toml: the newest versions within its bounds, for every

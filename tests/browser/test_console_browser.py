@@ -458,6 +458,9 @@ def test_check_button_and_verdict(service: dict[str, Any], browser: WebDriver) -
     assert r1.find_elements(By.CSS_SELECTOR, "svg circle")  # the calibration's
     assert run_id in [r.get_attribute("data-run") for r in css(d, "#check-rows tr")]
     assert "last check: " + run_id in text(d, "drift-summary")
+    # calibrations and checks minutes apart: no slope per week from them (issue 45 item 4:
+    # "+1192 mm/week +- 1113" from two points minutes apart)
+    assert "no trend: its points span less than a day" in r1.text, r1.text
     check_view(d, "drift", shots="13-drift")
     shot(d, "13-drift")
     # the same file checked with the gyro: no motion capture, the robot's shape judged
@@ -574,6 +577,15 @@ def test_a_calibration_without_motion_capture_from_the_page(
     assert text(d, "res-frame").startswith("Compared in frame design-fit")
     check_view(d, "result")
     shot(d, "12-result-imu")
+    # Drift keeps one frame (issue 45 item 2: it drew the gyro calibrations as outliers):
+    # the file in force is a motion-capture one (frame R), where this run's x_s has no
+    # value; its b (no frame) is drawn
+    go(d, "drift")
+    x_s = wait_for("the drift charts", lambda: d.find_element(
+        By.CSS_SELECTOR, '#drift-charts figure[data-param="1.x_s"]'))  # fmt: skip
+    assert "of another frame not drawn" in x_s.text, x_s.text
+    b = d.find_element(By.CSS_SELECTOR, '#drift-charts figure[data-param="1.b"]')
+    assert "another frame" not in b.text, b.text
     assert severe_logs(d) == []
 
 
