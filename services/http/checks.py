@@ -124,6 +124,14 @@ class HistoryPoint(BaseModel):
     frame: str
     value: float | None
     stddev: float | None
+    other_frame: bool = Field(
+        description="of another frame than the reference's that cannot be re-expressed in it "
+        "(a design-fit point where the file in force is in R): value and stddev null"
+    )
+    re_expressed: bool = Field(
+        description="re-expressed in the reference's frame (a motion-capture point, frame R, "
+        "where the file in force is in design-fit)"
+    )
 
 
 class TrendLinePoint(BaseModel):

@@ -581,11 +581,19 @@ def test_a_calibration_without_motion_capture_from_the_page(
     # the file in force is a motion-capture one (frame R), where this run's x_s has no
     # value; its b (no frame) is drawn
     go(d, "drift")
-    x_s = wait_for("the drift charts", lambda: d.find_element(
-        By.CSS_SELECTOR, '#drift-charts figure[data-param="1.x_s"]'))  # fmt: skip
-    assert "of another frame not drawn" in x_s.text, x_s.text
-    b = d.find_element(By.CSS_SELECTOR, '#drift-charts figure[data-param="1.b"]')
-    assert "another frame" not in b.text, b.text
+
+    def caption(param: str) -> str:
+        figs = css(d, f'#drift-charts figure[data-param="{param}"] figcaption')
+        return str(figs[0].get_attribute("textContent")) if figs else ""
+
+    try:
+        wait_for("this run in the drift charts", lambda: "of another frame not drawn" in caption(
+            "1.x_s"), timeout=20)  # fmt: skip
+    except AssertionError:
+        h = httpx.get(service["url"] + "/history", headers={"Authorization": f"Bearer {TOKEN}"})
+        raise AssertionError(f"{caption('1.x_s')!r} {h.json()['file_in_force']} "
+                             f"{h.json()['parameters'][0]['points']}") from None
+    assert "another frame" not in caption("1.b"), caption("1.b")
     assert severe_logs(d) == []
 
 

@@ -282,6 +282,8 @@ def test_a_check_with_the_gyro_judges_the_robots_shape(
     h = sim.client.get("/history").json()
     p = next(q for q in h["parameters"] if q["module"] == 3 and q["param"] == "r")
     assert [q["frame"] for q in p["points"]] == ["file-fit", "file-fit"]  # its two checks
+    # r is the same in any frame: drawn as it is (the API had dropped these two flags)
+    assert [(q["other_frame"], q["re_expressed"]) for q in p["points"]] == [(False, False)] * 2
     assert p["trend"] is None
 
 
