@@ -35,6 +35,7 @@ from swpc_hw.protocol import DEFAULT_PROTOCOL as _DEFAULT
 from swpc_hw.robot.frames import BaseLink
 from swpc_hw.robot.model import KIND_OF, PARAM_NAMES, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from swpc_hw.sensors.mocap import pose_key
 
 
 class RobotConfigError(SwpcError, ValueError):
@@ -335,7 +336,7 @@ class RobotConfig(BaseModel):
 
     @property
     def pose_key(self) -> str:
-        return f"mocap/{self.robot}/pose"
+        return pose_key(self.robot)
 
     @property
     def imu_key(self) -> str:

@@ -43,13 +43,15 @@ import zenoh
 
 from simulators.physics.core import FloatArray
 from swpc_hw.clock import SimClock
-from swpc_hw.sensors.mocap import PoseEncoding, PoseSample, encode_pose, zenoh_encoding_name
+from swpc_hw.sensors.mocap import (
+    PoseEncoding,
+    PoseSample,
+    encode_pose,
+    pose_key,
+    zenoh_encoding_name,
+)
 
 MAX_RATE_HZ = 2000.0
-
-
-def pose_key(robot: str) -> str:
-    return f"mocap/{robot}/pose"
 
 
 def truth_pose_key(robot: str) -> str:

@@ -37,6 +37,11 @@ CDR_ENCODING = "application/cdr"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 
 
+def pose_key(robot: str) -> str:
+    """The zenoh key of a robot's poses."""
+    return f"mocap/{robot}/pose"
+
+
 class PoseDecodeError(SwpcError, ValueError):
     """A pose payload could not be decoded."""
 

@@ -35,12 +35,12 @@ import numpy as np
 from firmware_protocol import codec
 from simulators.options import SimOptions
 from simulators.sensors.gyro import imu_key
-from simulators.sensors.mocap import pose_key, truth_params_key
+from simulators.sensors.mocap import truth_params_key
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import SimClock
 from swpc_hw.robot.model import rot
 from swpc_hw.sensors.gyro import decode_imu
-from swpc_hw.sensors.mocap import PoseEncoding, decode_pose
+from swpc_hw.sensors.mocap import PoseEncoding, decode_pose, pose_key
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
 
 DEG = math.pi / 180.0
