@@ -16,14 +16,14 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 
 # The exact versions of requirements.lock (pyproject.toml has the lower bounds): first
-# pyproject's requirements (extras service and test) under the lock, then swpc itself,
+# pyproject's requirements (extras service, test and mocap) under the lock, then swpc itself,
 # editable, without them.  The second step is -qq: setuptools tells every editable install
 # "Please be careful with folders in your working directory ..." as a warning, which was
 # the first thing `make demo` printed on a fresh machine; an error still shows.
 $(STAMP): pyproject.toml requirements.lock | $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -c 'import tomllib; p = tomllib.load(open("pyproject.toml", "rb"))["project"]; \
-		x = p["optional-dependencies"]; print(*p["dependencies"], *x["service"], *x["test"], sep="\n")' \
+		x = p["optional-dependencies"]; print(*p["dependencies"], *x["service"], *x["test"], *x["mocap"], sep="\n")' \
 		> $(VENV)/requirements.txt
 	$(BIN)/python -m pip install -q -c requirements.lock -r $(VENV)/requirements.txt
 	$(BIN)/python -m pip install -qq --no-deps -e .
@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml requirements.lock | $(BIN)/python
 # Python swpc supports (uv's universal resolution).
 lock: | $(BIN)/python
 	$(BIN)/python -m pip install -q uv
-	$(BIN)/uv pip compile pyproject.toml --extra service --extra test --universal --python-version 3.11 \
+	$(BIN)/uv pip compile pyproject.toml --extra service --extra test --extra mocap --universal --python-version 3.11 \
 		--no-header -o requirements.lock.new
 	{ sed -n '1,3p' requirements.lock; cat requirements.lock.new; } > requirements.lock
 	rm requirements.lock.new
@@ -61,7 +61,7 @@ typecheck-pythons:
 			echo "typecheck-pythons: no Python $$x on PATH or under pyenv: skipped"; \
 			[ -z "$(SWPC_PYTHONS_REQUIRED)" ] || exit 1; continue; fi; \
 		v=.cache/venv-$$x; [ -x $$v/bin/python ] || $$py -m venv $$v; \
-		$$v/bin/python -m pip install -q -c requirements.lock -e '.[service,test]'; \
+		$$v/bin/python -m pip install -q -c requirements.lock -e '.[service,test,mocap]'; \
 		echo "mypy on $$($$v/bin/python -V)"; $$v/bin/mypy; \
 	done
 

@@ -26,7 +26,9 @@ from swpc_hw.robot.model import PARAM_NAMES
 from tests.service_rig import ROOT
 
 DEPLOY = ROOT / "deploy"
-UNITS = ("swpc-service.service", "swpc-sim.service", "swpc-fleet.service")
+UNITS = (
+    "swpc-service.service", "swpc-sim.service", "swpc-fleet.service", "swpc-mocap.service"
+)
 
 
 def run(*cmd: str | Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
@@ -164,8 +166,9 @@ def test_units_are_hardened(unit: str) -> None:
     assert d["User"] == ["swpc"] and d["Restart"] == ["on-failure"]
     assert d["ProtectSystem"] == ["strict"] and d["NoNewPrivileges"] == ["yes"]
     assert d["CapabilityBoundingSet"] == [""]
-    # the fleet view needs no CAN socket
-    assert ("AF_CAN" in d["RestrictAddressFamilies"][0].split()) == (unit != "swpc-fleet.service")
+    # the fleet view and the mocap bridge need no CAN socket
+    can = unit not in ("swpc-fleet.service", "swpc-mocap.service")
+    assert ("AF_CAN" in d["RestrictAddressFamilies"][0].split()) == can
     assert all(v.startswith("+/opt/swpc/deploy/") for v in d.get("ExecStartPre", []))
     if unit == "swpc-fleet.service":
         # the fleet store is the only writable path
@@ -185,6 +188,16 @@ def test_units_are_hardened(unit: str) -> None:
         from services.config.settings import ServiceSettings
 
         assert int(d["LimitNOFILE"][0]) >= 4 * ServiceSettings().max_connections
+    elif unit == "swpc-mocap.service":
+        # writes nothing; its command line is one `swpc mocap` takes, with the password in
+        # a file (never on the command line: `ps` shows it)
+        assert "StateDirectory" not in d and "ReadWritePaths" not in d
+        from services.cli import build_parser
+
+        argv = d["ExecStart"][0].split()
+        assert argv[0] == "/opt/swpc/.venv/bin/swpc"
+        args = build_parser("mocap").parse_args(argv[1:])
+        assert args.zenoh_user == "mocap" and str(args.zenoh_password_file).startswith("/etc/")
     else:
         assert "StateDirectory" not in d and "ReadWritePaths" not in d
         assert "EnvironmentFile" not in d  # `swpc sim` reads no SWPC_* setting
