@@ -106,6 +106,13 @@ def register(sub: Any) -> None:
         help="mocap payload (native)",
     )
     add_noise_arguments(p)
+    p.add_argument(
+        "--mocap-qtm",
+        type=int,
+        metavar="PORT",
+        help="serve the poses as a QTM real-time server on this loopback port instead of "
+        "zenoh, for `swpc mocap --source qtm://127.0.0.1:PORT` (docs/mocap-bridge.md)",
+    )
     p.add_argument("--latency", type=float, default=0.0, help="mocap latency, ms")
     p.add_argument(
         "--mocap-clock",
@@ -212,6 +219,7 @@ def run(args: argparse.Namespace) -> int:
             latency=args.latency * 1e-3,
             clock_offset=args.clock_offset,
             seed=args.seed,
+            qtm_port=args.mocap_qtm,
         ),
         gyro=gyro_options(args),
         truth_rate=args.truth_rate,

@@ -307,6 +307,14 @@ class ServiceSettings(BaseSettings):
         "stale windows last at least this many host seconds (the simulator shares, or "
         "emulates, the host); a robot and the in-process simulator use the robot's windows",
     )
+    sim_mocap_qtm_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="in-process simulator: serve its motion capture as a QTM real-time server "
+        "on this loopback port (0: a free one) instead of publishing the poses; `swpc mocap "
+        "--source qtm://127.0.0.1:PORT` then puts them on the pose key (docs/mocap-bridge.md)",
+    )
     sim_mocap_latency: float = Field(
         0.0, ge=0, le=5.0, description="in-process simulator: pose publication delay, robot s"
     )

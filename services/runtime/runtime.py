@@ -307,6 +307,7 @@ class Runtime(RunRecords):
                 truth=truth,
                 physics_dt=s.sim_physics_dt,
                 mocap_latency=s.sim_mocap_latency,
+                mocap_qtm_port=s.sim_mocap_qtm_port,
                 feedback_rate_hz=s.feedback_rate_hz,
                 gyro=s.sim_gyro,
                 wiring=WIRED_AS_CONFIGURED

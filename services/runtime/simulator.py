@@ -44,6 +44,7 @@ def in_process_simulator(
     mocap: MocapOptions | None = None,
     physics_dt: float = 0.01,
     mocap_latency: float | None = None,
+    mocap_qtm_port: int | None = None,
     feedback_rate_hz: int = 50,
     gyro: GyroOptions | None = None,
     zenoh_auth: ZenohAuth | None = None,
@@ -64,7 +65,10 @@ def in_process_simulator(
         watchdog_ms=config.limits.watchdog_ms,
         feedback_rate_hz=feedback_rate_hz,
         mocap=dataclasses.replace(
-            base, seed=seed, latency=base.latency if mocap_latency is None else mocap_latency
+            base,
+            seed=seed,
+            latency=base.latency if mocap_latency is None else mocap_latency,
+            qtm_port=mocap_qtm_port,
         ),
         gyro=gyro or GyroOptions(),
         seed=seed,

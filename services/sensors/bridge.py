@@ -194,10 +194,11 @@ class Bridge:
                 await asyncio.sleep(0.05)
             if conn.has_transport():
                 await conn.stream_frames_stop()
-            else:
+            elif not self._stop.is_set():
                 raise BridgeError(f"{where}: the connection was closed")
         finally:
-            conn.disconnect()
+            if conn.has_transport():
+                conn.disconnect()
 
     def _run_library(self) -> None:
         import motioncapture

@@ -42,6 +42,7 @@ import numpy as np
 import zenoh
 
 from simulators.physics.core import FloatArray
+from simulators.sensors.qtm import QtmBody, QtmServer
 from swpc_hw.clock import SimClock
 from swpc_hw.sensors.mocap import (
     PoseEncoding,
@@ -100,8 +101,14 @@ class MocapOptions:
     latency: float = 0.0  # s of simulated time between a sample's timestamp and its publication
     clock_offset: float = 0.0  # s, mocap clock - simulated clock
     seed: int = 0
+    qtm_port: int | None = None
+    """Serve the poses as a QTM real-time server on this loopback port (0: a free one)
+    instead of publishing them: a lab's bridge (``swpc mocap --source qtm://...``) puts
+    them on the pose key, as it would a real QTM's (:mod:`simulators.sensors.qtm`)."""
 
     def __post_init__(self) -> None:
+        if self.qtm_port is not None and not 0 <= self.qtm_port <= 65535:
+            raise ValueError(f"mocap qtm_port {self.qtm_port} outside [0, 65535]")
         if not 0.0 < self.rate <= MAX_RATE_HZ:
             raise ValueError(f"mocap rate {self.rate} Hz outside (0, {MAX_RATE_HZ:g}]")
         PoseEncoding(self.encoding)
@@ -196,7 +203,12 @@ class MocapSim:
         self.sent: deque[PoseSample] = deque(maxlen=max(self.keep_sent, 1))
         self._pub: Any = None
         self._encoding = PoseEncoding(self.options.encoding)
-        if self.session is not None:
+        self.qtm: QtmServer | None = None
+        if self.options.qtm_port is not None:
+            self.qtm = QtmServer([self.robot], port=self.options.qtm_port,
+                                 frequency=self.options.rate)  # fmt: skip
+            self.qtm.start()
+        elif self.session is not None:
             # express: each pose goes out at once, not batched with the next (a motion
             # capture system's latency is its own; lockstep waits for every delivery).
             # BLOCK: zenoh's default for puts drops a sample when its queue is full, which
@@ -215,7 +227,9 @@ class MocapSim:
 
     def heard(self) -> bool:
         """Someone subscribes to the poses (zenoh's matching status; False without a
-        session)."""
+        session), or a client streams them from the QTM server."""
+        if self.qtm is not None:
+            return self.qtm.streaming > 0
         return self._pub is not None and listened(self._pub)
 
     def sample(self, t: float, pose: FloatArray, stamp: float | None = None) -> None:
@@ -250,7 +264,9 @@ class MocapSim:
     def _publish(self, ps: PoseSample) -> None:
         if self.keep_sent:
             self.sent.append(ps)
-        if self._pub is not None:
+        if self.qtm is not None:
+            self._serve(ps)
+        elif self._pub is not None:
             if self._encoding is PoseEncoding.CDR:
                 ps = PoseSample(
                     ps.t,
@@ -269,7 +285,20 @@ class MocapSim:
                 return
         self.counters.published += 1
 
+    def _serve(self, ps: PoseSample) -> None:
+        """One QTM frame: the pose in mm, its rotation column-major, its time stamp in us
+        of the mocap's clock; announced to a lockstep clock as a pose on the key the bridge
+        puts it on (a frame no bridge streams is not waited for)."""
+        assert self.qtm is not None
+        c, s = math.cos(ps.yaw), math.sin(ps.yaw)
+        body = QtmBody((1e3 * ps.x, 1e3 * ps.y, 1e3 * ps.z), (c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0))
+        if self.clock is not None and self.qtm.streaming:
+            self.clock.expect(self.key)
+        self.qtm.publish(round(ps.t * 1e6), (ps.seq + 1) & 0xFFFFFFFF, [body])
+
     def close(self) -> None:
+        if self.qtm is not None:
+            self.qtm.stop()
         pub, self._pub = self._pub, None
         if pub is not None:
             with contextlib.suppress(Exception):  # already closed with its session
