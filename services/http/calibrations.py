@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -58,7 +59,7 @@ from services.runtime.errors import (
 from services.runtime.health import start_problems
 from services.store.logs import event
 from swpc_hw.calibration.plan.forecast import Stopping
-from swpc_hw.calibration.plan.plan import PlanError, Targets
+from swpc_hw.calibration.plan.plan import MocapNoise, PlanError, Targets
 from swpc_hw.errors import DatasetError, KinematicFileError
 from swpc_hw.files.kinematic_file import load_kinematics
 from swpc_hw.files.references import Reference
@@ -235,10 +236,15 @@ def planned_config(
 
 def plan_request(rt: Rt, metrology: str, targets: Targets | None = None) -> PlanRequest:
     """The plan request of a run with ``metrology``: the square path's default budget of
-    that metrology; without motion capture the service's gyro (``sim_gyro_*``)."""
+    that metrology; with motion capture the frame rate it streams at now (to the nearest
+    Hz; 100 Hz, the planner's default, while no pose comes), without it the service's gyro
+    (``sim_gyro_*``).  A faster motion capture gives more poses per spin: shorter spins
+    meet the same requirement (docs/plan.md)."""
+    rate = rt.mocap.frame_rate() if metrology == "mocap" else None
+    noise = MocapNoise() if rate is None else replace(MocapNoise(), rate=float(round(rate)))
     return PlanRequest(
         targets=targets, budget=default_budget(metrology), metrology=metrology,
-        gyro=rt.settings.sim_gyro,
+        gyro=rt.settings.sim_gyro, noise=noise,
     )  # fmt: skip
 
 
@@ -284,14 +290,18 @@ def get_plan(rt: Rt, metrology: Literal["mocap", "imu"] | None = None) -> Any:
     takes CPU a run needs)."""
     try:  # the config of a run without overrides: the plan it runs; none started in a run
         m = metrology or rt.settings.run_metrology
-        p = rt.planner.get(rt.config.for_run({}, m), plan_request(rt, m), start=not rt.running())
+        request = plan_request(rt, m)
+        p = rt.planner.get(rt.config.for_run({}, m), request, start=not rt.running())
     except OverrideError as exc:
         raise HTTPException(409, f"no plan: the robot config cannot run: {exc}") from exc
     except PlanError as exc:
         raise HTTPException(409, f"no plan: {exc}") from exc
     if p is None:
         return JSONResponse({"detail": "the plan is being made"}, status_code=202)
-    return p.document()
+    doc = p.document()
+    if m == "mocap":  # the rate the plan assumed: the motion capture's, as it streams now
+        doc["mocap_rate_hz"] = request.noise.rate
+    return doc
 
 
 @router.get("/calibrations", response_model=list[RunStatus])

@@ -202,6 +202,18 @@ class MocapIngest(Ingest):
             "synchronised with this host (PTP, chrony), else use 'source'"
         )
 
+    def frame_rate(self, window: float = 2.0) -> float | None:
+        """The motion capture's frame rate (Hz of its own clock): one over the median
+        spacing of the source time stamps accepted in the last ``window`` clock seconds;
+        None with fewer than 10 of them (no poses, or a stream just starting).  A lost
+        frame widens one spacing, which the median ignores."""
+        rows = self.samples(self.clock.now() - window)
+        dt = np.diff(rows[:, 0])
+        dt = dt[dt > 0]
+        if dt.size < 9:
+            return None
+        return float(1.0 / np.median(dt))
+
     @property
     def clock_offset(self) -> float:
         """Host minus mocap clock (lower envelope of the receive delays)."""

@@ -201,3 +201,19 @@ def test_wall_mode_reports_an_unsynchronised_source() -> None:
 def test_unknown_clock_mode_is_refused() -> None:
     with pytest.raises(ValueError, match="clock_mode must be one of"):
         MocapIngest(clock_mode="host")
+
+
+def test_the_frame_rate_is_the_mocaps_own_whatever_the_transport_does() -> None:
+    """360 Hz stamps received in bursts, with a frame lost: 360 Hz (the plan then assumes
+    it: services/http/calibrations.py plan_request); too few poses: no rate."""
+    clock = VirtualClock(start=50.0)
+    ing = MocapIngest(clock=clock, clock_mode="receive")
+    assert ing.frame_rate() is None
+    for k in range(720):
+        if k == 300:
+            continue  # lost on the way
+        clock.advance(1 / 360 if k % 4 == 0 else 0.0)  # four at a time
+        assert ing.feed(native(1000.0 + k / 360.0), t_recv=clock.now())
+    assert ing.frame_rate() == pytest.approx(360.0, rel=1e-9)
+    clock.advance(10.0)  # nothing for 10 s: the stream is gone
+    assert ing.frame_rate() is None

@@ -110,6 +110,9 @@ def test_a_planned_calibration_stops_each_spin_once_its_forecast_meets_the_plan(
     assert doc["protocol"] == p.candidate.protocol()
     assert doc["spin_torque_nm"] == 1.03 and doc["yaw_rate_rad_s"] == pytest.approx(1.013)
     assert doc["robot_time_s"] == round(p.robot_time, 1)
+    # the rate it assumed is the simulator's motion capture's, measured on its poses
+    assert sim.rt.mocap.frame_rate() == pytest.approx(100.0, rel=1e-6)
+    assert doc["mocap_rate_hz"] == 100.0
     assert [row["module"] for row in doc["predicted"]] == [1, 2, 3, 4]
 
 
