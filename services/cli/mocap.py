@@ -13,6 +13,23 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+LINK_TIMEOUT_S = 5.0
+"""Wall seconds the bridge waits for its zenoh link to the endpoints it connects to."""
+
+
+def linked(session: Any, timeout: float) -> bool:
+    """The session has a link with another within ``timeout`` wall seconds."""
+    import time
+
+    from swpc_hw.sensors.zenoh_session import linked_sessions
+
+    deadline = time.monotonic() + timeout
+    while linked_sessions(session) == 0:
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -68,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
         mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
         config_file=args.zenoh_config, auth=auth,
     )  # fmt: skip
+    if args.zenoh_connect and not linked(session, LINK_TIMEOUT_S):
+        session.close()
+        raise BridgeError(
+            f"no zenoh link to {', '.join(args.zenoh_connect)} within {LINK_TIMEOUT_S:g} s: "
+            "a refused user or password, a wrong address, or nothing listening there"
+        )
     key = pose_key(args.robot)
     bridge = Bridge(source, args.body, zenoh_publisher(session, key), up=args.up, units=units,
                     report_every=args.report_every)  # fmt: skip

@@ -16,6 +16,7 @@ import threading
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,12 @@ from services.sensors.bridge import NOT_SEEN_AFTER, Bridge, BridgeError, Source,
 from simulators.sensors.qtm import QtmBody, QtmServer
 from swpc_hw.sensors.bridge import FrameCount, rotation_rows, to_world
 from swpc_hw.sensors.mocap import decode_native, pose_key
-from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
+from swpc_hw.sensors.zenoh_session import (
+    ZenohAuth,
+    free_tcp_endpoint,
+    open_session,
+    publishers_acl,
+)
 
 
 def y_up_body(x: float, y: float, yaw: float) -> QtmBody:
@@ -232,3 +238,40 @@ def test_y_up_turns_into_z_up_by_a_quarter_turn_about_x() -> None:
         c.frame(n, 0.1 * k, seen=k != 1)
     assert (c.frames, c.dropped, c.not_seen, c.last_frame) == (4, 2, 1, 6)
     assert c.rate() == pytest.approx(10.0)
+
+
+def test_the_bridge_logs_in_as_the_service_asks_and_a_wrong_password_gets_nothing_in(
+    qtm: QtmServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A robot's service that listens requires a user and password of its peers, and
+    lets only SWPC_ZENOH_PUBLISHERS (``mocap``) publish its poses; the bridge presents
+    them from a file."""
+    users = tmp_path / "users.txt"
+    users.write_text("mocap:right-password\n")
+    ep = free_tcp_endpoint()
+    service = open_session(
+        listen=[ep], auth=ZenohAuth(users_file=str(users)),
+        acl=publishers_acl([pose_key("swpc")], ["mocap"]),
+    )  # fmt: skip
+    got: list[float] = []
+    service.declare_subscriber(pose_key("swpc"), lambda s: got.append(
+        decode_native(bytes(s.payload.to_bytes())).t))  # fmt: skip
+    stop = threading.Event()
+    feeder = stream(qtm, list(range(1, 10_000)), stop)
+    try:
+        for password, expect in (("wrong-password", False), ("right-password", True)):
+            (tmp_path / "pw").write_text(password + "\n")
+            got.clear()
+            rc = swpc(["mocap", "--source", f"qtm://127.0.0.1:{qtm.port}", "--body", "swpc",
+                       "--up", "y", "--zenoh-connect", ep, "--zenoh-user", "mocap",
+                       "--zenoh-password-file", str(tmp_path / "pw"), "--duration", "1.0",
+                       "--report-every", "0"])  # fmt: skip
+            out = capsys.readouterr()
+            assert rc == (0 if expect else 2), (out.out, out.err)
+            assert bool(got) == expect, (password, len(got), out.out, out.err)
+            if not expect:  # refused: said, not bridged into the void
+                assert f"no zenoh link to {ep} within 5 s: a refused user or password" in out.err
+    finally:
+        stop.set()
+        feeder.join()
+        service.close()
