@@ -67,7 +67,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from services.sensors.bridge import Bridge, BridgeError, Source, zenoh_publisher
-    from swpc_hw.sensors.mocap import pose_key
+    from swpc_hw.sensors.mocap import pose_key, source_key
     from swpc_hw.sensors.zenoh_session import ZenohAuth, open_session
 
     source = Source.parse(args.source)
@@ -92,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
             "a refused user or password, a wrong address, or nothing listening there"
         )
     key = pose_key(args.robot)
+    status = zenoh_publisher(session, source_key(args.robot), "application/json")
     bridge = Bridge(source, args.body, zenoh_publisher(session, key), up=args.up, units=units,
-                    report_every=args.report_every)  # fmt: skip
+                    report_every=args.report_every, status=status)  # fmt: skip
     print(f"swpc mocap: {args.source} body {args.body!r} ({args.up} up, {units}) -> {key}",
           flush=True)  # fmt: skip
     try:

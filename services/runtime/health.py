@@ -121,6 +121,14 @@ def _robot_health(
         clock = rt.mocap.clock_problem()
         if clock is not None:
             failing.append(clock)
+        src = rt.mocap_source.latest()
+        if src is not None and not src["seen"]:
+            has = ", ".join(map(str, src.get("bodies") or [])) or "no bodies"
+            failing.append(
+                f"motion capture: {src['source']} does not see the body {src['body']!r} "
+                f"(it has: {has}): put the robot in the volume, or name its body "
+                "(swpc mocap --body)"
+            )
     if "imu" in sensors:
         if rt.gyro.is_stale() and not still:
             failing.append(
@@ -202,6 +210,7 @@ def service_health(rt: Runtime) -> tuple[str, dict[str, Any]]:
         "nodes": nodes,
         "mocap_age_s": _age(age),
         "mocap_stale": rt.mocap.is_stale(),
+        "mocap_source": rt.mocap_source.latest(),
         "gyro_age_s": _age(gyro_age),
         "gyro_stale": rt.gyro.is_stale(),
         "sensors": sorted(sensors),

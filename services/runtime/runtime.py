@@ -60,7 +60,7 @@ from services.runtime.events import EventBus
 from services.runtime.records import RunRecords
 from services.runtime.simulator import in_process_simulator
 from services.sensors.gyro import GyroIngest
-from services.sensors.mocap import MocapIngest
+from services.sensors.mocap import MocapIngest, SourceStatus
 from services.store.disk import make_room, run_reserve
 from services.store.locks import ChannelLock, DataDirLock
 from services.store.logs import event
@@ -83,6 +83,7 @@ from swpc_hw.files.kinematic_file import (
     read_kinematics_text,
 )
 from swpc_hw.files.references import Reference
+from swpc_hw.sensors.mocap import source_key
 from swpc_hw.sensors.zenoh_session import (
     ZenohAuth,
     connect_endpoints,
@@ -144,6 +145,7 @@ class Runtime(RunRecords):
             # the in-process simulator stamps its simulated wall time: exact
             clock_mode="wall" if settings.in_process else settings.mocap_clock,
         )
+        self.mocap_source = SourceStatus()  # the status of a lab's bridge (swpc mocap)
         # the robot's gyro (a run without motion capture), stamped with wall time
         self.gyro = GyroIngest(clock=self.clock, stale_after=self.timing.mocap_stale)
         self.data_dir = settings.ensure_data_dir()
@@ -258,13 +260,14 @@ class Runtime(RunRecords):
             acl=None
             if guard is None
             else publishers_acl(
-                [self.config.pose_key, self.config.imu_key],
+                [self.config.pose_key, self.config.imu_key, source_key(self.config.robot)],
                 [SIM_USER] if s.in_process else s.zenoh_publishers,
             ),
         )
         self.zenoh_endpoints = listen or connect
         self.zenoh_connect = connect_endpoints(connect, s.zenoh_config_file)
         self.mocap.subscribe(self.session, self.config.pose_key)
+        self.mocap_source.subscribe(self.session, source_key(self.config.robot))
         if s.metrology != "mocap":
             self.gyro.subscribe(self.session, self.config.imu_key)
         self.drives = robot_drives(
@@ -402,6 +405,7 @@ class Runtime(RunRecords):
                 self.drives.stop_all()
             self.drives.shutdown()
         self.mocap.close()
+        self.mocap_source.close()
         self.gyro.close()
         if self.simulator is not None:
             self.simulator.stop()

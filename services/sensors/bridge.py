@@ -25,6 +25,8 @@ has; it prints its counts (:class:`swpc_hw.sensors.bridge.FrameCount`) every
 from __future__ import annotations
 
 import asyncio
+import json
+import math
 import threading
 import time
 import xml.etree.ElementTree as ET
@@ -49,6 +51,8 @@ QTM_PORT = 22223
 """QTM's little-endian real-time port."""
 LIBRARY_KINDS = ("vicon", "optitrack", "vrpn", "qualisys", "mock")
 """The ``motioncapture`` library's systems the bridge offers."""
+STATUS_EVERY = 1.0
+"""Wall seconds between two status documents of a bridge (on ``mocap/<robot>/source``)."""
 NOT_SEEN_AFTER = 100
 """Frames in a row without the body before the bridge says so (1 s at 100 Hz)."""
 
@@ -101,12 +105,17 @@ class Bridge:
     clock: Callable[[], float] = time.time
     say: Callable[[str], None] = print
     report_every: float = 5.0
+    status: Callable[[bytes], None] | None = None
+    """Publishes :meth:`status_document` as JSON every :data:`STATUS_EVERY` s and when
+    the body appears or goes (the service shows it and refuses to start without it)."""
     count: FrameCount = field(default_factory=FrameCount)
     bodies: list[str] = field(default_factory=list)
     _stop: threading.Event = field(default_factory=threading.Event)
     _seq: int = 0
     _unseen_run: int = 0
     _said: float = 0.0
+    _status_at: float = -math.inf
+    _seen: bool | None = None
 
     def __post_init__(self) -> None:
         if self.units not in UNITS:
@@ -120,6 +129,7 @@ class Bridge:
         seen = frame is not None and frame.seen
         n = number if number is not None else (frame.frame if frame is not None else 0)
         self.count.frame(n, now, seen)
+        self._send_status(now, seen)
         if not seen or frame is None:
             self._unseen_run += 1
             if self._unseen_run == NOT_SEEN_AFTER:
@@ -137,6 +147,29 @@ class Bridge:
         self.count.sent += 1
         self._report(now)
         return pose
+
+    def status_document(self) -> dict[str, Any]:
+        """What the bridge says of itself: its source, body and conversion, the frame rate
+        it receives, its counts, whether the last frame had the body, the bodies the system
+        has."""
+        c = self.count
+        port = "" if self.source.port is None else f":{self.source.port}"
+        return {
+            "source": f"{self.source.kind}://{self.source.host}{port}",
+            "body": self.body, "up": self.up, "units": self.units,
+            "rate_hz": round(c.rate(), 1), "frames": c.frames, "dropped": c.dropped,
+            "not_seen": c.not_seen, "sent": c.sent, "seen": bool(self._seen),
+            "bodies": list(self.bodies),
+        }  # fmt: skip
+
+    def _send_status(self, now: float, seen: bool) -> None:
+        if self.status is None:
+            return
+        changed = self._seen is None or seen != self._seen
+        self._seen = seen
+        if changed or now - self._status_at >= STATUS_EVERY:
+            self._status_at = now
+            self.status(json.dumps(self.status_document()).encode())
 
     def _report(self, now: float) -> None:
         if self.report_every > 0 and now - self._said >= self.report_every:
@@ -229,7 +262,9 @@ class Bridge:
             self.on_frame(frame, n)
 
 
-def zenoh_publisher(session: Any, key: str) -> Callable[[bytes], None]:
-    """``publish(payload)`` on ``key`` in the native encoding."""
-    pub = session.declare_publisher(key, encoding=NATIVE_ENCODING)
+def zenoh_publisher(
+    session: Any, key: str, encoding: str = NATIVE_ENCODING
+) -> Callable[[bytes], None]:
+    """``publish(payload)`` on ``key`` (the native pose encoding unless told)."""
+    pub = session.declare_publisher(key, encoding=encoding)
     return lambda payload: pub.put(payload)

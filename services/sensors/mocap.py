@@ -32,10 +32,14 @@ ingest's (:mod:`services.sensors.ingest`); a stale stream is a fault during moti
 from __future__ import annotations
 
 import bisect
+import contextlib
+import json
 import math
+import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -241,3 +245,48 @@ class MocapIngest(Ingest):
             out["latency_p50_s"] = float(np.percentile(lat, 50))
             out["latency_p99_s"] = float(np.percentile(lat, 99))
         return out
+
+
+class SourceStatus:
+    """The status the robot's motion-capture bridge last published (``swpc mocap`` on
+    ``mocap/<robot>/source``: its source, body, rate and counts, whether it sees the body;
+    :meth:`services.sensors.bridge.Bridge.status_document`), kept with its receipt on
+    ``clock`` (host seconds).  A robot whose poses come another way has none."""
+
+    FRESH_S = 5.0
+    """A status older than this (host s) is no longer the bridge's word: it is gone."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self._doc: dict[str, Any] | None = None
+        self._at = -math.inf
+        self._subscriber: Any = None
+
+    def feed(self, payload: bytes) -> bool:
+        """Keep a status document; False (and nothing kept) for one that is not."""
+        try:
+            doc = json.loads(payload)
+        except (ValueError, UnicodeDecodeError):
+            return False
+        if not isinstance(doc, dict) or not {"source", "body", "seen"} <= doc.keys():
+            return False
+        self._doc, self._at = doc, self.clock()
+        return True
+
+    def latest(self) -> dict[str, Any] | None:
+        """The last status with its age (``age_s``), None when none is fresh."""
+        doc, age = self._doc, self.clock() - self._at
+        if doc is None or age > self.FRESH_S:
+            return None
+        return {**doc, "age_s": round(age, 3)}
+
+    def subscribe(self, session: Any, key: str) -> None:
+        self._subscriber = session.declare_subscriber(
+            key, lambda sample: self.feed(bytes(sample.payload.to_bytes()))
+        )
+
+    def close(self) -> None:
+        sub, self._subscriber = self._subscriber, None
+        if sub is not None:
+            with contextlib.suppress(Exception):  # session already closed
+                sub.undeclare()

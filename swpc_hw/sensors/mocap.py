@@ -42,6 +42,12 @@ def pose_key(robot: str) -> str:
     return f"mocap/{robot}/pose"
 
 
+def source_key(robot: str) -> str:
+    """The zenoh key of the status of the bridge that puts a robot's poses (``swpc mocap``,
+    JSON: its source, body, rate and counts; docs/mocap-bridge.md)."""
+    return f"mocap/{robot}/source"
+
+
 class PoseDecodeError(SwpcError, ValueError):
     """A pose payload could not be decoded."""
 

@@ -268,6 +268,7 @@ def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
             "age_s": _finite(age),
             "stale": rt.mocap.is_stale(),
             "pose": None if latest is None else [latest.x, latest.y, latest.yaw],
+            "source": rt.mocap_source.latest(),
         },
         "run": None if run is None else run.status.to_dict(),
     }

@@ -5,6 +5,7 @@ zenoh router on loopback, to which the service connects as it would to a lab's."
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
@@ -18,9 +19,9 @@ from services.demo import parameters_digest
 from services.http.app import create_app
 from services.sensors.bridge import Bridge, BridgeError, Source, zenoh_publisher
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
-from swpc_hw.sensors.mocap import pose_key
+from swpc_hw.sensors.mocap import pose_key, source_key
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
-from tests.service_rig import QUICK_PROTOCOL, TOKEN, start, wait_state
+from tests.service_rig import AUTH, QUICK_PROTOCOL, TOKEN, Sim, start, wait_state
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 
@@ -29,8 +30,10 @@ def test_a_whole_calibration_through_the_bridge_is_done_and_accurate(tmp_path: P
     ep = free_tcp_endpoint()
     router = open_session(mode="router", listen=[ep])  # the lab's zenoh router
     port = int(free_tcp_endpoint().rsplit(":", 1)[1])
-    bridge = Bridge(Source.parse(f"qtm://127.0.0.1:{port}"), "swpc",
-                    zenoh_publisher(router, pose_key("swpc")), report_every=0)  # fmt: skip
+    bridge = Bridge(
+        Source.parse(f"qtm://127.0.0.1:{port}"), "swpc", zenoh_publisher(router, pose_key("swpc")),
+        report_every=0, status=zenoh_publisher(router, source_key("swpc"), "application/json"),
+    )  # fmt: skip
     failure: list[BaseException] = []
 
     def bridging() -> None:  # as its unit would: again until the QTM is there
@@ -55,6 +58,10 @@ def test_a_whole_calibration_through_the_bridge_is_done_and_accurate(tmp_path: P
             st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=600)
             assert st["state"] == "DONE", (st["errors"], failure, bridge.count.line())
             res = client.get(f"/calibrations/{run_id}/result").json()
+            # the service shows where its poses come from, and what the bridge counted
+            src = client.get("/health").json()["mocap_source"]
+            assert src["source"] == f"qtm://127.0.0.1:{port}" and src["body"] == "swpc", src
+            assert src["seen"] and src["dropped"] == 0 and src["bodies"] == ["swpc"], src
             bridge.stop()  # before the service (and its simulator's QTM) stops
             runner.join(timeout=10)
     finally:
@@ -74,3 +81,31 @@ def test_a_whole_calibration_through_the_bridge_is_done_and_accurate(tmp_path: P
     assert worst < 4.0
     print(f"\nthrough swpc mocap (QTM, qtm-rt, a zenoh router): DONE, {c.line()}, largest "
           f"error {worst:.2f} std devs, digest {parameters_digest(res)}")  # fmt: skip
+
+
+def test_a_body_the_bridge_does_not_see_refuses_the_start_naming_it(sim: Sim) -> None:
+    """The bridge's word (``mocap/<robot>/source``) that the system does not see the body:
+    GET /health fails naming the source, the body and the bodies the system has, and no
+    run starts; the console's live view carries it."""
+    doc = {
+        "source": "qtm://192.0.2.10:22223",
+        "body": "swpc",
+        "seen": False,
+        "bodies": ["wand", "robot7"],
+        "rate_hz": 100.0,
+        "dropped": 0,
+        "not_seen": 150,
+    }
+    assert not sim.rt.mocap_source.feed(b"{not json")
+    assert sim.rt.mocap_source.feed(json.dumps(doc).encode())
+    try:
+        h = sim.client.get("/health").json()
+        why = ("motion capture: qtm://192.0.2.10:22223 does not see the body 'swpc' (it has: "
+               "wand, robot7)")  # fmt: skip
+        assert any(p.startswith(why) for p in h["problems"]), h["problems"]
+        assert h["mocap_source"]["seen"] is False
+        r = sim.client.post("/calibrations", json={}, headers=AUTH)
+        assert r.status_code == 409 and why in r.text, r.text
+    finally:
+        sim.rt.mocap_source.feed(json.dumps({**doc, "seen": True}).encode())
+    assert not any("does not see" in p for p in sim.client.get("/health").json()["problems"])

@@ -526,6 +526,15 @@ function onLive(ev) {
   const age = m.age_s === null ? "no pose yet" : `last pose ${(m.age_s * 1000).toFixed(0)} ms ago`;
   $("mocap-age").textContent = (m.stale ? "STALE, " : "live, ") + age;
   $("mocap-age").className = m.stale ? "no" : "yes";
+  // a lab's bridge (swpc mocap): its source and body, the rate it receives, its losses
+  const s = m.source;
+  $("mocap-source").hidden = !s;
+  if (s) {
+    $("mocap-source").textContent = `from ${s.source}, body '${s.body}'` +
+      (s.seen ? `: ${fmt(s.rate_hz, 0)} Hz, ${s.dropped} frames dropped, ${s.not_seen} without the body`
+        : ` NOT SEEN (the system has: ${s.bodies.join(", ") || "no bodies"})`);
+    $("mocap-source").className = s.seen ? "" : "no";
+  }
   if (ev.run && !app.current) onRun(ev.run, false);
   else if (ev.run && ev.run.id === app.current.id) {
     // sweep and progress move between state changes: the live event carries them
