@@ -255,6 +255,15 @@ def _nodes(rt: Runtime) -> list[dict[str, Any]]:
     return out
 
 
+def _delays(rt: Runtime) -> list[float] | None:
+    """The poses' delays at receipt, median and 99th percentile (ms; the transport's in
+    clock mode wall, above the smallest in source: :meth:`MocapIngest.stats`)."""
+    st = rt.mocap.stats()
+    if "latency_p50_s" not in st:
+        return None
+    return [round(st["latency_p50_s"] * 1e3, 2), round(st["latency_p99_s"] * 1e3, 2)]
+
+
 def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
     """The ``live`` event: what changes continuously (see the module docstring)."""
     latest = rt.mocap.latest()
@@ -269,6 +278,7 @@ def live_snapshot(rt: Runtime, cur: _LiveCursor) -> dict[str, Any]:
             "stale": rt.mocap.is_stale(),
             "pose": None if latest is None else [latest.x, latest.y, latest.yaw],
             "source": rt.mocap_source.latest(),
+            "delay_ms": _delays(rt),
         },
         "run": None if run is None else run.status.to_dict(),
     }

@@ -17,6 +17,7 @@ from pydantic import SecretStr
 from services.config.settings import ServiceSettings
 from services.demo import parameters_digest
 from services.http.app import create_app
+from services.http.console.router import _LiveCursor, live_snapshot
 from services.sensors.bridge import Bridge, BridgeError, Source, zenoh_publisher
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from swpc_hw.sensors.mocap import pose_key, source_key
@@ -106,6 +107,11 @@ def test_a_body_the_bridge_does_not_see_refuses_the_start_naming_it(sim: Sim) ->
         assert h["mocap_source"]["seen"] is False
         r = sim.client.post("/calibrations", json={}, headers=AUTH)
         assert r.status_code == 409 and why in r.text, r.text
+        # the console's live view: the bridge's word, and the poses' delays (ms)
+        live = live_snapshot(sim.rt, _LiveCursor())["mocap"]
+        assert live["source"]["bodies"] == ["wand", "robot7"] and not live["source"]["seen"]
+        p50, p99 = live["delay_ms"]
+        assert 0 <= p50 <= p99, live
     finally:
         sim.rt.mocap_source.feed(json.dumps({**doc, "seen": True}).encode())
     assert not any("does not see" in p for p in sim.client.get("/health").json()["problems"])

@@ -530,8 +530,9 @@ function onLive(ev) {
   const s = m.source;
   $("mocap-source").hidden = !s;
   if (s) {
+    const delay = m.delay_ms ? `, delay ${fmt(m.delay_ms[0], 1)} ms (p99 ${fmt(m.delay_ms[1], 1)})` : "";
     $("mocap-source").textContent = `from ${s.source}, body '${s.body}'` +
-      (s.seen ? `: ${fmt(s.rate_hz, 0)} Hz, ${s.dropped} frames dropped, ${s.not_seen} without the body`
+      (s.seen ? `: ${fmt(s.rate_hz, 0)} Hz, ${s.dropped} frames dropped, ${s.not_seen} without the body${delay}`
         : ` NOT SEEN (the system has: ${s.bodies.join(", ") || "no bodies"})`);
     $("mocap-source").className = s.seen ? "" : "no";
   }
