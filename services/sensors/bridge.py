@@ -110,12 +110,12 @@ class Bridge:
     the body appears or goes (the service shows it and refuses to start without it)."""
     count: FrameCount = field(default_factory=FrameCount)
     bodies: list[str] = field(default_factory=list)
-    _stop: threading.Event = field(default_factory=threading.Event)
-    _seq: int = 0
-    _unseen_run: int = 0
-    _said: float = 0.0
-    _status_at: float = -math.inf
-    _seen: bool | None = None
+    _stop: threading.Event = field(default_factory=threading.Event, init=False, repr=False)
+    _seq: int = field(default=0, init=False, repr=False)
+    _unseen_run: int = field(default=0, init=False, repr=False)
+    _said: float = field(default=0.0, init=False, repr=False)
+    _status_at: float = field(default=-math.inf, init=False, repr=False)
+    _seen: bool | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.units not in UNITS:
@@ -178,6 +178,11 @@ class Bridge:
 
     def stop(self) -> None:
         self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        """:meth:`stop` was called."""
+        return self._stop.is_set()
 
     # ------------------------------------------------------------------ sources
     def run(self, duration: float = 0.0) -> None:

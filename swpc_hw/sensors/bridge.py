@@ -122,7 +122,7 @@ class FrameCount:
     not_seen: int = 0
     sent: int = 0
     last_frame: int | None = None
-    _times: deque[float] = field(default_factory=deque, repr=False)
+    _times: deque[float] = field(default_factory=deque, init=False, repr=False)
 
     def frame(self, number: int, t: float, seen: bool) -> None:
         """A frame numbered ``number`` received at ``t`` (the bridge's clock, s)."""

@@ -38,7 +38,7 @@ def test_a_whole_calibration_through_the_bridge_is_done_and_accurate(tmp_path: P
     failure: list[BaseException] = []
 
     def bridging() -> None:  # as its unit would: again until the QTM is there
-        while not bridge._stop.is_set():
+        while not bridge.stopping:
             try:
                 bridge.run()
                 return
