@@ -260,7 +260,7 @@ CHECK_PROTOCOL_KEYS = frozenset(
 )
 """The settings of :class:`CheckConfig` that replace the protocol's for a check."""
 
-RunKind = Literal["calibration", "check"]
+RunKind = Literal["calibration", "check", "commission"]
 
 
 class Polarity(BaseModel):
@@ -420,6 +420,13 @@ class RobotConfig(BaseModel):
         fits the step timeout and the speed limit; a check does not drive."""
         p, lim = self.protocol, self.limits
         problems: list[str] = []
+        if kind == "commission":  # its probes are its own, not the protocol's
+            if metrology != "mocap":
+                problems.append(
+                    "metrology: commissioning needs motion capture (where a lock pins the "
+                    "robot is the poses' fixed point); the gyro alone cannot tell it"
+                )
+            return problems
         if metrology == "imu":
             problems += self._imu_problems()
         if kind == "check" and p.drive_length > 0:

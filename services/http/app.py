@@ -34,7 +34,16 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from services.config.settings import ServiceSettings
-from services.http import answers, calibrations, checks, drives, health, kinematics, simulator
+from services.http import (
+    answers,
+    calibrations,
+    checks,
+    commissions,
+    drives,
+    health,
+    kinematics,
+    simulator,
+)
 from services.http.console import router as console
 from services.http.deps import FiniteJSONResponse, printable
 from services.http.docs import offline_docs
@@ -112,7 +121,7 @@ def create_app(
             {"detail": f"{what}: {exc.strerror or exc}"}, status_code=507 if full else 500
         )
 
-    for module in (calibrations, checks, answers, kinematics, drives, health):
+    for module in (calibrations, checks, commissions, answers, kinematics, drives, health):
         app.include_router(module.router)
     if cfg.in_process:  # never against a robot
         app.include_router(simulator.router)

@@ -247,18 +247,7 @@ class CalibrationRun(RunMachine):
         self.journal.open(t0=self._t0, install=self.install, created=self.status.created)
         self.record(force=True)
         angles = [math.radians(a) for a in cfg.protocol.angles_deg]
-        self.enter(State.CONNECT, "activating the controllers")
-        self.robot.activate()
-        unhomed = self.robot.unhomed()
-        if unhomed:
-            self.status.step = f"homing the steering of modules {unhomed}"
-            self.changed()
-            for mod in unhomed:
-                self.robot.start_homing(mod)
-            self.wait_until(lambda: not self.robot.unhomed(), motion=False)
-        self.enter(State.PRECHECK, f"checking nodes, errors, homing and {m.sensor_name}")
-        self._precheck()
-        m.come_to_rest(self)
+        self._connect()
         nominal = cfg.nominal.arrays()
         ids = cfg.nominal.ids
         torque = cfg.limits.spin_torque
@@ -330,6 +319,22 @@ class CalibrationRun(RunMachine):
             {"state": "DONE", "installed": self.status.installed, "reason": ""}, self.result_doc
         )
         self.enter(State.DONE, "done")
+
+    def _connect(self) -> None:
+        """CONNECT (the drives activated, the steering homed), PRECHECK and REST."""
+        self.enter(State.CONNECT, "activating the controllers")
+        self.robot.activate()
+        unhomed = self.robot.unhomed()
+        if unhomed:
+            self.status.step = f"homing the steering of modules {unhomed}"
+            self.changed()
+            for mod in unhomed:
+                self.robot.start_homing(mod)
+            self.wait_until(lambda: not self.robot.unhomed(), motion=False)
+        m = self.metrology
+        self.enter(State.PRECHECK, f"checking nodes, errors, homing and {m.sensor_name}")
+        self._precheck()
+        m.come_to_rest(self)
 
     def run_problems(self) -> list[str]:
         """What makes this run impossible, before any motion (its metrology's view of the

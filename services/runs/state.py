@@ -22,6 +22,7 @@ class State(StrEnum):
     CONNECT = "CONNECT"
     PRECHECK = "PRECHECK"
     REST = "REST"
+    PROBE = "PROBE"
     LOCK = "LOCK"
     ALIGN = "ALIGN"
     FREE = "FREE"
@@ -45,6 +46,7 @@ TERMINAL = frozenset({State.DONE, State.FAILED, State.ABORTED})
 MOTION = frozenset(
     {
         State.REST,
+        State.PROBE,
         State.ALIGN,
         State.FREE,
         State.SPIN,
@@ -63,7 +65,8 @@ TRANSITIONS: dict[State, frozenset[State]] = {
     State.PENDING: frozenset({State.CONNECT}),
     State.CONNECT: frozenset({State.PRECHECK}),
     State.PRECHECK: frozenset({State.REST}),
-    State.REST: frozenset({State.LOCK}),
+    State.REST: frozenset({State.LOCK, State.PROBE}),
+    State.PROBE: frozenset({State.PROBE, State.LOCK, State.SOLVE}),
     State.LOCK: frozenset({State.ALIGN}),
     State.ALIGN: frozenset({State.FREE}),
     State.FREE: frozenset({State.SPIN, State.STILL}),
@@ -117,8 +120,9 @@ class RunStatus(BaseModel):
     id: str
     created: str
     kind: RunKind = "calibration"
-    """A calibration (``/calibrations``) or a check of the file in force (``/checks``,
-    docs/check.md): the same protocol's machinery."""
+    """A calibration (``/calibrations``), a check of the file in force (``/checks``,
+    docs/check.md) or a commissioning (``/commissions``, docs/commissioning.md): the same
+    machinery."""
     state: State = State.PENDING
     metrology: str = "mocap"
     step: str = "waiting to start"
@@ -139,8 +143,10 @@ class RunStatus(BaseModel):
     started: str | None = None
     finished: str | None = None
     installed: bool | None = None
-    verdict: Literal["consistent", "drifted"] | None = None
-    """A check once DONE: does the robot still match the file (its result says more)."""
+    verdict: Literal["consistent", "drifted", "right", "miswired"] | None = None
+    """A check once DONE: does the robot still match the file (consistent, drifted); a
+    commissioning: does the robot match its config (right, miswired).  The result says
+    more."""
     drive_m: float | None = None
     """Without motion capture: how far the straight drive has gone (m, nominal radii)."""
     notes: list[str] = Field(default_factory=list)

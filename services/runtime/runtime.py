@@ -42,6 +42,7 @@ from services.config.settings import ServiceSettings, SettingsError
 from services.config.timing import TimingBudget, robot_drives, timing_budget
 from services.plan.planner import Planner
 from services.runs.check import FILE_IN_FORCE, CheckRun
+from services.runs.commission import CommissionRun
 from services.runs.metrology.base import Metrology
 from services.runs.metrology.imu import ImuMetrology
 from services.runs.metrology.mocap import MocapMetrology
@@ -544,7 +545,9 @@ class Runtime(RunRecords):
             )
             measure = self.metrology(metrology, config, references, stopping)
             run: CalibrationRun
-            if checked is None:
+            if kind == "commission":
+                run = CommissionRun(io, measure, config, config_text=self.config_text(), **common)
+            elif checked is None:
                 run = CalibrationRun(io, measure, config, install=install, **common)
             else:
                 kf, info, _ = checked
@@ -573,6 +576,12 @@ class Runtime(RunRecords):
             raise StoreError(f"run store not writable: {self.store_error}: no run started") from exc
         run.start()
         return run
+
+    def config_text(self) -> str | None:
+        """The robot config file as written (None: the service runs on the embedded
+        default)."""
+        path = self.settings.robot_config
+        return None if path is None else Path(path).read_text(encoding="utf-8")
 
     def _forget_files(self, run: CalibrationRun) -> None:
         """A run that does not start leaves no recording and no directory."""

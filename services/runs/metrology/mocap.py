@@ -153,7 +153,7 @@ class MocapMetrology:
     def start_fields(self) -> dict[str, Any]:
         return {} if self.sequential is None else {"stopping": "sequential"}
 
-    def _window(self, start: float) -> FloatArray:
+    def poses(self, start: float) -> FloatArray:
         """The poses ``t, x, y, yaw`` sampled since ``start`` (run clock)."""
         return self.mocap.samples(since_host=start)[:, 2:6]
 
@@ -244,10 +244,7 @@ class MocapMetrology:
             assert p is not None
             spin.add(p.t_host, p.yaw)
             direction.update(p.yaw, p.t_host)
-            if seq is None:
-                sweep = sweep_reached(run, spin)
-            else:
-                sweep = seq.judge(run, k, spin, self._window)
+            sweep = sweep_reached(run, spin) if seq is None else seq.judge(run, k, spin, self.poses)
             if spin.start is not None:
                 run.set_status(poses=self.mocap.counters.accepted)
             if sweep is not None:

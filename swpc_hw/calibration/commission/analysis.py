@@ -1,0 +1,383 @@
+"""What the commissioning probes say about the robot's wiring (pure functions).
+
+Inputs are the probes of :mod:`swpc_hw.calibration.commission.probes` and the config's
+nominal geometry; the output is, per configured module, what its drives really move
+(:class:`AxisMap`) and the findings that name what disagrees with the config and its fix
+(:class:`Finding`).  Every judgement below is in that order:
+
+1. **A steering move that moved the robot** (pinned: it cannot) stopped the probes: the
+   module's steering drive turns something that moves the robot.
+2. **The sensor.**  Pivot probes whose driver rolled while the sensor saw the robot turn
+   less than :data:`NO_TURN`: the sensor does not see the robot turn (a Y-up system read
+   as Z-up, a body that is not the robot's).
+3. **The motion-capture body's axes.**  A body turned by ``gamma`` from R reports every
+   fixed point as ``R(-gamma) C``.  Of ``gamma`` in 0, 90, 180, 270 deg, the one that puts
+   the most fixed points on their own module's caster circle (a tie: 0) is taken.
+4. **Each module's steering.**  The fixed point ``F`` of a pivot probe is the braked
+   wheel's contact point ``P_s,p + b_p u(phi)`` (the true steering angle ``phi``): the module
+   ``p`` on whose circle of radius ``b_p`` about ``P_s,p`` it lies within :data:`ON_CIRCLE`
+   is the module the configured one's drives move (crossed nodes when another), and
+   ``phi = atan2(F - P_s,p)``.  Two probes at readings ``a_1, a_2`` give::
+
+       phi = slope a + zero,   slope = wrap(phi_2 - phi_1) / (a_2 - a_1) = s / g
+
+   the steering's polarity ``s`` (the sign), its ratio ``g`` (true over configured gear x
+   resolution: ``1 / |slope|``) and ``zero``, the steering angle where it reads 0 (the
+   homing error ``beta``: a quarter or half turn away when homing puts the zero there).
+5. **Each wheel.**  In each probe it drove, the driver's true heading is its own steering
+   map at its reading, its contact point ``c`` on its own physical module; (1) of
+   :mod:`~.probes` predicts the turn ``k dpsi`` of its roll reading.  The turns measured
+   over those predicted (least squares over its probes) is ``f = 1 / (s g)``: the wheel's
+   polarity and ratio; ``|f|`` under :data:`NOT_A_WHEEL` says its roll hardly turns the
+   robot (its drive turns a steering).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from swpc_hw.calibration.commission.probes import PivotProbe, SteerMove
+from swpc_hw.robot.model import RobotParams, contact_point
+
+NO_TURN = math.radians(0.5)
+"""rad: pivot probes that turned less than this saw no turn."""
+ON_CIRCLE = 0.008
+"""m: a fixed point this close to a caster's circle (or 4 std devs, whichever is more) is
+that caster's contact point."""
+RATIO_TOL = 0.25
+"""An axis whose ratio is off by more than this share is said to be (a probe's ratio is
+good to about 5 %: the fixed points' few mm on a caster circle of radius ``b``)."""
+ZERO_TOL = math.radians(30.0)
+"""rad: a steering zero this far from the nominal ``beta`` is said to be off (a probe's
+zero is good to a few degrees; the calibration measures ``beta`` to a tenth of one)."""
+NOT_A_WHEEL = 0.3
+"""A wheel whose roll turns the robot less than this share of what a wheel would is no
+wheel's."""
+MOCAP_TURNS = (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)
+
+
+def wrap(a: float) -> float:
+    return math.remainder(a, 2 * math.pi)
+
+
+@dataclass(frozen=True)
+class AxisMap:
+    """What configured module ``module``'s drives move: ``physical`` (a module id; None
+    unknown), its steering's ``steer_sign`` and ``steer_ratio`` (true over configured),
+    ``zero`` (rad, the true steering angle where it reads 0), its wheel's ``wheel_sign``
+    and ``wheel_ratio``; ``swapped``: its steering drive turns the wheel."""
+
+    module: int
+    physical: int | None = None
+    steer_sign: int | None = None
+    steer_ratio: float | None = None
+    zero: float | None = None
+    wheel_sign: int | None = None
+    wheel_ratio: float | None = None
+    swapped: bool = False
+
+    def document(self) -> dict[str, Any]:
+        return {
+            "module": self.module,
+            "physical": self.physical,
+            "swapped": self.swapped,
+            "steer_sign": self.steer_sign,
+            "steer_ratio": None if self.steer_ratio is None else round(self.steer_ratio, 3),
+            "zero_deg": None if self.zero is None else round(math.degrees(self.zero), 2),
+            "wheel_sign": self.wheel_sign,
+            "wheel_ratio": None if self.wheel_ratio is None else round(self.wheel_ratio, 3),
+        }
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One disagreement between the robot and its config: ``module`` (the physical one,
+    whose axes the fix is for; None for the sensor), ``axis`` (``steer``, ``wheel``,
+    ``module`` or ``sensor``), ``what`` (``swapped``, ``crossed``, ``polarity``, ``ratio``,
+    ``zero``, ``mocap_yaw``, ``not_seen``, ``unknown``), ``value`` (the measured sign,
+    ratio, angle in rad or module id) and ``text`` (it, and its fix, in words)."""
+
+    module: int | None
+    axis: str
+    what: str
+    value: float
+    text: str
+
+    def document(self) -> dict[str, Any]:
+        return {
+            "module": self.module,
+            "axis": self.axis,
+            "what": self.what,
+            "value": round(self.value, 6),
+            "text": self.text,
+        }
+
+
+@dataclass
+class Commissioning:
+    """The maps (per configured module), the findings, the motion-capture body's turn
+    ``mocap_yaw`` (rad) and what could not be told (``unknown``: texts)."""
+
+    maps: dict[int, AxisMap] = field(default_factory=dict)
+    findings: list[Finding] = field(default_factory=list)
+    mocap_yaw: float = 0.0
+
+    @property
+    def right(self) -> bool:
+        """The robot agrees with its config on everything the probes measured."""
+        return not self.findings
+
+    def document(self) -> dict[str, Any]:
+        return {
+            "right": self.right,
+            "mocap_yaw_deg": round(math.degrees(self.mocap_yaw), 1),
+            "modules": [m.document() for m in self.maps.values()],
+            "findings": [f.document() for f in self.findings],
+        }
+
+
+def _rot(a: float, p: tuple[float, float]) -> tuple[float, float]:
+    c, s = math.cos(a), math.sin(a)
+    return (c * p[0] - s * p[1], s * p[0] + c * p[1])
+
+
+def _on_circle(
+    nominal: RobotParams, F: tuple[float, float], std: float
+) -> tuple[int | None, float]:
+    """The module whose caster circle ``F`` lies on (step 4), and its angle there."""
+    A = nominal.arrays()
+    tol = max(ON_CIRCLE, 4 * std)
+    best, best_d = None, math.inf
+    for i, m in enumerate(nominal.ids):
+        d = abs(math.hypot(F[0] - A.P_s[i, 0], F[1] - A.P_s[i, 1]) - float(A.b[i]))
+        if d < best_d:
+            best, best_d = m, d
+    if best is None or best_d > tol:
+        return None, math.nan
+    i = nominal.ids.index(best)
+    return best, math.atan2(F[1] - A.P_s[i, 1], F[0] - A.P_s[i, 0])
+
+
+def _mocap_turn(nominal: RobotParams, probes: Sequence[PivotProbe]) -> float:
+    """Step 3: the body's turn that puts the most fixed points on their own circle."""
+    best, best_n = 0.0, -1
+    for g in MOCAP_TURNS:
+        n = 0
+        for p in probes:
+            if p.fixed_point is not None:
+                m, _ = _on_circle(nominal, _rot(g, p.fixed_point), p.fixed_point_std)
+                n += 2 if m == p.module else (1 if m is not None else 0)
+        if n > best_n:
+            best, best_n = g, n
+    return best
+
+
+def _steering(
+    nominal: RobotParams, module: int, probes: Sequence[PivotProbe], gamma: float
+) -> tuple[int | None, float | None, float | None]:
+    """Step 4 for one configured module: (physical module, slope, zero).  The readings
+    are multi-turn: each is taken on the turn of the first (a ratio off makes whole turns
+    meaningless anyway).  A slope within :data:`RATIO_TOL` of +-1 is taken as +-1, and
+    the zero is then the mean over the probes."""
+    seen = []
+    for p in probes:
+        if p.module == module and p.fixed_point is not None:
+            m, phi = _on_circle(nominal, _rot(gamma, p.fixed_point), p.fixed_point_std)
+            if m is not None:
+                seen.append((m, p.steering, phi))
+    if not seen:
+        return None, None, None
+    physical = max({m for m, _, _ in seen}, key=lambda m: sum(s[0] == m for s in seen))
+    base = seen[0][1] - wrap(seen[0][1])  # the first reading's whole turns
+    pts = [(a - base, phi) for m, a, phi in seen if m == physical]
+    if len(pts) < 2 or abs(pts[-1][0] - pts[0][0]) < math.radians(10):
+        a, phi = pts[0]
+        return physical, None, wrap(phi - a)
+    (a1, phi1), (a2, phi2) = pts[0], pts[-1]
+    slope = wrap(phi2 - phi1) / (a2 - a1)
+    if abs(abs(slope) - 1.0) <= RATIO_TOL:
+        slope = math.copysign(1.0, slope)
+    zero = math.atan2(
+        sum(math.sin(phi - slope * a) for a, phi in pts),
+        sum(math.cos(phi - slope * a) for a, phi in pts),
+    )
+    return physical, slope, zero
+
+
+def analyse(
+    nominal: RobotParams,
+    steer_moves: Sequence[SteerMove],
+    pivot_probes: Sequence[PivotProbe],
+) -> Commissioning:
+    """The wiring the probes show (module docstring), against ``nominal`` (the config's
+    geometry: where each module's steering axis is, its offset and radius)."""
+    A = nominal.arrays()
+    ids = nominal.ids
+    out = Commissioning()
+    maps: dict[int, dict[str, Any]] = {m: {"module": m} for m in ids}
+    # 1. swapped
+    for sp in steer_moves:
+        if sp.stopped:
+            maps[sp.module]["swapped"] = True
+            out.findings.append(Finding(
+                sp.module, "module", "swapped", 1.0,
+                f"module {sp.module}'s steering drive moved its steering axis "
+                f"{1000 * sp.moved:.0f} mm for a {math.degrees(abs(sp.step)):.0f} deg "
+                f"steering move with the robot pinned (at most {1000 * sp.budget:.0f} mm): it "
+                "turns a wheel (stopped there). "
+                "Fix: exchange its steering and wheel (their nodes or their motors' "
+                "connectors), then commission again",
+            ))  # fmt: skip
+    # 2. the sensor
+    rolled = [p for p in pivot_probes if abs(p.roll) > math.radians(20)]
+    if rolled and all(abs(p.turn) < NO_TURN for p in rolled):
+        out.findings.append(Finding(
+            None, "sensor", "not_seen", max(abs(p.turn) for p in rolled),
+            f"the wheels rolled up to {math.degrees(max(abs(p.roll) for p in rolled)):.0f} "
+            "deg and the sensor saw the robot turn less than "
+            f"{math.degrees(NO_TURN):.1f} deg: it does not see the robot turn (a Y-up motion "
+            "capture read as Z-up: swpc mocap --up y; a body that is not the robot's). Fix "
+            "the sensor, then commission again",
+        ))  # fmt: skip
+        out.maps = {m: AxisMap(**d) for m, d in maps.items()}
+        return out
+    # 3. the body's axes
+    gamma = _mocap_turn(nominal, pivot_probes)
+    out.mocap_yaw = gamma
+    if gamma != 0.0:
+        out.findings.append(Finding(
+            None, "sensor", "mocap_yaw", gamma,
+            f"the motion-capture body's x axis is turned {math.degrees(gamma):.0f} deg from "
+            f"R's: every fixed point fits its module only turned by that. Fix: define the "
+            f"rigid body with its x axis along R's x (the robot's forward), then commission "
+            "again",
+        ))  # fmt: skip
+    # 4. steering
+    for m in ids:
+        physical, slope, zero = _steering(nominal, m, pivot_probes, gamma)
+        d = maps[m]
+        d["physical"] = physical
+        if physical is None:
+            if not d.get("swapped"):
+                out.findings.append(Finding(
+                    m, "module", "unknown", math.nan,
+                    f"module {m}: no fixed point of its pivot probes lies on a caster's "
+                    "circle: where its drives lock the robot is not known",
+                ))  # fmt: skip
+            continue
+        if physical != m:
+            out.findings.append(Finding(
+                physical, "module", "crossed", float(m),
+                f"module {m}'s drives move module {physical}: its lock pinned the robot on "
+                f"module {physical}'s caster. Fix: module {physical}'s nodes are those the "
+                f"config gives module {m}",
+            ))  # fmt: skip
+        if zero is not None:
+            d["zero"] = zero
+            beta = float(A.beta[ids.index(physical)])
+            if abs(wrap(zero - beta)) > ZERO_TOL:
+                out.findings.append(Finding(
+                    physical, "steer", "zero", zero,
+                    f"module {physical}'s steering reads 0 at {math.degrees(zero):.0f} deg, "
+                    f"the config's beta is {math.degrees(beta):.1f} deg: its zero is "
+                    f"{math.degrees(wrap(zero - beta)):.0f} deg away. Fix: beta "
+                    f"{math.degrees(zero):.0f} deg in the config's nominal geometry (the "
+                    "calibration then measures it), or the drive's homing offset",
+                ))  # fmt: skip
+        if slope is not None and abs(slope) < NOT_A_WHEEL:
+            d["swapped"] = True
+            out.findings.append(Finding(
+                physical, "module", "swapped", slope,
+                f"module {physical}'s caster turned {abs(slope):.2f} of what its steering "
+                "drive was commanded (its lock pinned the robot at the same point at both "
+                "angles): that drive turns the wheel. Fix: exchange its steering and wheel "
+                "(their nodes or their motors' connectors)",
+            ))  # fmt: skip
+        elif slope is not None:
+            sign = 1 if slope > 0 else -1
+            ratio = 1.0 / abs(slope)
+            d["steer_sign"], d["steer_ratio"] = sign, ratio
+            if sign < 0:
+                out.findings.append(Finding(
+                    physical, "steer", "polarity", -1.0,
+                    f"module {physical}'s steering turns clockwise when commanded "
+                    "counter-clockwise (its caster's contact point went the other way round "
+                    "its circle). Fix: its steering's polarity -1",
+                ))  # fmt: skip
+            if abs(ratio - 1.0) > RATIO_TOL:
+                out.findings.append(Finding(
+                    physical, "steer", "ratio", ratio,
+                    f"module {physical}'s steering turned {1 / ratio:.2f} times what it was "
+                    f"commanded: its gear x encoder resolution is {ratio:.2f} times the "
+                    "config's. Fix: its steering's ratio times that",
+                ))  # fmt: skip
+    # 5. wheels
+    for j in ids:
+        d = maps[j]
+        q = d.get("physical")
+        if q is None:
+            continue
+        qi = ids.index(q)
+        slope = d.get("steer_sign", 1) / d.get("steer_ratio", 1.0)
+        zero = d.get("zero", float(A.beta[qi]))
+        turns = None
+        num = den = 0.0
+        for p in pivot_probes:
+            if p.driver != j or p.fixed_point is None:
+                continue
+            C = _rot(gamma, p.fixed_point)
+            if turns is None:
+                turns = p.driver_steering - wrap(p.driver_steering)
+            phi = slope * (p.driver_steering - turns) + zero
+            c = contact_point(A.P_s[qi], np.array(A.b[qi]), phi)
+            rel = (float(c[0] - C[0]), float(c[1] - C[1]))
+            D = math.hypot(*rel)
+            t = (-rel[1] / D, rel[0] / D)
+            cos_delta = math.cos(phi) * t[0] + math.sin(phi) * t[1]
+            predicted = float(A.r[qi]) * cos_delta * p.roll / D  # (1)
+            num += p.turn * predicted
+            den += predicted * predicted
+        if den < math.radians(1.0) ** 2:
+            out.findings.append(Finding(
+                q, "wheel", "unknown", math.nan,
+                f"module {q}'s wheel: its probes' rolls could not turn the robot (its "
+                "heading across its path): its direction is not known",
+            ))  # fmt: skip
+            continue
+        f = num / den
+        if abs(abs(f) - 1.0) <= RATIO_TOL * abs(f):
+            f = math.copysign(1.0, f)
+        if abs(f) < NOT_A_WHEEL:
+            d["swapped"] = True
+            if any(x.what == "swapped" and x.module == q for x in out.findings):
+                continue
+            out.findings.append(Finding(
+                q, "module", "swapped", f,
+                f"module {q}'s wheel drive rolled and the robot turned {abs(f):.2f} of "
+                "what a wheel turns it: that drive turns the steering. Fix: exchange its "
+                "steering and wheel (their nodes or their motors' connectors)",
+            ))  # fmt: skip
+            continue
+        sign = 1 if f > 0 else -1
+        ratio = 1.0 / abs(f)
+        d["wheel_sign"], d["wheel_ratio"] = sign, ratio
+        if sign < 0:
+            out.findings.append(Finding(
+                q, "wheel", "polarity", -1.0,
+                f"module {q}'s wheel rolls backwards when commanded forwards (the robot "
+                "turned against its roll). Fix: its wheel's polarity -1",
+            ))  # fmt: skip
+        if abs(ratio - 1.0) > RATIO_TOL:
+            out.findings.append(Finding(
+                q, "wheel", "ratio", ratio,
+                f"module {q}'s wheel rolled {1 / ratio:.2f} times what its encoder says: "
+                f"its gear x encoder resolution is {ratio:.2f} times the config's. Fix: its "
+                "wheel's ratio times that",
+            ))  # fmt: skip
+    out.maps = {m: AxisMap(**d) for m, d in maps.items()}
+    return out

@@ -1,0 +1,151 @@
+"""The commissioning probes: small motions whose outcome a right config predicts.
+
+Two kinds of probe, each a few degrees of motion (docs/commissioning.md):
+
+* every **steering move** of the probes is made with the robot pinned (every other
+  module's wheel braked and its steering held): the robot cannot move, and its steering
+  axis moving more than :data:`MOVE_MARGIN` stops every axis at once
+  A steering drive that turns a wheel (the module's steering and
+  wheel drives swapped) pushes against the braked wheels and moves nothing; the pivot
+  probes then show it (the caster does not turn, the "wheel" does not roll the robot).
+* a **pivot probe** locks module ``m`` (steering held at a commanded angle, wheel braked)
+  and rolls one other module's wheel, the *driver* ``j``, its steering held across the
+  circle about ``m``'s contact point ``C``; the casters of the others trail freely.  The
+  robot can only turn about the braked contact point, which motion capture sees as the
+  fixed point of the poses (:func:`swpc_hw.calibration.geometry.fixed_point`), and the
+  driver's roll turns it by (least squares of the driver's rolling and lateral rows, the
+  driver's contact point ``c_j`` at distance ``D`` from ``C``, its heading ``u`` at angle
+  ``delta`` from the tangent ``t = z x (c_j - C) / D``)::
+
+      dyaw = r_j cos(delta) dpsi_j / D                                          (1)
+
+  With the driver's heading along ``-t`` (trailing a counter-clockwise turn, as in a
+  spin) ``cos(delta) = -1``: rolling backwards turns the robot counter-clockwise.
+
+What a right config predicts, this module says; what the probes then tell about the
+wiring, :mod:`swpc_hw.calibration.commission.analysis`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from swpc_hw.robot.model import RobotParams, contact_point, trailing_steering_angle
+
+PROBE_TURN = math.radians(6.0)
+"""rad: how far a pivot probe turns the robot (a right robot)."""
+PROBE_RATE = 0.15
+"""rad/s: the yaw rate a pivot probe's roll asks of a right robot."""
+PIVOT_ANGLES = (0.0, math.radians(90.0))
+"""rad: the locked module's commanded steering angles, one pivot probe each: two points
+of the caster's circle give its polarity, ratio and zero."""
+MOVE_MARGIN = 0.010
+"""m: how far a steering move may move its steering axis (the robot pinned: the braked
+tyres' give, the pose noise)."""
+WRONG_WAY = math.radians(0.5)
+"""rad: a pivot probe whose robot turned this far against the roll's turn stops."""
+ROLL_MARGIN = 2.5
+"""A pivot probe whose driver rolled this many times what :data:`PROBE_TURN` asks
+without the robot turning that far stops."""
+
+
+@dataclass(frozen=True)
+class SteerMove:
+    """One watched steering move: ``module`` (configured) turned by ``step`` (rad), its
+    steering axis ``moved`` (m, the farthest, the budget ``budget``), the robot's yaw
+    ``turned`` (rad, the farthest) meanwhile; ``stopped`` when over the budget."""
+
+    module: int
+    step: float
+    moved: float
+    turned: float
+    budget: float
+    stopped: bool
+
+    def document(self) -> dict[str, float | int | bool]:
+        return {
+            "module": self.module,
+            "step_deg": round(math.degrees(self.step), 2),
+            "moved_mm": round(1000 * self.moved, 2),
+            "budget_mm": round(1000 * self.budget, 2),
+            "turned_deg": round(math.degrees(self.turned), 3),
+            "stopped": self.stopped,
+        }
+
+
+@dataclass(frozen=True)
+class PivotProbe:
+    """What one pivot probe saw (module docstring).  Angles and rolls are the host's (the
+    drives' readings with the config's polarity); ``fixed_point`` is in the sensor's
+    body frame (R if the body is R's), None when the robot turned too little to tell."""
+
+    module: int
+    steering: float
+    """rad: the locked module's steering reading during the roll."""
+    driver: int
+    driver_steering: float
+    """rad: the driver's steering reading during the roll."""
+    roll: float
+    """rad: the driver's wheel reading's change."""
+    turn: float
+    """rad: the robot's yaw change (the sensor's)."""
+    fixed_point: tuple[float, float] | None
+    fixed_point_std: float
+    """m: the fixed point's std dev per coordinate (inf without one)."""
+    stopped: str | None = None
+    """Why the probe ended before its turn, if it did."""
+
+    def document(self) -> dict[str, object]:
+        return {
+            "module": self.module,
+            "steering_deg": round(math.degrees(self.steering), 2),
+            "driver": self.driver,
+            "driver_steering_deg": round(math.degrees(self.driver_steering), 2),
+            "roll_deg": round(math.degrees(self.roll), 2),
+            "turn_deg": round(math.degrees(self.turn), 3),
+            "fixed_point_mm": None
+            if self.fixed_point is None
+            else [round(1000 * c, 2) for c in self.fixed_point],
+            "fixed_point_std_mm": round(1000 * self.fixed_point_std, 3)
+            if math.isfinite(self.fixed_point_std)
+            else None,
+            "stopped": self.stopped,
+        }
+
+
+def driver_of(ids: Sequence[int], module: int) -> int:
+    """The module whose wheel turns the robot about ``module``: the one half the robot's
+    modules on (across the robot: every module drives once and is locked once)."""
+    i = list(ids).index(module)
+    return ids[(i + max(1, len(ids) // 2)) % len(ids)]
+
+
+@dataclass(frozen=True)
+class PivotPlan:
+    """What a right robot does in one pivot probe (nominal geometry): the driver's
+    steering (host rad, trailing a counter-clockwise turn about ``C``), the roll rate
+    (rad/s) for :data:`PROBE_RATE` and the roll per radian of turn from (1)."""
+
+    pivot: tuple[float, float]
+    driver_steering: float
+    roll_rate: float
+    roll_per_turn: float
+
+
+def pivot_plan(nominal: RobotParams, module: int, steering: float, driver: int) -> PivotPlan:
+    """The plan of a pivot probe about ``module`` locked at ``steering`` (host rad)
+    rolled by ``driver`` (module docstring, nominal geometry)."""
+    A = nominal.arrays()
+    ids = nominal.ids
+    k, j = ids.index(module), ids.index(driver)
+    C = contact_point(A.P_s[k], np.array(A.b[k]), steering + A.beta[k])
+    v = -np.array([-C[1], C[0]])  # the velocity of R's origin turning about C at 1 rad/s
+    target = float(trailing_steering_angle(A, v, 1.0)[j])
+    c_j = contact_point(A.P_s[j], np.array(A.b[j]), target + A.beta[j])
+    D = float(np.hypot(*(c_j - C)))
+    per_turn = -D / float(A.r[j])  # (1) with cos(delta) = -1, solved for dpsi
+    return PivotPlan((float(C[0]), float(C[1])), target, per_turn * PROBE_RATE, per_turn)
