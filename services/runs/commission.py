@@ -85,8 +85,9 @@ class CommissionRun(CalibrationRun):
         self.commissioning: Commissioning | None = None
         self.largest_turn = 0.0
         self.largest_move = 0.0
-        self.stop_latency: list[float] = []
-        """s of robot time from a probe's motion seen wrong to every axis held."""
+        self.stops: list[dict[str, Any]] = []
+        """Every roll stopped early: its modules, why, when after the roll began and after
+        the pose that showed it (robot ms), how far the robot turned its way in all."""
         ids = config.nominal.ids
         self.plan = [State.PROBE] * (len(ids) * len(PIVOT_ANGLES))
 
@@ -191,7 +192,6 @@ class CommissionRun(CalibrationRun):
             turned = max(turned, abs(math.remainder(p[3] - p0[3], 2 * math.pi)))
             if moved > budget:
                 self._hold_all()
-                self.stop_latency.append(self.clock.now() - p[0])
                 self.event(logging.WARNING, "commission.stop", module=m, moved_mm=moved * 1e3)
                 self.wait(SETTLE)
                 p = self._pose()
@@ -211,10 +211,12 @@ class CommissionRun(CalibrationRun):
         return move
 
     def _pivot_probe(self, m: int, angle: float, j: int) -> PivotProbe | None:
-        """A pivot probe about module ``m`` locked at ``angle`` rolled by ``j``; None when
-        a steering moved the robot (it stopped)."""
+        """A pivot probe about module ``m`` locked at ``angle`` rolled by ``j`` (module
+        docstring); None when a steering moved the robot (it stopped).  A roll that turned
+        the robot the wrong way is stopped and rolled the other way (the turn then asked
+        is counter-clockwise again); a roll that did not turn it (its driver's heading
+        across the circle, or its drive not a wheel's) is tried with the next driver."""
         ids = self.config.nominal.ids
-        plan = pivot_plan(self.config.nominal, m, angle, j)
         deg = math.degrees(angle)
         self.enter(State.PROBE, f"pivot probe: module {m} locked at {deg:.0f} deg, {j} rolls")
         # every steering move with the robot pinned by the others (braked and held), its
@@ -227,52 +229,91 @@ class CommissionRun(CalibrationRun):
         if self._steer(m, angle).stopped:
             return None
         self.robot.wheel_hold(m)
-        self.robot.wheel_free(j)
-        if self._steer(j, plan.driver_steering).stopped:
-            return None
-        for mod in ids:
-            if mod not in (m, j):
+        drivers = [j] + [d for d in ids if d not in (m, j)]
+        first_stop: str | None = None
+        for driver in drivers:
+            plan = pivot_plan(self.config.nominal, m, angle, driver)
+            for mod in ids:
+                if mod != m:
+                    self.robot.wheel_hold(mod)
+                    self.robot.steer_to(mod, self.robot.steering(mod))
+            self.robot.wheel_free(driver)
+            if self._steer(driver, plan.driver_steering).stopped:
+                return None
+            self._free_others(m, driver)
+            got = self._roll(m, driver, plan.roll_rate, abs(plan.roll_per_turn * PROBE_TURN))
+            if got[2] == "wrong way":  # its wheel turns the other way: rolled the other way
+                first_stop = first_stop or got[3]
+                self._free_others(m, driver)
+                got = self._roll(m, driver, -plan.roll_rate, abs(plan.roll_per_turn * PROBE_TURN))
+            if got[2] != "no turn":
+                return self._observed(m, driver, got[0], got[1], first_stop or got[3])
+            first_stop = first_stop or got[3]
+        return self._observed(m, drivers[-1], got[0], got[1], first_stop)
+
+    def _free_others(self, m: int, driver: int) -> None:
+        """The modules but the locked one and the driver free (their casters trail)."""
+        for mod in self.config.nominal.ids:
+            if mod not in (m, driver):
                 self.robot.free_steer(mod)
                 self.robot.wheel_free(mod)
         self.wait(SETTLE)
+
+    def _roll(
+        self, m: int, j: int, rate: float, expected: float
+    ) -> tuple[float, float, str | None, str | None]:
+        """Module ``j``'s wheel at ``rate`` until the robot has turned
+        :data:`~.probes.PROBE_TURN` counter-clockwise (the plan's rate turns it so; the
+        other way round, a wheel that turns the other way): ``(t0, psi0, stop, text)``, its
+        start, the wheel's reading then, and why it stopped early (``wrong way``, ``no
+        turn``; None)."""
         t0, _, _, yaw0 = self._pose()
         rows0 = self.robot.encoders(j, t0 - 0.2)
         psi0 = float(rows0[-1, 2]) if len(rows0) else 0.0
-        expected = abs(plan.roll_per_turn * PROBE_TURN)
-        self.robot.wheel_velocity(j, plan.roll_rate)
-        deadline, stopped = self.deadline(), None
-        last = yaw0
+        self.robot.wheel_velocity(j, rate)
+        deadline = self.deadline()
+        last, stop, text = yaw0, None, None
         while True:
             self.check(True, deadline)
-            p_t, _, _, yaw = self._pose()
+            t, _, _, yaw = self._pose()
             last += math.remainder(yaw - last, 2 * math.pi)
             turn = last - yaw0
             rows = self.robot.encoders(j, t0)
             roll = float(rows[-1, 2]) - psi0 if len(rows) else 0.0
             if turn <= -WRONG_WAY:
-                t_seen = p_t
-                stopped = (
-                    f"the robot turned {math.degrees(-turn):.1f} deg clockwise for a roll "
-                    "that turns it counter-clockwise"
+                stop = "wrong way"
+                text = (
+                    f"module {j}'s roll turned the robot {math.degrees(-turn):.1f} deg the "
+                    f"other way (stopped {1000 * (self.clock.now() - t0):.0f} ms after the "
+                    "roll began, then rolled the other way)"
                 )
             elif turn >= PROBE_TURN:
                 break
             elif abs(roll) >= ROLL_MARGIN * expected:
-                t_seen = self.clock.now()
-                stopped = (
+                stop = "no turn"
+                text = (
                     f"module {j}'s wheel rolled {math.degrees(abs(roll)):.0f} deg and the "
-                    f"robot turned {math.degrees(turn):.1f} deg, "
+                    f"robot turned {math.degrees(turn):.1f} deg of the "
                     f"{math.degrees(PROBE_TURN):.0f} deg asked"
                 )
-            if stopped is not None:
+            if stop is not None:
                 self._hold_all()
-                self.stop_latency.append(self.clock.now() - t_seen)
-                self.event(logging.WARNING, "commission.stop", module=m, driver=j, why=stopped)
+                self.stops.append({
+                    "module": m, "driver": j, "why": stop,
+                    "after_ms": round(1000 * (self.clock.now() - t0), 1),
+                    "seen_ms": round(1000 * (self.clock.now() - t), 1),
+                })  # fmt: skip
+                self.event(logging.WARNING, "commission.stop", module=m, driver=j, why=text)
                 break
             self.clock.sleep(self.poll)
         self.robot.wheel_hold(j)
         self.wait(SETTLE)
-        return self._observed(m, j, t0, psi0, stopped)
+        if stop is not None:  # the whole turn the wrong way, once the robot has stopped
+            _, _, _, yaw = self._pose()
+            self.stops[-1]["turned_deg"] = round(
+                math.degrees(math.remainder(yaw - yaw0, 2 * math.pi)), 2
+            )
+        return t0, psi0, stop, text
 
     def _observed(self, m: int, j: int, t0: float, psi0: float, stopped: str | None) -> PivotProbe:
         """What the poses and the encoders since ``t0`` say of a pivot probe."""
@@ -327,7 +368,7 @@ class CommissionRun(CalibrationRun):
             "robot_time_s": round(self.clock.now() - self._t0, 2),
             "largest_turn_deg": round(math.degrees(self.largest_turn), 2),
             "largest_move_mm": round(1000 * self.largest_move, 1),
-            "stop_latency_ms": [round(1000 * s, 1) for s in self.stop_latency],
+            "stops": self.stops,
         }
         self.status.verdict = "right" if c.right else "miswired"
         self.event(

@@ -49,9 +49,9 @@ NO_TURN = math.radians(0.5)
 ON_CIRCLE = 0.008
 """m: a fixed point this close to a caster's circle (or 4 std devs, whichever is more) is
 that caster's contact point."""
-RATIO_TOL = 0.25
+RATIO_TOL = 0.2
 """An axis whose ratio is off by more than this share is said to be (a probe's ratio is
-good to about 5 %: the fixed points' few mm on a caster circle of radius ``b``)."""
+good to about 5 %: the fixed points' mm on a caster circle of radius ``b``)."""
 ZERO_TOL = math.radians(30.0)
 """rad: a steering zero this far from the nominal ``beta`` is said to be off (a probe's
 zero is good to a few degrees; the calibration measures ``beta`` to a tenth of one)."""
@@ -177,34 +177,60 @@ def _mocap_turn(nominal: RobotParams, probes: Sequence[PivotProbe]) -> float:
     return best
 
 
+def circle_centre(
+    points: Sequence[tuple[float, float]], radius: float, start: tuple[float, float]
+) -> tuple[float, float]:
+    """The centre ``c`` of the circle of ``radius`` through ``points`` (three or more):
+    least squares of ``|F_k - c| - radius`` by Gauss-Newton from ``start``."""
+    c = np.array(start, dtype=float)
+    P = np.asarray(points, dtype=float)
+    for _ in range(20):
+        d = P - c
+        rho = np.hypot(d[:, 0], d[:, 1])
+        J = -d / rho[:, None]  # d|F - c| / dc
+        step = np.linalg.lstsq(J, -(rho - radius), rcond=None)[0]
+        c = c + step
+        if float(np.hypot(*step)) < 1e-7:
+            break
+    return float(c[0]), float(c[1])
+
+
 def _steering(
     nominal: RobotParams, module: int, probes: Sequence[PivotProbe], gamma: float
 ) -> tuple[int | None, float | None, float | None]:
-    """Step 4 for one configured module: (physical module, slope, zero).  The readings
-    are multi-turn: each is taken on the turn of the first (a ratio off makes whole turns
-    meaningless anyway).  A slope within :data:`RATIO_TOL` of +-1 is taken as +-1, and
-    the zero is then the mean over the probes."""
+    """Step 4 for one configured module: (physical module, slope, zero).  With three
+    points or more the circle's centre is fitted (radius ``b``: the nominal axis may be
+    mm off, which on a circle of 20 mm is degrees).  The readings are multi-turn: each is
+    taken on the turn of the first, the angles unwrapped in the readings' order.  A slope
+    within :data:`RATIO_TOL` of +-1 is taken as +-1; the zero is the mean over the probes."""
+    A = nominal.arrays()
     seen = []
     for p in probes:
         if p.module == module and p.fixed_point is not None:
-            m, phi = _on_circle(nominal, _rot(gamma, p.fixed_point), p.fixed_point_std)
+            F = _rot(gamma, p.fixed_point)
+            m, _ = _on_circle(nominal, F, p.fixed_point_std)
             if m is not None:
-                seen.append((m, p.steering, phi))
+                seen.append((m, p.steering, F))
     if not seen:
         return None, None, None
     physical = max({m for m, _, _ in seen}, key=lambda m: sum(s[0] == m for s in seen))
+    i = nominal.ids.index(physical)
     base = seen[0][1] - wrap(seen[0][1])  # the first reading's whole turns
-    pts = [(a - base, phi) for m, a, phi in seen if m == physical]
-    if len(pts) < 2 or abs(pts[-1][0] - pts[0][0]) < math.radians(10):
-        a, phi = pts[0]
-        return physical, None, wrap(phi - a)
-    (a1, phi1), (a2, phi2) = pts[0], pts[-1]
-    slope = wrap(phi2 - phi1) / (a2 - a1)
+    pts = sorted((a - base, F) for m, a, F in seen if m == physical)
+    centre = (float(A.P_s[i, 0]), float(A.P_s[i, 1]))
+    if len(pts) >= 3:
+        centre = circle_centre([F for _, F in pts], float(A.b[i]), centre)
+    a_k = [a for a, _ in pts]
+    phi = np.unwrap([math.atan2(F[1] - centre[1], F[0] - centre[0]) for _, F in pts])
+    if len(pts) < 2 or a_k[-1] - a_k[0] < math.radians(10):
+        return physical, None, wrap(float(phi[0]) - a_k[0])
+    am = float(np.mean(a_k))
+    slope = float(np.polyfit(np.array(a_k) - am, phi, 1)[0])
     if abs(abs(slope) - 1.0) <= RATIO_TOL:
         slope = math.copysign(1.0, slope)
     zero = math.atan2(
-        sum(math.sin(phi - slope * a) for a, phi in pts),
-        sum(math.cos(phi - slope * a) for a, phi in pts),
+        sum(math.sin(f - slope * a) for a, f in zip(a_k, phi, strict=True)),
+        sum(math.cos(f - slope * a) for a, f in zip(a_k, phi, strict=True)),
     )
     return physical, slope, zero
 

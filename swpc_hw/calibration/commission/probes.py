@@ -36,13 +36,14 @@ import numpy as np
 
 from swpc_hw.robot.model import RobotParams, contact_point, trailing_steering_angle
 
-PROBE_TURN = math.radians(6.0)
+PROBE_TURN = math.radians(10.0)
 """rad: how far a pivot probe turns the robot (a right robot)."""
-PROBE_RATE = 0.15
+PROBE_RATE = 0.1
 """rad/s: the yaw rate a pivot probe's roll asks of a right robot."""
-PIVOT_ANGLES = (0.0, math.radians(90.0))
-"""rad: the locked module's commanded steering angles, one pivot probe each: two points
-of the caster's circle give its polarity, ratio and zero."""
+PIVOT_ANGLES = (0.0, math.radians(90.0), math.radians(180.0))
+"""rad: the locked module's commanded steering angles, one pivot probe each: three points
+of the caster's circle give its centre, the steering's polarity, ratio and zero (a
+ratio down to 0.5 of the config's: consecutive angles less than half a turn apart)."""
 MOVE_MARGIN = 0.010
 """m: how far a steering move may move its steering axis (the robot pinned: the braked
 tyres' give, the pose noise)."""
