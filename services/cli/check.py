@@ -116,7 +116,7 @@ def over_http(args: argparse.Namespace) -> int:
         except httpx.TransportError as exc:
             raise SwpcError(f"{args.url}: no service answers: {exc}") from exc
         if r.status_code != 202:
-            raise SwpcError(f"POST /checks: {r.status_code}: {_detail(r)}")
+            raise SwpcError(f"POST /checks: {r.status_code}: {response_detail(r)}")
         cid = r.json()["id"]
         print(f"check {cid} started ({args.url}{r.headers.get('location', '')})", flush=True)
         deadline = time.monotonic() + args.timeout
@@ -141,7 +141,7 @@ def over_http(args: argparse.Namespace) -> int:
     return 0 if res["verdict"] == "consistent" else DRIFTED
 
 
-def _detail(r: Any) -> str:
+def response_detail(r: Any) -> str:
     try:
         d = r.json().get("detail")
     except ValueError:

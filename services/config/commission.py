@@ -11,8 +11,9 @@ and its value stay as the operator wrote them.  What each finding
   steering and wheel nodes; ``swpc`` (one node for both) cannot: its motors' connectors;
 * ``polarity``: ``polarity[p][axis]`` turns sign (swpc applies it to what a run commands
   and reads; docs/commissioning.md says how each kind can hold it instead);
-* ``ratio``: the axis' ``gear_ratio`` times the ratio found (``cia402``, ``odrive``);
-  ``swpc``'s firmware holds its own (the config cannot);
+* ``ratio``: the axis' ``gear_ratio`` times the ratio found (``odrive``); a CiA 402
+  drive's own gear ratio (0x6091) must change with the config's, and ``swpc``'s firmware
+  holds its own: the config alone cannot;
 * ``zero``: the module's nominal ``beta`` (the config's ``nominal``) at the zero found;
 * the motion-capture body turned, the sensor not seeing the robot, what is not known: the
   config has no place for them.
@@ -33,7 +34,10 @@ from services.config.robot import RobotConfig
 from swpc_hw.calibration.commission.analysis import Commissioning
 
 PER_AXIS_NODES = ("cia402", "odrive")
-"""The drive kinds with a node (and a gear ratio) per axis in the config."""
+"""The drive kinds with a node per axis in the config."""
+RATIO_IN_CONFIG = ("odrive",)
+"""The drive kinds whose ratio the config alone holds (a CiA 402 drive keeps its own gear
+ratio, 0x6091, which swpc checks against the config's: both change together)."""
 
 
 def _key(d: dict[Any, Any], module: int) -> Any:
@@ -93,7 +97,7 @@ def corrected_config(
             axes[f.axis] = -int(was.get(f.axis, 1))
             pol[k] = axes
         elif f.what == "ratio" and p is not None:
-            if kind in PER_AXIS_NODES:
+            if kind in RATIO_IN_CONFIG:
                 mods = drives_modules()
                 axis = mods[_key(mods, p)][f.axis]
                 axis["gear_ratio"] = round(float(axis.get("gear_ratio", 1.0)) * f.value, 6)

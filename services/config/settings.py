@@ -292,6 +292,12 @@ class ServiceSettings(BaseSettings):
         "(crossed, swapped, inverted, another ratio, a turned motion-capture body; "
         "simulators/drives/wiring.py); unset: as the robot config says",
     )
+    sim_robot_config: Path | None = Field(
+        None,
+        description="in-process simulator: the robot config the robot was built from (its "
+        "drives' kind and nodes, which SWPC_SIM_WIRING is relative to) when the service's "
+        "differs (a config corrected by commissioning); unset: the service's",
+    )
     sim_physics_dt: float = Field(
         0.01,
         gt=0,

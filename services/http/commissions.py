@@ -13,10 +13,10 @@ corrected to say it (docs/commissioning.md).
 * ``POST /commissions/{id}/accept`` (token): write the corrected robot config over the
   service's (``SWPC_ROBOT_CONFIG``; the one in force kept beside it as
   ``<name>.<time>.bak``).  Nothing is written before this.  409 when the file changed
-  since the commissioning started (commission again), while a run goes, or when the
-  service runs on the embedded default (no file to write: the corrected document is in
-  the result).  A correction of the drives (nodes, ratios) takes effect when the service
-  restarts (``restart: true``); any other at once.
+  since the commissioning started (commission again), while a run goes, when there is
+  nothing to correct, or when the service runs on the embedded default (no file to
+  write: the corrected document is in the result).  A correction of the drives (nodes,
+  ratios) takes effect when the service restarts (``restart: true``); any other at once.
 """
 
 from __future__ import annotations
@@ -128,6 +128,10 @@ def accept(run_id: str, rt: Rt) -> dict[str, Any]:
     if st["state"] != "DONE" or st["result"] is None:
         raise HTTPException(409, f"commissioning {run_id} is {st['state']}: nothing to accept")
     res = st["result"]
+    if not res["diff"]:
+        raise HTTPException(409, f"commissioning {run_id} found nothing the config can correct")
+    if res.get("config_error"):
+        raise HTTPException(409, f"the corrected config does not load: {res['config_error']}")
     path = rt.settings.robot_config
     if path is None:
         raise HTTPException(

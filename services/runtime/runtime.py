@@ -301,8 +301,13 @@ class Runtime(RunRecords):
                     f"SWPC_SIM_TRUTH: {s.sim_truth} has modules {truth.ids}, the robot "
                     f"config {self.config.nominal.ids}"
                 )
+            built = (
+                self.config
+                if s.sim_robot_config is None
+                else load_robot_config(s.sim_robot_config)
+            )
             self.simulator = in_process_simulator(
-                config=self.config,
+                config=built,
                 channel=channel,
                 zenoh_endpoints=listen or connect,
                 zenoh_auth=None if guard is None else ZenohAuth(SIM_USER, self._sim_password),

@@ -58,6 +58,10 @@ zero is good to a few degrees; the calibration measures ``beta`` to a tenth of o
 NOT_A_WHEEL = 0.3
 """A wheel whose roll turns the robot less than this share of what a wheel would is no
 wheel's."""
+MIN_COS = 0.7
+"""A probe whose driver headed more than 45 deg off the circle's tangent does not judge
+its wheel (the turn per roll goes with ``cos(delta)``, and a few degrees of error in the
+heading are then tens of per cent in it)."""
 MOCAP_TURNS = (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)
 
 
@@ -99,7 +103,7 @@ class Finding:
     """One disagreement between the robot and its config: ``module`` (the physical one,
     whose axes the fix is for; None for the sensor), ``axis`` (``steer``, ``wheel``,
     ``module`` or ``sensor``), ``what`` (``swapped``, ``crossed``, ``polarity``, ``ratio``,
-    ``zero``, ``mocap_yaw``, ``not_seen``, ``unknown``), ``value`` (the measured sign,
+    ``zero``, ``mocap_yaw``, ``not_seen``), ``value`` (the measured sign,
     ratio, angle in rad or module id) and ``text`` (it, and its fix, in words)."""
 
     module: int | None
@@ -125,12 +129,15 @@ class Commissioning:
 
     maps: dict[int, AxisMap] = field(default_factory=dict)
     findings: list[Finding] = field(default_factory=list)
+    unknown: list[str] = field(default_factory=list)
+    """What the probes could not tell (a driver heading across its circle: commission
+    again once the findings are fixed)."""
     mocap_yaw: float = 0.0
 
     @property
     def right(self) -> bool:
-        """The robot agrees with its config on everything the probes measured."""
-        return not self.findings
+        """The robot agrees with its config on every axis, each one measured."""
+        return not self.findings and not self.unknown
 
     def document(self) -> dict[str, Any]:
         return {
@@ -138,6 +145,7 @@ class Commissioning:
             "mocap_yaw_deg": round(math.degrees(self.mocap_yaw), 1),
             "modules": [m.document() for m in self.maps.values()],
             "findings": [f.document() for f in self.findings],
+            "unknown": self.unknown,
         }
 
 
@@ -180,8 +188,10 @@ def _mocap_turn(nominal: RobotParams, probes: Sequence[PivotProbe]) -> float:
 def circle_centre(
     points: Sequence[tuple[float, float]], radius: float, start: tuple[float, float]
 ) -> tuple[float, float]:
-    """The centre ``c`` of the circle of ``radius`` through ``points`` (three or more):
-    least squares of ``|F_k - c| - radius`` by Gauss-Newton from ``start``."""
+    """The centre ``c`` of the circle of ``radius`` nearest ``points`` (two or more):
+    least squares of ``|F_k - c| - radius`` by Gauss-Newton from ``start``.  The radius
+    is the nominal offset ``b``: three points over a third of a turn with mm of noise do
+    not tell a circle's radius, and a free one moves its centre by mm (degrees)."""
     c = np.array(start, dtype=float)
     P = np.asarray(points, dtype=float)
     for _ in range(20):
@@ -199,8 +209,8 @@ def _steering(
     nominal: RobotParams, module: int, probes: Sequence[PivotProbe], gamma: float
 ) -> tuple[int | None, float | None, float | None]:
     """Step 4 for one configured module: (physical module, slope, zero).  With three
-    points or more the circle's centre is fitted (radius ``b``: the nominal axis may be
-    mm off, which on a circle of 20 mm is degrees).  The readings are multi-turn: each is
+    points or more the circle's centre is fitted (:func:`circle_centre`: the nominal axis
+    may be mm off, which on a circle of 20 mm is degrees).  The readings are multi-turn: each is
     taken on the turn of the first, the angles unwrapped in the readings' order.  A slope
     within :data:`RATIO_TOL` of +-1 is taken as +-1; the zero is the mean over the probes."""
     A = nominal.arrays()
@@ -219,7 +229,10 @@ def _steering(
     pts = sorted((a - base, F) for m, a, F in seen if m == physical)
     centre = (float(A.P_s[i, 0]), float(A.P_s[i, 1]))
     if len(pts) >= 3:
-        centre = circle_centre([F for _, F in pts], float(A.b[i]), centre)
+        b = float(A.b[i])
+        cx, cy = circle_centre([F for _, F in pts], b, centre)
+        if math.hypot(cx - centre[0], cy - centre[1]) < 0.5 * b:
+            centre = (cx, cy)  # else the nominal axis (points too close together to tell)
     a_k = [a for a, _ in pts]
     phi = np.unwrap([math.atan2(F[1] - centre[1], F[0] - centre[0]) for _, F in pts])
     if len(pts) < 2 or a_k[-1] - a_k[0] < math.radians(10):
@@ -290,11 +303,10 @@ def analyse(
         d["physical"] = physical
         if physical is None:
             if not d.get("swapped"):
-                out.findings.append(Finding(
-                    m, "module", "unknown", math.nan,
+                out.unknown.append(
                     f"module {m}: no fixed point of its pivot probes lies on a caster's "
-                    "circle: where its drives lock the robot is not known",
-                ))  # fmt: skip
+                    "circle: where its drives lock the robot is not known"
+                )
             continue
         if physical != m:
             out.findings.append(Finding(
@@ -303,18 +315,6 @@ def analyse(
                 f"module {physical}'s caster. Fix: module {physical}'s nodes are those the "
                 f"config gives module {m}",
             ))  # fmt: skip
-        if zero is not None:
-            d["zero"] = zero
-            beta = float(A.beta[ids.index(physical)])
-            if abs(wrap(zero - beta)) > ZERO_TOL:
-                out.findings.append(Finding(
-                    physical, "steer", "zero", zero,
-                    f"module {physical}'s steering reads 0 at {math.degrees(zero):.0f} deg, "
-                    f"the config's beta is {math.degrees(beta):.1f} deg: its zero is "
-                    f"{math.degrees(wrap(zero - beta)):.0f} deg away. Fix: beta "
-                    f"{math.degrees(zero):.0f} deg in the config's nominal geometry (the "
-                    "calibration then measures it), or the drive's homing offset",
-                ))  # fmt: skip
         if slope is not None and abs(slope) < NOT_A_WHEEL:
             d["swapped"] = True
             out.findings.append(Finding(
@@ -342,6 +342,18 @@ def analyse(
                     f"commanded: its gear x encoder resolution is {ratio:.2f} times the "
                     "config's. Fix: its steering's ratio times that",
                 ))  # fmt: skip
+        if zero is not None and not d.get("swapped"):
+            d["zero"] = zero
+            beta = float(A.beta[ids.index(physical)])
+            if abs(wrap(zero - beta)) > ZERO_TOL:
+                out.findings.append(Finding(
+                    physical, "steer", "zero", zero,
+                    f"module {physical}'s steering reads 0 at {math.degrees(zero):.0f} deg, "
+                    f"the config's beta is {math.degrees(beta):.1f} deg: its zero is "
+                    f"{math.degrees(wrap(zero - beta)):.0f} deg away. Fix: beta "
+                    f"{math.degrees(zero):.0f} deg in the config's nominal geometry (the "
+                    "calibration then measures it), or the drive's homing offset",
+                ))  # fmt: skip
     # 5. wheels
     for j in ids:
         d = maps[j]
@@ -365,15 +377,17 @@ def analyse(
             D = math.hypot(*rel)
             t = (-rel[1] / D, rel[0] / D)
             cos_delta = math.cos(phi) * t[0] + math.sin(phi) * t[1]
+            if abs(cos_delta) < MIN_COS:
+                continue  # its heading across the circle: its roll barely turns the robot
             predicted = float(A.r[qi]) * cos_delta * p.roll / D  # (1)
             num += p.turn * predicted
             den += predicted * predicted
         if den < math.radians(1.0) ** 2:
-            out.findings.append(Finding(
-                q, "wheel", "unknown", math.nan,
-                f"module {q}'s wheel: its probes' rolls could not turn the robot (its "
-                "heading across its path): its direction is not known",
-            ))  # fmt: skip
+            out.unknown.append(
+                f"module {q}'s wheel: no probe it drove headed along the turn (within "
+                f"{math.degrees(math.acos(MIN_COS)):.0f} deg): its direction and ratio are not "
+                "known; commission again once the findings are fixed"
+            )
             continue
         f = num / den
         if abs(abs(f) - 1.0) <= RATIO_TOL * abs(f):
