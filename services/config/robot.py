@@ -169,6 +169,12 @@ class ProtocolConfig(BaseModel):
         description="without motion capture: how long a run waits for the operator's floor "
         "mark and tape measurement of the drive, s",
     )
+    precheck: bool = Field(
+        True,
+        description="with motion capture: before the first spin, every module locked at the "
+        "first angle and turned a few degrees about (docs/commissioning.md): a robot "
+        "that does not match its config is refused there, the axis named",
+    )
 
     @field_validator("angles_deg")
     @classmethod

@@ -80,6 +80,7 @@ from services.runs.install import solve_run, within_tolerance, write_result
 from services.runs.journal import RunJournal
 from services.runs.machine import RunMachine
 from services.runs.metrology.base import Metrology
+from services.runs.probing import Prober
 from services.runs.recording import SpaceGuard
 from services.runs.state import (
     RunAbortedError,
@@ -88,6 +89,8 @@ from services.runs.state import (
     now_iso,
 )
 from services.store.provenance import dataset_sha256
+from swpc_hw.calibration.commission.analysis import precheck_problems
+from swpc_hw.calibration.commission.probes import PRECHECK_TURN, driver_of
 from swpc_hw.calibration.mocap.solver import CalibrationResult
 from swpc_hw.calibration.plan.plan import TimeModel
 from swpc_hw.clock import SYSTEM_CLOCK, Clock
@@ -96,6 +99,9 @@ from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset, load_dataset
 from swpc_hw.robot.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
+PROBE_TIME = 3.0
+"""s: a pre-check's probe of one module, as measured on the simulator (the steering moves,
+the settling, a roll of PRECHECK_TURN)."""
 TIME_MODEL = TimeModel()
 """The planner's time model with its measured defaults: a step's estimate before one was
 measured (:meth:`CalibrationRun.planned`; asked at every poll, made once)."""
@@ -158,7 +164,8 @@ class CalibrationRun(RunMachine):
         first = [State.LOCK, State.ALIGN, State.FREE, *still, State.SPIN, State.STOP]
         again = [State.RESTEER, *still, State.SPIN, State.STOP]
         per_module = first + again * (len(config.protocol.angles_deg) - 1) + [State.RELEASE]
-        self.plan = per_module * len(self.modules)
+        probe = [State.PROBE] * len(config.nominal.ids) if config.protocol.precheck else []
+        self.plan = probe + per_module * len(self.modules)
         if metrology.name == "imu" and config.protocol.drive_length > 0:
             # the rest after the last spin, the drive and the operator's two steps (theirs:
             # counted as steps, their time is the operator's)
@@ -207,6 +214,7 @@ class CalibrationRun(RunMachine):
         tm = TIME_MODEL
         return {
             State.LOCK: p.resteer_time,
+            State.PROBE: PROBE_TIME,
             State.ALIGN: p.align_time,
             State.STOP: p.stop_time,
             State.RESTEER: p.resteer_time,
@@ -248,6 +256,8 @@ class CalibrationRun(RunMachine):
         self.record(force=True)
         angles = [math.radians(a) for a in cfg.protocol.angles_deg]
         self._connect()
+        if cfg.protocol.precheck and m.name == "mocap":
+            self._fast_part(angles[0])
         nominal = cfg.nominal.arrays()
         ids = cfg.nominal.ids
         torque = cfg.limits.spin_torque
@@ -335,6 +345,37 @@ class CalibrationRun(RunMachine):
         self.enter(State.PRECHECK, f"checking nodes, errors, homing and {m.sensor_name}")
         self._precheck()
         m.come_to_rest(self)
+
+    def _fast_part(self, angle: float) -> None:
+        """PROBE: every module locked at ``angle`` and turned
+        :data:`~swpc_hw.calibration.commission.probes.PRECHECK_TURN` about by its driver
+        (:mod:`services.runs.probing`); a robot that disagrees with its config is refused
+        before the first spin, the axis named
+        (:func:`~swpc_hw.calibration.commission.analysis.precheck_problems`)."""
+        ids = self.config.nominal.ids
+        prober = Prober(self)
+        probes = []
+        for m in ids:
+            p = prober.pivot_probe(m, angle, driver_of(ids, m), PRECHECK_TURN, retry=False)
+            if p is None:  # a steering moved the pinned robot
+                mv = prober.steer_moves[-1]
+                raise RunFailedError(
+                    f"refused before the first spin: module {mv.module}'s steering moved the "
+                    f"robot {1000 * mv.moved:.0f} mm with the robot pinned: it turns a wheel; "
+                    "swpc commission names the fix"
+                )
+            probes.append(p)
+            self.robot.free_steer(m)
+            self.robot.wheel_hold(m)
+        problems = precheck_problems(self.config.nominal, probes)
+        turned = round(math.degrees(prober.largest_turn), 2)
+        level = logging.ERROR if problems else logging.INFO
+        self.event(level, "run.precheck", ok=not problems, largest_turn_deg=turned)
+        if problems:
+            raise RunFailedError(
+                "refused before the first spin: the robot does not match its config: "
+                + "; ".join(problems) + " (swpc commission names each fix)"
+            )
 
     def run_problems(self) -> list[str]:
         """What makes this run impossible, before any motion (its metrology's view of the

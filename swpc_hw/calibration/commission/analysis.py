@@ -421,3 +421,56 @@ def analyse(
             ))  # fmt: skip
     out.maps = {m: AxisMap(**d) for m, d in maps.items()}
     return out
+
+
+PRECHECK_TOL = 0.6
+"""A pre-check's fixed point this many ``b`` from where the config puts the locked
+caster's contact point (or farther) disagrees: a quarter turn off puts it ``1.41 b``
+away, a half turn ``2 b``; the nominal geometry and a short arc's fixed point are a few
+mm off (``b`` is 20 mm on the paper's robot)."""
+
+
+def precheck_problems(nominal: RobotParams, probes: Sequence[PivotProbe]) -> list[str]:
+    """The fast part of every calibration and check (docs/commissioning.md): one pivot
+    probe per module at the protocol's first angle, judged against the config alone.  A
+    roll that stopped (the robot turned the wrong way, or not at all), and a fixed point
+    ``PRECHECK_TOL b`` or more from the locked caster's contact point ``P_s + b u(a +
+    beta)`` (nominal), each say the axis and that ``swpc commission`` finds the fix."""
+    A = nominal.arrays()
+    ids = nominal.ids
+    out = []
+    for p in probes:
+        i = ids.index(p.module)
+        if p.stopped is not None:
+            out.append(f"locked module {p.module}, module {p.driver} rolling: {p.stopped}")
+            continue
+        if p.fixed_point is None:
+            out.append(
+                f"locked module {p.module}, module {p.driver} rolling: the robot did not turn "
+                "as the sensor sees it"
+            )
+            continue
+        b = float(A.b[i])
+        C = contact_point(A.P_s[i], np.array(b), p.steering + float(A.beta[i]))
+        miss = math.hypot(p.fixed_point[0] - C[0], p.fixed_point[1] - C[1])
+        if miss < PRECHECK_TOL * b:
+            continue
+        m, _ = _on_circle(nominal, p.fixed_point, p.fixed_point_std)
+        if m is not None and m != p.module:
+            out.append(
+                f"module {p.module}'s lock pinned the robot on module {m}'s caster: its "
+                f"nodes are module {m}'s (crossed)"
+            )
+        elif m == p.module:
+            out.append(
+                f"module {p.module}'s lock pinned the robot {1000 * miss:.0f} mm from where "
+                f"its caster touches the floor at {math.degrees(p.steering):.0f} deg: its "
+                "steering turns another way, by another ratio or from another zero"
+            )
+        else:
+            out.append(
+                f"module {p.module}'s lock pinned the robot at ({1000 * p.fixed_point[0]:.0f}, "
+                f"{1000 * p.fixed_point[1]:.0f}) mm, on no module's caster (a motion-capture "
+                "body not along R?)"
+            )
+    return out

@@ -1,8 +1,10 @@
-"""A calibration on a robot whose config is wrong (issue 43, item 5): the in-process
-simulator miswired (``SWPC_SIM_WIRING``, :mod:`simulators.drives.wiring`), the robot config
-as it was.  A wheel drive that turns the other way round stops the run as soon as the
-robot has turned 2 deg, naming the module, before the spin goes on (a right robot: every
-whole-run test of tests/services/whole_runs, none stopped)."""
+"""A calibration on a robot whose config is wrong (issue 43, items 3 and 5): the
+in-process simulator miswired (``SWPC_SIM_WIRING``, :mod:`simulators.drives.wiring`), the
+robot config as it was.  With motion capture the run's fast part (``protocol.precheck``)
+refuses it before the first spin, naming the axis; without it (or without motion capture)
+a wheel drive that turns the other way stops the first spin as soon as the robot has
+turned 2 deg, naming the module (a right robot: every whole-run test of
+tests/services/whole_runs, none stopped)."""
 
 from __future__ import annotations
 
@@ -23,6 +25,33 @@ from tests.services.whole_runs.test_calibration_without_mocap import (
 @pytest.mark.parametrize(
     ("wiring", "named"),
     [
+        ({"inverted": [{"module": 2, "axis": "wheel"}]},
+         "locked module 4, module 2 rolling: module 2's wheel turned the robot"),
+        ({"crossed": {1: 3, 3: 1}}, "locked module 3, module 1 rolling: module 1's wheel "
+                                    "turned the robot"),
+        ({"inverted": [{"module": 3, "axis": "steer"}]}, "module 3's lock pinned the robot"),
+        ({"mocap_y_up": True}, "the sensor does not see the robot turn"),
+    ],
+    ids=["wheel-inverted", "crossed", "steer-inverted", "mocap-y-up"],
+)  # fmt: skip
+def test_the_fast_part_refuses_a_miswired_robot_before_the_first_spin(
+    tmp_path: Path, wiring: dict[str, object], named: str
+) -> None:
+    path = tmp_path / "wiring.yaml"
+    path.write_text(yaml.safe_dump(wiring))
+    with sim_service(tmp_path / "data", sim_wiring=path) as sim:
+        run_id = start(sim.client, {"protocol": QUICK_PROTOCOL})
+        st = wait_state(sim.client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=300)
+    assert st["state"] == "FAILED", st
+    assert st["reason"].startswith("refused before the first spin"), st["reason"]
+    assert named in st["reason"] and "swpc commission" in st["reason"], st["reason"]
+    assert st["segments"] == 0 and "PROBE" in st["reason"]
+    print(f"\n{st['reason']}")
+
+
+@pytest.mark.parametrize(
+    ("wiring", "named"),
+    [
         ({"inverted": [{"module": 2, "axis": "wheel"}]}, "module 2's wheel rolled"),
         ({"inverted": [{"module": m, "axis": "wheel"} for m in (2, 3, 4)]},
          "module 3's wheel rolled"),
@@ -30,13 +59,13 @@ from tests.services.whole_runs.test_calibration_without_mocap import (
     ],
     ids=["one-wheel-inverted", "three-wheels-inverted", "mocap-y-up"],
 )  # fmt: skip
-def test_a_wheel_turning_the_other_way_stops_the_spin_naming_it(
+def test_without_the_fast_part_a_wheel_turning_the_other_way_stops_the_spin(
     tmp_path: Path, wiring: dict[str, object], named: str
 ) -> None:
     path = tmp_path / "wiring.yaml"
     path.write_text(yaml.safe_dump(wiring))
     with sim_service(tmp_path / "data", sim_wiring=path) as sim:
-        run_id = start(sim.client, {"protocol": QUICK_PROTOCOL})
+        run_id = start(sim.client, {"protocol": {**QUICK_PROTOCOL, "precheck": False}})
         stopped(wait_state(sim.client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=300), named)
 
 
