@@ -6,8 +6,8 @@ that moves only when the state machine sleeps on its :class:`swpc_hw.clock.Virtu
 
 * a module whose steering is position-held and whose wheel is braked pins its contact
   point ``C = P_s + b u(theta)``; with it and a driven wheel the body spins about C at
-  ``spin_rate`` (counter-clockwise for a negative wheel torque, as the protocol drives):
-  ``v = -omega x C``;
+  ``spin_rate`` (counter-clockwise for a negative wheel torque, as the protocol drives, or
+  a negative wheel velocity, as the probes roll): ``v = -omega x C``;
 * every free caster trails exactly (:func:`swpc_hw.robot.model.trailing_steering_angle`) and
   every rolling wheel turns ``dpsi = (v + omega x P_w) . u / r dt``;
 * a position-held steering moves to its target at ``steer_rate``;
@@ -270,7 +270,10 @@ class FakeRobot:
         self.mods[module].wheel, self.mods[module].torque = "torque", torque
 
     def wheel_velocity(self, module: int, velocity: float) -> None:
-        raise AssertionError("the fake robot's wheels spin it by torque")
+        """A wheel rolled at ``velocity`` drives like a torque of its sign (the probes: a
+        negative roll turns the robot counter-clockwise about the locked module)."""
+        self._cmd("wheel_velocity", module)
+        self.mods[module].wheel, self.mods[module].torque = "torque", velocity
 
     def spins_by_torque(self, module: int) -> bool:
         return True

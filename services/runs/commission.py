@@ -61,6 +61,7 @@ class CommissionRun(CalibrationRun):
         config_text: str | None = None,
         **kwargs: Any,
     ) -> None:
+        kwargs.pop("install", None)  # it installs nothing
         super().__init__(robot, metrology, config, install="never", **kwargs)
         self.status.kind = "commission"
         self.config_text = config_text

@@ -8,7 +8,8 @@
    the robot's address (DNS rebinding) sends its own name: it reads nothing;
 1. a request that may change something (any method but GET, HEAD, OPTIONS) without the
    bearer token is answered 401 at once: its body is never read or parsed.  An abort
-   (``POST /calibrations/{id}/abort``, ``POST /checks/{id}/abort``: :data:`STOP_PATH`)
+   (``POST /calibrations/{id}/abort``, ``/checks/{id}/abort``, ``/commissions/{id}/abort``:
+   :data:`STOP_PATH`)
    passes without it: stopping the robot is never refused for want of a token, as anyone
    beside the robot may press its emergency stop (it only ever stops motion);
 2. a body over ``max_body`` bytes (by its ``Content-Length``, or counted as it arrives when
@@ -39,7 +40,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
-STOP_PATH = re.compile(r"/(?:calibrations|checks)/[^/]+/abort")
+STOP_PATH = re.compile(r"/(?:calibrations|checks|commissions)/[^/]+/abort")
 """The requests that stop a run: no token needed (module docstring, item 1)."""
 MAX_DEPTH = 32
 MAX_INT_DIGITS = 40

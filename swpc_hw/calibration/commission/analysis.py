@@ -423,19 +423,25 @@ def analyse(
     return out
 
 
-PRECHECK_TOL = 0.6
-"""A pre-check's fixed point this many ``b`` from where the config puts the locked
-caster's contact point (or farther) disagrees: a quarter turn off puts it ``1.41 b``
-away, a half turn ``2 b``; the nominal geometry and a short arc's fixed point are a few
-mm off (``b`` is 20 mm on the paper's robot)."""
+PRECHECK_ANGLE = math.radians(45.0)
+"""rad: a pre-check whose locked caster points this far from where its steering says (or
+farther) disagrees: a quarter or half turn off, a steering the other way round at the
+first angle (45 deg: 90 deg apart); the nominal geometry and a short arc's fixed point
+are a few mm off on a circle of ``b`` (20 mm on the paper's robot), a few degrees."""
 
 
 def precheck_problems(nominal: RobotParams, probes: Sequence[PivotProbe]) -> list[str]:
     """The fast part of every calibration and check (docs/commissioning.md): one pivot
-    probe per module at the protocol's first angle, judged against the config alone.  A
-    roll that stopped (the robot turned the wrong way, or not at all), and a fixed point
-    ``PRECHECK_TOL b`` or more from the locked caster's contact point ``P_s + b u(a +
-    beta)`` (nominal), each say the axis and that ``swpc commission`` finds the fix."""
+    probe per module at the protocol's first angle ``a``, judged against the config alone:
+
+    * a roll that stopped (the robot turned the wrong way, or not at all);
+    * a fixed point nearer another module's steering axis than the locked one's (crossed
+      nodes; the modules are a robot's size apart, the nominal geometry mm to cm off);
+    * a fixed point on the locked module's caster circle (within ``b / 2``: a nominal
+      geometry cm off leaves the angle unjudged, as the calibration still takes it) at an
+      angle :data:`PRECHECK_ANGLE` or more from ``a + beta``.
+
+    Each says the axis; ``swpc commission`` finds the fix."""
     A = nominal.arrays()
     ids = nominal.ids
     out = []
@@ -450,27 +456,25 @@ def precheck_problems(nominal: RobotParams, probes: Sequence[PivotProbe]) -> lis
                 "as the sensor sees it"
             )
             continue
-        b = float(A.b[i])
-        C = contact_point(A.P_s[i], np.array(b), p.steering + float(A.beta[i]))
-        miss = math.hypot(p.fixed_point[0] - C[0], p.fixed_point[1] - C[1])
-        if miss < PRECHECK_TOL * b:
+        F = p.fixed_point
+        dist = [math.hypot(F[0] - A.P_s[k, 0], F[1] - A.P_s[k, 1]) for k in range(len(ids))]
+        nearest = ids[int(np.argmin(dist))]
+        if nearest != p.module:
+            out.append(
+                f"module {p.module}'s lock pinned the robot nearest module {nearest}'s steering "
+                f"axis ({1000 * min(dist):.0f} mm from it): its nodes are module {nearest}'s "
+                "(crossed), or the motion-capture body is not along R"
+            )
             continue
-        m, _ = _on_circle(nominal, p.fixed_point, p.fixed_point_std)
-        if m is not None and m != p.module:
+        b = float(A.b[i])
+        if abs(dist[i] - b) > 0.5 * b:
+            continue  # the nominal axis too far off to judge the angle
+        seen = math.atan2(F[1] - A.P_s[i, 1], F[0] - A.P_s[i, 0])
+        off = wrap(seen - p.steering - float(A.beta[i]))
+        if abs(off) >= PRECHECK_ANGLE:
             out.append(
-                f"module {p.module}'s lock pinned the robot on module {m}'s caster: its "
-                f"nodes are module {m}'s (crossed)"
-            )
-        elif m == p.module:
-            out.append(
-                f"module {p.module}'s lock pinned the robot {1000 * miss:.0f} mm from where "
-                f"its caster touches the floor at {math.degrees(p.steering):.0f} deg: its "
-                "steering turns another way, by another ratio or from another zero"
-            )
-        else:
-            out.append(
-                f"module {p.module}'s lock pinned the robot at ({1000 * p.fixed_point[0]:.0f}, "
-                f"{1000 * p.fixed_point[1]:.0f}) mm, on no module's caster (a motion-capture "
-                "body not along R?)"
+                f"module {p.module}'s caster points {math.degrees(off):+.0f} deg from where "
+                f"its steering says ({math.degrees(p.steering):.0f} deg): its steering turns "
+                "another way, by another ratio or from another zero"
             )
     return out

@@ -38,9 +38,10 @@ from swpc_hw.robot.model import RobotParams, contact_point, trailing_steering_an
 
 PROBE_TURN = math.radians(10.0)
 """rad: how far a pivot probe turns the robot (a right robot)."""
-PRECHECK_TURN = math.radians(3.0)
+PRECHECK_TURN = math.radians(8.0)
 """rad: how far the fast part of every calibration and check turns the robot about each
-module (a fixed point good to a few mm: where the lock pins it, not the caster's angle)."""
+module.  A fixed point's error is the pinned wheel's slip over the turn (1 mm of slip in
+3 deg puts it 19 mm off: a drive whose hold gives a little), so not much less."""
 PROBE_RATE = 0.1
 """rad/s: the yaw rate a pivot probe's roll asks of a right robot."""
 PIVOT_ANGLES = (0.0, math.radians(90.0), math.radians(180.0))

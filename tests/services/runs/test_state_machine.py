@@ -39,22 +39,28 @@ QUICK = {"protocol": {"angles_deg": [30, 150], "sweep_deg": 60}}
 
 IMU_ONLY = frozenset({State.STILL, State.STEER, State.MARK, State.DRIVE, State.MEASURE})
 
-EDGES = {(a, b) for a, targets in TRANSITIONS.items() for b in targets} | {
+EDGES = {(a, b) for a, targets in TRANSITIONS.items() for b in targets if a != b} | {
     (State.WRITE, State.DONE)  # DONE, terminal, may follow any state
 }
+"""Every edge between two states (a state entered again, PROBE after PROBE, is not a
+change of state the rig sees)."""
+COMMISSION_ONLY = {(State.PROBE, State.SOLVE)}
+"""A commissioning analyses its probes; a calibration spins after them."""
 
 TAKEN: dict[str, set[tuple[State, State]]] = {}
 """The edges each run of the path tests took (every edge of the table, over all)."""
 
 
 def test_a_run_takes_every_transition_and_calibrates_the_fake_robot(tmp_path: Path) -> None:
-    rig = Rig(tmp_path, homed=False)  # unhomed: CONNECT homes the steering
+    # unhomed: CONNECT homes the steering; the fast part before the first spin
+    rig = Rig(tmp_path, {"protocol": {"precheck": True}}, homed=False)
     run = rig.run()
     assert run.status.state is State.DONE, run.status.errors
     taken = TAKEN["mocap"] = set(itertools.pairwise(rig.states))
-    # every edge of the table but those of the run without motion capture, nothing else
-    imu_edges = {(a, b) for a, b in EDGES if {a, b} & IMU_ONLY}
-    assert taken == EDGES - imu_edges
+    # every edge of the table but those of the run without motion capture (no fast part:
+    # REST -> LOCK) and of a commissioning, nothing else
+    imu_edges = {(a, b) for a, b in EDGES if {a, b} & IMU_ONLY} | {(State.REST, State.LOCK)}
+    assert taken == EDGES - imu_edges - COMMISSION_ONLY
     assert run.status.metrology == "mocap" and run.status.gyro_samples == 0
     assert [c[1] for c in rig.robot.log[:4]] == ["activate", *["start_homing"] * 3]
     # the real solver on the fake robot's data: its true parameters
@@ -120,10 +126,26 @@ def test_a_run_without_a_drive_rests_after_the_last_spin(tmp_path: Path) -> None
     assert not {State.STEER, State.MARK, State.DRIVE, State.MEASURE} & set(rig.states)
 
 
+def test_a_commissioning_of_the_fake_robot_finds_it_right(tmp_path: Path) -> None:
+    """PROBE after REST, three per module, then SOLVE (the analysis) and WRITE: the fake
+    robot's kinematics are the truth's, so every axis is as its config says."""
+    rig = Rig(tmp_path)
+    run = rig.run("commission")
+    assert run.status.state is State.DONE, run.status.errors
+    TAKEN["commission"] = set(itertools.pairwise(rig.states))
+    assert rig.states[:5] == [State.PENDING, State.CONNECT, State.PRECHECK, State.REST,
+                              State.PROBE]  # fmt: skip
+    assert rig.states[-4:] == [State.PROBE, State.SOLVE, State.WRITE, State.DONE]
+    doc = run.result_doc
+    assert doc is not None and doc["right"], doc["findings"] + doc["unknown"]
+    assert len(doc["pivot_probes"]) == 3 * 3 and run.status.segments == 0
+
+
 def test_the_path_tests_took_every_edge_of_the_table() -> None:
-    """Both metrologies together: every edge of TRANSITIONS (run after the path tests)."""
-    if len(TAKEN) < 3:
-        pytest.skip("needs the three path tests of this module in the same session")
+    """Both metrologies and a commissioning together: every edge of TRANSITIONS (run after
+    the path tests)."""
+    if len(TAKEN) < 4:
+        pytest.skip("needs the four path tests of this module in the same session")
     assert set().union(*TAKEN.values()) == EDGES
 
 
@@ -154,7 +176,10 @@ def metrology(state: State) -> str:
 
 
 def quick(state: State) -> dict[str, Any]:
-    """The overrides of the fault and abort tests: fast spins before the drive's states."""
+    """The overrides of the fault and abort tests: fast spins before the drive's states;
+    the fast part for PROBE."""
+    if state is State.PROBE:
+        return {"protocol": {**QUICK["protocol"], "precheck": True}}
     return FAST if state in IMU_ONLY else QUICK
 
 
