@@ -40,3 +40,8 @@ class Protocol:
 
 DEFAULT_PROTOCOL = Protocol()
 """The protocol of a robot config that states none."""
+
+PRECHECK_TIME = 3.4
+"""s of robot time: the fast part's probe of one module before the first spin (motion
+capture, docs/commissioning.md): its steering moves, settling and a roll of 8 deg (3.1 to
+3.8 s on the in-process simulator, the paper's robot, 2026-11-30)."""

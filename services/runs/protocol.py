@@ -97,11 +97,9 @@ from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset, load_dataset
+from swpc_hw.protocol import PRECHECK_TIME
 from swpc_hw.robot.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
-PROBE_TIME = 3.0
-"""s: a pre-check's probe of one module, as measured on the simulator (the steering moves,
-the settling, a roll of PRECHECK_TURN)."""
 TIME_MODEL = TimeModel()
 """The planner's time model with its measured defaults: a step's estimate before one was
 measured (:meth:`CalibrationRun.planned`; asked at every poll, made once)."""
@@ -214,7 +212,7 @@ class CalibrationRun(RunMachine):
         tm = TIME_MODEL
         return {
             State.LOCK: p.resteer_time,
-            State.PROBE: PROBE_TIME,
+            State.PROBE: PRECHECK_TIME,
             State.ALIGN: p.align_time,
             State.STOP: p.stop_time,
             State.RESTEER: p.resteer_time,

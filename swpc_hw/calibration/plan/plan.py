@@ -13,10 +13,12 @@ residuals) is passed in as a function, because the simulator lives a layer above
 **Robot time** of a candidate on ``N`` modules (:func:`robot_time`; the constants of
 :class:`TimeModel` are measured on the in-process simulator, docs/plan.md)::
 
-    T = t_start + N align + (N - 1) t_lock
+    T = t_start + N t_probe + N align + (N - 1) t_lock
         + N sum_m (settle + sweep / omega + stop)                   (every spin)
         + N sum_{m>0} (|a_m - a_m-1| / steer_rate + 0.2 resteer)     (every re-steer)
     omega = k tau
+
+(``N t_probe``: with motion capture, the fast part before the first spin, docs/commissioning.md)
 
 and without motion capture (``metrology: imu``: rests of ``rest_time`` before every
 spin, after the last, around the straight drive of ``drive_length``)::
@@ -74,7 +76,7 @@ from swpc_hw.calibration.plan.square_error import (
     square_path_sd,
 )
 from swpc_hw.errors import CalibrationError
-from swpc_hw.protocol import DEFAULT_PROTOCOL
+from swpc_hw.protocol import DEFAULT_PROTOCOL, PRECHECK_TIME
 from swpc_hw.robot.model import (
     KIND_OF,
     PARAM_KINDS,
@@ -189,6 +191,8 @@ class TimeModel:
     """s: CONNECT, PRECHECK, REST and the first LOCK, and the first spin's ramp."""
     lock: float = 0.6
     """s: RELEASE of a module and LOCK of the next."""
+    probe: float = PRECHECK_TIME
+    """s: the fast part's probe of one module (motion capture only)."""
     drive_speed: float = 0.325
     """m/s: without motion capture, the straight drive's cruise speed (the simulator's at
     the limits' ``drive_torque`` of 0.6 N.m)."""
@@ -198,7 +202,7 @@ class TimeModel:
 
     def __post_init__(self) -> None:
         if not (self.rate_per_torque > 0 and self.steer_rate > 0 and self.start >= 0
-                and self.lock >= 0 and self.drive_speed > 0
+                and self.lock >= 0 and self.probe >= 0 and self.drive_speed > 0
                 and self.drive_extra >= 0):  # fmt: skip
             raise PlanError(
                 "time model: rate_per_torque, steer_rate and drive_speed > 0, start, lock "
@@ -248,6 +252,8 @@ def robot_time(c: Candidate, n_modules: int, tm: TimeModel) -> float:
     )
     per_module = c.align_time + m * spin + resteer
     t = tm.start + n_modules * per_module + (n_modules - 1) * tm.lock
+    if c.rest_time is None:  # with motion capture: the fast part first
+        t += n_modules * tm.probe
     if c.rest_time is not None and c.drive_length is not None:  # without motion capture
         rests = n_modules * m + (3 if c.drive_length > 0 else 1)
         t += rests * c.rest_time

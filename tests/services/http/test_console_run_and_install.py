@@ -365,7 +365,9 @@ def test_a_runs_elapsed_and_remaining_robot_time(svc: dict[str, Any]) -> None:
     what the plan's steps left take: from the start, each spin as the planner's time model
     predicts it (issue 45 item 3: there was none until a spin had ended), within 35 % of
     what the run took (the fake robot spins slower than the model's simulator); once a
-    spin has ended, within 1 s.  The progress is the share of that time done: never
+    spin has ended, within 1.5 s (each step as long as the same state's mean so far: the
+    first lock, after the fast part, steers from where its probe left the caster).  The
+    progress is the share of that time done: never
     backwards, 1 at the end."""
     pushed = [d for e, d in svc["events"] if e == "run" and d["started"] is not None]
     elapsed = [d["elapsed_s"] for d in pushed]
@@ -384,7 +386,7 @@ def test_a_runs_elapsed_and_remaining_robot_time(svc: dict[str, Any]) -> None:
     planned = pushed[first_stop : last_release + 1]
     assert len(planned) == 23
     for d in planned:
-        assert d["remaining_s"] >= 0 and abs(d["elapsed_s"] + d["remaining_s"] - total) < 1.0, (
+        assert d["remaining_s"] >= 0 and abs(d["elapsed_s"] + d["remaining_s"] - total) < 1.5, (
             d["state"], d["elapsed_s"], d["remaining_s"], total,
         )  # fmt: skip
     assert planned[0]["remaining_s"] > 20 and planned[-1]["remaining_s"] == 0.0

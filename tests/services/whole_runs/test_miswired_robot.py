@@ -29,7 +29,8 @@ from tests.services.whole_runs.test_calibration_without_mocap import (
          "locked module 4, module 2 rolling: module 2's wheel turned the robot"),
         ({"crossed": {1: 3, 3: 1}}, "locked module 3, module 1 rolling: module 1's wheel "
                                     "turned the robot"),
-        ({"inverted": [{"module": 3, "axis": "steer"}]}, "module 3's lock pinned the robot"),
+        ({"inverted": [{"module": 3, "axis": "steer"}]},
+         "module 3's caster points -9"),  # -92 deg: at 45 deg, the other way round
         ({"mocap_y_up": True}, "the sensor does not see the robot turn"),
     ],
     ids=["wheel-inverted", "crossed", "steer-inverted", "mocap-y-up"],
