@@ -12,8 +12,10 @@ miswired: ``SWPC_SIM_WIRING``, a steering zero off in ``SWPC_SIM_TRUTH``):
    module) is "-" and the row ends there;
 4. **DONE**: a calibration (QUICK protocol) on the corrected config ends DONE.
 
-Then on a right robot, ``RIGHT_RUNS`` commissionings in a row (``--right N``): the
-refusals (a right robot said miswired), the robot time and the largest motion of each.
+Then on a right robot, commissionings in a row (``--right N``): the refusals (a right
+robot said miswired), the robot time and the largest motion of each; and calibrations
+through their fast part (``--prechecks N``, each aborted at its first lock): the
+refusals and the fast part's robot time.
 Robot time is the simulator's; wall time is printed for what it costs here.
 
 ``python -m benchmarks.bench_commission [--kinds swpc,cia402] [--right 50] [--cases ...]``
@@ -177,19 +179,53 @@ def right_runs(kind: str, n: int, work: Path) -> None:
           f"{max(moves):.0f} mm")  # fmt: skip
 
 
+def prechecks(kind: str, n: int, work: Path) -> None:
+    """``n`` calibrations of a right robot through their fast part (each aborted once it
+    locks for its first spin): the refusals, the fast part's robot time."""
+    robot = work / "robot.yaml"
+    work.mkdir(parents=True)
+    robot.write_text(yaml.safe_dump({"drives": {"kind": kind}}))
+    refusals, times = 0, []
+    with service(work / "data", robot_config=robot, sim_seed=11) as client:
+        for _ in range(n):
+            r = client.post("/calibrations", json={"overrides": {"protocol": QUICK}},
+                            headers=AUTH)  # fmt: skip
+            rid = r.json()["id"]
+            deadline = time.monotonic() + 300
+            while True:
+                st = client.get(f"/calibrations/{rid}").json()
+                if st["state"] in ("LOCK", "DONE", "FAILED", "ABORTED"):
+                    break
+                assert time.monotonic() < deadline, st
+                time.sleep(0.02)
+            if st["state"] != "LOCK":
+                refusals += 1
+                print(f"  refused: {st['reason']}")
+            else:
+                times.append(st["elapsed_s"])
+                client.post(f"/calibrations/{rid}/abort")
+                follow(client, "/calibrations", rid)
+    print(f"{kind}: {n} fast parts of a right robot: {refusals} refusals; robot time to the "
+          f"first lock {min(times):.1f}-{max(times):.1f} s")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--kinds", default="swpc,cia402,odrive")
     p.add_argument("--cases", default=";".join(CASES), help="case names, separated by ;")
     p.add_argument("--right", type=int, default=0, help="commissionings of a right robot")
+    p.add_argument("--prechecks", type=int, default=0, help="fast parts of a right robot")
     p.add_argument("--json", help="also write the rows to this file")
     args = p.parse_args([] if argv is None else argv)
     os.environ.setdefault("SWPC_ALLOWED_HOSTS", '["testserver"]')
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-commission-") as tmp:
         for kind in args.kinds.split(","):
-            if args.right:
-                right_runs(kind, args.right, Path(tmp) / f"{kind}-right")
+            if args.right or args.prechecks:
+                if args.right:
+                    right_runs(kind, args.right, Path(tmp) / f"{kind}-right")
+                if args.prechecks:
+                    prechecks(kind, args.prechecks, Path(tmp) / f"{kind}-prechecks")
                 continue
             for i, name in enumerate(args.cases.split(";")):
                 row = one(kind, name, Path(tmp) / f"{kind}-{i}")
