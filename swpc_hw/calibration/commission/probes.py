@@ -48,9 +48,10 @@ PIVOT_ANGLES = (0.0, math.radians(90.0), math.radians(180.0))
 """rad: the locked module's commanded steering angles, one pivot probe each: three points
 of the caster's circle give its centre, the steering's polarity, ratio and zero (a
 ratio down to 0.5 of the config's: consecutive angles less than half a turn apart)."""
-MOVE_MARGIN = 0.010
+MOVE_MARGIN = 0.025
 """m: how far a steering move may move its steering axis (the robot pinned: the braked
-tyres' give, the pose noise)."""
+tyres' give, the pose noise, and what is left of the previous roll: 11 mm seen on the
+lab's time-scaled simulator on the test VM, against 1-3 mm in process)."""
 WRONG_WAY = math.radians(0.5)
 """rad: a pivot probe whose robot turned this far against the roll's turn stops."""
 ROLL_MARGIN = 2.5
