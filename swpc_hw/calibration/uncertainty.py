@@ -24,7 +24,6 @@ See ``docs/solver-uncertainty.md`` for the reasoning and the measured coverage.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,14 +35,37 @@ BoolArray = NDArray[np.bool_]
 WINDOW_FACTOR = 6.0
 """Sokal's window: the lags summed span this many integrated autocorrelation times."""
 
+AR1_BLOCK_GROWTH = 1e100
+""":func:`ar1_filter` works in blocks over which ``rho^-k`` grows at most this much."""
 
-def _signal() -> Any:
-    """``scipy.signal``, imported when first used: it imports ``scipy.stats`` (0.8 s of
-    start-up for every process that imports the solver, e.g. ``swpc serve``, most of
-    which never compute a covariance)."""
-    import scipy.signal
 
-    return scipy.signal
+def ar1_filter(x: FloatArray, rho: float) -> FloatArray:
+    """``y_t = x_t + rho y_t-1`` (``y_-1 = 0``, ``0 <= rho < 1``): scipy's
+    ``lfilter([1], [1, -rho], x)`` in numpy (``scipy.signal`` costs every process that
+    imports it 0.8 s, 20x that on a slow robot computer or in an emulated one).
+
+    Over a block of ``B`` samples from ``s`` with the carry ``c = y_s-1``::
+
+        y_s+k = rho^k (rho c + sum_{j <= k} x_s+j rho^-j)
+
+    a cumulative sum, with ``B`` such that ``rho^-B <= AR1_BLOCK_GROWTH`` (no overflow;
+    each ``y`` is still the weighted sum of its terms to rounding).
+    """
+    x = np.asarray(x, dtype=float)
+    if rho == 0.0 or x.size == 0:
+        return x.copy()
+    if not 0.0 < rho < 1.0:
+        raise ValueError(f"rho {rho} outside [0, 1)")
+    block = max(1, int(math.log(AR1_BLOCK_GROWTH) / -math.log(rho)))
+    y = np.empty_like(x)
+    carry = 0.0
+    for s in range(0, x.size, block):
+        seg = x[s : s + block]
+        k = np.arange(seg.size, dtype=float)
+        grow = rho**-k
+        y[s : s + seg.size] = (rho * carry + np.cumsum(seg * grow)) / grow
+        carry = float(y[s + seg.size - 1])
+    return y
 
 
 def grid_index(t: FloatArray, dt: float) -> IntArray:
@@ -86,7 +108,10 @@ def bartlett_smooth(S: FloatArray, bandwidth: int) -> FloatArray:
     if bandwidth <= 0 or S.shape[0] == 0:
         return S.copy()
     w = bartlett_weights(bandwidth)
-    return np.asarray(_signal().fftconvolve(S, w[:, None], mode="same", axes=0), dtype=float)
+    T = S.shape[0]
+    n = 1 << math.ceil(math.log2(T + 2 * bandwidth))  # no wrap-around: a linear convolution
+    full = np.fft.irfft(np.fft.rfft(S, n, axis=0) * np.fft.rfft(w, n)[:, None], n, axis=0)
+    return np.asarray(full[bandwidth : bandwidth + T], dtype=float)
 
 
 def bartlett_covariance(S: FloatArray, bandwidth: int) -> FloatArray:
@@ -121,7 +146,7 @@ def ar1_recolouring(present: BoolArray, rho: float) -> FloatArray:
     ``beta_t = p_t + rho beta_t+1``; ``1 / (1 - rho)`` away from the end without gaps).
     """
     p = present.astype(float)
-    return np.asarray(_signal().lfilter([1.0], [1.0, -rho], p[::-1])[::-1], dtype=float)
+    return ar1_filter(p[::-1], rho)[::-1]
 
 
 def long_run_covariance(S: FloatArray, present: BoolArray) -> tuple[FloatArray, float, int]:
@@ -152,9 +177,8 @@ def ar1_quadratic_form(c: FloatArray, present: BoolArray, rho: float) -> float:
     count as zero; the correlation spans them as the grid distance says).
     """
     x = np.where(present, c, 0.0)
-    lfilter = _signal().lfilter
-    fwd = lfilter([1.0], [1.0, -rho], x)
-    bwd = lfilter([1.0], [1.0, -rho], x[::-1])[::-1]
+    fwd = ar1_filter(x, rho)
+    bwd = ar1_filter(x[::-1], rho)[::-1]
     return float(x @ (fwd + bwd - x))
 
 
