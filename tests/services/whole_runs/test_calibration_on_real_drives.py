@@ -23,7 +23,7 @@ from services.runtime.runtime import Runtime
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from tests.drives.cia402.test_cia402_from_the_box import profile_only_eds
 from tests.drives.cia402.test_real_drive_personalities import EDS, personality
-from tests.service_rig import QUICK_PROTOCOL, TOKEN, start, wait_state
+from tests.service_rig import SPINS_ONLY, TOKEN, start, wait_state
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 
@@ -46,7 +46,7 @@ def test_a_whole_calibration_on_a_real_drives_personality(tmp_path: Path, name: 
     with TestClient(app) as client:
         rt: Runtime = app.state.runtime
         assert str(rt.config.drives.object_dictionary).endswith(f"{name}.eds")
-        run_id = start(client, {"protocol": QUICK_PROTOCOL})
+        run_id = start(client, {"protocol": SPINS_ONLY})
         st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=600)
         assert st["state"] == "DONE", st["errors"]
         res = client.get(f"/calibrations/{run_id}/result").json()

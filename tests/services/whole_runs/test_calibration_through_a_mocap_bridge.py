@@ -22,7 +22,7 @@ from services.sensors.bridge import Bridge, BridgeError, Source, zenoh_publisher
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from swpc_hw.sensors.mocap import pose_key, source_key
 from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
-from tests.service_rig import AUTH, QUICK_PROTOCOL, TOKEN, Sim, start, wait_state
+from tests.service_rig import AUTH, SPINS_ONLY, TOKEN, Sim, start, wait_state
 
 NAMES = ("x_s", "y_s", "beta", "b", "r")
 
@@ -55,7 +55,7 @@ def test_a_whole_calibration_through_the_bridge_is_done_and_accurate(tmp_path: P
     )
     try:
         with TestClient(create_app(settings)) as client:
-            run_id = start(client, {"protocol": QUICK_PROTOCOL})
+            run_id = start(client, {"protocol": SPINS_ONLY})
             st = wait_state(client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=600)
             assert st["state"] == "DONE", (st["errors"], failure, bridge.count.line())
             res = client.get(f"/calibrations/{run_id}/result").json()

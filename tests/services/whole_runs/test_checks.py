@@ -128,7 +128,9 @@ def mocap_checks(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MocapChec
             sim.client.get("/kinematics/changes").json(),
         )  # fmt: skip
         save_kinematics(kin, worn(2, +0.3e-3))  # the file says 0.3 mm more than the wheel has
-        yield MocapChecks(sim, design_fit, before, unchanged, after, run_check(sim.client))
+        # without the fast part (the unchanged check had it): what is judged is the same
+        worn_check = run_check(sim.client, {"overrides": {"protocol": {"precheck": False}}})
+        yield MocapChecks(sim, design_fit, before, unchanged, after, worn_check)
 
 
 def test_an_unchanged_robot_is_consistent_and_nothing_is_installed(
