@@ -66,6 +66,11 @@ MIN_RATE_FRACTION = 0.5
 """The encoder estimates must come at least at this fraction of the configured rate."""
 
 
+PROOF_HOST_BOUND = 4.0
+"""The watchdog proof waits at most this many windows of the host's time for the drives'
+own (their heartbeats)."""
+
+
 class ODriveDriver(DriverBase):
     """The robot's ODrive axes on one bus (module docstring)."""
 
@@ -183,14 +188,24 @@ class ODriveDriver(DriverBase):
 
     def _prove_watchdogs(self, axes: list[AxisTrack]) -> None:
         """Arm every axis at zero torque, send it nothing, and wait for its heartbeat to
-        report the watchdog's expiry; the estimates' rate is measured in the same window."""
+        report the watchdog's expiry; the estimates' rate is measured in the same window.
+
+        The window ``W + L`` (watchdog, heartbeat loss) must be over on the host's clock and
+        on each drive's own time, counted in its heartbeats (more than
+        ``ceil((W + L) / T_hb)`` since the arming): a drive whose time lags the host's (a
+        simulator that cannot keep up, in an emulated machine) is given the window it is
+        owed.  The wait ends at :data:`PROOF_HOST_BOUND` windows of the host's time
+        whatever the drives say (a drive whose heartbeats stop is lost)."""
         cfg, clock, c = self.config, self.clock, self.codec
         window = cfg.watchdog_timeout_ms / 1000.0 + cfg.loss_after_s
+        beats = math.ceil(window / cfg.heartbeat_period_s - 1e-9)
         counts: dict[int, int] = {}
+        heard: dict[int, int] = {}
         with self._changed:
             for ax in axes:
                 ax.proving, ax.proven_at, ax.closed_loop_seen = True, None, False
                 counts[ax.node] = ax.estimates
+                heard[ax.node] = ax.heartbeats
         frames: list[Frame] = []
         for ax in axes:
             frames += [
@@ -203,12 +218,20 @@ class ODriveDriver(DriverBase):
         self._send_frames(frames)
         with self._changed:
 
-            def settled() -> bool:
+            def settled(drive_time: bool) -> bool:
                 return all(
-                    a.proven_at is not None or (a.axis_error & ~c.watchdog_bit) for a in axes
+                    a.proven_at is not None
+                    or bool(a.axis_error & ~c.watchdog_bit)
+                    or (drive_time and a.heartbeats - heard[a.node] > beats)
+                    for a in axes
                 )
 
-            wait_until(clock, self._changed, settled, t_arm + window)
+            # the window on the host's time, then on each drive's (a drive whose
+            # heartbeat is faster than T_hb still gets the host's window)
+            wait_until(clock, self._changed, lambda: settled(False), t_arm + window)
+            wait_until(
+                clock, self._changed, lambda: settled(True), t_arm + PROOF_HOST_BOUND * window
+            )
             t_end = clock.now()
             failed = [a for a in axes if a.proven_at is None]
             for a in axes:

@@ -287,6 +287,33 @@ def test_activation_refuses_an_axis_without_a_watchdog(
     assert "enable_watchdog" in st["reason"]
 
 
+def test_a_drive_whose_time_lags_the_hosts_gets_the_watchdog_window_it_is_owed(
+    service: tuple[TestClient, Runtime, Recorder],
+) -> None:
+    """The activation's watchdog proof judges ``W + L`` on each drive's own time (its
+    heartbeats) as well as the host's: a drive running at a third of the host's pace (as a
+    simulator that cannot keep up in an emulated machine: its watchdog and heartbeat
+    three times as long on the host's clock) is proven, not refused as "still armed"."""
+    client, rt, _ = service
+    sim = rt.simulator
+    assert sim is not None
+    ax = sim.drives[0].axes[1]  # type: ignore[attr-defined]
+    period, w, window = ax.heartbeat_period, rt.timing.watchdog, rt.timing.watchdog + (
+        rt.timing.heartbeat_loss
+    )
+    slow = 3.0  # its expiry 3 W after the last frame, past W + L on the host's clock
+    assert slow * w > window, (w, window)
+    ax.watchdog_timeout, ax.heartbeat_period = slow * w, slow * period
+    try:
+        run_id = start(client, SHORT)
+        wait_spinning(client, run_id)
+        client.post(f"/calibrations/{run_id}/abort", headers=AUTH)
+        st = wait_state(client, run_id, {"FAILED", "ABORTED", "DONE"}, timeout=60)
+    finally:
+        ax.watchdog_timeout, ax.heartbeat_period = rt.timing.watchdog, period
+    assert st["state"] == "ABORTED", st
+
+
 def test_config_file_with_odrive_drives_round_trips(tmp_path: Path) -> None:
     doc: dict[str, Any] = {"drives": {"kind": "odrive", "firmware": "0.5", "homing": "absolute"}}
     cfg = RobotConfig.model_validate(doc)
