@@ -39,15 +39,7 @@ def register(sub: Any) -> None:
             "See docs/check.md."
         ),
     )
-    p.add_argument(
-        "--url",
-        default=os.environ.get("SWPC_URL", "http://127.0.0.1:8080"),
-        help="the service (default $SWPC_URL, else http://127.0.0.1:8080)",
-    )
-    p.add_argument(
-        "--token-file", help="file holding the bearer token (default: $SWPC_TOKEN, else the "
-        "service's data dir's api-token)"
-    )  # fmt: skip
+    service_arguments(p)
     p.add_argument(
         "--metrology", choices=("mocap", "imu"),
         help="mocap (motion capture) or imu (the gyro and the encoders: the robot's shape); "
@@ -72,6 +64,20 @@ def run(args: argparse.Namespace) -> int:
     if args.offline:
         return offline(args)
     return over_http(args)
+
+
+def service_arguments(p: argparse.ArgumentParser) -> None:
+    """``--url`` and ``--token-file``: the running service a subcommand talks to (read by
+    :func:`token` and :func:`follow_run`)."""
+    p.add_argument(
+        "--url",
+        default=os.environ.get("SWPC_URL", "http://127.0.0.1:8080"),
+        help="the service (default $SWPC_URL, else http://127.0.0.1:8080)",
+    )
+    p.add_argument(
+        "--token-file", help="file holding the bearer token (default: $SWPC_TOKEN, else the "
+        "service's data dir's api-token)"
+    )  # fmt: skip
 
 
 def token(args: argparse.Namespace) -> str:
@@ -111,27 +117,7 @@ def over_http(args: argparse.Namespace) -> int:
         body["metrology"] = args.metrology
     auth = {"Authorization": f"Bearer {token(args)}"}
     with httpx.Client(base_url=args.url, timeout=10.0) as http:
-        try:
-            r = http.post("/checks", json=body, headers=auth)
-        except httpx.TransportError as exc:
-            raise SwpcError(f"{args.url}: no service answers: {exc}") from exc
-        if r.status_code != 202:
-            raise SwpcError(f"POST /checks: {r.status_code}: {response_detail(r)}")
-        cid = r.json()["id"]
-        print(f"check {cid} started ({args.url}{r.headers.get('location', '')})", flush=True)
-        deadline = time.monotonic() + args.timeout
-        last = None
-        while True:
-            st = http.get(f"/checks/{cid}").json()
-            line = f"{st['state']} {st['step']}"
-            if line != last:
-                print(f"  {line}", flush=True)
-                last = line
-            if st["state"] in ("DONE", "FAILED", "ABORTED"):
-                break
-            if time.monotonic() > deadline:
-                raise SwpcError(f"check {cid} still {st['state']} after {args.timeout:g} s")
-            time.sleep(0.25)
+        st = follow_run(http, args.url, "/checks", body, auth, "check", args.timeout)
     print(f"robot time {st['elapsed_s']} s")
     if st["state"] != "DONE":
         print(f"check {st['state']}: {st['reason']}", file=sys.stderr)
@@ -139,6 +125,40 @@ def over_http(args: argparse.Namespace) -> int:
     res = st["result"]
     print(verdict_text(res))
     return 0 if res["verdict"] == "consistent" else DRIFTED
+
+
+def follow_run(
+    http: Any, url: str, path: str, body: dict[str, Any] | None, auth: dict[str, str],
+    noun: str, timeout: float,
+) -> dict[str, Any]:
+    """POST ``path`` (a run: a check or a commissioning), then its status until it ends,
+    each new state and step printed: the ended run's status.  :class:`SwpcError` when no
+    service answers, the start is refused, or the run outlasts ``timeout`` s."""
+    import httpx
+
+    from swpc_hw.errors import SwpcError
+
+    try:
+        r = http.post(path, json=body, headers=auth)
+    except httpx.TransportError as exc:
+        raise SwpcError(f"{url}: no service answers: {exc}") from exc
+    if r.status_code != 202:
+        raise SwpcError(f"POST {path}: {r.status_code}: {response_detail(r)}")
+    rid = r.json()["id"]
+    print(f"{noun} {rid} started ({url}{r.headers.get('location', '')})", flush=True)
+    deadline = time.monotonic() + timeout
+    last = None
+    while True:
+        st: dict[str, Any] = http.get(f"{path}/{rid}").json()
+        line = f"{st['state']} {st['step']}"
+        if line != last:
+            print(f"  {line}", flush=True)
+            last = line
+        if st["state"] in ("DONE", "FAILED", "ABORTED"):
+            return st
+        if time.monotonic() > deadline:
+            raise SwpcError(f"{noun} {rid} still {st['state']} after {timeout:g} s")
+        time.sleep(0.25)
 
 
 def response_detail(r: Any) -> str:

@@ -16,9 +16,7 @@ commissioning did not finish (FAILED or ABORTED: its reason).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import time
 from typing import Any
 
 MISWIRED = 1
@@ -26,6 +24,8 @@ NOT_DONE = 3
 
 
 def register(sub: Any) -> None:
+    from services.cli.check import service_arguments
+
     p = sub.add_parser(
         "commission",
         help="find what the robot's drives really move (crossed nodes, swapped or inverted "
@@ -38,15 +38,7 @@ def register(sub: Any) -> None:
             "docs/commissioning.md."
         ),
     )
-    p.add_argument(
-        "--url",
-        default=os.environ.get("SWPC_URL", "http://127.0.0.1:8080"),
-        help="the service (default $SWPC_URL, else http://127.0.0.1:8080)",
-    )
-    p.add_argument(
-        "--token-file", help="file holding the bearer token (default: $SWPC_TOKEN, else the "
-        "service's data dir's api-token)"
-    )  # fmt: skip
+    service_arguments(p)
     p.add_argument(
         "--accept", action="store_true",
         help="write the corrected robot config over the service's (SWPC_ROBOT_CONFIG)",
@@ -58,32 +50,13 @@ def register(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import httpx
 
-    from services.cli.check import response_detail, token
+    from services.cli.check import follow_run, response_detail, token
     from swpc_hw.errors import SwpcError
 
     auth = {"Authorization": f"Bearer {token(args)}"}
     with httpx.Client(base_url=args.url, timeout=10.0) as http:
-        try:
-            r = http.post("/commissions", headers=auth)
-        except httpx.TransportError as exc:
-            raise SwpcError(f"{args.url}: no service answers: {exc}") from exc
-        if r.status_code != 202:
-            raise SwpcError(f"POST /commissions: {r.status_code}: {response_detail(r)}")
-        cid = r.json()["id"]
-        print(f"commissioning {cid} started ({args.url}{r.headers.get('location', '')})")
-        deadline = time.monotonic() + args.timeout
-        last = None
-        while True:
-            st = http.get(f"/commissions/{cid}").json()
-            line = f"{st['state']} {st['step']}"
-            if line != last:
-                print(f"  {line}", flush=True)
-                last = line
-            if st["state"] in ("DONE", "FAILED", "ABORTED"):
-                break
-            if time.monotonic() > deadline:
-                raise SwpcError(f"commissioning {cid} still {st['state']} after {args.timeout:g} s")
-            time.sleep(0.25)
+        st = follow_run(http, args.url, "/commissions", None, auth, "commissioning", args.timeout)
+        cid = st["id"]
         print(f"robot time {st['elapsed_s']} s")
         if st["state"] != "DONE":
             print(f"commissioning {st['state']}: {st['reason']}", file=sys.stderr)
