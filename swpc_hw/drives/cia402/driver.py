@@ -89,8 +89,9 @@ from swpc_hw.drives.types import (
 )
 
 POWER_TIMEOUT_S = 1.0
-"""An axis asked to enable that is not OPERATION ENABLED in a statusword answering a SYNC
-sent this long after has refused (robot time, in SYNC periods)."""
+"""An axis asked to enable that has not followed a step's controlword toward OPERATION
+ENABLED in a statusword answering a SYNC sent this long after it has refused (robot time,
+in SYNC periods; :func:`~swpc_hw.drives.cia402.tracking.supervise`)."""
 MODE_TIMEOUT_S = 0.5
 """A mode whose display has not followed in a statusword answering a SYNC sent this long
 after it was commanded was refused (robot time, in SYNC periods)."""
@@ -415,7 +416,8 @@ class Cia402Driver(DriverBase):
         """OPERATION ENABLED asked (the power state machine moves one step per
         statusword)."""
         if not a.enable:
-            a.enable, a.enable_sync, a.refused_reported = True, self._sync_seq, False
+            a.enable, a.refused_reported = True, False
+            a.enable_sync = a.enable_start = self._sync_seq
         a.unpowered = False
 
     def _powered(self, a: AxisTrack) -> None:
@@ -430,7 +432,7 @@ class Cia402Driver(DriverBase):
 
         def change(a: AxisTrack) -> None:
             if a.torque_mode is None:
-                a.enable, a.unpowered, a.enable_sync = False, True, -1
+                a.enable, a.unpowered, a.enable_sync, a.enable_start = False, True, -1, -1
                 return
             self._power(a)
             a.mode, a.target_torque = a.torque_mode, 0
@@ -543,7 +545,7 @@ class Cia402Driver(DriverBase):
             return
 
         def change(a: AxisTrack) -> None:
-            a.enable, a.unpowered, a.enable_sync = False, True, -1
+            a.enable, a.unpowered, a.enable_sync, a.enable_start = False, True, -1, -1
 
         self._command("free", module, axis, change, targets=False)
 
@@ -575,7 +577,7 @@ class Cia402Driver(DriverBase):
             a.target_torque = 0
             a.controlword = cia402.CW_DISABLE_VOLTAGE
             a.t_controlword = self.clock.now()
-            a.enable_sync = -1
+            a.enable_sync = a.enable_start = -1
 
     def _stop_frames(self) -> list[Frame]:
         """Disable voltage and torque 0 (RPDO 1) to every axis set up (an axis never set
@@ -693,6 +695,7 @@ class Cia402Driver(DriverBase):
             mode_syncs=math.ceil(MODE_TIMEOUT_S * rate),
             sync_period=1.0 / rate,
             active=active,
+            sync_seq=self._sync_seq,
         )
         self._resend = d.send
         return Supervision(d.observations, len(d.lost), d.fault, [], d.next_deadline)

@@ -110,7 +110,11 @@ class AxisTrack:
     target_velocity: int = 0
     target_torque: int = 0
     enable_sync: int = -1
-    """The SYNC count when OPERATION ENABLED was asked (-1: not asked)."""
+    """The SYNC count when the last step toward OPERATION ENABLED was commanded (-1: not
+    asked)."""
+    enable_start: int = -1
+    """The SYNC count when OPERATION ENABLED was asked (-1: not asked): every step within
+    :data:`POWER_STEPS` windows of it."""
     mode_sync: int = -1
     """The SYNC count when the last mode was commanded (-1: none)."""
     homing_start: bool = False
@@ -297,6 +301,11 @@ class Decision:
     next_deadline: float = math.inf
 
 
+POWER_STEPS = 4
+"""Steps of the power state machine a drive is given a window each for, at most (a fault
+reset, shutdown, switch on, enable operation): one that keeps falling back is refused."""
+
+
 def supervise(
     axes: list[AxisTrack],
     now: float,
@@ -307,9 +316,16 @@ def supervise(
     mode_syncs: int,
     sync_period: float,
     active: bool,
+    sync_seq: int = 0,
 ) -> Decision:
     """Heartbeat loss, the power state machine and the refusals at ``now`` (module
-    docstring).  Controlwords only while ``active``."""
+    docstring).  Controlwords only while ``active``.
+
+    Each step toward OPERATION ENABLED (shutdown, switch on, enable operation: a new
+    controlword) gets its own ``power_syncs``, counted from ``sync_seq`` (the SYNCs the
+    host has sent) in the SYNCs the drive's statuswords answer: a drive whose answers lag
+    the host's SYNCs (a simulator behind in an emulated machine) is judged on its own time
+    for each step, not on the host's reaction to it."""
     d = Decision()
     for a in axes:
         due = a.t_heartbeat + loss_after if a.watched and a.t_heartbeat is not None else math.inf
@@ -338,6 +354,10 @@ def supervise(
             if cw != a.controlword or a.state is not target:
                 if pp and cw & ~a.controlword & cia402.CW_NEW_SETPOINT:
                     a.pp_edge_target = a.target_position  # the edge hands this one over
+                if cw != a.controlword and a.enable and a.enable_sync >= 0 and (
+                    a.state is not PowerState.OPERATION_ENABLED
+                ):
+                    a.enable_sync = max(a.enable_sync, sync_seq)  # the next step's window
                 a.controlword = cw
                 a.t_controlword = now
                 d.send.append(a)
@@ -345,13 +365,16 @@ def supervise(
             continue
         refused_mode = a.mode is not Mode.NONE and a.mode_display != a.mode
         if a.state is not PowerState.OPERATION_ENABLED:
-            if a.enable_sync >= 0 and a.seq >= a.enable_sync + power_syncs:
+            late = a.enable_sync >= 0 and a.seq >= a.enable_sync + power_syncs
+            steps = POWER_STEPS * power_syncs
+            if late or (a.enable_start >= 0 and a.seq >= a.enable_start + steps):
                 a.refused_reported = True
                 d.fault = True
                 d.observations.append(
                     _obs(a, EventKind.NODE_FAULT, Severity.FAULT,
-                         f"did not reach OPERATION ENABLED within {power_syncs * sync_period:g} "
-                         f"s (statusword 0x{a.statusword:04X}: {a.state.value})")
+                         f"did not reach OPERATION ENABLED: controlword 0x{a.controlword:04X} "
+                         f"not followed within {power_syncs * sync_period:g} s (statusword "
+                         f"0x{a.statusword:04X}: {a.state.value})")
                 )  # fmt: skip
         elif refused_mode and a.mode_sync >= 0 and a.seq >= a.mode_sync + mode_syncs:
             a.refused_reported = True

@@ -121,12 +121,54 @@ def test_supervise_loses_a_silent_drive_once_and_names_a_refused_mode() -> None:
     b = _track(node=2)
     b.alive, b.t_heartbeat, b.statusword, b.state = True, 9.9, 0x0250, PowerState.SWITCH_ON_DISABLED
     b.watched = True
-    b.enable, b.enable_sync, b.controlword, b.seq = True, 10, 0x06, 59
+    b.enable, b.enable_sync, b.enable_start, b.controlword, b.seq = True, 10, 10, 0x06, 59
     d = supervise([b], 9.95, **kw)  # however late: no statusword answering 1 s of SYNCs yet
     assert not d.fault and d.send == [b]  # the shutdown again: the drive did not follow it
     b.seq = 60
     d = supervise([b], 10.0, **kw)
-    assert d.fault and "did not reach OPERATION ENABLED within 1 s" in d.observations[0].message
+    assert d.fault and d.observations[0].message.endswith(
+        "did not reach OPERATION ENABLED: controlword 0x0006 not followed within 1 s "
+        "(statusword 0x0250: switch on disabled)"
+    )
+
+
+def test_each_step_to_operation_enabled_has_its_window_on_the_drives_time() -> None:
+    """A drive whose statuswords answer the SYNCs 40 periods behind the host's (a simulator
+    lagging in an emulated machine: make test-vcan's cia402 step refused it three times in
+    a row): each step's window starts at its controlword, counted in the SYNCs the drive
+    answers; one that keeps falling back is refused after POWER_STEPS windows."""
+    kw: dict[str, Any] = dict(loss_after=0.3, retry=0.06, power_syncs=50,
+                              mode_syncs=25, sync_period=0.02, active=True)  # fmt: skip
+    a = _track()
+    a.alive, a.watched, a.t_heartbeat = True, True, 0.0
+    a.enable, a.enable_sync, a.enable_start = True, 177, 177  # asked at the host's SYNC 177
+    a.controlword = cia402.CW_DISABLE_VOLTAGE
+    steps = [  # (the drive's statusword, the SYNC it answers, the host's SYNC count)
+        (0x0250, 178, 180), (0x0221, 206, 205), (0x0233, 251, 250),
+    ]
+    for statusword, seq, host in steps:
+        a.statusword, a.state, a.seq = statusword, cia402.power_state(statusword), seq
+        d = supervise([a], 0.01, **kw, sync_seq=host)
+        assert not d.fault, d.observations
+        assert d.send == [a]  # the next step's controlword, its window from the host's SYNC
+        assert a.enable_sync == host
+    a.seq = 299  # the enable's answer due by the drive's SYNC 300
+    assert not supervise([a], 0.01, **kw, sync_seq=340).fault
+    a.statusword, a.state, a.seq = 0x0237, PowerState.OPERATION_ENABLED, 299
+    assert not supervise([a], 0.01, **kw, sync_seq=341).fault
+    # one that falls back to SWITCH ON DISABLED at every step: refused 4 windows after
+    b = _track(node=2)
+    b.alive, b.watched, b.t_heartbeat = True, True, 0.0
+    b.enable, b.enable_sync, b.enable_start, b.controlword = True, 0, 0, cia402.CW_DISABLE_VOLTAGE
+    refused = None
+    for k in range(1, 12):
+        statusword = 0x0221 if k % 2 else 0x0250  # ready to switch on, then back again
+        b.statusword, b.state, b.seq = statusword, cia402.power_state(statusword), 40 * k
+        d = supervise([b], 0.01, **kw, sync_seq=40 * k + 1)
+        if d.fault:
+            refused = b.seq
+            break
+    assert refused == 200, refused  # POWER_STEPS x 50 SYNCs after the enable
 
 
 def test_a_drive_is_judged_by_its_heartbeat_only_from_its_first_after_its_set_up() -> None:
