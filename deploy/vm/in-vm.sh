@@ -351,6 +351,10 @@ cia402_step() {
     deploy/vcan-up.sh vcan50 >/dev/null || return 1
     ip link set dev lo up || return 1
     printf 'drives: cia402\n' > "$robot"
+    # its traffic recorded (the guest's tmpfs, copied to OUT/vcan50.log): what a refusal
+    # at CONNECT had on the bus (controlwords sent, statuswords answered)
+    candump -L vcan50 > /tmp/vcan50.log 2>/dev/null &
+    local dump_pid=$!
     swpc sim --drives cia402 --interface socketcan --channel vcan50 --zenoh-listen "$ep" \
         --time-scale "$ts" --physics-dt 10 \
         --pose-sigma-xy 0.5 --pose-sigma-yaw 0.05 --seed "$SIM_SEED" --stats-every 20 \
@@ -374,8 +378,9 @@ cia402_step() {
         --run-pid "$run_pid" --deadman "$(awk -v s="$ts" 'BEGIN {printf "%.3f", 0.5 / s}')" \
         --consumer 1.5 --time-scale "$ts" --out "$OUT/cia402-deadman.json" \
         || rc=1
-    kill "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
-    wait "$run_pid" "$svc_pid" "$sim_pid" 2>/dev/null
+    kill "$run_pid" "$svc_pid" "$sim_pid" "$dump_pid" 2>/dev/null
+    wait "$run_pid" "$svc_pid" "$sim_pid" "$dump_pid" 2>/dev/null
+    cp /tmp/vcan50.log "$OUT/vcan50.log" 2>/dev/null
     echo "cia402 simulator log (tail):"; tail -n 3 "$OUT/cia402-sim.log"
     return $rc
 }
