@@ -96,10 +96,10 @@ class CommissionRun(CalibrationRun):
             self.status.module, self.status.module_index = m, i + 1
             j = driver_of(ids, m)
             for a in PIVOT_ANGLES:
-                probe = self.prober.pivot_probe(m, a, j)
-                if probe is None:  # a steering that moved the robot: nothing more moves
+                probes = self.prober.pivot_probe(m, a, j)
+                if probes is None:  # a steering that moved the robot: nothing more moves
                     break
-                self.prober.pivot_probes.append(probe)
+                self.prober.pivot_probes.extend(probes)
             else:
                 self.robot.free_steer(m)
                 self.robot.wheel_hold(m)

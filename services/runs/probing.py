@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -26,20 +27,30 @@ import numpy as np
 from services.runs.machine import RunMachine
 from services.runs.metrology.mocap import MocapMetrology
 from services.runs.state import RunFailedError, State
+from swpc_hw.calibration.commission.analysis import MOCAP_TURNS
 from swpc_hw.calibration.commission.probes import (
     MOVE_MARGIN,
+    PIVOT_TRIES,
     PROBE_TURN,
     ROLL_MARGIN,
     WRONG_WAY,
+    PivotPlan,
     PivotProbe,
     SteerMove,
+    held,
+    next_pivot,
     pivot_plan,
+    plan_about,
 )
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.robot.model import wrap_angle
 
 SETTLE = 0.3
 """s of robot time every probe waits after its motion (the robot comes to rest)."""
+STALL = 3.0
+"""s of robot time: a roll by torque that has not turned the robot half its turn by then
+stops as one that does not turn it (its wheel pushes across the turn; a right robot's
+turns it in under 2 s)."""
 STEER_TOL = math.radians(1.0)
 """rad: a steering within this of its set-point is there."""
 
@@ -126,14 +137,20 @@ class Prober:
 
     def pivot_probe(
         self, m: int, angle: float, j: int, turn: float = PROBE_TURN, retry: bool = True
-    ) -> PivotProbe | None:
-        """A pivot probe about module ``m`` locked at ``angle`` rolled by ``j`` until the
+    ) -> list[PivotProbe] | None:
+        """Pivot probes about module ``m`` locked at ``angle``, rolled by ``j`` until the
         robot has turned ``turn`` (module docstring); None when a steering moved the robot
-        (it stopped).  With ``retry``, a roll that turned the robot the wrong way is
-        stopped and rolled the other way (the turn then asked is counter-clockwise again),
-        and one that did not turn it (its driver's heading across the circle, or its drive
-        not a wheel's) is tried with the next driver; without, the probe ends there."""
+        (it stopped).  Without ``retry`` (the fast part), one roll.  With it (a
+        commissioning), a roll that turned the robot the wrong way is stopped and rolled
+        the other way (the turn then asked is counter-clockwise again); one that did not
+        turn it (its driver's heading across the circle, or its drive not a wheel's) is
+        tried with the next driver; one whose fixed point is not where its driver was
+        steered to turn about is rolled again about the next estimate of the lock's
+        contact point, then by the next driver (a fought lock,
+        :mod:`~swpc_hw.calibration.commission.probes`).  Returns every roll's probe, the
+        last one the one that tells (pinned, unless none was); the earlier ones unpinned."""
         ids = self.run.config.nominal.ids
+        nominal = self.run.config.nominal
         deg = math.degrees(angle)
         self.run.enter(State.PROBE, f"pivot probe: module {m} locked at {deg:.0f} deg, {j} rolls")
         # every steering move with the robot pinned by the others (braked and held), its
@@ -146,31 +163,88 @@ class Prober:
         if self._steer(m, angle).stopped:
             return None
         self.run.robot.wheel_hold(m)
+        if not retry:
+            got = self._drive(m, j, pivot_plan(nominal, m, angle, j), turn, 1.0, False)
+            return None if got is None else [self._observed(m, j, got[0], got[1], got[3])]
         drivers = [j] + [d for d in ids if d not in (m, j)]
+        unpinned: list[PivotProbe] = []
         first_stop: str | None = None
+        last = (math.nan, 0.0)  # the last roll's start and the wheel's reading then
+        pivot = pivot_plan(nominal, m, angle, j).pivot
         for driver in drivers:
-            plan = pivot_plan(self.run.config.nominal, m, angle, driver)
-            for mod in ids:
-                if mod != m:
-                    self.run.robot.wheel_hold(mod)
-                    self.run.robot.steer_to(mod, self.run.robot.steering(mod))
-            self.run.robot.wheel_free(driver)
-            if self._steer(driver, plan.driver_steering).stopped:
-                return None
-            self._free_others(m, driver)
-            got = self._roll(m, driver, plan.roll_rate, abs(plan.roll_per_turn * turn), turn)
-            if not retry:
-                return self._observed(m, driver, got[0], got[1], got[3])
-            if got[2] == "wrong way":  # its wheel turns the other way: rolled the other way
-                first_stop = first_stop or got[3]
-                self._free_others(m, driver)
-                got = self._roll(
-                    m, driver, -plan.roll_rate, abs(plan.roll_per_turn * turn), turn
-                )
-            if got[2] != "no turn":
-                return self._observed(m, driver, got[0], got[1], first_stop or got[3])
-            first_stop = first_stop or got[3]
-        return self._observed(m, drivers[-1], got[0], got[1], first_stop)
+            # from where the rolls so far put the lock (the next driver too: a lock that
+            # is elsewhere is elsewhere for every driver)
+            history: list[tuple[tuple[float, float], tuple[float, float]]] = []
+            sign = 1.0
+            push = self.run.robot.spins_by_torque(driver)
+            for _ in range(PIVOT_TRIES):
+                plan = plan_about(nominal, pivot, driver)
+                got = self._drive(m, driver, plan, turn, sign, push)
+                if got is None:
+                    return None
+                if got[2] == "wrong way":  # its wheel turns the other way: rolled the other way
+                    first_stop = first_stop or got[3]
+                    sign = -sign
+                    self._free_others(m, driver)
+                    expected = abs(plan.roll_per_turn * turn)
+                    got = self._roll(m, driver, sign * plan.roll_rate, expected, turn, push)
+                last = (got[0], got[1])
+                probe = self._observed(m, driver, got[0], got[1], first_stop or got[3], push)
+                pinned = held(probe, pivot, MOCAP_TURNS)
+                if got[2] == "no turn":
+                    # a roll that turned the robot a little about a point elsewhere (a
+                    # push across the turn about where the lock is not) steers again
+                    first_stop = first_stop or got[3]
+                    if probe.fixed_point is None or pinned:
+                        break  # its wheel cannot turn the robot about this lock
+                elif probe.fixed_point is None or len(drivers) == 1 or pinned:
+                    return [*unpinned, probe]
+                else:
+                    fought = self._fought(m, driver, probe, pivot)
+                    first_stop = first_stop or fought
+                assert probe.fixed_point is not None
+                unpinned.append(replace(probe, pinned=False))
+                history.append((pivot, probe.fixed_point))
+                pivot = next_pivot(history)
+        if unpinned:
+            return unpinned
+        return [self._observed(m, drivers[-1], last[0], last[1], first_stop)]
+
+    def _drive(
+        self, m: int, driver: int, plan: PivotPlan, turn: float, sign: float, push: bool
+    ) -> tuple[float, float, str | None, str | None] | None:
+        """The driver steered as ``plan`` says (the others held, the robot pinned), then the
+        others freed and the driver rolled at ``sign`` times the plan's rate, pushed or not
+        (:meth:`_roll`'s answer); None when its steering moved the robot."""
+        for mod in self.run.config.nominal.ids:
+            if mod != m:
+                self.run.robot.wheel_hold(mod)
+                self.run.robot.steer_to(mod, self.run.robot.steering(mod))
+        self.run.robot.wheel_free(driver)
+        if self._steer(driver, plan.driver_steering).stopped:
+            return None
+        self._free_others(m, driver)
+        expected = abs(plan.roll_per_turn * turn)
+        return self._roll(m, driver, sign * plan.roll_rate, expected, turn, push)
+
+    def _fought(self, m: int, driver: int, probe: PivotProbe, pivot: tuple[float, float]) -> str:
+        """A roll whose fixed point was not where its driver was steered to turn about:
+        recorded as a stop; the probe goes on (:meth:`pivot_probe`)."""
+        assert probe.fixed_point is not None
+        off = 1000 * math.hypot(probe.fixed_point[0] - pivot[0], probe.fixed_point[1] - pivot[1])
+        text = (
+            f"module {driver}'s roll turned the robot about a point {off:.0f} mm from where it "
+            f"was steered to turn about module {m}'s lock: the lock is elsewhere, or the "
+            "roll fought it (a steering not where the config says); steered again about "
+            "the point seen"
+        )
+        self.stops.append({
+            "module": m, "driver": driver, "why": "not pinned", "after_ms": None,
+            "seen_ms": None, "turned_deg": round(math.degrees(probe.turn), 2),
+            "off_mm": round(off, 1),
+        })  # fmt: skip
+        self.run.event(logging.WARNING, "commission.stop", module=m, driver=driver, why=text)
+        return text
 
     def _free_others(self, m: int, driver: int) -> None:
         """The modules but the locked one and the driver free (their casters trail)."""
@@ -181,17 +255,21 @@ class Prober:
         self.run.wait(SETTLE)
 
     def _roll(
-        self, m: int, j: int, rate: float, expected: float, target: float
+        self, m: int, j: int, rate: float, expected: float, target: float, push: bool = False
     ) -> tuple[float, float, str | None, str | None]:
-        """Module ``j``'s wheel at ``rate`` until the robot has turned ``target``
-        counter-clockwise (the plan's rate turns it so; the
+        """Module ``j``'s wheel at ``rate`` (``push``: by ``limits.spin_torque`` the way
+        ``rate`` turns, see :mod:`~swpc_hw.calibration.commission.probes`) until the robot
+        has turned ``target`` counter-clockwise (the plan's rate turns it so; the
         other way round, a wheel that turns the other way): ``(t0, psi0, stop, text)``, its
         start, the wheel's reading then, and why it stopped early (``wrong way``, ``no
         turn``; None)."""
         t0, _, _, yaw0 = self._pose()
         rows0 = self.run.robot.encoders(j, t0 - 0.2)
         psi0 = float(rows0[-1, 2]) if len(rows0) else 0.0
-        self.run.robot.wheel_velocity(j, rate)
+        if push:
+            self.run.robot.wheel_torque(j, math.copysign(self.run.config.limits.spin_torque, rate))
+        else:
+            self.run.robot.wheel_velocity(j, rate)
         deadline = self.run.deadline()
         last, stop, text = yaw0, None, None
         while True:
@@ -201,6 +279,7 @@ class Prober:
             turn = last - yaw0
             rows = self.run.robot.encoders(j, t0)
             roll = float(rows[-1, 2]) - psi0 if len(rows) else 0.0
+            stalled = push and self.run.clock.now() - t0 > STALL and turn < 0.5 * target
             if turn <= -WRONG_WAY:
                 stop = "wrong way"
                 text = (
@@ -212,10 +291,11 @@ class Prober:
                 )
             elif turn >= target:
                 break
-            elif abs(roll) >= ROLL_MARGIN * expected:
+            elif abs(roll) >= ROLL_MARGIN * expected or stalled:
                 stop = "no turn"
+                how = f"pushed {STALL:.0f} s" if stalled else "rolled"
                 text = (
-                    f"module {j}'s wheel rolled {math.degrees(abs(roll)):.0f} deg and the "
+                    f"module {j}'s wheel {how} ({math.degrees(abs(roll)):.0f} deg) and the "
                     f"robot turned {math.degrees(turn):.1f} deg of the "
                     f"{math.degrees(target):.0f} deg asked: the sensor does not see the robot "
                     "turn (a Y-up motion capture), its drive does not roll a wheel, or the "
@@ -240,7 +320,9 @@ class Prober:
             )
         return t0, psi0, stop, text
 
-    def _observed(self, m: int, j: int, t0: float, psi0: float, stopped: str | None) -> PivotProbe:
+    def _observed(
+        self, m: int, j: int, t0: float, psi0: float, stopped: str | None, pushed: bool = False
+    ) -> PivotProbe:
         """What the poses and the encoders since ``t0`` say of a pivot probe."""
         rows = self._poses(t0)
         poses = np.column_stack([rows[:, :3], np.unwrap(rows[:, 3])])
@@ -267,5 +349,5 @@ class Prober:
             fixed_point=F,
             fixed_point_std=std,
             stopped=stopped,
+            pushed=pushed,
         )
-

@@ -354,15 +354,15 @@ class CalibrationRun(RunMachine):
         prober = Prober(self)
         probes = []
         for m in ids:
-            p = prober.pivot_probe(m, angle, driver_of(ids, m), PRECHECK_TURN, retry=False)
-            if p is None:  # a steering moved the pinned robot
+            rolled = prober.pivot_probe(m, angle, driver_of(ids, m), PRECHECK_TURN, retry=False)
+            if rolled is None:  # a steering moved the pinned robot
                 mv = prober.steer_moves[-1]
                 raise RunFailedError(
                     f"refused before the first spin: module {mv.module}'s steering moved the "
                     f"robot {1000 * mv.moved:.0f} mm with the robot pinned: it turns a wheel; "
                     "swpc commission names the fix"
                 )
-            probes.append(p)
+            probes.extend(rolled)
             self.robot.free_steer(m)
             self.robot.wheel_hold(m)
         problems = precheck_problems(self.config.nominal, probes)

@@ -3,10 +3,13 @@
 Inputs are the probes of :mod:`swpc_hw.calibration.commission.probes` and the config's
 nominal geometry; the output is, per configured module, what its drives really move
 (:class:`AxisMap`) and the findings that name what disagrees with the config and its fix
-(:class:`Finding`).  Every judgement below is in that order:
+(:class:`Finding`).  Every judgement below is in that order; from step 3 on, only the
+pinned probes count (a probe whose fixed point was not where its driver was steered to
+turn about: a fought lock, :mod:`~.probes`).
 
 1. **A steering move that moved the robot** (pinned: it cannot) stopped the probes: the
    module's steering drive turns something that moves the robot.
+
 2. **The sensor.**  Pivot probes whose driver rolled while the sensor saw the robot turn
    less than :data:`NO_TURN`: the sensor does not see the robot turn (a Y-up system read
    as Z-up, a body that is not the robot's).
@@ -26,10 +29,10 @@ nominal geometry; the output is, per configured module, what its drives really m
    homing error ``beta``: a quarter or half turn away when homing puts the zero there).
 5. **Each wheel.**  In each probe it drove, the driver's true heading is its own steering
    map at its reading, its contact point ``c`` on its own physical module; (1) of
-   :mod:`~.probes` predicts the turn ``k dpsi`` of its roll reading.  The turns measured
-   over those predicted (least squares over its probes) is ``f = 1 / (s g)``: the wheel's
-   polarity and ratio; ``|f|`` under :data:`NOT_A_WHEEL` says its roll hardly turns the
-   robot (its drive turns a steering).
+   :mod:`~.probes` (a pushed wheel: (1')) predicts the turn ``k dpsi`` of its roll
+   reading.  The turns measured over those predicted (least squares over its probes) is
+   ``f = 1 / (s g)``: the wheel's polarity and ratio; ``|f|`` under :data:`NOT_A_WHEEL`
+   says its roll hardly turns the robot (its drive turns a steering).
 """
 
 from __future__ import annotations
@@ -285,6 +288,8 @@ def analyse(
         ))  # fmt: skip
         out.maps = {m: AxisMap(**d) for m, d in maps.items()}
         return out
+    # 3.-5. on the pinned probes only: an unpinned one's fixed point is not the lock's
+    pivot_probes = [p for p in pivot_probes if p.pinned]
     # 3. the body's axes
     gamma = _mocap_turn(nominal, pivot_probes)
     out.mocap_yaw = gamma
@@ -379,12 +384,13 @@ def analyse(
             cos_delta = math.cos(phi) * t[0] + math.sin(phi) * t[1]
             if abs(cos_delta) < MIN_COS:
                 continue  # its heading across the circle: its roll barely turns the robot
-            predicted = float(A.r[qi]) * cos_delta * p.roll / D  # (1)
+            r_q = float(A.r[qi])
+            predicted = r_q * p.roll / (D * cos_delta) if p.pushed else r_q * cos_delta * p.roll / D
             num += p.turn * predicted
             den += predicted * predicted
         if den < math.radians(1.0) ** 2:
             out.unknown.append(
-                f"module {q}'s wheel: no probe it drove headed along the turn (within "
+                f"module {q}'s wheel: no pinned probe it drove headed along the turn (within "
                 f"{math.degrees(math.acos(MIN_COS)):.0f} deg): its direction and ratio are not "
                 "known; commission again once the findings are fixed"
             )

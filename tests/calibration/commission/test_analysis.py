@@ -6,7 +6,7 @@ noise a 10 deg arc leaves (mm), so the tolerances are tried too."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pytest
@@ -40,9 +40,12 @@ class Wiring:
     gamma: float = 0.0
 
 
-def probes(w: Wiring, noise: float = 0.0, seed: int = 0) -> list[PivotProbe]:
+def probes(
+    w: Wiring, noise: float = 0.0, seed: int = 0, pushed: bool = False
+) -> list[PivotProbe]:
     """The pivot probes a robot wired as ``w`` gives (the truth's geometry): the fixed
-    point is the pinned caster's contact point, the turn (1) of probes.py for the roll."""
+    point is the pinned caster's contact point, the turn (1) of probes.py for the roll
+    (``pushed``: (1'), a wheel pushed by torque)."""
     rng = np.random.default_rng(seed)
     T = TRUTH.arrays()
     out = []
@@ -66,14 +69,18 @@ def probes(w: Wiring, noise: float = 0.0, seed: int = 0) -> list[PivotProbe]:
             cos_delta = (math.cos(phi) * -rel[1] + math.sin(phi) * rel[0]) / D
             s_w, g_w = w.wheel.get(w.physical[j], (1, 1.0))
             turn = PROBE_TURN
-            physical_roll = turn * D / (float(T.r[q]) * cos_delta)
+            physical_roll = (
+                turn * D * cos_delta / float(T.r[q])
+                if pushed
+                else turn * D / (float(T.r[q]) * cos_delta)
+            )
             F = C + rng.normal(0.0, noise, 2)
             c_g, s_g = math.cos(-w.gamma), math.sin(-w.gamma)
             seen = (c_g * F[0] - s_g * F[1], s_g * F[0] + c_g * F[1])
             out.append(PivotProbe(
                 module=m, steering=a, driver=j, driver_steering=plan.driver_steering,
                 roll=physical_roll * s_w * g_w, turn=turn, fixed_point=seen,
-                fixed_point_std=max(noise, 1e-4),
+                fixed_point_std=max(noise, 1e-4), pushed=pushed,
             ))  # fmt: skip
     return out
 
@@ -109,6 +116,26 @@ def test_each_miswiring_is_named_and_nothing_else(
     assert found(wiring) == expected
     for seed in range(5):  # with the fixed points' noise of a 10 deg arc (1 mm)
         assert found(wiring, noise=0.001, seed=seed) == expected, seed
+
+
+@pytest.mark.parametrize("pushed", [False, True], ids=["velocity", "pushed"])
+def test_a_wheel_is_judged_by_how_it_was_driven(pushed: bool) -> None:
+    """A driver heading 30-45 deg off the turn (its module crossed: steered for another's
+    place): a pushed wheel turns the robot 1 / cos^2(delta) times what a velocity-driven
+    one does for the same roll, up to twice; judged by the other's formula, its ratio is
+    said off."""
+    w = Wiring(physical={1: 2, 2: 1, 3: 3, 4: 4})
+    expected = {("crossed", 1, "module"), ("crossed", 2, "module")}
+    got = probes(w, pushed=pushed)
+    assert found_in(got) == expected
+    flipped = [replace(p, pushed=not p.pushed) for p in got]
+    assert ("ratio", 1, "wheel") in found_in(flipped) or ("ratio", 2, "wheel") in found_in(
+        flipped
+    )
+
+
+def found_in(ps: list[PivotProbe]) -> set[tuple[str, int | None, str]]:
+    return {(f.what, f.module, f.axis) for f in analyse(NOMINAL, [], ps).findings}
 
 
 def test_the_measured_ratios_and_zero() -> None:

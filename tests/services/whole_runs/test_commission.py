@@ -55,11 +55,13 @@ def test_without_motion_capture_it_is_refused(tmp_path: Path) -> None:
 
 
 def test_a_miswired_robot_named_corrected_and_calibrated(tmp_path: Path) -> None:
+    """On CiA 402 drives: their locks hold by position control, so a driver steered for
+    the wrong place fights them unless pushed (docs/commissioning.md)."""
     wiring = tmp_path / "wiring.yaml"
     wiring.write_text(yaml.safe_dump(
         {"crossed": {1: 3, 3: 1}, "inverted": [{"module": 2, "axis": "wheel"}]}))  # fmt: skip
     robot, built = tmp_path / "robot.yaml", tmp_path / "built.yaml"
-    text = "robot: swpc\nlimits:\n  spin_torque: 0.6\n"
+    text = "robot: swpc\ndrives:\n  kind: cia402\nlimits:\n  spin_torque: 0.6\n"
     robot.write_text(text)
     built.write_text(text)
     sim_settings = {"sim_wiring": wiring, "robot_config": robot, "sim_robot_config": built}
@@ -71,11 +73,22 @@ def test_a_miswired_robot_named_corrected_and_calibrated(tmp_path: Path) -> None
                        ("polarity", 2, "wheel")}, res["findings"]  # fmt: skip
         assert st["verdict"] == "miswired"
         # a roll that turned the robot the wrong way (module 2's inverted wheel, and the
-        # crossed modules' drivers steered for the other's place) stopped within 0.2 s of
-        # its start, the robot turned under a degree
+        # crossed modules' drivers steered for the other's place) stopped at the pose that
+        # showed it, the robot turned under a degree; the inverted wheel within 0.2 s of
+        # its start (a push across the turn creeps: up to 3 s)
         wrong = [s for s in res["stops"] if s["why"] == "wrong way"]
-        assert {s["driver"] for s in wrong} == {1, 2, 3}, res["stops"]
-        assert all(s["after_ms"] < 200 and -1.0 < s["turned_deg"] < 0 for s in wrong), wrong
+        assert {s["driver"] for s in wrong} >= {1, 2, 3}, res["stops"]
+        assert all(s["seen_ms"] < 20 and -1.0 < s["turned_deg"] < 0 for s in wrong), wrong
+        inverted = [s for s in wrong if (s["module"], s["driver"]) == (4, 2)]
+        assert inverted and all(s["after_ms"] < 200 for s in inverted), wrong
+        # the crossed locks were not where their drivers were first steered to turn about:
+        # steered again about the point seen, and only the pinned probes judged
+        elsewhere = [s for s in res["stops"] if s["why"] == "not pinned"]
+        assert {s["module"] for s in elsewhere} >= {1, 3}, res["stops"]
+        probes = res["pivot_probes"]
+        assert all(p["pushed"] for p in probes)
+        for m in (1, 3):  # each crossed lock's three angles, pinned on the other's caster
+            assert sum(p["pinned"] for p in probes if p["module"] == m) == 3, probes
         assert robot.read_text() == text  # nothing written before the operator accepts
         print("\n" + report_text(res))
         assert "module 1: moves module 3" in report_text(res)
@@ -85,7 +98,10 @@ def test_a_miswired_robot_named_corrected_and_calibrated(tmp_path: Path) -> None
         assert Path(a.json()["backup"]).read_text() == text
     doc = yaml.safe_load(robot.read_text())
     assert doc["limits"] == {"spin_torque": 0.6}  # what the operator wrote stays
-    assert doc["drives"]["modules"] == {1: 3, 2: 2, 3: 1, 4: 4}
+    nodes = {
+        m: (a["steer"]["node"], a["wheel"]["node"]) for m, a in doc["drives"]["modules"].items()
+    }
+    assert nodes == {1: (5, 6), 2: (3, 4), 3: (1, 2), 4: (7, 8)}  # modules 1 and 3 exchanged
     assert doc["polarity"] == {2: {"wheel": -1}}
     with sim_service(tmp_path / "data2", **sim_settings) as sim:
         run_id = start(sim.client, {"protocol": QUICK_PROTOCOL})
