@@ -7,8 +7,11 @@ and its value stay as the operator wrote them.  What each finding
 
 * ``crossed`` (module ``m``'s drives move module ``p``): ``drives.modules[p]`` takes what
   the config gave ``m`` (each kind's nodes and settings per module);
-* ``swapped``: a kind with a node per axis (``cia402``, ``odrive``) exchanges the module's
-  steering and wheel nodes; ``swpc`` (one node for both) cannot: its motors' connectors;
+* ``swapped``: not in the config, on any kind: the module's motors' connectors.  Each
+  drive is set up for the motor it drives (its tuning and current limits, a CiA 402
+  drive's gear ratio 0x6091, the steering's homing input and method), so exchanging the
+  nodes in the config would leave each motor on the other's settings; ``swpc`` has one
+  node for both;
 * ``polarity``: ``polarity[p][axis]`` turns sign (swpc applies it to what a run commands
   and reads; docs/commissioning.md says how each kind can hold it instead);
 * ``ratio``: the axis' ``gear_ratio`` times the ratio found (``odrive``); a CiA 402
@@ -33,8 +36,6 @@ import yaml
 from services.config.robot import RobotConfig
 from swpc_hw.calibration.commission.analysis import Commissioning
 
-PER_AXIS_NODES = ("cia402", "odrive")
-"""The drive kinds with a node per axis in the config."""
 RATIO_IN_CONFIG = ("odrive",)
 """The drive kinds whose ratio the config alone holds (a CiA 402 drive keeps its own gear
 ratio, 0x6091, which swpc checks against the config's: both change together)."""
@@ -77,17 +78,7 @@ def corrected_config(
         doc["drives"]["modules"] = new
     for f in c.findings:
         p = f.module
-        if f.what == "swapped" and p is not None:
-            if kind in PER_AXIS_NODES:
-                mods = drives_modules()
-                entry = mods[_key(mods, p)]
-                entry["steer"]["node"], entry["wheel"]["node"] = (
-                    entry["wheel"]["node"], entry["steer"]["node"]
-                )
-                doc["drives"]["modules"] = mods
-            else:
-                rest.append(f.text)
-        elif f.what == "polarity" and p is not None:
+        if f.what == "polarity" and p is not None:
             # relative to the polarity the probes ran with: that of the module whose
             # drives move p
             was = effective["polarity"].get(str(crossed.get(p, p))) or {}

@@ -272,8 +272,8 @@ def analyse(
                 f"{1000 * sp.moved:.0f} mm for a {math.degrees(abs(sp.step)):.0f} deg "
                 f"steering move with the robot pinned (at most {1000 * sp.budget:.0f} mm): it "
                 "turns a wheel (stopped there). "
-                "Fix: exchange its steering and wheel (their nodes or their motors' "
-                "connectors), then commission again",
+                "Fix: exchange its steering and wheel motors' connectors (each drive is set "
+                "up for its own motor), then commission again",
             ))  # fmt: skip
     # 2. the sensor
     rolled = [p for p in pivot_probes if abs(p.roll) > math.radians(20)]
@@ -327,7 +327,7 @@ def analyse(
                 f"module {physical}'s caster turned {abs(slope):.2f} of what its steering "
                 "drive was commanded (its lock pinned the robot at the same point at both "
                 "angles): that drive turns the wheel. Fix: exchange its steering and wheel "
-                "(their nodes or their motors' connectors)",
+                "motors' connectors (each drive is set up for its own motor)",
             ))  # fmt: skip
         elif slope is not None:
             sign = 1 if slope > 0 else -1
@@ -406,7 +406,8 @@ def analyse(
                 q, "module", "swapped", f,
                 f"module {q}'s wheel drive rolled and the robot turned {abs(f):.2f} of "
                 "what a wheel turns it: that drive turns the steering. Fix: exchange its "
-                "steering and wheel (their nodes or their motors' connectors)",
+                "steering and wheel motors' connectors (each drive is set up for its own "
+                "motor), then commission again",
             ))  # fmt: skip
             continue
         sign = 1 if f > 0 else -1
