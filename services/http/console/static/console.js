@@ -23,6 +23,7 @@ const app = {
   metrics: { firstLiveUpdateMs: null, firstChangeMs: null, statesSeen: [] },
   resultRun: null,
   checkRun: null,
+  commissionRun: null,  // the commissioning shown in its view (the last one started)
   answered: null,       // "<run>:<state>" once the operator's answer to it was accepted
 };
 window.swpc = app;      // for the browser test (and a curious operator's console)
@@ -49,9 +50,12 @@ const wrapDeg = (a) => ((((a + 180) % 360) + 360) % 360) - 180;
 const duration = (s) => (s < 60 ? `${s.toFixed(0)} s` :
   `${Math.floor(s / 60)} min ${String(Math.round(s % 60)).padStart(2, "0")} s`);
 const colorOf = (module) => COLORS[(module - 1 + COLORS.length) % COLORS.length];
-// a run's resource: a calibration's /calibrations/<id>, a check's /checks/<id>
-const runPath = (st) => (st.kind === "check" ? "/checks/" : "/calibrations/") + st.id;
-const kindName = (st) => (st.kind === "check" ? "Check" : "Calibration");
+// a run's resource: a calibration's /calibrations/<id>, a check's /checks/<id>, a
+// commissioning's /commissions/<id>
+const RUN_PATHS = { check: "/checks/", commission: "/commissions/" };
+const KIND_NAMES = { check: "Check", commission: "Commissioning" };
+const runPath = (st) => (RUN_PATHS[st.kind] || "/calibrations/") + st.id;
+const kindName = (st) => KIND_NAMES[st.kind] || "Calibration";
 
 // stop: a request that stops the robot (an abort) is sent at once, with the token if the
 // tab has one, never after asking for it (the service takes an abort without it)
@@ -126,7 +130,7 @@ function confirmDialog(title, text, okLabel) {
 // ------------------------------------------------------------------ routing
 function route() {
   const [view, arg] = (location.hash.slice(1) || "run").split("/");
-  const known = ["run", "result", "history", "drift", "check", "files", "foxglove", "drives"];
+  const known = ["run", "result", "history", "drift", "check", "files", "foxglove", "drives", "commission"];
   const v = known.includes(view) ? view : "run";
   for (const k of known) $("view-" + k).hidden = k !== v;
   const tab = v === "check" ? "drift" : v;  // a check's verdict belongs with the drift
@@ -141,6 +145,7 @@ function route() {
   if (v === "files") showFiles();
   if (v === "foxglove") showFoxglove(arg || app.resultRun);
   if (v === "drives") showDrives();
+  if (v === "commission") showCommission(arg || app.commissionRun);
 }
 
 // ------------------------------------------------------------------ start / abort
@@ -431,7 +436,11 @@ function onRun(st, pushed) {
   }
   app.current = st;
   renderRun();
-  if (st.state === "DONE" && st.kind === "check") app.checkRun = st.id;
+  if (st.kind === "commission") {
+    app.commissionRun = st.id;
+    if (!$("view-commission").hidden) renderCommissionState(st);
+    if (TERMINAL.has(st.state) && !$("view-commission").hidden) showCommission(st.id);
+  } else if (st.state === "DONE" && st.kind === "check") app.checkRun = st.id;
   else if (st.state === "DONE" && !location.hash.startsWith("#result")) {
     app.resultRun = st.id;
   }
@@ -444,7 +453,8 @@ function renderRun() {
   const st = app.current;
   const active = st && !TERMINAL.has(st.state);
   $("abort-bar").hidden = !active;
-  $("start").disabled = $("check").disabled = !!active;  // one run at a time: the service refuses a second
+  // one run at a time: the service refuses a second
+  $("start").disabled = $("check").disabled = $("com-start").disabled = !!active;
   if (!st) return;
   // a run that waits for its operator says so, in words, with a way to the answer
   $("abort-text").textContent = st.waits_for
@@ -474,8 +484,9 @@ function renderRun() {
   renderOperator(st);
   const link = $("run-result-link");
   link.hidden = st.state !== "DONE";
-  link.href = (st.kind === "check" ? "#check/" : "#result/") + st.id;
-  link.textContent = st.kind === "check" ? `Open the verdict (${st.verdict})` : "Open the result";
+  link.href = ({ check: "#check/", commission: "#commission/" }[st.kind] || "#result/") + st.id;
+  link.textContent = st.kind === "check" ? `Open the verdict (${st.verdict})` :
+    st.kind === "commission" ? `Open the report (${st.verdict})` : "Open the result";
 }
 // a planned run's std devs, forecast from its data so far (docs/plan.md, sequential stopping)
 const FORECAST_ROWS = [
@@ -990,6 +1001,110 @@ async function showFoxglove(id) {
 
 // ------------------------------------------------------------------ drives
 // Each module axis' drive (GET /drives; then every live event carries the same document)
+// ------------------------------------------------------------------ commissioning
+async function startCommission() {
+  $("com-error").textContent = "";
+  if (!(await ensureToken())) { $("com-error").textContent = "a token is needed to commission"; return; }
+  $("com-start").disabled = true;
+  try {
+    const st = await api("POST", "/commissions");
+    location.hash = "#commission/" + st.id;
+    onRun(st, false);
+  } catch (e) {
+    $("com-error").textContent = "Commissioning not started: " + e.message;
+  } finally {
+    $("com-start").disabled = !!app.current && !TERMINAL.has(app.current.state);
+  }
+}
+function renderCommissionState(st) {
+  $("com-empty").hidden = true;
+  $("com-body").hidden = false;
+  $("com-id").textContent = st.id;
+  $("com-state").textContent = `${st.state}: ${st.step}` +
+    (st.module_index ? ` · module ${st.module_index} of ${st.modules_total}` : "") +
+    (st.elapsed_s !== null ? ` · ${duration(st.elapsed_s)} of robot time` : "");
+  if (!TERMINAL.has(st.state)) {
+    $("com-verdict").textContent = "Commissioning…";
+    for (const id of ["com-findings", "com-unknown", "com-module-rows", "com-rest"]) $(id).replaceChildren();
+    $("com-motion").textContent = "";
+    $("com-fix").hidden = true;
+  }
+}
+async function showCommission(id) {
+  if (!id) {
+    const all = await api("GET", "/commissions").catch(() => []);
+    id = all.length ? all[all.length - 1].id : null;
+  }
+  if (!id) { $("com-empty").hidden = false; $("com-body").hidden = true; return; }
+  let st;
+  try {
+    st = await api("GET", "/commissions/" + id);
+  } catch (e) {
+    $("com-empty").hidden = false;
+    $("com-empty").textContent = `No commissioning ${id}: ${e.message}`;
+    $("com-body").hidden = true;
+    return;
+  }
+  app.commissionRun = st.id;
+  renderCommissionState(st);
+  if (TERMINAL.has(st.state)) renderCommission(st);
+}
+function renderCommission(st) {
+  const res = st.result;
+  $("com-accepted").textContent = "";
+  if (!res) {
+    $("com-verdict").replaceChildren(el("span", { class: "chip bad" }, st.state), ": " + (st.reason || "no report"));
+    $("com-fix").hidden = true;
+    return;
+  }
+  $("com-verdict").replaceChildren(res.right
+    ? el("span", { class: "chip ok" }, "Right: the robot agrees with its config on every axis")
+    : el("span", { class: "chip bad" }, `Not right: ${res.findings.length} finding(s), ` +
+      `${res.unknown.length} not known`));
+  $("com-findings").replaceChildren(...res.findings.map((f) => el("li", {}, f.text)));
+  $("com-unknown").replaceChildren(...res.unknown.map((u) => el("li", { class: "muted" }, "Not known: " + u)));
+  const sign = (v) => (v === null ? "–" : v > 0 ? "as configured" : "reversed");
+  const num = (v, d) => (v === null ? "–" : fmt(v, d));
+  $("com-module-rows").replaceChildren(...res.modules.map((m) => el("tr", { "data-module": m.module },
+    el("th", { scope: "row" }, String(m.module)),
+    el("td", { class: m.physical !== null && m.physical !== m.module ? "no" : "" },
+      m.swapped ? "steering and wheel swapped" : m.physical === null ? "–" : String(m.physical)),
+    el("td", {}, sign(m.steer_sign)), el("td", { class: "num" }, num(m.steer_ratio, 2)),
+    el("td", { class: "num" }, m.zero_deg === null ? "–" : `${fmt(m.zero_deg, 1)}°`),
+    el("td", {}, sign(m.wheel_sign)), el("td", { class: "num" }, num(m.wheel_ratio, 2)))));
+  $("com-motion").textContent = `${fmt(res.robot_time_s, 1)} s of robot time; the largest motion ` +
+    `${fmt(res.largest_turn_deg, 1)}° of turn and ${fmt(res.largest_move_mm, 0)} mm; ` +
+    `${res.stops.length} roll(s) stopped early.`;
+  $("com-fix").hidden = !res.diff && !res.not_in_config.length;
+  $("com-diff").replaceChildren(...res.diff.split("\n").map((line) => el("span",
+    { class: line.startsWith("+") && !line.startsWith("+++") ? "add" : line.startsWith("-") && !line.startsWith("---") ? "del" : "" },
+    line + "\n")));
+  $("com-diff").hidden = !res.diff;
+  $("com-rest").replaceChildren(...res.not_in_config.map((t) => el("li", {}, "Not in the config: " + t)));
+  $("com-accept").hidden = !res.diff || !!res.config_error;
+  if (res.config_error) $("com-accepted").textContent = "The corrected config does not load: " + res.config_error;
+}
+async function acceptCommission() {
+  const id = app.commissionRun;
+  if (!id) return;
+  const ok = await confirmDialog("Write the corrected robot config?",
+    "The service's robot config file is replaced by the one shown (the one in force is kept " +
+    "beside it as a backup). A change of the drives takes effect when the service restarts.",
+    "Write it");
+  if (!ok) return;
+  $("com-accept").disabled = true;
+  try {
+    const r = await api("POST", `/commissions/${id}/accept`);
+    $("com-accepted").textContent = `Written to ${r.written} (the one it replaced: ${r.backup}). ` +
+      (r.restart ? "Restart the service for the drives' change, then commission again."
+        : "In force now: commission again to see it right.");
+  } catch (e) {
+    $("com-accepted").textContent = "Not written: " + e.message;
+  } finally {
+    $("com-accept").disabled = false;
+  }
+}
+
 async function showDrives() {
   if (app.live && app.live.drives) renderDrives(app.live.drives);
   try {
@@ -1143,6 +1258,8 @@ document.addEventListener("DOMContentLoaded", () => {
   $("op-sim-tape").addEventListener("click", readSimulatorTape);
   $("abort").addEventListener("click", abortRun);
   $("res-install").addEventListener("click", installResult);
+  $("com-start").addEventListener("click", startCommission);
+  $("com-accept").addEventListener("click", acceptCommission);
   $("token-button").addEventListener("click", () => tokenDialog("Enter the service's bearer token (kept for this tab)."));
   window.addEventListener("hashchange", route);
   updateTokenButton();
