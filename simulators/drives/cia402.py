@@ -589,11 +589,10 @@ class VirtualCia402Module:
         self, config: Cia402Drives, module: int, *, homing_duration: float, sensor_position: float
     ) -> None:
         axes = config.axes()[module]
-        od = config.object_dictionary
         self.axes = (
-            VirtualAxis(axes.steer, od, steer=True, homing_duration=homing_duration,
-                        sensor_position=sensor_position),
-            VirtualAxis(axes.wheel, od, steer=False),
+            VirtualAxis(axes.steer, config.eds(axes.steer), steer=True,
+                        homing_duration=homing_duration, sensor_position=sensor_position),
+            VirtualAxis(axes.wheel, config.eds(axes.wheel), steer=False),
         )  # fmt: skip
         self.muted = False
         self.heartbeats = 0

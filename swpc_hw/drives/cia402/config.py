@@ -40,6 +40,11 @@ class Cia402Axis(BaseModel):
         description="N.m at the motor: the unit of the torque objects (thousandths of it) "
         "for a drive without 0x6076; the drive's 0x6076 wins when it has one",
     )
+    object_dictionary: Path | None = Field(
+        None,
+        description="EDS or DCF of this axis' drive, when it is not the drives' "
+        "object_dictionary (a robot whose steering and wheel drives differ)",
+    )
 
     def counts_per_rad(self) -> float:
         """Position units (encoder counts) per radian at the module's output."""
@@ -75,7 +80,8 @@ class Cia402Drives(KindConfig):
 
     kind: Literal["cia402"] = "cia402"
     object_dictionary: Path = Field(
-        cia402.EDS_PATH, description="EDS or DCF of the drives (one for all axes)"
+        cia402.EDS_PATH,
+        description="EDS or DCF of the drives (every axis' that does not name its own)",
     )
     host_node: int = Field(
         cia402.MAX_NODE,
@@ -120,6 +126,15 @@ class Cia402Drives(KindConfig):
         """Module id -> its axes (the default numbering must have been filled in)."""
         assert self.modules is not None, "for_modules() first"
         return dict(self.modules)
+
+    def eds(self, axis: Cia402Axis) -> Path:
+        """The object dictionary of ``axis``' drive: its own, else the drives'."""
+        return axis.object_dictionary or self.object_dictionary
+
+    def eds_files(self) -> list[Path]:
+        """Every object dictionary the axes use, each once, in the axes' order."""
+        axes = [a for m in (self.modules or {}).values() for a in (m.steer, m.wheel)]
+        return list(dict.fromkeys([self.object_dictionary, *(self.eds(a) for a in axes)]))
 
     def axis_nodes(self) -> dict[int, tuple[int, int]]:
         return {m: (md.steer.node, md.wheel.node) for m, md in self.axes().items()}

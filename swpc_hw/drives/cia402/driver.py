@@ -152,13 +152,13 @@ class Cia402Driver(DriverBase):
 
     # ================================================================ lifecycle
     def _before_open(self) -> None:
-        try:
-            canopen.import_od(str(self.drives.object_dictionary))
-        except Exception as exc:
-            raise CanBusError(
-                f"drives.object_dictionary {self.drives.object_dictionary}: cannot read "
-                f"it as an EDS/DCF: {exc}"
-            ) from exc
+        for eds in self.drives.eds_files():
+            try:
+                canopen.import_od(str(eds))
+            except Exception as exc:
+                raise CanBusError(
+                    f"drives.object_dictionary {eds}: cannot read it as an EDS/DCF: {exc}"
+                ) from exc
 
     def _opened(self, bus: can.BusABC) -> None:
         """canopen's network on the bus, a remote node per axis; the host's heartbeat
@@ -167,9 +167,10 @@ class Cia402Driver(DriverBase):
         net = self._network = _HostNetwork(self, bus)
         for m, mt in self._modules.items():
             for a in mt.axes:
+                mc = self.drives.axes()[m]
                 node = ClockedRemoteNode(
                     a.node,
-                    str(self.drives.object_dictionary),
+                    str(self.drives.eds(mc.steer if a.axis == Axis.STEER else mc.wheel)),
                     self.clock,
                     timeout=cfg.loss_after_s,
                 )

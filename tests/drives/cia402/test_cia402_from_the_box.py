@@ -262,3 +262,25 @@ def test_profile_position_hands_each_target_over_with_the_set_point_handshake(
         r.host.set_torque(1, Axis.WHEEL, 0.2)
         r.clock.sleep(0.1)
         assert r.axis(2).mode is Mode.PROFILE_TORQUE and r.axis(2).target_torque != 0
+
+
+def test_an_axis_of_another_make_is_set_up_from_its_own_eds(tmp_path: Path) -> None:
+    """An axis' own ``object_dictionary`` wins over the drives' (a wheel drive of another
+    vendor): the host reads that node's objects from it, and the virtual drive serves
+    only what it declares."""
+    eds = profile_only_eds(tmp_path)
+    base = Cia402Drives().for_modules(PAPER_CALIBRATED.ids)
+    mods = base.axes()
+    mods[2] = mods[2].model_copy(
+        update={"wheel": mods[2].wheel.model_copy(update={"object_dictionary": eds})}
+    )
+    cfg = base.model_copy(update={"modules": mods})
+    assert cfg.eds_files() == [cia402.EDS_PATH, eds]
+    assert cfg.eds(mods[2].wheel) == eds and cfg.eds(mods[2].steer) == cia402.EDS_PATH
+    with rig(cfg) as r:
+        r.host.activate()
+        # the other make has profile modes only: that wheel is driven in profile torque,
+        # every other wheel in cyclic synchronous torque (the project's EDS)
+        wheels = {m: r.host.axis_track(m, Axis.WHEEL).torque_mode for m in PAPER_CALIBRATED.ids}
+        assert wheels[2] is Mode.PROFILE_TORQUE, wheels
+        assert all(t is Mode.CYCLIC_SYNC_TORQUE for m, t in wheels.items() if m != 2), wheels
