@@ -67,7 +67,7 @@ def calibrate(truth: RobotParams, seed: int) -> tuple[RobotParams, RobotParams]:
 
 
 def main() -> None:
-    from services.cli.validate import run_in_process
+    from services.cli.offline.validate import run_in_process
     from services.config.robot import RobotConfig
     from swpc_hw.robot.paper_robot import PAPER_NOMINAL
     from swpc_hw.validation import SquareOptions

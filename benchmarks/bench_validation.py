@@ -41,7 +41,7 @@ def offline_calibrated(seed: int = 0) -> RobotParams:
 
 
 def main() -> None:
-    from services.cli.validate import run_in_process
+    from services.cli.offline.validate import run_in_process
     from swpc_hw.files.kinematic_file import save_kinematics
     from swpc_hw.robot.paper_robot import PAPER_NOMINAL
     from swpc_hw.validation import SquareOptions

@@ -1,4 +1,5 @@
-"""The ``swpc`` command: one subcommand per module of this package.
+"""The ``swpc`` command: one subcommand per module of this package (and of its
+:data:`GROUPS`).
 
 Every module here whose name does not start with ``_`` is a subcommand (discovered at
 start-up, as cantools discovers its subparsers): it defines ``register(subparsers) ->
@@ -35,13 +36,27 @@ def missing_service_extra() -> str | None:
     return next((m for m in SERVICE_EXTRA_PROBES if importlib.util.find_spec(m) is None), None)
 
 
+GROUPS = ("offline",)
+"""Subpackages whose modules are subcommands too (:mod:`services.cli.offline`: the ones
+that work on files and models, not on a robot)."""
+
+
 def subcommand_modules() -> list[str]:
-    """Dotted names of the subcommand modules, sorted."""
-    return sorted(
+    """Dotted names of the subcommand modules (here and in :data:`GROUPS`), sorted by
+    their subcommand's name."""
+    names = [
         f"{__name__}.{info.name}"
         for info in pkgutil.iter_modules(__path__)
-        if not info.name.startswith("_")
-    )
+        if not info.name.startswith("_") and info.name not in GROUPS
+    ]
+    for group in GROUPS:
+        pkg = importlib.import_module(f"{__name__}.{group}")
+        names += [
+            f"{pkg.__name__}.{info.name}"
+            for info in pkgutil.iter_modules(pkg.__path__)
+            if not info.name.startswith("_")
+        ]
+    return sorted(names, key=lambda n: n.rsplit(".", 1)[1])
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -57,7 +72,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     names = subcommand_modules()
-    only = [n for n in names if n == f"{__name__}.{command}"]
+    only = [n for n in names if n.rsplit(".", 1)[1] == command]
     for name in only or names:
         importlib.import_module(name).register(sub)
     return parser

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.cli.odometry import log_suspect
+from services.cli.offline.odometry import log_suspect
 from simulators.offline.drift_path import (
     PathNoise,
     drive_readings,

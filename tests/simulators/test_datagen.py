@@ -274,7 +274,7 @@ def test_batch_of_10000_trials_is_finite_and_shaped() -> None:
 def test_datagen_command_writes_a_loadable_dataset(tmp_path: Path, name: str) -> None:
     import argparse
 
-    from services.cli import datagen
+    from services.cli.offline import datagen
 
     parser = argparse.ArgumentParser()
     datagen.register(parser.add_subparsers())

@@ -180,7 +180,7 @@ def test_validate_names_the_files_and_refuses_what_it_cannot_do(
     import argparse
 
     from services.cli import main
-    from services.cli.validate import _labels
+    from services.cli.offline.validate import _labels
     from swpc_hw.files.kinematic_file import save_kinematics
 
     def args(**kw: object) -> argparse.Namespace:
@@ -274,8 +274,8 @@ def square_drive(tmp_path_factory: pytest.TempPathFactory) -> SquareDriveRun:
 
     One drive for the two tests below: they assert on different outputs of it (the
     report; the stream's messages), and a drive is most of their cost."""
-    from services.cli.odometry import follow_drives
-    from services.cli.validate import run_in_process
+    from services.cli.offline.odometry import follow_drives
+    from services.cli.offline.validate import run_in_process
 
     kin = tmp_path_factory.mktemp("square") / "kinematics.yaml"
     save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth: the right file
@@ -335,7 +335,7 @@ def test_swpc_odometry_follows_the_drives_on_can_while_the_robot_drives(
 
     (With the tests of the ROS 2 stream in tests/onboard/test_ros2_odometry.py by its
     subject; here to share the drive.)"""
-    from services.cli.validate import validation_settings
+    from services.cli.offline.validate import validation_settings
     from swpc_hw.sensors.mocap import ros2_typestore
 
     odom, tf, stream = square_drive.odom, square_drive.tf, square_drive.stream

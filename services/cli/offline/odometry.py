@@ -133,7 +133,7 @@ def _replay(stream: Any, directory: str) -> None:
 def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
     """Until Ctrl-C: the drives' feedback, aligned by :class:`DriverOdometry`, into the
     stream (stamps: the host's epoch time of each reading)."""
-    from services.cli.validate import validation_settings
+    from services.cli.offline.validate import validation_settings
     from services.config.robot import load_robot_config
     from services.config.timing import robot_drives
     from swpc_hw.clock import SystemClock
