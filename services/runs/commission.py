@@ -38,9 +38,10 @@ from services.runs.metrology.base import Metrology
 from services.runs.probing import Prober
 from services.runs.protocol import CalibrationRun
 from services.runs.state import RunFailedError, State
-from swpc_hw.calibration.commission.analysis import Commissioning, analyse
+from swpc_hw.calibration.commission.analysis import Commissioning, analyse, ratio_off
 from swpc_hw.calibration.commission.probes import (
     PIVOT_ANGLES,
+    REFINE_ANGLES,
     driver_of,
 )
 from swpc_hw.drives.robot_io import RobotIO
@@ -83,6 +84,24 @@ class CommissionRun(CalibrationRun):
         return 2.0 if state is State.PROBE else 0.0
 
     # ------------------------------------------------------------------ protocol
+    def _lock_angles(self, m: int, j: int) -> bool:
+        """Module ``m``'s pivot probes at :data:`~.probes.PIVOT_ANGLES`, then at
+        :data:`~.probes.REFINE_ANGLES` when those put its steering's ratio off
+        (:func:`~swpc_hw.calibration.commission.analysis.ratio_off`); False when a
+        steering moved the pinned robot (the probes stop there)."""
+        angles = list(PIVOT_ANGLES)
+        k = 0
+        while k < len(angles):
+            probes = self.prober.pivot_probe(m, angles[k], j)
+            if probes is None:
+                return False
+            self.prober.pivot_probes.extend(probes)
+            k += 1
+            seen = self.prober.pivot_probes
+            if k == len(PIVOT_ANGLES) and ratio_off(self.config.nominal, m, seen):
+                angles += REFINE_ANGLES  # its ratio off: measured over a whole turn of commands
+        return True
+
     def _protocol(self) -> None:
         problems = self.run_problems()
         if problems:
@@ -95,16 +114,10 @@ class CommissionRun(CalibrationRun):
         for i, m in enumerate(ids):
             self.status.module, self.status.module_index = m, i + 1
             j = driver_of(ids, m)
-            for a in PIVOT_ANGLES:
-                probes = self.prober.pivot_probe(m, a, j)
-                if probes is None:  # a steering that moved the robot: nothing more moves
-                    break
-                self.prober.pivot_probes.extend(probes)
-            else:
-                self.robot.free_steer(m)
-                self.robot.wheel_hold(m)
-                continue
-            break
+            if not self._lock_angles(m, j):  # a steering that moved the robot: nothing more
+                break
+            self.robot.free_steer(m)
+            self.robot.wheel_hold(m)
         self.robot.stop_all()
         self.robot.release()
         self.enter(State.SOLVE, "analysing the probes")

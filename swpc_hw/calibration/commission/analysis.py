@@ -213,9 +213,11 @@ def _steering(
 ) -> tuple[int | None, float | None, float | None]:
     """Step 4 for one configured module: (physical module, slope, zero).  With three
     points or more the circle's centre is fitted (:func:`circle_centre`: the nominal axis
-    may be mm off, which on a circle of 20 mm is degrees).  The readings are multi-turn: each is
-    taken on the turn of the first, the angles unwrapped in the readings' order.  A slope
-    within :data:`RATIO_TOL` of +-1 is taken as +-1; the zero is the mean over the probes."""
+    may be mm off, which on a circle of 20 mm is degrees).  The readings are multi-turn: the
+    angles are unwrapped in the readings' order, and ``phi = slope a + zero`` holds for a
+    reading ``a`` as read, whole turns and all (a steering whose ratio is off turns another
+    angle for each whole turn it reads).  A slope within :data:`RATIO_TOL` of +-1 is taken
+    as +-1; the zero is the mean over the probes."""
     A = nominal.arrays()
     seen = []
     for p in probes:
@@ -239,7 +241,7 @@ def _steering(
     a_k = [a for a, _ in pts]
     phi = np.unwrap([math.atan2(F[1] - centre[1], F[0] - centre[0]) for _, F in pts])
     if len(pts) < 2 or a_k[-1] - a_k[0] < math.radians(10):
-        return physical, None, wrap(float(phi[0]) - a_k[0])
+        return physical, None, wrap(float(phi[0]) - (a_k[0] + base))
     am = float(np.mean(a_k))
     slope = float(np.polyfit(np.array(a_k) - am, phi, 1)[0])
     if abs(abs(slope) - 1.0) <= RATIO_TOL:
@@ -248,7 +250,17 @@ def _steering(
         sum(math.sin(f - slope * a) for a, f in zip(a_k, phi, strict=True)),
         sum(math.cos(f - slope * a) for a, f in zip(a_k, phi, strict=True)),
     )
-    return physical, slope, zero
+    return physical, slope, wrap(zero - slope * base)  # phi = slope a + zero, a as read
+
+
+def ratio_off(nominal: RobotParams, module: int, probes: Sequence[PivotProbe]) -> bool:
+    """Whether ``module``'s pinned probes so far put its steering's ratio beyond
+    :data:`RATIO_TOL` (step 4, the sensor's axes taken as R's): the commissioning then
+    locks it at :data:`~.probes.REFINE_ANGLES` too."""
+    _, slope, _ = _steering(nominal, module, [p for p in probes if p.pinned], 0.0)
+    if slope is None or abs(slope) < NOT_A_WHEEL:
+        return False
+    return abs(1.0 / abs(slope) - 1.0) > RATIO_TOL
 
 
 def analyse(
@@ -368,15 +380,14 @@ def analyse(
         qi = ids.index(q)
         slope = d.get("steer_sign", 1) / d.get("steer_ratio", 1.0)
         zero = d.get("zero", float(A.beta[qi]))
-        turns = None
         num = den = 0.0
         for p in pivot_probes:
             if p.driver != j or p.fixed_point is None:
                 continue
             C = _rot(gamma, p.fixed_point)
-            if turns is None:
-                turns = p.driver_steering - wrap(p.driver_steering)
-            phi = slope * (p.driver_steering - turns) + zero
+            # the reading as it is, whole turns and all: a steering whose ratio is off
+            # turns another angle for each whole turn read
+            phi = slope * p.driver_steering + zero
             c = contact_point(A.P_s[qi], np.array(A.b[qi]), phi)
             rel = (float(c[0] - C[0]), float(c[1] - C[1]))
             D = math.hypot(*rel)

@@ -68,6 +68,12 @@ PIVOT_ANGLES = (0.0, math.radians(90.0), math.radians(180.0))
 """rad: the locked module's commanded steering angles, one pivot probe each: three points
 of the caster's circle give its centre, the steering's polarity, ratio and zero (a
 ratio down to 0.5 of the config's: consecutive angles less than half a turn apart)."""
+REFINE_ANGLES = (math.radians(270.0), math.radians(360.0))
+"""rad: two more commanded angles for a module whose steering's ratio the three of
+:data:`PIVOT_ANGLES` found off: a steering that turns less than commanded covers a third
+of its circle in those (its ratio good to 5 %, 1 std dev, from 0.5 mm fixed points); five
+angles over a whole turn of commands cover more (about 1.5 %), what a corrected config
+must hold for the calibration after it."""
 MOVE_MARGIN = 0.025
 """m: how far a steering move may move its steering axis (the robot pinned: the braked
 tyres' give, the pose noise, and what is left of the previous roll: 11 mm seen on the
