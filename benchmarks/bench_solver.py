@@ -14,9 +14,11 @@
 5. Honesty of the std devs: z = error / reported std dev of every parameter kind (and of
    the clock offset, estimated in these runs) over the seeds, with white and with AR(1)
    (rho 0.8) mocap noise: RMS z (1 when the std devs are right) and the share with
-   |z| <= 1.96 (0.95 when right).  Truth: Table 4 perturbed per seed (P_s +-5 %, beta
-   +-3 deg, b and r +-2 %), so that the encoders' quantization errors differ between
-   seeds as between real runs; a true clock offset uniform in +-100 ms per seed.
+   |z| <= 1.96 (0.95 when right); and of the whole covariance, each run's NEES
+   ``e' C^-1 e / 20`` (1 when its correlations are right too).  Truth: Table 4 perturbed
+   per seed (P_s +-5 %, beta +-3 deg, b and r +-2 %), so that the encoders' quantization
+   errors differ between seeds as between real runs; a true clock offset uniform in
+   +-100 ms per seed.
 6. The clock offset alone, default noise: true offsets 0, +-30 and +-200 ms; and a
    dataset of steady spins only (poses and encoders inside the segments), where it is not
    observable.
@@ -146,8 +148,14 @@ def accuracy(seeds: int, robust: bool) -> tuple[np.ndarray, np.ndarray, float]:
 MOCAP = ExperimentOptions(pose_sigma_xy=0.5e-3, pose_sigma_yaw=math.radians(0.05))
 
 
+NEES: list[float] = []
+"""``e' C^-1 e / n`` of each run of :func:`z_statistics` (its whole covariance, the
+clock offset's left out): about 1 when the covariance is honest, correlations and all."""
+
+
 def z_statistics(seeds: int, rho: float) -> np.ndarray:
-    """(seeds * N, 6) z of x_s, y_s, beta, b, r, offset (offset repeated per module)."""
+    """(seeds * N, 6) z of x_s, y_s, beta, b, r, offset (offset repeated per module); each
+    run's NEES of the parameters to :data:`NEES`."""
     robots = random_robots(
         seeds, np.random.default_rng(22), PAPER_CALIBRATED,
         pos_frac=0.05, beta_max=math.radians(3.0), br_frac=0.02,
@@ -162,6 +170,9 @@ def z_statistics(seeds: int, rho: float) -> np.ndarray:
         ds = generate_experiment(truth, opts, PAPER_NOMINAL).dataset
         res = solve(ds, SolverOptions(time_offset="auto"))
         z = (result_array(res) - params_array(truth)) / res.stddev_array()
+        if res.covariance is not None:
+            e = (result_array(res) - params_array(truth)).ravel()
+            NEES.append(float(e @ np.linalg.solve(res.covariance, e)) / e.size)
         std = res.time_offset_std if res.time_offset_std is not None else math.nan
         z_off = (res.time_offset - offsets[i]) / std
         rows.append(np.column_stack([z, np.full(z.shape[0], z_off)]))
@@ -178,7 +189,12 @@ def honesty(seeds: int) -> None:
         f"{'AR(1) 0.8 RMS z':>16} {'cover95':>8}"
     )
     t0 = time.perf_counter()
-    Zw, Za = z_statistics(seeds, 0.0), z_statistics(seeds, 0.8)
+    NEES.clear()
+    Zw = z_statistics(seeds, 0.0)
+    nees_w = np.array(NEES)
+    NEES.clear()
+    Za = z_statistics(seeds, 0.8)
+    nees_a = np.array(NEES)
     for i, k in enumerate((*NAMES, "offset")):
         w, a = Zw[:, i], Za[:, i]
         if k == "offset":  # one value per run
@@ -187,6 +203,10 @@ def honesty(seeds: int) -> None:
             f"[z] {k:<7} {np.sqrt(np.mean(w**2)):11.2f} {np.mean(np.abs(w) <= 1.96):8.3f} "
             f"{np.sqrt(np.mean(a**2)):16.2f} {np.mean(np.abs(a) <= 1.96):8.3f}"
         )
+    for name, n in (("white", nees_w), ("AR(1) 0.8", nees_a)):
+        print(f"[z] the whole covariance, {name}: NEES e' C^-1 e / {5 * len(PAPER_CALIBRATED.ids)} "
+              f"mean {n.mean():.2f}, median {np.median(n):.2f}, {n.min():.2f}-{n.max():.2f} "
+              f"over {n.size} runs")  # fmt: skip
     print("[z] goal: RMS z within 0.7-1.5 and cover95 >= 0.9 for every kind, both noises")
     print(f"[z] ({time.perf_counter() - t0:.1f} s)")
 
