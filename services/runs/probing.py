@@ -37,7 +37,7 @@ from swpc_hw.calibration.commission.probes import (
     PivotPlan,
     PivotProbe,
     SteerMove,
-    held,
+    is_pinned,
     next_pivot,
     pivot_plan,
     plan_about,
@@ -190,7 +190,7 @@ class Prober:
                     got = self._roll(m, driver, sign * plan.roll_rate, expected, turn, push)
                 last = (got[0], got[1])
                 probe = self._observed(m, driver, got[0], got[1], first_stop or got[3], push)
-                pinned = held(probe, pivot, MOCAP_TURNS)
+                pinned = is_pinned(probe, pivot, MOCAP_TURNS)
                 if got[2] == "no turn":
                     # a roll that turned the robot a little about a point elsewhere (a
                     # push across the turn about where the lock is not) steers again
@@ -200,8 +200,8 @@ class Prober:
                 elif probe.fixed_point is None or len(drivers) == 1 or pinned:
                     return [*unpinned, probe]
                 else:
-                    fought = self._fought(m, driver, probe, pivot)
-                    first_stop = first_stop or fought
+                    elsewhere = self._not_pinned(m, driver, probe, pivot)
+                    first_stop = first_stop or elsewhere
                 assert probe.fixed_point is not None
                 unpinned.append(replace(probe, pinned=False))
                 history.append((pivot, probe.fixed_point))
@@ -227,7 +227,9 @@ class Prober:
         expected = abs(plan.roll_per_turn * turn)
         return self._roll(m, driver, sign * plan.roll_rate, expected, turn, push)
 
-    def _fought(self, m: int, driver: int, probe: PivotProbe, pivot: tuple[float, float]) -> str:
+    def _not_pinned(
+        self, m: int, driver: int, probe: PivotProbe, pivot: tuple[float, float]
+    ) -> str:
         """A roll whose fixed point was not where its driver was steered to turn about:
         recorded as a stop; the probe goes on (:meth:`pivot_probe`)."""
         assert probe.fixed_point is not None

@@ -36,8 +36,8 @@ its loop against the driver: a driver heading across the circle about the true c
 point ``T`` (its steering miswired, or steered about a point ``P`` where the config puts
 the lock and the lock is not) fights the lock, and the robot turns about a point ``X``
 between them.  So a commissioning probe is **pinned** only when its fixed point is where
-its driver was steered to turn about (:func:`held`, within :data:`PINNED_TOL`); else its
-driver is steered again about the next estimate (:func:`next_pivot`), up to
+its driver was steered to turn about (:func:`is_pinned`, within :data:`PINNED_TOL`); else
+its driver is steered again about the next estimate (:func:`next_pivot`), up to
 :data:`PIVOT_TRIES` rolls, then the next module drives.  A lock that holds
 (a brake) gives ``X = T`` at once, and the next roll is pinned; a driver that cannot
 head right (its own steering miswired) never is, and its probes say nothing.
@@ -205,7 +205,7 @@ def plan_about(nominal: RobotParams, pivot: tuple[float, float], driver: int) ->
     return PivotPlan((float(C[0]), float(C[1])), target, per_turn * PROBE_RATE, per_turn)
 
 
-def held(probe: PivotProbe, pivot: tuple[float, float], turns: Sequence[float]) -> bool:
+def is_pinned(probe: PivotProbe, pivot: tuple[float, float], turns: Sequence[float]) -> bool:
     """Whether ``probe`` is pinned (module docstring): its fixed point within
     :data:`PINNED_TOL` (or 4 std devs) of ``pivot``, the point its driver was steered to
     turn about, the sensor's axes turned by one of ``turns`` (rad: a motion-capture

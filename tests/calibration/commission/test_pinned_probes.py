@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from swpc_hw.calibration.commission.analysis import MOCAP_TURNS, analyse
-from swpc_hw.calibration.commission.probes import PINNED_TOL, PivotProbe, held, next_pivot
+from swpc_hw.calibration.commission.probes import PINNED_TOL, PivotProbe, is_pinned, next_pivot
 from tests.calibration.commission.test_analysis import NOMINAL, Wiring, probes
 
 
@@ -47,12 +47,12 @@ def test_a_probe_is_pinned_where_it_was_steered_to_turn_even_seen_by_a_turned_bo
     pivot = (0.2, 0.1)
     at = PivotProbe(1, 0.0, 3, 2.0, 1.0, 0.17, (0.2 + 0.8 * PINNED_TOL, 0.1), 5e-4)
     off = replace(at, fixed_point=(0.2 + 1.2 * PINNED_TOL, 0.1))
-    assert held(at, pivot, [0.0]) and not held(off, pivot, [0.0])
+    assert is_pinned(at, pivot, [0.0]) and not is_pinned(off, pivot, [0.0])
     # a body turned 90 deg from R reports R(-90 deg) C
     turned = replace(at, fixed_point=(0.1, -0.2))
-    assert not held(turned, pivot, [0.0]) and held(turned, pivot, MOCAP_TURNS)
+    assert not is_pinned(turned, pivot, [0.0]) and is_pinned(turned, pivot, MOCAP_TURNS)
     noisy = replace(off, fixed_point_std=PINNED_TOL / 2)  # 4 std devs cover it
-    assert held(noisy, pivot, [0.0])
+    assert is_pinned(noisy, pivot, [0.0])
 
 
 def test_the_analysis_judges_on_the_pinned_probes_only() -> None:
