@@ -291,9 +291,13 @@ def test_a_drive_whose_time_lags_the_hosts_gets_the_watchdog_window_it_is_owed(
     service: tuple[TestClient, Runtime, Recorder],
 ) -> None:
     """The activation's watchdog proof judges ``W + L`` on each drive's own time (its
-    heartbeats) as well as the host's: a drive running at a third of the host's pace (as a
-    simulator that cannot keep up in an emulated machine: its watchdog and heartbeat
-    three times as long on the host's clock) is proven, not refused as "still armed"."""
+    heartbeats) as well as the host's: a drive whose time lags the host's (as a simulator
+    that cannot keep up in an emulated machine) is proven, not refused as "still armed".
+
+    Its watchdog is three times as long on the host's clock, its heartbeat twice: as slow
+    as the heartbeat loss ``L`` lets a heartbeat be with a period to spare (a heartbeat
+    three times as slow is ``L`` itself, lost on the first late one: a run that failed,
+    rightly, on a busy CI host)."""
     client, rt, _ = service
     sim = rt.simulator
     assert sim is not None
@@ -302,8 +306,10 @@ def test_a_drive_whose_time_lags_the_hosts_gets_the_watchdog_window_it_is_owed(
         rt.timing.heartbeat_loss
     )
     slow = 3.0  # its expiry 3 W after the last frame, past W + L on the host's clock
+    beat = 2.0  # its heartbeat: a period short of the loss L
     assert slow * w > window, (w, window)
-    ax.watchdog_timeout, ax.heartbeat_period = slow * w, slow * period
+    assert (beat + 1) * period <= rt.timing.heartbeat_loss + 1e-9, (period, rt.timing)
+    ax.watchdog_timeout, ax.heartbeat_period = slow * w, beat * period
     try:
         run_id = start(client, SHORT)
         wait_spinning(client, run_id)
