@@ -1,0 +1,179 @@
+"""The result's covariance against the truth, whole calibrations on the in-process
+simulator, a truth per run (issue 44: honest where the robot uses it).
+
+For each protocol the service runs, ``SWPC_BENCH_HONESTY_RUNS`` calibrations (default 20)
+through the service on the in-process simulator, each with its own hidden truth (the
+paper's Table 4 robot perturbed as :func:`benchmarks.bench_plan.seed_truths` does:
+``P_s`` +-5 %, ``beta`` +-3 deg, ``b`` and ``r`` +-2 %) and its own simulator seed; the
+nominal is the paper's design.  Per run, the error ``e`` of the 5N parameters against the
+truth and the run's own covariance ``C`` (its kinematic file):
+
+* the whole covariance's NEES, ``e' C^-1 e / 5N`` (about 1 when ``C`` is honest: its
+  mean, spread and the share of runs above the 95 % point of ``chi2(5N) / 5N``);
+* per kind (position ``x_s, y_s, b``; ``beta``; radius ``r``) the RMS of
+  ``z = e / sqrt(diag C)``;
+* the square path's end position error ``|S e|`` (the larger of the CCW and CW squares,
+  :mod:`swpc_hw.calibration.plan.square_error`) against its forecast from the same
+  covariance (:func:`~swpc_hw.calibration.plan.square_error.square_path_sd`): the RMS of
+  each, their ratio, and the RMS of the per-run ratio (a z);
+* the robot time.
+
+Protocols (``SWPC_BENCH_HONESTY_PROTOCOLS``, comma-separated, default all four):
+``default`` (the robot config's, motion capture), ``planned`` (``plan: auto`` with motion
+capture: the plan's protocol with sequential stopping), ``gyro`` (the default without
+motion capture) and ``gyro-planned`` (``plan: auto`` without motion capture: no
+sequential stopping there).
+
+``python -m benchmarks honesty``.  Each run is a whole calibration in simulated time
+(20-60 s of one core each): the default 4 x 20 runs take about an hour.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from benchmarks.bench_check import TOKEN, start_and_wait
+from benchmarks.bench_plan import KINDS, as_matrix, seed_truths
+from swpc_hw.calibration.plan.square_error import square_path_sd, square_path_sensitivity
+from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
+
+PROTOCOLS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "planned": {"plan": "auto"},
+    "gyro": {"metrology": "imu"},
+    "gyro-planned": {"metrology": "imu", "plan": "auto"},
+}
+"""Protocol name -> the body of its ``POST /calibrations`` (``install: never`` added)."""
+
+
+@dataclass
+class RunFigures:
+    """One run against its truth."""
+
+    robot_time: float
+    nees: float
+    z: np.ndarray  # (N, 5)
+    square_mm: float
+    forecast_mm: float
+
+
+def figures(e: np.ndarray, C: np.ndarray, S: np.ndarray, robot_time: float) -> RunFigures:
+    """``e`` (N, 5) the error against the truth, ``C`` (5N, 5N) the run's covariance,
+    ``S`` (6, 5N) the square path's sensitivity."""
+    v = e.ravel()
+    nees = float(v @ np.linalg.lstsq(C, v, rcond=None)[0]) / v.size
+    z = e / np.sqrt(np.diag(C)).reshape(e.shape)
+    d = S @ v
+    reached = max(math.hypot(d[0], d[1]), math.hypot(d[3], d[4]))
+    forecast = square_path_sd(S, C)[0]
+    return RunFigures(robot_time, nees, z, reached * 1e3, forecast * 1e3)
+
+
+@contextlib.contextmanager
+def service(data: Path, truth: Path, seed: int) -> Iterator[Any]:
+    """The service on the in-process simulator (hidden truth ``truth``, simulator seed
+    ``seed``, the robot config ``data/robot.yaml``): a client."""
+    from fastapi.testclient import TestClient
+    from pydantic import SecretStr
+
+    from services.config.settings import ServiceSettings
+    from services.http.app import create_app
+
+    s = ServiceSettings(
+        data_dir=data, token=SecretStr(TOKEN), sim_truth=truth, sim_seed=seed,
+        robot_config=data / "robot.yaml", allowed_hosts=["testserver"],
+    )  # fmt: skip
+    with TestClient(create_app(s)) as client:
+        yield client
+
+
+def one_run(data: Path, truth_path: Path, seed: int, body: dict[str, Any]) -> dict[str, Any]:
+    with service(data, truth_path, seed) as client:
+        while body.get("plan") and client.get("/plan").status_code == 202:  # being made
+            time.sleep(0.1)
+        return start_and_wait(client, "calibrations", {**body, "install": "never"})
+
+
+def protocol_runs(name: str, n: int) -> list[RunFigures]:
+    body = PROTOCOLS[name]
+    S = square_path_sensitivity(PAPER_NOMINAL)
+    out: list[RunFigures] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        data = Path(tmp)
+        save_kinematics(data / "nominal.yaml", PAPER_NOMINAL)
+        (data / "robot.yaml").write_text("nominal: nominal.yaml\n", encoding="utf-8")
+        for k, truth in enumerate(seed_truths(PAPER_CALIBRATED, n, 4400)):
+            save_kinematics(data / "truth.yaml", truth)
+            st = one_run(data, data / "truth.yaml", 1 + k, body)
+            if st["state"] != "DONE":
+                print(f"  {name} run {k}: {st['state']} ({st['reason']})", flush=True)
+                continue
+            kf = load_kinematics(data / "runs" / st["id"] / "kinematics.yaml")
+            if kf.covariance is None:
+                print(f"  {name} run {k}: no covariance in its file", flush=True)
+                continue
+            e = as_matrix(kf.params) - as_matrix(truth)
+            e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            f = figures(e, np.asarray(kf.covariance, dtype=float), S, float(st["elapsed_s"]))
+            out.append(f)
+            print(f"  {name} run {k}: NEES {f.nees:.2f}, square path {f.square_mm:.3f} mm "
+                  f"(forecast {f.forecast_mm:.3f}), {f.robot_time:.0f} s of robot time",
+                  flush=True)  # fmt: skip
+    return out
+
+
+def summary(name: str, runs: list[RunFigures]) -> str:
+    if not runs:
+        return f"{name}: no run DONE"
+    nees = np.array([r.nees for r in runs])
+    dof = runs[0].z.size
+    above = float(np.mean(nees > stats.chi2.ppf(0.95, dof) / dof))
+    z = np.stack([r.z for r in runs])
+    kinds = ", ".join(
+        f"{k} {math.sqrt(float(np.mean(z[:, :, c] ** 2))):.2f}" for k, c in KINDS.items()
+    )
+    mm = np.array([r.square_mm for r in runs])
+    fc = np.array([r.forecast_mm for r in runs])
+    rms_mm, rms_fc = (math.sqrt(float(np.mean(a**2))) for a in (mm, fc))
+    t = np.array([r.robot_time for r in runs])
+    return (
+        f"{name} ({len(runs)} runs): NEES mean {nees.mean():.2f} (median {np.median(nees):.2f}, "
+        f"{nees.min():.2f}-{nees.max():.2f}, {above:.0%} above chi2 95 %); RMS z {kinds}; "
+        f"square path forecast {rms_fc:.3f} mm, reached {rms_mm:.3f} mm RMS (largest "
+        f"{mm.max():.3f}), ratio {rms_mm / rms_fc:.2f}, RMS z "
+        f"{math.sqrt(float(np.mean((mm / fc) ** 2))):.2f}; robot time "
+        f"{t.mean():.0f} s ({t.min():.0f}-{t.max():.0f})"
+    )
+
+
+def main() -> None:
+    import logging
+
+    logging.getLogger("swpc").setLevel(logging.ERROR)
+    n = int(os.environ.get("SWPC_BENCH_HONESTY_RUNS", "20"))
+    names = os.environ.get("SWPC_BENCH_HONESTY_PROTOCOLS", ",".join(PROTOCOLS)).split(",")
+    print(f"[honesty] {n} runs per protocol on the in-process simulator, a truth per run "
+          "(Table 4 +-5 % / 3 deg / 2 %), mocap 0.5 mm / 0.05 deg")  # fmt: skip
+    lines = []
+    for name in names:
+        t0 = time.perf_counter()
+        runs = protocol_runs(name.strip(), n)
+        lines.append(summary(name.strip(), runs) + f" [{time.perf_counter() - t0:.0f} s]")
+        print(lines[-1], flush=True)
+    print("\n".join(["", "[honesty] summary", *lines]))
+
+
+if __name__ == "__main__":
+    main()
