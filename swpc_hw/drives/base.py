@@ -45,25 +45,24 @@ import socket
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from typing import Protocol, TypeVar
+from typing import TypeVar
 
 import can
 
 from firmware_protocol.codec import Frame
-from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock, wait_until
+from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
 from swpc_hw.drives.bus import CanConfig
 from swpc_hw.drives.errors import (
     CanBusError,
     CanCommandError,
     CanError,
     LifecycleError,
-    NodeTimeoutError,
 )
 from swpc_hw.drives.interface import DriveKind
 from swpc_hw.drives.observation import DriverObservation
 from swpc_hw.drives.periodic import KernelRefresh, frame_message
 from swpc_hw.drives.recording import Recorder, grow_receive_buffer
-from swpc_hw.drives.tracking import NodeTrack, Supervision, check, frame_time
+from swpc_hw.drives.tracking import NodeTrack, Supervision, check_nodes, frame_time
 from swpc_hw.drives.types import (
     DriverEvent,
     DriverStats,
@@ -72,7 +71,6 @@ from swpc_hw.drives.types import (
     Lifecycle,
     Observation,
     Severity,
-    where,
 )
 
 log = logging.getLogger(__name__)
@@ -85,11 +83,6 @@ LOG_RETRY_S = 10.0
 T = TypeVar("T", bound=NodeTrack)
 
 
-class _OnNode(Protocol):
-    node: int
-
-
-N = TypeVar("N", bound=_OnNode)
 M = TypeVar("M")
 
 
@@ -315,28 +308,6 @@ class DriverBase(DriverObservation, DriveKind):
             prefix = f"{at}: " if at else ""
             raise LifecycleError(f"{prefix}cannot {what} in state {self._state.value}{why}")
 
-    def _wait_all(
-        self,
-        what: str,
-        tracks: Callable[[], Iterable[N]],
-        ok: Callable[[N], bool],
-        name: Callable[[N], str],
-        timeout: float,
-    ) -> None:
-        """Wait (on the clock) until ``ok`` holds for every track; else
-        :class:`NodeTimeoutError` naming those it does not hold for."""
-        deadline = self.clock.now() + timeout
-        with self._changed:
-            if not wait_until(
-                self.clock, self._changed, lambda: all(ok(a) for a in tracks()), deadline
-            ):
-                bad = [a for a in tracks() if not ok(a)]
-                raise NodeTimeoutError(
-                    f"activate(): no {what} from {', '.join(name(a) for a in bad)} within "
-                    f"{timeout:g} s",
-                    node=bad[0].node,
-                )
-
     # ================================================================ transmit
     def _send_frames(self, frames: list[Frame], best_effort: bool = False) -> None:
         bus = self._bus
@@ -370,15 +341,6 @@ class DriverBase(DriverObservation, DriveKind):
         if failure is not None:
             self._emit(EventKind.SEND_ERROR, Severity.WARNING, str(failure))
             raise failure
-
-    def _log(self, msg: can.Message) -> None:
-        """A frame in or out to the recording, if one is on, and to the rolling log: every
-        frame while recording, else as ``CanConfig.log_idle_period_s`` samples them."""
-        recorder = self._recorder
-        if recorder is not None:
-            recorder.write(msg)
-        if self._logger is not None:
-            self._logger.write(msg, sample=recorder is None)
 
     # ================================================================ receive + supervise
     def _io_loop(self) -> None:
@@ -519,29 +481,17 @@ class DriverBase(DriverObservation, DriveKind):
         refreshed: Callable[[T], bool],
         frames: Callable[[T], list[Frame]],
     ) -> Supervision:
-        """:func:`swpc_hw.drives.tracking.check` on node tracks, a lost node a FAULT."""
-        loss_after = self.config.loss_after_s
-        res = check(
+        """:func:`swpc_hw.drives.tracking.check_nodes` on node tracks, a lost node a FAULT."""
+        return check_nodes(
             nodes,
             now,
             t_configured=self._configured_at,
-            loss_after=loss_after,
+            loss_after=self.config.loss_after_s,
             refresh_period=self.config.refresh_period_s,
             refresh=active and self._kernel is None,
             refreshed=refreshed,
             frames=frames,
         )
-        lost = [
-            Observation(
-                EventKind.HEARTBEAT_LOST,
-                Severity.FAULT,
-                f"{where(nd.module, nd.node)}: no heartbeat for {loss_after:.3f} s",
-                nd.module,
-                nd.node,
-            )
-            for nd in res.lost
-        ]
-        return Supervision(lost, len(lost), bool(lost), res.refresh, res.next_deadline)
 
     # ================================================================ faults and events
     def _observed(self, obs: list[Observation]) -> None:

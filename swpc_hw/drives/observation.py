@@ -16,9 +16,11 @@ import queue
 import threading
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
+from typing import Protocol, TypeVar
 
+import can
 import numpy as np
 from numpy.typing import NDArray
 
@@ -44,6 +46,13 @@ from swpc_hw.drives.types import (
 )
 
 log = logging.getLogger(__name__)
+
+
+class _OnNode(Protocol):
+    node: int
+
+
+N = TypeVar("N", bound=_OnNode)
 
 
 class DriverObservation(ABC):
@@ -224,6 +233,28 @@ class DriverObservation(ABC):
             f"axis {int(axis)} ({AXIS_NAMES[axis]}) state {state.name}",
         )
 
+    def _wait_all(
+        self,
+        what: str,
+        tracks: Callable[[], Iterable[N]],
+        ok: Callable[[N], bool],
+        name: Callable[[N], str],
+        timeout: float,
+    ) -> None:
+        """Wait (on the clock) until ``ok`` holds for every track; else
+        :class:`NodeTimeoutError` naming those it does not hold for."""
+        deadline = self.clock.now() + timeout
+        with self._changed:
+            if not wait_until(
+                self.clock, self._changed, lambda: all(ok(a) for a in tracks()), deadline
+            ):
+                bad = [a for a in tracks() if not ok(a)]
+                raise NodeTimeoutError(
+                    f"activate(): no {what} from {', '.join(name(a) for a in bad)} within "
+                    f"{timeout:g} s",
+                    node=bad[0].node,
+                )
+
     def iter_modules(self) -> Iterator[ModuleState]:
         for module in self.modules():
             yield self.module_state(module)
@@ -254,6 +285,15 @@ class DriverObservation(ABC):
             return None
         rec.stop()
         return rec.error
+
+    def _log(self, msg: can.Message) -> None:
+        """A frame in or out to the recording, if one is on, and to the rolling log: every
+        frame while recording, else as ``CanConfig.log_idle_period_s`` samples them."""
+        recorder = self._recorder
+        if recorder is not None:
+            recorder.write(msg)
+        if self._logger is not None:
+            self._logger.write(msg, sample=recorder is None)
 
     def log_error(self) -> str | None:
         """Why the log of ``CanConfig.log_path`` stopped (a failed write), if it did."""

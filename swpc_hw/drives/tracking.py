@@ -30,6 +30,8 @@ directly.
   right after it has drained its receive queue, with a ``now`` taken *before* the queue
   was found empty, so every heartbeat that arrived by ``now`` has been applied.  A node
   is reported lost once (until its heartbeat is back).
+* :func:`check_nodes` -- :func:`check` as a kind's supervision: a lost node a FAULT
+  observation (:meth:`swpc_hw.drives.base.DriverBase._check_nodes`).
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from swpc_hw.drives.types import (
     ModuleState,
     Observation,
     Severity,
+    where,
 )
 from swpc_hw.row_ring import KEEP_S, RowRing
 
@@ -221,3 +224,38 @@ class Supervision:
     fault: bool = False
     refresh: list[Frame] = field(default_factory=list)
     next_deadline: float = math.inf
+
+
+def check_nodes(
+    nodes: Iterable[T],
+    now: float,
+    *,
+    t_configured: float,
+    loss_after: float,
+    refresh_period: float,
+    refresh: bool,
+    refreshed: Callable[[T], bool],
+    frames: Callable[[T], list[Frame]],
+) -> Supervision:
+    """:func:`check` on node tracks, a lost node a FAULT (module docstring)."""
+    res = check(
+        nodes,
+        now,
+        t_configured=t_configured,
+        loss_after=loss_after,
+        refresh_period=refresh_period,
+        refresh=refresh,
+        refreshed=refreshed,
+        frames=frames,
+    )
+    lost = [
+        Observation(
+            EventKind.HEARTBEAT_LOST,
+            Severity.FAULT,
+            f"{where(nd.module, nd.node)}: no heartbeat for {loss_after:.3f} s",
+            nd.module,
+            nd.node,
+        )
+        for nd in res.lost
+    ]
+    return Supervision(lost, len(lost), bool(lost), res.refresh, res.next_deadline)

@@ -7,7 +7,9 @@ SDO, PDO, NMT and EMCY (:class:`canopen.Network` with one
 with the kind's receive path (it feeds :meth:`canopen.Network.notify` itself: no notifier
 thread, so that in lockstep every frame is handled on the clock), the set-up
 (:mod:`swpc_hw.drives.cia402.setup`) and the pure cores of
-:mod:`swpc_hw.drives.cia402.tracking`.
+:mod:`swpc_hw.drives.cia402.tracking`, :mod:`~swpc_hw.drives.cia402.pdo` (the process
+data), :mod:`~swpc_hw.drives.cia402.commands` and :mod:`~swpc_hw.drives.cia402.status`;
+canopen's side outside the set-up is :mod:`swpc_hw.drives.cia402.network`.
 
 Lifecycle
 ---------
@@ -44,33 +46,45 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Iterator
 
 import can
-import canopen
 from canopen.emcy import EmcyError
 from canopen.pdo.base import PdoMap
-from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from firmware_protocol import cia402
-from firmware_protocol.cia402 import Mode, PowerState
+from firmware_protocol.cia402 import PowerState
 from firmware_protocol.codec import Axis, Frame, HomingState
 from swpc_hw.clock import SYSTEM_CLOCK, Clock, SimClock
 from swpc_hw.drives.base import DriverBase
 from swpc_hw.drives.bus import CanConfig
+from swpc_hw.drives.cia402 import commands, status
+from swpc_hw.drives.cia402.commands import MODE_TIMEOUT_S, POWER_TIMEOUT_S
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Drives
-from swpc_hw.drives.cia402.sdo import ClockedRemoteNode
-from swpc_hw.drives.cia402.setup import OPTIONAL, PROFILE_VELOCITY, set_up
-from swpc_hw.drives.cia402.tracking import (
-    AxisTrack,
-    ModuleTrack,
-    on_emcy,
-    on_heartbeat,
-    on_statusword,
-    pair,
-    supervise,
+from swpc_hw.drives.cia402.network import (
+    HostNetwork,
+    answers,
+    fault_at_start,
+    guard_frame,
+    heartbeat_frame,
+    read_eds,
+    remote_node,
+    unreachable,
+    write_limits,
+    write_mode,
 )
+from swpc_hw.drives.cia402.pdo import (
+    command_frames,
+    on_tpdo,
+    streams_targets,
+    target_frames,
+    with_velocity_torque,
+)
+from swpc_hw.drives.cia402.sdo import ClockedRemoteNode
+from swpc_hw.drives.cia402.setup import set_up
+from swpc_hw.drives.cia402.tracking import AxisTrack, ModuleTrack, on_emcy, on_heartbeat, supervise
 from swpc_hw.drives.errors import (
     CanBusError,
     CanError,
@@ -88,26 +102,6 @@ from swpc_hw.drives.types import (
     Severity,
 )
 
-POWER_TIMEOUT_S = 1.0
-"""An axis asked to enable that has not followed a step's controlword toward OPERATION
-ENABLED in a statusword answering a SYNC sent this long after it has refused (robot time,
-in SYNC periods; :func:`~swpc_hw.drives.cia402.tracking.supervise`)."""
-MODE_TIMEOUT_S = 0.5
-"""A mode whose display has not followed in a statusword answering a SYNC sent this long
-after it was commanded was refused (robot time, in SYNC periods)."""
-
-
-class _HostNetwork(canopen.Network):
-    """canopen's network on the driver's bus: every frame it sends is stamped with the
-    driver clock's wall time, counted and logged (no notifier: the driver feeds it)."""
-
-    def __init__(self, driver: Cia402Driver, bus: can.BusABC) -> None:
-        super().__init__(bus)
-        self.driver = driver
-
-    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        self.driver._send(can_id, bytes(data))
-
 
 class Cia402Driver(DriverBase):
     """The robot's CiA 402 drives on one bus (module docstring)."""
@@ -122,22 +116,11 @@ class Cia402Driver(DriverBase):
     ) -> None:
         super().__init__(config, clock=clock)
         self.drives = drives
-        self._modules: dict[int, ModuleTrack] = {}
-        self._axes: dict[int, AxisTrack] = {}
-        self._history: dict[int, FeedbackRing] = {}
+        self._modules = status.module_tracks(drives)
+        self._axes = {a.node: a for mt in self._modules.values() for a in mt.axes}
+        self._history = {m: FeedbackRing(config.history_len) for m in self._modules}
         self._last: dict[int, FeedbackSample] = {}
-        for m, mod in drives.axes().items():
-            tracks = []
-            for axis, a in ((Axis.STEER, mod.steer), (Axis.WHEEL, mod.wheel)):
-                tr = AxisTrack(m, axis, a.node, a.counts_per_rad(), a.gear_ratio)
-                tracks.append(tr)
-                self._axes[a.node] = tr
-            mt = ModuleTrack(m, tracks[0], tracks[1])
-            if mod.steer.homing == ABSOLUTE:
-                mt.homed, mt.homing = True, HomingState.DONE
-            self._modules[m] = mt
-            self._history[m] = FeedbackRing(config.history_len)
-        self._network: _HostNetwork | None = None
+        self._network: HostNetwork | None = None
         self._nodes: dict[int, ClockedRemoteNode] = {}
         self._next_heartbeat = 0.0
         self._sync_on = False
@@ -152,46 +135,26 @@ class Cia402Driver(DriverBase):
 
     # ================================================================ lifecycle
     def _before_open(self) -> None:
-        for eds in self.drives.eds_files():
-            try:
-                canopen.import_od(str(eds))
-            except Exception as exc:
-                raise CanBusError(
-                    f"drives.object_dictionary {eds}: cannot read it as an EDS/DCF: {exc}"
-                ) from exc
+        read_eds(self.drives)
 
     def _opened(self, bus: can.BusABC) -> None:
         """canopen's network on the bus, a remote node per axis; the host's heartbeat
         from the kernel on SocketCAN."""
         cfg = self.config
-        net = self._network = _HostNetwork(self, bus)
+        net = self._network = HostNetwork(bus, self._send)
         for m, mt in self._modules.items():
             for a in mt.axes:
-                mc = self.drives.axes()[m]
-                node = ClockedRemoteNode(
-                    a.node,
-                    str(self.drives.eds(mc.steer if a.axis == Axis.STEER else mc.wheel)),
-                    self.clock,
-                    timeout=cfg.loss_after_s,
-                )
+                node = remote_node(self.drives, a, self.clock, cfg.loss_after_s)
                 net.add_node(node)
                 self._nodes[a.node] = node
                 net.subscribe(cia402.HEARTBEAT_BASE + a.node, self._on_heartbeat)
-                node.emcy.add_callback(self._emcy_callback(a))
+                node.emcy.add_callback(functools.partial(self._on_emcy, a))
                 for i in node.tpdo.map or {}:  # the ones swpc maps (a.tpdos): at set-up
                     node.tpdo[i].add_callback(lambda p, a=a, m=m, i=i: self._on_tpdo(m, a, i, p))
         if self._kernel is not None:
-            self._kernel.set_node(self.drives.host_node, [self._heartbeat_frame()])
+            host = self.drives.host_node
+            self._kernel.set_node(host, [heartbeat_frame(host)])
         self._next_heartbeat = self._next_renewal = self._configured_at
-
-    @staticmethod
-    def _guard_frame(a: AxisTrack) -> Frame:
-        """Node guarding's request of ``a``'s state (a remote frame, 1 byte)."""
-        return Frame(cia402.HEARTBEAT_BASE + a.node, b"\x00", remote=True)
-
-    def _heartbeat_frame(self) -> Frame:
-        host = self.drives.host_node
-        return Frame(cia402.HEARTBEAT_BASE + host, bytes([cia402.NMT_OPERATIONAL]))
 
     def _bring_up(self) -> None:
         """Each drive not set up since its boot reached (:meth:`_reach`), set up
@@ -211,7 +174,7 @@ class Cia402Driver(DriverBase):
                     a.controlword = cia402.CW_DISABLE_VOLTAGE
                 if a.guarded and self._kernel is not None:
                     with self._tx_lock:  # its guard requests from the kernel, as the heartbeat
-                        self._kernel.set_node(a.node, [self._guard_frame(a)])
+                        self._kernel.set_node(a.node, [guard_frame(a)])
         for a in self._tracks():
             if a.nmt != cia402.NMT_OPERATIONAL:
                 with self._lock:
@@ -239,7 +202,7 @@ class Cia402Driver(DriverBase):
         (NMT STOPPED, or busy booting), NMT reset communication to it and its boot-up
         awaited, then asked again; :class:`NodeTimeoutError` if still nothing."""
         node = self._nodes[a.node]
-        if self._answers(node):
+        if answers(node):
             return
         t0 = self.clock.now()
         node.nmt.send_command(cia402.NMT_RESET_COMMUNICATION)
@@ -249,23 +212,8 @@ class Cia402Driver(DriverBase):
                 "a boot-up", lambda: [a], lambda x: (x.t_boot or -math.inf) >= t0,
                 lambda x: x.where(), timeout,
             )  # fmt: skip
-        if not self._answers(node):
-            raise NodeTimeoutError(
-                f"{a.where()}: no answer to an SDO request (0x1000) and no boot-up after NMT "
-                f"reset communication within {timeout:g} s: check its power, its wiring "
-                f"to this bus ({self.config.channel}) and its node id",
-                node=a.node,
-            )
-
-    @staticmethod
-    def _answers(node: ClockedRemoteNode) -> bool:
-        try:
-            node.sdo.upload(cia402.DEVICE_TYPE, 0)
-        except SdoCommunicationError:
-            return False
-        except SdoAbortedError:
-            pass  # an abort is an answer
-        return True
+        if not answers(node):
+            raise unreachable(a, timeout, self.config.channel)
 
     def _activated(self) -> None:
         """The SYNC (``feedback_rate_hz``) runs from now on; an axis known to be in FAULT
@@ -273,11 +221,9 @@ class Cia402Driver(DriverBase):
         if not self._sync_on:
             self._sync_on = True
             self._next_sync = self.clock.now()
-        faulted = (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE)
         for a in self._tracks():
             a.refused_reported = False
-            if a.state in faulted or a.error_code:
-                a.reset = True
+            commands.clear_fault(a)
 
     def _after_activate(self) -> None:
         """A statusword from every drive; a fault present at start reset (the first
@@ -292,23 +238,8 @@ class Cia402Driver(DriverBase):
         except NodeTimeoutError:
             for a in self._tracks():
                 if a.state in faulted:
-                    raise NodeError(
-                        f"{a.where()}: in FAULT since before the run, and a fault reset did "
-                        f"not clear it within {POWER_TIMEOUT_S:g} s: {self._error_code(a)}; "
-                        "its cause is still there (the drive's manual says what each code "
-                        "needs)",
-                        node=a.node,
-                        axis=int(a.axis),
-                    ) from None
+                    raise fault_at_start(self._nodes[a.node], a, POWER_TIMEOUT_S) from None
             raise
-
-    def _error_code(self, a: AxisTrack) -> str:
-        """The drive's error code 0x603F, named (or the one its EMCY gave)."""
-        code = a.error_code
-        if cia402.ERROR_CODE in self._nodes[a.node].object_dictionary:
-            with contextlib.suppress(SdoAbortedError, SdoCommunicationError):
-                code = int(self._nodes[a.node].sdo[cia402.ERROR_CODE].raw)
-        return f"error code 0x603F = 0x{code:04X} ({cia402.emcy_name(code)})"
 
     def _tracks(self) -> Iterator[AxisTrack]:
         for mt in self._modules.values():
@@ -329,52 +260,27 @@ class Cia402Driver(DriverBase):
 
     def _send_rpdo(self, a: AxisTrack, targets: bool, best_effort: bool = False) -> None:
         """The targets' RPDOs (if ``targets``) then the command's of ``a``: canopen packs
-        them."""
+        them (:mod:`swpc_hw.drives.cia402.pdo`)."""
         if targets:
             self._send_targets(a, best_effort)
-        for f in self._command_frames(a):
+        for f in command_frames(self._nodes[a.node], a):
             self._send(f.arbitration_id, f.data, best_effort)
-
-    def _pdo_frames(self, a: AxisTrack, group: int, values: dict[int, int]) -> list[Frame]:
-        """The RPDOs of one group of ``a`` (:attr:`AxisTrack.rpdos`), each object it maps
-        set from ``values`` (an object the drive lacks is in no map)."""
-        out = []
-        for i in a.rpdos[group]:
-            p = self._nodes[a.node].rpdo[i]
-            for v in p.map:
-                if v.index in values:
-                    p[f"0x{v.index:04X}"].raw = values[v.index]
-            out.append(Frame(p.cob_id or cia402.RPDO_BASE[i - 1] + a.node, bytes(p.data)))
-        return out
 
     def _send_targets(self, a: AxisTrack, best_effort: bool = False) -> None:
         """The targets' RPDOs of ``a`` (RPDO 2 on most drives): position and velocity."""
-        values = {cia402.TARGET_POSITION: a.target_position,
-                  cia402.TARGET_VELOCITY: a.target_velocity}  # fmt: skip
-        for f in self._pdo_frames(a, 1, values):
+        for f in target_frames(self._nodes[a.node], a):
             self._send(f.arbitration_id, f.data, best_effort)
 
     def _stream_targets(self) -> None:
-        """Before each SYNC, RPDO 2 to every axis whose cyclic synchronous mode is in force:
-        such a drive takes the target received in each SYNC cycle, and extrapolates or
-        holds when none came (CiA 402), so the target is sent every cycle, not only when
-        it changes; before the mode is in force a target is not taken."""
-        cyclic = (Mode.CYCLIC_SYNC_POSITION, Mode.CYCLIC_SYNC_VELOCITY)
+        """Before each SYNC, the targets to every axis whose cyclic synchronous mode is in
+        force (:func:`~swpc_hw.drives.cia402.pdo.streams_targets`)."""
         with self._tx_lock:
             if self._state != Lifecycle.ACTIVE:
                 return
             for a in self._tracks():
-                enabled = a.state is PowerState.OPERATION_ENABLED
-                if a.enable and enabled and a.mode in cyclic and a.mode_display == a.mode:
+                if streams_targets(a):
                     with contextlib.suppress(CanError):
                         self._send_targets(a, best_effort=True)
-
-    def _command_frames(self, a: AxisTrack) -> list[Frame]:
-        """The command's RPDOs of ``a`` (RPDO 1 on most drives): controlword, mode (unless
-        over SDO), target torque (where it has a torque mode)."""
-        values = {cia402.CONTROLWORD: a.controlword, cia402.MODES_OF_OPERATION: int(a.mode),
-                  cia402.TARGET_TORQUE: a.target_torque}  # fmt: skip
-        return self._pdo_frames(a, 0, values)
 
     # ================================================================ commands
     def _module(self, module: int) -> ModuleTrack:
@@ -382,6 +288,8 @@ class Cia402Driver(DriverBase):
 
     def _command(self, what: str, module: int, axis: Axis, change: Callable[[AxisTrack], None],
                  targets: bool = True) -> None:  # fmt: skip
+        """``change`` (a core of :mod:`swpc_hw.drives.cia402.commands`) to the axis under
+        the lock, then its RPDOs."""
         mt = self._module(module)
         a = mt.axes[Axis(axis)]
         with self._tx_lock:
@@ -389,57 +297,22 @@ class Cia402Driver(DriverBase):
             with self._lock:
                 before = a.mode
                 change(a)
-                changed = a.mode is not before
-                if changed:
-                    a.mode_sync = self._sync_seq
-                    a.refused_reported = False
-                    a.pp_acked = None  # profile position: the first target handed over
+                changed = commands.mode_changed(a, before, self._sync_seq)
             if not (changed and a.mode_by_sdo):
                 self._send_rpdo(a, targets)
                 return
         # the mode over SDO first, outside the transmit lock (its answer comes through the
         # I/O step, which takes that lock), then the targets and the controlword
-        self._write_mode(a)
+        write_mode(self._nodes[a.node], a)
         with self._tx_lock:
             self._send_rpdo(a, targets)
-
-    def _write_mode(self, a: AxisTrack) -> None:
-        """0x6060 over SDO (a drive on which it is not PDO-mappable)."""
-        try:
-            self._nodes[a.node].sdo[cia402.MODES_OF_OPERATION].raw = int(a.mode)
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise NodeError(
-                f"{a.where()}: mode {cia402.mode_name(a.mode)} (0x6060 over SDO): {exc}",
-                node=a.node, axis=int(a.axis),
-            ) from exc  # fmt: skip
-
-    def _power(self, a: AxisTrack) -> None:
-        """OPERATION ENABLED asked (the power state machine moves one step per
-        statusword)."""
-        if not a.enable:
-            a.enable, a.refused_reported = True, False
-            a.enable_sync = a.enable_start = self._sync_seq
-        a.unpowered = False
-
-    def _powered(self, a: AxisTrack) -> None:
-        """A command to an axis freed without a torque mode powers it again; one stopped
-        stays off until :meth:`enable`."""
-        if a.unpowered:
-            self._power(a)
 
     def enable(self, module: int, axis: Axis) -> None:
         """Closed loop at torque 0; a drive without a torque mode is free with its power
         stage off instead, powered by the next position, velocity or homing command."""
 
         def change(a: AxisTrack) -> None:
-            if a.torque_mode is None:
-                a.enable, a.unpowered, a.enable_sync, a.enable_start = False, True, -1, -1
-                return
-            self._power(a)
-            a.mode, a.target_torque = a.torque_mode, 0
-            nxt = cia402.host_controlword(a.state, True, a.reset, a.controlword)
-            if nxt is not None:
-                a.controlword, a.t_controlword = nxt, self.clock.now()
+            commands.enable(a, self._sync_seq, self.clock.now)
 
         self._command("enable", module, axis, change)
 
@@ -448,11 +321,7 @@ class Cia402Driver(DriverBase):
         self._require_active("clear errors")
         with self._lock:
             for ax in axes:
-                a = mt.axes[Axis(ax)]
-                # the code stays until the drive has left FAULT: a FAULT statusword
-                # still on its way is then not taken for a new fault
-                if a.state in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) or a.error_code:
-                    a.reset = True
+                commands.clear_fault(mt.axes[Axis(ax)])
 
     def set_limits(self, module: int, axis: Axis, max_torque: float, max_velocity: float) -> None:
         """Over SDO (a set-up step: 0x6072 max torque, 0x607F max profile velocity, each
@@ -466,67 +335,25 @@ class Cia402Driver(DriverBase):
         velocity = min(a.to_units(max_velocity), 0xFFFFFFFF)
         if self._limits.get((module, int(axis))) == (torque, velocity):
             return
-        node = self._nodes[a.node]
-        has = list(a.has_limits)
-        for k, (index, value) in enumerate(
-            ((cia402.MAX_TORQUE, torque), (cia402.MAX_PROFILE_VELOCITY, velocity))
-        ):
-            if not has[k]:
-                continue
-            try:
-                node.sdo[index].raw = value
-            except SdoAbortedError as exc:
-                if exc.code not in cia402.SDO_ABSENT:
-                    raise NodeError(
-                        f"{a.where()}: set limits 0x{index:04X}: {exc}", node=a.node, axis=int(axis)
-                    ) from exc
-                has[k] = False  # its EDS has it, the drive does not: the host's limit only
-                self._say_once(a, f"{a.where()}: no 0x{index:04X} on the drive: {OPTIONAL[index]}")
-            except SdoCommunicationError as exc:
-                raise NodeError(
-                    f"{a.where()}: set limits 0x{index:04X}: {exc}", node=a.node, axis=int(axis)
-                ) from exc
-        a.has_limits = (has[0], has[1])
-        if a.position_mode is Mode.PROFILE_POSITION and a.has_profile_velocity:
-            try:  # profile position travels at 0x6081: the run's velocity limit
-                node.sdo[PROFILE_VELOCITY].raw = velocity
-            except (SdoAbortedError, SdoCommunicationError) as exc:
-                raise NodeError(
-                    f"{a.where()}: set limits 0x6081: {exc}", node=a.node, axis=int(axis)
-                ) from exc
+        say = functools.partial(self._say_once, a)
+        write_limits(self._nodes[a.node], a, torque, velocity, say)
         self._limits[(module, int(axis))] = (torque, velocity)
 
     def set_position(self, module: int, axis: Axis, position: float) -> None:
         def change(a: AxisTrack) -> None:
-            self._powered(a)
-            a.mode, a.target_position, a.target_torque = (
-                a.position_mode, a.to_units(position), 0
-            )  # fmt: skip
+            commands.position(a, position, self._sync_seq)
 
         self._command(f"set position {position:g}", module, axis, change)
 
     def set_velocity(self, module: int, axis: Axis, velocity: float) -> None:
         def change(a: AxisTrack) -> None:
-            if a.velocity_mode is None:
-                raise NodeError(
-                    f"{a.where()}: the drive has no velocity mode (0x6502) or no target "
-                    "velocity 0x60FF", node=a.node, axis=int(a.axis),
-                )  # fmt: skip
-            v = max(-a.max_velocity, min(a.max_velocity, velocity))
-            self._powered(a)
-            a.mode, a.target_velocity, a.target_torque = a.velocity_mode, a.to_units(v), 0
+            commands.velocity(a, velocity, self._sync_seq)
 
         self._command(f"set velocity {velocity:g}", module, axis, change)
 
     def set_torque(self, module: int, axis: Axis, torque: float) -> None:
         def change(a: AxisTrack) -> None:
-            if a.torque_mode is None:
-                raise NodeError(
-                    f"{a.where()}: the drive has no torque mode (0x6502): drive it by "
-                    "velocity", node=a.node, axis=int(a.axis),
-                )  # fmt: skip
-            t = max(-a.max_torque, min(a.max_torque, torque))
-            a.mode, a.target_torque = a.torque_mode, a.torque_units(t)
+            commands.torque(a, torque)
 
         self._command(f"set torque {torque:g}", module, axis, change, targets=False)
 
@@ -544,11 +371,7 @@ class Cia402Driver(DriverBase):
         if a.torque_mode is not None:
             self.set_torque(module, axis, 0.0)
             return
-
-        def change(a: AxisTrack) -> None:
-            a.enable, a.unpowered, a.enable_sync, a.enable_start = False, True, -1, -1
-
-        self._command("free", module, axis, change, targets=False)
+        self._command("free", module, axis, commands.unpower, targets=False)
 
     def start_homing(self, module: int) -> None:
         """Mode 6 and the start edge of controlword bit 4 (sent by the power state machine
@@ -562,28 +385,19 @@ class Cia402Driver(DriverBase):
             return
 
         def change(a: AxisTrack) -> None:
-            self._powered(a)
-            a.mode = Mode.HOMING
-            a.homing_start = True
-            a.homing_sync = self._sync_seq
-            mt.homing = HomingState.IN_PROGRESS
+            commands.homing(mt, a, self._sync_seq)
 
         self._command("start homing", module, Axis.STEER, change, targets=False)
 
     def _stopping(self) -> None:
         for a in self._tracks():
-            a.enable = a.unpowered = False
-            a.homing_start = False
-            a.reset = False
-            a.target_torque = 0
-            a.controlword = cia402.CW_DISABLE_VOLTAGE
-            a.t_controlword = self.clock.now()
-            a.enable_sync = a.enable_start = -1
+            commands.stop(a, self.clock.now())
 
     def _stop_frames(self) -> list[Frame]:
         """Disable voltage and torque 0 (RPDO 1) to every axis set up (an axis never set
         up was never enabled); the host's heartbeat goes on."""
-        return [f for a in self._tracks() if a.configured for f in self._command_frames(a)]
+        return [f for a in self._tracks() if a.configured
+                for f in command_frames(self._nodes[a.node], a)]  # fmt: skip
 
     # ================================================================ receive + supervise
     def _receive(self, msg: can.Message, t: float) -> None:
@@ -614,9 +428,6 @@ class Cia402Driver(DriverBase):
             self._pending += on_heartbeat(a, data[0] & 0x7F, self._arrival)
             self._changed.notify_all()
 
-    def _emcy_callback(self, a: AxisTrack) -> Callable[[EmcyError], None]:
-        return lambda e: self._on_emcy(a, e)
-
     def _on_emcy(self, a: AxisTrack, e: EmcyError) -> None:
         with self._changed:
             self._stats.node_faults += 1 if e.code & 0xFF00 else 0
@@ -625,39 +436,21 @@ class Cia402Driver(DriverBase):
             self._changed.notify_all()
 
     def _on_tpdo(self, module: int, a: AxisTrack, i: int, p: PdoMap) -> None:
-        """TPDO ``i`` of ``a``: its objects kept; the last TPDO of the sample group
-        completes a statusword and position (:attr:`AxisTrack.tpdos`), the last of the
-        velocity and torque group those."""
+        """TPDO ``i`` of ``a`` (:func:`~swpc_hw.drives.cia402.pdo.on_tpdo`): the module's
+        sample once both axes answered a SYNC, its velocities and torques once in."""
         mt = self._modules[module]
         with self._changed:
-            mt.feedback_frames += 1
-            got = a.tpdo_values
-            for v in p.map:
-                got[v.index] = int(v.raw)
-            if i == a.tpdos[0][-1]:
-                sw = got.get(cia402.STATUSWORD, 0)
-                pos = got.get(cia402.POSITION_ACTUAL, 0)
-                disp = got.get(cia402.MODES_DISPLAY, 0)
-                a.answered += 1
-                seq = a.sync_base + a.answered
-                self._pending += on_statusword(mt, a, sw, disp, pos, seq, self._arrival)
-                s = pair(mt)
+            got = on_tpdo(mt, a, i, p, self._arrival)
+            self._pending += got.observations
+            if got.sample is not None:
+                self._sample(mt, got.sample)
+            ring = self._history[module]
+            if got.velocity_torque and len(ring):
+                s = with_velocity_torque(mt, a, self._last.get(module))
                 if s is not None:
-                    self._sample(mt, s)
-            elif len(a.tpdos) > 1 and i == a.tpdos[1][-1]:
-                if cia402.VELOCITY_ACTUAL in got:  # 0x606C and 0x6077 are optional
-                    a.velocity = got[cia402.VELOCITY_ACTUAL] / a.counts_per_rad
-                if cia402.TORQUE_ACTUAL in got:
-                    a.torque = a.torque_si(got[cia402.TORQUE_ACTUAL])
-                ring = self._history[module]
-                last = self._last.get(module)
-                if len(ring) and last is not None and last.seq == a.seq:
-                    vt = (mt.steer.velocity, mt.wheel.velocity, mt.steer.torque, mt.wheel.torque)
+                    vt = (s.steer_velocity, s.wheel_velocity, s.steer_torque, s.wheel_torque)
                     ring.set_last_velocity_torque(vt)
-                    self._last[module] = dataclasses.replace(
-                        last, steer_velocity=vt[0], wheel_velocity=vt[1], steer_torque=vt[2],
-                        wheel_torque=vt[3],
-                    )
+                    self._last[module] = s
             self._changed.notify_all()
 
     def _sample(self, mt: ModuleTrack, seq: int) -> None:
@@ -713,8 +506,8 @@ class Cia402Driver(DriverBase):
         deadline = math.inf
         if self._kernel is None:
             if now >= self._next_heartbeat:
-                frames = [self._heartbeat_frame()] + [
-                    self._guard_frame(a) for a in self._tracks() if a.guarded and a.configured
+                frames = [heartbeat_frame(self.drives.host_node)] + [
+                    guard_frame(a) for a in self._tracks() if a.guarded and a.configured
                 ]
                 with contextlib.suppress(CanError):
                     self._send_frames(frames, best_effort=True)
@@ -738,24 +531,8 @@ class Cia402Driver(DriverBase):
 
     def module_state(self, module: int) -> ModuleState:
         mt = self._module(module)
-        s, w = mt.steer, mt.wheel
         with self._lock:
-            feedback = self._last.get(module)
-            beats = [a.t_heartbeat for a in mt.axes if a.t_heartbeat is not None]
-            return ModuleState(
-                module=module,
-                node=s.node,
-                alive=s.alive and w.alive,
-                states=(s.axis_state(), w.axis_state()),
-                modes=(s.control_mode(), w.control_mode()),
-                errors=(s.error_code, w.error_code),
-                homed=mt.homed,
-                homing=mt.homing,
-                feedback=feedback,
-                t_heartbeat=min(beats) if len(beats) == 2 else None,
-                heartbeats=s.heartbeats + w.heartbeats,
-                feedback_frames=mt.feedback_frames,
-            )
+            return status.module_state(mt, self._last.get(module))
 
     def _ring(self, module: int) -> FeedbackRing:
         self._module(module)
@@ -764,36 +541,14 @@ class Cia402Driver(DriverBase):
     def _not_reached(self, module: int, what: str, timeout: float) -> NodeTimeoutError:
         mt = self._module(module)
         with self._lock:
-            states = ", ".join(f"{a.where()} {a.state.value}" for a in mt.axes)
-        return NodeTimeoutError(
-            f"module {module}: {what} not reached within {timeout} s ({states}, homed "
-            f"{mt.homed})",
-            node=mt.steer.node,
-        )
+            return status.not_reached(mt, what, timeout)
 
     def axis_status(self, module: int, axis: Axis) -> AxisStatus:
         """What the host knows now of one axis' drive (the console's drives view): its
         power state, NMT state, modes display and error code, in CiA 402's words."""
         mt = self._module(module)
-        a = mt.axes[Axis(axis)]
         with self._lock:
-            faulted = a.state in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE)
-            return AxisStatus(
-                module=module,
-                axis=a.axis,
-                node=a.node,
-                alive=a.alive,
-                t_heartbeat=a.t_heartbeat,
-                heartbeats=a.heartbeats,
-                state=a.state.value,
-                nmt=None if a.nmt is None else cia402.nmt_name(a.nmt),
-                mode=cia402.mode_name(a.mode_display),
-                error=a.error_code,
-                error_name=cia402.emcy_name(a.error_code) if a.error_code else "none",
-                fault=faulted or a.error_code != 0,  # the EMCY comes before the statusword
-                homed=mt.homed if a.axis is Axis.STEER else None,
-                torque_mode=a.torque_mode is not None,
-            )
+            return status.axis_status(mt, mt.axes[Axis(axis)])
 
     def axis_track(self, module: int, axis: Axis) -> AxisTrack:
         """A copy of what the host knows of one axis (tests, diagnostics)."""
