@@ -1,5 +1,7 @@
 """The ``cia402`` drive kind: CiA 402 drives over CANopen on the ``canopen`` library
-(:mod:`.driver`, :mod:`.setup`, :mod:`.sdo`, :mod:`.tracking`, :mod:`.config`)."""
+(:mod:`.driver`; its pure cores :mod:`.commands`, :mod:`.pdo`, :mod:`.status`,
+:mod:`.tracking`; canopen's side :mod:`.network`, :mod:`.setup`, :mod:`.sdo`; the drive
+scan :mod:`.scan`; :mod:`.config`)."""
 
 from __future__ import annotations
 
