@@ -1,10 +1,12 @@
-"""The rig of the browser tests (``test_console_browser.py``, ``test_fleet_browser.py``):
+"""The rig of the browser tests (``test_console_*browser.py``, ``test_fleet_browser.py``):
 Debian's Chromium, headless, through Selenium (the ``browser`` fixture, one per module, on
-the module's ``service``), screenshots to ``$SWPC_SCREENSHOTS``, and the console page's
-helpers: its views, its start form, and :func:`check_view`, which checks a view in every
-window of :data:`WIDTHS` for what a tablet in a bright lab needs: no sideways scrolling,
-nothing clipped or drawn over something else, and every piece of text at a WCAG contrast
-of 4.5:1 at least (the lowest found is left in :data:`state`).
+the module's ``service``: ``test_console_browser.py`` and ``test_console_run_view_browser.py``
+take theirs from here, :func:`service`, ``swpc serve`` with the token :data:`TOKEN`),
+screenshots to ``$SWPC_SCREENSHOTS``, and the console page's helpers: its views, its
+token, its start form, and :func:`check_view`, which checks a view in every window of
+:data:`WIDTHS` for what a tablet in a bright lab needs: no sideways scrolling, nothing
+clipped or drawn over something else, and every piece of text at a WCAG contrast of 4.5:1
+at least (the lowest found is left in :data:`state`).
 
 No browser here (``/usr/bin/chromium`` and ``/usr/bin/chromedriver``, Debian's
 ``chromium`` and ``chromium-driver``): the modules that import this one are skipped with a
@@ -19,14 +21,21 @@ import io
 import json
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from PIL import Image
+
+from swpc_hw.files.kinematic_file import save_kinematics
+from swpc_hw.robot.paper_robot import PAPER_NOMINAL
+from swpc_hw.sensors.zenoh_session import free_tcp_endpoint
 
 CHROMIUM = Path(os.environ.get("SWPC_CHROMIUM", "/usr/bin/chromium"))
 CHROMEDRIVER = Path(os.environ.get("SWPC_CHROMEDRIVER", "/usr/bin/chromedriver"))
@@ -51,9 +60,12 @@ from selenium import webdriver  # noqa: E402 - only with a browser at hand
 from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
 from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
 from selenium.webdriver.remote.webdriver import WebDriver  # noqa: E402
 
 state: dict[str, Any] = {}  # what one step leaves for the next (the tests run in order)
+TOKEN = "browser-token-4711"
+"""The bearer token of the console's service (:func:`service`)."""
 
 
 @pytest.fixture(scope="module")
@@ -78,6 +90,48 @@ def browser(service: dict[str, Any]) -> Iterator[WebDriver]:
             proc.kill()
             proc.wait()
         shutil.rmtree(profile, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """``swpc serve`` with a kinematic file in force: the nominal design (the console's
+    tests, one per module that imports it: a separate process on a free loopback port, on
+    the in-process simulator, with the token :data:`TOKEN`)."""
+    data: Path = tmp_path_factory.mktemp("console")
+    kin = data / "kinematics.yaml"
+    save_kinematics(kin, PAPER_NOMINAL, created="2026-01-01T00:00:00Z")
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    env = dict(os.environ, SWPC_TOKEN=TOKEN, SWPC_DATA_DIR=str(data), SWPC_PORT=str(port))
+    for key in ("SWPC_CAN_INTERFACE", "SWPC_TIME_SCALE", "SWPC_ROBOT_CONFIG"):
+        env.pop(key, None)
+    log = (data / "service.log").open("w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "serve", "--log-level", "warning"],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if not httpx.get(f"{url}/health", timeout=2).json()["mocap_stale"]:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None, (data / "service.log").read_text()
+            assert time.monotonic() < deadline, "service did not start"
+            time.sleep(0.2)
+        yield {"url": url, "data": data, "kin": kin}
+    finally:
+        proc.terminate()  # by its PID
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
 
 
 # ------------------------------------------------------------------------- helpers
@@ -128,6 +182,18 @@ def dialog_open(d: WebDriver, elem_id: str) -> bool:
 def go(d: WebDriver, view: str) -> None:
     d.find_element(By.CSS_SELECTOR, f'nav a[data-view="{view}"]').click()
     wait_for(f"view {view}", lambda: d.find_element(By.ID, f"view-{view}").is_displayed())
+
+
+def enter_token(d: WebDriver, url: str, token: str = TOKEN) -> None:
+    """Open the console at ``url`` afresh and enter ``token`` as an operator does: the
+    header's token button, then the token typed into its dialog and Enter'd (kept in the
+    tab's ``sessionStorage`` from then on)."""
+    d.get(url + "/")
+    wait_for("the event stream", lambda: text(d, "link-state") == "live")
+    d.find_element(By.ID, "token-button").click()
+    wait_for("the token dialog", lambda: dialog_open(d, "token-dialog"))
+    d.find_element(By.ID, "token-input").send_keys(token + Keys.ENTER)
+    wait_for("the token set", lambda: text(d, "token-button") == "Token set ✓")
 
 
 def press(d: WebDriver, elem_id: str) -> None:
