@@ -72,7 +72,6 @@ options (noise, dropouts, outliers, latency, clock offset).
 from __future__ import annotations
 
 import contextlib
-import itertools
 import math
 import threading
 import time
@@ -85,24 +84,27 @@ import can
 import numpy as np
 
 from firmware_protocol.codec import Axis, ErrorFlag
-from simulators.drives.base import VirtualDrive, module_drive, quantize
+from simulators.drives.base import VirtualDrive
 from simulators.drives.factory import virtual_drives
+from simulators.drives.wiring import WiredAxes
 from simulators.options import SimOptions, SimStats, params_document
 from simulators.physics.core import FloatArray, se2_step
-from simulators.physics.robot import (
-    ModuleDrive,
-    RobotPhysics,
-    SteerDrive,
-    WheelDrive,
+from simulators.physics.robot import ModuleDrive, RobotPhysics
+from simulators.sensors.gyro import (
+    GyroSim,
+    PoseHistory,
+    axis_travel,
+    measure_axis_distances,
+    tape_measure,
 )
-from simulators.sensors.gyro import GyroSim, PoseHistory, axis_travel, tape_measure
-from simulators.sensors.mocap import MocapSim, TruthPublisher
+from simulators.sensors.mocap import MocapSim, TruthPublisher, truth_pose_document
 from swpc_hw.clock import SimClock, SystemClock, next_instant
-from swpc_hw.robot.model import RobotParams, wrap_angle
+from swpc_hw.robot.model import RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 from swpc_hw.sensors.zenoh_session import ZenohAuth, open_session
 
 # --------------------------------------------------------------------------- simulator
+
 
 class VirtualRobot:
     """The virtual robot on a python-can bus and a zenoh session (module docstring)."""
@@ -135,7 +137,6 @@ class VirtualRobot:
         )
         self.robot = RobotPhysics(truth, opt.physics, opt.pose0, list(theta0))
         opt.wiring.check(n)
-        self._wired = not opt.wiring.identity  # miswired: every tick through the wiring
         self.drives: list[VirtualDrive] = virtual_drives(
             opt.drives,
             truth.ids,
@@ -144,6 +145,8 @@ class VirtualRobot:
             homing_duration=opt.homing_duration,
             sensor_positions=sensors,
         )
+        self.axes = WiredAxes(opt.wiring, self.robot, self.drives)
+        self._wired = self.axes.wired
         self.mocap = MocapSim(opt.robot, opt.mocap, session, clock=clock)
         self.gyro = GyroSim(opt.robot, opt.gyro, session, seed=opt.seed, clock=clock)
         self.history = PoseHistory()  # the true poses, for the tape measure
@@ -335,19 +338,7 @@ class VirtualRobot:
             return self._truth_doc()
 
     def _truth_doc(self) -> dict[str, Any]:
-        r = self.robot
-        A = r.arrays
-        return {
-            "t": self.now,
-            "pose": r.pose.tolist(),
-            "twist": r.twist.tolist(),
-            "theta": r.theta.tolist(),
-            "theta_hat": wrap_angle(r.theta - A.beta).tolist(),
-            "psi": r.psi.tolist(),
-            "psi_encoder": r.psi_encoder.tolist(),
-            "contact_points": r.contact_points().tolist(),
-            "homed": [d.homed for d in self.drives],
-        }
+        return truth_pose_document(self.now, self.robot, [d.homed for d in self.drives])
 
     # ------------------------------------------------------------------ the loop
     def _run(self) -> None:
@@ -479,14 +470,7 @@ class VirtualRobot:
         """Advance by ``dt`` (``t_end``: the simulated time reached, exactly: lockstep)."""
         opt = self.options
         r = self.robot
-        drives = []
-        if not self._wired:
-            for i, d in enumerate(self.drives):
-                s = d.drive(Axis.STEER, self._steer_reported(i), dt, opt.position_tau)
-                w = d.drive(Axis.WHEEL, float(r.psi_encoder[i]), dt, opt.position_tau)
-                drives.append(module_drive(s, w))
-        else:
-            drives = [self._wired_drive(i, dt) for i in range(len(self.drives))]
+        drives = self.axes.module_drives(dt, opt.position_tau)
         t0 = self.now
         pose0 = r.pose.copy()
         r.step(dt, drives)
@@ -508,92 +492,11 @@ class VirtualRobot:
             self._inject_bus_error()
         self._stats.ticks += 1
 
-    def _steer_reported(self, i: int) -> float:
-        d = self.drives[self.options.wiring.channel(i, Axis.STEER)[0]]
-        off = 0.0 if d.homed else d.sensor_position
-        return float(self.robot.theta[i] - self.robot.arrays.beta[i] + off)
-
-    def _physical(self, i: int, axis: Axis) -> tuple[float, float]:
-        """Physical module ``i``'s ``axis``: (angle as its encoder counts it before the
-        wiring's gain, rate)."""
-        r = self.robot
-        if axis == Axis.STEER:
-            return self._steer_reported(i), float(r.theta_dot[i])
-        return float(r.psi_encoder[i]), float(r.psi_dot[i])
-
-    def _wired_drive(self, i: int, dt: float) -> ModuleDrive:
-        """Physical module ``i``'s drive through the wiring (:mod:`simulators.drives.wiring`):
-        each axis commanded by the drive channel it hangs on, scaled by its gain."""
-        w = self.options.wiring
-        out: list[tuple[str, float]] = []
-        for axis in (Axis.STEER, Axis.WHEEL):
-            k, channel = w.channel(i, axis)
-            g = w.gain(i, axis)
-            position, _ = self._physical(i, axis)
-            kind, v = self.drives[k].drive(channel, g * position, dt, self.options.position_tau)
-            if kind == "rate":
-                v = v / g
-            elif kind == "torque":
-                v = v * g
-                if axis == Axis.STEER:
-                    kind, v = "passive", 0.0  # a steering's torque is not modelled
-            elif kind == "brake" and axis == Axis.STEER:
-                kind, v = "rate", 0.0
-            out.append((kind, v))
-        return module_drive(out[0], out[1])
-
     def _write_encoders(self, drives: Sequence[ModuleDrive] | None = None) -> None:
         """The encoders after a tick into the drives (``drives``: what each module's axes
-        did in it; None at the start: nothing applied yet)."""
+        did in it; None at the start: nothing applied yet): :class:`WiredAxes`."""
         opt = self.options
-        r = self.robot
-        if self._wired:
-            self._write_wired_encoders(drives)
-            return
-        for i, d in enumerate(self.drives):
-            steer_torque: float | None = 0.0
-            wheel_torque: float | None = 0.0
-            if drives is not None:
-                md = drives[i]
-                steer_torque = None if md.steer is SteerDrive.RATE else 0.0
-                if md.wheel is WheelDrive.TORQUE:
-                    wheel_torque = md.wheel_value
-                elif md.wheel is WheelDrive.RATE:
-                    wheel_torque = None
-            d.sense(
-                Axis.STEER,
-                quantize(self._steer_reported(i), opt.steer_counts),
-                float(r.theta_dot[i]),
-                steer_torque,
-            )
-            d.sense(
-                Axis.WHEEL,
-                quantize(float(r.psi_encoder[i]), opt.wheel_counts),
-                float(r.psi_dot[i]),
-                wheel_torque,
-            )
-
-    def _write_wired_encoders(self, drives: Sequence[ModuleDrive] | None) -> None:
-        """:meth:`_write_encoders` through the wiring: each physical axis's encoder into
-        the drive channel it hangs on, scaled by its gain."""
-        opt = self.options
-        w = opt.wiring
-        for i in range(len(self.drives)):
-            md = None if drives is None else drives[i]
-            for axis in (Axis.STEER, Axis.WHEEL):
-                k, channel = w.channel(i, axis)
-                g = w.gain(i, axis)
-                position, rate = self._physical(i, axis)
-                torque: float | None = 0.0
-                if md is not None and axis == Axis.STEER and md.steer is SteerDrive.RATE:
-                    torque = None
-                if md is not None and axis == Axis.WHEEL:
-                    if md.wheel is WheelDrive.TORQUE:
-                        torque = md.wheel_value / g
-                    elif md.wheel is WheelDrive.RATE:
-                        torque = None
-                counts = opt.steer_counts if channel == Axis.STEER else opt.wheel_counts
-                self.drives[k].sense(channel, quantize(g * position, counts), g * rate, torque)
+        self.axes.write_encoders(drives, opt.steer_counts, opt.wheel_counts)
 
     def _sample_mocap(self, t0: float, t1: float, pose0: FloatArray, twist: FloatArray) -> None:
         """The poses and gyro samples due in ``(t0, t1]``, stamped like the tick's frames
@@ -632,14 +535,7 @@ class VirtualRobot:
         pair ``(a, b, [reading, ...])``, ``readings`` readings each with the error
         ``N(0, stddev^2)`` (seeded), of the true distance ``|P_s,a - P_s,b|``."""
         rng = np.random.default_rng([self.options.seed, seed, 20])
-        P, ids = self.robot.arrays.P_s, self.truth.ids
-        return [
-            (ids[i], ids[j], [
-                tape_measure(float(np.linalg.norm(P[i] - P[j])), stddev, rng)
-                for _ in range(readings)
-            ])
-            for i, j in itertools.combinations(range(len(ids)), 2)
-        ]  # fmt: skip
+        return measure_axis_distances(self.robot.arrays.P_s, self.truth.ids, stddev, rng, readings)
 
     def _transmit(self, frames: Iterable[can.Message]) -> None:
         stamp = self.clock.to_wall(self.now) if self.clock is not None else 0.0
@@ -661,4 +557,3 @@ class VirtualRobot:
             pass
         with contextlib.suppress(can.CanError, OSError):  # unknown id instead
             self.bus.send(can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False))
-

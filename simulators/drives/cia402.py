@@ -30,8 +30,9 @@ held; a target written before the mode is in force is not taken (the drive start
 where it is).
 
 Time is the virtual robot's: the library's periodic sends (the heartbeat producer) run on
-:class:`SimNetwork`'s simulated time, never on a thread.  Units: the axis's gear ratio and
-encoder counts (the same config as the host's), the drive's rated torque (0x6076).
+:class:`~simulators.drives.cia402_node.SimNetwork`'s simulated time, never on a thread.
+Units: the axis's gear ratio and encoder counts (the same config as the host's), the
+drive's rated torque (0x6076).
 
 The physics is the same as the swpc kind's: an axis becomes an
 :class:`~simulators.drives.base.AxisModel` (state, mode, setpoint, limits) for
@@ -42,21 +43,18 @@ torque 0 is free (the amplifier applies no torque), as the swpc firmware's FREE 
 from __future__ import annotations
 
 import math
-import struct
 from pathlib import Path
 from typing import Any
 
 import can
-import canopen
-from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
-from canopen.pdo.base import PdoMap
 from canopen.sdo.exceptions import SdoAbortedError
 
 from firmware_protocol import cia402
 from firmware_protocol.cia402 import Mode, PowerState
 from firmware_protocol.codec import Axis, AxisState, ControlMode, ErrorFlag
 from simulators.drives.base import AxisModel, axis_drive
+from simulators.drives.cia402_node import SimNode
 from swpc_hw.drives.cia402.config import ABSOLUTE, Cia402Axis, Cia402Drives, Cia402Steer
 
 SUPPORTED_MODES = (
@@ -71,11 +69,6 @@ QUICK_STOP_TIME = 0.1
 """s in QUICK STOP ACTIVE before an option code 0..4 switches the power stage off."""
 ABORT_VALUE_RANGE = 0x06090030
 """SDO abort: value range of parameter exceeded."""
-ERROR_BEHAVIOUR = 0x1029
-"""CiA 301's error behaviour object: sub 1, the NMT state a communication error leads to."""
-NMT_STOP = 0x02
-NMT_CODES = {v: k for k, v in canopen.nmt.NMT_STATES.items()}
-"""canopen's NMT state names -> CiA 301's state codes (a guard answer's bits 0-6)."""
 
 ERROR_CODES: dict[ErrorFlag, int] = {
     ErrorFlag.OVER_TEMPERATURE: 0x4310,
@@ -97,62 +90,7 @@ def modes_of(od: Any) -> tuple[Mode, ...]:
     return SUPPORTED_MODES
 
 
-class SimPeriodic(PeriodicMessageTask):
-    """A periodic send (canopen's heartbeat producer) on the simulated time of
-    :class:`SimNetwork` instead of a thread."""
-
-    def __init__(self, can_id: int, data: bytes, period: float, start: float) -> None:
-        self.can_id = can_id
-        self.data = bytes(data)
-        self.period = period
-        self.next = start + period
-        self.stopped = False
-
-    def stop(self) -> None:
-        self.stopped = True
-
-    def update(self, data: bytes) -> None:
-        self.data = bytes(data)
-
-
-class SimNetwork(canopen.Network):
-    """A canopen network of one node inside the virtual robot: what the node sends is
-    collected (the robot stamps it and puts it on its bus), periodic sends run on the
-    simulated time ``now``."""
-
-    def __init__(self) -> None:
-        super().__init__(None)
-        self.outbox: list[can.Message] = []
-        self.tasks: list[SimPeriodic] = []
-        self.now = 0.0
-
-    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        self.outbox.append(
-            can.Message(arbitration_id=can_id, data=bytes(data), is_extended_id=False)
-        )
-
-    def send_periodic(
-        self, can_id: int, data: bytes, period: float, remote: bool = False
-    ) -> PeriodicMessageTask:
-        task = SimPeriodic(can_id, data, period, self.now)
-        self.tasks = [t for t in self.tasks if not t.stopped] + [task]
-        return task
-
-    def run_periodic(self, now: float) -> None:
-        for t in self.tasks:
-            if not t.stopped and t.next <= now + 1e-9:
-                self.send_message(t.can_id, t.data)
-                t.next = max(t.next + t.period, now + 0.5 * t.period)
-
-    def next_due(self) -> float:
-        return min((t.next for t in self.tasks if not t.stopped), default=math.inf)
-
-    def take(self) -> list[can.Message]:
-        out, self.outbox = self.outbox, []
-        return out
-
-
-class VirtualAxis:
+class VirtualAxis(SimNode):
     """One single-axis CiA 402 drive (module docstring)."""
 
     def __init__(
@@ -164,18 +102,11 @@ class VirtualAxis:
         homing_duration: float = 0.2,
         sensor_position: float = 0.0,
     ) -> None:
+        super().__init__(config.node, object_dictionary)
         self.config = config
         self.steer = steer
-        self.net = SimNetwork()
-        od = canopen.import_od(str(object_dictionary), config.node)
-        self.node = canopen.LocalNode(config.node, od)
-        self.net.add_node(self.node)
         self.node.add_write_callback(self._on_write)
         self.node.add_read_callback(self._on_read)
-        assert self.node.rpdo.map is not None and self.node.tpdo.map is not None
-        for pdo in self.node.rpdo.map.values():
-            pdo.add_callback(self._on_rpdo)
-        self._formats: dict[int, struct.Struct] = {}
         self.model = AxisModel()
         self.counts_per_rad = config.counts_per_rad()
         od_has = self.node.object_dictionary.__contains__
@@ -203,11 +134,6 @@ class VirtualAxis:
         self.consumer_node = 0
         self.consumer_time = 0.0
         self.host_seen: float | None = None
-        self.guard_toggle = 0
-        self.guarded_at: float | None = None
-        """Life guarding: the last guard request, once 0x100C and 0x100D are both set."""
-        self.life_time = 0.0
-        """s: 0x100C x 0x100D as they were at the last guard request."""
         self.booted = False
         self.position = 0.0
         self.velocity = 0.0
@@ -229,27 +155,6 @@ class VirtualAxis:
         self.csp_missed = 0
 
     # ------------------------------------------------------------------ object dictionary
-    def _od_default(self, index: int, sub: int = 0) -> int:
-        obj = self.node.object_dictionary[index]
-        var = obj if isinstance(obj, ODVariable) else obj[sub]
-        return int(var.default or 0)
-
-    def _store(self, index: int, value: int) -> None:
-        if index not in self.node.object_dictionary:
-            return  # an object this drive (its personality) does not have
-        fmt = self._formats.get(index)
-        if fmt is None:
-            var = self.node.object_dictionary[index]
-            assert isinstance(var, ODVariable)
-            fmt = var.STRUCT_TYPES[int(var.data_type or 0)]
-            self._formats[index] = fmt
-        self.node.data_store.setdefault(index, {})[0] = fmt.pack(value)
-
-    def _read(self, index: int, sub: int = 0) -> int:
-        obj = self.node.object_dictionary[index]
-        var = obj if isinstance(obj, ODVariable) else obj[sub]
-        return int(var.decode_raw(self.node.get_data(index, sub)))
-
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         """Every write (SDO or RPDO) before it is stored: the drive acts on it, or refuses it
         (an SDO abort names why)."""
@@ -309,13 +214,6 @@ class VirtualAxis:
 
     def _torque_units(self, torque: float) -> int:
         return round(torque / (self.rated_torque * self.config.gear_ratio) * 1000.0)
-
-    def _on_rpdo(self, pdo: PdoMap) -> None:
-        for var in pdo.map:
-            try:
-                self.node.set_data(var.index, var.subindex, var.get_data())
-            except SdoAbortedError:
-                continue  # a refused value (e.g. a mode): the drive keeps its own
 
     # ------------------------------------------------------------------ 402 state machine
     def _csp_in_force(self) -> bool:
@@ -397,16 +295,8 @@ class VirtualAxis:
         self._store(cia402.ERROR_CODE, code)
         self._store(cia402.ERROR_REGISTER, register)
         self.node.emcy.send(code, register)
-        if code & 0xFF00 == 0x8100 and self.node.nmt.state == "OPERATIONAL":
-            behaviour = (
-                self._read(ERROR_BEHAVIOUR, 1)
-                if ERROR_BEHAVIOUR in self.node.object_dictionary
-                else 0
-            )
-            if behaviour == 0:
-                self.node.nmt.send_command(cia402.NMT_ENTER_PRE_OPERATIONAL)
-            elif behaviour == 2:
-                self.node.nmt.send_command(NMT_STOP)
+        if code & 0xFF00 == 0x8100:
+            self._error_behaviour()
 
     def statusword(self) -> int:
         extra = cia402.SW_REMOTE
@@ -459,27 +349,6 @@ class VirtualAxis:
         if cob == cia402.NMT_ID:
             self._on_nmt(was, now)
 
-    def _guard_time(self) -> float:
-        """Life guarding's time, s: 0x100C ms x 0x100D (0: off, or no such objects)."""
-        od = self.node.object_dictionary
-        if cia402.GUARD_TIME not in od or cia402.LIFE_TIME_FACTOR not in od:
-            return 0.0
-        return self._read(cia402.GUARD_TIME) * self._read(cia402.LIFE_TIME_FACTOR) / 1000.0
-
-    def _guard(self, now: float) -> None:
-        """Node guarding (CiA 301): the answer is the NMT state with a toggle bit 7 that
-        alternates from 0; life guarding starts with the first request while 0x100C and
-        0x100D are both non-zero.  A drive without them does not answer."""
-        od = self.node.object_dictionary
-        if cia402.GUARD_TIME not in od or self.node.nmt.state == "INITIALISING":
-            return
-        state = NMT_CODES.get(self.node.nmt.state, cia402.NMT_PRE_OPERATIONAL)
-        self.net.send_message(cia402.HEARTBEAT_BASE + self.config.node,
-                              bytes([self.guard_toggle | state]))  # fmt: skip
-        self.guard_toggle ^= 0x80
-        self.life_time = self._guard_time()  # as the objects say at this request
-        self.guarded_at = now if self.life_time > 0 else None
-
     def _on_nmt(self, was: str, now: float) -> None:
         state = self.node.nmt.state
         if state == "INITIALISING":  # reset node / communication: boot again
@@ -501,15 +370,7 @@ class VirtualAxis:
         self._store(cia402.POSITION_ACTUAL, round(self.position * self.counts_per_rad))
         self._store(cia402.VELOCITY_ACTUAL, round(self.velocity * self.counts_per_rad))
         self._store(cia402.TORQUE_ACTUAL, self._torque_units(self.torque))
-        get = self.node.get_data
-        assert self.node.tpdo.map is not None
-        for pdo in self.node.tpdo.map.values():
-            every = pdo.trans_type or 0
-            if not pdo.enabled or not 1 <= every <= 240 or self.sync_count % every:
-                continue
-            # the mapped objects' bytes, in map order (swpc maps whole bytes: no bit packing)
-            pdo.data = bytearray(b"".join(get(v.index, v.subindex) for v in pdo.map))
-            pdo.transmit()
+        self._transmit_tpdos(self.sync_count)
 
     def step(self, now: float) -> None:
         self.net.now = now

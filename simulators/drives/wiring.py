@@ -20,6 +20,10 @@ A steering wired to a wheel channel in torque is left passive (the steering's to
 not modelled), a braked one held.  The steering's zero a quarter or half turn off is the
 truth's own homing error (``beta``), and a rotated motion-capture body the sensor's
 (:attr:`Wiring.mocap_yaw`, :attr:`Wiring.mocap_y_up`).
+
+:class:`WiredAxes` does it every tick of the virtual robot
+(:class:`simulators.virtual_robot.VirtualRobot`): the drives' commands into the physics'
+drives, the encoders back into the drives.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ from typing import Any
 import yaml
 
 from firmware_protocol.codec import Axis
+from simulators.drives.base import VirtualDrive, module_drive, quantize
+from simulators.physics.robot import ModuleDrive, RobotPhysics, SteerDrive, WheelDrive
 
 
 @dataclass(frozen=True)
@@ -162,3 +168,123 @@ def load_wiring(path: Path, ids: Sequence[int]) -> Wiring:
         return wiring_from_document(yaml.safe_load(path.read_text()), ids)
     except (OSError, yaml.YAMLError, ValueError) as exc:
         raise ValueError(f"{path}: {exc}") from exc
+
+
+class WiredAxes:
+    """The physical modules' axes of ``robot`` and the drive channels of ``drives`` they
+    hang on through ``wiring`` (module docstring): what the drives command becomes the
+    physics' drives, what the encoders read goes back into the drives.  When the wiring is
+    the identity (:attr:`Wiring.identity`), module ``i`` is on drive ``i`` as the config
+    says; else every tick goes through the wiring (:attr:`wired`)."""
+
+    def __init__(self, wiring: Wiring, robot: RobotPhysics, drives: Sequence[VirtualDrive]) -> None:
+        self.wiring = wiring
+        self.robot = robot
+        self.drives = drives
+        self.wired = not wiring.identity  # miswired: every tick through the wiring
+
+    def steer_reported(self, i: int) -> float:
+        """Physical module ``i``'s steering as its encoder counts it before the wiring's
+        gain: ``theta - beta`` once its drive has homed, ``+ sensor_position`` before."""
+        d = self.drives[self.wiring.channel(i, Axis.STEER)[0]]
+        off = 0.0 if d.homed else d.sensor_position
+        return float(self.robot.theta[i] - self.robot.arrays.beta[i] + off)
+
+    def physical(self, i: int, axis: Axis) -> tuple[float, float]:
+        """Physical module ``i``'s ``axis``: (angle as its encoder counts it before the
+        wiring's gain, rate)."""
+        r = self.robot
+        if axis == Axis.STEER:
+            return self.steer_reported(i), float(r.theta_dot[i])
+        return float(r.psi_encoder[i]), float(r.psi_dot[i])
+
+    def module_drives(self, dt: float, position_tau: float) -> list[ModuleDrive]:
+        """What every physical module's axes do over the next ``dt``: each drive channel's
+        :meth:`~simulators.drives.base.VirtualDrive.drive` from where its axis is now."""
+        r = self.robot
+        drives = []
+        if not self.wired:
+            for i, d in enumerate(self.drives):
+                s = d.drive(Axis.STEER, self.steer_reported(i), dt, position_tau)
+                w = d.drive(Axis.WHEEL, float(r.psi_encoder[i]), dt, position_tau)
+                drives.append(module_drive(s, w))
+        else:
+            drives = [self.wired_drive(i, dt, position_tau) for i in range(len(self.drives))]
+        return drives
+
+    def wired_drive(self, i: int, dt: float, position_tau: float) -> ModuleDrive:
+        """Physical module ``i``'s drive through the wiring: each axis commanded by the
+        drive channel it hangs on, scaled by its gain."""
+        w = self.wiring
+        out: list[tuple[str, float]] = []
+        for axis in (Axis.STEER, Axis.WHEEL):
+            k, channel = w.channel(i, axis)
+            g = w.gain(i, axis)
+            position, _ = self.physical(i, axis)
+            kind, v = self.drives[k].drive(channel, g * position, dt, position_tau)
+            if kind == "rate":
+                v = v / g
+            elif kind == "torque":
+                v = v * g
+                if axis == Axis.STEER:
+                    kind, v = "passive", 0.0  # a steering's torque is not modelled
+            elif kind == "brake" and axis == Axis.STEER:
+                kind, v = "rate", 0.0
+            out.append((kind, v))
+        return module_drive(out[0], out[1])
+
+    def write_encoders(
+        self, drives: Sequence[ModuleDrive] | None, steer_counts: int, wheel_counts: int
+    ) -> None:
+        """The encoders after a tick into the drives, quantised to ``steer_counts`` /
+        ``wheel_counts`` per turn (``drives``: what each module's axes did in it; None at
+        the start: nothing applied yet)."""
+        r = self.robot
+        if self.wired:
+            self._write_wired_encoders(drives, steer_counts, wheel_counts)
+            return
+        for i, d in enumerate(self.drives):
+            steer_torque: float | None = 0.0
+            wheel_torque: float | None = 0.0
+            if drives is not None:
+                md = drives[i]
+                steer_torque = None if md.steer is SteerDrive.RATE else 0.0
+                if md.wheel is WheelDrive.TORQUE:
+                    wheel_torque = md.wheel_value
+                elif md.wheel is WheelDrive.RATE:
+                    wheel_torque = None
+            d.sense(
+                Axis.STEER,
+                quantize(self.steer_reported(i), steer_counts),
+                float(r.theta_dot[i]),
+                steer_torque,
+            )
+            d.sense(
+                Axis.WHEEL,
+                quantize(float(r.psi_encoder[i]), wheel_counts),
+                float(r.psi_dot[i]),
+                wheel_torque,
+            )
+
+    def _write_wired_encoders(
+        self, drives: Sequence[ModuleDrive] | None, steer_counts: int, wheel_counts: int
+    ) -> None:
+        """:meth:`write_encoders` through the wiring: each physical axis's encoder into
+        the drive channel it hangs on, scaled by its gain."""
+        w = self.wiring
+        for i in range(len(self.drives)):
+            md = None if drives is None else drives[i]
+            for axis in (Axis.STEER, Axis.WHEEL):
+                k, channel = w.channel(i, axis)
+                g = w.gain(i, axis)
+                position, rate = self.physical(i, axis)
+                torque: float | None = 0.0
+                if md is not None and axis == Axis.STEER and md.steer is SteerDrive.RATE:
+                    torque = None
+                if md is not None and axis == Axis.WHEEL:
+                    if md.wheel is WheelDrive.TORQUE:
+                        torque = md.wheel_value / g
+                    elif md.wheel is WheelDrive.RATE:
+                        torque = None
+                counts = steer_counts if channel == Axis.STEER else wheel_counts
+                self.drives[k].sense(channel, quantize(g * position, counts), g * rate, torque)

@@ -25,8 +25,10 @@ between two times (:func:`axis_travel`), plus the tape's error (:func:`tape_meas
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -171,6 +173,22 @@ def tape_measure(travel: float, stddev: float, rng: np.random.Generator) -> floa
     if not (math.isfinite(stddev) and stddev >= 0.0):
         raise ValueError(f"tape stddev {stddev} must be finite and >= 0")
     return travel + (float(rng.normal(0.0, stddev)) if stddev > 0 else 0.0)
+
+
+def measure_axis_distances(
+    P_s: FloatArray, ids: Sequence[int], stddev: float, rng: np.random.Generator, readings: int
+) -> list[tuple[int, int, list[float]]]:
+    """A tape's readings between the steering axes ``P_s`` (in R) of every pair of modules
+    ``ids``: per pair ``(a, b, [reading, ...])``, ``readings`` :func:`tape_measure` readings
+    of the true distance ``|P_s,a - P_s,b|`` (drawn from ``rng`` pair by pair, in order)."""
+    P = P_s
+    return [
+        (ids[i], ids[j], [
+            tape_measure(float(np.linalg.norm(P[i] - P[j])), stddev, rng)
+            for _ in range(readings)
+        ])
+        for i, j in itertools.combinations(range(len(ids)), 2)
+    ]  # fmt: skip
 
 
 class PoseHistory:

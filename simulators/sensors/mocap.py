@@ -42,8 +42,10 @@ import numpy as np
 import zenoh
 
 from simulators.physics.core import FloatArray
+from simulators.physics.robot import RobotPhysics
 from simulators.sensors.qtm import QtmBody, QtmServer
 from swpc_hw.clock import SimClock
+from swpc_hw.robot.model import wrap_angle
 from swpc_hw.sensors.mocap import (
     PoseEncoding,
     PoseSample,
@@ -370,6 +372,24 @@ class TruthPublisher:
             if obj is not None:
                 with contextlib.suppress(Exception):  # already closed with its session
                     obj.undeclare()
+
+
+def truth_pose_document(t: float, robot: RobotPhysics, homed: list[bool]) -> dict[str, Any]:
+    """The document on ``sim/<robot>/truth/pose`` (module docstring): the true state of
+    ``robot`` at simulated time ``t``; ``homed``: each module's steering drive homed."""
+    r = robot
+    A = r.arrays
+    return {
+        "t": t,
+        "pose": r.pose.tolist(),
+        "twist": r.twist.tolist(),
+        "theta": r.theta.tolist(),
+        "theta_hat": wrap_angle(r.theta - A.beta).tolist(),
+        "psi": r.psi.tolist(),
+        "psi_encoder": r.psi_encoder.tolist(),
+        "contact_points": r.contact_points().tolist(),
+        "homed": homed,
+    }
 
 
 def options_doc(opt: MocapOptions) -> dict[str, Any]:
