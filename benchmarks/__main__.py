@@ -1,6 +1,9 @@
 """Run every benchmark: ``python -m benchmarks [NAME ...]`` (``make bench``).
 
-Each ``benchmarks/bench_*.py`` module defines ``main() -> None`` that prints its figures.
+Each ``benchmarks/<room>/bench_*.py`` module (the rooms as the code's: ``drives``,
+``calibration``, ``onboard``, ``services``) defines ``main() -> None`` that prints its
+figures; a ``NAME`` picks those whose module name (``bench_<name>``) contains it, in the
+order of their names.
 """
 
 from __future__ import annotations
@@ -16,14 +19,16 @@ from swpc_hw.blas_threads import single_blas_thread
 
 def main(argv: list[str]) -> int:
     single_blas_thread()  # as every swpc process (swpc_hw/blas_threads.py)
-    names = sorted(
-        m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_")
-    )
-    wanted = [n for n in names if not argv or any(a in n for a in argv)]
+    modules = {
+        m.name.rpartition(".")[2]: m.name
+        for m in pkgutil.walk_packages(benchmarks.__path__, "benchmarks.")
+        if m.name.rpartition(".")[2].startswith("bench_")
+    }
+    wanted = [n for n in sorted(modules) if not argv or any(a in n for a in argv)]
     for name in wanted:
         print(f"\n=== {name} ===", flush=True)
         t0 = time.perf_counter()
-        importlib.import_module(f"benchmarks.{name}").main()
+        importlib.import_module(modules[name]).main()
         print(f"({name}: {time.perf_counter() - t0:.1f} s)", flush=True)
     return 0
 

@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from benchmarks.bench_imu import FREE, UNIT, errors_and_z
+from benchmarks.calibration.bench_imu import FREE, UNIT, errors_and_z
 from simulators.offline.datagen import PartialSlip
 from simulators.offline.datagen_imu import IMU_PROTOCOL, ReferenceOptions, generate_imu_experiment
 from swpc_hw.calibration.gyro.solver import solve_imu

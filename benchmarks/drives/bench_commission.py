@@ -18,7 +18,7 @@ through their fast part (``--prechecks N``, each aborted at its first lock): the
 refusals and the fast part's robot time.
 Robot time is the simulator's; wall time is printed for what it costs here.
 
-``python -m benchmarks.bench_commission [--kinds swpc,cia402] [--right 50] [--cases ...]``
+``python -m benchmarks.drives.bench_commission [--kinds swpc,cia402] [--right 50] [--cases ...]``
 (``make bench``: every case on every kind, about half an hour here).
 """
 

@@ -3,7 +3,7 @@ simulator, a truth per run (issue 44: honest where the robot uses it).
 
 For each protocol the service runs, ``SWPC_BENCH_HONESTY_RUNS`` calibrations (default 20)
 through the service on the in-process simulator, each with its own hidden truth (the
-paper's Table 4 robot perturbed as :func:`benchmarks.bench_plan.seed_truths` does:
+paper's Table 4 robot perturbed as :func:`benchmarks.calibration.bench_plan.seed_truths` does:
 ``P_s`` +-5 %, ``beta`` +-3 deg, ``b`` and ``r`` +-2 %) and its own simulator seed; the
 nominal is the paper's design.  Per run, the error ``e`` of the 5N parameters against the
 truth and the run's own covariance ``C`` (its kinematic file):
@@ -43,8 +43,8 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from benchmarks.bench_check import TOKEN, start_and_wait
-from benchmarks.bench_plan import KINDS, as_matrix, seed_truths
+from benchmarks.calibration.bench_check import TOKEN, start_and_wait
+from benchmarks.calibration.bench_plan import KINDS, as_matrix, seed_truths
 from swpc_hw.calibration.plan.square_error import square_path_sd, square_path_sensitivity
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL

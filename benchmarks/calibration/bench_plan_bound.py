@@ -30,7 +30,7 @@ import os
 import time
 from dataclasses import replace
 
-from benchmarks.bench_plan import default_protocol
+from benchmarks.calibration.bench_plan import default_protocol
 from services.config.robot import RobotConfig
 from services.plan.planner import pauses, time_model
 from services.plan.predict import predicted_covariance

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.bench_check import TOKEN
-from benchmarks.bench_plan import KINDS, SHOW, default_protocol
+from benchmarks.calibration.bench_check import TOKEN
+from benchmarks.calibration.bench_plan import KINDS, SHOW, default_protocol
 from services.config.robot import RobotConfig
 from services.plan.planner import PlanRequest, plan_for, time_model
 from services.plan.predict import imu_experiment_options, predicted_imu_covariance, tape_readings

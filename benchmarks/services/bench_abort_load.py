@@ -36,7 +36,7 @@ import httpx
 import numpy as np
 from pydantic import SecretStr
 
-from benchmarks.bench_service import StopWatch
+from benchmarks.services.bench_service import StopWatch
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from services.http.edge.server import server as http_server

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.bench_check import TOKEN, start_and_wait
+from benchmarks.calibration.bench_check import TOKEN, start_and_wait
 from services.config.robot import RobotConfig
 from services.plan.planner import plan_for, stopping_for, time_model
 from services.plan.predict import experiment_options, predicted_covariance

@@ -1,0 +1,1 @@
+"""Benchmarks of what the robot runs on board: odometry, the drift monitor, the square path."""
