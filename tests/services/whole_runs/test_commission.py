@@ -2,7 +2,8 @@
 a right robot is said right; a miswired one (nodes crossed, a wheel inverted) is named
 axis by axis, a wheel rolling the wrong way stopped within a degree, nothing written
 until the operator accepts; the accepted config (the simulator still built from the
-original) calibrates DONE.  Every miswiring on every drive kind: benchmarks/drives/bench_commission.py."""
+original) calibrates DONE.  Every miswiring on every drive kind:
+benchmarks/drives/bench_commission.py."""
 
 from __future__ import annotations
 
