@@ -24,8 +24,9 @@ capture: the plan's protocol with sequential stopping), ``gyro`` (the default wi
 motion capture) and ``gyro-planned`` (``plan: auto`` without motion capture: no
 sequential stopping there).
 
-``python -m benchmarks honesty``.  Each run is a whole calibration in simulated time
-(20-60 s of one core each): the default 4 x 20 runs take about an hour.
+``python -m benchmarks honesty``; ``SWPC_BENCH_HONESTY_SAVE=DIR`` keeps each run's error,
+covariance and truth there (``<protocol>-<run>.npz``).  Each run is a whole calibration
+in simulated time (about a minute of one core): the default 4 x 20 runs take over an hour.
 """
 
 from __future__ import annotations
@@ -67,18 +68,30 @@ class RunFigures:
     z: np.ndarray  # (N, 5)
     square_mm: float
     forecast_mm: float
+    by_param: np.ndarray  # (5, 2): per parameter column, the square path mm reached, forecast
+
+
+def square(S: np.ndarray, v: np.ndarray, C: np.ndarray) -> tuple[float, float]:
+    """The square path's end position error ``S v`` (the larger of CCW and CW) and its
+    forecast for covariance ``C``, in mm."""
+    d = S @ v
+    reached = max(math.hypot(d[0], d[1]), math.hypot(d[3], d[4]))
+    return reached * 1e3, square_path_sd(S, C)[0] * 1e3
 
 
 def figures(e: np.ndarray, C: np.ndarray, S: np.ndarray, robot_time: float) -> RunFigures:
     """``e`` (N, 5) the error against the truth, ``C`` (5N, 5N) the run's covariance,
-    ``S`` (6, 5N) the square path's sensitivity."""
+    ``S`` (6, 5N) the square path's sensitivity.  ``by_param``: the same square path
+    figures from one parameter column's errors alone (``x_s, y_s, beta, b, r``), to see
+    which column's forecast falls short."""
     v = e.ravel()
     nees = float(v @ np.linalg.lstsq(C, v, rcond=None)[0]) / v.size
     z = e / np.sqrt(np.diag(C)).reshape(e.shape)
-    d = S @ v
-    reached = max(math.hypot(d[0], d[1]), math.hypot(d[3], d[4]))
-    forecast = square_path_sd(S, C)[0]
-    return RunFigures(robot_time, nees, z, reached * 1e3, forecast * 1e3)
+    by = np.zeros((5, 2))
+    for c in range(5):
+        cols = np.arange(c, v.size, 5)
+        by[c] = square(S[:, cols], v[cols], C[np.ix_(cols, cols)])
+    return RunFigures(robot_time, nees, z, *square(S, v, C), by)
 
 
 @contextlib.contextmanager
@@ -108,6 +121,7 @@ def one_run(data: Path, truth_path: Path, seed: int, body: dict[str, Any]) -> di
 
 def protocol_runs(name: str, n: int) -> list[RunFigures]:
     body = PROTOCOLS[name]
+    save = os.environ.get("SWPC_BENCH_HONESTY_SAVE")  # a folder: each run's e, C, truth
     S = square_path_sensitivity(PAPER_NOMINAL)
     out: list[RunFigures] = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -126,8 +140,11 @@ def protocol_runs(name: str, n: int) -> list[RunFigures]:
                 continue
             e = as_matrix(kf.params) - as_matrix(truth)
             e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
-            f = figures(e, np.asarray(kf.covariance, dtype=float), S, float(st["elapsed_s"]))
+            C = np.asarray(kf.covariance, dtype=float)
+            f = figures(e, C, S, float(st["elapsed_s"]))
             out.append(f)
+            if save:
+                np.savez(Path(save) / f"{name}-{k}.npz", e=e, C=C, truth=as_matrix(truth))
             print(f"  {name} run {k}: NEES {f.nees:.2f}, square path {f.square_mm:.3f} mm "
                   f"(forecast {f.forecast_mm:.3f}), {f.robot_time:.0f} s of robot time",
                   flush=True)  # fmt: skip
@@ -148,12 +165,17 @@ def summary(name: str, runs: list[RunFigures]) -> str:
     fc = np.array([r.forecast_mm for r in runs])
     rms_mm, rms_fc = (math.sqrt(float(np.mean(a**2))) for a in (mm, fc))
     t = np.array([r.robot_time for r in runs])
+    by = np.sqrt(np.mean(np.stack([r.by_param for r in runs]) ** 2, axis=0))
+    cols = ", ".join(
+        f"{k} {by[c, 0]:.3f}/{by[c, 1]:.3f}" for c, k in enumerate(("x_s", "y_s", "beta", "b", "r"))
+    )
     return (
         f"{name} ({len(runs)} runs): NEES mean {nees.mean():.2f} (median {np.median(nees):.2f}, "
         f"{nees.min():.2f}-{nees.max():.2f}, {above:.0%} above chi2 95 %); RMS z {kinds}; "
         f"square path forecast {rms_fc:.3f} mm, reached {rms_mm:.3f} mm RMS (largest "
         f"{mm.max():.3f}), ratio {rms_mm / rms_fc:.2f}, RMS z "
-        f"{math.sqrt(float(np.mean((mm / fc) ** 2))):.2f}; robot time "
+        f"{math.sqrt(float(np.mean((mm / fc) ** 2))):.2f} (per column alone, RMS mm reached/"
+        f"forecast: {cols}); robot time "
         f"{t.mean():.0f} s ({t.min():.0f}-{t.max():.0f})"
     )
 
