@@ -7,6 +7,10 @@
 * ``GET /simulator/axis-distances``: the distances between the steering axes of every pair
   of modules, each read twice with the tape's error: the references a run without motion
   capture starts with (``axis_distance``).
+* ``GET /simulator/reached?run=<id>``: a DONE calibration against the simulator's hidden
+  truth, weighed by the run's own covariance: what it reached where its forecast said
+  (:func:`swpc_hw.calibration.plan.square_error.against_truth`; the console shows it
+  under the result).
 
 The router is included only when the service runs its in-process simulator: never against
 a robot.
@@ -15,13 +19,20 @@ a robot.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 from fastapi import APIRouter, HTTPException, Query
 from pydantic import BaseModel
 
-from services.http.deps import Rt, problems
+from services.http.deps import Rt, done_result, problems
+from services.plan.planner import default_budget
 from simulators.offline.datagen_imu import ReferenceOptions
+from swpc_hw.calibration.plan.square_error import against_truth
+from swpc_hw.errors import KinematicFileError
+from swpc_hw.files.kinematic_file import load_kinematics
+from swpc_hw.robot.frames import DESIGN_FIT, params_in_design_fit
 
 router = APIRouter()
 
@@ -106,3 +117,76 @@ def axis_distances(
         for a, b, values in rt.simulator.axis_distances(stddev, seed)
         for v in values
     ])  # fmt: skip
+
+
+class KindReached(BaseModel):
+    """One kind of parameter against the truth (mm, deg)."""
+
+    kind: str
+    largest: float
+    unit: str
+    rms_z: float
+
+
+class Reached(BaseModel):
+    """A calibration against the simulator's truth (:func:`reached`)."""
+
+    run: str
+    frame: str
+    kinds: list[KindReached]
+    nees: float
+    dof: int
+    square_position_mm: float
+    square_heading_deg: float
+    forecast_position_mm: float
+    forecast_heading_deg: float
+    budget_position_mm: float | None
+    budget_heading_deg: float | None
+    note: str = (
+        "simulated: the run's result against the in-process simulator's hidden truth. nees "
+        "is e' C^+ e / dof over the run's whole covariance (about 1 when it is honest); "
+        "rms_z per kind; the square path's end error the result makes beside its forecast "
+        "from the same covariance and the budget a plan keeps it within"
+    )
+
+
+@router.get("/simulator/reached", response_model=Reached, responses=problems(404, 409))
+def reached(
+    rt: Rt, run: Annotated[str, Query(description="a DONE calibration of this service")]
+) -> Reached:
+    """A DONE calibration's result against the simulator's hidden truth (in the result's
+    frame: the truth re-expressed in design-fit for a run without motion capture)."""
+    if rt.simulator is None:
+        raise HTTPException(404, "no in-process simulator")
+    done_result(rt, run)
+    try:
+        kf = load_kinematics(Path(rt.settings.data_dir) / "runs" / run / "kinematics.yaml")
+    except KinematicFileError as exc:
+        raise HTTPException(409, f"calibration {run}: its result file: {exc}") from exc
+    if kf.covariance is None:
+        raise HTTPException(409, f"calibration {run}: its result has no covariance")
+    nominal, truth = rt.config.nominal, rt.simulator.truth
+    if kf.params.frame == DESIGN_FIT:
+        truth = params_in_design_fit(truth, nominal)[0]
+    try:
+        a = against_truth(kf.params, np.asarray(kf.covariance, dtype=float), truth, nominal)
+    except ValueError as exc:
+        raise HTTPException(409, f"calibration {run}: {exc}") from exc
+    show = {"position": (1e3, "mm"), "beta": (math.degrees(1.0), "deg"), "radius": (1e3, "mm")}
+    budget = default_budget("imu" if kf.params.frame == DESIGN_FIT else "mocap")
+    return Reached(
+        run=run,
+        frame=kf.params.frame,
+        kinds=[
+            KindReached(kind=k, largest=v * show[k][0], unit=show[k][1], rms_z=a.rms_z[k])
+            for k, v in a.largest.items()
+        ],
+        nees=a.nees,
+        dof=a.dof,
+        square_position_mm=a.square[0] * 1e3,
+        square_heading_deg=math.degrees(a.square[1]),
+        forecast_position_mm=a.square_forecast[0] * 1e3,
+        forecast_heading_deg=math.degrees(a.square_forecast[1]),
+        budget_position_mm=None if budget is None else budget[0] * 1e3,
+        budget_heading_deg=None if budget is None else math.degrees(budget[1]),
+    )

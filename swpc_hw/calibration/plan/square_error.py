@@ -6,12 +6,14 @@ from the file), the true end pose of an idealised square (legs of ``side`` along
 body's x at ``speed``, turns in place of 90 deg at ``turn_rate``, every twist constant,
 :func:`square_path_end`) moves by ``e = S dp`` to first order, ``S`` by central
 differences (:func:`square_path_sensitivity`); the end error's std devs are those of
-``S Sigma S^T`` (:func:`square_path_sd`).
+``S Sigma S^T`` (:func:`square_path_sd`).  Where the truth is known (a simulator), what
+a result reached against what its covariance forecast: :func:`against_truth`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +22,9 @@ from swpc_hw.calibration.parameters import BETA, N_PARAMS
 from swpc_hw.calibration.parameters import B as B_COL
 from swpc_hw.onboard.square_path import SquareOptions
 from swpc_hw.robot.model import (
+    KIND_OF,
+    PARAM_KINDS,
+    PARAM_NAMES,
     RobotArrays,
     RobotParams,
     contact_point,
@@ -125,3 +130,68 @@ def square_path_sd(S: FloatArray, covariance: FloatArray) -> tuple[float, float]
     return pos, head
 
 
+def square_path_error(S: FloatArray, dp: FloatArray) -> tuple[float, float]:
+    """``(position, heading)`` (m, rad) of the square's end error ``S dp`` for parameter
+    errors ``dp`` (5N), the larger of the CCW and the CW square: what a file with those
+    errors makes the odometry miss by (:func:`square_path_sd` is its forecast)."""
+    d = S @ np.asarray(dp, dtype=float).ravel()
+    pos = max(math.hypot(d[0], d[1]), math.hypot(d[3], d[4]))
+    return pos, max(abs(float(d[2])), abs(float(d[5])))
+
+
+@dataclass(frozen=True)
+class AgainstTruth:
+    """A calibration against the robot's truth (a simulator's, known): its errors weighed
+    by its own covariance ``C`` (:func:`against_truth`).
+
+    ``largest``: per kind of :data:`~swpc_hw.robot.model.PARAM_KINDS` the largest error (m,
+    rad); ``rms_z``: per kind the RMS of ``error / std dev``; ``nees``: ``e' C^+ e / k``
+    over the whole covariance (``k`` its rank: ``5N``, ``5N - 3`` in the design-fit frame),
+    about 1 when ``C`` is honest; ``square``: the square path's end error (m, rad) and
+    ``square_forecast`` its forecast from ``C``."""
+
+    largest: dict[str, float]
+    rms_z: dict[str, float]
+    nees: float
+    dof: int
+    square: tuple[float, float]
+    square_forecast: tuple[float, float]
+
+
+def against_truth(
+    result: RobotParams,
+    covariance: FloatArray,
+    truth: RobotParams,
+    nominal: RobotParams,
+    sensitivity: FloatArray | None = None,
+) -> AgainstTruth:
+    """``result`` (its covariance ``covariance``, modules in its order) against ``truth``
+    (the same frame: re-express a truth in R first for a design-fit result), the square
+    path's sensitivity about ``nominal``::
+
+        e = p_result - p_truth  (beta wrapped),   nees = e' C^+ e / rank(C),
+        z = e / sqrt(diag C),   square = |S e|,   forecast = sqrt(S C S')
+
+    ``sensitivity``: ``S`` when the caller has it (:func:`square_path_sensitivity` of
+    ``nominal``, 80 square paths).  Raises ``ValueError`` when the modules differ or ``C``
+    is not (5N, 5N)."""
+    if result.ids != truth.ids:
+        raise ValueError(f"result modules {result.ids} are not the truth's {truth.ids}")
+    C = np.asarray(covariance, dtype=float)
+    e = np.array([[getattr(m, k) for k in PARAM_NAMES] for m in result.modules]) - np.array(
+        [[getattr(m, k) for k in PARAM_NAMES] for m in truth.modules]
+    )
+    e[:, BETA] = (e[:, BETA] + math.pi) % (2 * math.pi) - math.pi
+    v = e.ravel()
+    if C.shape != (v.size, v.size):
+        raise ValueError(f"covariance {C.shape} is not ({v.size}, {v.size})")
+    dof = int(np.linalg.matrix_rank(C, hermitian=True))
+    nees = float(v @ np.linalg.pinv(C, hermitian=True) @ v) / max(dof, 1)
+    sd = np.sqrt(np.maximum(np.diag(C), 1e-300)).reshape(e.shape)
+    largest, rms_z = {}, {}
+    for kind in PARAM_KINDS:
+        cols = [c for c, k in enumerate(PARAM_NAMES) if KIND_OF[k] == kind]
+        largest[kind] = float(np.abs(e[:, cols]).max())
+        rms_z[kind] = float(np.sqrt(np.mean((e[:, cols] / sd[:, cols]) ** 2)))
+    S = square_path_sensitivity(nominal) if sensitivity is None else sensitivity
+    return AgainstTruth(largest, rms_z, nees, dof, square_path_error(S, v), square_path_sd(S, C))

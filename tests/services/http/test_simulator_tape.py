@@ -39,3 +39,4 @@ def test_every_pair_read_twice_near_the_truth_and_seeded(tmp_path: Path) -> None
 def test_no_simulator_no_tape(tmp_path: Path) -> None:
     with TestClient(app_without_robot(tmp_path)) as client:
         assert client.get("/simulator/axis-distances").status_code == 404
+        assert client.get("/simulator/reached", params={"run": "x"}).status_code == 404

@@ -174,6 +174,18 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
             assert abs(err) < 4 * sd, (m["id"], k, err, sd)
         assert m["nominal"]["x_s"] == PAPER_NOMINAL.module(m["id"]).x_s
     assert len(res["table"]) == 20
+    # against the simulator's truth: the largest errors as computed here, the whole
+    # covariance's NEES and the square path beside its forecast and the budget
+    got = client.get("/simulator/reached", params={"run": run_id}).json()
+    kinds = {k["kind"]: k for k in got["kinds"]}
+    err = {n: [abs(m[n] - getattr(truth[m["id"]], n)) for m in res["modules"]] for n in NAMES}
+    assert kinds["radius"]["largest"] == pytest.approx(max(err["r"]) * 1e3, abs=1e-9)
+    assert kinds["beta"]["largest"] == pytest.approx(math.degrees(max(err["beta"])), abs=1e-9)
+    assert got["frame"] == "R" and got["dof"] == 20 and 0.1 < got["nees"] < 4.0, got
+    assert 0 < got["square_position_mm"] < 3 * got["forecast_position_mm"], got
+    assert got["budget_position_mm"] == 0.5
+    print(f"\nagainst the truth: NEES {got['nees']:.2f}; square path "
+          f"{got['square_position_mm']:.3f} mm, forecast {got['forecast_position_mm']:.3f} mm")
     # the kinematic file in force is the result, and loads
     k = load_kinematics(rt.settings.kinematics_file)
     got = np.array([[getattr(m, n) for n in NAMES] for m in k.params.modules])

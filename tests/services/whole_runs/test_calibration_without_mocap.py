@@ -304,6 +304,11 @@ def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
     assert k.covariance is not None
     figures = frame_free(k.params, np.array(k.covariance), homing_truth())
     assert_near_the_truth(figures)
+    # against the truth in the design-fit frame: three gauge directions the covariance
+    # has not; no square path budget without motion capture
+    got = q.client.get("/simulator/reached", params={"run": q.run_id}).json()
+    assert got["frame"] == "design-fit" and got["dof"] == 17 and 0.05 < got["nees"] < 5, got
+    assert got["budget_position_mm"] is None and got["forecast_position_mm"] > 0, got
 
 
 def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(

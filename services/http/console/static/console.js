@@ -681,9 +681,27 @@ async function showResult(id) {
     $("res-plot").src = `/calibrations/${id}/plot.png`;
     $("res-foxglove").href = "#foxglove/" + id;
     renderGeometry(await api("GET", `/calibrations/${id}/geometry`));
+    await showReached(id);
   } catch (e) {
     $("res-summary").textContent = `No result for ${id}: ${e.message}`;
     $("res-rows").replaceChildren();
+  }
+}
+// on the simulator only: the result against its hidden truth (GET /simulator/reached)
+async function showReached(id) {
+  const p = $("res-truth");
+  p.hidden = !(app.hello && app.hello.in_process_simulator);
+  if (p.hidden) return;
+  try {
+    const r = await api("GET", `/simulator/reached?run=${encodeURIComponent(id)}`);
+    const kinds = r.kinds.map((k) => `${k.kind} ${k.largest.toPrecision(2)} ${k.unit} (RMS z ${k.rms_z.toFixed(2)})`);
+    const budget = r.budget_position_mm === null ? "" : `, budget ${r.budget_position_mm} mm`;
+    p.textContent = `Against the simulator's truth: largest errors ${kinds.join(", ")}; ` +
+      `NEES ${r.nees.toFixed(2)} over ${r.dof} (about 1 when the std devs are honest); ` +
+      `square path ${r.square_position_mm.toFixed(3)} mm reached, ` +
+      `${r.forecast_position_mm.toFixed(3)} mm forecast${budget}.`;
+  } catch (e) {
+    p.textContent = `Against the simulator's truth: not known (${e.message}).`;
   }
 }
 function chip(value, yes, no, goodWhenTrue) {
