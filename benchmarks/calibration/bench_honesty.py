@@ -45,9 +45,17 @@ import numpy as np
 from scipy import stats
 
 from benchmarks.calibration.bench_check import TOKEN, start_and_wait
-from benchmarks.calibration.bench_plan import KINDS, as_matrix, seed_truths
-from swpc_hw.calibration.plan.square_error import square_path_sd, square_path_sensitivity
+from benchmarks.calibration.bench_plan import as_matrix, seed_truths
+from swpc_hw.calibration.plan.square_error import (
+    AgainstTruth,
+    against_truth,
+    square_path_error,
+    square_path_sd,
+    square_path_sensitivity,
+)
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
+from swpc_hw.robot.frames import DESIGN_FIT, params_in_design_fit
+from swpc_hw.robot.model import PARAM_KINDS, RobotParams
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 PROTOCOLS: dict[str, dict[str, Any]] = {
@@ -61,37 +69,30 @@ PROTOCOLS: dict[str, dict[str, Any]] = {
 
 @dataclass
 class RunFigures:
-    """One run against its truth."""
+    """One run against its truth: :class:`AgainstTruth` and the square path per column."""
 
     robot_time: float
-    nees: float
-    z: np.ndarray  # (N, 5)
-    square_mm: float
-    forecast_mm: float
+    against: AgainstTruth
     by_param: np.ndarray  # (5, 2): per parameter column, the square path mm reached, forecast
 
 
-def square(S: np.ndarray, v: np.ndarray, C: np.ndarray) -> tuple[float, float]:
-    """The square path's end position error ``S v`` (the larger of CCW and CW) and its
-    forecast for covariance ``C``, in mm."""
-    d = S @ v
-    reached = max(math.hypot(d[0], d[1]), math.hypot(d[3], d[4]))
-    return reached * 1e3, square_path_sd(S, C)[0] * 1e3
-
-
-def figures(e: np.ndarray, C: np.ndarray, S: np.ndarray, robot_time: float) -> RunFigures:
-    """``e`` (N, 5) the error against the truth, ``C`` (5N, 5N) the run's covariance,
-    ``S`` (6, 5N) the square path's sensitivity.  ``by_param``: the same square path
-    figures from one parameter column's errors alone (``x_s, y_s, beta, b, r``), to see
-    which column's forecast falls short."""
-    v = e.ravel()
-    nees = float(v @ np.linalg.lstsq(C, v, rcond=None)[0]) / v.size
-    z = e / np.sqrt(np.diag(C)).reshape(e.shape)
+def figures(
+    result: RobotParams, C: np.ndarray, truth: RobotParams, S: np.ndarray, robot_time: float
+) -> RunFigures:
+    """``result`` (its covariance ``C``) against ``truth``; ``S`` the square path's
+    sensitivity.  ``by_param``: the square path's error and forecast from one parameter
+    column's errors alone (``x_s, y_s, beta, b, r``), to see which column's forecast falls
+    short."""
+    a = against_truth(result, C, truth, PAPER_NOMINAL, S)
+    v = (as_matrix(result) - as_matrix(truth)).ravel()
     by = np.zeros((5, 2))
     for c in range(5):
         cols = np.arange(c, v.size, 5)
-        by[c] = square(S[:, cols], v[cols], C[np.ix_(cols, cols)])
-    return RunFigures(robot_time, nees, z, *square(S, v, C), by)
+        by[c] = (
+            square_path_error(S[:, cols], v[cols])[0] * 1e3,
+            square_path_sd(S[:, cols], C[np.ix_(cols, cols)])[0] * 1e3,
+        )
+    return RunFigures(robot_time, a, by)
 
 
 @contextlib.contextmanager
@@ -138,31 +139,33 @@ def protocol_runs(name: str, n: int) -> list[RunFigures]:
             if kf.covariance is None:
                 print(f"  {name} run {k}: no covariance in its file", flush=True)
                 continue
-            e = as_matrix(kf.params) - as_matrix(truth)
-            e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
-            C = np.asarray(kf.covariance, dtype=float)
-            f = figures(e, C, S, float(st["elapsed_s"]))
+            result, C = kf.params, np.asarray(kf.covariance, dtype=float)
+            if result.frame == DESIGN_FIT:  # without motion capture
+                truth = params_in_design_fit(truth, PAPER_NOMINAL)[0]
+            f = figures(result, C, truth, S, float(st["elapsed_s"]))
             out.append(f)
             if save:
+                e = as_matrix(result) - as_matrix(truth)
                 np.savez(Path(save) / f"{name}-{k}.npz", e=e, C=C, truth=as_matrix(truth))
-            print(f"  {name} run {k}: NEES {f.nees:.2f}, square path {f.square_mm:.3f} mm "
-                  f"(forecast {f.forecast_mm:.3f}), {f.robot_time:.0f} s of robot time",
-                  flush=True)  # fmt: skip
+            a = f.against
+            print(f"  {name} run {k}: NEES {a.nees:.2f} ({a.dof}), square path "
+                  f"{a.square[0] * 1e3:.3f} mm (forecast {a.square_forecast[0] * 1e3:.3f}), "
+                  f"{f.robot_time:.0f} s of robot time", flush=True)  # fmt: skip
     return out
 
 
 def summary(name: str, runs: list[RunFigures]) -> str:
     if not runs:
         return f"{name}: no run DONE"
-    nees = np.array([r.nees for r in runs])
-    dof = runs[0].z.size
+    nees = np.array([r.against.nees for r in runs])
+    dof = runs[0].against.dof
     above = float(np.mean(nees > stats.chi2.ppf(0.95, dof) / dof))
-    z = np.stack([r.z for r in runs])
     kinds = ", ".join(
-        f"{k} {math.sqrt(float(np.mean(z[:, :, c] ** 2))):.2f}" for k, c in KINDS.items()
+        f"{k} {math.sqrt(float(np.mean([r.against.rms_z[k] ** 2 for r in runs]))):.2f}"
+        for k in PARAM_KINDS
     )
-    mm = np.array([r.square_mm for r in runs])
-    fc = np.array([r.forecast_mm for r in runs])
+    mm = np.array([r.against.square[0] * 1e3 for r in runs])
+    fc = np.array([r.against.square_forecast[0] * 1e3 for r in runs])
     rms_mm, rms_fc = (math.sqrt(float(np.mean(a**2))) for a in (mm, fc))
     t = np.array([r.robot_time for r in runs])
     by = np.sqrt(np.mean(np.stack([r.by_param for r in runs]) ** 2, axis=0))
