@@ -114,10 +114,33 @@ def service(data: Path, truth: Path, seed: int) -> Iterator[Any]:
 
 
 def one_run(data: Path, truth_path: Path, seed: int, body: dict[str, Any]) -> dict[str, Any]:
+    """One calibration with ``body``; without motion capture the operator played as
+    ``swpc`` asks one to (the simulator's tape between the steering axes, each pair twice,
+    then MARK and the straight drive's tape): its final status."""
+    auth = {"Authorization": f"Bearer {TOKEN}"}
     with service(data, truth_path, seed) as client:
         while body.get("plan") and client.get("/plan").status_code == 202:  # being made
             time.sleep(0.1)
-        return start_and_wait(client, "calibrations", {**body, "install": "never"})
+        if body.get("metrology") != "imu":
+            return start_and_wait(client, "calibrations", {**body, "install": "never"})
+        refs = client.get("/simulator/axis-distances", params={"seed": seed}).json()
+        req = {**body, "references": refs["references"], "install": "never"}
+        r = client.post("/calibrations", json=req, headers=auth)
+        assert r.status_code == 202, r.text
+        rid, deadline = r.json()["id"], time.monotonic() + 900
+        while True:
+            st: dict[str, Any] = client.get(f"/calibrations/{rid}").json()
+            if st["state"] in ("DONE", "FAILED", "ABORTED"):
+                return st
+            assert time.monotonic() < deadline, st
+            if st["state"] == "MARK":
+                client.post(f"/calibrations/{rid}/continue", headers=auth)
+            elif st["state"] == "MEASURE":
+                tape = client.get("/simulator/tape-measure", params={"run": rid, "seed": seed})
+                ref = {k: tape.json()[k] for k in ("kind", "value", "stddev")}
+                client.post(f"/calibrations/{rid}/references", json={"references": [ref]},
+                            headers=auth)  # fmt: skip
+            time.sleep(0.02)
 
 
 def protocol_runs(name: str, n: int) -> list[RunFigures]:
