@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from benchmarks.calibration.bench_check import TOKEN, start_and_wait
+from benchmarks.calibration.bench_check import TOKEN
 from benchmarks.calibration.bench_plan import as_matrix, seed_truths
 from swpc_hw.calibration.plan.square_error import (
     AgainstTruth,
@@ -119,13 +119,16 @@ def one_run(data: Path, truth_path: Path, seed: int, body: dict[str, Any]) -> di
     then MARK and the straight drive's tape): its final status."""
     auth = {"Authorization": f"Bearer {TOKEN}"}
     with service(data, truth_path, seed) as client:
-        while body.get("plan") and client.get("/plan").status_code == 202:  # being made
-            time.sleep(0.1)
-        if body.get("metrology") != "imu":
-            return start_and_wait(client, "calibrations", {**body, "install": "never"})
-        refs = client.get("/simulator/axis-distances", params={"seed": seed}).json()
-        req = {**body, "references": refs["references"], "install": "never"}
-        r = client.post("/calibrations", json=req, headers=auth)
+        req = {**body, "install": "never"}
+        if body.get("metrology") == "imu":
+            refs = client.get("/simulator/axis-distances", params={"seed": seed}).json()
+            req["references"] = refs["references"]
+        deadline = time.monotonic() + 600
+        while True:  # 409 while the plan is being made (seconds to a minute)
+            r = client.post("/calibrations", json=req, headers=auth)
+            if r.status_code != 409 or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
         assert r.status_code == 202, r.text
         rid, deadline = r.json()["id"], time.monotonic() + 900
         while True:
