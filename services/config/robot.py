@@ -304,6 +304,11 @@ class RobotConfig(BaseModel):
         "round from what its drive reports (commissioning finds it); unset: 1",
     )
 
+    def axis_signs(self) -> dict[int, tuple[int, int]]:
+        """``polarity`` as the drives' layer takes it (``swpc_hw.drives.types.AxisSigns``):
+        module id -> (steer, wheel)."""
+        return {m: (p.steer, p.wheel) for m, p in self.polarity.items()}
+
     @field_validator("nominal", mode="before")
     @classmethod
     def _nominal(cls, v: Any) -> Any:

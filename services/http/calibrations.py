@@ -392,7 +392,9 @@ def export(run_id: str, rt: Rt, to: ExportTarget) -> Response:
     except KinematicFileError as exc:
         raise HTTPException(409, f"calibration {run_id}: its result file: {exc}") from exc
     try:
-        text = render(make_export(kf, rt.config.base_link, f"run {run_id}"), to)
+        text = render(
+            make_export(kf, rt.config.base_link, f"run {run_id}", rt.config.axis_signs()), to
+        )
     except ValueError as exc:  # the shape of FastAPI's own 422 (one schema for 422)
         raise RequestValidationError(
             [{"loc": ["query", "to"], "msg": f"calibration {run_id}: {exc}", "type": "value_error"}]

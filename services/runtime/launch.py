@@ -162,7 +162,7 @@ class RunLauncher(RunRecords):
             io = DrivesRobotIO(
                 self.drives,
                 limits=(lim.max_wheel_torque, (lim.max_steer_velocity, lim.max_wheel_velocity)),
-                polarity={m: (p.steer, p.wheel) for m, p in config.polarity.items()},
+                polarity=config.axis_signs(),
             )
             common: dict[str, Any] = dict(
                 clock=self.clock,

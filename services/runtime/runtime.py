@@ -43,13 +43,12 @@ from services.runs.state import TERMINAL, now_iso
 from services.runtime.errors import NoResultError
 from services.runtime.events import EventBus
 from services.runtime.launch import RunLauncher
-from services.runtime.simulator import in_process_simulator
+from services.runtime.simulator import in_process_simulator, simulated_robot
 from services.sensors.gyro import GyroIngest
 from services.sensors.mocap import MocapIngest, SourceStatus
 from services.store.locks import ChannelLock, DataDirLock
 from services.store.logs import event
 from services.store.runs import RunStore
-from simulators.drives.wiring import WIRED_AS_CONFIGURED, Wiring, load_wiring
 from simulators.virtual_robot import VirtualRobot
 from swpc_hw.clock import Clock, SimClock, SystemClock
 from swpc_hw.drives.interface import Drives
@@ -272,11 +271,7 @@ class Runtime(RunLauncher):
                     f"SWPC_SIM_TRUTH: {s.sim_truth} has modules {truth.ids}, the robot "
                     f"config {self.config.nominal.ids}"
                 )
-            built = (
-                self.config
-                if s.sim_robot_config is None
-                else load_robot_config(s.sim_robot_config)
-            )
+            built, wiring = simulated_robot(s, self.config)
             self.simulator = in_process_simulator(
                 config=built,
                 channel=channel,
@@ -290,9 +285,7 @@ class Runtime(RunLauncher):
                 mocap_qtm_port=s.sim_mocap_qtm_port,
                 feedback_rate_hz=s.feedback_rate_hz,
                 gyro=s.sim_gyro,
-                wiring=WIRED_AS_CONFIGURED
-                if s.sim_wiring is None
-                else self._sim_wiring(s.sim_wiring),
+                wiring=wiring,
             )
             # the link up before time flows: the run's first poses are then the same
             # whatever the wall time zenoh takes (bit for bit the same seed, the same run)
@@ -307,12 +300,6 @@ class Runtime(RunLauncher):
             self._contact.start()
         self._opened = True
         return self
-
-    def _sim_wiring(self, path: Path) -> Wiring:
-        try:
-            return load_wiring(path, self.config.nominal.ids)
-        except ValueError as exc:
-            raise SettingsError(f"SWPC_SIM_WIRING: {exc}") from exc
 
     def _first_contact(self) -> None:
         """Drives silent until set up (CiA 402 from the factory) brought up at start and

@@ -19,8 +19,9 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-from services.config.robot import RobotConfig
-from simulators.drives.wiring import WIRED_AS_CONFIGURED, Wiring
+from services.config.robot import RobotConfig, load_robot_config
+from services.config.settings import ServiceSettings, SettingsError
+from simulators.drives.wiring import WIRED_AS_CONFIGURED, Wiring, load_wiring
 from simulators.options import SimOptions
 from simulators.sensors.mocap import MocapOptions
 from simulators.virtual_robot import VirtualRobot
@@ -31,6 +32,25 @@ from swpc_hw.sensors.gyro import GyroOptions
 from swpc_hw.sensors.zenoh_session import ZenohAuth
 
 DEFAULT_MOCAP = MocapOptions(rate=100.0, sigma_xy=0.5e-3, sigma_yaw=math.radians(0.05))
+
+
+def simulated_robot(settings: ServiceSettings, config: RobotConfig) -> tuple[RobotConfig, Wiring]:
+    """What the in-process simulator is built as, for a service (or ``swpc validate``) on
+    ``config``: the robot config it was built from (``SWPC_SIM_ROBOT_CONFIG``; unset:
+    ``config``) and how its drives are really wired (``SWPC_SIM_WIRING``; unset: as that
+    config says).  Raises :class:`SettingsError` naming the setting for a file that does
+    not fit the robot."""
+    built = (
+        config
+        if settings.sim_robot_config is None
+        else load_robot_config(settings.sim_robot_config)
+    )
+    if settings.sim_wiring is None:
+        return built, WIRED_AS_CONFIGURED
+    try:
+        return built, load_wiring(settings.sim_wiring, config.nominal.ids)
+    except ValueError as exc:
+        raise SettingsError(f"SWPC_SIM_WIRING: {exc}") from exc
 
 
 def in_process_simulator(

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Mapping
 from typing import Protocol
 
 import numpy as np
@@ -19,7 +18,7 @@ from numpy.typing import NDArray
 from firmware_protocol.codec import Axis
 from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.interface import Drives
-from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
+from swpc_hw.drives.types import AxisSigns, DriverEvent, Lifecycle, Severity, axis_sign
 from swpc_hw.robot.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
@@ -114,7 +113,7 @@ class DrivesRobotIO:
         self,
         drives: Drives,
         limits: tuple[float, tuple[float, float]] | None = None,
-        polarity: Mapping[int, tuple[int, int]] | None = None,
+        polarity: AxisSigns | None = None,
     ) -> None:
         self.drives = drives
         self.limits = limits
@@ -174,7 +173,7 @@ class DrivesRobotIO:
         self.drives.start_homing(module)
 
     def _sign(self, module: int, axis: Axis) -> int:
-        return self.polarity.get(module, (1, 1))[int(axis)]
+        return axis_sign(self.polarity, module, axis)
 
     def _steer_setpoint(self, module: int, steer: float) -> float:
         """``steer`` on the turn nearest the steering's reported position: the controller's

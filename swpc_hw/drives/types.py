@@ -3,9 +3,10 @@ counters."""
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from firmware_protocol.codec import Axis, AxisState, ControlMode, HomingState
@@ -103,6 +104,39 @@ class FeedbackSample:
     wheel_velocity: float = math.nan
     steer_torque: float = math.nan
     wheel_torque: float = math.nan
+
+
+AxisSigns = Mapping[int, tuple[int, int]]
+"""A robot's polarity: module id -> (steer, wheel), -1 for an axis that turns the other way
+round from what its drive reports (docs/commissioning.md).  A module left out is (1, 1).
+
+What the robot's software commands to an axis and reads from it is in the model's sense
+(docs/model-and-frames.md); its drive's is ``sign x`` that::
+
+    command_drive = sign * command_model        reading_model = sign * reading_drive
+"""
+
+
+def axis_sign(polarity: AxisSigns, module: int, axis: Axis) -> int:
+    """``polarity``'s sign of ``module``'s ``axis`` (1 when it says nothing of it)."""
+    return polarity.get(module, (1, 1))[int(axis)]
+
+
+def turned_sample(polarity: AxisSigns, module: int, s: FeedbackSample) -> FeedbackSample:
+    """``module``'s drive feedback ``s`` in the model's sense: each axis' position,
+    velocity and torque times its sign (the sample itself when both are 1)."""
+    st, wh = polarity.get(module, (1, 1))
+    if st == 1 and wh == 1:
+        return s
+    return dataclasses.replace(
+        s,
+        theta_hat=st * s.theta_hat,
+        psi=wh * s.psi,
+        steer_velocity=st * s.steer_velocity,
+        wheel_velocity=wh * s.wheel_velocity,
+        steer_torque=st * s.steer_torque,
+        wheel_torque=wh * s.wheel_torque,
+    )
 
 
 @dataclass(frozen=True)

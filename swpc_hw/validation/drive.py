@@ -10,7 +10,7 @@ import numpy as np
 
 from firmware_protocol.codec import Axis
 from swpc_hw.drives.interface import Drives
-from swpc_hw.drives.types import DriverEvent, Lifecycle, Severity
+from swpc_hw.drives.types import AxisSigns, DriverEvent, Lifecycle, Severity, axis_sign
 from swpc_hw.onboard.odometry import OdometryOptions
 from swpc_hw.onboard.square_path import Direction, Leg, SquareOptions, follow_step, square_plan
 from swpc_hw.onboard.twist_controller import TwistController
@@ -26,7 +26,8 @@ class SquareDrive:
     (activated, homed) and measures them.
 
     Time is the driver's clock (robot seconds; in lockstep with the in-process simulator
-    the calling thread must be a participant of it).
+    the calling thread must be a participant of it).  ``polarity`` (the robot config's)
+    turns what is commanded to each axis and read from it, as a run does.
     """
 
     def __init__(
@@ -38,15 +39,19 @@ class SquareDrive:
         *,
         odometry_options: OdometryOptions | None = None,
         log: Callable[[str], None] | None = None,
+        polarity: AxisSigns | None = None,
     ) -> None:
         self.driver = driver
+        self.polarity = dict(polarity or {})
         self.truth = truth
         self.options = opt = options or SquareOptions()
         self.clock = driver.clock
         self.controller = TwistController(
             params, max_wheel_rate=opt.max_wheel_rate, max_steer_rate=opt.max_steer_rate
         )
-        self.odometry = DriverOdometry(driver, params, options=odometry_options)
+        self.odometry = DriverOdometry(
+            driver, params, options=odometry_options, polarity=self.polarity
+        )
         self._faults: list[str] = []
         self._flock = threading.Lock()
         driver.add_event_callback(self._on_event)
@@ -93,11 +98,12 @@ class SquareDrive:
             if fb is None:
                 raise ValidationError(f"module {m}: no feedback")
             rate = fb.steer_velocity if math.isfinite(fb.steer_velocity) else 0.0
-            th.append(fb.theta_hat + rate * lead)
+            th.append(axis_sign(self.polarity, m, Axis.STEER) * (fb.theta_hat + rate * lead))
         cmd = self.controller.command(th, twist)
         for i, m in enumerate(ids):
-            self.driver.set_velocity(m, Axis.STEER, float(cmd.theta_hat_dot[i]))
-            self.driver.set_velocity(m, Axis.WHEEL, float(cmd.psi_dot[i]))
+            s, w = (axis_sign(self.polarity, m, a) for a in (Axis.STEER, Axis.WHEEL))
+            self.driver.set_velocity(m, Axis.STEER, s * float(cmd.theta_hat_dot[i]))
+            self.driver.set_velocity(m, Axis.WHEEL, w * float(cmd.psi_dot[i]))
         return cmd.twist
 
     def stand_still(self, duration: float) -> None:

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swpc_hw.drives.interface import Drives
-from swpc_hw.drives.types import FeedbackSample
+from swpc_hw.drives.types import AxisSigns, FeedbackSample, turned_sample
 from swpc_hw.onboard.odometry import Odometry, OdometryOptions
 from swpc_hw.robot.model import RobotParams
 from swpc_hw.validation.errors import ValidationError
@@ -38,6 +38,10 @@ class DriverOdometry:
     ``on_update(t, theta_hat, psi)``, when given, receives every aligned reading that was
     integrated (module order of ``params``), in the same thread: e.g. the ROS 2 stream of
     ``swpc odometry`` (:class:`swpc_hw.onboard.ros2.stream.Ros2OdometryStream`).
+
+    Polarity.  ``polarity`` (the robot config's, :data:`~swpc_hw.drives.types.AxisSigns`)
+    turns each axis' readings into the model's sense before anything else, as a run's
+    readings are turned: the odometry of a robot with a motor mounted the other way round.
     """
 
     def __init__(
@@ -47,8 +51,10 @@ class DriverOdometry:
         *,
         options: OdometryOptions | None = None,
         on_update: Callable[[float, list[float], list[float]], None] | None = None,
+        polarity: AxisSigns | None = None,
     ) -> None:
         self._lock = threading.Lock()
+        self._polarity = dict(polarity or {})
         self._on_update = on_update
         self._options = options
         self._odo = Odometry(params, options=options)
@@ -76,6 +82,7 @@ class DriverOdometry:
         return t_seq
 
     def _on_sample(self, module: int, s: FeedbackSample) -> None:
+        s = turned_sample(self._polarity, module, s)
         with self._lock:
             buf = self._buf.get(module)
             if buf is None:

@@ -349,7 +349,8 @@ def test_swpc_export_writes_each_target_and_fails_on_one_line(
     kf = calibrated(covariance(4))
     save_kinematics(src, kf.params, created=CREATED, covariance=kf.covariance)
     config = tmp_path / "robot.yaml"
-    config.write_text("base_link: centroid\n")
+    config.write_text("base_link: centroid\npolarity: {2: {wheel: -1}, 3: {steer: -1}}\n")
+    texts = {}
     for target in ("urdf", "ros2-params", "kinematics"):
         out = tmp_path / f"out.{target}"
         assert (
@@ -358,11 +359,22 @@ def test_swpc_export_writes_each_target_and_fails_on_one_line(
             )
             == 0
         )
-        exp = make_export(load_kinematics(src), "centroid", str(src))
-        assert out.read_text() == render(exp, target)
+        exp = make_export(load_kinematics(src), "centroid", str(src), {2: (1, -1), 3: (-1, 1)})
+        texts[target] = out.read_text()
+        assert texts[target] == render(exp, target)
         assert f"wrote {out} ({target}, frame base_link)" in capsys.readouterr().err
+    # the config's polarity beside the joints (the kinematic file holds the geometry only)
+    node = yaml.safe_load(texts["ros2-params"])["swpc_kinematics"]["ros__parameters"]
+    assert node["steer_polarity"] == [1, 1, -1, 1] and node["wheel_polarity"] == [1, -1, 1, 1]
+    assert "#   wheel_2: polarity -1" in texts["ros2-params"]
+    assert "#   steer_3: polarity -1" in texts["ros2-params"]
+    assert texts["urdf"].count("polarity -1") == 2
+    assert "polarity" not in texts["kinematics"]
     assert main(["export", str(src), "--to", "urdf"]) == 0  # stdout, base_link = R
     assert "base_link = R, the identity" in capsys.readouterr().out
+    assert main(["export", str(src), "--to", "ros2-params"]) == 0  # no config: unknown
+    unknown = capsys.readouterr().out
+    assert "# polarity: no robot config given" in unknown and "_polarity:" not in unknown
 
     bad_yaml = tmp_path / "bad.yaml"
     bad_yaml.write_text("modules: [1, 2\n")
@@ -433,6 +445,7 @@ def test_the_per_run_download(tmp_path: Path) -> None:
             load_kinematics(tmp_path / "runs" / "done1" / "kinematics.yaml"),
             "centroid",
             "run done1",
+            {},  # the service's robot config: no axis turned
         )
         assert got.text == render(exp, "urdf")
         assert "base_link: centroid: origin at the centroid" in got.text

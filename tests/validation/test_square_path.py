@@ -271,12 +271,22 @@ def square_drive(tmp_path_factory: pytest.TempPathFactory) -> SquareDriveRun:
     casters swivel at up to 2 rad/s (the robot config's limit is 3; ``swpc validate``'s
     0.8 made each corner 1.5 s longer): 32 s a square instead of 45, the same errors.
 
+    The robot has module 2's wheel and module 3's steering motor mounted the other way
+    round, and its config says so (``polarity``, as a commissioning writes it): the drive
+    and the odometry turn what they command and read by it, as a run does (a drive that
+    did not would steer module 3 away and roll module 2 against the others).
+
     One drive for the two tests below: they assert on different outputs of it (the
     report; the stream's messages), and a drive is most of their cost."""
     from services.cli.offline.odometry import follow_drives
-    from services.cli.offline.validate import run_in_process
+    from services.cli.offline.validate import run_in_process, validation_settings
+    from services.config.robot import Polarity, RobotConfig
 
-    kin = tmp_path_factory.mktemp("square") / "kinematics.yaml"
+    where = tmp_path_factory.mktemp("square")
+    kin = where / "kinematics.yaml"
+    wiring = where / "wiring.yaml"
+    wiring.write_text("inverted: [{module: 2, axis: wheel}, {module: 3, axis: steer}]\n")
+    config = RobotConfig(polarity={2: Polarity(wheel=-1), 3: Polarity(steer=-1)})
     save_kinematics(kin, PAPER_CALIBRATED)  # the simulator's truth: the right file
     odom: list[tuple[float, bytes]] = []
     tf: list[float] = []
@@ -299,7 +309,8 @@ def square_drive(tmp_path_factory: pytest.TempPathFactory) -> SquareDriveRun:
     lines: list[str] = []
     rep = run_in_process(
         [("nominal", PAPER_NOMINAL), ("calibrated", calibrated)], opt, log=lines.append,
-        observe=lambda drv: follow_drives(drv, stream),
+        config=config, settings=validation_settings(sim_wiring=wiring),
+        observe=lambda drv: follow_drives(drv, stream, polarity=config.axis_signs()),
     )  # fmt: skip
     return SquareDriveRun(rep, lines, stream, odom, tf)
 

@@ -29,7 +29,8 @@ def register(sub: Any) -> None:
     p.add_argument("-o", "--output", help="file to write (default: standard output)")
     p.add_argument(
         "--robot-config",
-        help="robot config YAML whose base_link places base_link (default: none, base_link = R)",
+        help="robot config YAML whose base_link places base_link and whose polarity is "
+        "written beside the joints (default: none, base_link = R, polarity unknown)",
     )
     p.set_defaults(func=run)
 
@@ -41,9 +42,11 @@ def run(args: argparse.Namespace) -> int:
     from swpc_hw.onboard.export import make_export, render
 
     kf = load_kinematics(args.file)
-    base_link = load_robot_config(args.robot_config).base_link if args.robot_config else None
+    config = load_robot_config(args.robot_config) if args.robot_config else None
+    base_link = config.base_link if config is not None else None
+    polarity = config.axis_signs() if config is not None else None
     try:
-        text = render(make_export(kf, base_link, str(args.file)), args.to)
+        text = render(make_export(kf, base_link, str(args.file), polarity), args.to)
     except ValueError as exc:
         raise SwpcError(f"{args.file}: {exc}") from exc
     if args.output is None:

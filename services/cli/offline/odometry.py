@@ -151,7 +151,7 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
     stream.watch(clock)  # the kinematic file looked at and parsed off the update loop
     try:
         driver.configure()
-        follow_drives(driver, stream)
+        follow_drives(driver, stream, polarity=config.axis_signs())
         print("swpc odometry: publishing /odom and /tf; Ctrl-C stops")
         with contextlib.suppress(KeyboardInterrupt):
             threading.Event().wait()
@@ -161,11 +161,13 @@ def _on_the_drives(args: argparse.Namespace, publisher: Any) -> Any:
     return stream
 
 
-def follow_drives(driver: Any, stream: Any) -> Any:
+def follow_drives(driver: Any, stream: Any, polarity: Any = None) -> Any:
     """The drives' feedback into ``stream`` (a :class:`~swpc_hw.onboard.ros2.stream.
     Ros2OdometryStream`), one reading of all modules at a time, aligned on the modules'
-    counter clock by :class:`~swpc_hw.validation.odometry_feed.DriverOdometry`: what
-    ``swpc odometry`` does on a robot."""
+    counter clock by :class:`~swpc_hw.validation.odometry_feed.DriverOdometry`, each axis
+    turned by the robot config's ``polarity``: what ``swpc odometry`` does on a robot."""
     from swpc_hw.validation.odometry_feed import DriverOdometry
 
-    return DriverOdometry(driver, stream.odometry.params, on_update=stream.update)
+    return DriverOdometry(
+        driver, stream.odometry.params, on_update=stream.update, polarity=polarity
+    )

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from services.config.robot import RobotConfig
     from services.config.settings import ServiceSettings
     from swpc_hw.drives.interface import Drives
+    from swpc_hw.drives.types import AxisSigns
     from swpc_hw.robot.model import RobotParams
     from swpc_hw.validation import SquareOptions, ValidationReport
 
@@ -117,9 +118,11 @@ def drive_files(
     *,
     mocap_truth: bool = False,
     log: Callable[[str], None] | None = None,
+    polarity: AxisSigns | None = None,
 ) -> ValidationReport:
     """Home, then run :func:`swpc_hw.validation.validate` on a configured driver (on the
-    driver's clock; in lockstep the calling thread is a participant)."""
+    driver's clock; in lockstep the calling thread is a participant), what is commanded
+    and read turned by ``polarity`` (the robot config's)."""
     from swpc_hw.validation import (
         SquareDrive,
         ZenohTruth,
@@ -139,7 +142,7 @@ def drive_files(
         truth.wait_first(10.0)
         try:
             prepare_driver(driver, timeout=10.0)
-            drive = SquareDrive(driver, truth, files[0][1], options, log=log)
+            drive = SquareDrive(driver, truth, files[0][1], options, log=log, polarity=polarity)
             return validate(drive, files)
         finally:
             with contextlib.suppress(Exception):
@@ -165,7 +168,7 @@ def run_in_process(
     to its feedback (e.g. ``swpc odometry``'s stream)."""
     from services.config.robot import RobotConfig
     from services.config.timing import robot_drives
-    from services.runtime.simulator import in_process_simulator
+    from services.runtime.simulator import in_process_simulator, simulated_robot
     from simulators.sensors.mocap import truth_pose_key
     from swpc_hw.clock import SimClock
     from swpc_hw.sensors.zenoh_session import free_tcp_endpoint, open_session
@@ -183,8 +186,10 @@ def run_in_process(
         driver.configure()
         if observe is not None:
             observe(driver)
+        built, wiring = simulated_robot(st, cfg)
         sim = in_process_simulator(
-            config=cfg,
+            config=built,
+            wiring=wiring,
             channel=channel,
             zenoh_endpoints=[ep],
             clock=clock,
@@ -196,7 +201,8 @@ def run_in_process(
         sim.start()
         with clock.participant():
             report = drive_files(
-                driver, session, truth_pose_key(cfg.robot), files, options, log=log
+                driver, session, truth_pose_key(cfg.robot), files, options, log=log,
+                polarity=cfg.axis_signs(),
             )
         if sim.error is not None:
             raise RuntimeError(f"simulator failed: {sim.error!r}")
@@ -313,7 +319,7 @@ def run(args: argparse.Namespace) -> int:
             report = drive_files(
                 driver, session, args.truth_key or config.pose_key, files, options,
                 mocap_truth=args.truth_key is None or args.truth_key.startswith("mocap/"),
-                log=log,
+                log=log, polarity=config.axis_signs(),
             )
         finally:
             driver.shutdown()

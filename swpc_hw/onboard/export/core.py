@@ -12,7 +12,8 @@ with no I/O:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,17 @@ class Export:
     """Lines that say what this is: robot, source, how base_link was placed."""
     created: str
     """The source file's ``created``."""
+    polarity: Mapping[int, tuple[int, int]] | None = field(default=None)
+    """The robot config's polarity, module id -> (steer, wheel) (``swpc_hw.drives.types.
+    AxisSigns``; a module left out is (1, 1)), or None when no robot config was given: which
+    joints turn the other way round from what their drives report."""
+
+    def signs(self, module: int) -> tuple[int, int] | None:
+        """``module``'s (steer, wheel) polarity, or None when unknown."""
+        if self.polarity is None:
+            return None
+        steer, wheel = self.polarity.get(module, (1, 1))
+        return steer, wheel
 
 
 def base_link_words(base_link: BaseLink | None, params_in_r: RobotParams) -> str:
@@ -69,8 +81,14 @@ def base_link_words(base_link: BaseLink | None, params_in_r: RobotParams) -> str
     return words
 
 
-def make_export(kf: KinematicFile, base_link: BaseLink | None, source: str) -> Export:
-    """The file ``kf`` (named ``source`` in the header) in base_link.
+def make_export(
+    kf: KinematicFile,
+    base_link: BaseLink | None,
+    source: str,
+    polarity: Mapping[int, tuple[int, int]] | None = None,
+) -> Export:
+    """The file ``kf`` (named ``source`` in the header) in base_link, with the robot
+    config's ``polarity`` when given (:attr:`Export.polarity`).
 
     Raises ``ValueError`` for a file in a frame that is neither R, design-fit nor
     base_link (:func:`swpc_hw.robot.frames.to_base_link`).
@@ -85,7 +103,13 @@ def make_export(kf: KinematicFile, base_link: BaseLink | None, source: str) -> E
         origin,
         base_link_words(base_link, kf.params),
     )
-    return Export(params=params, covariance=cov, header=header, created=kf.created)
+    return Export(
+        params=params,
+        covariance=cov,
+        header=header,
+        created=kf.created,
+        polarity=None if polarity is None else dict(polarity),
+    )
 
 
 def render_kinematics(exp: Export) -> str:

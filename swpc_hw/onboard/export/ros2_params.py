@@ -22,7 +22,12 @@ Two nodes' parameters:
   steering zeros ``beta``, the caster offsets ``b`` and the spread of the radii.
 * ``swpc_kinematics``: every module's calibrated ``x_s``, ``y_s``, ``beta``, ``b``,
   ``r`` as arrays in module order, with their std devs as comments: the whole
-  calibration, for a node that uses the caster model.
+  calibration, for a node that uses the caster model.  With the robot config
+  (``swpc export --robot-config``), also ``steer_polarity`` and ``wheel_polarity`` in
+  module order: -1 for a joint that turns the other way round from what its drive reports
+  (docs/commissioning.md), which the robot's hardware interface turns in what it reads
+  and commands; ``swerve_drive_controller`` has no such parameter, so a comment names
+  those joints there.
 """
 
 from __future__ import annotations
@@ -82,6 +87,20 @@ def _floats(values: list[float]) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
+def _polarity_words(exp: Export) -> list[str]:
+    """A line per joint that turns the other way round from what its drive reports."""
+    out = []
+    for m in exp.params.modules:
+        joints = (steer_joint(m.id), wheel_joint(m.id))
+        for sign, joint in zip(exp.signs(m.id) or (1, 1), joints, strict=True):
+            if sign == -1:
+                out.append(
+                    f"{joint}: polarity -1 (it turns the other way round from what its drive "
+                    "reports: the hardware interface turns it)"
+                )
+    return out
+
+
 def render_ros2_params(exp: Export) -> str:
     """The parameter file (module docstring).  Raises ``ValueError`` when the robot does
     not have four modules, one per quadrant (:func:`quadrants`)."""
@@ -129,6 +148,7 @@ def render_ros2_params(exp: Export) -> str:
         f"    wheel_radius: {radius!r}  # mean of the {n} radii; {_std(g_r, exp)}",
         "    # Per module, what the layout leaves out:",
     ]
+    lines += [f"    #   {w}" for w in _polarity_words(exp)]
     for corner in CORNERS:
         i = q[corner]
         sx = 1.0 if corner.startswith("front") else -1.0
@@ -149,6 +169,13 @@ def render_ros2_params(exp: Export) -> str:
         f"    steer_joints: [{', '.join(steer_joint(int(i)) for i in a.ids)}]",
         f"    wheel_joints: [{', '.join(wheel_joint(int(i)) for i in a.ids)}]",
     ]
+    signs = [exp.signs(int(i)) for i in a.ids]
+    if all(sg is not None for sg in signs):
+        for axis, label in ((0, "steer"), (1, "wheel")):
+            column = ", ".join(str(sg[axis]) for sg in signs if sg is not None)
+            lines.append(f"    {label}_polarity: [{column}]  # robot config polarity")
+    else:
+        lines.append("    # polarity: no robot config given (swpc export --robot-config adds it)")
     for j, name in enumerate(PARAM_NAMES):
         values = [float(X[k * i + j]) for i in range(n)]
         lines.append(f"    {name}: {_floats(values)}  # {_UNITS[name]}")

@@ -73,6 +73,12 @@ def render_urdf(exp: Export, wheel_width: float = WHEEL_WIDTH) -> str:
             )
         else:
             lines.append(f"  <!-- module {m.id}: std devs unknown -->")
+        for sign, joint in zip(exp.signs(m.id) or (1, 1), (steer, wheel), strict=True):
+            if sign == -1:
+                lines.append(
+                    f"  <!-- {joint}: polarity -1 in the robot config: the joint turns the "
+                    "other way round from what its drive reports -->"
+                )
         cylinder = (
             f'<origin xyz="0 0 0" rpy="{half_pi} 0 0"/>'
             f'<geometry><cylinder radius="{_num(m.r)}" length="{_num(wheel_width)}"/></geometry>'
