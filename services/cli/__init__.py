@@ -18,10 +18,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import math
 import pkgutil
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 from firmware_protocol.errors import FirmwareProtocolError
 from swpc_hw.errors import SwpcError
@@ -128,6 +129,29 @@ def add_noise_arguments(p: Any) -> None:
     p.add_argument("--outliers", type=float, default=0.0, help="fraction of outlier poses")
     p.add_argument("--outlier-magnitude", type=float, default=50.0, help="outlier jump, mm")
     p.add_argument("--slip-rate", type=float, default=0.0, help="slip bursts /s per wheel")
+
+
+class Noise(NamedTuple):
+    """:func:`add_noise_arguments`' values in SI units (m, rad)."""
+
+    sigma_xy: float
+    sigma_yaw: float
+    dropout: float
+    outliers: float
+    outlier_magnitude: float
+    slip_rate: float
+
+
+def noise(args: argparse.Namespace) -> Noise:
+    """The values of :func:`add_noise_arguments` in SI units (mm -> m, deg -> rad)."""
+    return Noise(
+        sigma_xy=args.pose_sigma_xy * 1e-3,
+        sigma_yaw=math.radians(args.pose_sigma_yaw),
+        dropout=args.dropout,
+        outliers=args.outliers,
+        outlier_magnitude=args.outlier_magnitude * 1e-3,
+        slip_rate=args.slip_rate,
+    )
 
 
 def add_gyro_arguments(g: Any) -> None:

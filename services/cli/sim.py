@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from services.cli import add_gyro_arguments, add_noise_arguments, gyro_options
+from services.cli import add_gyro_arguments, add_noise_arguments, gyro_options, noise
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -198,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"swpc sim: --wiring {exc}", file=sys.stderr)
         return 2
+    n = noise(args)
     opt = SimOptions(
         robot=args.robot,
         drives=sim_drives(args),
@@ -207,15 +208,15 @@ def run(args: argparse.Namespace) -> int:
         watchdog_ms=args.watchdog_ms,
         steer_counts=args.steer_counts,
         wheel_counts=args.wheel_counts,
-        physics=PhysicsOptions(slip_burst_rate=args.slip_rate, seed=args.seed),
+        physics=PhysicsOptions(slip_burst_rate=n.slip_rate, seed=args.seed),
         mocap=MocapOptions(
             rate=args.pose_rate,
             encoding=args.pose_encoding,
-            sigma_xy=args.pose_sigma_xy * 1e-3,
-            sigma_yaw=math.radians(args.pose_sigma_yaw),
-            dropout=args.dropout,
-            outliers=args.outliers,
-            outlier_magnitude=args.outlier_magnitude * 1e-3,
+            sigma_xy=n.sigma_xy,
+            sigma_yaw=n.sigma_yaw,
+            dropout=n.dropout,
+            outliers=n.outliers,
+            outlier_magnitude=n.outlier_magnitude,
             latency=args.latency * 1e-3,
             clock_offset=args.clock_offset,
             seed=args.seed,

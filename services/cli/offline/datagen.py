@@ -18,6 +18,7 @@ from services.cli import (
     add_metrology_argument,
     add_noise_arguments,
     gyro_options,
+    noise,
 )
 
 TAPE_READINGS = 2
@@ -96,16 +97,17 @@ def run(args: argparse.Namespace) -> int:
     nominal = load_robot(args.nominal) if args.nominal else None
     if len(args.angles) < 2:
         raise SystemExit("swpc datagen: error: --angles needs at least two values")
+    n = noise(args)
     opt = ExperimentOptions(
         angles=tuple(math.radians(a) for a in args.angles),
         yaw_rate=args.yaw_rate,
         spin_duration=args.spin_duration,
-        pose_sigma_xy=args.pose_sigma_xy * 1e-3,
-        pose_sigma_yaw=math.radians(args.pose_sigma_yaw),
-        dropout_fraction=args.dropout,
-        outlier_fraction=args.outliers,
-        outlier_magnitude=args.outlier_magnitude * 1e-3,
-        slip_burst_rate=args.slip_rate,
+        pose_sigma_xy=n.sigma_xy,
+        pose_sigma_yaw=n.sigma_yaw,
+        dropout_fraction=n.dropout,
+        outlier_fraction=n.outliers,
+        outlier_magnitude=n.outlier_magnitude,
+        slip_burst_rate=n.slip_rate,
         clock_offset=args.clock_offset,
         counts_per_rev=args.counts_per_rev or None,
         seed=args.seed,
