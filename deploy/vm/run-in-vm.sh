@@ -6,7 +6,9 @@
 # 1. deploy/vm/setup.sh (idempotent, cached in .cache/vm/): Debian packages, the Debian
 #    kernel unpacked and trimmed, pinned virtme-ng in .venv.
 # 2. Boots that kernel ONCE with virtme-ng under QEMU software emulation (TCG; KVM is not
-#    used) over a read-only 9p view of this machine's filesystem, no network device, with
+#    used: the development VM's /dev/kvm lets a process create a VM, but its nested KVM
+#    stops the guest kernel at boot, "KVM internal error ... emulation failure" on lock
+#    cmpxchg16b, then on xrstor with -cx16, and hangs with -cpu qemu64; tried 2026-11-30) over a read-only 9p view of this machine's filesystem, no network device, with
 #    .cache/vm/run/ as the only writable host folder, and two emulated SJA1000 CAN
 #    controllers (kvaser_pci) on one QEMU CAN bus (can0, can1 in the guest).
 # 3. Runs deploy/vm/in-vm.sh inside; its exit status is this script's.
