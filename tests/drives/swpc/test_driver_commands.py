@@ -110,9 +110,18 @@ def test_robot_io_steers_the_shortest_way_from_a_multi_turn_position(active: Rig
         with active.emu.lock:
             return abs(c1.axes[Axis.STEER].setpoint - math.radians(deg)) < 1e-4
 
+    def steering() -> str:  # what a failure needs said (once under QEMU: never got there)
+        with active.emu.lock:
+            ax = c1.axes[Axis.STEER]
+            state = (ax.state.name, ax.mode.name, math.degrees(ax.position), ax.errors)
+        st = drv.module_state(1)
+        return f"controller {state}, reported {math.degrees(st.theta_hat):.3f} deg {st.errors}"
+
     io.lock(1, math.radians(45.0))
     assert wait_until(lambda: setpoint_is(-315.0)), c1.axes[Axis.STEER].setpoint
-    assert wait_until(lambda: abs(drv.module_state(1).theta_hat - math.radians(-315.0)) < 1e-3)
+    assert wait_until(
+        lambda: abs(drv.module_state(1).theta_hat - math.radians(-315.0)) < 1e-3
+    ), steering()
     io.steer_to(1, math.radians(170.0))  # from -315 deg: -125 deg (to -190), not +235
     assert wait_until(lambda: setpoint_is(-190.0)), c1.axes[Axis.STEER].setpoint
     assert drv.module_state(1).errors == (0, 0)
