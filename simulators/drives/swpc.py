@@ -338,7 +338,13 @@ def _integrate(ax: AxisModel, dt: float) -> None:
         v_inf = tau / ax.friction
         v = v_inf + (ax.velocity - v_inf) * decay
         ax.torque = tau
-    ax.position += 0.5 * (ax.velocity + v) * dt
+    if mode == ControlMode.POSITION:
+        # the position loop moves by its own velocity alone: averaged with the velocity of
+        # the step before (the trapezoid), it overshot its set-point whenever a step was
+        # longer than the one before, and under uneven steps (a loaded host) never settled
+        ax.position += v * dt
+    else:
+        ax.position += 0.5 * (ax.velocity + v) * dt
     ax.velocity = v
 
 

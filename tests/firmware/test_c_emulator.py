@@ -169,6 +169,36 @@ def random_events(seed: int, nodes: list[int], n: int = 600) -> list[Event]:
     return ev
 
 
+@pytest.mark.parametrize("short", [0.004, 0.02])
+def test_a_position_loop_settles_under_uneven_steps_in_c_and_python_alike(
+    emulator: Path, short: float
+) -> None:
+    """A loaded host steps the controllers unevenly: a long step after short ones.  The
+    position loop must still settle on its set-point (averaged with the step before's
+    velocity, it overshot and swung ever wider: under QEMU a steering locked 37.5 deg away
+    never arrived within 17 s, CI 2026-11-30)."""
+    target = 10.0  # rad, the wheel (a steering's position needs homing first)
+    ev: list[Event] = [
+        (0.0, codec.make_set_watchdog(1, 0)),
+        (0.0, codec.make_set_axis_state(1, Axis.WHEEL, True)),
+        (0.001, codec.make_set_control(1, Axis.WHEEL, ControlMode.POSITION, target)),
+    ]
+    t = 0.001
+    for k in range(120):  # 0.25 s, then three short steps, over and over
+        t = round(t + (0.25 if k % 4 == 0 else short), 6)
+        ev.append((t, None))
+    c_out = run_c(emulator, [1], ev, 50)
+    assert c_out == run_python([1], ev, 50)
+    wheel = [
+        codec.parse(int(ln.split()[1].split("#")[0], 16), bytes.fromhex(ln.split("#")[1]))
+        for ln in c_out
+        if ln.split()[1].startswith(f"{codec.frame_id(1, codec.Command.FEEDBACK_POSITION):03X}#")
+    ]
+    late = [abs(f.wheel - target) for f in wheel[len(wheel) // 2 :]]  # type: ignore[attr-defined]
+    print(f"\nlast {len(late)} readings at most {max(late):.2e} rad from the set-point")
+    assert len(late) > 20 and max(late) < 1e-3
+
+
 @pytest.mark.parametrize("seed", range(12))
 def test_random_traces_match_python(emulator: Path, seed: int) -> None:
     nodes = [1, 2, 3, 4]

@@ -174,7 +174,14 @@ static void integrate(struct ctrl_axis *ax, double dt)
         v = v_inf + (ax->velocity - v_inf) * decay;
         ax->torque = tau;
     }
-    ax->position += 0.5 * (ax->velocity + v) * dt;
+    /* the position loop moves by its own velocity alone: averaged with the velocity of the
+     * step before (the trapezoid), it overshot its set-point whenever a step was longer
+     * than the one before, and under uneven steps (a loaded host) never settled */
+    if (mode == MODE_POSITION) {
+        ax->position += v * dt;
+    } else {
+        ax->position += 0.5 * (ax->velocity + v) * dt;
+    }
     ax->velocity = v;
 }
 
