@@ -56,24 +56,28 @@ def series_median(values: FloatArray, ser: IntArray) -> FloatArray:
     return out
 
 
-def increment_sigma(inc_res: FloatArray, ser: IntArray, floor: float = 1e-12) -> FloatArray:
+def increment_sigma(
+    inc_res: FloatArray, ser: IntArray, floor: float | FloatArray = 1e-12
+) -> FloatArray:
     """Robust std dev of every increment's series, floored by half the pooled one.
 
     The floor keeps a short series (few increments) from a tiny, over-rejecting scale;
     ``floor`` (m) is the encoders' own resolution (quantized increments of exact data are
-    mostly equal: their MAD is 0).
+    mostly equal: their MAD is 0), one for all or one per increment (a series takes the
+    largest of its increments').
     """
     out = np.zeros(inc_res.size)
     dev = inc_res - series_median(inc_res, ser)
     pooled = 0.5 * mad_sigma(dev) if dev.size else 0.0
+    floors = np.broadcast_to(np.asarray(floor, dtype=float), inc_res.shape)
     for k in np.unique(ser):
         sel = ser == k
-        out[sel] = max(mad_sigma(inc_res[sel]), pooled, floor)
+        out[sel] = max(mad_sigma(inc_res[sel]), pooled, float(floors[sel].max()))
     return out
 
 
 def burst_slip(
-    inc_res: FloatArray, ser: IntArray, slip_sigmas: float, floor: float = 1e-12
+    inc_res: FloatArray, ser: IntArray, slip_sigmas: float, floor: float | FloatArray = 1e-12
 ) -> BoolArray:
     """Increments of a slip burst: beyond ``slip_sigmas`` robust sigmas, dilated by one.
 
@@ -248,15 +252,17 @@ def detect_slip(
     chunk: float,
     drift_sigmas: float,
     lever_rel_std: FloatArray,
-    floor: float = 1e-12,
+    floor: float | FloatArray = 1e-12,
 ) -> BoolArray:
     """Slipping increments: bursts (:func:`burst_slip`) and drifts (:func:`drift_slip`).
 
-    ``floor``: least increment std dev (m), the wheel encoders' resolution.
+    ``floor``: least increment std dev (m), the wheel encoders' resolution; per increment,
+    the bursts' (the drifts take the least).
     """
     burst = burst_slip(inc_res, ser, slip_sigmas, floor)
     if math.isinf(drift_sigmas):
         return burst
+    least = float(np.min(floor)) if np.size(floor) else 1e-12
     return burst | drift_slip(
-        inc_res, dG, ser, t, burst, chunk, drift_sigmas, lever_rel_std, floor
+        inc_res, dG, ser, t, burst, chunk, drift_sigmas, lever_rel_std, least
     )

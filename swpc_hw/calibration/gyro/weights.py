@@ -20,10 +20,17 @@ from swpc_hw.calibration.options import SolverOptions
 from swpc_hw.calibration.parameters import R
 from swpc_hw.calibration.slip import detect_slip, mad_sigma
 from swpc_hw.errors import CalibrationError
+from swpc_hw.files.references import StraightDrive
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
+DRIVE_SLIP_SHARE = 0.1
+"""A straight drive's wheel is cut for a burst only beyond this share of its tape's std dev
+(the drive's length reference): a smaller one cannot move the length the drive gives.  The
+drive's start and stop carry transients the model does not hold, the same shape on every
+wheel at once (1.1-1.4e-5 m on a 5 s drive, docs/figures.md), which the encoders' floor
+alone took for slips on all four wheels and the drive fell into pieces."""
 MAX_SLIP_FRACTION = 0.1
 """More wheel increments than this fraction disagreeing with the gyro is no slip: refused."""
 
@@ -143,6 +150,28 @@ MIN_JUDGED_INCREMENTS = 3
 slip in the pooled screen."""
 
 
+def increment_floors(
+    prob: ImuProblem, sizes: list[int], floor: float, slip_sigmas: float
+) -> FloatArray:
+    """The least std dev (m) of every increment of :func:`cut_slip`'s series (``sizes``
+    increments each, every spin's modules, then every drive's): the encoders' ``floor``,
+    and on a straight drive at least ``DRIVE_SLIP_SHARE x its tape's std dev / slip_sigmas``
+    (:data:`DRIVE_SLIP_SHARE`)."""
+    tapes = [r.stddev for r in prob.refs if isinstance(r, StraightDrive)]
+    if len(tapes) != len(prob.drives):
+        tapes = [0.0] * len(prob.drives)  # a check's drive without its tape: the floor
+    per_set = [floor] * len(prob.spins) + [
+        max(floor, DRIVE_SLIP_SHARE * tape / slip_sigmas) for tape in tapes
+    ]
+    out: list[FloatArray] = []
+    k = 0
+    for rs, f in zip([*prob.spins, *prob.drives], per_set, strict=True):
+        for _ in range(rs.mods.size):
+            out.append(np.full(sizes[k], f))
+            k += 1
+    return np.concatenate(out) if out else np.zeros(0)
+
+
 def cut_slip(
     prob: ImuProblem,
     valid: list[BoolArray],
@@ -191,7 +220,8 @@ def cut_slip(
     else:
         slip = detect_slip(
             all_inc, np.concatenate(flat_ref), all_ser, np.concatenate(t),
-            opts.slip_sigmas, opts.drift_chunk, math.inf, np.full(k, 1e-3), floor,
+            opts.slip_sigmas, opts.drift_chunk, math.inf, np.full(k, 1e-3),
+            increment_floors(prob, [len(f) for f in flat_inc], floor, opts.slip_sigmas),
         )
     cut = [np.zeros((rs.t.size - 1, rs.mods.size), dtype=bool) for rs in sets]
     for (si, c, i), bad in zip(where, slip.tolist(), strict=True):

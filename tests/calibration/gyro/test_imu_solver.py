@@ -380,3 +380,36 @@ def test_a_drive_turn_the_wheels_did_not_make_or_too_large_is_refused(
     imu[inside, 1] -= math.radians(2.0) / (t1 - t0)
     with pytest.raises(CalibrationError, match="the gyro and the wheels disagree"):
         solve_imu(dataclasses.replace(ds, imu=imu), source="ds")
+
+
+def test_a_drives_start_and_stop_transients_are_not_slips_but_a_wheel_that_slips_is(
+    light: tuple[ImuExperiment, Path],
+) -> None:
+    """A planned run's short drive was refused half the time (2026-11-30): its start and
+    stop carried 11-14 um transients on every wheel at once, signs +, -, -, + over the
+    modules, which the encoders' floor alone took for slips on all four wheels, and the
+    drive fell into pieces.  A burst is cut from a drive only beyond a tenth of its tape's
+    std dev (0.5 mm here): the transients stay, a wheel slipping 0.3 mm is still cut."""
+    run, _ = light
+    ds = run.imu_dataset
+    assert run.experiment.drive is not None
+    t0, t1 = run.experiment.drive
+    r = PAPER_CALIBRATED.arrays().r
+    clean = solve_imu(ds, source="ds")
+
+    def bumped(enc: dict[int, np.ndarray], at: float, size: dict[int, float]) -> dict:
+        out = {}
+        for i, (m, rows) in enumerate(sorted(enc.items())):
+            rows = rows.copy()
+            inside = (rows[:, 0] > at) & (rows[:, 0] < at + 0.3)  # out and back: two bursts
+            rows[inside, 2] += size.get(m, 0.0) / r[i]
+            out[m] = rows
+        return out
+
+    shape = dict(zip(PAPER_NOMINAL.ids, (14e-6, -14e-6, -14e-6, 14e-6), strict=True))
+    enc = bumped(bumped(ds.encoders, t0 + 0.4, shape), t1 - 0.7, shape)
+    res = solve_imu(dataclasses.replace(ds, encoders=enc), source="ds")
+    assert res.increments_rejected == clean.increments_rejected
+    slipped = bumped(ds.encoders, (t0 + t1) / 2, {PAPER_NOMINAL.ids[1]: 0.3e-3})
+    res = solve_imu(dataclasses.replace(ds, encoders=slipped), source="ds")
+    assert res.increments_rejected > clean.increments_rejected
