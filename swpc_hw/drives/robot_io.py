@@ -18,7 +18,14 @@ from numpy.typing import NDArray
 from firmware_protocol.codec import Axis
 from swpc_hw.drives.errors import NodeError
 from swpc_hw.drives.interface import Drives
-from swpc_hw.drives.types import AxisSigns, DriverEvent, Lifecycle, Severity, axis_sign
+from swpc_hw.drives.types import (
+    AxisSigns,
+    DriverEvent,
+    Lifecycle,
+    Severity,
+    axis_sign,
+    module_signs,
+)
 from swpc_hw.robot.model import nearest_turn
 
 FloatArray = NDArray[np.float64]
@@ -221,7 +228,7 @@ class DrivesRobotIO:
 
     def _turned(self, module: int, rows: FloatArray) -> FloatArray:
         """Feedback rows ``(t, theta_hat, psi)`` in the robot's sense (the polarity)."""
-        s, w = self.polarity.get(module, (1, 1))
+        s, w = module_signs(self.polarity, module)
         if s == 1 and w == 1:
             return rows
         out = np.array(rows, dtype=float, copy=True)

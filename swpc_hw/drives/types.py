@@ -117,15 +117,21 @@ What the robot's software commands to an axis and reads from it is in the model'
 """
 
 
+def module_signs(polarity: AxisSigns, module: int) -> tuple[int, int]:
+    """``polarity``'s (steer, wheel) signs of ``module`` ((1, 1) when it says nothing of it)."""
+    steer, wheel = polarity.get(module, (1, 1))
+    return steer, wheel
+
+
 def axis_sign(polarity: AxisSigns, module: int, axis: Axis) -> int:
     """``polarity``'s sign of ``module``'s ``axis`` (1 when it says nothing of it)."""
-    return polarity.get(module, (1, 1))[int(axis)]
+    return module_signs(polarity, module)[int(axis)]
 
 
 def turned_sample(polarity: AxisSigns, module: int, s: FeedbackSample) -> FeedbackSample:
     """``module``'s drive feedback ``s`` in the model's sense: each axis' position,
     velocity and torque times its sign (the sample itself when both are 1)."""
-    st, wh = polarity.get(module, (1, 1))
+    st, wh = module_signs(polarity, module)
     if st == 1 and wh == 1:
         return s
     return dataclasses.replace(
