@@ -13,9 +13,20 @@ with ``G_s = dC_s/dx`` (2, 5N) the Jacobian of its contact point
 ``C_s = P_s,k + b_k u(a_s + beta_k)``, ``Cov_s`` (2, 2) the covariance of its fixed point,
 ``B_s`` the information of its settled casters, ``R_s`` and ``R~_s`` its rolling rows'
 shares of ``H`` and ``M`` at the planned sweep, ``q_s`` the sweep over the planned
-sweep (the rolling nodes are evenly spaced in yaw, so their information grows with it)
-and ``nu_s = (sigma_s / sigma_plan,s)^2`` the poses' noise variance over the plan's (the
-rolling rows keep the plan's weights, so a noisier yaw shows in the middle only).
+sweep and ``nu_s = (sigma_s / sigma_plan,s)^2`` the poses' noise variance over the plan's
+(the rolling rows keep the plan's weights, so a noisier yaw shows in the middle only).
+
+The rolling residuals are cumulative, centred per series (:mod:`swpc_hw.calibration.rolling`):
+a row's Jacobian grows with the wheel's travel since the series began, so a spin's
+rolling information grows as the cube of its sweep, not in proportion (``sum_k (k -
+mean k)^2 ~ K^3 / 12`` over ``K`` nodes; from the plan's prediction, exponent 2.8 between
+60 and 360 deg).  A spin cut at ``q_s < 1`` takes its planned rows up to its sweep,
+centred again over them (:meth:`SpinInformation.rolling_cut`); its middle is that plus
+``q_s^3`` times what the plan's middle holds beyond ``R_s`` (its cross terms with the
+fixed point, a correlation the HAC found); beyond the plan (``q_s > 1``) both scale as
+``q_s^3``.  Scaled in proportion instead, a spin cut at a third of its sweep was credited
+9 times the radius information it holds, and sequential stopping ended spins the final
+solve then found short of the requirement.
 
 The **forecast** (:func:`forecast_covariance`) takes, for the spins done and the one in
 progress, ``Cov_s`` from their own poses (the fixed point fitted to the poses so far,
@@ -56,6 +67,7 @@ from swpc_hw.files.dataset import Dataset, Segment
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
 
 JUDGE_STEP = math.radians(3.0)
 """rad of sweep between two judgements of a spin (a fit of its poses so far: a few ms)."""
@@ -88,6 +100,26 @@ class SpinInformation:
     """``R~_s`` (5N, 5N)."""
     sigma: float
     """The plan's pose noise: its fixed-point fit's residual std dev (m)."""
+    rolling_rows: FloatArray
+    """``J_C,s`` (K, 5N): the spin's weighted rolling rows, centred over each series."""
+    rolling_series: IntArray
+    """(K,) the series (one per rolling module) of every row."""
+    rolling_sweep: FloatArray
+    """(K,) the sweep (rad) at every row's node, from the spin's first node."""
+
+    def rolling_cut(self, sweep: float) -> FloatArray:
+        """``R_s`` of the spin cut at ``sweep`` (rad): its rows up to it, each series
+        centred again over what is kept (``J_k - mean_kept J``: the residuals of a run
+        are centred over the run, and re-centring centred rows drops the old mean)."""
+        keep = self.rolling_sweep <= sweep
+        rows = self.rolling_rows[keep]
+        ser = self.rolling_series[keep]
+        out = np.zeros((rows.shape[1], rows.shape[1]))
+        for k in np.unique(ser):
+            r = rows[ser == k]
+            r = r - r.mean(axis=0)
+            out += r.T @ r
+        return out
 
     @functools.cached_property
     def planned(self) -> tuple[FloatArray, FloatArray]:
@@ -113,10 +145,17 @@ def spin_information(solution: JointSolution, sweep: float) -> list[SpinInformat
     """Every spin's :class:`SpinInformation` from a solve of a run of the plan (all at
     the planned ``sweep``, rad), in the run's order."""
     prob, x = solution.problem, solution.x
-    _, _, terms = segment_terms(prob, x, solution.fits)
+    J, _, terms = segment_terms(prob, x, solution.fits)
+    nA, nB, _ = prob.block_sizes()
+    clean = prob.rolling.clean
+    rows_c, seg_c = J[nA + nB :], prob.rolling.seg[clean]
+    ser_c, yaw_c, t_c = prob.rolling.ser[clean], prob.rolling.yaw[clean], prob.rolling.t[clean]
     out = []
     for s, t in enumerate(terms):
         W = prob.fixed.whiten[s]
+        mine = seg_c == s
+        yaw = yaw_c[mine]
+        first = yaw[np.argmin(t_c[mine])] if yaw.size else 0.0
         out.append(
             SpinInformation(
                 module=int(prob.fixed.static[s]),
@@ -127,6 +166,9 @@ def spin_information(solution: JointSolution, sweep: float) -> list[SpinInformat
                 rolling_h=t.rolling_h,
                 rolling_m=t.rolling_m,
                 sigma=solution.fits[s].sigma,
+                rolling_rows=rows_c[mine],
+                rolling_series=ser_c[mine],
+                rolling_sweep=np.abs(yaw - first),
             )
         )
     return out
@@ -152,24 +194,38 @@ def forecast_covariance(
     spins: Sequence[SpinInformation], so_far: Sequence[SpinSoFar]
 ) -> FloatArray:
     """The forecast ``Cov = H^-1 M H^-1`` (5N, 5N) (module docstring): ``so_far[s]`` for
-    the first ``len(so_far)`` spins, the plan for the others."""
+    the first ``len(so_far)`` spins, the plan for the others, at the poses' noise seen so
+    far: the mean ``nu`` of the spins measured (the motion capture's noise is the
+    system's, not a spin's), the fixed points' information over it and the rolling
+    middle times it.  As planned at the plan's noise, a run whose poses are worse than
+    assumed ended its first spins early on the promise of the later ones, which then ran
+    out of extension."""
     if len(so_far) > len(spins):
         raise CalibrationError(f"{len(so_far)} spins measured, the plan has {len(spins)}")
     p = spins[0].contact_jacobian.shape[1]
     H, M = np.zeros((p, p)), np.zeros((p, p))
+    nus = [(got.sigma / info.sigma) ** 2 if info.sigma > 0 else 1.0
+           for info, got in zip(spins, so_far, strict=False)]  # fmt: skip
+    seen = max(float(np.mean(nus)), 1.0) if nus else 1.0
     for s, info in enumerate(spins):
-        if s >= len(so_far):  # to come: as planned
-            h, m = info.planned
-            H += h
-            M += m
+        if s >= len(so_far):  # to come: as planned, at the noise seen
+            G = info.contact_jacobian
+            fixed = G.T @ np.linalg.solve(seen * info.fixed_covariance, G)
+            H += fixed + info.settled + info.rolling_h
+            M += fixed + info.settled + seen * info.rolling_m
             continue
         got = so_far[s]
         cov, q = got.fixed_covariance, got.sweep / info.sweep
-        nu = (got.sigma / info.sigma) ** 2 if info.sigma > 0 else 1.0
+        nu = nus[s]
         G = info.contact_jacobian
         fixed = G.T @ np.linalg.solve(cov, G)
-        H += fixed + info.settled + q * info.rolling_h
-        M += fixed + info.settled + q * nu * info.rolling_m
+        if q >= 1.0:
+            rh, rm = q**3 * info.rolling_h, q**3 * info.rolling_m
+        else:
+            rh = info.rolling_cut(got.sweep)
+            rm = rh + q**3 * (info.rolling_m - info.rolling_h)
+        H += fixed + info.settled + rh
+        M += fixed + info.settled + nu * rm
     return _sandwich(H, M)
 
 

@@ -37,8 +37,9 @@ from swpc_hw.calibration.uncertainty import sandwich_covariance
 from swpc_hw.files.dataset import Dataset
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
-PLAN = Candidate((45.0, 165.0), 165.0, 1.5, 1.0, 0.5, 2.5, 0.6)
-"""The default requirement's plan on the paper's robot at the config's spin torque."""
+PLAN = Candidate((45.0, 165.0), 180.0, 1.5, 1.0, 0.5, 2.5, 0.6)
+"""The default requirement's plan on the paper's robot at the config's spin torque (the
+shortest sweep of the planner's grid whose forecast meets it: 165 deg forecast 1.15)."""
 TM = TimeModel()
 NOISE = MocapNoise()
 
@@ -102,10 +103,11 @@ def test_noisier_poses_forecast_larger_std_devs(spins: tuple[SpinInformation, ..
     noisy = [SpinSoFar(s.sweep, 4.0 * s.fixed_covariance, 2.0 * s.sigma) for s in spins]
     after = stddevs(forecast_covariance(spins, noisy))
     ratio = after / before
-    # twice the noise: the fixed points' std devs twice, the radii's at most twice
+    # twice the noise: the fixed points' std devs twice, the radii's less (the settled
+    # casters inform them too, and their noise is the encoders')
     assert np.all(ratio[:, X_S] == pytest.approx(2.0, rel=0.05)), ratio
     assert np.all(ratio[:, BETA] == pytest.approx(2.0, rel=0.05)), ratio
-    assert np.all((ratio[:, R] > 1.3) & (ratio[:, R] < 2.01)), ratio
+    assert np.all((ratio[:, R] > 1.2) & (ratio[:, R] < 2.01)), ratio
     # the first spin half as long (its fixed point 3 times the variance): its module's
     # std devs grow most, another module's less (they share the settled casters)
     half = [SpinSoFar(spins[0].sweep / 2, 3.0 * spins[0].fixed_covariance, spins[0].sigma)]
