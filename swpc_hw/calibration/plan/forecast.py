@@ -6,36 +6,37 @@ the spins (segments) ``s``: every residual belongs to one spin, and so does ever
 correlation the middle holds (:func:`~swpc_hw.calibration.mocap.covariance.segment_terms`).
 Spin ``s`` (about the locked module ``k`` at reported angle ``a_s``) adds::
 
-    H_s = G_s^T Cov_s^-1 G_s + B_s + q_s R_s
-    M_s = G_s^T Cov_s^-1 G_s + B_s + q_s nu_s R~_s
+    H_s = G_s^T Cov_s^-1 G_s + B_s + R_s(q_s)
+    M_s = G_s^T Cov_s^-1 G_s + B_s + nu_s (R_s(q_s) + q_s^3 (R~_s - R_s))
 
 with ``G_s = dC_s/dx`` (2, 5N) the Jacobian of its contact point
 ``C_s = P_s,k + b_k u(a_s + beta_k)``, ``Cov_s`` (2, 2) the covariance of its fixed point,
 ``B_s`` the information of its settled casters, ``R_s`` and ``R~_s`` its rolling rows'
 shares of ``H`` and ``M`` at the planned sweep, ``q_s`` the sweep over the planned
-sweep and ``nu_s = (sigma_s / sigma_plan,s)^2`` the poses' noise variance over the plan's
-(the rolling rows keep the plan's weights, so a noisier yaw shows in the middle only).
+sweep, ``R_s(q)`` the rolling rows' share at ``q`` (below; ``R_s(1) = R_s``) and
+``nu_s = (sigma_s / sigma_plan,s)^2`` the poses' noise variance over the plan's (the
+rolling rows keep the plan's weights, so a noisier yaw shows in the middle only).
 
 The rolling residuals are cumulative, centred per series (:mod:`swpc_hw.calibration.rolling`):
 a row's Jacobian grows with the wheel's travel since the series began, so a spin's
 rolling information grows as the cube of its sweep, not in proportion (``sum_k (k -
 mean k)^2 ~ K^3 / 12`` over ``K`` nodes; from the plan's prediction, exponent 2.8 between
-60 and 360 deg).  A spin cut at ``q_s < 1`` takes its planned rows up to its sweep,
-centred again over them (:meth:`SpinInformation.rolling_cut`); its middle is that plus
-``q_s^3`` times what the plan's middle holds beyond ``R_s`` (its cross terms with the
-fixed point, a correlation the HAC found); beyond the plan (``q_s > 1``) both scale as
-``q_s^3``.  Scaled in proportion instead, a spin cut at a third of its sweep was credited
-9 times the radius information it holds, and sequential stopping ended spins the final
-solve then found short of the requirement.
+60 and 360 deg).  ``R_s(q)`` for ``q < 1`` is the planned rows up to the sweep, centred
+again over them (:meth:`SpinInformation.rolling_cut`), ``q^3 R_s`` beyond; what the
+plan's middle holds beyond ``R_s`` (its cross terms with the fixed point, a correlation
+the HAC found) scales as ``q^3``.  Scaled in proportion instead, a spin cut at a third
+of its sweep was credited 9 times the radius information it holds, and sequential
+stopping ended spins the final solve then found short of the requirement.
 
 The **forecast** (:func:`forecast_covariance`) takes, for the spins done and the one in
 progress, ``Cov_s`` from their own poses (the fixed point fitted to the poses so far,
 :func:`~swpc_hw.calibration.fixed_point.fit_fixed_point`, whose HAC covariance carries
 the noise as it really is), ``q_s`` from their sweep so far and ``nu_s`` from that
-fit's residuals; for the spins to come,
-the plan's prediction (:class:`SpinInformation`, from a simulated run of the plan:
-``services.plan.predict``).  Everything else (``G_s``, ``B_s``, ``R_s``) is the plan's,
-linearised at the nominal robot.
+fit's residuals; for the spins to come, the plan's prediction (:class:`SpinInformation`,
+from a simulated run of the plan: ``services.plan.predict``) at ``q = 1`` with ``Cov_s``
+and ``nu`` times the plan's, ``nu`` the mean of the spins measured when above 1.
+Everything else (``G_s``, ``B_s``, ``R_s``) is the plan's, linearised at the nominal
+robot.
 
 **The rule** (:meth:`Stopping.judge`): spin ``i`` ends once it has swept ``min_sweep``
 and the forecast meets the requirement on what spin ``i`` informs: the locked module's
