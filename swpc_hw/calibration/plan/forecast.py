@@ -123,12 +123,11 @@ class SpinInformation:
         return out
 
     @functools.cached_property
-    def planned(self) -> tuple[FloatArray, FloatArray]:
-        """The spin's ``(H_s, M_s)`` as planned (``Cov_s`` the plan's, ``q_s = nu_s = 1``):
-        the same for every forecast, so made once."""
+    def fixed_information(self) -> FloatArray:
+        """``G_s^T Cov_s^-1 G_s`` at the plan's ``Cov_s``: the same for every forecast, so
+        made once (a spin to come at ``nu`` times the plan's noise holds it over ``nu``)."""
         G = self.contact_jacobian
-        fixed = G.T @ np.linalg.solve(self.fixed_covariance, G)
-        return fixed + self.settled + self.rolling_h, fixed + self.settled + self.rolling_m
+        return np.asarray(G.T @ np.linalg.solve(self.fixed_covariance, G), dtype=float)
 
 
 @dataclass(frozen=True)
@@ -210,8 +209,7 @@ def forecast_covariance(
     seen = max(float(np.mean(nus)), 1.0) if nus else 1.0
     for s, info in enumerate(spins):
         if s >= len(so_far):  # to come: as planned, at the noise seen
-            G = info.contact_jacobian
-            fixed = G.T @ np.linalg.solve(seen * info.fixed_covariance, G)
+            fixed = info.fixed_information / seen
             H += fixed + info.settled + info.rolling_h
             M += fixed + info.settled + seen * info.rolling_m
             continue
