@@ -41,8 +41,9 @@ from benchmarks.calibration.bench_plan import as_matrix, seed_truths
 from simulators.offline.datagen import ExperimentOptions, generate_experiment
 from swpc_hw.calibration.mocap.covariance import rolling_long_run, segment_terms
 from swpc_hw.calibration.mocap.solver import solve_joint
-from swpc_hw.calibration.parameters import N_PARAMS, R
+from swpc_hw.calibration.parameters import BETA, N_PARAMS, R
 from swpc_hw.calibration.plan.square_error import square_path_sensitivity
+from swpc_hw.robot.model import wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 BLOCKS = ("fixed point", "settled caster", "rolling", "rolling (M from the truth's residuals)")
@@ -81,7 +82,7 @@ def spin_length(duration: float, n: int) -> str:
                 emp[b, d] += float(a @ g) ** 2
                 model[b, d] += float(a @ M @ a)
         e = x - xt
-        e[2::N_PARAMS] = (e[2::N_PARAMS] + math.pi) % (2 * math.pi) - math.pi
+        e[BETA::N_PARAMS] = wrap_angle(e[BETA::N_PARAMS])
         C = sol.result.covariance
         assert C is not None
         nees.append(float(e @ np.linalg.solve(C, e)) / e.size)
