@@ -370,13 +370,13 @@ def plan_text(p: Plan) -> str:
             ""
             if req["square_position_mm"] is None
             else f"; square path within {req['square_position_mm']:.3g} mm, "
-            f"{req['square_heading_deg']:.3g} deg"
+            f"{req['square_heading_deg']:.3g} deg in {req['square_share_percent']:.0f} % of runs"
         ),
     ]
     if doc["square_position_mm"] is not None:
         lines.append(
-            f"square path (predicted std dev): {doc['square_position_mm']:.3f} mm, "
-            f"{doc['square_heading_deg']:.4f} deg"
+            f"square path (predicted, {req['square_share_percent']:.0f} % of runs within): "
+            f"{doc['square_position_mm']:.3f} mm, {doc['square_heading_deg']:.4f} deg"
         )
     lines.append(f"{'module':>6} {'x_s mm':>9} {'y_s mm':>9} {'beta deg':>9} {'b mm':>9} "
                  f"{'r mm':>9}")  # fmt: skip

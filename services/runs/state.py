@@ -98,8 +98,9 @@ class PersistError(RunFailedError):
 
 class Forecast(BaseModel):
     """A planned run's std devs forecast from its data so far (sequential stopping,
-    docs/plan.md): the worst per kind over the modules and the square path's, against the
-    plan's targets (mm, deg)."""
+    docs/plan.md): the worst per kind over the modules and the square path's end error
+    that the requirement's share of runs stay within, against the plan's targets (mm,
+    deg)."""
 
     position_mm: float | None = None
     beta_deg: float | None = None
@@ -111,7 +112,7 @@ class Forecast(BaseModel):
     (<= 1: met, the spin may end); before the first spin: the plan's on everything."""
     targets: dict[str, float | None] = Field(default_factory=dict)
     """The plan's requirement (``position_mm``, ``beta_deg``, ``radius_mm``,
-    ``square_position_mm``, ``square_heading_deg``)."""
+    ``square_position_mm``, ``square_heading_deg``, ``square_share_percent``)."""
 
 
 class RunStatus(BaseModel):

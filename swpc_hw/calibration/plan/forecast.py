@@ -252,11 +252,12 @@ class Judgement:
     empty while it goes on."""
 
     def document(self, requirement: Requirement) -> dict[str, float | None]:
-        """The forecast's worst std dev per kind and the square path's (mm, deg), and the
-        ratio: what the run's status shows."""
+        """The forecast's worst std dev per kind, the square path's end error that the
+        requirement's share of runs stay within (mm, deg), and the ratio: what the run's
+        status shows."""
         sd = stddevs(self.covariance)
         worst = worst_per_kind(sd) if np.all(np.isfinite(sd)) else {}
-        sq = requirement.square_sd(self.covariance)
+        sq = requirement.square_bound(self.covariance)
 
         def mm(v: float | None) -> float | None:
             return None if v is None or not math.isfinite(v) else v * 1e3

@@ -6,8 +6,10 @@ from the file), the true end pose of an idealised square (legs of ``side`` along
 body's x at ``speed``, turns in place of 90 deg at ``turn_rate``, every twist constant,
 :func:`square_path_end`) moves by ``e = S dp`` to first order, ``S`` by central
 differences (:func:`square_path_sensitivity`); the end error's std devs are those of
-``S Sigma S^T`` (:func:`square_path_sd`).  Where the truth is known (a simulator), what
-a result reached against what its covariance forecast: :func:`against_truth`.
+``S Sigma S^T`` (:func:`square_path_sd`).  A requirement is a share of runs, not a std
+dev: the end error that :data:`SQUARE_QUANTILE` of calibrations stay within
+(:func:`square_path_quantile`).  Where the truth is known (a simulator), what a result
+reached against what its covariance forecast: :func:`against_truth`.
 """
 
 from __future__ import annotations
@@ -42,6 +44,18 @@ of :func:`square_path_end`."""
 
 SQUARE_BUDGET = (0.50e-3, math.radians(0.016))
 """(m, rad): the calibrated file's end error on the square path (docs/figures.md)."""
+
+SQUARE_QUANTILE = 0.90
+"""The share of calibrations that must end the square path within the budget: a
+requirement holds when its forecast puts 90 % of runs within it (one run in ten may miss
+it), not when the end error's std dev is within it (a 2-D normal error is within its std
+dev in only 63-68 % of runs)."""
+
+_QUANTILE_DRAWS = np.random.default_rng(20261130).standard_normal((4096, 6))
+"""Fixed standard normal draws of the six end-pose errors (CCW, CW square: ``x, y, yaw``)
+for :func:`square_path_quantile`: the same draws at every call, so a forecast is a
+deterministic, smooth function of its covariance; their sampling error on a 90 %
+quantile is about 1 %."""
 
 
 def _step(pose: FloatArray, twist: FloatArray, T: float) -> FloatArray:
@@ -128,6 +142,39 @@ def square_path_sd(S: FloatArray, covariance: FloatArray) -> tuple[float, float]
     pos = max(math.sqrt(max(E[0, 0] + E[1, 1], 0.0)), math.sqrt(max(E[3, 3] + E[4, 4], 0.0)))
     head = math.sqrt(max(E[2, 2], E[5, 5], 0.0))
     return pos, head
+
+
+def square_path_quantile(
+    S: FloatArray,
+    covariance: FloatArray,
+    budget: tuple[float, float] = SQUARE_BUDGET,
+    share: float = SQUARE_QUANTILE,
+) -> tuple[float, float, float]:
+    """``(position, heading, ratio)``: the end error ``share`` of calibrations stay within
+    when the parameters' errors are ``N(0, covariance)`` (5N, 5N)::
+
+        d = S dp ~ N(0, E),  E = S Sigma S^T   (6: CCW, CW square, x, y, yaw each)
+        pos = max(|d_xy,CCW|, |d_xy,CW|),   head = max(|d_yaw,CCW|, |d_yaw,CW|)
+        ratio = Q_share( max(pos / B_p, head / B_h) )
+
+    ``position`` (m) and ``heading`` (rad) are ``Q_share`` of each part alone, ``ratio``
+    the quantile of the joint test (at most 1: ``share`` of runs meet both budgets at
+    once; never less than either part's ratio).  By :data:`_QUANTILE_DRAWS` of ``d``
+    (``E``'s symmetric square root, so a singular ``E`` is fine).  A non-finite
+    covariance gives ``inf``."""
+    if not 0.0 < share < 1.0:
+        raise ValueError(f"square-path share must be within (0, 1) (got {share})")
+    C = np.asarray(covariance, dtype=float)
+    if not np.all(np.isfinite(C)):
+        return math.inf, math.inf, math.inf
+    E = S @ C @ S.T
+    w, V = np.linalg.eigh(0.5 * (E + E.T))
+    d = _QUANTILE_DRAWS @ (V * np.sqrt(np.maximum(w, 0.0))).T
+    pos = np.maximum(np.hypot(d[:, 0], d[:, 1]), np.hypot(d[:, 3], d[:, 4]))
+    head = np.maximum(np.abs(d[:, 2]), np.abs(d[:, 5]))
+    joint = np.maximum(pos / budget[0], head / budget[1])
+    q = np.quantile(np.stack([pos, head, joint]), share, axis=1)
+    return float(q[0]), float(q[1]), float(q[2])
 
 
 def square_path_error(S: FloatArray, dp: FloatArray) -> tuple[float, float]:

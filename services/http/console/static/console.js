@@ -330,8 +330,9 @@ function planText(p) {
     `${g(r.position_mm)} mm, beta ${g(r.beta_deg)} deg, radius ${g(r.radius_mm)} mm`;
   if (r.square_position_mm !== null) {
     t += `; the square path within ${g(r.square_position_mm)} mm, ` +
-      `${g(r.square_heading_deg)} deg (predicted ${p.square_position_mm.toFixed(2)} mm, ` +
-      `${p.square_heading_deg.toFixed(4)} deg)`;
+      `${g(r.square_heading_deg)} deg in ${r.square_share_percent.toFixed(0)} % of runs ` +
+      `(predicted: ${r.square_share_percent.toFixed(0)} % within ` +
+      `${p.square_position_mm.toFixed(2)} mm, ${p.square_heading_deg.toFixed(4)} deg)`;
   }
   return t + ". The protocol settings of the form are not used (greyed out).";
 }
