@@ -29,7 +29,12 @@ from pydantic import BaseModel
 from services.http.deps import Rt, done_result, problems
 from services.plan.planner import default_budget
 from simulators.offline.datagen_imu import ReferenceOptions
-from swpc_hw.calibration.plan.square_error import against_truth
+from swpc_hw.calibration.plan.square_error import (
+    SQUARE_QUANTILE,
+    against_truth,
+    square_path_quantile,
+    square_path_sensitivity,
+)
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.files.kinematic_file import load_kinematics
 from swpc_hw.robot.frames import DESIGN_FIT, params_in_design_fit
@@ -142,11 +147,20 @@ class Reached(BaseModel):
     forecast_heading_deg: float
     budget_position_mm: float | None
     budget_heading_deg: float | None
+    bound_position_mm: float | None
+    """The end position error ``share_percent`` of runs stay within by the result's own
+    covariance (None without a budget)."""
+    bound_heading_deg: float | None
+    share_percent: float | None
+    within_budget: bool | None
+    """The square path's end position and heading both within the budget."""
     note: str = (
         "simulated: the run's result against the in-process simulator's hidden truth. nees "
         "is e' C^+ e / dof over the run's whole covariance (about 1 when it is honest); "
         "rms_z per kind; the square path's end error the result makes beside its forecast "
-        "from the same covariance and the budget a plan keeps it within"
+        "from the same covariance (a std dev), the bound share_percent of runs stay "
+        "within by that covariance, the budget a plan keeps them within, and whether "
+        "this run is within it"
     )
 
 
@@ -174,6 +188,10 @@ def reached(
         raise HTTPException(409, f"calibration {run}: {exc}") from exc
     show = {"position": (1e3, "mm"), "beta": (math.degrees(1.0), "deg"), "radius": (1e3, "mm")}
     budget = default_budget("imu" if kf.params.frame == DESIGN_FIT else "mocap")
+    bound = None
+    if budget is not None:
+        S = square_path_sensitivity(nominal)
+        bound = square_path_quantile(S, np.asarray(kf.covariance, dtype=float), budget)
     return Reached(
         run=run,
         frame=kf.params.frame,
@@ -189,4 +207,10 @@ def reached(
         forecast_heading_deg=math.degrees(a.square_forecast[1]),
         budget_position_mm=None if budget is None else budget[0] * 1e3,
         budget_heading_deg=None if budget is None else math.degrees(budget[1]),
+        bound_position_mm=None if bound is None else bound[0] * 1e3,
+        bound_heading_deg=None if bound is None else math.degrees(bound[1]),
+        share_percent=None if bound is None else SQUARE_QUANTILE * 100,
+        within_budget=None
+        if budget is None
+        else bool(a.square[0] <= budget[0] and a.square[1] <= budget[1]),
     )

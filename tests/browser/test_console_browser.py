@@ -278,7 +278,12 @@ def test_result_table_install_and_roll_back(service: dict[str, Any], browser: We
     got = httpx.get(f"{service['url']}/simulator/reached", params={"run": run_id}, timeout=10)
     r = got.json()
     assert f"NEES {r['nees']:.2f} over 20" in text(d, "res-truth"), text(d, "res-truth")
-    assert f"{r['forecast_position_mm']:.3f} mm forecast, budget 0.5 mm" in text(d, "res-truth")
+    assert f"{r['forecast_position_mm']:.3f} mm forecast (std dev), budget 0.5 mm" in text(
+        d, "res-truth"
+    )
+    verdict = "Within" if r["within_budget"] else "Beyond"
+    assert f"{verdict} the budget (0.5 mm, 0.016 deg); by its covariance 90 % of runs end " \
+        f"within {r['bound_position_mm']:.3f} mm" in text(d, "res-truth"), text(d, "res-truth")
     wait_for("the module panels", lambda: len(css(d, "#res-modules svg")) == 4)
     # their scale's text readable (issue 45 item 6: about 5 px at 800 px)
     heights = d.execute_script(

@@ -184,6 +184,12 @@ def test_full_calibration_through_http(service: tuple[TestClient, Runtime, Recor
     assert got["frame"] == "R" and got["dof"] == 20 and 0.1 < got["nees"] < 4.0, got
     assert 0 < got["square_position_mm"] < 3 * got["forecast_position_mm"], got
     assert got["budget_position_mm"] == 0.5
+    # the 90 % bound by the same covariance: 1.5-2.2 std devs; within the budget or not
+    assert 1.5 < got["bound_position_mm"] / got["forecast_position_mm"] < 2.2, got
+    assert got["share_percent"] == 90
+    assert got["within_budget"] == (
+        got["square_position_mm"] <= 0.5 and got["square_heading_deg"] <= 0.016
+    )
     print(f"\nagainst the truth: NEES {got['nees']:.2f}; square path "
           f"{got['square_position_mm']:.3f} mm, forecast {got['forecast_position_mm']:.3f} mm")
     # the kinematic file in force is the result, and loads

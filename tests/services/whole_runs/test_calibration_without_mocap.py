@@ -309,6 +309,7 @@ def test_a_robot_with_homing_errors_of_3_deg_drives_straight_and_calibrates(
     got = q.client.get("/simulator/reached", params={"run": q.run_id}).json()
     assert got["frame"] == "design-fit" and got["dof"] == 17 and 0.05 < got["nees"] < 5, got
     assert got["budget_position_mm"] is None and got["forecast_position_mm"] > 0, got
+    assert got["bound_position_mm"] is None and got["within_budget"] is None, got
 
 
 def test_a_run_without_motion_capture_is_the_same_whatever_the_operators_pace(

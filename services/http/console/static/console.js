@@ -697,10 +697,14 @@ async function showReached(id) {
     const r = await api("GET", `/simulator/reached?run=${encodeURIComponent(id)}`);
     const kinds = r.kinds.map((k) => `${k.kind} ${k.largest.toPrecision(2)} ${k.unit} (RMS z ${k.rms_z.toFixed(2)})`);
     const budget = r.budget_position_mm === null ? "" : `, budget ${r.budget_position_mm} mm`;
+    const bound = r.within_budget === null ? "" :
+      ` ${r.within_budget ? "Within" : "Beyond"} the budget (${r.budget_position_mm} mm, ` +
+      `${r.budget_heading_deg.toFixed(3)} deg); by its covariance ${r.share_percent.toFixed(0)} % ` +
+      `of runs end within ${r.bound_position_mm.toFixed(3)} mm, ${r.bound_heading_deg.toFixed(4)} deg.`;
     p.textContent = `Against the simulator's truth: largest errors ${kinds.join(", ")}; ` +
       `NEES ${r.nees.toFixed(2)} over ${r.dof} (about 1 when the std devs are honest); ` +
-      `square path ${r.square_position_mm.toFixed(3)} mm reached, ` +
-      `${r.forecast_position_mm.toFixed(3)} mm forecast${budget}.`;
+      `square path ${r.square_position_mm.toFixed(3)} mm, ${r.square_heading_deg.toFixed(4)} deg ` +
+      `reached, ${r.forecast_position_mm.toFixed(3)} mm forecast (std dev)${budget}.${bound}`;
   } catch (e) {
     p.textContent = `Against the simulator's truth: not known (${e.message}).`;
   }
