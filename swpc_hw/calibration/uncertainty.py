@@ -35,6 +35,11 @@ BoolArray = NDArray[np.bool_]
 WINDOW_FACTOR = 6.0
 """Sokal's window: the lags summed span this many integrated autocorrelation times."""
 
+SIGNIFICANT = 2.0
+"""A column's correlation asks for lags only when its integrated autocorrelation over
+Sokal's window exceeds 1 by this many of white noise's sampling std devs
+(:func:`window_bandwidth`)."""
+
 AR1_BLOCK_GROWTH = 1e100
 """:func:`ar1_filter` works in blocks over which ``rho^-k`` grows at most this much."""
 
@@ -222,6 +227,10 @@ def window_bandwidth(V: FloatArray, n: int, c: float = WINDOW_FACTOR) -> int:
     done = c * tau <= M
     m = np.where(done.any(axis=0), np.argmax(done, axis=0) + 1, K)
     m = np.where(r[1] > 0.0, m, 0)  # white or anti-correlated: no lag to add
+    # a correlation the noise of the estimate explains asks for no lag either: white
+    # noise's sample tau(M) - 1 has a std dev of 2 sqrt(M / n)
+    tau_m = np.take_along_axis(tau, np.maximum(m - 1, 0)[None, :], axis=0)[0]
+    m = np.where(tau_m - 1.0 > SIGNIFICANT * 2.0 * np.sqrt(m / max(n, 1)), m, 0)
     return int(min(2 * int(m.max()), max(1, n // 3)))
 
 

@@ -29,10 +29,13 @@ def scores(rng: np.random.Generator, T: int, rho: float) -> np.ndarray:
 @pytest.mark.parametrize("T", [30, 20])
 def test_short_centred_white_series_are_read_at_their_variance(T: int) -> None:
     """Over 3000 draws the mean estimate of ``Var(sum s)`` against the variance of the sums
-    themselves: within 10-12 %.  Sokal's window gave white noise 6 lags, whose sample
-    autocovariances the centring biases negative: 0.83 of the variance before.  (AR(1)
-    noise of 0.5 on 30 nodes is still read at 0.86: the lag-1 estimate's own bias on a
-    short series, docs/solver-uncertainty.md.)"""
+    themselves: never below.  Sokal's window gave white noise 6 lags, whose sample
+    autocovariances the centring biases negative: 0.83 of the variance before.  The
+    window now asks for lags only for a correlation the estimate's noise does not explain
+    (``SIGNIFICANT``); what remains above 1 (1.19-1.21) is the AR(1) prewhitening, whose
+    lag-1 estimate is positive half the time on white noise and recolours upward: on the
+    safe side.  (AR(1) noise of 0.5 on 30 nodes is still read at 0.86: the lag-1
+    estimate's own bias on a short series, docs/solver-uncertainty.md.)"""
     rho = 0.0
     rng = np.random.default_rng(44)
     present = np.ones(T, dtype=bool)
@@ -45,4 +48,4 @@ def test_short_centred_white_series_are_read_at_their_variance(T: int) -> None:
     mean = np.mean(np.array(est), axis=0).diagonal()
     ratio = mean / true
     print(f"\nT {T}, rho {rho}: estimate / variance {np.round(ratio, 3)}")
-    assert np.all((ratio > 0.9) & (ratio < 1.12)), ratio
+    assert np.all((ratio > 0.97) & (ratio < 1.25)), ratio
