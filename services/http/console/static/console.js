@@ -494,8 +494,8 @@ const FORECAST_ROWS = [
   ["position", "x_s, y_s, b", "position_mm", "mm"],
   ["beta", "homing error beta", "beta_deg", "°"],
   ["radius", "wheel radius r", "radius_mm", "mm"],
-  ["square-position", "square path, end position", "square_position_mm", "mm"],
-  ["square-heading", "square path, end heading", "square_heading_deg", "°"],
+  ["square-position", "square path, end position (90 % of runs within)", "square_position_mm", "mm"],
+  ["square-heading", "square path, end heading (90 % of runs within)", "square_heading_deg", "°"],
 ];
 function renderForecast(st) {
   const f = st.forecast;
