@@ -18,7 +18,7 @@ truth and the run's own covariance ``C`` (its kinematic file):
   each, their ratio, and the RMS of the per-run ratio (a z);
 * how many runs end the square path within its budget (end position and heading within
   :data:`~swpc_hw.calibration.plan.square_error.SQUARE_BUDGET` at once), against the
-  share the requirement promises (:data:`~swpc_hw.calibration.plan.square_error.SQUARE_QUANTILE`)
+  share the requirement promises (:data:`~swpc_hw.calibration.plan.square_error.SQUARE_SHARE`)
   and the mean of the run's own 90 % bound over the budget (at most 1: the covariance
   says the run meets the requirement); with motion capture only (without it the square
   path has no budget: the layout's scale is the tape's, docs/plan.md);
@@ -54,7 +54,7 @@ from benchmarks.calibration.bench_check import TOKEN
 from benchmarks.calibration.bench_plan import as_matrix, seed_truths
 from swpc_hw.calibration.plan.square_error import (
     SQUARE_BUDGET,
-    SQUARE_QUANTILE,
+    SQUARE_SHARE,
     AgainstTruth,
     against_truth,
     square_path_error,
@@ -84,7 +84,7 @@ class RunFigures:
     against: AgainstTruth
     by_param: np.ndarray  # (5, 2): per parameter column, the square path mm reached, forecast
     within: bool | None  # the square path's end position and heading within SQUARE_BUDGET
-    bound: float | None  # the run's own SQUARE_QUANTILE bound over SQUARE_BUDGET (<= 1: met)
+    bound: float | None  # the run's own SQUARE_SHARE bound over SQUARE_BUDGET (<= 1: met)
 
 
 def figures(
@@ -215,7 +215,7 @@ def summary(name: str, runs: list[RunFigures]) -> str:
         "no budget without motion capture"
         if not bounds
         else f"within the budget {sum(bool(r.within) for r in runs)} of {len(runs)} (the "
-        f"requirement: {SQUARE_QUANTILE:.0%}; the runs' own 90 % bound / budget "
+        f"requirement: {SQUARE_SHARE:.0%}; the runs' own 90 % bound / budget "
         f"{float(np.mean(bounds)):.2f} on average)"
     )
     by = np.sqrt(np.mean(np.stack([r.by_param for r in runs]) ** 2, axis=0))

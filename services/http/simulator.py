@@ -30,7 +30,7 @@ from services.http.deps import Rt, done_result, problems
 from services.plan.planner import default_budget
 from simulators.offline.datagen_imu import ReferenceOptions
 from swpc_hw.calibration.plan.square_error import (
-    SQUARE_QUANTILE,
+    SQUARE_SHARE,
     against_truth,
     square_path_quantile,
     square_path_sensitivity,
@@ -209,7 +209,7 @@ def reached(
         budget_heading_deg=None if budget is None else math.degrees(budget[1]),
         bound_position_mm=None if bound is None else bound[0] * 1e3,
         bound_heading_deg=None if bound is None else math.degrees(bound[1]),
-        share_percent=None if bound is None else SQUARE_QUANTILE * 100,
+        share_percent=None if bound is None else SQUARE_SHARE * 100,
         within_budget=None
         if budget is None
         else bool(a.square[0] <= budget[0] and a.square[1] <= budget[1]),

@@ -48,7 +48,7 @@ torque (its damping is viscous: the steady rate is proportional to the torque),
   ``turn_rate``, every twist constant, :func:`square_path_end`) moves by ``e = S dp`` to
   first order, ``S`` by central differences (:func:`square_path_sensitivity`).  The end
   error's covariance is ``S Sigma S^T``.  The end error that 90 % of calibrations stay
-  within (:data:`SQUARE_QUANTILE`; position ``|(x, y)|`` and heading ``|yaw|``, the
+  within (:data:`SQUARE_SHARE`; position ``|(x, y)|`` and heading ``|yaw|``, the
   larger of the CW and CCW squares, both within at once: :func:`square_path_quantile`)
   must be within the budget ``(B_p, B_h)``: by default what the calibrated file reaches
   on the square path (docs/figures.md: 0.50 mm, 0.016 deg, against the nominal design's
@@ -74,7 +74,7 @@ from swpc_hw.calibration.parameters import B as B_COL
 from swpc_hw.calibration.parameters import R as R_COL
 from swpc_hw.calibration.plan.square_error import (
     SQUARE_BUDGET,
-    SQUARE_QUANTILE,
+    SQUARE_SHARE,
     square_path_quantile,
 )
 from swpc_hw.errors import CalibrationError
@@ -300,7 +300,7 @@ class Requirement:
     targets: Targets
     square: FloatArray | None = None
     budget: tuple[float, float] = SQUARE_BUDGET
-    share: float = SQUARE_QUANTILE
+    share: float = SQUARE_SHARE
 
     def __post_init__(self) -> None:
         if not all(math.isfinite(v) and v > 0 for v in self.budget):

@@ -7,7 +7,7 @@ body's x at ``speed``, turns in place of 90 deg at ``turn_rate``, every twist co
 :func:`square_path_end`) moves by ``e = S dp`` to first order, ``S`` by central
 differences (:func:`square_path_sensitivity`); the end error's std devs are those of
 ``S Sigma S^T`` (:func:`square_path_sd`).  A requirement is a share of runs, not a std
-dev: the end error that :data:`SQUARE_QUANTILE` of calibrations stay within
+dev: the end error that :data:`SQUARE_SHARE` of calibrations stay within
 (:func:`square_path_quantile`).  Where the truth is known (a simulator), what a result
 reached against what its covariance forecast: :func:`against_truth`.
 """
@@ -45,7 +45,7 @@ of :func:`square_path_end`."""
 SQUARE_BUDGET = (0.50e-3, math.radians(0.016))
 """(m, rad): the calibrated file's end error on the square path (docs/figures.md)."""
 
-SQUARE_QUANTILE = 0.90
+SQUARE_SHARE = 0.90
 """The share of calibrations that must end the square path within the budget: a
 requirement holds when its forecast puts 90 % of runs within it (one run in ten may miss
 it), not when the end error's std dev is within it (a 2-D normal error is within its std
@@ -148,7 +148,7 @@ def square_path_quantile(
     S: FloatArray,
     covariance: FloatArray,
     budget: tuple[float, float] = SQUARE_BUDGET,
-    share: float = SQUARE_QUANTILE,
+    share: float = SQUARE_SHARE,
 ) -> tuple[float, float, float]:
     """``(position, heading, ratio)``: the end error ``share`` of calibrations stay within
     when the parameters' errors are ``N(0, covariance)`` (5N, 5N)::
