@@ -39,7 +39,7 @@ from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
 
 PLAN = Candidate((45.0, 165.0), 180.0, 1.5, 1.0, 0.5, 2.5, 0.6)
 """The plan of :func:`requirement` on the paper's robot at the config's spin torque (the
-shortest sweep of the planner's grid whose forecast meets it: 165 deg forecast 1.06)."""
+shortest sweep of the planner's grid whose forecast meets it: 165 deg forecast 1.07)."""
 TM = TimeModel()
 NOISE = MocapNoise()
 
@@ -174,9 +174,8 @@ def test_recorded_runs_stop_earlier_on_better_poses_and_later_on_worse(
     planned = 8 * PLAN.sweep_deg
     assert total[0.5] < total[1.0] < total[1.5]
     assert total[0.5] < 0.8 * planned  # better poses: shorter spins
-    # worse: longer (1.12 times here; the encoders' share of the square path does not
-    # grow with the poses' noise)
-    assert total[1.5] > 1.08 * planned
+    # worse: longer (1.25 times here, 1.24-1.25 over seeds 11-13)
+    assert total[1.5] > 1.15 * planned
 
 
 def test_a_cut_spins_rolling_information_grows_as_the_cube_of_its_sweep(
