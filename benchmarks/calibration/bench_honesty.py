@@ -53,7 +53,6 @@ from scipy import stats
 from benchmarks.calibration.bench_check import TOKEN
 from benchmarks.calibration.bench_plan import as_matrix, seed_truths
 from swpc_hw.calibration.plan.square_error import (
-    SQUARE_BUDGET,
     SQUARE_SHARE,
     AgainstTruth,
     against_truth,
@@ -61,6 +60,7 @@ from swpc_hw.calibration.plan.square_error import (
     square_path_quantile,
     square_path_sd,
     square_path_sensitivity,
+    square_path_within,
 )
 from swpc_hw.files.kinematic_file import load_kinematics, save_kinematics
 from swpc_hw.robot.frames import DESIGN_FIT, params_in_design_fit
@@ -105,8 +105,9 @@ def figures(
         )
     if result.frame == DESIGN_FIT:  # no budget without motion capture
         return RunFigures(robot_time, a, by, None, None)
-    within = a.square[0] <= SQUARE_BUDGET[0] and a.square[1] <= SQUARE_BUDGET[1]
-    return RunFigures(robot_time, a, by, within, square_path_quantile(S, C)[2])
+    return RunFigures(
+        robot_time, a, by, square_path_within(a.square), square_path_quantile(S, C)[2]
+    )
 
 
 @contextlib.contextmanager

@@ -50,10 +50,10 @@ from swpc_hw.calibration.mocap.solver import solve
 from swpc_hw.calibration.plan.forecast import Stopping, forecast_covariance, replay
 from swpc_hw.calibration.plan.plan import Candidate, MocapNoise, Plan, robot_time, stddevs
 from swpc_hw.calibration.plan.square_error import (
-    SQUARE_BUDGET,
     square_path_error,
     square_path_sd,
     square_path_sensitivity,
+    square_path_within,
 )
 from swpc_hw.files.kinematic_file import save_kinematics
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams
@@ -142,8 +142,7 @@ def offline(
         z_pred.append(e / predicted)
         z_solver.append(e / res.stddev_array())
         d = S @ e.ravel()
-        pos, head = square_path_error(S, e.ravel())
-        within += pos <= SQUARE_BUDGET[0] and head <= SQUARE_BUDGET[1]
+        within += square_path_within(square_path_error(S, e.ravel()))
         for row in (0, 3):  # CCW, CW
             sq_pos.append(math.hypot(d[row], d[row + 1]))
             sq_head.append(abs(d[row + 2]))

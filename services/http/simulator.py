@@ -34,6 +34,7 @@ from swpc_hw.calibration.plan.square_error import (
     against_truth,
     square_path_quantile,
     square_path_sensitivity,
+    square_path_within,
 )
 from swpc_hw.errors import KinematicFileError
 from swpc_hw.files.kinematic_file import load_kinematics
@@ -182,16 +183,15 @@ def reached(
     nominal, truth = rt.config.nominal, rt.simulator.truth
     if kf.params.frame == DESIGN_FIT:
         truth = params_in_design_fit(truth, nominal)[0]
+    C = np.asarray(kf.covariance, dtype=float)
+    S = square_path_sensitivity(nominal)
     try:
-        a = against_truth(kf.params, np.asarray(kf.covariance, dtype=float), truth, nominal)
+        a = against_truth(kf.params, C, truth, nominal, S)
     except ValueError as exc:
         raise HTTPException(409, f"calibration {run}: {exc}") from exc
     show = {"position": (1e3, "mm"), "beta": (math.degrees(1.0), "deg"), "radius": (1e3, "mm")}
     budget = default_budget("imu" if kf.params.frame == DESIGN_FIT else "mocap")
-    bound = None
-    if budget is not None:
-        S = square_path_sensitivity(nominal)
-        bound = square_path_quantile(S, np.asarray(kf.covariance, dtype=float), budget)
+    bound = None if budget is None else square_path_quantile(S, C, budget)
     return Reached(
         run=run,
         frame=kf.params.frame,
@@ -210,7 +210,5 @@ def reached(
         bound_position_mm=None if bound is None else bound[0] * 1e3,
         bound_heading_deg=None if bound is None else math.degrees(bound[1]),
         share_percent=None if bound is None else SQUARE_SHARE * 100,
-        within_budget=None
-        if budget is None
-        else bool(a.square[0] <= budget[0] and a.square[1] <= budget[1]),
+        within_budget=None if budget is None else square_path_within(a.square, budget),
     )

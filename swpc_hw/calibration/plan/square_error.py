@@ -177,6 +177,14 @@ def square_path_quantile(
     return float(q[0]), float(q[1]), float(q[2])
 
 
+def square_path_within(
+    end: tuple[float, float], budget: tuple[float, float] = SQUARE_BUDGET
+) -> bool:
+    """Whether a square path's end error ``(position, heading)`` (m, rad; a
+    :func:`square_path_error`) is within ``budget``: both at once."""
+    return end[0] <= budget[0] and end[1] <= budget[1]
+
+
 def square_path_error(S: FloatArray, dp: FloatArray) -> tuple[float, float]:
     """``(position, heading)`` (m, rad) of the square's end error ``S dp`` for parameter
     errors ``dp`` (5N), the larger of the CCW and the CW square: what a file with those
