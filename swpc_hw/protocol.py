@@ -44,4 +44,15 @@ DEFAULT_PROTOCOL = Protocol()
 PRECHECK_TIME = 3.4
 """s of robot time: the fast part's probe of one module before the first spin (motion
 capture, docs/commissioning.md): its steering moves, settling and a roll of 8 deg (3.1 to
-3.8 s on the in-process simulator, the paper's robot, 2026-11-30)."""
+3.8 s on the in-process simulator, the paper's robot, 2026-11-30; with the gyro alone 3.3
+to 3.9 s, 2026-12-01)."""
+GYRO_PRECHECK_MODULES = 4
+"""Modules a robot needs for the fast part with the gyro alone: the locked one, the
+driver and two free ones, whose wheels give the fixed point
+(:mod:`swpc_hw.calibration.commission.trailing`)."""
+
+
+def has_fast_part(n_modules: int, metrology: str, precheck: bool = True) -> bool:
+    """Whether a run starts with the fast part (``protocol.precheck``): with motion
+    capture always, with the gyro alone on :data:`GYRO_PRECHECK_MODULES` modules or more."""
+    return precheck and (metrology == "mocap" or n_modules >= GYRO_PRECHECK_MODULES)

@@ -14,17 +14,19 @@ miswired: ``SWPC_SIM_WIRING``, a steering zero off in ``SWPC_SIM_TRUTH``):
 
 Then on a right robot, commissionings in a row (``--right N``): the refusals (a right
 robot said miswired), the robot time and the largest motion of each; and calibrations
-through their fast part (``--prechecks N``, each aborted at its first lock): the
-refusals and the fast part's robot time.
+through their fast part (``--prechecks N``, each aborted at its first lock; with
+``--metrology imu`` the gyro alone): the refusals and the fast part's robot time.
 Robot time is the simulator's; wall time is printed for what it costs here.
 
-``python -m benchmarks.drives.bench_commission [--kinds swpc,cia402] [--right 50] [--cases ...]``
+``python -m benchmarks.drives.bench_commission [--kinds swpc,cia402] [--right 50]
+[--prechecks 50 [--metrology imu]] [--cases ...]``
 (``make bench``: every case on every kind, about half an hour here).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -179,17 +181,36 @@ def right_runs(kind: str, n: int, work: Path) -> None:
           f"{max(moves):.0f} mm")  # fmt: skip
 
 
-def prechecks(kind: str, n: int, work: Path) -> None:
+def axis_distances() -> list[dict[str, Any]]:
+    """The six distances between the true steering axes (a run with the gyro needs them;
+    the fast part comes before they are used)."""
+    a = PAPER_CALIBRATED.arrays()
+    out = []
+    for i, j in itertools.combinations(range(a.n), 2):
+        d = float(math.hypot(*(a.P_s[i] - a.P_s[j])))
+        ids = [PAPER_CALIBRATED.ids[i], PAPER_CALIBRATED.ids[j]]
+        out.append({"kind": "axis_distance", "modules": ids, "value": d, "stddev": 0.5e-3})
+    return out
+
+
+def prechecks(kind: str, n: int, work: Path, metrology: str = "mocap") -> None:
     """``n`` calibrations of a right robot through their fast part (each aborted once it
-    locks for its first spin): the refusals, the fast part's robot time."""
+    locks for its first spin), with motion capture or the gyro alone (``imu``): the
+    refusals, the fast part's robot time.  The simulator's seed differs per run (its
+    sensors' noise, the drives' timing)."""
     robot = work / "robot.yaml"
     work.mkdir(parents=True)
     robot.write_text(yaml.safe_dump({"drives": {"kind": kind}}))
     refusals, times = 0, []
-    with service(work / "data", robot_config=robot, sim_seed=11) as client:
-        for _ in range(n):
-            r = client.post("/calibrations", json={"overrides": {"protocol": QUICK}},
-                            headers=AUTH)  # fmt: skip
+    body: dict[str, Any] = {"overrides": {"protocol": QUICK}}
+    if metrology == "imu":
+        protocol = {**QUICK, "rest_time": 1.0, "drive_length": 1.0}
+        body = {"metrology": "imu", "references": axis_distances(),
+                "overrides": {"protocol": protocol}}  # fmt: skip
+    for seed in range(11, 11 + n):
+        with service(work / f"data{seed}", robot_config=robot, sim_seed=seed) as client:
+            r = client.post("/calibrations", json=body, headers=AUTH)
+            assert r.status_code == 202, r.text
             rid = r.json()["id"]
             deadline = time.monotonic() + 300
             while True:
@@ -200,13 +221,13 @@ def prechecks(kind: str, n: int, work: Path) -> None:
                 time.sleep(0.02)
             if st["state"] != "LOCK":
                 refusals += 1
-                print(f"  refused: {st['reason']}")
+                print(f"  refused (seed {seed}): {st['reason']}", flush=True)
             else:
                 times.append(st["elapsed_s"])
-                client.post(f"/calibrations/{rid}/abort")
+                client.post(f"/calibrations/{rid}/abort", headers=AUTH)
                 follow(client, "/calibrations", rid)
-    print(f"{kind}: {n} fast parts of a right robot: {refusals} refusals; robot time to the "
-          f"first lock {min(times):.1f}-{max(times):.1f} s")  # fmt: skip
+    print(f"{kind} ({metrology}): {n} fast parts of a right robot: {refusals} refusals; robot "
+          f"time to the first lock {min(times):.1f}-{max(times):.1f} s")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -215,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cases", default=";".join(CASES), help="case names, separated by ;")
     p.add_argument("--right", type=int, default=0, help="commissionings of a right robot")
     p.add_argument("--prechecks", type=int, default=0, help="fast parts of a right robot")
+    p.add_argument("--metrology", default="mocap", choices=["mocap", "imu"],
+                   help="the prechecks' metrology")  # fmt: skip
     p.add_argument("--json", help="also write the rows to this file")
     args = p.parse_args([] if argv is None else argv)
     os.environ.setdefault("SWPC_ALLOWED_HOSTS", '["testserver"]')
@@ -225,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
                 if args.right:
                     right_runs(kind, args.right, Path(tmp) / f"{kind}-right")
                 if args.prechecks:
-                    prechecks(kind, args.prechecks, Path(tmp) / f"{kind}-prechecks")
+                    work = Path(tmp) / f"{kind}-prechecks"
+                    prechecks(kind, args.prechecks, work, args.metrology)
                 continue
             for i, name in enumerate(args.cases.split(";")):
                 row = one(kind, name, Path(tmp) / f"{kind}-{i}")

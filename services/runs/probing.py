@@ -13,6 +13,12 @@ done through a run's robot, its checks and its poses.
   wheel turning the other way round must not spin the robot), or when the wheel rolled
   :data:`~swpc_hw.calibration.commission.probes.ROLL_MARGIN` times what the turn asks
   without it.
+
+What sees the robot turn is the run's metrology: motion capture's poses, or the gyro's
+integrated rate alone (metrology ``imu``: no position, so a steering move is watched by
+its turn, :data:`~swpc_hw.calibration.commission.probes.MOVE_TURN`, and a pivot probe's
+fixed point comes from the free casters' wheel encoders,
+:mod:`swpc_hw.calibration.commission.trailing`).
 """
 
 from __future__ import annotations
@@ -25,11 +31,14 @@ from typing import Any
 import numpy as np
 
 from services.runs.machine import RunMachine
+from services.runs.metrology.gyro_motion import GyroYaw
+from services.runs.metrology.imu import ImuMetrology
 from services.runs.metrology.mocap import MocapMetrology
 from services.runs.state import RunFailedError, State
 from swpc_hw.calibration.commission.analysis import MOCAP_TURNS
 from swpc_hw.calibration.commission.probes import (
     MOVE_MARGIN,
+    MOVE_TURN,
     PIVOT_TRIES,
     PROBE_TURN,
     ROLL_MARGIN,
@@ -42,6 +51,7 @@ from swpc_hw.calibration.commission.probes import (
     pivot_plan,
     plan_about,
 )
+from swpc_hw.calibration.commission.trailing import trailing_fixed_point
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.robot.model import wrap_angle
 
@@ -55,11 +65,40 @@ STEER_TOL = math.radians(1.0)
 """rad: a steering within this of its set-point is there."""
 
 
+class GyroTurn:
+    """The robot's yaw as the gyro integrates it, less the bias of the last rest: rows
+    ``(t, nan, nan, yaw)`` as motion capture's poses are ``(t, x, y, yaw)`` (module
+    docstring)."""
+
+    def __init__(self, run: RunMachine, metrology: ImuMetrology) -> None:
+        self.run = run
+        self.metrology = metrology
+        self._cursor = 0
+        self._yaw = GyroYaw(metrology.bias)
+        self._rows: list[tuple[float, float, float, float]] = []
+
+    def latest(self) -> tuple[float, float, float, float]:
+        rows, self._cursor = self.metrology.gyro.samples_since(self._cursor)
+        for t, wz in rows[:, [2, 3]].tolist():
+            self._rows.append((t, math.nan, math.nan, self._yaw.add(t, wz)))
+        if not self._rows:
+            raise RunFailedError("no gyro sample: the probes need the robot's turn")
+        return self._rows[-1]
+
+    def since(self, t0: float) -> Any:
+        self.latest()
+        a = np.array(self._rows)
+        return a[a[:, 0] >= t0]
+
+
 class Prober:
     """The probes of one run (module docstring), and what they saw."""
 
     def __init__(self, run: RunMachine) -> None:
         self.run = run
+        self._gyro = (
+            GyroTurn(run, run.metrology) if isinstance(run.metrology, ImuMetrology) else None
+        )
         self.steer_moves: list[SteerMove] = []
         self.pivot_probes: list[PivotProbe] = []
         self.largest_turn = 0.0
@@ -69,12 +108,16 @@ class Prober:
         the pose that showed it (robot ms), how far the robot turned its way in all."""
 
     def _poses(self, since: float) -> Any:
-        """The poses ``t, x, y, yaw`` since ``since`` (run clock)."""
+        """The poses ``t, x, y, yaw`` since ``since`` (run clock; x, y nan: the gyro)."""
+        if self._gyro is not None:
+            return self._gyro.since(since)
         assert isinstance(self.run.metrology, MocapMetrology)
         return self.run.metrology.poses(since)
 
     def _pose(self) -> tuple[float, float, float, float]:
-        """The latest pose ``(t, x, y, yaw)`` (run clock)."""
+        """The latest pose ``(t, x, y, yaw)`` (run clock; x, y nan: the gyro)."""
+        if self._gyro is not None:
+            return self._gyro.latest()
         assert isinstance(self.run.metrology, MocapMetrology)
         p = self.run.metrology.mocap.latest()
         if p is None:
@@ -113,14 +156,20 @@ class Prober:
         while True:
             self.run.check(True, deadline)
             p = self._pose()
-            moved = max(moved, self._axis_moved(m, p0, p))
+            if self._gyro is None:
+                moved = max(moved, self._axis_moved(m, p0, p))
             turned = max(turned, abs(math.remainder(p[3] - p0[3], 2 * math.pi)))
-            if moved > budget:
+            if moved > budget if self._gyro is None else turned > MOVE_TURN:
                 self._hold_all()
-                self.run.event(logging.WARNING, "commission.stop", module=m, moved_mm=moved * 1e3)
+                self.run.event(
+                    logging.WARNING, "commission.stop", module=m, moved_mm=moved * 1e3,
+                    turned_deg=math.degrees(turned),
+                )  # fmt: skip
                 self.run.wait(SETTLE)
                 p = self._pose()
-                moved = max(moved, self._axis_moved(m, p0, p))
+                if self._gyro is None:
+                    moved = max(moved, self._axis_moved(m, p0, p))
+                turned = max(turned, abs(math.remainder(p[3] - p0[3], 2 * math.pi)))
                 stopped = True
                 break
             now = self.run.clock.now()
@@ -333,14 +382,17 @@ class Prober:
         roll = float(enc_j[-1, 2]) - psi0 if len(enc_j) else 0.0
         F: tuple[float, float] | None = None
         std = math.inf
-        if abs(turn) >= math.radians(1.0) and len(poses) >= 10:
+        if self._gyro is not None:
+            F, std, stopped = self._trailing(m, j, t0, poses, stopped)
+        elif abs(turn) >= math.radians(1.0) and len(poses) >= 10:
             fit = fit_fixed_point(poses)
             F = (float(fit.C_R[0]), float(fit.C_R[1]))
             std = fit.std
         self.largest_turn = max(self.largest_turn, abs(turn))
-        self.largest_move = max(
-            self.largest_move, float(np.max(np.hypot(*(poses[:, 1:3] - poses[0, 1:3]).T)))
-        )
+        if self._gyro is None:
+            self.largest_move = max(
+                self.largest_move, float(np.max(np.hypot(*(poses[:, 1:3] - poses[0, 1:3]).T)))
+            )
         return PivotProbe(
             module=m,
             steering=float(np.mean(enc_m[:, 1])) if len(enc_m) else self.run.robot.steering(m),
@@ -353,3 +405,29 @@ class Prober:
             stopped=stopped,
             pushed=pushed,
         )
+
+    def _trailing(
+        self, m: int, j: int, t0: float, poses: Any, stopped: str | None
+    ) -> tuple[tuple[float, float] | None, float, str | None]:
+        """A gyro probe's fixed point from its free modules' encoders
+        (:func:`~swpc_hw.calibration.commission.trailing.trailing_fixed_point`): ``(point,
+        residual, stopped)``; a point the free modules disagree on is None, ``stopped``
+        then saying so."""
+        if stopped is not None:
+            return None, math.inf, stopped
+        ids = self.run.config.nominal.ids
+        trailing = {k: self.run.robot.encoders(k, t0) for k in ids if k not in (m, j)}
+        fix = trailing_fixed_point(self.run.config.nominal, trailing, poses[:, [0, 3]])
+        if fix is None:
+            return None, math.inf, None
+        if fix.agrees:
+            return fix.point, fix.residual, None
+        worst = "" if fix.worst is None else f", module {fix.worst}'s the most"
+        text = (
+            f"the free modules' wheels ({', '.join(map(str, fix.modules))}) rolled "
+            f"{1000 * fix.residual:.1f} mm (RMS) off what the gyro's turn about one point "
+            f"asks{worst}: a wheel or steering of theirs turns the other way round or by "
+            "another ratio, or their nodes are crossed"
+        )
+        self.run.event(logging.WARNING, "commission.stop", module=m, driver=j, why=text)
+        return None, fix.residual, text

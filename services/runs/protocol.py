@@ -89,7 +89,11 @@ from services.runs.state import (
     now_iso,
 )
 from services.store.provenance import dataset_sha256
-from swpc_hw.calibration.commission.analysis import precheck_problems
+from swpc_hw.calibration.commission.analysis import (
+    PRECHECK_ANGLE,
+    PRECHECK_ANGLE_GYRO,
+    precheck_problems,
+)
 from swpc_hw.calibration.commission.probes import PRECHECK_TURN, driver_of
 from swpc_hw.calibration.mocap.solver import CalibrationResult
 from swpc_hw.calibration.plan.plan import TimeModel
@@ -97,12 +101,14 @@ from swpc_hw.clock import SYSTEM_CLOCK, Clock
 from swpc_hw.drives.robot_io import RobotIO
 from swpc_hw.errors import CalibrationError
 from swpc_hw.files.dataset import Dataset, load_dataset
-from swpc_hw.protocol import PRECHECK_TIME
+from swpc_hw.protocol import PRECHECK_TIME, has_fast_part
 from swpc_hw.robot.model import FloatArray, contact_point, trailing_steering_angle, wrap_angle
 
 TIME_MODEL = TimeModel()
 """The planner's time model with its measured defaults: a step's estimate before one was
 measured (:meth:`CalibrationRun.planned`; asked at every poll, made once)."""
+
+
 
 
 class CalibrationRun(RunMachine):
@@ -162,7 +168,8 @@ class CalibrationRun(RunMachine):
         first = [State.LOCK, State.ALIGN, State.FREE, *still, State.SPIN, State.STOP]
         again = [State.RESTEER, *still, State.SPIN, State.STOP]
         per_module = first + again * (len(config.protocol.angles_deg) - 1) + [State.RELEASE]
-        probe = [State.PROBE] * len(config.nominal.ids) if config.protocol.precheck else []
+        fast = has_fast_part(len(config.nominal.ids), metrology.name, config.protocol.precheck)
+        probe = [State.PROBE] * len(config.nominal.ids) if fast else []
         self.plan = probe + per_module * len(self.modules)
         if metrology.name == "imu" and config.protocol.drive_length > 0:
             # the rest after the last spin, the drive and the operator's two steps (theirs:
@@ -254,7 +261,7 @@ class CalibrationRun(RunMachine):
         self.record(force=True)
         angles = [math.radians(a) for a in cfg.protocol.angles_deg]
         self._connect()
-        if cfg.protocol.precheck and m.name == "mocap":
+        if has_fast_part(len(cfg.nominal.ids), m.name, cfg.protocol.precheck):
             self._fast_part(angles[0])
         nominal = cfg.nominal.arrays()
         ids = cfg.nominal.ids
@@ -357,15 +364,20 @@ class CalibrationRun(RunMachine):
             rolled = prober.pivot_probe(m, angle, driver_of(ids, m), PRECHECK_TURN, retry=False)
             if rolled is None:  # a steering moved the pinned robot
                 mv = prober.steer_moves[-1]
+                how = (
+                    f"{1000 * mv.moved:.0f} mm" if mv.moved > mv.budget
+                    else f"{math.degrees(mv.turned):.1f} deg"
+                )  # fmt: skip
                 raise RunFailedError(
                     f"refused before the first spin: module {mv.module}'s steering moved the "
-                    f"robot {1000 * mv.moved:.0f} mm with the robot pinned: it turns a wheel; "
+                    f"robot {how} with the robot pinned: it turns a wheel; "
                     "swpc commission names the fix"
                 )
             probes.extend(rolled)
             self.robot.free_steer(m)
             self.robot.wheel_hold(m)
-        problems = precheck_problems(self.config.nominal, probes)
+        limit = PRECHECK_ANGLE if self.metrology.name == "mocap" else PRECHECK_ANGLE_GYRO
+        problems = precheck_problems(self.config.nominal, probes, limit)
         turned = round(math.degrees(prober.largest_turn), 2)
         level = logging.ERROR if problems else logging.INFO
         self.event(level, "run.precheck", ok=not problems, largest_turn_deg=turned)

@@ -211,6 +211,11 @@ class ImuMetrology:
             )
         return None
 
+    @property
+    def bias(self) -> float:
+        """rad/s: the gyro's bias, its mean over the last rest (0 before one)."""
+        return self._bias
+
     # ------------------------------------------------------------ the operator
     def waits_for(self, state: State) -> str | None:
         """``"continue"`` in MARK, ``"references"`` in MEASURE: what the operator owes a
@@ -331,7 +336,8 @@ class ImuMetrology:
         run.enter(State.REST, step)
         for m in self._ids:
             run.robot.wheel_hold(m)
-        self._until_still(run, REST_WINDOW, step)
+        # the gyro's mean at rest: its bias for the fast part's turns (a STILL's after)
+        self._bias = self._until_still(run, REST_WINDOW, step)[2]
 
     def before_spin(self, run: RunSteps, k: int, dyn: list[int]) -> None:
         rest = run.config.protocol.rest_time

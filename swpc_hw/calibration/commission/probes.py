@@ -78,6 +78,9 @@ MOVE_MARGIN = 0.025
 """m: how far a steering move may move its steering axis (the robot pinned: the braked
 tyres' give, the pose noise, and what is left of the previous roll: 11 mm seen on the
 lab's time-scaled simulator on the test VM, against 1-3 mm in process)."""
+MOVE_TURN = math.radians(2.0)
+"""rad: how far the robot may turn during a steering move where no sensor sees position
+(the gyro alone): the robot pinned turns by the braked tyres' give, a tenth of a degree."""
 WRONG_WAY = math.radians(0.5)
 """rad: a pivot probe whose robot turned this far against the roll's turn stops."""
 PINNED_TOL = 0.005

@@ -78,7 +78,7 @@ from swpc_hw.calibration.plan.square_error import (
     square_path_quantile,
 )
 from swpc_hw.errors import CalibrationError
-from swpc_hw.protocol import DEFAULT_PROTOCOL, PRECHECK_TIME
+from swpc_hw.protocol import DEFAULT_PROTOCOL, PRECHECK_TIME, has_fast_part
 from swpc_hw.robot.model import (
     KIND_OF,
     PARAM_KINDS,
@@ -194,7 +194,7 @@ class TimeModel:
     lock: float = 0.6
     """s: RELEASE of a module and LOCK of the next."""
     probe: float = PRECHECK_TIME
-    """s: the fast part's probe of one module (motion capture only)."""
+    """s: the fast part's probe of one module."""
     drive_speed: float = 0.325
     """m/s: without motion capture, the straight drive's cruise speed (the simulator's at
     the limits' ``drive_torque`` of 0.6 N.m)."""
@@ -254,8 +254,8 @@ def robot_time(c: Candidate, n_modules: int, tm: TimeModel) -> float:
     )
     per_module = c.align_time + m * spin + resteer
     t = tm.start + n_modules * per_module + (n_modules - 1) * tm.lock
-    if c.rest_time is None:  # with motion capture: the fast part first
-        t += n_modules * tm.probe
+    if has_fast_part(n_modules, "mocap" if c.rest_time is None else "imu"):
+        t += n_modules * tm.probe  # the fast part first
     if c.rest_time is not None and c.drive_length is not None:  # without motion capture
         rests = n_modules * m + (3 if c.drive_length > 0 else 1)
         t += rests * c.rest_time

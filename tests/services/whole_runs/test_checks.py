@@ -263,13 +263,14 @@ def test_a_check_with_the_gyro_judges_the_robots_shape(
     sim, st = gyro_checks.sim, gyro_checks.consistent
     res = st["result"]
     assert st["verdict"] == "consistent" and res["verdict"] == "consistent", res["summary"]
-    assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 30
+    # the fast part (four probes, 13-16 s of robot time) and four spins
+    assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 45
     assert any("shape" in n for n in res["notes"])
     assert {e["id"] for e in res["estimate"]} == {1, 2, 3, 4}
     assert max(m["chi2"] for m in res["modules"]) < res["chi2_threshold"]
     st = gyro_checks.drifted  # of worn(3, +0.3e-3), in R: the frame does not matter either
     res = st["result"]
-    assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 30
+    assert st["metrology"] == "imu" and st["segments"] == 4 and st["elapsed_s"] <= 45
     assert st["verdict"] == "drifted" and res["drifted_modules"] == [3], res["summary"]
     assert res["modules"][2]["parameters"] == ["r"]
     row = next(r for r in res["table"] if r["module"] == 3 and r["param"] == "r")

@@ -1,10 +1,10 @@
 """A calibration on a robot whose config is wrong (issue 43, items 3 and 5): the
 in-process simulator miswired (``SWPC_SIM_WIRING``, :mod:`simulators.drives.wiring`), the
 robot config as it was.  With motion capture the run's fast part (``protocol.precheck``)
-refuses it before the first spin, naming the axis; without it (or without motion capture)
-a wheel drive that turns the other way stops the first spin as soon as the robot has
-turned 2 deg, naming the module (a right robot: every whole-run test of
-tests/services/whole_runs, none stopped)."""
+refuses it before the first spin, naming the axis, and so does the gyro (metrology imu)
+on a robot of four modules or more; without it a wheel drive that turns the other way
+stops the first spin as soon as the robot has turned 2 deg, naming the module (a right
+robot: every whole-run test of tests/services/whole_runs, none stopped)."""
 
 from __future__ import annotations
 
@@ -70,20 +70,54 @@ def test_without_the_fast_part_a_wheel_turning_the_other_way_stops_the_spin(
         stopped(wait_state(sim.client, run_id, {"DONE", "FAILED", "ABORTED"}, timeout=300), named)
 
 
-def test_without_motion_capture_the_gyro_says_the_same(tmp_path: Path) -> None:
-    """The gyro's integrated turn in place of the poses (metrology imu)."""
+def gyro_run(sim: Any, precheck: bool = True) -> dict[str, Any]:
+    """A run with the gyro alone (metrology imu) to its end, the test the operator."""
+    body = {
+        "metrology": "imu",
+        "references": axis_distances(),
+        "overrides": {"protocol": {**PROTOCOL, "precheck": precheck}},
+    }
+    r = sim.client.post("/calibrations", json=body, headers=AUTH)
+    assert r.status_code == 202, r.text
+    return play_operator(sim.client, r.json()["id"], {})
+
+
+@pytest.mark.parametrize(
+    ("wiring", "named"),
+    [
+        ({"inverted": [{"module": 2, "axis": "wheel"}]},
+         "locked module 4, module 2 rolling: module 2's wheel turned the robot"),
+        ({"crossed": {1: 3, 3: 1}}, "locked module 1, module 3 rolling: module 3's wheel "
+                                    "turned the robot"),
+        ({"inverted": [{"module": 3, "axis": "steer"}]}, "module 3's caster points -"),
+    ],
+    ids=["wheel-inverted", "crossed", "steer-inverted"],
+)  # fmt: skip
+def test_without_motion_capture_the_fast_part_refuses_it_too(
+    tmp_path: Path, wiring: dict[str, object], named: str
+) -> None:
+    """The gyro's turn in place of the poses, the free casters' wheels for the fixed point
+    (swpc_hw.calibration.commission.trailing); the free modules' wheels disagreeing with
+    the turn name the crossed nodes too."""
+    path = tmp_path / "wiring.yaml"
+    path.write_text(yaml.safe_dump(wiring))
+    with sim_service(tmp_path / "data", sim_wiring=path) as sim:
+        st = gyro_run(sim)
+    assert st["state"] == "FAILED", st
+    assert st["reason"].startswith("refused before the first spin"), st["reason"]
+    assert named in st["reason"] and "swpc commission" in st["reason"], st["reason"]
+    assert st["segments"] == 0 and "PROBE" in st["reason"]
+    if "crossed" in wiring:
+        assert "the free modules' wheels (1, 3) rolled" in st["reason"]
+    print(f"\n{st['reason']}")
+
+
+def test_without_motion_capture_or_the_fast_part_the_spin_stops(tmp_path: Path) -> None:
+    """The gyro's integrated turn in place of the poses in the spins' watch."""
     path = tmp_path / "wiring.yaml"
     path.write_text(yaml.safe_dump({"inverted": [{"module": 3, "axis": "wheel"}]}))
     with sim_service(tmp_path / "data", sim_wiring=path) as sim:
-        body = {
-            "metrology": "imu",
-            "references": axis_distances(),
-            "overrides": {"protocol": PROTOCOL},
-        }
-        r = sim.client.post("/calibrations", json=body, headers=AUTH)
-        assert r.status_code == 202, r.text
-        st = play_operator(sim.client, r.json()["id"], {})
-        stopped(st, "module 3's wheel rolled")
+        stopped(gyro_run(sim, precheck=False), "module 3's wheel rolled")
 
 
 def stopped(st: dict[str, Any], named: str) -> None:
