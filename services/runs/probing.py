@@ -51,6 +51,7 @@ from swpc_hw.calibration.commission.probes import (
     pivot_plan,
     plan_about,
 )
+from swpc_hw.calibration.commission.trailing import STD as TRAILING_STD
 from swpc_hw.calibration.commission.trailing import trailing_fixed_point
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.robot.model import wrap_angle
@@ -413,15 +414,13 @@ class Prober:
         (:func:`~swpc_hw.calibration.commission.trailing.trailing_fixed_point`): ``(point,
         residual, stopped)``; a point the free modules disagree on is None, ``stopped``
         then saying so."""
-        if stopped is not None:
-            return None, math.inf, stopped
         ids = self.run.config.nominal.ids
         trailing = {k: self.run.robot.encoders(k, t0) for k in ids if k not in (m, j)}
         fix = trailing_fixed_point(self.run.config.nominal, trailing, poses[:, [0, 3]])
         if fix is None:
-            return None, math.inf, None
+            return None, math.inf, stopped
         if fix.agrees:
-            return fix.point, fix.residual, None
+            return fix.point, TRAILING_STD, stopped
         worst = "" if fix.worst is None else f", module {fix.worst}'s the most"
         text = (
             f"the free modules' wheels ({', '.join(map(str, fix.modules))}) rolled "
@@ -430,4 +429,4 @@ class Prober:
             "another ratio, or their nodes are crossed"
         )
         self.run.event(logging.WARNING, "commission.stop", module=m, driver=j, why=text)
-        return None, fix.residual, text
+        return None, math.inf, stopped or text

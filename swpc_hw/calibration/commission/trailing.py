@@ -42,6 +42,11 @@ from swpc_hw.robot.model import RobotParams
 
 FloatArray = NDArray[np.float64]
 
+STD = 0.005
+"""m: the fixed point's std dev per coordinate (a probe's ``fixed_point_std``): the nominal
+radii scale each free wheel's distance to the point, and on the paper's robot, up to
+1.8 % off, they put it 7-10 mm off (the gyro's scale error adds 0.3 %).  Its rows'
+residual is no std dev of it: it says whether they agree."""
 AGREE = 0.002
 """m of roll: the free modules' rows agree when their RMS residual is within this.
 Beyond it the fixed point is refused (:class:`TrailingFix`)."""
