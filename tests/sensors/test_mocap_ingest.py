@@ -7,6 +7,7 @@ import struct
 import time
 
 import pytest
+import zenoh
 
 from services.sensors.mocap import MocapIngest
 from swpc_hw.clock import VirtualClock
@@ -130,7 +131,11 @@ def test_ingest_over_zenoh_detects_the_encoding(encoding: PoseEncoding) -> None:
     ing = MocapIngest()
     try:
         ing.subscribe(sub_s, "mocap/r1/pose")
-        pub = pub_s.declare_publisher("mocap/r1/pose")
+        # BLOCK, as the simulator's publisher: zenoh's default drops what its queue cannot
+        # take, and beside busy-host 2 all 500 of a burst were dropped once (2026-12-01)
+        pub = pub_s.declare_publisher(
+            "mocap/r1/pose", congestion_control=zenoh.CongestionControl.BLOCK
+        )
         deadline = time.monotonic() + 5
         t = 0.0
         while ing.counters.accepted == 0 and time.monotonic() < deadline:
