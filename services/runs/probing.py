@@ -324,6 +324,10 @@ class Prober:
             self.run.robot.wheel_velocity(j, rate)
         deadline = self.run.deadline()
         last, stop, text = yaw0, None, None
+        unseen = (
+            "the sensor does not see the robot turn (a Y-up motion capture)"
+            if self._gyro is None else "the gyro does not see the robot turn"
+        )  # fmt: skip
         while True:
             self.run.check(True, deadline)
             t, _, _, yaw = self._pose()
@@ -349,9 +353,8 @@ class Prober:
                 text = (
                     f"module {j}'s wheel {how} ({math.degrees(abs(roll)):.0f} deg) and the "
                     f"robot turned {math.degrees(turn):.1f} deg of the "
-                    f"{math.degrees(target):.0f} deg asked: the sensor does not see the robot "
-                    "turn (a Y-up motion capture), its drive does not roll a wheel, or the "
-                    "wheel points across the turn"
+                    f"{math.degrees(target):.0f} deg asked: {unseen}, its drive does not roll "
+                    "a wheel, or the wheel points across the turn"
                 )
             if stop is not None:
                 self._hold_all()
