@@ -89,11 +89,7 @@ from services.runs.state import (
     now_iso,
 )
 from services.store.provenance import dataset_sha256
-from swpc_hw.calibration.commission.analysis import (
-    PRECHECK_ANGLE,
-    PRECHECK_ANGLE_GYRO,
-    precheck_problems,
-)
+from swpc_hw.calibration.commission.analysis import precheck_problems
 from swpc_hw.calibration.commission.probes import PRECHECK_TURN, driver_of
 from swpc_hw.calibration.mocap.solver import CalibrationResult
 from swpc_hw.calibration.plan.plan import TimeModel
@@ -376,8 +372,7 @@ class CalibrationRun(RunMachine):
             probes.extend(rolled)
             self.robot.free_steer(m)
             self.robot.wheel_hold(m)
-        limit = PRECHECK_ANGLE if self.metrology.name == "mocap" else PRECHECK_ANGLE_GYRO
-        problems = precheck_problems(self.config.nominal, probes, limit)
+        problems = precheck_problems(self.config.nominal, probes, self.metrology.name == "mocap")
         turned = round(math.degrees(prober.largest_turn), 2)
         level = logging.ERROR if problems else logging.INFO
         self.event(level, "run.precheck", ok=not problems, largest_turn_deg=turned)

@@ -446,16 +446,10 @@ PRECHECK_ANGLE = math.radians(45.0)
 farther) disagrees: a quarter or half turn off, a steering the other way round at the
 first angle (45 deg: 90 deg apart); the nominal geometry and a short arc's fixed point
 are a few mm off on a circle of ``b`` (20 mm on the paper's robot), a few degrees."""
-PRECHECK_ANGLE_GYRO = math.radians(60.0)
-"""rad: the same without motion capture, whose fixed point (from the free casters'
-wheels, :mod:`~swpc_hw.calibration.commission.trailing`) is 7-10 mm off on the paper's
-robot, its nominal radii up to 1.8 % off the truth: up to 27 deg on its 20 mm circle.
-A steering the other way round at 45 deg (90 deg off) and a zero a quarter or half turn
-off still exceed it."""
 
 
 def precheck_problems(
-    nominal: RobotParams, probes: Sequence[PivotProbe], angle_limit: float = PRECHECK_ANGLE
+    nominal: RobotParams, probes: Sequence[PivotProbe], mocap: bool = True
 ) -> list[str]:
     """The fast part of every calibration and check (docs/commissioning.md): one pivot
     probe per module at the protocol's first angle ``a``, judged against the config alone:
@@ -465,8 +459,11 @@ def precheck_problems(
       nodes; the modules are a robot's size apart, the nominal geometry mm to cm off);
     * a fixed point on the locked module's caster circle (within ``b / 2``: a nominal
       geometry cm off leaves the angle unjudged, as the calibration still takes it) at an
-      angle ``angle_limit`` (:data:`PRECHECK_ANGLE`; :data:`PRECHECK_ANGLE_GYRO` from
-      the gyro) or more from ``a + beta``.
+      angle :data:`PRECHECK_ANGLE` or more from ``a + beta``; not without motion capture
+      (``mocap`` false: the gyro's fixed point, from the free wheels and the nominal geometry, is
+      10-25 mm off on a robot whose nominal radii are 2 % and steering axes 5 % off: the
+      caster's whole circle.  The driver's roll judges its steering there: a steering the
+      other way round or a zero off heads its wheel off the turn).
 
     Each says the axis; ``swpc commission`` finds the fix."""
     A = nominal.arrays()
@@ -490,15 +487,15 @@ def precheck_problems(
             out.append(
                 f"module {p.module}'s lock pinned the robot nearest module {nearest}'s steering "
                 f"axis ({1000 * min(dist):.0f} mm from it): its nodes are module {nearest}'s "
-                "(crossed), or the motion-capture body is not along R"
+                "(crossed)" + (", or the motion-capture body is not along R" if mocap else "")
             )
             continue
         b = float(A.b[i])
-        if abs(dist[i] - b) > 0.5 * b:
+        if not mocap or abs(dist[i] - b) > 0.5 * b:
             continue  # the nominal axis too far off to judge the angle
         seen = math.atan2(F[1] - A.P_s[i, 1], F[0] - A.P_s[i, 0])
         off = wrap(seen - p.steering - float(A.beta[i]))
-        if abs(off) >= angle_limit:
+        if abs(off) >= PRECHECK_ANGLE:
             out.append(
                 f"module {p.module}'s caster points {math.degrees(off):+.0f} deg from where "
                 f"its steering says ({math.degrees(p.steering):.0f} deg): its steering turns "

@@ -66,7 +66,7 @@ def test_the_fixed_point_from_swivelling_casters_is_the_locked_contact_point(
 def test_the_nominal_geometry_puts_it_millimetres_off_and_still_agreeing() -> None:
     """The nominal config (the homing errors 0.6-1.5 deg, the axes 0.3-2.3 mm and the
     radii 0.5-1.8 % off the truth): the radii scale each wheel's distance to the point, so
-    it is mm off (7.6 mm), well inside the steering check's reach (PRECHECK_ANGLE_GYRO)."""
+    it is mm off (7.6 mm): the crossed nodes' check needs it a robot's size off."""
     C = locked_contact(PAPER_CALIBRATED, math.radians(45.0))
     enc, yaw = roll_about(PAPER_CALIBRATED, C, np.full(4, math.radians(90.0)))
     fix = trailing_fixed_point(PAPER_NOMINAL, enc, yaw)

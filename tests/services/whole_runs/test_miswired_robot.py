@@ -89,7 +89,8 @@ def gyro_run(sim: Any, precheck: bool = True) -> dict[str, Any]:
          "locked module 4, module 2 rolling: module 2's wheel turned the robot"),
         ({"crossed": {1: 3, 3: 1}}, "locked module 1, module 3 rolling: module 3's wheel "
                                     "turned the robot"),
-        ({"inverted": [{"module": 3, "axis": "steer"}]}, "module 3's caster points -"),
+        ({"inverted": [{"module": 3, "axis": "steer"}]},
+         "locked module 1, module 3 rolling: module 3's wheel turned the robot"),
     ],
     ids=["wheel-inverted", "crossed", "steer-inverted"],
 )  # fmt: skip
@@ -98,7 +99,8 @@ def test_without_motion_capture_the_fast_part_refuses_it_too(
 ) -> None:
     """The gyro's turn in place of the poses, the free casters' wheels for the fixed point
     (swpc_hw.calibration.commission.trailing); the free modules' wheels disagreeing with
-    the turn name the crossed nodes too."""
+    the turn name the crossed nodes too.  The caster's angle is not judged from that
+    fixed point: an inverted steering shows as its wheel, driving, heading off the turn."""
     path = tmp_path / "wiring.yaml"
     path.write_text(yaml.safe_dump(wiring))
     with sim_service(tmp_path / "data", sim_wiring=path) as sim:
