@@ -460,10 +460,10 @@ def precheck_problems(
     * a fixed point on the locked module's caster circle (within ``b / 2``: a nominal
       geometry cm off leaves the angle unjudged, as the calibration still takes it) at an
       angle :data:`PRECHECK_ANGLE` or more from ``a + beta``; not without motion capture
-      (``mocap`` false: the gyro's fixed point, from the free wheels and the nominal geometry, is
-      10-25 mm off on a robot whose nominal radii are 2 % and steering axes 5 % off: the
-      caster's whole circle.  The driver's roll judges its steering there: a steering the
-      other way round or a zero off heads its wheel off the turn).
+      (``mocap`` false: the gyro's fixed point, from the free wheels and the nominal
+      geometry, is up to 26 mm off on robots whose nominal radii are 2 % and steering
+      axes 5 % off: the caster's whole circle.  The driver's roll judges its steering
+      there: a steering the other way round or a zero off heads its wheel off the turn).
 
     Each says the axis; ``swpc commission`` finds the fix."""
     A = nominal.arrays()
