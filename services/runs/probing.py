@@ -71,8 +71,7 @@ class GyroTurn:
     ``(t, nan, nan, yaw)`` as motion capture's poses are ``(t, x, y, yaw)`` (module
     docstring)."""
 
-    def __init__(self, run: RunMachine, metrology: ImuMetrology) -> None:
-        self.run = run
+    def __init__(self, metrology: ImuMetrology) -> None:
         self.metrology = metrology
         self._cursor = 0
         self._yaw = GyroYaw(metrology.bias)
@@ -98,7 +97,7 @@ class Prober:
     def __init__(self, run: RunMachine) -> None:
         self.run = run
         self._gyro = (
-            GyroTurn(run, run.metrology) if isinstance(run.metrology, ImuMetrology) else None
+            GyroTurn(run.metrology) if isinstance(run.metrology, ImuMetrology) else None
         )
         self.steer_moves: list[SteerMove] = []
         self.pivot_probes: list[PivotProbe] = []
