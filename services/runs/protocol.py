@@ -105,8 +105,6 @@ TIME_MODEL = TimeModel()
 measured (:meth:`CalibrationRun.planned`; asked at every poll, made once)."""
 
 
-
-
 class CalibrationRun(RunMachine):
     """One calibration: runs the protocol on its own thread (see the module docstring),
     measuring the robot's motion through ``metrology`` (:mod:`services.runs.metrology.base`).
@@ -361,13 +359,12 @@ class CalibrationRun(RunMachine):
             if rolled is None:  # a steering moved the pinned robot
                 mv = prober.steer_moves[-1]
                 how = (
-                    f"{1000 * mv.moved:.0f} mm" if mv.moved > mv.budget
-                    else f"{math.degrees(mv.turned):.1f} deg"
+                    f"moved the robot {1000 * mv.moved:.0f} mm" if mv.moved > mv.budget
+                    else f"turned the robot {math.degrees(mv.turned):.1f} deg"
                 )  # fmt: skip
                 raise RunFailedError(
-                    f"refused before the first spin: module {mv.module}'s steering moved the "
-                    f"robot {how} with the robot pinned: it turns a wheel; "
-                    "swpc commission names the fix"
+                    f"refused before the first spin: module {mv.module}'s steering {how} "
+                    "with the robot pinned: it turns a wheel; swpc commission names the fix"
                 )
             probes.extend(rolled)
             self.robot.free_steer(m)
