@@ -414,7 +414,7 @@ class Prober:
     ) -> tuple[tuple[float, float] | None, float, str | None]:
         """A gyro probe's fixed point from its free modules' encoders
         (:func:`~swpc_hw.calibration.commission.trailing.trailing_fixed_point`): ``(point,
-        residual, stopped)``; a point the free modules disagree on is None, ``stopped``
+        its std dev, stopped)``; a point the free modules disagree on is None, ``stopped``
         then saying so."""
         ids = self.run.config.nominal.ids
         trailing = {k: self.run.robot.encoders(k, t0) for k in ids if k not in (m, j)}

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from swpc_hw.robot.model import RobotParams
+from swpc_hw.robot.model import RobotParams, contact_point
 
 FloatArray = NDArray[np.float64]
 
@@ -82,10 +82,11 @@ def _rows(
     e = enc[(enc[:, 0] >= yaw[0, 0]) & (enc[:, 0] <= yaw[-1, 0])]
     y = np.interp(e[:, 0], yaw[:, 0], yaw[:, 1])
     dyaw = np.diff(y)
+    if dyaw.size == 0 or float(np.sum(dyaw)) == 0.0:
+        return np.empty((0, 3))
     theta = 0.5 * (e[1:, 1] + e[:-1, 1]) + float(A.beta[i])
     c, s = np.cos(theta), np.sin(theta)
-    px = float(A.P_s[i, 0]) + float(A.b[i]) * c
-    py = float(A.P_s[i, 1]) + float(A.b[i]) * s
+    px, py = contact_point(A.P_s[i], np.full(theta.shape, A.b[i]), theta).T
     roll = float(A.r[i]) * np.diff(e[:, 2])
     cols = np.column_stack([-dyaw * s, dyaw * c, roll - dyaw * (px * s - py * c)])
     # parts of equal turn: each step's share of the whole turn, cut at 1/PARTS, 2/PARTS...
