@@ -295,14 +295,14 @@ class RunMachine:
             left = end - self.clock.now()
             if left <= 0:
                 return
-            self.clock.sleep(min(self.poll, left))
+            self.clock.poll(min(self.poll, left))
 
     def wait_until(self, cond: Callable[[], bool], motion: bool) -> None:
         """Poll until ``cond()``, checking at every poll (step timeout)."""
         deadline = self.deadline()
         while not cond():
             self.check(motion, deadline)
-            self.clock.sleep(self.poll)
+            self.clock.poll(self.poll)
 
     @contextlib.contextmanager
     def _in_step(self) -> Iterator[None]:

@@ -177,7 +177,7 @@ class Prober:
                 there = now
             if there is not None and now - there >= SETTLE:
                 break
-            self.run.clock.sleep(self.run.poll)
+            self.run.clock.poll(self.run.poll)
         self.largest_move = max(self.largest_move, moved)
         self.largest_turn = max(self.largest_turn, turned)
         move = SteerMove(m, step, moved, turned, budget, stopped)
@@ -364,7 +364,7 @@ class Prober:
                 })  # fmt: skip
                 self.run.event(logging.WARNING, "commission.stop", module=m, driver=j, why=text)
                 break
-            self.run.clock.sleep(self.run.poll)
+            self.run.clock.poll(self.run.poll)
         self.run.robot.wheel_hold(j)
         self.run.wait(SETTLE)
         if stop is not None:  # the whole turn the wrong way, once the robot has stopped

@@ -394,7 +394,7 @@ class CalibrationRun(RunMachine):
             if self.clock.now() > deadline:
                 raise RunFailedError("precheck failed: " + "; ".join(problems))
             self.check(False, None)
-            self.clock.sleep(0.01)
+            self.clock.poll(0.01)
 
     def settle_steering(self, module: int, angle: float, tol: float = math.radians(0.5)) -> None:
         """Wait until module's steering is within ``tol`` of ``angle`` (step timeout)."""

@@ -284,7 +284,7 @@ class ImuMetrology:
             run.check(False, None)
             if run.clock.now() > end:
                 raise RunFailedError(f"operator timeout: no {what} within {timeout:g} s")
-            run.clock.sleep(run.poll)
+            run.clock.poll(run.poll)
 
     # ------------------------------------------------------------ the sensors
     def _read(self, run: RunSteps) -> None:
@@ -321,7 +321,7 @@ class ImuMetrology:
                     run.set_status(
                         step=f"{step} (gyro {st.rate:.3f} rad/s, wheels {st.speed:.3f} m/s)"
                     )
-            run.clock.sleep(run.poll)
+            run.clock.poll(run.poll)
 
     def _hold_still(self, run: RunSteps, what: str) -> tuple[float, float]:
         """STILL-like rest of ``protocol.rest_time`` (kept, its gyro mean the bias)."""
@@ -375,7 +375,7 @@ class ImuMetrology:
                 assert spin.start is not None
                 run.add_segment(Segment(k, spin.start, seen), sweep)
                 return
-            run.clock.sleep(run.poll)
+            run.clock.poll(run.poll)
 
     def after_spins(self, run: RunSteps) -> None:
         if run.config.protocol.drive_length > 0:
@@ -529,7 +529,7 @@ class ImuMetrology:
             run.set_status(drive_m=self._travel(psi0))
             if done():
                 return
-            run.clock.sleep(run.poll)
+            run.clock.poll(run.poll)
 
     def _measure(self, run: RunSteps) -> None:
         run.robot.stop_all()  # nothing moves while someone measures next to the robot

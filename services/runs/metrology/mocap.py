@@ -218,7 +218,7 @@ class MocapMetrology:
                     run.set_status(
                         step=f"{step} (yaw rate {rate:.3f} rad/s, speed {speed:.3f} m/s)"
                     )
-            run.clock.sleep(run.poll)
+            run.clock.poll(run.poll)
 
     def before_spin(self, run: RunSteps, k: int, dyn: list[int]) -> None:
         """Nothing: the poses need no rest before a spin."""
@@ -251,7 +251,7 @@ class MocapMetrology:
                 assert spin.start is not None
                 run.add_segment(Segment(k, spin.start, p.t_host), sweep)
                 return
-            run.clock.sleep(run.poll)
+            run.clock.poll(run.poll)
 
     def after_spins(self, run: RunSteps) -> None:
         """Nothing: the poses measured everything the solver needs."""
