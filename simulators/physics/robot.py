@@ -58,6 +58,7 @@ the steering / wheel angles by classical RK4.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -155,12 +156,40 @@ def _lsq_null(
 
     With ``A basis = W S V^T`` (numerical rank ``k``): ``y = V_k S_k^-1 W_k^T t`` (the
     minimum-norm least-squares solution of ``A basis y = t``) and the orthonormal basis
-    ``basis V_{k:}`` of ``{basis y : A basis y = 0}``.  Returns ``(basis @ y, null basis)``.
+    ``basis V_{k:}`` of ``{basis y : A basis y = 0}``.  Returns ``(basis @ y, null basis)``
+    (read-only arrays).
+
+    Remembered for the same inputs, bit for bit (:func:`_lsq_null_of`): a pinned module's
+    rows stay the same through a whole spin, and the SVD was a third of a physics step.
     """
-    W, sv, Vt = np.linalg.svd(A @ basis)
+    A = np.ascontiguousarray(A, dtype=float)
+    t = np.ascontiguousarray(t, dtype=float)
+    basis = np.ascontiguousarray(basis, dtype=float)
+    return _lsq_null_of(
+        A.tobytes(), A.shape, t.tobytes(), basis.tobytes(), basis.shape, float(tol)
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _lsq_null_of(
+    a: bytes,
+    a_shape: tuple[int, ...],
+    t: bytes,
+    basis: bytes,
+    basis_shape: tuple[int, ...],
+    tol: float,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`_lsq_null` on its inputs' bytes."""
+    A = np.frombuffer(a).reshape(a_shape)
+    B = np.frombuffer(basis).reshape(basis_shape)
+    W, sv, Vt = np.linalg.svd(A @ B)
     rank = int(np.sum(sv > tol * max(float(sv[0]) if sv.size else 0.0, 1.0)))
-    y = Vt[:rank].T @ ((W[:, :rank].T @ t) / sv[:rank])
-    return np.asarray(basis @ y, dtype=float), np.asarray(basis @ Vt[rank:].T, dtype=float)
+    y = Vt[:rank].T @ ((W[:, :rank].T @ np.frombuffer(t)) / sv[:rank])
+    x = np.asarray(B @ y, dtype=float)
+    Z = np.asarray(B @ Vt[rank:].T, dtype=float)
+    x.flags.writeable = False
+    Z.flags.writeable = False
+    return x, Z
 
 
 def prioritized_twist(
@@ -236,6 +265,11 @@ class DriveArrays:
         object.__setattr__(self, "i_dyn", idx(dyn))
         object.__setattr__(self, "i_dyn_st", idx(dyn & st))
         object.__setattr__(self, "n_steered", int(st.sum()))
+        wd = self.brake | self.rate
+        object.__setattr__(self, "steer_imposed", tuple(
+            float(v) if on else None for on, v in zip(st, self.steer_rate, strict=True)))
+        object.__setattr__(self, "wheel_imposed", tuple(
+            float(v) if on else None for on, v in zip(wd, self.wheel_rate, strict=True)))
         object.__setattr__(self, "steer_rate_sum", float(self.steer_rate.sum()))
 
     i_brake: NDArray[np.intp] = field(init=False)
@@ -245,31 +279,64 @@ class DriveArrays:
     i_dyn: NDArray[np.intp] = field(init=False)
     i_dyn_st: NDArray[np.intp] = field(init=False)
     n_steered: int = field(init=False)
+    steer_imposed: tuple[float | None, ...] = field(init=False)
+    """Per module the imposed steering rate (rad/s), None where the caster trails."""
+    wheel_imposed: tuple[float | None, ...] = field(init=False)
+    """Per module the imposed wheel rate (rad/s, 0 braked), None where the wheel rolls."""
     steer_rate_sum: float = field(init=False)
 
 
-def module_rates(
-    arrays: RobotArrays, theta: FloatArray, twist: FloatArray, drives: DriveArrays
-) -> tuple[FloatArray, FloatArray]:
-    """``(theta_dot, psi_dot)`` of every module under the body twist ``twist``.
+def module_rate(
+    consts: tuple[float, float, float, float],
+    twist: tuple[float, float, float],
+    theta: float,
+    steer_rate: float | None = None,
+    wheel_rate: float | None = None,
+) -> tuple[float, float]:
+    """``(theta_dot, psi_dot)`` of one module under the body twist ``twist = (v_x, v_y,
+    omega)``, ``consts = (x_s, y_s, b, r)``.
 
-    Passive steering trails and passive / torque wheels roll, exactly as
-    :func:`simulators.physics.core.caster_rates` (written out here without its array stacking,
-    this runs four times per step; the tests check both agree)::
+    A passive steering trails and a passive / torque wheel rolls, exactly as
+    :func:`simulators.physics.core.caster_rates` (written out in floats: four modules
+    are cheaper so than as arrays, and this runs four times per module and physics step;
+    the tests check both agree)::
 
-        b theta_dot = (v + omega x P_w) . n(theta),   r psi_dot = (v + omega x P_w) . u(theta)
+        P_w = P_s + b (cos theta, sin theta),   w = v + omega x P_w
+        b theta_dot = w . n(theta),   r psi_dot = w . u(theta)
 
-    Driven axes follow their command (a braked wheel has ``psi_dot = 0``).
+    An imposed ``steer_rate`` / ``wheel_rate`` (rad/s: a driven axis; 0 a braked wheel)
+    replaces the rolling rate.
     """
-    c = np.cos(theta)
-    s = np.sin(theta)
-    px = arrays.P_s[:, 0] + arrays.b * c
-    py = arrays.P_s[:, 1] + arrays.b * s
-    vx = twist[0] - twist[2] * py
-    vy = twist[1] + twist[2] * px
-    theta_dot = np.where(drives.steer_driven, drives.steer_rate, (vx * s - vy * c) / arrays.b)
-    psi_dot = np.where(drives.wheel_driven, drives.wheel_rate, (vx * c + vy * s) / arrays.r)
-    return theta_dot, psi_dot
+    xs, ys, b, r = consts
+    vx0, vy0, om = twist
+    c = math.cos(theta)
+    s = math.sin(theta)
+    vx = vx0 - om * (ys + b * s)
+    vy = vy0 + om * (xs + b * c)
+    td = steer_rate if steer_rate is not None else (vx * s - vy * c) / b
+    pd = wheel_rate if wheel_rate is not None else (vx * c + vy * s) / r
+    return td, pd
+
+
+def rk4_module(
+    consts: tuple[float, float, float, float],
+    twist: tuple[float, float, float],
+    theta: float,
+    steer_rate: float | None,
+    wheel_rate: float | None,
+    dt: float,
+) -> tuple[float, float]:
+    """``(dtheta, dpsi)`` of one module over ``dt`` under a constant body twist: classical
+    RK4 on :func:`module_rate` (arguments as there)."""
+
+    def f(th: float) -> tuple[float, float]:
+        return module_rate(consts, twist, th, steer_rate, wheel_rate)
+
+    k1t, k1p = f(theta)
+    k2t, k2p = f(theta + 0.5 * dt * k1t)
+    k3t, k3p = f(theta + 0.5 * dt * k2t)
+    k4t, k4p = f(theta + dt * k3t)
+    return dt / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t), dt / 6.0 * (k1p + 2 * k2p + 2 * k3p + k4p)
 
 
 # --------------------------------------------------------------------------- state
@@ -316,6 +383,11 @@ class RobotPhysics:
         self._mass = np.diag([o.body_mass, o.body_mass, o.body_inertia])
         self._damping = np.diag([o.body_damping, o.body_damping, o.body_rot_damping])
         self._drives: tuple[ModuleDrive, ...] = ()
+        a = self.arrays
+        self._module_consts = [
+            (float(p[0]), float(p[1]), float(b), float(r))
+            for p, b, r in zip(a.P_s, a.b, a.r, strict=True)
+        ]
         self._drive_arrays: DriveArrays | None = None
 
     @property
@@ -377,17 +449,16 @@ class RobotPhysics:
             self._drives, self._drive_arrays = key, DriveArrays.of(drives)
         da = self._drive_arrays
         xi = self.solve_twist(da, dt)
-        A = self.arrays
-
-        def f(th: FloatArray) -> tuple[FloatArray, FloatArray]:
-            return module_rates(A, th, xi, da)
-
-        k1t, k1p = f(self.theta)
-        k2t, k2p = f(self.theta + 0.5 * dt * k1t)
-        k3t, k3p = f(self.theta + 0.5 * dt * k2t)
-        k4t, k4p = f(self.theta + dt * k3t)
-        dtheta = dt / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
-        dpsi = dt / 6.0 * (k1p + 2 * k2p + 2 * k3p + k4p)
+        twist = (float(xi[0]), float(xi[1]), float(xi[2]))
+        steps = [
+            rk4_module(consts, twist, th, steer, wheel, dt)
+            for consts, th, steer, wheel in zip(
+                self._module_consts, self.theta.tolist(), da.steer_imposed, da.wheel_imposed,
+                strict=True,
+            )
+        ]
+        dtheta = np.array([d[0] for d in steps])
+        dpsi = np.array([d[1] for d in steps])
         self.pose = se2_step(self.pose, xi[:2], float(xi[2]), dt)
         self.theta = self.theta + dtheta
         self.psi = self.psi + dpsi

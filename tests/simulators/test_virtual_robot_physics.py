@@ -15,13 +15,12 @@ from simulators.drives.swpc import VirtualController
 from simulators.physics.core import caster_rates, settled_trailing
 from simulators.physics.robot import (
     FREE_MODULE,
-    DriveArrays,
     ModuleDrive,
     PhysicsOptions,
     RobotPhysics,
     SteerDrive,
     WheelDrive,
-    module_rates,
+    module_rate,
     prioritized_twist,
 )
 from simulators.sensors.mocap import MocapOptions, MocapSim, corrupt_pose
@@ -52,20 +51,21 @@ def spin(sim: RobotPhysics, k: int, seconds: float, tau: float = -0.6, dt: float
         sim.step(dt, drives)
 
 
-def test_module_rates_match_the_physics_core() -> None:
+def test_module_rate_matches_the_physics_core() -> None:
     rng = np.random.default_rng(3)
     theta = rng.uniform(-math.pi, math.pi, 4)
-    xi = np.array([0.2, -0.1, 0.7])
-    drives = DriveArrays.of([FREE] * 4)
-    th_dot, psi_dot = module_rates(A, theta, xi, drives)
-    ref_th, ref_psi = caster_rates(A, theta, xi[:2], float(xi[2]))
-    assert th_dot == pytest.approx(ref_th, abs=1e-12)
-    assert psi_dot == pytest.approx(ref_psi, abs=1e-12)
-    driven = DriveArrays.of([locked(0.3), ModuleDrive(wheel=WheelDrive.RATE, wheel_value=2.0)] * 2)
-    th_dot, psi_dot = module_rates(A, theta, xi, driven)
-    assert th_dot[[0, 2]].tolist() == [0.3, 0.3] and psi_dot[[0, 2]].tolist() == [0.0, 0.0]
-    assert psi_dot[[1, 3]].tolist() == [2.0, 2.0]
-    assert th_dot[1] == pytest.approx(ref_th[1])
+    xi = (0.2, -0.1, 0.7)
+    consts = [(float(p[0]), float(p[1]), float(b), float(r))
+              for p, b, r in zip(A.P_s, A.b, A.r, strict=True)]  # fmt: skip
+    ref_th, ref_psi = caster_rates(A, theta, xi[:2], xi[2])
+    free = np.array([module_rate(c, xi, float(th)) for c, th in zip(consts, theta, strict=True)])
+    assert free[:, 0] == pytest.approx(ref_th, abs=1e-12)
+    assert free[:, 1] == pytest.approx(ref_psi, abs=1e-12)
+    # a driven steering turns at its rate, a braked wheel not at all, a driven one at its
+    assert module_rate(consts[0], xi, float(theta[0]), steer_rate=0.3, wheel_rate=0.0) == (
+        0.3, 0.0)  # fmt: skip
+    th_dot, psi_dot = module_rate(consts[1], xi, float(theta[1]), wheel_rate=2.0)
+    assert psi_dot == 2.0 and th_dot == pytest.approx(ref_th[1], abs=1e-12)
 
 
 @pytest.mark.parametrize("k", [0, 2])
