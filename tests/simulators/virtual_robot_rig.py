@@ -54,6 +54,10 @@ class PoseLog:
     its waits are in simulated time."""
 
     rows: list[tuple[float, float, float, float, float]] = field(default_factory=list)
+    received_wall: list[float] = field(default_factory=list)
+    """``time.time()`` at each row's receipt: the host's wall clock may be slewed against
+    its monotonic one (this VM's ran 0.5 % fast on 2026-12-01), so a wall stamp is held
+    against the wall clock read at arrival, not a monotonic time plus an offset."""
     frame_ids: set[str] = field(default_factory=set)
     encodings: set[PoseEncoding] = field(default_factory=set)
     cond: threading.Condition = field(default_factory=threading.Condition)
@@ -63,9 +67,10 @@ class PoseLog:
     def on_sample(self, sample: Any) -> None:
         payload = sample.payload.to_bytes()
         p = decode_pose(payload)
-        now = time.monotonic()
+        now, wall = time.monotonic(), time.time()
         with self.cond:
             self.rows.append((p.t, p.x, p.y, p.yaw, now))
+            self.received_wall.append(wall)
             self.frame_ids.add(p.frame_id)
             self.cond.notify_all()
         if self.clock is not None:
