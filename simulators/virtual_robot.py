@@ -145,7 +145,9 @@ class VirtualRobot:
             homing_duration=opt.homing_duration,
             sensor_positions=sensors,
         )
-        self.axes = WiredAxes(opt.wiring, self.robot, self.drives)
+        self.axes = WiredAxes(
+            opt.wiring, self.robot, self.drives, (opt.steer_counts, opt.wheel_counts)
+        )
         self._wired = self.axes.wired
         self.mocap = MocapSim(opt.robot, opt.mocap, session, clock=clock)
         self.gyro = GyroSim(opt.robot, opt.gyro, session, seed=opt.seed, clock=clock)

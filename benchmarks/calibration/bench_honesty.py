@@ -31,8 +31,10 @@ motion capture) and ``gyro-planned`` (``plan: auto`` without motion capture: no
 sequential stopping there).
 
 ``python -m benchmarks honesty``; ``SWPC_BENCH_HONESTY_SAVE=DIR`` keeps each run's error,
-covariance and truth there (``<protocol>-<run>.npz``).  Each run is a whole calibration
-in simulated time (about a minute of one core): the default 4 x 20 runs take over an hour.
+covariance and truth there (``<protocol>-<run>.npz``); ``SWPC_BENCH_HONESTY_SLICE=A:B`` runs
+only the truths ``A..B-1`` of the set (one process per core: ``0:10`` and ``10:20``).  Each
+run is a whole calibration in simulated time (about a minute of one core): the default
+4 x 20 runs take over an hour.
 """
 
 from __future__ import annotations
@@ -161,6 +163,13 @@ def one_run(data: Path, truth_path: Path, seed: int, body: dict[str, Any]) -> di
             time.sleep(0.02)
 
 
+def runs_slice(n: int) -> tuple[int, int]:
+    """``SWPC_BENCH_HONESTY_SLICE=A:B``: the runs ``A..B-1`` of the ``n`` (default all):
+    the same truths and seeds as in the whole set, e.g. one half per core."""
+    a, _, b = os.environ.get("SWPC_BENCH_HONESTY_SLICE", f"0:{n}").partition(":")
+    return int(a or 0), min(int(b or n), n)
+
+
 def protocol_runs(name: str, n: int) -> list[RunFigures]:
     body = PROTOCOLS[name]
     save = os.environ.get("SWPC_BENCH_HONESTY_SAVE")  # a folder: each run's e, C, truth
@@ -170,7 +179,9 @@ def protocol_runs(name: str, n: int) -> list[RunFigures]:
         data = Path(tmp)
         save_kinematics(data / "nominal.yaml", PAPER_NOMINAL)
         (data / "robot.yaml").write_text("nominal: nominal.yaml\n", encoding="utf-8")
-        for k, truth in enumerate(seed_truths(PAPER_CALIBRATED, n, 4400)):
+        first, last = runs_slice(n)
+        truths = seed_truths(PAPER_CALIBRATED, n, 4400)[first:last]
+        for k, truth in enumerate(truths, start=first):
             save_kinematics(data / "truth.yaml", truth)
             st = one_run(data, data / "truth.yaml", 1 + k, body)
             if st["state"] != "DONE":

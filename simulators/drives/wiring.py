@@ -177,11 +177,56 @@ class WiredAxes:
     the identity (:attr:`Wiring.identity`), module ``i`` is on drive ``i`` as the config
     says; else every tick goes through the wiring (:attr:`wired`)."""
 
-    def __init__(self, wiring: Wiring, robot: RobotPhysics, drives: Sequence[VirtualDrive]) -> None:
+    def __init__(
+        self,
+        wiring: Wiring,
+        robot: RobotPhysics,
+        drives: Sequence[VirtualDrive],
+        counts: tuple[int, int] = (0, 0),
+    ) -> None:
         self.wiring = wiring
         self.robot = robot
         self.drives = drives
         self.wired = not wiring.identity  # miswired: every tick through the wiring
+        self.quanta = {
+            axis: 2.0 * math.pi / c if c > 0 else 0.0
+            for axis, c in zip((Axis.STEER, Axis.WHEEL), counts, strict=True)
+        }
+        """One count of each axis' encoder (rad; ``counts`` per turn, 0: none)."""
+        self._rest: dict[tuple[int, Axis], float] = {}
+
+    def rest_offset(self, i: int, axis: Axis) -> float:
+        """Where within its encoder count physical module ``i``'s ``axis`` comes to rest
+        under position control, from the setpoint (rad, within +-half a count).
+
+        A drive's position loop closes on its encoder: it holds the reading at the
+        setpoint, and the shaft stops wherever within that count the approach leaves it
+        (friction), not on the count's edge; so the reading is off the true angle by
+        up to half a count, uniformly (std dev ``q / sqrt(12)``, what the solvers take a
+        held steering's reading error to be).  Drawn anew at every physics step the loop
+        is still more than a count from its aim, from the position and the rate there
+        (reproducible, and different from run to run); an ideal loop that ended on the
+        setpoint itself read its held steering exactly, and the gyro solver's covariance
+        came out twice too wide where that reading counts (issue 44, NEES 0.60).
+        """
+        return self._rest.get((i, axis), 0.0)
+
+    def _aimed(self, i: int, axis: Axis, position: float, kind: str, v: float,
+               dt: float, position_tau: float) -> None:  # fmt: skip
+        """After a drive's command for the next ``dt``: a new :meth:`rest_offset` while the
+        loop still moves by more than a count per its time constant."""
+        q = self.quanta[axis]
+        if q > 0.0 and kind == "rate" and abs(v) * max(position_tau, dt) > q:
+            u = (hash((position, v)) & 0xFFFFFFFF) / 2.0**32
+            self._rest[(i, axis)] = (u - 0.5) * q
+
+    def _drive(self, i: int, axis: Axis, d: VirtualDrive, channel: Axis, position: float,
+               dt: float, position_tau: float) -> tuple[str, float]:  # fmt: skip
+        """``d.drive`` of physical module ``i``'s ``axis`` (on ``d``'s ``channel``) from
+        ``position`` (the drive's units) less its :meth:`rest_offset`."""
+        kind, v = d.drive(channel, position - self.rest_offset(i, axis), dt, position_tau)
+        self._aimed(i, axis, position, kind, v, dt, position_tau)
+        return kind, v
 
     def steer_reported(self, i: int) -> float:
         """Physical module ``i``'s steering as its encoder counts it before the wiring's
@@ -205,8 +250,10 @@ class WiredAxes:
         drives = []
         if not self.wired:
             for i, d in enumerate(self.drives):
-                s = d.drive(Axis.STEER, self.steer_reported(i), dt, position_tau)
-                w = d.drive(Axis.WHEEL, float(r.psi_encoder[i]), dt, position_tau)
+                s = self._drive(i, Axis.STEER, d, Axis.STEER, self.steer_reported(i), dt,
+                                position_tau)  # fmt: skip
+                w = self._drive(i, Axis.WHEEL, d, Axis.WHEEL, float(r.psi_encoder[i]), dt,
+                                position_tau)  # fmt: skip
                 drives.append(module_drive(s, w))
         else:
             drives = [self.wired_drive(i, dt, position_tau) for i in range(len(self.drives))]
@@ -221,7 +268,7 @@ class WiredAxes:
             k, channel = w.channel(i, axis)
             g = w.gain(i, axis)
             position, _ = self.physical(i, axis)
-            kind, v = self.drives[k].drive(channel, g * position, dt, position_tau)
+            kind, v = self._drive(i, axis, self.drives[k], channel, g * position, dt, position_tau)
             if kind == "rate":
                 v = v / g
             elif kind == "torque":

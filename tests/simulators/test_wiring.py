@@ -6,13 +6,16 @@ is what commissioning is for."""
 
 from __future__ import annotations
 
+import math
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import numpy as np
 import pytest
 
 from firmware_protocol.codec import Axis
+from simulators.drives.base import quantize
 from simulators.drives.wiring import BODY_HEIGHT, Wiring
 from simulators.options import SimOptions
 from simulators.virtual_robot import VirtualRobot
@@ -109,3 +112,25 @@ def test_steering_and_wheel_swapped_turn_the_wheel_for_a_steering_command() -> N
               "steering command of 0.3 rad")
         assert float(sim.robot.psi[0]) - psi0 == pytest.approx(0.3, abs=2e-3)
         assert host.module_state(1).theta_hat == pytest.approx(target, abs=1e-3)
+
+
+def test_a_held_steering_rests_within_its_count_not_on_the_setpoint() -> None:
+    """A position loop holds its encoder's reading at the setpoint; the shaft rests
+    wherever within that count the approach leaves it (WiredAxes.rest_offset), so the
+    reading is off the true angle by up to half a count, spread as the solvers assume
+    (q / sqrt(12)).  An ideal loop that ended on the setpoint read a held steering
+    exactly, and the gyro solver's covariance came out twice too wide (issue 44)."""
+    q = 2 * math.pi / SimOptions().steer_counts
+    with wired(Wiring()) as (clock, host, sim):
+        errors = []
+        for k in range(16):
+            target = host.module_state(1).theta_hat + (0.05 if k % 2 else -0.04)
+            host.set_position(1, S, target)
+            clock.sleep(0.5)
+            true = steering(sim)[0]
+            errors.append(quantize(true, SimOptions().steer_counts) - true)
+    e = np.array(errors)
+    print(f"\nheld steering's reading error: RMS {np.sqrt(np.mean(e**2)) / q:.3f} counts "
+          f"(uniform: {1 / math.sqrt(12):.3f}), largest {np.abs(e).max() / q:.3f}")
+    assert np.abs(e).max() <= 0.5 * q * (1 + 1e-9)
+    assert 0.5 < np.sqrt(np.mean(e**2)) / (q / math.sqrt(12)) < 1.5
