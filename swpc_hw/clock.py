@@ -338,7 +338,7 @@ class SimClock(_EpochClock):
         """Until the first advance at or after ``now() + dt``, an instant the master does
         not step to for this wait alone (:meth:`next_wake` leaves it out): a polling loop
         every 20 ms out of phase with the simulator's 10 ms physics once split a third of
-        its steps in two (2026-12-01: 6760 steps for a 46 s run, 4590 with polls)."""
+        its steps in two (2026-12-01: 6760 steps for a 46 s run, 4610 with polls)."""
         self._sleep(self._t + max(dt, 0.0), poll=False, lenient=True)
 
     def _sleep(self, t: float, poll: bool, lenient: bool = False) -> None:

@@ -55,6 +55,50 @@ def test_sim_clock_wall_stamps_round_trip_exactly_whatever_the_epoch() -> None:
     assert times[0] == times[1]
 
 
+def master_steps(wait: str) -> tuple[list[float], list[tuple[float, float]]]:
+    """A master on a 10 ms grid (next_instant, as the simulator's) and a participant that
+    waits 13 ms at a time with ``clock.<wait>``: the master's steps and, per wait, (asked,
+    woken)."""
+    clock = SimClock()
+    stop = threading.Event()
+    steps: list[float] = []
+
+    def master() -> None:
+        while not stop.is_set():
+            if clock.wait_for_demand(stop):
+                t = clock.now()
+                t_next = next_instant(t, [t + 0.01, clock.next_wake()])
+                clock.advance_to(t_next, stop)
+                steps.append(clock.now())
+
+    th = threading.Thread(target=master, daemon=True)
+    th.start()
+    waits = []
+    with clock.participant():
+        for _ in range(20):
+            asked = clock.now() + 0.013
+            getattr(clock, wait)(0.013)
+            waits.append((asked, clock.now()))
+    stop.set()
+    clock.close()
+    th.join(2.0)
+    return steps, waits
+
+
+def test_a_poll_wakes_at_the_masters_next_step_and_asks_for_none() -> None:
+    """``Clock.poll``, a polling loop's wait: a sleep out of phase with the master's grid
+    is a step of its own (the run's 20 ms looks split a third of the simulator's 10 ms
+    physics steps in two); a poll ends at the first step at or after its time."""
+    steps, waits = master_steps("sleep")
+    assert all(woken == pytest.approx(asked, abs=1e-6) for asked, woken in waits)
+    off_grid = [t for t in steps if abs(t / 0.01 - round(t / 0.01)) > 1e-3]
+    assert len(off_grid) >= 15  # the sleeps' own steps
+    steps, waits = master_steps("poll")
+    assert all(abs(t / 0.01 - round(t / 0.01)) < 1e-3 for t in steps)  # the grid alone
+    for asked, woken in waits:
+        assert asked - 1e-6 <= woken < asked + 0.01 + 1e-6  # at most one step late
+
+
 def test_a_paced_sim_clock_flows_when_no_one_waits_and_an_unpaced_one_stands_still() -> None:
     """Unpaced (as fast as the host can), an idle simulation costs nothing: time stands
     still until someone waits on it.  Paced (``make console``: 1 simulated s per wall s),
