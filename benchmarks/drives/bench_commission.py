@@ -42,6 +42,7 @@ import yaml
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
+from benchmarks.services.bench_soak import PROTOCOL as QUICK
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from swpc_hw.files.kinematic_file import kinematics_document
@@ -50,8 +51,6 @@ from swpc_hw.robot.paper_robot import PAPER_CALIBRATED
 
 TOKEN = "bench-commission-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-QUICK = {"sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5,
-         "resteer_time": 1.5}  # fmt: skip
 Expected = set[tuple[str, int | None, str]]
 
 CASES: dict[str, tuple[dict[str, Any], dict[int, float], Expected]] = {

@@ -25,15 +25,11 @@ from tempfile import TemporaryDirectory
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
+from benchmarks.services.bench_soak import AUTH, TOKEN
+from benchmarks.services.bench_soak import PROTOCOL as SHORT
 from services.config.settings import ServiceSettings
 from services.http.app import create_app
 from simulators.physics.robot import ModuleDrive, RobotPhysics, SteerDrive, WheelDrive
-
-TOKEN = "bench-token-0123456789"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
-SHORT = {"sweep_deg": 45, "settle_time": 1.0, "stop_time": 0.5, "align_time": 0.5,
-         "resteer_time": 1.5}  # fmt: skip
-"""The test suite's short protocol (tests/service_rig.py QUICK_PROTOCOL)."""
 
 
 def physics_step_us(drives: list[ModuleDrive], steps: int = 3000) -> float:

@@ -182,7 +182,7 @@ class WiredAxes:
         wiring: Wiring,
         robot: RobotPhysics,
         drives: Sequence[VirtualDrive],
-        counts: tuple[int, int] = (0, 0),
+        counts: tuple[int, int],
     ) -> None:
         self.wiring = wiring
         self.robot = robot
