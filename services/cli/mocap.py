@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 LINK_TIMEOUT_S = 5.0
-"""Wall seconds the bridge waits for its zenoh link to the endpoints it connects to."""
+"""Wall seconds the bridge waits by default (``--link-timeout``) for its zenoh link to the
+endpoints it connects to."""
 
 
 def linked(session: Any, timeout: float) -> bool:
@@ -60,6 +61,13 @@ def register(sub: Any) -> None:
         type=Path,
         help="file holding the zenoh password (never on the command line)",
     )
+    p.add_argument(
+        "--link-timeout",
+        type=float,
+        default=LINK_TIMEOUT_S,
+        help=f"s to wait for a zenoh link to --zenoh-connect before giving up "
+        f"({LINK_TIMEOUT_S:g})",
+    )
     p.add_argument("--report-every", type=float, default=5.0, help="s between reports (5)")
     p.add_argument("--duration", type=float, default=0.0, help="s to run (0: until ^C)")
     p.set_defaults(func=run)
@@ -81,14 +89,16 @@ def run(args: argparse.Namespace) -> int:
             raise BridgeError(f"--zenoh-password-file: {exc}") from None
         auth = ZenohAuth(user=args.zenoh_user, password=password)
     units = args.units or ("mm" if source.kind == "qtm" else "m")
+    if args.link_timeout <= 0:
+        raise BridgeError(f"--link-timeout {args.link_timeout:g}: must be above 0 s")
     session = open_session(
         mode=args.zenoh_mode, listen=args.zenoh_listen, connect=args.zenoh_connect,
         config_file=args.zenoh_config, auth=auth,
     )  # fmt: skip
-    if args.zenoh_connect and not linked(session, LINK_TIMEOUT_S):
+    if args.zenoh_connect and not linked(session, args.link_timeout):
         session.close()
         raise BridgeError(
-            f"no zenoh link to {', '.join(args.zenoh_connect)} within {LINK_TIMEOUT_S:g} s: "
+            f"no zenoh link to {', '.join(args.zenoh_connect)} within {args.link_timeout:g} s: "
             "a refused user or password, a wrong address, or nothing listening there"
         )
     key = pose_key(args.robot)

@@ -265,12 +265,12 @@ def test_the_bridge_logs_in_as_the_service_asks_and_a_wrong_password_gets_nothin
             rc = swpc(["mocap", "--source", f"qtm://127.0.0.1:{qtm.port}", "--body", "swpc",
                        "--up", "y", "--zenoh-connect", ep, "--zenoh-user", "mocap",
                        "--zenoh-password-file", str(tmp_path / "pw"), "--duration", "1.0",
-                       "--report-every", "0"])  # fmt: skip
+                       "--report-every", "0", "--link-timeout", "2"])  # fmt: skip
             out = capsys.readouterr()
             assert rc == (0 if expect else 2), (out.out, out.err)
             assert bool(got) == expect, (password, len(got), out.out, out.err)
             if not expect:  # refused: said, not bridged into the void
-                assert f"no zenoh link to {ep} within 5 s: a refused user or password" in out.err
+                assert f"no zenoh link to {ep} within 2 s: a refused user or password" in out.err
     finally:
         stop.set()
         feeder.join()
