@@ -71,19 +71,23 @@ typecheck-pythons:
 		echo "mypy on $$($$v/bin/python -V)"; $$v/bin/mypy; \
 	done
 
-# One pytest worker per core, a test module's tests on one worker (module fixtures).  Only
-# the plugins the suite uses: hypothesis's and schemathesis's pytest plugins cost every
-# worker ~3 s of imports, and the suite uses both as libraries.
+# One pytest worker per core and one more, a test module's tests on one worker (module
+# fixtures).  About a seventh of the suite's test time waits on wall time (scans listening on
+# the bus, zenoh links, processes starting up), which the extra worker fills; measured in
+# docs/figures.md ("Time").  Only the plugins the suite uses: hypothesis's and
+# schemathesis's pytest plugins cost every worker ~3 s of imports, and the suite uses both
+# as libraries.
 #
 # mypy runs beside pytest, its output printed after pytest's: on a fresh clone its cache is
 # cold (about 30 s of one core) and one core idles through it when it runs first, while
 # pytest's workers leave a core idle as they start and as the last module ends (a warm
 # cache, .mypy_cache/, takes under a second).  Either failing fails the target.
 PYTEST := PYTEST_DISABLE_PLUGIN_AUTOLOAD=1 $(BIN)/python -m pytest -p xdist -p pytest_timeout
+WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 test: lint
 	@mkdir -p .cache; $(BIN)/mypy > .cache/mypy.out 2>&1 & mypy=$$!; \
-	echo "$(PYTEST) -q -p no:cacheprovider --ignore=tests/browser -n auto --dist loadfile"; \
-	$(PYTEST) -q -p no:cacheprovider --ignore=tests/browser -n auto --dist loadfile; \
+	echo "$(PYTEST) -q -p no:cacheprovider --ignore=tests/browser -n $(WORKERS) --dist loadfile"; \
+	$(PYTEST) -q -p no:cacheprovider --ignore=tests/browser -n $(WORKERS) --dist loadfile; \
 	tests=$$?; wait $$mypy; typed=$$?; echo "$(BIN)/mypy:"; cat .cache/mypy.out; \
 	[ $$tests -eq 0 ] && [ $$typed -eq 0 ]
 
