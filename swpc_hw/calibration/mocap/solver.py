@@ -270,6 +270,24 @@ def fit_joint(
     return x, slip
 
 
+def check_rolling_left(prob: JointProblem, slip: BoolArray, ids: list[int], source: str) -> None:
+    """Refuse a module whose wheel has no rolling increment left after the slip cuts: its
+    radius is then not measured (the least squares leave it anywhere: 8e7 m was seen on
+    a soft-tyred physics whose wheel slipped through every spin), named, with how many
+    of its increments were cut."""
+    series = prob.rolling
+    mods = series.mod[series.pairs()]
+    for j, mid in enumerate(ids):
+        mine = mods == j
+        if mine.any() and not (mine & ~slip).any():
+            raise CalibrationError(
+                f"{source}: module {mid}'s wheel: all {int(mine.sum())} of its rolling "
+                "increments were cut as slip, so its radius is not measured (a wheel "
+                "slipping in every spin: its tyre, the floor, or a spin torque it cannot "
+                "pass)"
+            )
+
+
 # ------------------------------------------------------------------ the solve
 
 
@@ -347,6 +365,7 @@ def solve_joint(
     prob = build_problem(ds, segs, fits, tracks, offset, X0, opts)
     X0[:, R] = radius_init(prob, X0)
     x, slip = fit_joint(prob, X0, opts, fits, encoder_resolution(ds, 2))
+    check_rolling_left(prob, slip, ids, source)
     X = as_matrix(x, n)
     plausibility.check_result(X, ds.robot)
     if clock.mode == "estimated":  # refined with the solution's levers

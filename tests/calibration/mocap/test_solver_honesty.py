@@ -25,13 +25,18 @@ from simulators.offline.datagen import (
 from swpc_hw.calibration.fixed_point import fit_fixed_point
 from swpc_hw.calibration.mocap.baseline import solve_paper, widest_pair
 from swpc_hw.calibration.mocap.clock_offset import jackknife_std
-from swpc_hw.calibration.mocap.solver import SolverOptions, solve
+from swpc_hw.calibration.mocap.solver import (
+    SolverOptions,
+    check_rolling_left,
+    solve,
+    solve_joint,
+)
 from swpc_hw.calibration.mocap.yaw_noise import score_variance
 from swpc_hw.calibration.plausibility import check_dataset, check_result, jitter_sigma
 from swpc_hw.calibration.prepare import prepare_segments
 from swpc_hw.calibration.rolling import RollingSeries
 from swpc_hw.calibration.uncertainty import ar1_quadratic_form, long_run_covariance
-from swpc_hw.errors import ImplausibleDataError, ImplausibleResultError
+from swpc_hw.errors import CalibrationError, ImplausibleDataError, ImplausibleResultError
 from swpc_hw.files.dataset import Dataset, save_dataset
 from swpc_hw.robot.model import PARAM_NAMES, RobotParams, wrap_angle
 from swpc_hw.robot.paper_robot import PAPER_CALIBRATED, PAPER_NOMINAL
@@ -398,3 +403,21 @@ def test_a_result_no_robot_can_have_or_far_from_nominal_is_refused() -> None:
             check_result(Y, PAPER_NOMINAL)
         assert message in str(exc.value), (name, str(exc.value))
         assert "\n" not in str(exc.value)
+
+
+def test_a_wheel_with_every_increment_cut_as_slip_is_refused_naming_it() -> None:
+    """A wheel slipping through every spin leaves no rolling increment after the slip
+    cuts, and its radius unmeasured (8e7 m on the soft-tyred physics of
+    ``bench_other_physics``): refused naming the module, not passed on to the
+    plausibility gate as a robot far from the nominal."""
+    ex = generate_experiment(PAPER_CALIBRATED, ExperimentOptions(seed=3), PAPER_NOMINAL)
+    sol = solve_joint(ex.dataset)
+    series = sol.problem.rolling
+    mods = series.mod[series.pairs()]
+    ids = PAPER_NOMINAL.ids
+    check_rolling_left(sol.problem, np.zeros(mods.size, dtype=bool), ids, "run")  # all kept
+    slip = mods == 1  # module 2's increments, every one cut
+    check_rolling_left(sol.problem, slip & (np.arange(mods.size) % 2 == 0), ids, "run")
+    with pytest.raises(CalibrationError, match=r"run: module 2's wheel: all (\d+) of its"):
+        check_rolling_left(sol.problem, slip, ids, "run")
+    assert int(slip.sum()) > 100  # 6 spins of 360 deg at 0.1 s nodes
