@@ -208,16 +208,23 @@ def protocol_runs(name: str, n: int) -> list[RunFigures]:
     return out
 
 
+def whole_and_kinds(against: list[AgainstTruth]) -> tuple[np.ndarray, int, float, str]:
+    """Over runs against their truths: every run's NEES, its degrees of freedom, the
+    share above the chi2 95 % point, and the RMS z per kind as text."""
+    nees = np.array([a.nees for a in against])
+    dof = against[0].dof
+    above = float(np.mean(nees > stats.chi2.ppf(0.95, dof) / dof))
+    kinds = ", ".join(
+        f"{k} {math.sqrt(float(np.mean([a.rms_z[k] ** 2 for a in against]))):.2f}"
+        for k in PARAM_KINDS
+    )
+    return nees, dof, above, kinds
+
+
 def summary(name: str, runs: list[RunFigures]) -> str:
     if not runs:
         return f"{name}: no run DONE"
-    nees = np.array([r.against.nees for r in runs])
-    dof = runs[0].against.dof
-    above = float(np.mean(nees > stats.chi2.ppf(0.95, dof) / dof))
-    kinds = ", ".join(
-        f"{k} {math.sqrt(float(np.mean([r.against.rms_z[k] ** 2 for r in runs]))):.2f}"
-        for k in PARAM_KINDS
-    )
+    nees, _, above, kinds = whole_and_kinds([r.against for r in runs])
     mm = np.array([r.against.square[0] * 1e3 for r in runs])
     fc = np.array([r.against.square_forecast[0] * 1e3 for r in runs])
     rms_mm, rms_fc = (math.sqrt(float(np.mean(a**2))) for a in (mm, fc))

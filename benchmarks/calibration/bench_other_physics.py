@@ -40,8 +40,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
+from benchmarks.calibration.bench_honesty import whole_and_kinds
 from benchmarks.calibration.bench_plan import as_matrix, seed_truths
 from simulators.offline import datagen, datagen_tyres
 from simulators.physics.tyres import TyreOptions
@@ -140,13 +140,7 @@ def runs(name: str, truths: list[RobotParams], S: np.ndarray) -> tuple[list[Run]
 def summary(name: str, rs: list[Run], refused: int) -> list[str]:
     if not rs:
         return [f"{name}: no run solved ({refused} refused)"]
-    nees = np.array([r.against.nees for r in rs])
-    dof = rs[0].against.dof
-    above = float(np.mean(nees > stats.chi2.ppf(0.95, dof) / dof))
-    kinds = ", ".join(
-        f"{k} {math.sqrt(float(np.mean([r.against.rms_z[k] ** 2 for r in rs]))):.2f}"
-        for k in PARAM_KINDS
-    )
+    nees, dof, above, kinds = whole_and_kinds([r.against for r in rs])
     largest = ", ".join(
         f"{k} {max(r.against.largest[k] for r in rs) * DISPLAY[k][0]:.4f} {DISPLAY[k][1]}"
         for k in PARAM_KINDS

@@ -58,6 +58,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -240,7 +241,8 @@ def default_nominal(truth: RobotParams) -> RobotParams:
     )
 
 
-def _quantize(x: FloatArray, counts: int | None) -> FloatArray:
+def quantize(x: FloatArray, counts: int | None) -> FloatArray:
+    """Angles ``x`` (rad) rounded to an encoder of ``counts`` per turn (None: as they are)."""
     if counts is None:
         return x
     q = 2.0 * np.pi / counts
@@ -469,6 +471,22 @@ def _segments(tl: _Timeline, ids: list[int]) -> tuple[list[Segment], list[Segmen
     return segments, seg_truth
 
 
+def experiment_modules(
+    truth: RobotParams, nominal: RobotParams | None, modules: Sequence[int] | None
+) -> tuple[RobotParams, list[int], list[int]]:
+    """An experiment's nominal robot (default :func:`default_nominal`), its module ids and
+    the modules it locks (``modules``, default all, in that order), checked against
+    ``truth``."""
+    nom = nominal if nominal is not None else default_nominal(truth)
+    if nom.ids != truth.ids:
+        raise ValueError(f"nominal ids {nom.ids} differ from truth ids {truth.ids}")
+    ids = [int(m) for m in truth.ids]
+    locked = ids if modules is None else [int(m) for m in modules]
+    if not set(locked) <= set(ids):
+        raise ValueError(f"modules {locked} are not all module ids of the robot {ids}")
+    return nom, ids, locked
+
+
 def generate_experiment(
     truth: RobotParams, options: ExperimentOptions | None = None, nominal: RobotParams | None = None
 ) -> Experiment:
@@ -479,13 +497,7 @@ def generate_experiment(
         raise ValueError("the experiment needs at least one steering angle per module")
     if opt.yaw_rate == 0.0:
         raise ValueError("yaw_rate must be non-zero")
-    nom = nominal if nominal is not None else default_nominal(truth)
-    if nom.ids != truth.ids:
-        raise ValueError(f"nominal ids {nom.ids} differ from truth ids {truth.ids}")
-    ids = [int(m) for m in truth.ids]
-    locked = ids if opt.modules is None else [int(m) for m in opt.modules]
-    if not set(locked) <= set(ids):
-        raise ValueError(f"modules {locked} are not all module ids of the robot {ids}")
+    nom, ids, locked = experiment_modules(truth, nominal, opt.modules)
 
     # ---------------------------------------------------------------- the motion
     tl = _Timeline(truth, opt)
@@ -511,8 +523,8 @@ def generate_experiment(
     psi_meas, bursts = _slipped(tl, ids, t_enc, psi_e, rng)
 
     # encoders: reported steering (held angle for the static module) and wheel
-    steer = _quantize(np.asarray(wrap_angle(theta_e - tl.beta), dtype=float), opt.counts_per_rev)
-    wheel = _quantize(psi_meas, opt.counts_per_rev)
+    steer = quantize(np.asarray(wrap_angle(theta_e - tl.beta), dtype=float), opt.counts_per_rev)
+    wheel = quantize(psi_meas, opt.counts_per_rev)
     encoders = {m: np.column_stack([stamps, steer[:, j], wheel[:, j]]) for j, m in enumerate(ids)}
 
     meas, keep, out_idx = _measured_poses(poses_true, opt, rng)

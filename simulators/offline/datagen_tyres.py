@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from simulators.offline.datagen import ar1_noise, default_nominal
+from simulators.offline.datagen import ar1_noise, experiment_modules, quantize
 from simulators.physics.tyres import (
     ModuleCommand,
     Plant,
@@ -249,12 +249,6 @@ def _targets(nominal: RobotParams, truth: RobotParams, k: int, a: float, w: floa
     return [float(v) for v in hat + tru.beta]
 
 
-def _quantize(x: FloatArray, counts: int | None) -> FloatArray:
-    if counts is None:
-        return x
-    q = 2.0 * math.pi / counts
-    return np.asarray(np.round(x / q) * q, dtype=float)
-
 
 def generate_experiment(
     truth: RobotParams,
@@ -268,13 +262,7 @@ def generate_experiment(
     opt = options or TyreExperimentOptions()
     if len(opt.angles) < 1 or opt.yaw_rate == 0.0:
         raise ValueError("the experiment needs a steering angle and a non-zero yaw_rate")
-    nom = nominal if nominal is not None else default_nominal(truth)
-    if nom.ids != truth.ids:
-        raise ValueError(f"nominal ids {nom.ids} differ from truth ids {truth.ids}")
-    ids = [int(m) for m in truth.ids]
-    locked = ids if opt.modules is None else [int(m) for m in opt.modules]
-    if not set(locked) <= set(ids):
-        raise ValueError(f"modules {locked} are not all module ids of the robot {ids}")
+    nom, ids, locked = experiment_modules(truth, nominal, opt.modules)
     run = _Run(truth, opt)
     run.rest()
     spins: list[SpinTruth] = []
@@ -297,9 +285,9 @@ def generate_experiment(
     n = run.n
     t = rows[:, 0]
     beta = np.array([mc.beta for mc in run.plant.modules])
-    steer = _quantize(np.asarray(wrap_angle(rows[:, 4 : 4 + n] - beta), dtype=float),
+    steer = quantize(np.asarray(wrap_angle(rows[:, 4 : 4 + n] - beta), dtype=float),
                       opt.counts_per_rev)  # fmt: skip
-    wheel = _quantize(rows[:, 4 + n : 4 + 2 * n], opt.counts_per_rev)
+    wheel = quantize(rows[:, 4 + n : 4 + 2 * n], opt.counts_per_rev)
     encoders = {mid: np.column_stack([t, steer[:, j], wheel[:, j]]) for j, mid in enumerate(ids)}
     true_poses = rows[:: run.pose_every, :4]
     rng = np.random.default_rng(opt.seed)
