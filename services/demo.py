@@ -9,7 +9,7 @@
 3. shows the progress (the operator console at ``/`` shows it too: its address and the
    token are printed first), then prints the nominal / calibrated / true table, where the
    kinematic file was written, and a digest of the calibrated parameters: the same seed
-   gives the same digest, bit for bit, on any host and at any load;
+   gives the same digest, bit for bit, at any load (on one CPU: docs/time.md);
 4. stops the service (by its PID).
 
 ``--drives cia402|odrive`` runs the same on those drives (the virtual robot's drives and the
